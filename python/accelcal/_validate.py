@@ -1,0 +1,80 @@
+"""Input coercion shared by the public API: clear errors in Python, strict types for Rust."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ._core import CalibrationError
+
+_NATIVE = (np.dtype(np.float64), np.dtype(np.float32), np.dtype(np.int16), np.dtype(np.int32))
+
+
+def samples_array(x: Any, name: str = "samples") -> NDArray[Any]:
+    """Return ``x`` as an (N, 3) array of a dtype the Rust kernels read without copying.
+
+    float64/float32/int16/int32 pass through untouched (any strides). Other integer types are
+    widened exactly (uint16 raw counts to int32, int64 to float64 when exact); bool, complex,
+    object and text arrays are refused.
+    """
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        raise CalibrationError(
+            f"{name}: unsupported dtype {a.dtype}; give float64, float32, int16 or int32 samples"
+        )
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise CalibrationError(f"{name} must have shape (N, 3) (x, y, z per row); got {a.shape}")
+    if a.shape[0] == 0:
+        raise CalibrationError(f"{name} are empty (0 rows)")
+    if not a.dtype.isnative:
+        a = a.astype(a.dtype.newbyteorder("="))
+    if a.dtype in _NATIVE:
+        return a
+    if a.dtype.kind == "f":  # float16, longdouble
+        return a.astype(np.float64)
+    if a.dtype.itemsize <= 2 or a.dtype == np.dtype(np.uint16):
+        return a.astype(np.int32)
+    big = np.abs(a.astype(np.float64)).max()
+    if big >= 2.0**53:
+        raise CalibrationError(f"{name}: integer values up to {big:.3g} cannot be held exactly")
+    return a.astype(np.float64)
+
+
+def channel(x: Any, n: int, name: str) -> NDArray[np.float64] | None:
+    """A per-sample channel (time, temperature) as contiguous float64 of length ``n``."""
+    if x is None:
+        return None
+    a = np.ascontiguousarray(np.asarray(x, dtype=np.float64))
+    if a.ndim != 1 or a.shape[0] != n:
+        raise CalibrationError(f"{name} must have shape ({n},) to match the samples; got {a.shape}")
+    return a
+
+
+def bounds_array(b: Any) -> NDArray[np.int64]:
+    """Dwell bounds as (k, 2) int64 [start, stop) sample indices."""
+    a = np.asarray(b)
+    if a.ndim == 1 and a.size == 2:
+        a = a.reshape(1, 2)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise CalibrationError(f"bounds must have shape (k, 2) [start, stop); got {a.shape}")
+    if a.shape[0] == 0:
+        raise CalibrationError("bounds are empty: give at least one [start, stop) dwell")
+    if a.dtype.kind == "f":
+        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            raise CalibrationError("bounds must be integer sample indices")
+    elif a.dtype.kind not in "iu":
+        raise CalibrationError(f"bounds must be integer sample indices; got dtype {a.dtype}")
+    return np.ascontiguousarray(a.astype(np.int64))
+
+
+def positive(x: Any, name: str, unit: str = "") -> float:
+    """A positive finite float, or a CalibrationError naming it."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name} must be a number; got {x!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise CalibrationError(f"{name} must be positive and finite{unit}; got {x!r}")
+    return v

@@ -1,0 +1,38 @@
+//! The only place that imports pyo3: module definition, conversions and error mapping.
+
+mod convert;
+mod dwell;
+
+use crate::error::CoreError;
+use pyo3::exceptions::PyValueError;
+use pyo3::PyErr;
+
+pyo3::create_exception!(
+    accelcal,
+    CalibrationError,
+    PyValueError,
+    "Input that cannot be calibrated: wrong shape, NaN, bad units, non-convergence."
+);
+pyo3::create_exception!(
+    accelcal,
+    DegenerateDataError,
+    CalibrationError,
+    "The data cannot determine what was asked: singular pose set, too few dwells."
+);
+
+impl From<CoreError> for PyErr {
+    fn from(e: CoreError) -> PyErr {
+        match e {
+            CoreError::Degenerate(m) => DegenerateDataError::new_err(m),
+            CoreError::InvalidInput(m) | CoreError::NotConverged(m) => CalibrationError::new_err(m),
+        }
+    }
+}
+
+#[pyo3::pymodule]
+mod _core {
+    #[pymodule_export]
+    use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
+    #[pymodule_export]
+    use super::{CalibrationError, DegenerateDataError};
+}
