@@ -4,6 +4,7 @@
 
 pub mod dwell;
 pub mod error;
+pub mod lsq;
 
 #[cfg(feature = "python")]
 mod py;
