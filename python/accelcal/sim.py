@@ -1,0 +1,17 @@
+"""Simulators for all three systems, with known truth.
+
+- :func:`field_session`: static field calibration (seed 000), raw high-rate stream.
+- ``static_dwell_means``: the seed-000 paper's dwell-mean simulation.
+- ``centrifuge_session``: centrifuge runs with K2 terms (seed 004).
+- ``gradiometer_session``: rotating-accelerometer gradiometer start-up (seed 003).
+"""
+
+from .sim_field import SEED000_TRUTH, FieldSession, field_session, gravity_from_tilts, triad_matrix
+
+__all__ = [
+    "SEED000_TRUTH",
+    "FieldSession",
+    "field_session",
+    "gravity_from_tilts",
+    "triad_matrix",
+]

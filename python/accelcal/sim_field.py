@@ -1,0 +1,133 @@
+"""Simulator of a static field-calibration session (seed 000): raw high-rate streams with truth."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._core import CalibrationError
+
+__all__ = ["SEED000_TRUTH", "FieldSession", "field_session", "gravity_from_tilts", "triad_matrix"]
+
+#: The seed's truth [sx, sy, sz, bx, by, bz, m1, m2, m3] (SPEC 1; b in m/s^2).
+SEED000_TRUTH: NDArray[np.float64] = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
+
+
+def triad_matrix(vector: ArrayLike) -> NDArray[np.float64]:
+    """K = S + M (lower triangular) from [sx, sy, sz, bx, by, bz, m1, m2, m3]."""
+    v = np.asarray(vector, dtype=np.float64)
+    sx, sy, sz = v[0:3]
+    m1, m2, m3 = (v[6:9] if v.size >= 9 else np.zeros(3))
+    return np.array([[sx, 0.0, 0.0], [m1, sy, 0.0], [m2, m3, sz]])
+
+
+def gravity_from_tilts(tx_rad: ArrayLike, ty_rad: ArrayLike, g: float) -> NDArray[np.float64]:
+    """Specific force at rest for platform tilts (SPEC 1): [-g sin ty, g sin tx cos ty, g cos tx cos ty]."""
+    tx = np.asarray(tx_rad, dtype=np.float64)
+    ty = np.asarray(ty_rad, dtype=np.float64)
+    return np.stack(
+        [-g * np.sin(ty), g * np.sin(tx) * np.cos(ty), g * np.cos(tx) * np.cos(ty)], axis=-1
+    )
+
+
+@dataclass
+class FieldSession:
+    """A simulated session: raw output stream plus the truth behind it.
+
+    samples : (N, 3) raw output in m/s^2 (the seed's model am = K a + b + noise).
+    t : (N,) s.  fs : Hz.  g : reference gravity, m/s^2.
+    truth : (9,) [sx, sy, sz, bx, by, bz, m1, m2, m3].
+    tilts_deg : (n, 2) platform tilts (tx, ty) of each dwell.
+    bounds : (n, 2) true [start, stop) sample indices of each static dwell.
+    """
+
+    samples: NDArray[np.float64]
+    t: NDArray[np.float64]
+    fs: float
+    g: float
+    truth: NDArray[np.float64]
+    tilts_deg: NDArray[np.float64]
+    bounds: NDArray[np.int64]
+    sigma: float
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _smoothstep(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    return u * u * (3.0 - 2.0 * u)
+
+
+def field_session(
+    *,
+    fs: float = 5000.0,
+    n_dwells: int = 20,
+    dwell_s: float = 20.0,
+    move_s: float = 4.0,
+    max_tilt_deg: float = 30.0,
+    tilts_deg: ArrayLike | None = None,
+    truth: ArrayLike = SEED000_TRUTH,
+    g: float = 9.80665,
+    sigma: float = 1e-3,
+    rng: int | np.random.Generator | None = 0,
+) -> FieldSession:
+    """Simulate a seed-000-like field session as a raw stream.
+
+    The platform holds ``n_dwells`` attitudes for ``dwell_s`` seconds each, tilts uniform in
+    +-``max_tilt_deg`` (or the given ``tilts_deg`` (n, 2)), and moves between them over
+    ``move_s`` seconds (smooth tilt change plus the kinematic acceleration of the motion).
+    White noise of ``sigma`` m/s^2 per axis and sample (the seed's 1e-3).
+    """
+    gen = np.random.default_rng(rng)
+    if fs <= 0 or not np.isfinite(fs):
+        raise CalibrationError(f"fs must be positive (Hz); got {fs}")
+    if tilts_deg is None:
+        if n_dwells < 1:
+            raise CalibrationError("n_dwells must be >= 1")
+        tl = gen.uniform(-max_tilt_deg, max_tilt_deg, size=(n_dwells, 2))
+    else:
+        tl = np.asarray(tilts_deg, dtype=np.float64).reshape(-1, 2)
+    n = tl.shape[0]
+    nd = int(round(dwell_s * fs))
+    nm = int(round(move_s * fs))
+    if nd < 2 or (n > 1 and nm < 2):
+        raise CalibrationError("dwell_s and move_s must each span at least two samples")
+    total = n * nd + (n - 1) * nm
+    tx = np.empty(total)
+    ty = np.empty(total)
+    kin = np.zeros((total, 3))
+    bounds = np.empty((n, 2), dtype=np.int64)
+    pos = 0
+    for k in range(n):
+        tx[pos : pos + nd] = tl[k, 0]
+        ty[pos : pos + nd] = tl[k, 1]
+        bounds[k] = (pos, pos + nd)
+        pos += nd
+        if k + 1 < n:
+            u = (np.arange(nm) + 0.5) / nm
+            s = _smoothstep(u)
+            tx[pos : pos + nm] = tl[k, 0] + s * (tl[k + 1, 0] - tl[k, 0])
+            ty[pos : pos + nm] = tl[k, 1] + s * (tl[k + 1, 1] - tl[k, 1])
+            # Kinematic acceleration of the motion: a smooth bump of ~0.2 m/s^2 (handling, lever arm).
+            bump = 0.2 * np.sin(np.pi * u) * np.sin(6 * np.pi * u)
+            kin[pos : pos + nm] = bump[:, None] * gen.normal(size=3)[None, :]
+            pos += nm
+    a = gravity_from_tilts(np.radians(tx), np.radians(ty), g) + kin
+    v = np.asarray(truth, dtype=np.float64)
+    if v.shape != (9,):
+        raise CalibrationError(f"truth must be the 9-vector [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {v.shape}")
+    K = triad_matrix(v)
+    out = a @ K.T + v[3:6] + gen.normal(scale=sigma, size=(total, 3))
+    t = np.arange(total) / fs
+    return FieldSession(
+        samples=out,
+        t=t,
+        fs=float(fs),
+        g=float(g),
+        truth=v.copy(),
+        tilts_deg=tl,
+        bounds=bounds,
+        sigma=float(sigma),
+        meta={"dwell_s": dwell_s, "move_s": move_s, "max_tilt_deg": max_tilt_deg},
+    )
