@@ -7,17 +7,82 @@ The numerics are Rust (``accelcal._core``); this package is the API.
 
 from __future__ import annotations
 
+from . import io as io  # accelcal.io.read_stream, iter_stream, stream_dwells
 from ._core import CalibrationError, DegenerateDataError
+from .centrifuge import (
+    CentrifugeFit,
+    CentrifugeOutlierWarning,
+    CentrifugeSensitivity,
+    calibrate_centrifuge_table,
+    centrifuge_sensitivity,
+    fit_centrifuge,
+    read_centrifuge_table,
+)
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
+from .gap import GapReport, allan_deviation, diagnose
+from .gradiometer import (
+    Demodulated,
+    StartupBias,
+    StartupCalibration,
+    StartupPrediction,
+    calibrate_gradiometer_table,
+    demodulate,
+    plan_azimuths,
+    predict_startup_accuracy,
+    startup_bias,
+)
+from .static import (
+    BatchFit,
+    PosePlan,
+    Prediction,
+    StaticFit,
+    TriadModel,
+    WeakDesignWarning,
+    fit_static,
+    fit_static_batch,
+    local_gravity,
+    plan_poses,
+    predict_accuracy,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "CentrifugeFit",
+    "CentrifugeOutlierWarning",
+    "CentrifugeSensitivity",
+    "calibrate_centrifuge_table",
+    "centrifuge_sensitivity",
+    "fit_centrifuge",
+    "read_centrifuge_table",
     "CalibrationError",
     "DegenerateDataError",
+    "Demodulated",
+    "StartupBias",
+    "StartupCalibration",
+    "StartupPrediction",
+    "calibrate_gradiometer_table",
+    "demodulate",
+    "plan_azimuths",
+    "predict_startup_accuracy",
+    "startup_bias",
     "DetectorSettings",
     "DwellAccumulator",
     "DwellSet",
+    "GapReport",
+    "allan_deviation",
+    "diagnose",
     "detect_dwells",
     "dwell_stats",
+    "BatchFit",
+    "PosePlan",
+    "Prediction",
+    "StaticFit",
+    "TriadModel",
+    "WeakDesignWarning",
+    "fit_static",
+    "fit_static_batch",
+    "local_gravity",
+    "plan_poses",
+    "predict_accuracy",
 ]

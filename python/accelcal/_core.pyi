@@ -1,5 +1,5 @@
 # Type stub of the compiled module (checked by `python -m mypy.stubtest accelcal._core`).
-from typing import Any
+from typing import Any, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +27,7 @@ def detect_dwells_raw(
     temperature: NDArray[np.float64] | None = None,
 ) -> dict[str, Any]: ...
 
+@final
 class RawDwellAccumulator:
     def __new__(
         cls,
@@ -49,3 +50,133 @@ class RawDwellAccumulator:
     @property
     def position(self) -> int: ...
     def finish(self) -> dict[str, Any]: ...
+
+def startup_bias_raw(
+    theta_rad: NDArray[np.float64],
+    outputs: NDArray[np.float64],
+    dwell_std: NDArray[np.float64],
+    t: NDArray[np.float64] | None = None,
+    t_ref: float = 0.0,
+) -> dict[str, Any]: ...
+def startup_predict_raw(
+    theta_rad: NDArray[np.float64],
+    dwell_std: NDArray[np.float64],
+    t: NDArray[np.float64] | None = None,
+    t_ref: float = 0.0,
+    gradient: list[float] | None = None,
+    gradient_magnitude: float = 0.0,
+    sigma_theta_rad: float = 0.0,
+) -> dict[str, Any]: ...
+def demodulate_raw(
+    accel: NDArray[Any],
+    phase: NDArray[np.float64],
+    bounds: NDArray[np.int64],
+    radius_m: float,
+) -> dict[str, Any]: ...
+
+def gap_diagnose_raw(
+    mean: NDArray[np.float64],
+    sigma_mean: NDArray[np.float64] | None,
+    t: NDArray[np.float64] | None,
+    temperature: NDArray[np.float64] | None,
+    g: float,
+    effects: list[str],
+    alpha: float = 0.05,
+    max_effects: int = 3,
+    loo: bool = True,
+    start: list[float] | None = None,
+    sine_tol: float = 0.05,
+    ambiguity_cos: float = 0.9,
+    min_temp_range: float = 0.05,
+) -> dict[str, Any]: ...
+def gap_model_residuals_raw(
+    mean: NDArray[np.float64],
+    t: NDArray[np.float64] | None,
+    temperature: NDArray[np.float64] | None,
+    g: float,
+    params: list[float],
+    effects: list[str],
+) -> NDArray[np.float64]: ...
+
+def centrifuge_fit_raw(
+    outputs: NDArray[np.float64],
+    omega: NDArray[np.float64],
+    radius: float,
+    g: float,
+    method: str = "nls",
+    k3: bool = False,
+    misalignment: bool = False,
+    lever_arm: str | None = None,
+    spin_axis: NDArray[np.float64] | None = None,
+    sigma: NDArray[np.float64] | None = None,
+    robust: bool = True,
+    outlier_k: float = 5.0,
+    sigma_floor: float = 1e-9,
+    max_draws: int = 20000,
+    seed: int = 0,
+) -> dict[str, Any]: ...
+
+# --- static field calibration (rust/src/py/static_fit.rs) ---
+@final
+class StaticFitRaw:
+    @property
+    def model(self) -> str: ...
+    @property
+    def params(self) -> NDArray[np.float64]: ...
+    @property
+    def start(self) -> NDArray[np.float64]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def residuals(self) -> NDArray[np.float64]: ...
+    @property
+    def sigma_r(self) -> NDArray[np.float64]: ...
+    @property
+    def cost(self) -> float: ...
+    @property
+    def dof(self) -> int: ...
+    @property
+    def chi2_dof(self) -> float: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def noise_known(self) -> bool: ...
+    @property
+    def note(self) -> str: ...
+    @property
+    def weak(self) -> bool: ...
+    @property
+    def degenerate(self) -> bool: ...
+    @property
+    def std_comparable(self) -> NDArray[np.float64]: ...
+    @property
+    def weakest_std(self) -> float: ...
+    def observability(self) -> dict[str, Any]: ...
+
+def static_fit_raw(
+    means: NDArray[np.float64],
+    g: float,
+    model: str = "lower",
+    method: str = "lm",
+    var: NDArray[np.float64] | None = None,
+    start: list[float] | None = None,
+    max_iter: int = 200,
+    raise_degenerate: bool = True,
+    degenerate_std: float = 0.1,
+    weak_std: float = 1e-3,
+) -> StaticFitRaw: ...
+def static_fit_batch_raw(
+    means: NDArray[np.float64],
+    g: NDArray[np.float64],
+    model: str = "lower",
+    method: str = "lm",
+    sigma: float | None = None,
+    start: list[float] | None = None,
+    max_iter: int = 200,
+    degenerate_std: float = 0.1,
+) -> dict[str, Any]: ...
+def apply_triad_raw(
+    samples: NDArray[Any], k: list[list[float]], b: list[float]
+) -> NDArray[np.float64]: ...

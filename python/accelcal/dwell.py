@@ -241,10 +241,13 @@ class DwellSet:
         def i(n: str) -> NDArray[np.int64] | None:
             return np.array(data[n], dtype=np.int64) if n in data else None
 
-        mean = np.column_stack([f(f"mean_{a}") for a in _AXES])
-        var = None
-        if all(f"var_{a}" in data for a in _AXES):
-            var = np.column_stack([f(f"var_{a}") for a in _AXES])
+        def cols(prefix: str) -> NDArray[np.float64]:
+            return np.column_stack(
+                [np.array(data[f"{prefix}_{a}"], dtype=np.float64) for a in _AXES]
+            )
+
+        mean = cols("mean")
+        var = cols("var") if all(f"var_{a}" in data for a in _AXES) else None
 
         def vec(key: str) -> NDArray[np.float64] | None:
             return np.array(meta[key].split(), dtype=np.float64) if key in meta else None

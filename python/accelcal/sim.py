@@ -6,9 +6,15 @@
 - ``gradiometer_session``: rotating-accelerometer gradiometer start-up (seed 003).
 """
 
+from .sim_centrifuge import centrifuge_session
 from .sim_field import SEED000_TRUTH, FieldSession, field_session, gravity_from_tilts, triad_matrix
+from .sim_gap import gap_session
+from .sim_gradiometer import gradiometer_session
 
 __all__ = [
+    "centrifuge_session",
+    "gap_session",
+    "gradiometer_session",
     "SEED000_TRUTH",
     "FieldSession",
     "field_session",

@@ -15,11 +15,21 @@ use rayon::prelude::*;
 pub const LANES: usize = 4;
 /// Samples per shifted block (a multiple of [`LANES`]).
 pub const BLOCK: usize = 4096;
+/// Values per group of [`LANES`] rows.
+const W: usize = 3 * LANES;
 
 /// A sample type accepted by the kernels: converted exactly (integers) or widened to f64.
 pub trait Sample: Copy + Send + Sync + 'static {
     /// The value as f64.
     fn to_f64(self) -> f64;
+
+    /// Accumulate whole groups of `3 * LANES` values (at most one block) into the per-lane
+    /// shifted sums (`s1 += x - shift`, `s2 += (x - shift)^2`, element `j` of a group in lane
+    /// `j / 3`, axis `j % 3`). Overridden where an exact faster path exists.
+    #[inline(always)]
+    fn accumulate(body: &[Self], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+        accumulate_dispatch(body, sh, s1, s2);
+    }
 }
 impl Sample for f64 {
     #[inline(always)]
@@ -37,6 +47,11 @@ impl Sample for i16 {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         f64::from(self)
+    }
+
+    #[inline(always)]
+    fn accumulate(body: &[Self], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+        accumulate_i16_dispatch(body, sh, s1, s2);
     }
 }
 impl Sample for i32 {
@@ -105,7 +120,10 @@ impl Moments {
 
     /// True when every mean and m2 is finite.
     pub fn is_finite(&self) -> bool {
-        self.mean.iter().chain(self.m2.iter()).all(|v| v.is_finite())
+        self.mean
+            .iter()
+            .chain(self.m2.iter())
+            .all(|v| v.is_finite())
     }
 }
 
@@ -144,8 +162,8 @@ impl SegmentAcc {
 
     #[inline(always)]
     fn add(&mut self, lane: usize, r: [f64; 3]) {
-        for a in 0..3 {
-            let d = r[a] - self.shift[a];
+        for (a, &v) in r.iter().enumerate() {
+            let d = v - self.shift[a];
             self.s1[lane][a] += d;
             self.s2[lane][a] += d * d;
         }
@@ -182,7 +200,10 @@ impl SegmentAcc {
             }
             let md = s1 / n;
             m.mean[a] = self.shift[a] + md;
-            m.m2[a] = (s2 - s1 * md).max(0.0);
+            // Clamp rounding below zero, but keep NaN (overflow) visible: `f64::max` would
+            // turn a NaN into 0 and hide values too large to square.
+            let m2 = s2 - s1 * md;
+            m.m2[a] = if m2 < 0.0 { 0.0 } else { m2 };
         }
         m
     }
@@ -200,31 +221,42 @@ impl SegmentAcc {
         let nrows = data.len() / 3;
         let mut i = 0;
         // Head: single rows until the lane index is aligned.
-        while self.nb % LANES != 0 && i < nrows {
+        while !self.nb.is_multiple_of(LANES) && i < nrows {
             let r = &data[3 * i..3 * i + 3];
             self.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
             i += 1;
         }
-        let rest = &data[3 * i..3 * nrows];
-        let mut groups = rest.chunks_exact(3 * LANES);
-        for g in groups.by_ref() {
+        let mut rest = &data[3 * i..3 * nrows];
+        // Body: whole groups of LANES rows, a block at a time, with the accumulators in locals
+        // (registers) and the group seen as 3 * LANES independent sums: element j of a group
+        // is lane j / 3, axis j % 3, exactly as in `add`, so results are bit-identical to the
+        // row-by-row path and independent of chunking.
+        while rest.len() >= W {
             if self.nb == 0 {
-                self.shift = [g[0].to_f64(), g[1].to_f64(), g[2].to_f64()];
+                self.shift = [rest[0].to_f64(), rest[1].to_f64(), rest[2].to_f64()];
             }
-            for l in 0..LANES {
-                let r = [
-                    g[3 * l].to_f64(),
-                    g[3 * l + 1].to_f64(),
-                    g[3 * l + 2].to_f64(),
-                ];
-                self.add(l, r);
+            let groups = ((BLOCK - self.nb) / LANES).min(rest.len() / W);
+            let (body, tail) = rest.split_at(groups * W);
+            let mut sh = [0.0; W];
+            let mut s1 = [0.0; W];
+            let mut s2 = [0.0; W];
+            for j in 0..W {
+                sh[j] = self.shift[j % 3];
+                s1[j] = self.s1[j / 3][j % 3];
+                s2[j] = self.s2[j / 3][j % 3];
             }
-            self.nb += LANES;
+            T::accumulate(body, &sh, &mut s1, &mut s2);
+            for j in 0..W {
+                self.s1[j / 3][j % 3] = s1[j];
+                self.s2[j / 3][j % 3] = s2[j];
+            }
+            self.nb += groups * LANES;
             if self.nb == BLOCK {
                 self.flush();
             }
+            rest = tail;
         }
-        for r in groups.remainder().chunks_exact(3) {
+        for r in rest.chunks_exact(3) {
             self.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
         }
     }
@@ -245,6 +277,104 @@ impl SegmentAcc {
     pub fn moments(&self) -> Moments {
         self.done.merge(&self.block_moments())
     }
+}
+
+/// The hot loop: `s1[j] += x[j] - sh[j]`, `s2[j] += (x[j] - sh[j])^2` over groups of
+/// `3 * LANES` values (no FMA contraction, so the rounding is the same as in `SegmentAcc::add`).
+#[inline(always)]
+fn accumulate_groups<T: Sample>(body: &[T], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+    for g in body.chunks_exact(W) {
+        for j in 0..W {
+            let d = g[j].to_f64() - sh[j];
+            s1[j] += d;
+            s2[j] += d * d;
+        }
+    }
+}
+
+/// [`accumulate_groups`] compiled for AVX2 when the CPU has it (wider vectors, same
+/// operations in the same order, so bit-identical results), else for the baseline target.
+#[inline]
+fn accumulate_dispatch<T: Sample>(body: &[T], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { accumulate_groups_avx2(body, sh, s1, s2) };
+            return;
+        }
+    }
+    accumulate_groups(body, sh, s1, s2);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn accumulate_groups_avx2<T: Sample>(
+    body: &[T],
+    sh: &[f64; W],
+    s1: &mut [f64; W],
+    s2: &mut [f64; W],
+) {
+    accumulate_groups(body, sh, s1, s2);
+}
+
+/// int16 counts: the same sums in exact integer arithmetic.
+///
+/// With an integer shift every deviation `d` is an integer with `|d| <= 65535`, so within one
+/// block (<= 4096 rows) every float64 partial sum of `d` and `d^2` in [`accumulate_groups`] is
+/// an integer below 2^53 and therefore exact whatever the order. Integer sums give the same
+/// exact totals, so the result is bit-identical to the float path (the row-by-row and strided
+/// paths included). The totals go into lane 0; lanes are only ever summed.
+#[inline(always)]
+fn accumulate_i16(body: &[i16], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+    const U: usize = 2 * W;
+    let shu: [i32; U] = std::array::from_fn(|j| sh[j % 3] as i32);
+    let mut a1 = [0i32; U];
+    let mut a2 = [0u64; U];
+    let mut it = body.chunks_exact(U);
+    for g in it.by_ref() {
+        for j in 0..U {
+            let d = i32::from(g[j]) - shu[j];
+            a1[j] += d;
+            // |d| <= 65535, so d^2 < 2^32 fits u32 (the wrapping product of the two's
+            // complement bits is exact).
+            a2[j] += u64::from((d as u32).wrapping_mul(d as u32));
+        }
+    }
+    for (j, &v) in it.remainder().iter().enumerate() {
+        let d = i32::from(v) - shu[j];
+        a1[j] += d;
+        a2[j] += u64::from((d as u32).wrapping_mul(d as u32));
+    }
+    let mut t1 = [0i64; 3];
+    let mut t2 = [0u64; 3];
+    for j in 0..U {
+        t1[j % 3] += i64::from(a1[j]);
+        t2[j % 3] += a2[j];
+    }
+    for a in 0..3 {
+        s1[a] += t1[a] as f64;
+        s2[a] += t2[a] as f64;
+    }
+}
+
+#[inline]
+fn accumulate_i16_dispatch(body: &[i16], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { accumulate_i16_avx2(body, sh, s1, s2) };
+            return;
+        }
+    }
+    accumulate_i16(body, sh, s1, s2);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn accumulate_i16_avx2(body: &[i16], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+    accumulate_i16(body, sh, s1, s2);
 }
 
 /// Check that `samples` is `(N, 3)`.
@@ -332,7 +462,9 @@ pub fn aux_mean(x: &[f64], bounds: &[[usize; 2]]) -> Result<Vec<f64>> {
             if m.is_finite() {
                 Ok(m)
             } else {
-                invalid(format!("auxiliary channel has NaN or inf in dwell {k}"))
+                invalid(format!(
+                    "temperature (auxiliary channel) has NaN or inf in dwell {k}"
+                ))
             }
         })
         .collect()
@@ -388,7 +520,10 @@ impl DetectorSettings {
         pos(self.k, "k (threshold factor)")?;
         pos(self.block_s, "block_s (s)")?;
         if !(self.min_dwell_s.is_finite() && self.min_dwell_s >= 0.0) {
-            return invalid(format!("min_dwell_s must be >= 0; got {}", self.min_dwell_s));
+            return invalid(format!(
+                "min_dwell_s must be >= 0; got {}",
+                self.min_dwell_s
+            ));
         }
         if !(self.trim_s.is_finite() && self.trim_s >= 0.0) {
             return invalid(format!("trim_s must be >= 0; got {}", self.trim_s));
@@ -530,8 +665,8 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
 pub enum DwellAccumulator {
     /// Known `[start, stop)` bounds.
     Bounds(BoundsAcc),
-    /// Automatic detection at `finish`.
-    Detect(DetectAcc),
+    /// Automatic detection at `finish` (boxed: it carries a block accumulator).
+    Detect(Box<DetectAcc>),
 }
 
 /// Accumulator for known bounds (sorted internally; results in the caller's order).
@@ -630,7 +765,7 @@ impl DwellAccumulator {
     /// Accumulate block statistics and detect dwells at `finish`.
     pub fn with_detector(settings: DetectorSettings) -> Result<Self> {
         settings.validate()?;
-        Ok(DwellAccumulator::Detect(DetectAcc {
+        Ok(DwellAccumulator::Detect(Box::new(DetectAcc {
             settings,
             blocks: Vec::new(),
             aux_blocks: Vec::new(),
@@ -641,7 +776,7 @@ impl DwellAccumulator {
             pos: 0,
             has_t: None,
             has_aux: None,
-        }))
+        })))
     }
 
     /// Samples pushed so far.
@@ -920,7 +1055,8 @@ mod tests {
         let mut step = 1;
         while pos < n {
             let e = (pos + step).min(n);
-            acc.push(&x.slice(ndarray::s![pos..e, ..]), None, None).unwrap();
+            acc.push(&x.slice(ndarray::s![pos..e, ..]), None, None)
+                .unwrap();
             pos = e;
             step = (step * 7 + 3) % 5003 + 1;
         }
@@ -954,6 +1090,45 @@ mod tests {
     }
 
     #[test]
+    fn int16_fast_path_is_bit_identical_to_row_path() {
+        let mut s = 19u64;
+        // Extreme counts: deviations up to 65535 from the block's first sample.
+        let x = Array2::from_shape_fn((10_007, 3), |(i, a)| {
+            let u = lcg(&mut s);
+            if (i + a) % 97 == 0 {
+                if u < 0.5 {
+                    i16::MIN
+                } else {
+                    i16::MAX
+                }
+            } else {
+                (-32000.0 + 20.0 * u) as i16
+            }
+        });
+        let mut fast = SegmentAcc::new();
+        fast.push_slice(x.as_slice().unwrap());
+        let mut slow = SegmentAcc::new();
+        for r in x.rows() {
+            slow.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
+        }
+        assert_eq!(fast.moments(), slow.moments());
+        let xf = x.mapv(f64::from);
+        let (mean, var) = two_pass(&xf, 0, 10_007);
+        let m = fast.moments();
+        for ax in 0..3 {
+            assert!((m.mean[ax] - mean[ax]).abs() <= 1e-12 * mean[ax].abs());
+            assert!((m.var()[ax] - var[ax]).abs() <= 1e-12 * var[ax]);
+        }
+    }
+
+    #[test]
+    fn overflow_is_an_error_not_zero_variance() {
+        let x = Array2::from_shape_fn((100, 3), |(i, _)| if i % 2 == 0 { -1e300 } else { 1e300 });
+        let e = dwell_moments(&x.view(), &[[0, 100]]).unwrap_err();
+        assert!(e.to_string().contains("too large"));
+    }
+
+    #[test]
     fn detector_finds_simulated_dwells() {
         // 5 dwells of 5 s at 100 Hz separated by 2 s ramps.
         let fs = 100.0;
@@ -962,13 +1137,17 @@ mod tests {
         let levels = [0.0, 1.0, -1.0, 2.0, 0.5];
         for (i, &l) in levels.iter().enumerate() {
             for _ in 0..500 {
-                rows.push([l + 0.01 * lcg(&mut s), 0.01 * lcg(&mut s), 9.8 + 0.01 * lcg(&mut s)]);
+                rows.push([
+                    l + 0.01 * lcg(&mut s),
+                    0.01 * lcg(&mut s),
+                    9.8 + 0.01 * lcg(&mut s),
+                ]);
             }
             if i + 1 < levels.len() {
                 for j in 0..200 {
                     let f = j as f64 / 200.0;
                     let v = l + f * (levels[i + 1] - l);
-                    rows.push([v, 0.3 * (f * 6.28).sin(), 9.8]);
+                    rows.push([v, 0.3 * (f * std::f64::consts::TAU).sin(), 9.8]);
                 }
             }
         }

@@ -2,9 +2,13 @@
 //!
 //! Pure Rust; the Python bindings live in [`py`] behind the `python` feature.
 
+pub mod centrifuge;
 pub mod dwell;
 pub mod error;
+pub mod gap;
+pub mod gradiometer;
 pub mod lsq;
+pub mod static_fit;
 
 #[cfg(feature = "python")]
 mod py;

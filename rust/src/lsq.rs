@@ -333,6 +333,339 @@ pub fn svd_report(j: &DMatrix<f64>) -> Result<SvdReport> {
     })
 }
 
+// ------------------------------------------------------------------------------------------
+// Small dense problems (a few parameters, tens of rows): faer's setup cost dominates there,
+// so these use nalgebra's Householder QR and normal equations accumulated by the problem.
+
+/// Rows above which [`lstsq_small`] hands over to [`lstsq_qr`] (faer).
+pub const SMALL_ROWS: usize = 256;
+
+/// [`lstsq_qr`] for small designs: same column scaling and rank test, nalgebra Householder
+/// QR (no faer set-up cost). Falls back to [`lstsq_qr`] above [`SMALL_ROWS`] rows.
+pub fn lstsq_small(a: &[f64], m: usize, n: usize, b: &[f64]) -> Result<Vec<f64>> {
+    if m > SMALL_ROWS || a.len() != m * n || b.len() != m || m < n {
+        return lstsq_qr(a, m, n, b);
+    }
+    let mut scale = vec![0.0; n];
+    for i in 0..m {
+        for j in 0..n {
+            scale[j] += a[i * n + j] * a[i * n + j];
+        }
+    }
+    for (j, s) in scale.iter_mut().enumerate() {
+        *s = s.sqrt();
+        if !(*s > 0.0) || !s.is_finite() {
+            return degenerate(format!("design column {j} is zero or not finite"));
+        }
+    }
+    let mat = DMatrix::<f64>::from_fn(m, n, |i, j| a[i * n + j] / scale[j]);
+    let qr = mat.qr();
+    let r = qr.r();
+    let mut dmax: f64 = 0.0;
+    let mut dmin = f64::INFINITY;
+    for j in 0..n {
+        let d = r[(j, j)].abs();
+        dmax = dmax.max(d);
+        dmin = dmin.min(d);
+    }
+    if !(dmin > 1e-13 * dmax) {
+        return degenerate(format!(
+            "design matrix is numerically singular (R diagonal ratio {:.2e})",
+            dmin / dmax
+        ));
+    }
+    let mut qtb = DVector::from_column_slice(b);
+    qr.q_tr_mul(&mut qtb);
+    let mut x = qtb.rows(0, n).into_owned();
+    if !r.solve_upper_triangular_mut(&mut x) {
+        return degenerate("design matrix is singular");
+    }
+    Ok((0..n).map(|j| x[j] / scale[j]).collect())
+}
+
+/// `(J^T J)^-1` of a small tall `J` by Cholesky of the column-scaled normal matrix (the
+/// scaling makes the test scale free); `None` when a pivot falls below `rtol^2` (relative
+/// singular value below about `rtol`) or the inverse is not finite.
+pub fn covariance_small(j: &DMatrix<f64>, rtol: f64) -> Option<DMatrix<f64>> {
+    let (m, n) = (j.nrows(), j.ncols());
+    if m < n || n == 0 {
+        return None;
+    }
+    // Normal matrix (column-major J: column dot products).
+    let mut a = vec![0.0f64; n * n];
+    let col = |k: usize| &j.as_slice()[k * m..(k + 1) * m];
+    for p in 0..n {
+        for q in p..n {
+            let v: f64 = col(p).iter().zip(col(q)).map(|(x, y)| x * y).sum();
+            a[p * n + q] = v;
+            a[q * n + p] = v;
+        }
+    }
+    let d: Vec<f64> = (0..n).map(|i| a[i * n + i].sqrt()).collect();
+    if d.iter().any(|v| !(*v > 0.0) || !v.is_finite()) {
+        return None;
+    }
+    for p in 0..n {
+        for q in 0..n {
+            a[p * n + q] /= d[p] * d[q];
+        }
+    }
+    // In-place Cholesky (lower), then L^-1, then C = L^-T L^-1.
+    for k in 0..n {
+        let mut s = a[k * n + k];
+        for t in 0..k {
+            s -= a[k * n + t] * a[k * n + t];
+        }
+        if !(s > rtol * rtol) {
+            return None;
+        }
+        let l = s.sqrt();
+        a[k * n + k] = l;
+        for i in (k + 1)..n {
+            let mut v = a[i * n + k];
+            for t in 0..k {
+                v -= a[i * n + t] * a[k * n + t];
+            }
+            a[i * n + k] = v / l;
+        }
+    }
+    let mut li = vec![0.0f64; n * n];
+    for c in 0..n {
+        li[c * n + c] = 1.0 / a[c * n + c];
+        for i in (c + 1)..n {
+            let mut v = 0.0;
+            for t in c..i {
+                v -= a[i * n + t] * li[t * n + c];
+            }
+            li[i * n + c] = v / a[i * n + i];
+        }
+    }
+    let mut c = DMatrix::<f64>::zeros(n, n);
+    for p in 0..n {
+        for q in p..n {
+            let mut v = 0.0;
+            for t in q..n {
+                v += li[t * n + p] * li[t * n + q];
+            }
+            v /= d[p] * d[q];
+            c[(p, q)] = v;
+            c[(q, p)] = v;
+        }
+    }
+    if c.iter().all(|v| v.is_finite()) {
+        Some(c)
+    } else {
+        None
+    }
+}
+
+/// Largest eigenvalue and its eigenvector of a symmetric positive semi-definite matrix
+/// (at most 16 x 16) by power iteration (relative tolerance 1e-9 on the eigenvalue), enough to
+/// find the least determined combination of a covariance.
+pub fn top_eigen(c: &DMatrix<f64>, iters: usize) -> (f64, Vec<f64>) {
+    let n = c.nrows().min(16);
+    let mut v = [0.0f64; 16];
+    for (i, x) in v.iter_mut().enumerate().take(n) {
+        *x = 1.0 + 0.1 * i as f64;
+    }
+    let mut lam = 0.0;
+    for _ in 0..iters {
+        let mut w = [0.0f64; 16];
+        for i in 0..n {
+            w[i] = (0..n).map(|j| c[(i, j)] * v[j]).sum();
+        }
+        let nv = v[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+        let nw = w[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+        if !(nw > 0.0) || !nw.is_finite() {
+            return (nw, v[..n].to_vec());
+        }
+        let new_lam = nw / nv;
+        for i in 0..n {
+            v[i] = w[i] / nw;
+        }
+        let done = (new_lam - lam).abs() <= 1e-9 * new_lam;
+        lam = new_lam;
+        if done {
+            break;
+        }
+    }
+    (lam, v[..n].to_vec())
+}
+
+/// A least-squares problem that supplies its normal equations directly: no Jacobian
+/// storage and cost-only trial evaluations, for small parameter counts.
+pub trait NormalEquations {
+    /// Number of parameters.
+    fn n_params(&self) -> usize;
+    /// Number of residuals.
+    fn n_residuals(&self) -> usize;
+    /// Sum of squared residuals at `p`.
+    fn cost(&self, p: &[f64]) -> Result<f64>;
+    /// Fill `J^T J` and `J^T r` at `p`; return the cost.
+    fn normal(&self, p: &[f64], jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) -> Result<f64>;
+}
+
+/// Levenberg-Marquardt / Gauss-Newton on a [`NormalEquations`] problem: the algorithm of
+/// [`solve_nls`] (Marquardt scaling, monotone LM, divergence errors for GN) with an initial
+/// damping `lambda0` (small when the start is already good, e.g. an exact linear solution).
+/// Returns the report without residuals/Jacobian (`jacobian` is empty).
+pub fn solve_normal<P: NormalEquations>(
+    prob: &P,
+    p0: &[f64],
+    opt: &NlsOptions,
+    lambda0: f64,
+) -> Result<NlsReport> {
+    let (n, m) = (prob.n_params(), prob.n_residuals());
+    if p0.len() != n {
+        return invalid(format!("start has {} values, the model {n}", p0.len()));
+    }
+    if m < n {
+        return degenerate(format!(
+            "{m} observations cannot determine {n} parameters (need at least {n})"
+        ));
+    }
+    if p0.iter().any(|v| !v.is_finite()) {
+        return invalid("start values must be finite");
+    }
+    let mut p = p0.to_vec();
+    let mut jtj = DMatrix::<f64>::zeros(n, n);
+    let mut g = DVector::<f64>::zeros(n);
+    let mut cost = prob
+        .normal(&p, &mut jtj, &mut g)
+        .map_err(|_| CoreError::InvalidInput("the model cannot be evaluated at the start values".into()))?;
+    if !cost.is_finite() {
+        return invalid("the model cannot be evaluated at the start values");
+    }
+    let mut lambda = lambda0;
+    let mut converged = false;
+    let mut it = 0;
+    let mut p_new = vec![0.0; n];
+    while it < opt.max_iter {
+        it += 1;
+        let diag: Vec<f64> = (0..n).map(|i| jtj[(i, i)].max(1e-300)).collect();
+        let gnorm = (0..n)
+            .map(|i| g[i].abs() / diag[i].sqrt())
+            .fold(0.0, f64::max);
+        if gnorm <= opt.gtol * cost.sqrt().max(1e-300) || cost == 0.0 {
+            converged = true;
+            break;
+        }
+        let mut accepted = false;
+        for _ in 0..60 {
+            let mut a = jtj.clone();
+            if !opt.gauss_newton {
+                for i in 0..n {
+                    a[(i, i)] += lambda * diag[i];
+                }
+            }
+            let rhs = -&g;
+            let step = match a.clone().cholesky() {
+                Some(c) => c.solve(&rhs),
+                None => match a.lu().solve(&rhs) {
+                    Some(s) => s,
+                    None => {
+                        if opt.gauss_newton {
+                            return Err(CoreError::NotConverged(
+                                "Gauss-Newton: singular normal equations".into(),
+                            ));
+                        }
+                        lambda = lambda.max(1e-12) * 10.0;
+                        continue;
+                    }
+                },
+            };
+            for i in 0..n {
+                p_new[i] = p[i] + step[i];
+            }
+            if p_new.iter().any(|v| !v.is_finite()) {
+                if opt.gauss_newton {
+                    return Err(CoreError::NotConverged(format!(
+                        "Gauss-Newton diverged at iteration {it} (non-finite parameters)"
+                    )));
+                }
+                lambda = lambda.max(1e-12) * 10.0;
+                continue;
+            }
+            let c_new = prob.cost(&p_new).unwrap_or(f64::INFINITY);
+            let pn: f64 = p.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let sn: f64 = step.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if opt.gauss_newton {
+                if !c_new.is_finite() || c_new > 1e300 {
+                    return Err(CoreError::NotConverged(format!(
+                        "Gauss-Newton diverged at iteration {it} (cost {c_new:.3e})"
+                    )));
+                }
+            } else if !(c_new <= cost) {
+                if sn <= opt.xtol * (pn + opt.xtol) {
+                    // Even a negligible step raises the cost: rounding-level minimum.
+                    converged = true;
+                    break;
+                }
+                lambda = lambda.max(1e-12) * 4.0;
+                if lambda > 1e16 {
+                    break;
+                }
+                continue;
+            }
+            let rel = (cost - c_new).abs() / cost.max(1e-300);
+            std::mem::swap(&mut p, &mut p_new);
+            cost = prob.normal(&p, &mut jtj, &mut g)?;
+            lambda /= 3.0;
+            accepted = true;
+            if rel <= opt.ftol || sn <= opt.xtol * (pn + opt.xtol) {
+                converged = true;
+            }
+            break;
+        }
+        if converged || !accepted {
+            converged = true;
+            break;
+        }
+    }
+    if !converged && opt.gauss_newton {
+        return Err(CoreError::NotConverged(format!(
+            "Gauss-Newton did not converge in {} iterations",
+            opt.max_iter
+        )));
+    }
+    Ok(NlsReport {
+        params: p,
+        residuals: Vec::new(),
+        jacobian: DMatrix::zeros(0, n),
+        cost,
+        iterations: it,
+        converged,
+    })
+}
+
+/// Same contract as [`svd_report`] for small problems (a few to a few dozen parameters):
+/// Householder QR of `J` (nalgebra), then the SVD of the small `n x n` factor `R`, whose
+/// singular values and right singular vectors are those of `J`. Avoids the fixed overhead of
+/// the large-matrix path, which dominates microsecond-scale fits.
+pub fn svd_report_qr(j: &DMatrix<f64>) -> Result<SvdReport> {
+    let (m, n) = (j.nrows(), j.ncols());
+    if m < n {
+        return degenerate(format!(
+            "{m} observations cannot determine {n} parameters (need at least {n})"
+        ));
+    }
+    if j.iter().any(|v| !v.is_finite()) {
+        return invalid("the Jacobian is not finite");
+    }
+    let r = j.clone().qr().r();
+    let svd = r.svd(false, true);
+    let vt = svd
+        .v_t
+        .ok_or_else(|| CoreError::NotConverged("SVD of the Jacobian did not converge".into()))?;
+    let s: Vec<f64> = svd.singular_values.iter().copied().collect();
+    let mut idx: Vec<usize> = (0..n).collect();
+    idx.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
+    Ok(SvdReport {
+        s: idx.iter().map(|&i| s[i]).collect(),
+        v: DMatrix::<f64>::from_fn(n, n, |a, b| vt[(idx[b], a)]),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -30,16 +30,30 @@ fn table_to_dict<'py>(py: Python<'py>, t: DwellTable) -> PyResult<Bound<'py, PyD
     d.set_item("count", count.into_pyarray(py))?;
     d.set_item(
         "start",
-        t.bounds.iter().map(|b| b[0] as i64).collect::<Vec<_>>().into_pyarray(py),
+        t.bounds
+            .iter()
+            .map(|b| b[0] as i64)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
     )?;
     d.set_item(
         "stop",
-        t.bounds.iter().map(|b| b[1] as i64).collect::<Vec<_>>().into_pyarray(py),
+        t.bounds
+            .iter()
+            .map(|b| b[1] as i64)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
     )?;
     d.set_item("t", t.t_mid.map(|v| v.into_pyarray(py)))?;
     d.set_item("temperature", t.aux_mean.map(|v| v.into_pyarray(py)))?;
-    d.set_item("noise_var", t.noise_var.map(|v| v.to_vec().into_pyarray(py)))?;
-    d.set_item("threshold", t.threshold.map(|v| v.to_vec().into_pyarray(py)))?;
+    d.set_item(
+        "noise_var",
+        t.noise_var.map(|v| v.to_vec().into_pyarray(py)),
+    )?;
+    d.set_item(
+        "threshold",
+        t.threshold.map(|v| v.to_vec().into_pyarray(py)),
+    )?;
     Ok(d)
 }
 
@@ -87,6 +101,7 @@ pub fn dwell_stats_raw<'py>(
     table_to_dict(py, table)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn settings_from(
     fs: f64,
     window_s: f64,
@@ -128,7 +143,16 @@ pub fn detect_dwells_raw<'py>(
     temperature: Option<PyReadonlyArray1<'py, f64>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let arr = SampleArray::extract(samples)?;
-    let s = settings_from(fs, window_s, k, min_dwell_s, trim_s, noise_quantile, block_s, noise_var);
+    let s = settings_from(
+        fs,
+        window_s,
+        k,
+        min_dwell_s,
+        trim_s,
+        noise_quantile,
+        block_s,
+        noise_var,
+    );
     let ts = opt_slice(&t, "t")?;
     let temp = opt_slice(&temperature, "temperature")?;
     let table = with_view!(&arr, v => {
@@ -167,7 +191,14 @@ impl RawDwellAccumulator {
         let inner = match (bounds, fs) {
             (Some(b), _) => DwellAccumulator::with_bounds(bounds_from(&b)?)?,
             (None, Some(fs)) => DwellAccumulator::with_detector(settings_from(
-                fs, window_s, k, min_dwell_s, trim_s, noise_quantile, block_s, noise_var,
+                fs,
+                window_s,
+                k,
+                min_dwell_s,
+                trim_s,
+                noise_quantile,
+                block_s,
+                noise_var,
             ))?,
             (None, None) => {
                 return Err(CalibrationError::new_err(

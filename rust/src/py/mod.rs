@@ -1,7 +1,11 @@
 //! The only place that imports pyo3: module definition, conversions and error mapping.
 
+mod centrifuge;
 mod convert;
 mod dwell;
+mod gap;
+mod gradiometer;
+mod static_fit;
 
 use crate::error::CoreError;
 use pyo3::exceptions::PyValueError;
@@ -32,7 +36,15 @@ impl From<CoreError> for PyErr {
 #[pyo3::pymodule]
 mod _core {
     #[pymodule_export]
+    use super::centrifuge::centrifuge_fit_raw;
+    #[pymodule_export]
     use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
+    #[pymodule_export]
+    use super::gap::{gap_diagnose_raw, gap_model_residuals_raw};
+    #[pymodule_export]
+    use super::gradiometer::{demodulate_raw, startup_bias_raw, startup_predict_raw};
+    #[pymodule_export]
+    use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
 }

@@ -1,0 +1,64 @@
+"""Timing of accelcal.diagnose on 30 dwells (target <= 5 ms), against a NumPy/SciPy baseline.
+
+The baseline is the same baseline fit + leave-one-dwell-out held-out gap in pure NumPy/SciPy
+(scipy.optimize.least_squares per fold, no effect selection) - a lower bound on what a
+Python implementation of the full diagnosis would cost.
+"""
+
+from __future__ import annotations
+
+import time
+
+import accelcal
+import numpy as np
+import pytest
+from accelcal.sim import gap_session
+
+
+def _session():
+    return gap_session(("drift",), rng=1, n_dwells=30, amplitudes=[20.0])
+
+
+def _numpy_loo(mean: np.ndarray, sig: np.ndarray, g: float, p0: np.ndarray) -> float:
+    from scipy.optimize import least_squares
+
+    def res(p, rows):
+        K = np.array([[p[0], 0, 0], [p[6], p[1], 0], [p[7], p[8], p[2]]])
+        a = np.linalg.solve(K, (mean[rows] - p[3:6]).T).T
+        return (np.linalg.norm(a, axis=1) - g) / sig[rows]
+
+    n = len(mean)
+    z = []
+    for j in range(n):
+        rows = np.array([k for k in range(n) if k != j])
+        f = least_squares(res, p0, args=(rows,), method="lm")
+        z.append(res(f.x, np.array([j]))[0])
+    return float(np.sqrt(np.mean(np.square(z))))
+
+
+def test_diagnose_30_dwells(benchmark):
+    s = _session()
+    r = benchmark(lambda: accelcal.diagnose(s.dwells, g=s.g))
+    assert r.best == "drift"
+    med = benchmark.stats.stats.median
+    d = s.dwells
+    sig = np.sqrt(np.mean(d.var / d.count[:, None], axis=1))
+    t0 = time.perf_counter()
+    _numpy_loo(d.mean, sig, s.g, r.params)
+    base = time.perf_counter() - t0
+    print(f"\ndiagnose(30 dwells, LOO + in-fold selection): {1e3 * med:.2f} ms; "
+          f"NumPy/SciPy baseline LOO only: {1e3 * base:.1f} ms; ratio {base / med:.0f}x")
+    assert med < 0.05  # generous bound for a shared CI machine; target 5 ms
+
+
+if __name__ == "__main__":  # plain timing without pytest-benchmark
+    s = _session()
+    for _ in range(5):
+        accelcal.diagnose(s.dwells, g=s.g)
+    ts = []
+    for _ in range(50):
+        t0 = time.perf_counter()
+        accelcal.diagnose(s.dwells, g=s.g)
+        ts.append(time.perf_counter() - t0)
+    print(f"diagnose on 30 dwells: median {1e3 * np.median(ts):.2f} ms, min {1e3 * min(ts):.2f} ms")
+    pytest.main([__file__, "-q", "--benchmark-only", "-s", "-p", "no:cacheprovider"])

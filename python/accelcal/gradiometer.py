@@ -1,0 +1,791 @@
+"""Gravity gradiometer per-startup bias by platform azimuth rotation (SPEC section 3).
+
+A rotating-accelerometer gravity gradiometer on a stabilised, level platform has two outputs,
+inline ``I = (Gxx - Gyy) / 2`` and cross ``C = Gxy`` (Eotvos, 1 E = 1e-9 s^-2), each with a
+zero offset that changes at every power-on. Rotating the platform to azimuths ``theta_k``
+rotates the navigation-frame gradient seen by the sensor but not the bias::
+
+    y_k = bias + R(2 theta_k) gamma (+ drift (t_k - t_ref)) + e_k,
+    R(2t) = [[cos 2t, sin 2t], [-sin 2t, cos 2t]],   gamma = (I, C) in the navigation frame,
+
+so the bias follows by linear least squares (numerics in Rust). Frames: navigation x north,
+y east, z down; the platform's x axis at azimuth ``theta`` (clockwise from north seen from
+above); the disc phase is measured from the platform x axis towards y.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import _core
+from ._core import CalibrationError, DegenerateDataError
+from ._validate import bounds_array, positive
+
+__all__ = [
+    "Demodulated",
+    "StartupBias",
+    "StartupCalibration",
+    "StartupPrediction",
+    "calibrate_gradiometer_table",
+    "demodulate",
+    "plan_azimuths",
+    "predict_startup_accuracy",
+    "startup_bias",
+]
+
+PARAM_NAMES = ("bias_I", "bias_C", "I", "C", "drift_I", "drift_C")
+_F64 = NDArray[np.float64]
+
+
+# ------------------------------------------------------------------------------------------
+# Input coercion
+# ------------------------------------------------------------------------------------------
+def _azimuths(x: ArrayLike) -> _F64:
+    a = np.asarray(x, dtype=np.float64).reshape(-1)
+    if a.size == 0:
+        raise CalibrationError("no azimuths given")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"azimuths contain NaN or inf at {np.where(~np.isfinite(a))[0]}")
+    return np.ascontiguousarray(a)
+
+
+def _outputs(x: ArrayLike, m: int) -> _F64:
+    y = np.asarray(x, dtype=np.float64)
+    if y.ndim == 1 and y.size == 2 and m == 1:
+        y = y.reshape(1, 2)
+    if y.shape != (m, 2):
+        raise CalibrationError(
+            f"outputs must have shape ({m}, 2) (inline, cross per azimuth, E); got {y.shape}"
+        )
+    if not np.all(np.isfinite(y)):
+        bad = np.where(~np.all(np.isfinite(y), axis=1))[0]
+        raise CalibrationError(f"outputs contain NaN or inf at dwell(s) {bad.tolist()}")
+    return np.ascontiguousarray(y)
+
+
+def _times(t: ArrayLike | None, m: int, name: str = "t") -> _F64 | None:
+    if t is None:
+        return None
+    a = np.ascontiguousarray(np.asarray(t, dtype=np.float64).reshape(-1))
+    if a.shape != (m,):
+        raise CalibrationError(f"{name} must have shape ({m},) (one time per azimuth, s)")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{name} contains NaN or inf")
+    return a
+
+
+def _dwell_std(sigma: Any, m: int) -> _F64:
+    s = np.asarray(sigma, dtype=np.float64)
+    if s.ndim == 0:
+        s = np.full(m, float(s))
+    s = np.ascontiguousarray(s.reshape(-1))
+    if s.shape != (m,):
+        raise CalibrationError(f"sigma must be a number or have shape ({m},); got {s.shape}")
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise CalibrationError("sigma must be positive and finite (E, noise std of an average)")
+    return s
+
+
+# ------------------------------------------------------------------------------------------
+# Estimator
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class StartupBias:
+    """Per-startup bias, navigation-frame gradient (and drift) with covariance.
+
+    Attributes
+    ----------
+    bias : (2,) float
+        Per-startup bias of the inline and cross channels, E (at ``t_ref`` with drift).
+    gradient : (2,) float
+        Navigation-frame gradient ``(I, C)``, E.
+    drift : (2,) float or None
+        Linear bias drift, E/s (``drift=True`` only).
+    covariance : (p, p) float
+        Covariance ordered ``[bias_I, bias_C, I, C, (drift_I, drift_C)]``, E^2 (E^2/s, E^2/s^2
+        for drift). NaN when ``sigma`` was not given and the design has no redundancy.
+    std : (p,) float
+        Square roots of the covariance diagonal.
+    residuals : (m, 2) float
+        ``y_k - model_k``, E.
+    unit_covariance : (p, p) float
+        ``(A^T W A)^-1``: the covariance per unit noise variance (absolute when ``sigma`` was
+        given per dwell).
+    sigma : (m,) float or None
+        Noise std of each average used for the covariance, E (given or estimated).
+    sigma_estimated : bool
+        True when ``sigma`` was estimated from the residuals.
+    dof : int
+        Redundancy ``2m - p``.
+    condition : float
+        Condition number of the column-scaled design.
+    azimuth_deg, t : (m,) float
+        The design (``t`` None without drift); ``t_ref`` the drift reference time, s.
+    """
+
+    bias: _F64
+    gradient: _F64
+    drift: _F64 | None
+    covariance: _F64
+    std: _F64
+    residuals: _F64
+    unit_covariance: _F64
+    sigma: _F64 | None
+    sigma_estimated: bool
+    dof: int
+    condition: float
+    azimuth_deg: _F64
+    t: _F64 | None = None
+    t_ref: float | None = None
+    names: tuple[str, ...] = field(default=PARAM_NAMES[:4])
+
+    @property
+    def params(self) -> _F64:
+        """All parameters in covariance order."""
+        parts = [self.bias, self.gradient] + ([self.drift] if self.drift is not None else [])
+        return np.concatenate(parts)
+
+    @property
+    def bias_std(self) -> _F64:
+        """Standard deviations of the bias, E."""
+        return self.std[:2]
+
+    @property
+    def gradient_std(self) -> _F64:
+        """Standard deviations of the gradient, E."""
+        return self.std[2:4]
+
+    def summary(self) -> str:
+        """A readable block: estimates with standard deviations."""
+        units = {"bias": "E", "I": "E", "C": "E", "drift": "E/s"}
+        lines = [
+            f"start-up bias from {len(self.azimuth_deg)} azimuths "
+            f"({', '.join(f'{a:g}' for a in self.azimuth_deg)} deg), dof {self.dof}, "
+            f"condition {self.condition:.3g}"
+        ]
+        for n, v, s in zip(self.names, self.params, self.std, strict=True):
+            u = units[n.split("_")[0]]
+            lines.append(f"  {n:<8} {v:>14.6g} +- {s:<10.3g} {u}")
+        if self.sigma is not None:
+            how = "estimated from residuals" if self.sigma_estimated else "given"
+            lines.append(f"  noise std of an average: {np.mean(self.sigma):.3g} E ({how})")
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        return {
+            "names": list(self.names),
+            "bias_E": self.bias.tolist(),
+            "gradient_E": self.gradient.tolist(),
+            "drift_E_per_s": None if self.drift is None else self.drift.tolist(),
+            "covariance": self.covariance.tolist(),
+            "std": self.std.tolist(),
+            "residuals_E": self.residuals.tolist(),
+            "sigma_E": None if self.sigma is None else self.sigma.tolist(),
+            "sigma_estimated": self.sigma_estimated,
+            "dof": self.dof,
+            "condition": self.condition,
+            "azimuth_deg": self.azimuth_deg.tolist(),
+            "t_s": None if self.t is None else self.t.tolist(),
+            "t_ref_s": self.t_ref,
+        }
+
+
+def startup_bias(
+    azimuth_deg: ArrayLike,
+    outputs: ArrayLike,
+    *,
+    t: ArrayLike | None = None,
+    drift: bool = False,
+    sigma: float | ArrayLike | None = None,
+    t_ref: float | None = None,
+) -> StartupBias:
+    """Per-startup bias of the inline and cross channels by least squares (SPEC 3).
+
+    Parameters
+    ----------
+    azimuth_deg : (m,) float
+        Platform azimuth of each dwell, deg.
+    outputs : (m, 2) float
+        Average inline and cross output at each azimuth, E.
+    t : (m,) float, optional
+        Dwell mid times, s (needed with ``drift=True``).
+    drift : bool
+        Also fit a linear bias drift ``bias(t) = bias + drift (t - t_ref)``.
+    sigma : float or (m,) float, optional
+        Known noise std of an average (per dwell when an array), E. When None it is estimated
+        from the residuals (needs redundancy, ``2m > p``); otherwise the covariance is NaN.
+    t_ref : float, optional
+        Reference time of the bias with drift, s; default the mean of ``t`` (the centre of
+        the sequence, where a time-symmetric sequence decorrelates drift from bias).
+
+    Returns
+    -------
+    StartupBias
+
+    Raises
+    ------
+    DegenerateDataError
+        When the azimuth set cannot separate bias and gradient (e.g. 0/180 deg), with why.
+    """
+    az = _azimuths(azimuth_deg)
+    m = az.size
+    y = _outputs(outputs, m)
+    tt = _times(t, m)
+    if drift and tt is None:
+        raise CalibrationError("drift=True needs the dwell times t (s)")
+    tref = None
+    if drift:
+        assert tt is not None
+        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
+    sd = _dwell_std(1.0 if sigma is None else sigma, m)
+    raw = _core.startup_bias_raw(
+        np.radians(az), y, sd, tt if drift else None, 0.0 if tref is None else tref
+    )
+    p = raw["params"]
+    ucov = np.asarray(raw["unit_cov"])
+    dof = int(raw["dof"])
+    est = sigma is None
+    used: _F64 | None
+    if est:
+        if dof > 0:
+            s2 = float(raw["rss"]) / dof
+            cov = ucov * s2
+            used = np.full(m, np.sqrt(s2))
+        else:
+            cov = np.full_like(ucov, np.nan)
+            used = None
+    else:
+        cov = ucov.copy()
+        used = sd
+    return StartupBias(
+        bias=p[:2].copy(),
+        gradient=p[2:4].copy(),
+        drift=p[4:6].copy() if drift else None,
+        covariance=cov,
+        std=np.sqrt(np.diag(cov)),
+        residuals=np.asarray(raw["residuals"]),
+        unit_covariance=ucov,
+        sigma=used,
+        sigma_estimated=est and used is not None,
+        dof=dof,
+        condition=float(raw["condition"]),
+        azimuth_deg=az,
+        t=tt,
+        t_ref=tref,
+        names=PARAM_NAMES[: p.size],
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Sequence design
+# ------------------------------------------------------------------------------------------
+def plan_azimuths(m: int, drift: bool = False) -> _F64:
+    """Azimuth sequence (deg, in [0, 180)) of ``m`` dwells minimising the bias variance.
+
+    Without drift: the balanced set ``theta_k = 180 k / m`` (``sum exp(2i theta_k) = 0``), for
+    which the bias is the plain mean and ``Var(bias_j) = sigma^2 / m``. With drift: a
+    palindromic (time-symmetric, return-to-start) sequence, which with equally spaced dwells
+    decorrelates the drift from bias and gradient; for even ``m`` it repeats a balanced set
+    forwards then backwards (ABBA for ``m = 4``), for odd ``m >= 5`` the angles are chosen so the
+    set is still balanced; ``m = 3`` gives 0/90/0 (bias variance 3/8).
+    """
+    if isinstance(m, bool) or int(m) != m:
+        raise CalibrationError(f"m must be an integer number of dwells; got {m!r}")
+    m = int(m)
+    if not drift:
+        if m < 2:
+            raise DegenerateDataError(
+                "at least 2 azimuths 90 deg apart are needed to separate bias and gradient"
+            )
+        return 180.0 * np.arange(m) / m
+    if m < 3:
+        raise DegenerateDataError(
+            "the drift model needs at least 3 dwells (e.g. the return-to-start sequence 0/90/0)"
+        )
+    if m == 3:
+        return np.array([0.0, 90.0, 0.0])
+    if m % 2 == 0:
+        half = 180.0 * np.arange(m // 2) / (m // 2)
+        return np.concatenate([half, half[::-1]])
+    # Odd m = 2n + 1: pairs (2 theta = +-alpha) plus a centre at 0 deg, balanced:
+    # 2 sum(pairs) + 1 = 0.
+    n = (m - 1) // 2
+    if n % 2 == 0:
+        alpha = np.degrees(np.arccos(-1.0 / (2 * n)))
+        pairs2 = np.tile([alpha, -alpha], n // 2)
+    else:
+        alpha = np.degrees(np.arccos(1.0 / (2 * (n - 1))))
+        pairs2 = np.concatenate([[180.0], np.tile([alpha, -alpha], (n - 1) // 2)])
+    pairs = np.mod(pairs2 / 2.0, 180.0)
+    return np.concatenate([pairs, [0.0], pairs[::-1]])
+
+
+@dataclass(frozen=True)
+class StartupPrediction:
+    """Predicted accuracy of a start-up sequence before it is run.
+
+    Attributes
+    ----------
+    covariance : (p, p)
+        From the noise alone (``sigma`` per average), order ``[bias_I, bias_C, I, C, (drift)]``.
+    azimuth_covariance : (p, p)
+        From independent azimuth errors ``sigma_theta`` (first order).
+    total_covariance : (p, p)
+        Their sum.
+    std : (p,)
+        Square roots of the total covariance diagonal.
+    closed_form_variance : float
+        SPEC 3 closed form ``sigma^2 m / (m^2 - |U|^2)`` (equal weights, no drift).
+    condition : float
+        Condition number of the design.
+    """
+
+    covariance: _F64
+    azimuth_covariance: _F64
+    total_covariance: _F64
+    std: _F64
+    closed_form_variance: float
+    condition: float
+    names: tuple[str, ...]
+
+    @property
+    def bias_std(self) -> _F64:
+        """Predicted std of the bias, E."""
+        return self.std[:2]
+
+    @property
+    def gradient_std(self) -> _F64:
+        """Predicted std of the gradient, E."""
+        return self.std[2:4]
+
+    @property
+    def drift_std(self) -> _F64 | None:
+        """Predicted std of the drift, E/s (drift model only)."""
+        return self.std[4:6] if self.std.size == 6 else None
+
+
+def predict_startup_accuracy(
+    azimuths: ArrayLike,
+    times: ArrayLike | None = None,
+    sigma: float | ArrayLike = 1.0,
+    sigma_theta: float = 0.0,
+    *,
+    gradient: float | ArrayLike | None = None,
+    drift: bool | None = None,
+    t_ref: float | None = None,
+) -> StartupPrediction:
+    """Covariance of the start-up estimate for a planned sequence.
+
+    Parameters
+    ----------
+    azimuths : (m,) float
+        Planned azimuths, deg.
+    times : (m,) float, optional
+        Planned dwell mid times, s; the drift model is used when given (unless ``drift``).
+    sigma : float or (m,) float
+        Noise std of one average, E.
+    sigma_theta : float
+        Std of independent azimuth errors, deg (a common offset does not affect the bias).
+    gradient : float or (2,) float, optional
+        Navigation-frame gradient ``(I, C)`` in E for the exact azimuth-error effect, or its
+        magnitude (effect averaged over the direction: ``Var(bias_j) ~ 2 sigma_theta^2
+        |gamma|^2 / m`` for balanced sets). Required when ``sigma_theta > 0``.
+    drift : bool, optional
+        Force the drift model on or off (default: on when ``times`` are given).
+    t_ref : float, optional
+        Reference time of the bias with drift (default the mean time).
+    """
+    az = _azimuths(azimuths)
+    m = az.size
+    tt = _times(times, m, "times")
+    use_drift = tt is not None if drift is None else bool(drift)
+    if use_drift and tt is None:
+        raise CalibrationError("the drift model needs the planned dwell times")
+    sd = _dwell_std(sigma, m)
+    st = float(sigma_theta)
+    if not np.isfinite(st) or st < 0:
+        raise CalibrationError("sigma_theta must be >= 0 (deg)")
+    gvec = None
+    gmag = 0.0
+    if gradient is not None:
+        g = np.asarray(gradient, dtype=np.float64).reshape(-1)
+        if g.size == 1:
+            gmag = float(abs(g[0]))
+        elif g.size == 2:
+            gvec = [float(g[0]), float(g[1])]
+        else:
+            raise CalibrationError("gradient must be a magnitude or (I, C) in E")
+    elif st > 0:
+        raise CalibrationError(
+            "sigma_theta > 0 needs the gradient (E): its effect on the bias scales with |gamma|"
+        )
+    tref = 0.0
+    if use_drift:
+        assert tt is not None
+        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
+    raw = _core.startup_predict_raw(
+        np.radians(az),
+        sd,
+        tt if use_drift else None,
+        tref,
+        gvec,
+        gmag,
+        np.radians(st),
+    )
+    cov = np.asarray(raw["unit_cov"])
+    tcov = np.asarray(raw["theta_cov"])
+    tot = cov + tcov
+    p = cov.shape[0]
+    return StartupPrediction(
+        covariance=cov,
+        azimuth_covariance=tcov,
+        total_covariance=tot,
+        std=np.sqrt(np.diag(tot)),
+        closed_form_variance=float(np.mean(sd) ** 2 * raw["closed_form"]),
+        condition=float(raw["condition"]),
+        names=PARAM_NAMES[:p],
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# 2-omega demodulation
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Demodulated:
+    """Per-dwell inline and cross channels from raw rotating-accelerometer streams.
+
+    Attributes
+    ----------
+    inline_E, cross_E : (k,) float
+        Demodulated channels, E (samples in m/s^2).
+    std_inline_E, std_cross_E : (k,) float
+        White-noise standard errors from the fit residuals, E.
+    start, stop : (k,) int
+        Samples used: ``[start, stop)`` covers whole revolutions from the dwell start.
+    revolutions : (k,) int
+        Whole revolutions used.
+    resid_rms : (k,) float
+        RMS residual of ``(a1 + a3) - (a2 + a4)`` after the fit, input units.
+    nuisance : (k, 3) float
+        Constant, cos and sin 1-omega terms of the combination, input units.
+    t : (k,) float or None
+        Mid time of the samples used, s.
+    """
+
+    inline_E: _F64
+    cross_E: _F64
+    std_inline_E: _F64
+    std_cross_E: _F64
+    start: NDArray[np.int64]
+    stop: NDArray[np.int64]
+    revolutions: NDArray[np.int64]
+    resid_rms: _F64
+    nuisance: _F64
+    t: _F64 | None
+
+    @property
+    def outputs(self) -> _F64:
+        """``(k, 2)`` inline and cross, E."""
+        return np.column_stack([self.inline_E, self.cross_E])
+
+    @property
+    def std(self) -> _F64:
+        """``(k, 2)`` standard errors, E."""
+        return np.column_stack([self.std_inline_E, self.std_cross_E])
+
+
+def _accel(x: ArrayLike) -> NDArray[Any]:
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        raise CalibrationError(f"accel: unsupported dtype {a.dtype}")
+    if a.ndim != 2 or a.shape[1] != 4:
+        raise CalibrationError(f"accel must have shape (N, 4) (a1..a4 per row); got {a.shape}")
+    if a.shape[0] == 0:
+        raise CalibrationError("accel is empty (0 rows)")
+    if a.dtype not in (np.float64, np.float32, np.int16, np.int32) or not a.dtype.isnative:
+        a = a.astype(np.float64)
+    return a
+
+
+def demodulate(
+    accel: ArrayLike,
+    phase: ArrayLike,
+    bounds: ArrayLike | None = None,
+    *,
+    radius_m: float,
+    t: ArrayLike | None = None,
+) -> Demodulated:
+    """Inline and cross channels per dwell by 2-omega demodulation (numerics in Rust).
+
+    Forms ``d = (a1 + a3) - (a2 + a4) = 4R [I sin 2phi - C cos 2phi] + ...`` and, over whole
+    revolutions from each dwell start, fits ``d = c0 + c1 cos phi + s1 sin phi + c2 cos 2phi +
+    s2 sin 2phi`` by least squares: ``I = s2 / 4R``, ``C = -c2 / 4R``. Linear and angular
+    acceleration cancel in ``d``; the 1-omega terms absorb what scale mismatch lets through
+    of a tilt.
+
+    Parameters
+    ----------
+    accel : (N, 4) float64/float32 (or int16/int32)
+        Tangential accelerometer outputs a1..a4, m/s^2 (a1 at phase ``phi``, a_i at
+        ``phi + (i - 1) pi / 2``).
+    phase : (N,) float
+        Spin phase of accelerometer 1, rad, from the platform x axis; wrapped or continuous.
+    bounds : (k, 2) int, optional
+        ``[start, stop)`` dwells (default: the whole stream as one dwell).
+    radius_m : float
+        Disc radius R, m.
+    t : (N,) float, optional
+        Sample times, s (gives each dwell's mid time).
+    """
+    a = _accel(accel)
+    n = a.shape[0]
+    ph = np.ascontiguousarray(np.asarray(phase, dtype=np.float64))
+    if ph.shape != (n,):
+        raise CalibrationError(f"phase must have shape ({n},) to match accel; got {ph.shape}")
+    b = bounds_array([[0, n]] if bounds is None else bounds)
+    r = positive(radius_m, "radius_m", " (m)")
+    d = _core.demodulate_raw(a, ph, b, r)
+    tm = None
+    if t is not None:
+        tv = np.asarray(t, dtype=np.float64).reshape(-1)
+        if tv.shape != (n,):
+            raise CalibrationError(f"t must have shape ({n},) to match accel")
+        tm = 0.5 * (tv[d["start"]] + tv[d["stop"] - 1])
+    return Demodulated(
+        inline_E=d["inline_e"],
+        cross_E=d["cross_e"],
+        std_inline_E=d["std_inline_e"],
+        std_cross_E=d["std_cross_e"],
+        start=d["start"],
+        stop=d["stop"],
+        revolutions=d["revolutions"],
+        resid_rms=d["resid_rms"],
+        nuisance=d["nuisance"],
+        t=tm,
+    )
+
+
+def demodulate_reference(
+    accel: ArrayLike, phase: ArrayLike, start: int, stop: int, radius_m: float
+) -> tuple[float, float]:
+    """Slow pure-NumPy reference of :func:`demodulate` on samples ``[start, stop)``."""
+    a = np.asarray(accel, dtype=np.float64)[start:stop]
+    ph = np.asarray(phase, dtype=np.float64)[start:stop]
+    d = (a[:, 0] + a[:, 2]) - (a[:, 1] + a[:, 3])
+    x = np.column_stack(
+        [np.ones_like(ph), np.cos(ph), np.sin(ph), np.cos(2 * ph), np.sin(2 * ph)]
+    )
+    beta = np.linalg.lstsq(x, d - d[0], rcond=None)[0]
+    g = 1.0 / (4.0 * radius_m * 1e-9)
+    return float(beta[4] * g), float(-beta[3] * g)
+
+
+# ------------------------------------------------------------------------------------------
+# The patent's procedure as a workflow
+# ------------------------------------------------------------------------------------------
+def frame_rotation(azimuth_deg: float) -> _F64:
+    """``C_b^r = Rz(theta)`` (3, 3): rotate the IMU's body-frame rates and accelerations by this
+    before initial alignment, and the north-pointing control law holds the platform at
+    ``theta`` (patent step 2). z down, ``theta`` clockwise from north seen from above."""
+    th = np.radians(float(azimuth_deg))
+    c, s = np.cos(th), np.sin(th)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class StartupCalibration:
+    """Patent steps 1-4 for an acquisition script.
+
+    Example::
+
+        cal = StartupCalibration(drift=True)
+        for az in plan_azimuths(4, drift=True):          # 0, 90, 90, 0
+            platform.set_virtual_frame(StartupCalibration.frame_rotation(az))
+            stream, t = acquire(...)                     # (N, 2) inline/cross in E
+            cal.record(az, stream, t=t)                  # averaged by the dwell engine
+        result = cal.solve()
+
+    ``record_raw`` takes the raw a1..a4 streams and the spin phase instead (demodulated in
+    Rust); ``record_mean`` takes averages computed elsewhere.
+    """
+
+    frame_rotation = staticmethod(frame_rotation)
+
+    def __init__(
+        self,
+        *,
+        drift: bool = False,
+        sigma: float | ArrayLike | str | None = None,
+        radius_m: float | None = None,
+    ) -> None:
+        self.drift = bool(drift)
+        self.sigma = sigma
+        self.radius_m = None if radius_m is None else positive(radius_m, "radius_m", " (m)")
+        self._az: list[float] = []
+        self._y: list[tuple[float, float]] = []
+        self._t: list[float | None] = []
+        self._sem: list[float | None] = []
+        self._n: list[int] = []
+
+    def __len__(self) -> int:
+        return len(self._az)
+
+    def __repr__(self) -> str:
+        return f"StartupCalibration({len(self)} azimuths recorded, drift={self.drift})"
+
+    def _add(self, az: float, y: tuple[float, float], t: float | None, sem: float | None,
+             n: int) -> None:
+        a = float(az)
+        if not np.isfinite(a):
+            raise CalibrationError("azimuth must be finite (deg)")
+        if not (np.isfinite(y[0]) and np.isfinite(y[1])):
+            raise CalibrationError(f"azimuth {a:g} deg: channel average is NaN or inf")
+        self._az.append(a)
+        self._y.append((float(y[0]), float(y[1])))
+        self._t.append(None if t is None else float(t))
+        self._sem.append(sem)
+        self._n.append(n)
+
+    def record(self, azimuth_deg: float, channels: ArrayLike, *, t: ArrayLike | None = None
+               ) -> None:
+        """Average one azimuth's ``(N, 2)`` inline/cross stream (E) with the dwell engine.
+
+        ``t`` (N,) sample times in s give the dwell's mid time (needed for drift).
+        """
+        from .dwell import dwell_stats
+
+        c = np.asarray(channels, dtype=np.float64)
+        if c.ndim != 2 or c.shape[1] != 2 or c.shape[0] == 0:
+            raise CalibrationError(
+                f"channels must have shape (N, 2) (inline, cross in E); got {c.shape}"
+            )
+        n = c.shape[0]
+        pad = np.zeros((n, 3))
+        pad[:, :2] = c
+        ds = dwell_stats(pad, [[0, n]], t=t)
+        sem = None
+        if n > 1 and ds.var is not None:
+            sem = float(np.sqrt(np.mean(ds.var[0, :2]) / n))
+        tm = None if ds.t is None else float(ds.t[0])
+        self._add(azimuth_deg, (ds.mean[0, 0], ds.mean[0, 1]), tm, sem, n)
+
+    def record_raw(
+        self,
+        azimuth_deg: float,
+        accel: ArrayLike,
+        phase: ArrayLike,
+        *,
+        t: ArrayLike | None = None,
+        radius_m: float | None = None,
+    ) -> Demodulated:
+        """Demodulate one azimuth's raw ``(N, 4)`` streams (m/s^2) and record the channels."""
+        r = radius_m if radius_m is not None else self.radius_m
+        if r is None:
+            raise CalibrationError("record_raw needs the disc radius (radius_m, m)")
+        dm = demodulate(accel, phase, radius_m=r, t=t)
+        tm = None if dm.t is None else float(dm.t[0])
+        sem = float(np.sqrt(0.5 * (dm.std_inline_E[0] ** 2 + dm.std_cross_E[0] ** 2)))
+        self._add(azimuth_deg, (dm.inline_E[0], dm.cross_E[0]), tm, sem,
+                  int(dm.stop[0] - dm.start[0]))
+        return dm
+
+    def record_mean(
+        self,
+        azimuth_deg: float,
+        inline_E: float,
+        cross_E: float,
+        *,
+        t: float | None = None,
+        std: float | None = None,
+    ) -> None:
+        """Record averages computed elsewhere (E; ``t`` the dwell mid time in s)."""
+        self._add(azimuth_deg, (float(inline_E), float(cross_E)), t, std, 0)
+
+    @property
+    def azimuth_deg(self) -> _F64:
+        """Azimuths recorded so far, deg."""
+        return np.array(self._az)
+
+    @property
+    def outputs(self) -> _F64:
+        """``(m, 2)`` averages recorded so far, E."""
+        return np.array(self._y, dtype=np.float64).reshape(-1, 2)
+
+    def solve(self) -> StartupBias:
+        """Step 4: the per-startup bias from everything recorded.
+
+        ``sigma="stream"`` (constructor) uses each dwell's own white-noise standard error;
+        a number or array is a known noise std; None estimates it from the residuals.
+        """
+        m = len(self)
+        if m == 0:
+            raise DegenerateDataError("no azimuth recorded yet")
+        t = None
+        if self.drift:
+            if any(v is None for v in self._t):
+                missing = [i for i, v in enumerate(self._t) if v is None]
+                raise CalibrationError(f"drift needs a time for every dwell; missing: {missing}")
+            t = np.array(self._t, dtype=np.float64)
+        sig: Any = self.sigma
+        if isinstance(sig, str):
+            if sig != "stream":
+                raise CalibrationError("sigma must be a number, an array, 'stream' or None")
+            if any(v is None or not v > 0 for v in self._sem):
+                raise CalibrationError("sigma='stream' needs the noise of every recorded dwell")
+            sig = np.array(self._sem, dtype=np.float64)
+        return startup_bias(self.azimuth_deg, self.outputs, t=t, drift=self.drift, sigma=sig)
+
+
+# ------------------------------------------------------------------------------------------
+# Table input (the CLI)
+# ------------------------------------------------------------------------------------------
+def calibrate_gradiometer_table(
+    path: str | os.PathLike[str],
+    *,
+    drift: bool | None = None,
+    sigma: float | None = None,
+) -> StartupBias:
+    """Start-up bias from a CSV table with columns ``azimuth_deg, inline_E, cross_E[, t_s]``.
+
+    Lines starting with ``#`` are comments. ``drift=None`` fits a drift when a ``t_s`` column
+    is present and there are at least 3 rows.
+    """
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as e:
+        raise CalibrationError(
+            f"cannot read gradiometer table {str(path)!r}: {e.strerror}"
+        ) from None
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise CalibrationError(f"{path}: no header row")
+    names = [c.strip() for c in lines[0].split(",")]
+    need = ("azimuth_deg", "inline_E", "cross_E")
+    if not all(n in names for n in need):
+        raise CalibrationError(f"{path}: needs columns {', '.join(need)} [, t_s]; got {names}")
+    try:
+        data = np.loadtxt(io.StringIO("\n".join(lines[1:])), delimiter=",", ndmin=2)
+    except ValueError as e:
+        raise CalibrationError(f"{path}: unreadable numbers ({e})") from None
+    if data.shape[0] == 0 or data.shape[1] != len(names):
+        raise CalibrationError(f"{path}: rows must have the header's {len(names)} columns")
+    col = {n: data[:, i] for i, n in enumerate(names)}
+    t = col.get("t_s")
+    use_drift = (t is not None and data.shape[0] >= 3) if drift is None else bool(drift)
+    return startup_bias(
+        col["azimuth_deg"],
+        np.column_stack([col["inline_E"], col["cross_E"]]),
+        t=t,
+        drift=use_drift,
+        sigma=sigma,
+    )

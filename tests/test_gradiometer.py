@@ -1,0 +1,378 @@
+"""Gradiometer per-startup bias (SPEC 3): estimator, design, demodulation, simulator, workflow."""
+
+from __future__ import annotations
+
+import accelcal
+import numpy as np
+import pytest
+from accelcal import CalibrationError, DegenerateDataError
+from accelcal.gradiometer import demodulate_reference
+from accelcal.sim import gradiometer_session
+
+
+def model(az_deg, bias, gamma, t=None, drift=None, t_ref=0.0):
+    """SPEC 3 measurement model y_k = b + R(2 theta_k) gamma (+ drift (t - t_ref))."""
+    th = np.radians(np.asarray(az_deg, dtype=float))
+    c, s = np.cos(2 * th), np.sin(2 * th)
+    y = np.column_stack(
+        [bias[0] + c * gamma[0] + s * gamma[1], bias[1] - s * gamma[0] + c * gamma[1]]
+    )
+    if drift is not None:
+        y += np.outer(np.asarray(t) - t_ref, drift)
+    return y
+
+
+def closed_form(az_deg):
+    u = np.exp(-2j * np.radians(np.asarray(az_deg, dtype=float)))
+    m = u.size
+    return m / (m**2 - abs(u.sum()) ** 2)
+
+
+BAL = [0.0, 45.0, 90.0, 135.0]
+UNBAL = [0.0, 30.0, 100.0, 150.0, 10.0]
+
+
+# ---- estimator --------------------------------------------------------------------------
+@pytest.mark.parametrize("az", [BAL, [0.0, 90.0], [0.0, 60.0, 120.0], UNBAL, [0.0, 20.0, 50.0]])
+def test_noise_free_recovery(az):
+    b, g = np.array([12.5, -7.25]), np.array([43.0, -18.0])
+    r = accelcal.startup_bias(az, model(az, b, g))
+    assert np.allclose(r.bias, b, atol=1e-9, rtol=0)
+    assert np.allclose(r.gradient, g, atol=1e-9, rtol=0)
+    assert r.drift is None and r.covariance.shape == (4, 4)
+    assert np.allclose(r.residuals, 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("az", [BAL, [0.0, 90.0], UNBAL, [0.0, 20.0, 50.0], [10.0, 40.0]])
+def test_bias_variance_closed_form(az):
+    sigma = 0.7
+    y = model(az, [1.0, 2.0], [3.0, 4.0]) + 0.01
+    r = accelcal.startup_bias(az, y, sigma=sigma)
+    v = closed_form(az) * sigma**2
+    for j in range(4):
+        assert r.covariance[j, j] == pytest.approx(v, rel=1e-10)
+    p = accelcal.predict_startup_accuracy(az, sigma=sigma)
+    assert p.closed_form_variance == pytest.approx(v, rel=1e-12)
+    assert np.allclose(p.covariance, r.covariance, rtol=1e-10, atol=1e-14)
+    if abs(np.exp(2j * np.radians(az)).sum()) < 1e-9:
+        # Balanced: the bias is the plain mean.
+        assert np.allclose(r.bias, y.mean(axis=0), atol=1e-12)
+
+
+def test_balanced_set_variances():
+    for az, v in [([0, 90], 0.5), ([0, 60, 120], 1 / 3), ([0, 45, 90, 135], 0.25)]:
+        p = accelcal.predict_startup_accuracy(az, sigma=1.0)
+        assert p.bias_std ** 2 == pytest.approx([v, v], rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "az, t, drift, words",
+    [
+        ([0.0, 180.0], None, False, "modulo 180"),
+        ([30.0, 210.0, 30.0], None, False, "modulo 180"),
+        ([45.0], None, False, "two azimuths"),
+        ([0.0, 90.0], [0.0, 10.0], True, "at least 3"),
+        ([0.0, 90.0, 0.0], [5.0, 5.0, 5.0], True, "same time"),
+    ],
+)
+def test_singular_designs_say_why(az, t, drift, words):
+    y = np.zeros((len(az), 2))
+    with pytest.raises(DegenerateDataError, match=words):
+        accelcal.startup_bias(az, y, t=t, drift=drift)
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(CalibrationError, match="shape"):
+        accelcal.startup_bias([0, 90], np.zeros((3, 2)))
+    with pytest.raises(CalibrationError, match="NaN"):
+        accelcal.startup_bias([0, 90], [[0, np.nan], [1, 2]])
+    with pytest.raises(CalibrationError, match="needs the dwell times"):
+        accelcal.startup_bias([0, 90, 0], np.zeros((3, 2)), drift=True)
+    with pytest.raises(CalibrationError, match="sigma"):
+        accelcal.startup_bias([0, 90], np.zeros((2, 2)), sigma=-1.0)
+
+
+def test_no_redundancy_without_sigma_gives_nan_covariance():
+    r = accelcal.startup_bias([0, 90], model([0, 90], [1, 2], [3, 4]))
+    assert r.dof == 0 and r.sigma is None and np.all(np.isnan(r.covariance))
+    assert np.allclose(r.bias, [1, 2], atol=1e-12)
+
+
+def test_abba_with_drift():
+    az = [0.0, 90.0, 90.0, 0.0]
+    t = np.array([30.0, 110.0, 190.0, 270.0])
+    b, g, d = np.array([5.0, -3.0]), np.array([40.0, 25.0]), np.array([0.02, -0.015])
+    y = model(az, b, g, t, d, t_ref=150.0)
+    r = accelcal.startup_bias(az, y, t=t, drift=True, sigma=1.0)
+    assert r.t_ref == pytest.approx(150.0)
+    assert np.allclose(r.bias, b, atol=1e-9)
+    assert np.allclose(r.gradient, g, atol=1e-9)
+    assert np.allclose(r.drift, d, atol=1e-12)
+    # Time-symmetric return-to-start: drift uncorrelated with bias and gradient.
+    assert np.allclose(r.covariance[:4, 4:], 0.0, atol=1e-14)
+    # ABBA is immune to a linear drift even without the drift model (it shows in the
+    # residuals only); the non-symmetric ABAB order is not.
+    r0 = accelcal.startup_bias(az, y)
+    assert np.allclose(r0.params, np.r_[b, g], atol=1e-9)
+    assert np.abs(r0.residuals).max() > 1.0
+    abab = [0.0, 90.0, 0.0, 90.0]
+    r1 = accelcal.startup_bias(abab, model(abab, b, g, t, d, t_ref=150.0))
+    assert np.abs(r1.params - np.r_[b, g]).max() > 0.5
+
+
+def test_unbalanced_drift_recovery():
+    az = [0.0, 70.0, 130.0, 20.0, 95.0]
+    t = np.array([0.0, 50.0, 100.0, 160.0, 200.0])
+    b, g, d = np.array([-2.0, 9.0]), np.array([15.0, -33.0]), np.array([-0.01, 0.03])
+    r = accelcal.startup_bias(az, model(az, b, g, t, d, t_ref=0.0), t=t, drift=True, t_ref=0.0)
+    assert np.allclose(r.params, np.r_[b, g, d], atol=1e-9)
+
+
+def test_monte_carlo_matches_covariance():
+    rng = np.random.default_rng(3)
+    for az, t in [(UNBAL, None), ([0.0, 90.0, 90.0, 0.0], np.array([0.0, 60.0, 120.0, 180.0]))]:
+        sigma = 0.8
+        truth = model(az, [3.0, -1.0], [20.0, 10.0], t, None if t is None else [0.01, 0.0])
+        est = []
+        for _ in range(3000):
+            y = truth + rng.normal(0.0, sigma, truth.shape)
+            est.append(accelcal.startup_bias(az, y, t=t, drift=t is not None, sigma=sigma).params)
+        emp = np.cov(np.array(est).T)
+        pred = accelcal.predict_startup_accuracy(az, t, sigma).covariance
+        assert np.allclose(np.diag(emp), np.diag(pred), rtol=0.15)
+
+
+def test_residual_sigma_estimate():
+    rng = np.random.default_rng(5)
+    az = np.tile(BAL, 10)
+    y = model(az, [1, 1], [5, 5]) + rng.normal(0, 0.5, (az.size, 2))
+    r = accelcal.startup_bias(az, y)
+    assert r.sigma_estimated and r.dof == 2 * az.size - 4
+    assert r.sigma[0] == pytest.approx(0.5, rel=0.15)
+    assert r.std[0] == pytest.approx(0.5 / np.sqrt(az.size), rel=0.15)
+
+
+# ---- azimuth errors and planning ----------------------------------------------------------
+def test_common_azimuth_offset_leaves_bias_unchanged():
+    b, g = np.array([4.0, -6.0]), np.array([50.0, 20.0])
+    y = model(np.array(UNBAL) + 3.0, b, g)
+    r = accelcal.startup_bias(UNBAL, y)
+    assert np.allclose(r.bias, b, atol=1e-9)
+    assert np.linalg.norm(r.gradient) == pytest.approx(np.linalg.norm(g), rel=1e-12)
+
+
+def test_azimuth_error_prediction():
+    rng = np.random.default_rng(11)
+    az, g, st = np.array(BAL), np.array([60.0, -30.0]), 0.5
+    est = []
+    for _ in range(4000):
+        y = model(az + rng.normal(0, st, az.size), [0, 0], g)
+        est.append(accelcal.startup_bias(az, y, sigma=1.0).bias)
+    emp = np.var(np.array(est), axis=0)
+    p = accelcal.predict_startup_accuracy(az, sigma=1e-12, sigma_theta=st, gradient=g)
+    assert np.allclose(emp, np.diag(p.azimuth_covariance)[:2], rtol=0.15)
+    # Magnitude only: SPEC 3 sigma_bias ~ sqrt(2) sigma_theta |gamma| / sqrt(m).
+    pm = accelcal.predict_startup_accuracy(
+        az, sigma=1e-12, sigma_theta=st, gradient=np.linalg.norm(g)
+    )
+    want = np.sqrt(2) * np.radians(st) * np.linalg.norm(g) / np.sqrt(az.size)
+    assert pm.bias_std == pytest.approx([want, want], rel=1e-6)
+    with pytest.raises(CalibrationError, match="gradient"):
+        accelcal.predict_startup_accuracy(az, sigma_theta=0.1)
+
+
+@pytest.mark.parametrize("m", [2, 3, 4, 5, 8])
+def test_plan_balanced(m):
+    az = accelcal.plan_azimuths(m)
+    assert abs(np.exp(2j * np.radians(az)).sum()) < 1e-12
+    p = accelcal.predict_startup_accuracy(az, sigma=1.0)
+    assert p.bias_std ** 2 == pytest.approx([1 / m, 1 / m], rel=1e-10)
+
+
+@pytest.mark.parametrize("m", [3, 4, 5, 6, 7, 9])
+def test_plan_with_drift(m):
+    az = accelcal.plan_azimuths(m, drift=True)
+    assert az.size == m and np.allclose(az, az[::-1])  # time-symmetric, returns to start
+    t = np.arange(m) * 100.0
+    p = accelcal.predict_startup_accuracy(az, t, 1.0)
+    assert np.allclose(p.covariance[:4, 4:], 0.0, atol=1e-12)
+    want = 3 / 8 if m == 3 else 1 / m
+    assert p.bias_std ** 2 == pytest.approx([want, want], rel=1e-9)
+
+
+def test_plan_refuses_impossible():
+    with pytest.raises(DegenerateDataError):
+        accelcal.plan_azimuths(1)
+    with pytest.raises(DegenerateDataError):
+        accelcal.plan_azimuths(2, drift=True)
+
+
+# ---- demodulation and simulator -------------------------------------------------------------
+@pytest.mark.parametrize("frame", ["platform", "nav"])
+def test_demodulation_recovers_gradient_and_rate_terms(frame):
+    wx, wy = 1.2e-4, -7e-5  # rate terms of several E
+    s = gradiometer_session(
+        [0.0, 30.0, 90.0, 145.0],
+        gradient_E=(35.0, -20.0),
+        bias_E=(0.0, 0.0),
+        rates_rad_s=(wx, wy),
+        rates_frame=frame,
+        scale_mismatch=[1e-3, -2e-3, 0.5e-3, 0.5e-3],
+        tilt_mps2=(2e-3, -1e-3),
+        fs=200.0,
+        dwell_s=12.0,
+        spin_hz=0.7,
+        phase0_rad=0.4,
+    )
+    d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m, t=s.t)
+    tr = s.truth
+    # SPEC 3: residual rates add -(Wx^2 - Wy^2)/2 to I and -Wx Wy to C (platform-frame rates).
+    pw = tr.platform_rates_rad_s
+    formula = np.column_stack([-(pw[:, 0] ** 2 - pw[:, 1] ** 2) / 2, -pw[:, 0] * pw[:, 1]]) / 1e-9
+    assert np.abs(formula).max() > 3.0
+    want = tr.sensor_gradient_E + formula
+    assert np.allclose(d.outputs, want, atol=1e-6, rtol=0)
+    # The sensor-frame gradient is R(2 theta) gamma.
+    assert np.allclose(tr.sensor_gradient_E, model(tr.azimuth_true_deg, [0, 0], tr.gradient_E))
+    if frame == "platform":
+        assert np.allclose(formula, formula[0])
+    # Whole revolutions were used.
+    span = (d.stop - d.start) * s.omega_rad_s / s.fs / (2 * np.pi)
+    assert np.all(np.abs(span - d.revolutions) < s.omega_rad_s / s.fs)
+
+
+def test_demodulation_parity_with_numpy_and_layouts():
+    s = gradiometer_session(
+        [0.0, 60.0, 120.0], fs=150.0, dwell_s=9.0, spin_hz=0.45, noise_mps2=2e-7,
+        scale_mismatch=1e-3, tilt_mps2=(1e-3, 0.0), seed=7,
+    )
+    d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m)
+    for k in range(3):
+        i_ref, c_ref = demodulate_reference(s.accel, s.phase, d.start[k], d.stop[k], s.radius_m)
+        assert d.inline_E[k] == pytest.approx(i_ref, abs=1e-9)
+        assert d.cross_E[k] == pytest.approx(c_ref, abs=1e-9)
+    wrapped = np.mod(s.phase, 2 * np.pi) - np.pi / 3
+    dw = accelcal.demodulate(s.accel, wrapped + np.pi / 3, s.bounds, radius_m=s.radius_m)
+    assert np.allclose(dw.outputs, d.outputs, atol=1e-8)
+    assert np.array_equal(dw.stop, d.stop)
+    fortran = np.asfortranarray(s.accel)
+    df = accelcal.demodulate(fortran, s.phase, s.bounds, radius_m=s.radius_m)
+    assert np.allclose(df.outputs, d.outputs, atol=1e-9)
+    d32 = accelcal.demodulate(s.accel.astype(np.float32), s.phase, s.bounds, radius_m=s.radius_m)
+    assert np.allclose(d32.outputs, d.outputs, atol=0.5)  # float32 rounding of 1e-7 m/s^2 noise
+
+
+def test_demodulation_errors():
+    s = gradiometer_session([0.0], fs=100.0, dwell_s=5.0)
+    with pytest.raises(DegenerateDataError, match="revolution"):
+        accelcal.demodulate(s.accel, s.phase, [[0, 100]], radius_m=0.1)
+    with pytest.raises(CalibrationError, match=r"\(N, 4\)"):
+        accelcal.demodulate(s.accel[:, :3], s.phase, radius_m=0.1)
+    with pytest.raises(CalibrationError, match="phase"):
+        accelcal.demodulate(s.accel, s.phase[:-1], radius_m=0.1)
+    with pytest.raises(CalibrationError, match="radius"):
+        accelcal.demodulate(s.accel, s.phase, radius_m=0.0)
+    bad = s.accel.copy()
+    bad[10, 2] = np.nan
+    with pytest.raises(CalibrationError, match="NaN"):
+        accelcal.demodulate(bad, s.phase, radius_m=0.1)
+
+
+def test_end_to_end_abba_with_drift():
+    s = gradiometer_session(
+        [0.0, 90.0, 90.0, 0.0],
+        gradient_E=(45.0, 18.0),
+        bias_E=(9.0, -4.0),
+        drift_E_per_s=(0.02, -0.01),
+        rates_rad_s=(7e-5, 2e-5),
+        scale_mismatch=1e-3,
+        tilt_mps2=(1e-3, -2e-3),
+        fs=200.0,
+        dwell_s=20.0,
+    )
+    d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m, t=s.t)
+    r = accelcal.startup_bias(s.azimuth_deg, d.outputs, t=d.t, drift=True)
+    tr = s.truth
+    assert np.allclose(r.bias, tr.bias_at(r.t_ref), atol=5e-3)
+    assert np.allclose(r.gradient, tr.effective_gradient_E, atol=5e-3)
+    assert np.allclose(r.drift, tr.drift_E_per_s, atol=1e-4)
+
+
+def test_raw_monte_carlo_matches_predicted_std():
+    rng = np.random.default_rng(21)
+    az = [0.0, 45.0, 90.0, 135.0]
+    est, dstd = [], []
+    for _ in range(120):
+        s = gradiometer_session(
+            az, fs=100.0, dwell_s=10.0, spin_hz=0.5, noise_mps2=1e-7, slew_s=2.0, seed=rng,
+        )
+        d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m)
+        est.append(accelcal.startup_bias(az, d.outputs, sigma=d.std.mean()).params)
+        dstd.append(d.std.mean())
+    sig = float(np.mean(dstd))
+    pred = accelcal.predict_startup_accuracy(az, sigma=sig).std
+    emp = np.std(np.array(est), axis=0, ddof=1)
+    assert np.allclose(emp, pred, rtol=0.15)
+    # Demodulation white-noise std: sqrt(2 * 4 sigma_a^2 / N) / (4 R).
+    assert sig == pytest.approx(np.sqrt(8 * 1e-14 / 1000) / 0.4 / 1e-9, rel=0.05)
+
+
+# ---- workflow and table ---------------------------------------------------------------------
+def test_startup_calibration_workflow_streams_and_raw():
+    rng = np.random.default_rng(2)
+    az = accelcal.plan_azimuths(4, drift=True)
+    b, g, dr = np.array([3.0, -2.0]), np.array([30.0, 12.0]), np.array([0.01, 0.0])
+    cal = accelcal.StartupCalibration(drift=True)
+    means, times = [], []
+    for k, a in enumerate(az):
+        t = 100.0 * k + np.arange(2000) * 0.01
+        y = model(np.full(t.size, a), b, g, t, dr) + rng.normal(0, 1.0, (t.size, 2))
+        cal.record(a, y, t=t)
+        means.append(y.mean(axis=0))
+        times.append(0.5 * (t[0] + t[-1]))
+    r = cal.solve()
+    ref = accelcal.startup_bias(az, np.array(means), t=np.array(times), drift=True)
+    assert np.allclose(r.params, ref.params, atol=1e-9)
+    assert np.allclose(r.bias, b + dr * r.t_ref, atol=0.2)
+    rot = accelcal.StartupCalibration.frame_rotation(90.0)
+    assert np.allclose(rot, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+
+    s = gradiometer_session(az, fs=200.0, dwell_s=10.0, bias_E=(5.0, 1.0), noise_mps2=1e-7)
+    cal2 = accelcal.StartupCalibration(radius_m=s.radius_m, sigma="stream")
+    for k, (a0, a1) in enumerate(s.bounds):
+        cal2.record_raw(s.azimuth_deg[k], s.accel[a0:a1], s.phase[a0:a1], t=s.t[a0:a1])
+    r2 = cal2.solve()
+    assert not r2.sigma_estimated
+    assert np.all(np.abs(r2.bias - s.truth.bias_E) < 5 * r2.bias_std)
+
+    bad = accelcal.StartupCalibration(drift=True)
+    bad.record_mean(0.0, 1.0, 2.0)
+    with pytest.raises(CalibrationError, match="time"):
+        bad.solve()
+
+
+def test_calibrate_gradiometer_table(tmp_path):
+    az = [0.0, 90.0, 90.0, 0.0]
+    t = np.array([0.0, 100.0, 200.0, 300.0])
+    y = model(az, [2.0, 1.0], [10.0, -5.0], t, [0.01, 0.02], t_ref=150.0)
+    p = tmp_path / "g.csv"
+    rows = "\n".join(
+        f"{a},{float(i)!r},{float(c)!r},{tt}" for a, (i, c), tt in zip(az, y, t, strict=True)
+    )
+    p.write_text("# start-up\nazimuth_deg,inline_E,cross_E,t_s\n" + rows + "\n")
+    r = accelcal.calibrate_gradiometer_table(p)
+    assert r.drift is not None
+    assert np.allclose(r.bias, [2.0, 1.0], atol=1e-9)
+    p2 = tmp_path / "bad.csv"
+    p2.write_text("az,inline_E,cross_E\n0,1,2\n")
+    with pytest.raises(CalibrationError, match="azimuth_deg"):
+        accelcal.calibrate_gradiometer_table(p2)
+    with pytest.raises(CalibrationError, match="cannot read"):
+        accelcal.calibrate_gradiometer_table(tmp_path / "missing.csv")
+
+
+def test_demo_section_runs():
+    from accelcal.demo_gradiometer import demo_section
+
+    text = demo_section(0)
+    assert "bias_I" in text and "truth" in text
