@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -36,10 +37,21 @@ def friendly(fn: F) -> F:
             return fn(*a, **kw)
         except CalibrationError as e:
             _fail(str(e))
+        except BrokenPipeError:  # output piped into `head`: not an error
+            sys.exit(0)
         except FileNotFoundError as e:
             _fail(f"file not found: {e.filename or e}")
         except (OSError, ValueError) as e:
             _fail(str(e))
+        except Exception as e:  # an internal bug: still one line, the traceback on request
+            if os.environ.get("ACCELCAL_DEBUG"):
+                raise
+            click.echo(
+                f"accelcal: internal error: {type(e).__name__}: {e} "
+                "(set ACCELCAL_DEBUG=1 for the traceback and please report it)",
+                err=True,
+            )
+            sys.exit(3)
 
     return wrapper  # type: ignore[return-value]
 
@@ -122,6 +134,345 @@ def dwells(
     click.echo(d.table())
     if output:
         click.echo(f"wrote {output}")
+
+
+
+def _progress_enabled(quiet: bool) -> bool | None:
+    # tqdm: None disables the bar when stderr is not a terminal.
+    return True if quiet else None
+
+
+def _plot_available() -> bool:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _need_plot(path: str | None) -> None:
+    if path and not _plot_available():
+        raise CalibrationError("plots need matplotlib: pip install 'accelcal[plot]'")
+
+
+def _save_fig(fig: Any, path: str) -> None:
+    import io as _io
+
+    buf = _io.BytesIO()
+    suffix = Path(path).suffix.lstrip(".") or "png"
+    fig.savefig(buf, format=suffix, dpi=120, bbox_inches="tight")
+    atomic_write(path, buf.getvalue())
+
+
+def _load_stream(file: str, fs: float | None, columns: str | None) -> Any:
+    from .io import read_stream
+
+    st = read_stream(file, columns=columns, fs=fs)
+    if st.fs is None:
+        raise CalibrationError(
+            f"{file}: the sample rate is not in the file; give it with --fs (Hz)"
+        )
+    return st
+
+
+def _resolve_g(g: float | None, lat: float | None, height: float) -> tuple[float, str]:
+    from .static import local_gravity
+
+    if g is not None:
+        return g, "given"
+    if lat is not None:
+        return local_gravity(lat, height), f"WGS84 normal gravity at {lat:g} deg, {height:g} m"
+    raise CalibrationError("give the reference gravity with --g (m/s^2) or --lat/--height")
+
+
+@main.group()
+def calibrate() -> None:
+    """Calibrate from a recording (static), a centrifuge table or a gradiometer table."""
+
+
+@calibrate.command("static")
+@click.argument("file", type=click.Path())
+@click.option("--g", "g", type=float, default=None, help="Reference gravity, m/s^2.")
+@click.option("--lat", type=float, default=None, help="Latitude, deg (when --g is not known).")
+@click.option("--height", type=float, default=0.0, show_default=True, help="Height, m.")
+@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
+@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
+@click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
+              show_default=True, help="9-parameter triangle or 6-parameter bias + scale.")
+@click.option("--sensor-id", default="", help="Stored in the calibration file.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write the calibration (versioned JSON).")
+@click.option("--dwells-out", type=click.Path(dir_okay=False), default=None,
+              help="Write the dwell table (CSV).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Norm before/after and per-dwell residuals (PNG/PDF/SVG).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def calibrate_static(
+    file: str, g: float | None, lat: float | None, height: float, fs: float | None,
+    columns: str | None, model: str, sensor_id: str, output: str | None,
+    dwells_out: str | None, plot_path: str | None, as_json: bool,
+) -> None:
+    """Static field calibration: detect dwells, fit scale, bias and non-orthogonality."""
+    import datetime
+    import warnings
+
+    from ._core import DegenerateDataError
+    from .dwell import detect_dwells
+    from .static import fit_static
+
+    _need_plot(plot_path)
+    gv, g_src = _resolve_g(g, lat, height)
+    st = _load_stream(file, fs, columns)
+    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature)
+    if dwells_out:
+        d.to_csv(dwells_out)
+    notes: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            fit = fit_static(d, gv, model=model)
+        except DegenerateDataError as e:
+            hint = ""
+            if model != "diag" and "diag" not in str(e):
+                hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
+            raise CalibrationError(
+                f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
+                f"model: {e}.{hint}"
+            ) from None
+    for w in caught:
+        notes.append(str(w.message))
+    if output:
+        temp = None if d.temperature is None else float(np.mean(d.temperature))
+        fit.to_model(sensor_id=sensor_id, date=datetime.date.today().isoformat(),
+                     temperature=temp, metadata={"source": str(file), "n_dwells": len(d)}).save(output)
+    if plot_path:
+        from .plots import static_norm_figure
+
+        _save_fig(static_norm_figure(fit, d), plot_path)
+    if as_json:
+        out = fit.to_dict()
+        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file))
+        emit_json(out)
+        return
+    click.echo(f"{file}: {len(st.samples)} samples at {st.fs:g} Hz -> {len(d)} dwells")
+    click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
+    click.echo(fit.summary())
+    for n in notes:
+        click.echo(f"warning: {n}")
+    if output:
+        click.echo(f"wrote {output}")
+    if plot_path:
+        click.echo(f"wrote {plot_path}")
+
+
+@calibrate.command("centrifuge")
+@click.argument("table", type=click.Path())
+@click.option("--radius", type=float, required=True, help="Arm radius, m.")
+@click.option("--g", "g", type=float, default=9.80665, show_default=True, help="m/s^2")
+@click.option("--method", type=click.Choice(["nls", "taylor-paper"]), default="nls",
+              show_default=True)
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write the fit as JSON.")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def calibrate_centrifuge(table: str, radius: float, g: float, method: str,
+                         output: str | None, as_json: bool) -> None:
+    """Centrifuge calibration with K2 terms from a per-position table (outputs in g)."""
+    import warnings
+
+    from .centrifuge import calibrate_centrifuge_table
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit = calibrate_centrifuge_table(table, radius, g=g, method=method)
+    notes = [str(w.message) for w in caught]
+    if output:
+        write_json_file(output, fit.to_dict())
+    if as_json:
+        out = fit.to_dict()
+        out["warnings"] = notes
+        emit_json(out)
+        return
+    click.echo(fit.summary())
+    for n in notes:
+        click.echo(f"warning: {n}")
+    if output:
+        click.echo(f"wrote {output}")
+
+
+@calibrate.command("gradiometer")
+@click.argument("table", type=click.Path())
+@click.option("--drift/--no-drift", default=None, help="Fit a linear bias drift (needs t_s).")
+@click.option("--sigma", type=float, default=None, help="Noise std of one average, E.")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
+                          as_json: bool) -> None:
+    """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows."""
+    from .gradiometer import calibrate_gradiometer_table
+
+    sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma)
+    if as_json:
+        emit_json(sb.to_dict())
+        return
+    click.echo(sb.summary())
+
+
+@main.command()
+@click.argument("cal", type=click.Path())
+@click.argument("file", type=click.Path())
+@click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
+              help="Calibrated stream: .csv (t_s, ax, ay, az in m/s^2) or .npy.")
+@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
+@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
+@click.option("--chunk-rows", type=int, default=500_000, show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@friendly
+def apply(cal: str, file: str, output: str, fs: float | None, columns: str | None,
+          chunk_rows: int, quiet: bool) -> None:
+    """Apply a calibration file to a recording, streaming chunk by chunk."""
+    import os
+    import tempfile
+
+    from tqdm import tqdm
+
+    from .io import iter_stream
+    from .static import TriadModel
+
+    model = TriadModel.load(cal)
+    out = Path(output)
+    if out.resolve() == Path(file).resolve():
+        raise CalibrationError("the output would overwrite the input recording; choose -o")
+    folder = out.parent if str(out.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=folder)
+    n = 0
+    try:
+        if out.suffix == ".npy":
+            os.close(fd)
+            parts = []
+            for chunk, _t in tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns,
+                                              fs=fs), unit="chunk", disable=_progress_enabled(quiet)):
+                parts.append(model.apply(chunk))
+                n += len(chunk)
+            arr = np.concatenate(parts) if parts else np.empty((0, 3))
+            with open(tmp, "wb") as fh:
+                np.save(fh, arr)
+        else:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(f"# calibrated by accelcal with {cal}; units m/s^2\n")
+                fh.write("t_s,ax,ay,az\n")
+                for chunk, t in tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns,
+                                                 fs=fs), unit="chunk",
+                                     disable=_progress_enabled(quiet)):
+                    a = model.apply(chunk)
+                    tt = t if t is not None else np.full(len(a), np.nan)
+                    np.savetxt(fh, np.column_stack([tt, a]), delimiter=",", fmt="%.10g")
+                    n += len(a)
+        os.replace(tmp, out)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    click.echo(f"wrote {n} calibrated samples to {output}", err=quiet)
+
+
+@main.command()
+@click.argument("file", type=click.Path())
+@click.option("--g", "g", type=float, default=None, help="Reference gravity, m/s^2.")
+@click.option("--lat", type=float, default=None, help="Latitude, deg (when --g is not known).")
+@click.option("--height", type=float, default=0.0, show_default=True, help="Height, m.")
+@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
+@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Residuals against time, temperature and pose, before and after.")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
+             columns: str | None, plot_path: str | None, as_json: bool) -> None:
+    """Sim-to-real gap diagnosis of a static session recording."""
+    from .dwell import detect_dwells
+    from .gap import diagnose as run_diagnose
+
+    _need_plot(plot_path)
+    gv, _ = _resolve_g(g, lat, height)
+    st = _load_stream(file, fs, columns)
+    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature)
+    rep = run_diagnose(d, g=gv)
+    if plot_path:
+        _save_fig(rep.plot(), plot_path)
+    if as_json:
+        emit_json(rep.to_dict())
+        return
+    click.echo(f"{file}: {len(d)} dwells at {st.fs:g} Hz, g = {gv:.6f} m/s^2")
+    click.echo(rep.summary())
+    if plot_path:
+        click.echo(f"wrote {plot_path}")
+
+
+@main.command()
+@click.option("--n", "n", type=int, required=True, help="Number of attitudes.")
+@click.option("--max-tilt", type=float, default=30.0, show_default=True,
+              help="Two-axis platform tilt limit, deg (use 180 for the full sphere).")
+@click.option("--sigma", type=float, default=1e-3, show_default=True,
+              help="Noise std of one dwell mean, m/s^2.")
+@click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
+              show_default=True)
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Planned attitudes on the sphere.")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | None,
+         as_json: bool) -> None:
+    """Plan n attitudes (D-optimal) and print the accuracy they predict."""
+    from .static import plan_poses
+
+    _need_plot(plot_path)
+    mt = None if max_tilt >= 180 else max_tilt
+    p = plan_poses(n, mt, sigma=sigma, model=model)
+    if plot_path:
+        from .plots import poses_figure
+
+        _save_fig(poses_figure(p), plot_path)
+    if as_json:
+        emit_json(_plan_dict(p, sigma, model))
+        return
+    click.echo(_plan_text(p, sigma, model))
+    if plot_path:
+        click.echo(f"wrote {plot_path}")
+
+
+def _plan_dict(p: Any, sigma: float, model: str) -> dict[str, Any]:
+    pred = p.prediction
+    return {
+        "n": int(len(p.directions)),
+        "model": model,
+        "sigma_mps2": sigma,
+        "tilts_deg": None if p.tilts_deg is None else p.tilts_deg,
+        "directions": p.directions,
+        "predicted_std": dict(zip(pred.names, pred.std)),
+        "singular": bool(pred.singular),
+        "condition": pred.condition,
+    }
+
+
+def _plan_text(p: Any, sigma: float, model: str) -> str:
+    pred = p.prediction
+    lines = [f"{len(p.directions)} attitudes (D-optimal), model {model!r}, "
+             f"dwell-mean noise {sigma:g} m/s^2"]
+    if p.tilts_deg is not None:
+        lines.append(f"{'#':>3} {'tilt_x_deg':>11} {'tilt_y_deg':>11}")
+        lines += [f"{i:>3} {a:>11.2f} {b:>11.2f}" for i, (a, b) in enumerate(p.tilts_deg)]
+    else:
+        lines.append(f"{'#':>3} {'gx':>8} {'gy':>8} {'gz':>8}  (unit gravity direction)")
+        lines += [f"{i:>3} {a:>8.4f} {b:>8.4f} {c:>8.4f}" for i, (a, b, c) in
+                  enumerate(p.directions)]
+    lines.append("predicted std (Cramer-Rao bound, 1 sigma):")
+    lines.append(pred.table())
+    if pred.singular:
+        lines.append(f"SINGULAR design: {pred.combination}")
+    return "\n".join(lines)
 
 
 def write_json_file(path: str | Path, obj: Any) -> None:
