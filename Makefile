@@ -32,7 +32,7 @@ stubtest: build
 
 bench: build
 	cargo bench --bench core
-	$(PY) -m pytest benches -q --benchmark-only --benchmark-columns=median,ops
+	$(PY) -m pytest benches -o addopts="" -o python_files="bench_*.py" -p no:cacheprovider -q -s --benchmark-only --benchmark-columns=median,ops
 
 lint:
 	cargo fmt --check

@@ -88,7 +88,12 @@ def gap_diagnose_raw(
     sine_tol: float = 0.05,
     ambiguity_cos: float = 0.9,
     min_temp_range: float = 0.05,
+    test: str = "auto",
+    trust_level: float = 0.1,
+    gate: str = "auto",
 ) -> dict[str, Any]: ...
+def gap_chi2_sf(x: float, k: float) -> float: ...
+def gap_f_sf(f: float, d1: float, d2: float) -> float: ...
 def gap_model_residuals_raw(
     mean: NDArray[np.float64],
     t: NDArray[np.float64] | None,
@@ -180,3 +185,23 @@ def static_fit_batch_raw(
 def apply_triad_raw(
     samples: NDArray[Any], k: list[list[float]], b: list[float]
 ) -> NDArray[np.float64]: ...
+
+__all__ = [
+    "centrifuge_fit_raw",
+    "detect_dwells_raw",
+    "dwell_stats_raw",
+    "RawDwellAccumulator",
+    "gap_chi2_sf",
+    "gap_diagnose_raw",
+    "gap_f_sf",
+    "gap_model_residuals_raw",
+    "demodulate_raw",
+    "startup_bias_raw",
+    "startup_predict_raw",
+    "apply_triad_raw",
+    "static_fit_batch_raw",
+    "static_fit_raw",
+    "StaticFitRaw",
+    "CalibrationError",
+    "DegenerateDataError",
+]

@@ -18,7 +18,7 @@ import click
 import numpy as np
 
 from ._core import CalibrationError
-from ._files import atomic_write
+from ._files import atomic_open, atomic_write
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -83,14 +83,16 @@ def main() -> None:
 
 @main.command()
 @click.option("--quick", is_flag=True, help="Shorter simulated session (for a fast look).")
-@click.option("--out", type=click.Path(file_okay=False), default=None, help="Folder for figures.")
+@click.option("--out", type=click.Path(file_okay=False), default="accelcal-demo", show_default=True,
+              help="Folder for the figures.")
+@click.option("--no-figures", is_flag=True, help="Print only; write no figures.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
 @friendly
-def demo(quick: bool, out: str | None, seed: int) -> None:
+def demo(quick: bool, out: str, no_figures: bool, seed: int) -> None:
     """Run the main job on built-in simulated data and print what it finds."""
     from .demo import run_demo
 
-    click.echo(run_demo(quick=quick, out=out, seed=seed))
+    click.echo(run_demo(quick=quick, out=None if no_figures else out, seed=seed))
 
 
 @main.command()
@@ -156,12 +158,9 @@ def _need_plot(path: str | None) -> None:
 
 
 def _save_fig(fig: Any, path: str) -> None:
-    import io as _io
+    from .plots import save_figure
 
-    buf = _io.BytesIO()
-    suffix = Path(path).suffix.lstrip(".") or "png"
-    fig.savefig(buf, format=suffix, dpi=120, bbox_inches="tight")
-    atomic_write(path, buf.getvalue())
+    save_figure(fig, path)
 
 
 def _load_stream(file: str, fs: float | None, columns: str | None) -> Any:
@@ -244,8 +243,9 @@ def calibrate_static(
         notes.append(str(w.message))
     if output:
         temp = None if d.temperature is None else float(np.mean(d.temperature))
+        meta = {"source": str(file), "n_dwells": len(d)}
         fit.to_model(sensor_id=sensor_id, date=datetime.date.today().isoformat(),
-                     temperature=temp, metadata={"source": str(file), "n_dwells": len(d)}).save(output)
+                     temperature=temp, metadata=meta).save(output)
     if plot_path:
         from .plots import static_norm_figure
 
@@ -332,9 +332,6 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
 def apply(cal: str, file: str, output: str, fs: float | None, columns: str | None,
           chunk_rows: int, quiet: bool) -> None:
     """Apply a calibration file to a recording, streaming chunk by chunk."""
-    import os
-    import tempfile
-
     from tqdm import tqdm
 
     from .io import iter_stream
@@ -344,37 +341,24 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     out = Path(output)
     if out.resolve() == Path(file).resolve():
         raise CalibrationError("the output would overwrite the input recording; choose -o")
-    folder = out.parent if str(out.parent) else Path(".")
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=folder)
+    chunks = tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns, fs=fs),
+                  unit="chunk", desc="apply", disable=_progress_enabled(quiet))
     n = 0
-    try:
-        if out.suffix == ".npy":
-            os.close(fd)
-            parts = []
-            for chunk, _t in tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns,
-                                              fs=fs), unit="chunk", disable=_progress_enabled(quiet)):
-                parts.append(model.apply(chunk))
-                n += len(chunk)
-            arr = np.concatenate(parts) if parts else np.empty((0, 3))
-            with open(tmp, "wb") as fh:
-                np.save(fh, arr)
-        else:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(f"# calibrated by accelcal with {cal}; units m/s^2\n")
-                fh.write("t_s,ax,ay,az\n")
-                for chunk, t in tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns,
-                                                 fs=fs), unit="chunk",
-                                     disable=_progress_enabled(quiet)):
-                    a = model.apply(chunk)
-                    tt = t if t is not None else np.full(len(a), np.nan)
-                    np.savetxt(fh, np.column_stack([tt, a]), delimiter=",", fmt="%.10g")
-                    n += len(a)
-        os.replace(tmp, out)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    if out.suffix == ".npy":
+        parts = [model.apply(chunk) for chunk, _t in chunks]
+        arr = np.concatenate(parts) if parts else np.empty((0, 3))
+        n = len(arr)
+        with atomic_open(out, "wb") as fh:
+            np.save(fh, arr)
+    else:
+        with atomic_open(out, "w") as fh:
+            fh.write(f"# calibrated by accelcal with {cal}; units m/s^2\n")
+            fh.write("t_s,ax,ay,az\n")
+            for chunk, t in chunks:
+                a = model.apply(chunk)
+                tt = t if t is not None else np.full(len(a), np.nan)
+                np.savetxt(fh, np.column_stack([tt, a]), delimiter=",", fmt="%.10g")
+                n += len(a)
     click.echo(f"wrote {n} calibrated samples to {output}", err=quiet)
 
 
@@ -451,7 +435,7 @@ def _plan_dict(p: Any, sigma: float, model: str) -> dict[str, Any]:
         "sigma_mps2": sigma,
         "tilts_deg": None if p.tilts_deg is None else p.tilts_deg,
         "directions": p.directions,
-        "predicted_std": dict(zip(pred.names, pred.std)),
+        "predicted_std": dict(zip(pred.names, pred.std, strict=True)),
         "singular": bool(pred.singular),
         "condition": pred.condition,
     }

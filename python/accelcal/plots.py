@@ -7,6 +7,18 @@ from typing import Any
 import numpy as np
 
 from ._core import CalibrationError
+from ._files import atomic_write
+
+
+def save_figure(fig: Any, path: str) -> None:
+    """Save a figure atomically; the format follows the suffix (png, pdf, svg)."""
+    import io
+    from pathlib import Path
+
+    buf = io.BytesIO()
+    suffix = Path(path).suffix.lstrip(".") or "png"
+    fig.savefig(buf, format=suffix, dpi=120, bbox_inches="tight")
+    atomic_write(path, buf.getvalue())
 
 
 def _plt() -> Any:
