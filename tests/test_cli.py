@@ -25,11 +25,15 @@ def run(*args: str) -> tuple[int, str]:
     return r.exit_code, r.output
 
 
-def test_demo_quick_finds_all_dwells() -> None:
-    code, out = run("demo", "--quick")
+def test_demo_quick_finds_all_dwells_and_writes_figures(tmp_path: Path) -> None:
+    code, out = run("demo", "--quick", "--out", str(tmp_path / "figs"))
     assert code == 0, out
     m = re.search(r"(\d+)/(\d+) detected dwells lie inside a true static interval", out)
     assert m and m.group(1) == m.group(2) == "20"
+    for section in ("Static field", "gap diagnosis", "Centrifuge", "Gradiometer"):
+        assert section.lower() in out.lower()
+    pngs = sorted(p.name for p in (tmp_path / "figs").glob("*.png"))
+    assert pngs == ["field_norm.png", "gap_drift.png", "planned_poses.png"]
 
 
 def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
