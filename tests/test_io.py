@@ -239,3 +239,28 @@ def test_corrupt_numpy_files(tmp_path: Path) -> None:
     q.write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(CalibrationError, match="bad.npz"):
         read_stream(q)
+
+
+def test_hdf5_reader_finds_samples_time_and_temperature(tmp_path: Path) -> None:
+    import h5py  # the optional 'hdf5' extra; `make test` installs it
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(900, 3))
+    temp = np.linspace(20.0, 21.0, 900)
+    path = tmp_path / "session.h5"
+    with h5py.File(path, "w") as f:
+        g = f.create_group("imu")
+        g["acc"] = x
+        g["temperature"] = temp
+        f.attrs["fs"] = 300.0
+    s = read_stream(path)
+    assert np.array_equal(s.samples, x)
+    assert s.fs == 300.0
+    np.testing.assert_allclose(s.t, np.arange(900) / 300.0)
+    np.testing.assert_array_equal(s.temperature, temp)
+    d = stream_dwells(path, bounds=[[0, 450], [450, 900]], chunk_rows=100)
+    np.testing.assert_allclose(d.mean, [x[:450].mean(0), x[450:].mean(0)], rtol=1e-12)
+    np.testing.assert_allclose(d.temperature, [temp[:450].mean(), temp[450:].mean()])
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not hdf5")
+    with pytest.raises(CalibrationError, match="HDF5"):
+        read_stream(bad)

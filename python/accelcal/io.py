@@ -531,6 +531,41 @@ def _read_npz(path: str, columns: Any, fs: float | None, time_column: Any) -> St
         raise CalibrationError(f"{path}: is a directory, not a recording file") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise CalibrationError(f"{path}: cannot read as a .npz archive ({e})") from None
+    return _from_arrays(path, data, columns, fs, time_column)
+
+
+def _read_h5(path: str, columns: Any, fs: float | None, time_column: Any) -> Stream:
+    """HDF5 (optional extra ``hdf5``): datasets by name as in ``.npz``; attributes as metadata."""
+    try:
+        import h5py
+    except ImportError:
+        raise CalibrationError(
+            f"{path}: reading HDF5 needs h5py: pip install 'accelcal[hdf5]'"
+        ) from None
+    data: dict[str, Any] = {}
+    try:
+        with h5py.File(path, "r") as f:
+
+            def visit(name: str, obj: Any) -> None:
+                if isinstance(obj, h5py.Dataset):
+                    leaf = name.split("/")[-1]
+                    data[leaf if leaf not in data else name] = obj[()]
+
+            f.visititems(visit)
+            for k, v in f.attrs.items():
+                if np.ndim(v) == 0 and k not in data:
+                    data[k] = np.asarray(v)
+    except FileNotFoundError:
+        raise CalibrationError(f"{path}: file not found") from None
+    except (OSError, ValueError) as e:
+        raise CalibrationError(f"{path}: cannot read as an HDF5 file ({e})") from None
+    return _from_arrays(path, data, columns, fs, time_column)
+
+
+def _from_arrays(
+    path: str, data: dict[str, Any], columns: Any, fs: float | None, time_column: Any
+) -> Stream:
+    files = list(data)
     key = next((k for k in _SAMPLE_KEYS if k in data and np.ndim(data[k]) == 2), None)
     if key is None:
         two = [k for k in files if np.ndim(data[k]) == 2]
@@ -589,6 +624,8 @@ def _kind(p: str) -> str:
         return "npy"
     if low.endswith(".npz"):
         return "npz"
+    if low.endswith((".h5", ".hdf5", ".hdf")):
+        return "h5"
     return "text"
 
 
@@ -629,6 +666,8 @@ def read_stream(
     kind = _kind(p)
     if kind == "npz":
         return _read_npz(p, columns, fs, time_column)
+    if kind == "h5":
+        return _read_h5(p, columns, fs, time_column)
     if kind == "npy":
         arr = _np_load(p)
         if not isinstance(arr, np.ndarray):
@@ -660,7 +699,7 @@ def _layout_for(p: str, columns: Any, fs: float | None, time_column: Any) -> tup
         if not isinstance(arr, np.ndarray):
             raise CalibrationError(f"{p}: not a .npy array file")
         return _npy_layout(p, arr, columns, fs, time_column, {}), arr
-    if kind == "npz":
+    if kind in ("npz", "h5"):
         return _Layout(p, None, 0, 3, None, [0, 1, 2], None, 1.0, None, {}, None), None
     return _sniff(p, columns, fs, time_column), None
 
@@ -680,8 +719,8 @@ def _chunks(
         raise CalibrationError(f"chunk_rows must be a positive integer; got {chunk_rows!r}")
     chunk_rows = int(chunk_rows)
     kind = _kind(p)
-    if kind == "npz":
-        s = _read_npz(p, columns, fs, time_column)
+    if kind in ("npz", "h5"):
+        s = (_read_npz if kind == "npz" else _read_h5)(p, columns, fs, time_column)
 
         def gen_npz() -> Iterator[Any]:
             for i in range(0, len(s), chunk_rows):
