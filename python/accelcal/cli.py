@@ -105,6 +105,7 @@ def demo(quick: bool, out: str, no_figures: bool, seed: int) -> None:
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the dwell table as CSV.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
 @friendly
 def dwells(
     file: str,
@@ -115,12 +116,13 @@ def dwells(
     min_dwell_s: float,
     output: str | None,
     as_json: bool,
+    quiet: bool,
 ) -> None:
     """Detect the static dwells of a recording and print their statistics."""
     from .io import stream_dwells
 
     d = stream_dwells(file, fs=fs, columns=columns, window_s=window_s, k=k,
-                      min_dwell_s=min_dwell_s)
+                      min_dwell_s=min_dwell_s, progress=False if quiet else None)
     if output:
         d.to_csv(output)
     if as_json:
@@ -139,7 +141,7 @@ def dwells(
 
 
 
-def _progress_enabled(quiet: bool) -> bool | None:
+def _tqdm_disable(quiet: bool) -> bool | None:
     # tqdm: None disables the bar when stderr is not a terminal.
     return True if quiet else None
 
@@ -342,7 +344,7 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     if out.resolve() == Path(file).resolve():
         raise CalibrationError("the output would overwrite the input recording; choose -o")
     chunks = tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns, fs=fs),
-                  unit="chunk", desc="apply", disable=_progress_enabled(quiet))
+                  unit="chunk", desc="apply", disable=_tqdm_disable(quiet))
     n = 0
     if out.suffix == ".npy":
         parts = [model.apply(chunk) for chunk, _t in chunks]

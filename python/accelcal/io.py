@@ -795,9 +795,13 @@ def stream_dwells(
     time_column: Any = None,
     chunk_rows: int = 500_000,
     units: str = "",
+    progress: bool | None = False,
     **detector_kw: Any,
 ) -> Any:
     """Dwell statistics of a (large) recording, streamed chunk by chunk.
+
+    ``progress``: show a progress bar of rows read (True), only when stderr is a terminal
+    (None), or never (False, the default for library use).
 
     With ``bounds`` (k, 2) the given ``[start, stop)`` dwells are accumulated; otherwise the
     static intervals are detected (needs ``fs`` from the argument, the file's metadata or its
@@ -822,9 +826,15 @@ def stream_dwells(
         bounds, fs=fsv, units=units, **({} if bounds is not None else detector_kw)
     )
     pushed = 0
-    for s, t, temp in it:
-        acc.push(s, t, temp)
-        pushed += s.shape[0]
+    from tqdm import tqdm
+
+    disable = True if progress is False else (None if progress is None else False)
+    with tqdm(unit=" rows", unit_scale=True, desc=os.path.basename(p), disable=disable,
+              leave=False) as bar:
+        for s, t, temp in it:
+            acc.push(s, t, temp)
+            pushed += s.shape[0]
+            bar.update(s.shape[0])
     if pushed == 0:
         raise CalibrationError(f"{p}: no data rows")
     return acc.finish()
