@@ -128,7 +128,7 @@ def dwells(
     if as_json:
         emit_json(d.to_dict())
         return
-    click.echo(f"{file}: {len(d)} dwells at {d.fs} Hz")
+    click.echo(f"{file}: {len(d)} dwells at {d.fs:.6g} Hz")
     if d.noise_std is not None and d.threshold is not None:
         click.echo(
             "noise std per axis (from the data): "
@@ -200,6 +200,14 @@ def calibrate() -> None:
 @click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
               show_default=True, help="9-parameter triangle or 6-parameter bias + scale.")
+@click.option("--method", type=click.Choice(["lm", "gauss-newton", "quadric", "linear-paper"]),
+              default="lm", show_default=True, help="Fit method (lm = maximum likelihood).")
+@click.option("--window", "window_s", type=float, default=1.0, show_default=True,
+              help="Dwell detector window, s.")
+@click.option("--k", "k_thr", type=float, default=6.0, show_default=True,
+              help="Dwell detector threshold factor (x noise variance).")
+@click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
+              help="Shortest dwell kept, s.")
 @click.option("--sensor-id", default="", help="Stored in the calibration file.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the calibration (versioned JSON).")
@@ -211,7 +219,8 @@ def calibrate() -> None:
 @friendly
 def calibrate_static(
     file: str, g: float | None, lat: float | None, height: float, fs: float | None,
-    columns: str | None, model: str, sensor_id: str, output: str | None,
+    columns: str | None, model: str, method: str, window_s: float, k_thr: float,
+    min_dwell_s: float, sensor_id: str, output: str | None,
     dwells_out: str | None, plot_path: str | None, as_json: bool,
 ) -> None:
     """Static field calibration: detect dwells, fit scale, bias and non-orthogonality."""
@@ -225,14 +234,15 @@ def calibrate_static(
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height)
     st = _load_stream(file, fs, columns)
-    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature)
+    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, window_s=window_s,
+                      k=k_thr, min_dwell_s=min_dwell_s)
     if dwells_out:
         d.to_csv(dwells_out)
     notes: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            fit = fit_static(d, gv, model=model)
+            fit = fit_static(d, gv, model=model, method=method)
         except DegenerateDataError as e:
             hint = ""
             if model != "diag" and "diag" not in str(e):
@@ -274,12 +284,16 @@ def calibrate_static(
 @click.option("--g", "g", type=float, default=9.80665, show_default=True, help="m/s^2")
 @click.option("--method", type=click.Choice(["nls", "taylor-paper"]), default="nls",
               show_default=True)
+@click.option("--k3", is_flag=True, help="Also fit cubic (K3) coefficients.")
+@click.option("--misalignment", is_flag=True, help="Also fit small-angle misalignment.")
+@click.option("--no-screen", is_flag=True, help="Skip the robust screening of bad rows.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the fit as JSON.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
-def calibrate_centrifuge(table: str, radius: float, g: float, method: str,
-                         output: str | None, as_json: bool) -> None:
+def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: bool,
+                         misalignment: bool, no_screen: bool, output: str | None,
+                         as_json: bool) -> None:
     """Centrifuge calibration with K2 terms from a per-position table (outputs in g)."""
     import warnings
 
@@ -287,7 +301,8 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str,
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        fit = calibrate_centrifuge_table(table, radius, g=g, method=method)
+        fit = calibrate_centrifuge_table(table, radius, g=g, method=method, k3=k3,
+                                         misalignment=misalignment, robust=not no_screen)
     notes = [str(w.message) for w in caught]
     if output:
         write_json_file(output, fit.to_dict())
@@ -307,18 +322,24 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str,
 @click.argument("table", type=click.Path())
 @click.option("--drift/--no-drift", default=None, help="Fit a linear bias drift (needs t_s).")
 @click.option("--sigma", type=float, default=None, help="Noise std of one average, E.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write the result as JSON.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
-                          as_json: bool) -> None:
+                          output: str | None, as_json: bool) -> None:
     """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows."""
     from .gradiometer import calibrate_gradiometer_table
 
     sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma)
+    if output:
+        write_json_file(output, sb.to_dict())
     if as_json:
         emit_json(sb.to_dict())
         return
     click.echo(sb.summary())
+    if output:
+        click.echo(f"wrote {output}")
 
 
 @main.command()
@@ -361,7 +382,7 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
                 tt = t if t is not None else np.full(len(a), np.nan)
                 np.savetxt(fh, np.column_stack([tt, a]), delimiter=",", fmt="%.10g")
                 n += len(a)
-    click.echo(f"wrote {n} calibrated samples to {output}", err=quiet)
+    click.echo(f"wrote {n} calibrated samples to {output}")
 
 
 @main.command()
