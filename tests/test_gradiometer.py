@@ -376,3 +376,14 @@ def test_demo_section_runs():
 
     text = demo_section(0)
     assert "bias_I" in text and "truth" in text
+
+
+def test_summary_warns_when_sigma_rests_on_few_degrees_of_freedom() -> None:
+    az = [0.0, 45.0, 90.0, 135.0, 0.0]
+    rng = np.random.default_rng(3)
+    y = np.column_stack([rng.normal(size=5), rng.normal(size=5)])
+    sb = accelcal.startup_bias(az, y)
+    assert sb.sigma_estimated and sb.dof == 6
+    assert "uncertain by about +-29 %" in sb.summary()
+    given = accelcal.startup_bias(az, y, sigma=1.0)
+    assert "uncertain by" not in given.summary()

@@ -175,6 +175,13 @@ class StartupBias:
         if self.sigma is not None:
             how = "estimated from residuals" if self.sigma_estimated else "given"
             lines.append(f"  noise std of an average: {np.mean(self.sigma):.3g} E ({how})")
+            if self.sigma_estimated and 0 < self.dof < 10:
+                rel = 1.0 / np.sqrt(2.0 * self.dof)
+                lines.append(
+                    f"  caution: sigma comes from only {self.dof} residual degree(s) of freedom, "
+                    f"so it and every std above are uncertain by about +-{100 * rel:.0f} % "
+                    "(give sigma= from the dwell noise, or add azimuths)"
+                )
         return "\n".join(lines)
 
     def __str__(self) -> str:

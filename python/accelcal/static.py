@@ -162,7 +162,8 @@ class StaticFit:
     ----------
     vector : (p,) [sx, sy, sz, bx, by, bz, m1, m2, m3] (p = 6 for ``model="diag"``)
     scale, bias, nonorth : (3,) parts of ``vector`` (nonorth = (m1, m2, m3), zeros for diag)
-    K : (3, 3) output units per unit of g;  covariance, std, correlation of ``vector``
+    K : (3, 3) output units per (m/s^2) (per unit of g's units);
+    covariance, std, correlation of ``vector``
     residuals : (k,) ``|a_k| - g`` per dwell;  rms, chi2_dof, dof
     noise_model : how the dwell weights were obtained
     iterations, converged : of GN/LM (0 / True for the linear methods)
@@ -187,6 +188,7 @@ class StaticFit:
         self.noise_known: bool = raw.noise_known
         self._nominal = nominal
         self._weak_std = 1e-3
+        self.input_units: str = ""
 
     # -- parameters ---------------------------------------------------------------------
     @cached_property
@@ -298,7 +300,7 @@ class StaticFit:
     # -- norm statistics ----------------------------------------------------------------
     def calibrated_means(self) -> NDArray[np.float64]:
         """Calibrated dwell means (k, 3), units of g."""
-        return np.linalg.solve(self.K, (self._means - self.bias).T).T
+        return np.asarray(np.linalg.solve(self.K, (self._means - self.bias).T).T, dtype=np.float64)
 
     @cached_property
     def norm_stats(self) -> dict[str, Any]:
@@ -323,13 +325,32 @@ class StaticFit:
 
     # -- export -------------------------------------------------------------------------
     def to_model(self, **meta: Any) -> TriadModel:
-        """The fitted :class:`TriadModel` (``meta``: sensor_id, date, temperature, ...)."""
+        """The fitted :class:`TriadModel` (``meta``: sensor_id, date, temperature, ...).
+
+        The stored ``covariance`` is the more realistic of the two: scaled by chi2/dof when
+        the residuals exceed the noise model (chi2/dof > 1), else the noise-model one. The
+        metadata records chi2/dof, the noise model and both covariances' choice.
+        """
+        md = dict(meta.pop("metadata", None) or {})
+        scaled = bool(self.dof > 0 and np.isfinite(self.chi2_dof) and self.chi2_dof > 1.0)
+        cov = self.covariance_scaled if scaled else self.covariance
+        md.update(
+            chi2_dof=None if not np.isfinite(self.chi2_dof) else float(self.chi2_dof),
+            dof=int(self.dof),
+            noise_model=self.noise_model,
+            covariance="scaled by chi2/dof" if scaled else "from the noise model",
+            residual_rms=float(self.rms),
+            n_dwells=int(len(self.residuals)),
+        )
+        if self.input_units and "input_units" not in meta:
+            meta["input_units"] = self.input_units
         return TriadModel(
             self.K,
             self.bias,
             model=self.model,
-            covariance=self.covariance,
+            covariance=cov,
             g=self.g,
+            metadata=md,
             **meta,
         )
 
@@ -387,6 +408,11 @@ class StaticFit:
         lines.append("  norm after:  " + ns["after"].line())
         if ns["std_reduction_percent"] is not None:
             lines.append(f"  residual std reduced by {ns['std_reduction_percent']:.1f} %")
+        if self.dof <= 0:
+            lines.append(
+                "  no redundancy (as many dwells as parameters): the residuals cannot test the "
+                "model; the std above comes from the noise model alone"
+            )
         if self.weak:
             lines.append("  WEAK design: " + _weak_text(self))
         return "\n".join(lines)
@@ -399,22 +425,8 @@ class StaticFit:
 
 
 def _weak_text(fit: StaticFit) -> str:
-    rel = fit.predicted_std_relative
-    std = fit.std
-    parts = []
-    for i, nm in enumerate(fit.names):
-        if not rel[i] <= fit._weak_std:
-            unit = "g" if 3 <= i < 6 else "of scale"
-            parts.append(f"{nm} +-{std[i]:.3g} ({100 * rel[i]:.2g} % {unit})")
-    if not np.all(np.isfinite(std)):
-        return (
-            "no redundancy (as many dwells as parameters): the noise and the uncertainty "
-            "cannot be estimated"
-        )
-    txt = "predicted std " + ", ".join(parts) + " (1 sigma)"
-    if fit.model != "diag" and np.any(~(rel[6:] <= fit._weak_std)):
-        txt += "; model='diag' (bias + scale) needs fewer attitudes"
-    return txt
+    # Formatted in Rust (Python's .3g/.2g): formatting a dozen floats here cost more than the fit.
+    return fit._raw.weak_text(fit._weak_std)  # type: ignore[no-any-return]
 
 
 def fit_static(
@@ -500,6 +512,8 @@ def fit_static(
         raw, means=means, g=gv, method=method, noise_model=noise_model, nominal=nominal
     )
     fit._weak_std = float(weak_std)
+    if isinstance(data, DwellSet):
+        fit.input_units = data.units
     if observability != "ignore" and (raw.weak or raw.degenerate):
         if raw.degenerate:
             o = fit.observability()
@@ -708,7 +722,8 @@ class TriadModel:
         )
 
     def __repr__(self) -> str:
-        return f"TriadModel(model={self.model!r}, vector={np.array2string(self.vector, precision=6)})"
+        v = np.array2string(self.vector, precision=6)
+        return f"TriadModel(model={self.model!r}, vector={v})"
 
 
 # ------------------------------------------------------------------------------------------
@@ -778,7 +793,7 @@ class Prediction:
     condition: float
 
     def table(self) -> str:
-        return "\n".join(f"  {n:<4} +-{s:.3g}" for n, s in zip(self.names, self.std))
+        return "\n".join(f"  {n:<4} +-{s:.3g}" for n, s in zip(self.names, self.std, strict=True))
 
 
 def _describe(v: NDArray[np.float64]) -> str:
@@ -875,7 +890,9 @@ def _fibonacci_sphere(n: int) -> NDArray[np.float64]:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def _fedorov(F: NDArray[np.float64], n: int, gen: np.random.Generator) -> tuple[NDArray[np.int64], float]:
+def _fedorov(
+    F: NDArray[np.float64], n: int, gen: np.random.Generator
+) -> tuple[NDArray[np.int64], float]:
     """Fedorov exchange for D-optimality over candidate rows F (C, p); repeats allowed."""
     C, p = F.shape
     idx = gen.choice(C, size=n, replace=C < n)
@@ -912,7 +929,8 @@ def plan_poses(
     """Choose ``n`` attitudes minimising the predicted covariance (D-optimal).
 
     ``max_tilt_deg`` bounds both tilts of a two-axis platform (candidates on a grid of
-    ``grid_step_deg``, default max_tilt/20); ``None`` plans over the whole sphere (2000
+    ``grid_step_deg``, default max_tilt/20; 90 therefore reaches only the upper hemisphere
+    with z up or level); ``None`` plans over the whole sphere (2000
     near-uniform directions). Returns the plan with the Cramer-Rao std of every parameter
     for dwell-mean noise ``sigma`` (output units). Attitudes may repeat (that is what a
     D-optimal design does when n exceeds the number of distinct useful poses).
