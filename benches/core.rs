@@ -70,5 +70,100 @@ fn bench_gradiometer(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_dwell, bench_gradiometer);
+/// Seed 000 simulation settings: 20 dwells, tilts +-30 deg, sigma 1e-3; the default fit
+/// (exact quadric start + LM + covariance + observability) and the batch over 2000 sessions.
+fn bench_static(c: &mut Criterion) {
+    use accelcal::static_fit::{fit_batch, fit_static, FitSettings, Method, Model, Noise};
+    let truth = [1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03];
+    let g = 9.80665;
+    let mut seed: u64 = 42;
+    let mut rnd = move || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    };
+    let sessions = 2000usize;
+    let n = 20usize;
+    let mut all = Vec::with_capacity(sessions * n * 3);
+    for _ in 0..sessions * n {
+        let (tx, ty) = (
+            rnd() * std::f64::consts::FRAC_PI_6,
+            rnd() * std::f64::consts::FRAC_PI_6,
+        );
+        let a = [
+            -g * ty.sin(),
+            g * tx.sin() * ty.cos(),
+            g * tx.cos() * ty.cos(),
+        ];
+        let am = [
+            truth[0] * a[0] + truth[3],
+            truth[6] * a[0] + truth[1] * a[1] + truth[4],
+            truth[7] * a[0] + truth[8] * a[1] + truth[2] * a[2] + truth[5],
+        ];
+        for v in am {
+            all.push(v + 1e-3 * 1.7320508 * rnd());
+        }
+    }
+    let means: Vec<[f64; 3]> = all[..n * 3].chunks(3).map(|r| [r[0], r[1], r[2]]).collect();
+    let mut grp = c.benchmark_group("static_fit");
+    for (name, method) in [("quadric_n20", Method::Quadric), ("lm_n20", Method::Lm)] {
+        let mut set = FitSettings::new(Model::Lower, method);
+        set.raise_degenerate = false;
+        grp.bench_function(name, |b| {
+            b.iter(|| black_box(fit_static(black_box(&means), g, &Noise::Estimated, &set).unwrap()))
+        });
+    }
+    let set = FitSettings::new(Model::Lower, Method::Lm);
+    grp.sample_size(20);
+    grp.throughput(Throughput::Elements(sessions as u64));
+    grp.bench_function("batch_2000x20_lm", |b| {
+        b.iter(|| {
+            black_box(fit_batch(black_box(&all), sessions, n, &[g], Some(1e-3), &set).unwrap())
+        })
+    });
+    grp.finish();
+}
+
+/// Centrifuge nls fit (scale + bias + K2) on the seed-004 sign-corrected table: 60 rows,
+/// R = 1 m, g = 9.8 (the issue-4 workload of `benches/bench_centrifuge.py`, without Python).
+fn bench_centrifuge(c: &mut Criterion) {
+    use accelcal::centrifuge::{fit, CentrifugeData, FitOptions};
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/seed004/table1_sign_corrected.csv"
+    );
+    let Ok(text) = std::fs::read_to_string(path) else {
+        eprintln!("bench_centrifuge: {path} not found, skipped");
+        return;
+    };
+    let (mut outputs, mut omega) = (Vec::new(), Vec::new());
+    for line in text.lines().skip(1).filter(|l| !l.trim().is_empty()) {
+        let v: Vec<f64> = line.split(',').map(|x| x.trim().parse().unwrap()).collect();
+        omega.push(v[1]);
+        outputs.push([v[3], v[4], v[5]]);
+    }
+    let data = CentrifugeData {
+        outputs: &outputs,
+        omega: &omega,
+        radius: 1.0,
+        g: 9.8,
+        sigma: None,
+        spin_axis: None,
+    };
+    let opt = FitOptions::default();
+    let mut g = c.benchmark_group("centrifuge_fit");
+    g.bench_function("nls_seed004_60rows", |b| {
+        b.iter(|| black_box(fit(black_box(&data), &opt).unwrap()))
+    });
+    g.finish();
+}
+
+criterion_group!(
+    benches,
+    bench_dwell,
+    bench_gradiometer,
+    bench_static,
+    bench_centrifuge
+);
 criterion_main!(benches);

@@ -60,7 +60,13 @@ def validate(n: int) -> str:
         "spiral-swept pose order, monotone warm-up. The diagnoser sees only the DwellSet and g "
         "(alpha = 0.05). lambda = chi2 the effect leaves after a baseline fit (noise free). "
         "Top-1 = the first selected effect is the hidden one; detection = any effect selected. "
-        "G = leave-one-dwell-out held-out gap (selection redone inside each fold).",
+        "G = leave-one-dwell-out held-out gap (selection redone inside each fold). Defaults: "
+        "attribution by the chi2 score test when what remains after the candidate is "
+        "consistent with the noise model (upper-tail p > 0.1), the sigma-free F test otherwise "
+        "(`test='auto'`); Bonferroni/Holm over the testable candidates; held-out gate "
+        "`gate='auto'` (a selected effect must lower G, unless the remainder is consistent "
+        "with the noise model in-sample, chi2 p >= alpha, and held out, G^2 <= 1 + "
+        "3 sqrt(2/n)); otherwise it is reported as `not_confirmed` and best = none.",
         "",
         "## False alarms on null data",
         "",
@@ -113,6 +119,14 @@ def validate(n: int) -> str:
         lines.append(f"| {sch} | " + cells
                      + " |")
 
+    lines += [
+        "",
+        "Power ceiling at lambda 10-30: a 3-dof chi2 test at 0.05/6 with noncentrality lambda, "
+        "lambda log-uniform over 10-30, detects in 81 % of sessions on average (scipy.stats."
+        "ncx2); top-1 also needs the right candidate to win, so the 80 % target is at the "
+        "ceiling of any family-wise 5 % test with this dictionary.",
+    ]
+
     # Two hidden effects.
     pairs = list(itertools.combinations(DICTIONARY_EFFECTS, 2))
     res = []
@@ -161,9 +175,190 @@ def validate(n: int) -> str:
                      f"{_pct(sum(r['best'] == eff for r in hi), len(hi))} | "
                      f"{np.median([r['g_b'] for r in hi]):.2f} -> "
                      f"{np.median([r['g_a'] for r in hi]):.2f} | - |")
+    lines += systems(max(n // 4, 20))
     dt = time.perf_counter() - t0
     lines += ["", f"Run time: {dt:.0f} s on the shared 2-core machine.", ""]
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# Centrifuge and gradiometer dictionaries.
+
+
+def _cf_outputs(eff: str, phi: np.ndarray, base: dict, des: object) -> np.ndarray:
+    """Noise-free centrifuge outputs (g) with one effect, parameters in the diagnosis units."""
+    import dataclasses
+
+    from accelcal.sim_centrifuge import centrifuge_outputs
+
+    kw: dict = {}
+    d = des
+    if eff == "lever_along":
+        kw["lever_arm"] = np.diag(1e-3 * phi)
+    elif eff == "lever_across":
+        lev = np.zeros((3, 3))
+        for j, (a, b) in enumerate([(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]):
+            lev[a, b] = 1e-3 * phi[j]
+        kw["lever_arm"] = lev
+    elif eff == "k3":
+        kw["k3"] = 1e-6 * phi
+    elif eff == "misalignment":
+        m = np.zeros((3, 3))
+        m[1, 0], m[2, 0], m[2, 1] = 1e-3 * phi
+        kw["misalignment"] = m
+    elif eff == "rate_offset":
+        d = dataclasses.replace(des, omega=des.omega + 1e-6 * phi[0])
+    elif eff == "radius_error":
+        kw["radius_error"] = 1e-3 * phi[0]
+    out = centrifuge_outputs(d, g=9.8, **base, **kw)
+    if eff == "cross_coupling":
+        f = des.radial * (des.omega**2 * des.radius / 9.8)[:, None] + des.spin_axis
+        for j, (a, b) in enumerate([(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]):
+            out[:, a] += base["scale"][a] * 1e-6 * phi[j] * f[:, a] * f[:, b]
+    return out
+
+
+def centrifuge_validation(n: int) -> list[str]:
+    from accelcal.gap_systems import CENTRIFUGE_EFFECTS
+    from accelcal.sim_centrifuge import paper_design
+
+    des = paper_design()
+    noise = 2e-6
+    effs = ["lever_along", "lever_across", "k3", "misalignment", "cross_coupling",
+            "rate_offset"]
+    lines = [
+        "", "## Centrifuge dictionary (accelcal.diagnose_centrifuge)", "",
+        f"Paper design (20 positions x 2pi/4pi/6pi rad/s, R = 1 m), random scale 1.2-1.3, bias "
+        f"0.1-0.5 g, K2 (1-6)e-5 g/g^2, output noise {noise:g} g per axis (sigma passed per "
+        "axis). One hidden effect per session, random direction, amplitude scaled so that "
+        "lambda (chi2 the effect leaves after the scale+bias+K2 fit, noise free) is log-uniform "
+        f"over 5-300. {n} sessions per effect; the diagnoser gets outputs, omega, radius, "
+        "spin_axis and sigma only.", "",
+        "| effect | top-1 lambda 10-30 | top-1 lambda>=30 | median G before -> after "
+        "(correct, lambda>=30) |", "|---|---|---|---|"]
+    gen = np.random.default_rng(44)
+
+    def base_truth() -> dict:
+        return {"scale": gen.uniform(1.2, 1.3, 3), "bias": gen.uniform(0.1, 0.5, 3),
+                "k2": gen.uniform(1e-5, 6e-5, 3)}
+
+    def run(out: np.ndarray, loo: bool = True) -> accelcal.GapReport:
+        return accelcal.diagnose_centrifuge(out, des.omega, des.radius, g=9.8,
+                                            spin_axis=des.spin_axis,
+                                            sigma=np.full(out.shape, noise), loo=loo)
+
+    fa = 0
+    for _ in range(4 * n):
+        r = run(centrifuge_outputs_noisy(_cf_outputs("none", np.zeros(1), base_truth(), des),
+                                         noise, gen))
+        fa += r.best != "none"
+    for eff in effs + ["radius_error"]:
+        k = CENTRIFUGE_EFFECTS[eff][0]
+        res = []
+        for _ in range(n):
+            bt = base_truth()
+            phi = gen.normal(size=k)
+            phi /= np.linalg.norm(phi)
+            lam_target = float(np.exp(gen.uniform(np.log(5), np.log(300))))
+            clean = _cf_outputs(eff, phi, bt, des)
+            lam1 = run(clean, loo=False).chi2
+            if eff != "radius_error" and lam1 > 0:
+                phi = phi * np.sqrt(lam_target / lam1)
+                clean = _cf_outputs(eff, phi, bt, des)
+                lam1 = run(clean, loo=False).chi2
+            r = run(clean + gen.normal(0, noise, clean.shape))
+            res.append((lam1, r))
+        if eff == "radius_error":
+            bl = sum(any(b["effect"] == "radius_error" for b in r.blind_spots) for _, r in res)
+            lines.append(f"| radius_error (blind: absorbed by the scale factors, sine < 0.05; "
+                         f"listed as blind spot in {_pct(bl, n)}) | - | - | - |")
+            continue
+        mid = [r for lam, r in res if 10 <= lam < 30]
+        hi = [r for lam, r in res if lam >= 30]
+        ok = [r for r in hi if r.best == eff]
+        gtxt = (f"{np.median([r.held_out_gap for r in ok]):.2f} -> "
+                f"{np.median([r.held_out_gap_after for r in ok]):.2f}") if ok else "-"
+        lines.append(f"| {eff} | {_pct(sum(r.best == eff for r in mid), len(mid))} | "
+                     f"{_pct(len(ok), len(hi))} | {gtxt} |")
+        print(lines[-1], file=sys.stderr)
+    lines += ["", f"False alarms on null centrifuge sessions: {_pct(fa, 4 * n)}."]
+    return lines
+
+
+def centrifuge_outputs_noisy(clean: np.ndarray, noise: float,
+                             gen: np.random.Generator) -> np.ndarray:
+    return clean + gen.normal(0, noise, clean.shape)
+
+
+def gradiometer_validation(n: int) -> list[str]:
+    from accelcal.gradiometer import plan_azimuths
+    from accelcal.sim import gradiometer_session
+
+    az = plan_azimuths(12, drift=True)
+    sig = 0.5
+    gen = np.random.default_rng(33)
+    lines = [
+        "", "## Gradiometer dictionary (accelcal.diagnose_gradiometer)", "",
+        f"12 azimuths (accelcal.plan_azimuths(12, drift=True)), 60 s dwells with 20 s slews, "
+        f"random gradient (+-50 E) and bias (+-20 E), noise {sig} E per average (channels of "
+        "accelcal.sim.gradiometer_session's truth plus noise). Hidden effect: drift (simulator), "
+        "independent azimuth errors (simulator) or a channel gain mismatch/cross-talk (applied "
+        "to the channels), amplitude log-uniform so that lambda spans about 5-300. Dictionary: "
+        "drift, azimuth_error, channel_scale, warmup (tau 600 s). Top-1 counts the hidden "
+        f"effect named best or in the reported ambiguity set with best. {n} sessions per "
+        "effect.", "",
+        "| effect | top-1 lambda 10-30 | top-1 lambda>=30 | median G before -> after "
+        "(correct, lambda>=30) |", "|---|---|---|---|"]
+
+    def session(eff: str, amp: float) -> tuple[np.ndarray, np.ndarray, float]:
+        kw: dict = {}
+        direction = gen.normal(size=2)
+        direction /= np.linalg.norm(direction)
+        if eff == "drift":
+            kw["drift_E_per_s"] = direction * amp * 2e-3
+        elif eff == "azimuth_error":
+            kw["azimuth_error_deg"] = amp * 0.3
+        s = gradiometer_session(az, fs=10.0, dwell_s=60.0, slew_s=20.0,
+                                gradient_E=gen.uniform(-50, 50, 2),
+                                bias_E=gen.uniform(-20, 20, 2), seed=gen, **kw)
+        y = s.truth.channels_E.copy()
+        if eff == "channel_scale":
+            k_, mu = direction * amp * 0.01
+            y = y @ np.array([[1 + k_, mu], [mu, 1 - k_]]).T
+        r0 = accelcal.diagnose_gradiometer(az, y, t=s.truth.dwell_t_mid, sigma=sig, loo=False)
+        return y + gen.normal(0, sig, y.shape), s.truth.dwell_t_mid, r0.chi2
+
+    fa = 0
+    for _ in range(4 * n):
+        y, t, _ = session("none", 0.0)
+        fa += accelcal.diagnose_gradiometer(az, y, t=t, sigma=sig).best != "none"
+    for eff in ("drift", "azimuth_error", "channel_scale"):
+        res = []
+        for _ in range(n):
+            amp = float(np.exp(gen.uniform(np.log(0.5), np.log(8.0))))
+            y, t, lam = session(eff, amp)
+            res.append((lam, accelcal.diagnose_gradiometer(az, y, t=t, sigma=sig)))
+
+        def good(r: accelcal.GapReport, eff: str = eff) -> bool:
+            return r.best == eff or any(eff in a["effects"] for a in r.ambiguous)
+
+        mid = [r for lam, r in res if 10 <= lam < 30]
+        hi = [r for lam, r in res if lam >= 30]
+        ok = [r for r in hi if good(r)]
+        gtxt = (f"{np.median([r.held_out_gap for r in ok]):.2f} -> "
+                f"{np.median([r.held_out_gap_after for r in ok]):.2f}") if ok else "-"
+        lines.append(f"| {eff} | {_pct(sum(good(r) for r in mid), len(mid))} | "
+                     f"{_pct(len(ok), len(hi))} | {gtxt} |")
+        print(lines[-1], file=sys.stderr)
+    lines += ["", f"False alarms on null gradiometer sessions: {_pct(fa, 4 * n)}. Per-dwell "
+              "azimuth errors cannot be predicted for a held-out dwell (its own error is "
+              "unknown), so their held-out gap shrinks only by what the other dwells' errors "
+              "did to the gradient estimate; the in-sample chi2 is the measure there."]
+    return lines
+
+
+def systems(n: int) -> list[str]:
+    return centrifuge_validation(n) + gradiometer_validation(n)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -214,15 +409,34 @@ def _real_section(name: str, samples: np.ndarray, fs: float, g: float, units: st
             + ", ".join(f"{x['axis']} {x['mean_e2']:.1f}" for x in a.where['axes'])
             + " (mean e^2, ADEV model); by time third "
             + ", ".join(f"{x['segment']} {x['mean_e2']:.1f}" for x in a.where['segments']) + ".",
-            f"- Which effect: white model best = {w.best}, held-out G {w.held_out_gap:.2f} -> "
-            f"{w.held_out_gap_after:.2f} (shrink {w.shrink:.2f}); ADEV model best = {a.best}, "
-            f"G {a.held_out_gap:.2f} -> {a.held_out_gap_after:.2f}. A selection that does not "
-            "shrink the held-out gap is not an explanation; the remainder is outside the "
-            "dictionary (correlated noise beyond the dwell length / bias wander between dwells, "
-            "handling at the dwell edges). Temperature effects are NOT TESTABLE here (no "
-            "temperature recorded), not absent.",
+            "- Which effect: " + _which(w, "white-noise model") + " " + _which(a, "ADEV model")
+            + " Temperature effects are NOT TESTABLE here (no temperature recorded), not absent.",
+            f"- How far it shrinks: the noise model is what closes the gap - chi2/dof "
+            f"{w.chi2_per_dof:.2f} -> {a.chi2_per_dof:.2f}, held-out G {w.held_out_gap:.2f} -> "
+            f"{a.held_out_gap:.2f} ("
+            f"{100 * (w.held_out_gap - a.held_out_gap) / max(w.held_out_gap - 1, 1e-9):.0f} % of "
+            f"the held-out excess) when the dwell-mean noise comes from the Allan deviation at "
+            f"tau = dwell length. The residuals themselves do not change (held-out RMS "
+            f"{1e3 * w.rms_before_mps2:.2f} vs {1e3 * a.rms_before_mps2:.2f} mm/s^2): what was "
+            "wrong is the sim's noise prediction (white noise), not the calibration model. No "
+            f"dictionary effect shrinks it further (ADEV model: G "
+            f"{a.held_out_gap:.2f} -> {a.held_out_gap_after:.2f}). What remains (chi2/dof "
+            f"{a.chi2_per_dof:.2f}, flagged dwells {a.where['flagged']}) is outside the "
+            "dictionary: correlated noise beyond the dwell length / bias wander between "
+            "dwells, or handling at the dwell edges of a hand-placed session.",
         ]
     return lines
+
+
+def _which(r: accelcal.GapReport, label: str) -> str:
+    nc = r.raw.get("not_confirmed")
+    if r.best != "none":
+        return (f"{label}: best = {r.best}, held-out G {r.held_out_gap:.2f} -> "
+                f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}).")
+    if nc:
+        return (f"{label}: {nc[0]} improves the in-sample fit (p = {nc[1]:.2g}) but the held-out "
+                f"gap grows (G {nc[2]:.2f} -> {nc[3]:.2f}): not an explanation, best = none.")
+    return f"{label}: no candidate passes the attribution test, best = none."
 
 
 def real_data() -> str:

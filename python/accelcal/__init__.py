@@ -20,6 +20,7 @@ from .centrifuge import (
 )
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from .gap import GapReport, allan_deviation, diagnose
+from .gap_systems import diagnose_centrifuge, diagnose_gradiometer
 from .gradiometer import (
     Demodulated,
     StartupBias,
@@ -72,6 +73,8 @@ __all__ = [
     "GapReport",
     "allan_deviation",
     "diagnose",
+    "diagnose_centrifuge",
+    "diagnose_gradiometer",
     "detect_dwells",
     "dwell_stats",
     "BatchFit",

@@ -10,6 +10,7 @@ always have ``S_i > 0`` (with K2, misalignment and lever arm signs folded accord
 from __future__ import annotations
 
 import csv
+import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -20,7 +21,6 @@ from numpy.typing import NDArray
 
 from . import _core
 from ._core import CalibrationError
-from ._validate import positive
 
 __all__ = [
     "CentrifugeFit",
@@ -82,6 +82,9 @@ class CentrifugeFit:
     taylor_coefficients : ndarray (13,) or None
         The regression coefficients ``[C0, C11..C13, C21..C23, C31..C33, C41..C43]``
         (taylor-paper only).
+    extra : dict
+        ``screen_sigma``: robust residual scale of the outlier screen (g; 0 when the plain fit
+        was clean and no screen ran).
     """
 
     scale: NDArray[np.float64]
@@ -244,10 +247,14 @@ def fit_centrifuge(
     -------
     CentrifugeFit
     """
+    # Cheap checks here (clear messages); values (finite, speeds, design) are checked in Rust.
+    # The core reads any strides, so no contiguous copies are made.
     out = np.asarray(outputs, dtype=np.float64)
     if out.ndim != 2 or out.shape[1] != 3:
         raise CalibrationError(f"outputs must have shape (k, 3) in g; got {out.shape}")
-    om = np.ascontiguousarray(np.asarray(omega, dtype=np.float64).ravel())
+    om = np.asarray(omega, dtype=np.float64)
+    if om.ndim != 1:
+        om = om.ravel()
     if om.shape[0] != out.shape[0]:
         raise CalibrationError(
             f"omega has {om.shape[0]} values but outputs have {out.shape[0]} rows"
@@ -256,19 +263,24 @@ def fit_centrifuge(
         r = float(radius)
     except (TypeError, ValueError):
         raise CalibrationError(f"radius must be a number (m); got {radius!r}") from None
-    if not np.isfinite(r) or r <= 0:
+    if not (0.0 < r < math.inf):
         raise CalibrationError(f"radius must be positive and finite (m); got {radius!r}")
-    gg = positive(g, "g", " (m/s^2)")
+    try:
+        gg = float(g)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"g must be a number; got {g!r}") from None
+    if not (0.0 < gg < math.inf):
+        raise CalibrationError(f"g must be positive and finite (m/s^2); got {g!r}")
     sa = None
     if spin_axis is not None:
-        sa = np.ascontiguousarray(np.asarray(spin_axis, dtype=np.float64))
+        sa = np.ascontiguousarray(spin_axis, dtype=np.float64)
         if sa.shape != out.shape:
             raise CalibrationError(f"spin_axis must have shape {out.shape}; got {sa.shape}")
     sg = None
     if sigma is not None:
         sg = np.ascontiguousarray(np.broadcast_to(np.asarray(sigma, np.float64), om.shape))
     d = _core.centrifuge_fit_raw(
-        np.ascontiguousarray(out), om, r, gg, method, k3, misalignment, lever_arm, sa, sg,
+        out, om, r, gg, method, k3, misalignment, lever_arm, sa, sg,
         robust, float(outlier_k), 1e-9, int(max_draws), int(seed),
     )
     return _build(d, method, r, gg, k3, misalignment, lever_arm, warn=True)
@@ -278,11 +290,11 @@ def _build(
     d: dict[str, Any], method: str, radius: float, g: float, k3: bool, mis: bool,
     lever: str | None, warn: bool,
 ) -> CentrifugeFit:
-    p = np.asarray(d["params"])
-    names = list(d["names"])
-    idx = {n: i for i, n in enumerate(names)}
-    outliers = np.asarray(d["outliers"], dtype=np.int64)
-    res = np.asarray(d["residuals"])
+    # The core returns every array in its final dtype and shape (params, covariance (p, p),
+    # std, residuals, int64 outliers, singular values): only views are taken here.
+    p = d["params"]
+    outliers = d["outliers"]
+    res = d["residuals"]
     if warn and len(outliers):
         warnings.warn(
             f"excluded {len(outliers)} of {len(res)} rows inconsistent with |f|^2 = A^2 + 1 "
@@ -292,41 +304,33 @@ def _build(
             CentrifugeOutlierWarning,
             stacklevel=3,
         )
+    # Parameter order (ModelOptions::names): S, b, K2 [, K3] [, m_yx m_zx m_zy] [, lever].
+    at = 12 if k3 else 9
+    misv = None
+    if mis:
+        misv = p[at : at + 3]
+        at += 3
     lev: NDArray[np.float64] | None = None
     if lever == "along":
-        lev = p[[idx["lever_x"], idx["lever_y"], idx["lever_z"]]]
+        lev = p[at : at + 3]
     elif lever == "full":
-        lev = p[idx["lever_x_x"] : idx["lever_x_x"] + 9].reshape(3, 3)
-    cov = np.asarray(d["covariance"])
-    return CentrifugeFit(
-        scale=p[0:3].copy(),
-        bias=p[3:6].copy(),
-        k2=p[6:9].copy(),
-        k3=p[9:12].copy() if k3 else None,
-        misalignment=p[[idx["m_yx"], idx["m_zx"], idx["m_zy"]]] if mis else None,
-        lever_arm=lev,
-        params=p,
-        names=names,
-        covariance=cov,
-        std=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
-        residuals=res,
-        outliers=outliers,
-        residual_rms=float(d["residual_rms"]),
-        observability={
-            "singular_values": np.asarray(d["singular_values"]),
-            "condition_number": float(d["condition"]),
-            "unobservable": [],
-        },
-        method=method,
-        iterations=int(d["iterations"]),
-        converged=bool(d["converged"]),
-        draws=int(d["draws"]),
-        taylor_coefficients=(
-            None if d["taylor_coefficients"] is None else np.asarray(d["taylor_coefficients"])
-        ),
-        radius=radius,
-        g=g,
-    )
+        lev = p[at : at + 9].reshape(3, 3)
+    # The core's dict keys are CentrifugeFit field names (params, names, covariance, std,
+    # residuals, outliers, residual_rms, observability, iterations, converged, draws,
+    # taylor_coefficients, extra): copy them and add the views and the settings.
+    obj: CentrifugeFit = object.__new__(CentrifugeFit)
+    f = obj.__dict__
+    f.update(d)
+    f["scale"] = p[0:3]
+    f["bias"] = p[3:6]
+    f["k2"] = p[6:9]
+    f["k3"] = p[9:12] if k3 else None
+    f["misalignment"] = misv
+    f["lever_arm"] = lev
+    f["method"] = method
+    f["radius"] = radius
+    f["g"] = g
+    return obj
 
 
 # --------------------------------------------------------------------------- seed table I/O

@@ -5,7 +5,9 @@ recorded session. :func:`diagnose` measures the gap (chi2, held-out gap), locate
 axes, time, temperature), attributes it to an effect of a dictionary (temperature bias and
 scale, drift, K2, K3, settling), says which effects this session cannot see at all, and how far
 the held-out gap shrinks once the chosen effect is in the model (selection redone inside every
-leave-one-dwell-out fold). See GAP-DESIGN.md for the method.
+leave-one-dwell-out fold); an effect that improves the in-sample fit but does not lower the
+held-out gap is reported as "not_confirmed", not as the explanation. See GAP-DESIGN.md for the
+method; :mod:`accelcal.gap_systems` applies it to the centrifuge and the gradiometer.
 """
 
 from __future__ import annotations
@@ -177,19 +179,28 @@ class GapReport:
         noise model is unknown).
     noise_model : description of the per-dwell noise used.
     held_out_gap : leave-one-dwell-out gap G of the baseline (1 for an adequate model).
-    dwells : per-dwell table (dict of (k,) arrays): index, t, temperature, resid_mps2, e,
-        t_stud, flag, resid_after_mps2, e_after, z_loo_before, z_loo_after.
+    dwells : per-row table (dict of (k,) arrays): index, resid and resid_after (in
+        ``units``), e, t_stud, flag, e_after, z_loo_before, z_loo_after; static sessions add
+        t, temperature, pose_angle_deg and the aliases resid_mps2, resid_after_mps2 (one row
+        per dwell); the centrifuge adds omega (one row per position and speed); the
+        gradiometer azimuth_deg and channel (two rows per azimuth dwell).
     where : localisation: flagged dwells, axes, time segments, temperature, serial correlation.
     best : "temperature_bias", "temperature_scale", "drift", "k2", "k3", "settling" or "none".
     selected : all effects added (forward stepwise), in order.
-    effects : ranked candidates: effect, status, p_value (F), p_chi2, bic_weight, estimate and
-        std per axis (physical units), unit, sines (identifiability).
+    effects : ranked candidates: effect, status ("selected", "not_confirmed" = selected
+        in-sample but rejected by the held-out gate, "testable", "blind", ...), p_value (the
+        attribution test, named in ``test``: "chi2" or "F"), p_f, p_chi2, bic_weight, estimate
+        and std per axis (physical units), unit, sines (identifiability).
     ambiguous : aliased sets with the experiment that separates them.
     blind_spots : effects this session cannot see (never "no effect"), with the reason.
     shrink : G_after / G_before (held out, selection redone in each fold).
-    held_out_gap_after, excess_remaining, rms_before_mps2, rms_after_mps2 : held-out figures.
+    held_out_gap_after, excess_remaining : held-out figures.
+    rms_before, rms_after : held-out RMS of the residual before and after, in ``units``
+        (m/s^2 for static sessions, g for the centrifuge, E for the gradiometer).
+        ``rms_before_mps2`` / ``rms_after_mps2`` are aliases for static sessions only.
     remaining : chi2, dof and p-value after the chosen effects.
     statements : plain-language findings (bad input, not testable, unexplained remainder).
+    system : "static", "centrifuge" or "gradiometer".
     """
 
     n: int
@@ -210,15 +221,33 @@ class GapReport:
     shrink: float
     held_out_gap_after: float
     excess_remaining: float
-    rms_before_mps2: float
-    rms_after_mps2: float
+    rms_before: float
+    rms_after: float
     remaining: dict[str, float]
     statements: list[str]
     params: NDArray[np.float64]
     params_after: NDArray[np.float64]
     std_after: NDArray[np.float64]
     alpha: float
+    system: str = "static"
+    units: str = "m/s^2"
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
+
+    @property
+    def rms_before_mps2(self) -> float:
+        """Alias of ``rms_before`` for static sessions (m/s^2)."""
+        return self._mps2(self.rms_before, "rms_before")
+
+    @property
+    def rms_after_mps2(self) -> float:
+        """Alias of ``rms_after`` for static sessions (m/s^2)."""
+        return self._mps2(self.rms_after, "rms_after")
+
+    def _mps2(self, v: float, name: str) -> float:
+        if self.units != "m/s^2":
+            raise AttributeError(f"{name}_mps2 exists for static sessions only; this "
+                                 f"{self.system} report holds {name} in {self.units}")
+        return v
 
     # -- text ---------------------------------------------------------------------------------
     def summary(self) -> str:
@@ -232,18 +261,25 @@ class GapReport:
         L.append(f"Noise model: {self.noise_model}")
         w = self.where
         fl = w.get("flagged", [])
+        row, ax_lab, seg_lab = {
+            "centrifuge": ("row(s) (position x speed)", "by axis", "by speed (omega, rad/s)"),
+            "gradiometer": ("residual(s) (2 per azimuth dwell: inline, cross)", "by channel",
+                            "by group"),
+        }.get(self.system, ("dwell(s)", "by pose axis", "by time third"))
         L.append(
             "Where: "
-            + (f"{len(fl)} dwell(s) beyond the Bonferroni limit {w['threshold']:.2f}: {fl}"
-               if fl else f"no single dwell beyond the Bonferroni limit {w['threshold']:.2f}")
+            + (f"{len(fl)} {row} beyond the Bonferroni limit {w['threshold']:.2f}: {fl}"
+               if fl else f"no single {row.split('(s)')[0]} beyond the Bonferroni limit "
+               f"{w['threshold']:.2f}")
         )
         ax = w.get("axes", [])
         if ax:
-            L.append("  by pose axis: " + "; ".join(
-                f"{a['axis']}: {a['n']} dwells, mean e^2 {a['mean_e2']:.2f}" for a in ax))
+            L.append(f"  {ax_lab}: " + "; ".join(
+                f"{a['axis']}: {a['n']} {'dwells' if self.system == 'static' else 'rows'}, "
+                f"mean e^2 {a['mean_e2']:.2f}" for a in ax))
         seg = w.get("segments", [])
         if seg:
-            L.append("  by time third: " + "; ".join(
+            L.append(f"  {seg_lab}: " + "; ".join(
                 f"{s['segment']}: mean e^2 {s['mean_e2']:.2f}" for s in seg))
         sc = w.get("serial")
         if sc:
@@ -255,20 +291,23 @@ class GapReport:
                      f"r = {tc['r_dTdt']:.2f} (p = {tc['p_dTdt']:.2g})")
         L.append(f"Which effect: best = {self.best}"
                  + (f" (selected in order: {', '.join(self.selected)})" if self.selected else ""))
-        L.append(f"  {'effect':<18} {'status':<20} {'p (F)':>9} {'BIC w':>6}  estimate +- std")
+        L.append(f"  {'effect':<18} {'status':<20} {'p':>9} {'test':>4} {'BIC w':>6}  "
+                 "estimate +- std")
         for e in self.effects:
             pv = e["p_value"]
             est = e["estimate"]
-            if e["status"] in ("testable", "selected") and np.all(np.isfinite(est)):
+            if (e["status"] in ("testable", "selected", "not_confirmed")
+                    and np.all(np.isfinite(est))):
                 pairs = zip(est, e["std"], strict=True)
                 mag = ", ".join(f"{v:.3g}+-{s:.2g}" for v, s in pairs) + f" {e['unit']}"
             else:
                 mag = "-"
             pvs = f"{pv:9.2g}" if math.isfinite(pv) else f"{'-':>9}"
             bw = f"{e['bic_weight']:6.2f}" if math.isfinite(e["bic_weight"]) else f"{'-':>6}"
-            L.append(f"  {e['effect']:<18} {e['status']:<20} {pvs} {bw}  {mag}")
+            ts = e.get("test", "-") if math.isfinite(pv) else "-"
+            L.append(f"  {e['effect']:<18} {e['status']:<20} {pvs} {ts:>4} {bw}  {mag}")
         wn = self.raw.get("weight_none", float("nan"))
-        L.append(f"  {'none':<18} {'':<20} {'':>9} {wn:6.2f}")
+        L.append(f"  {'none':<18} {'':<20} {'':>9} {'':>4} {wn:6.2f}")
         for a in self.ambiguous:
             L.append(f"Ambiguous: {' / '.join(a['effects'])} (cosine {a['cosine']:.2f}); "
                      f"to separate them: {a['experiment']}")
@@ -277,8 +316,8 @@ class GapReport:
         L.append(
             f"How far it shrinks: held-out G {self.held_out_gap:.2f} -> "
             f"{self.held_out_gap_after:.2f} (shrink {self.shrink:.2f}, excess remaining "
-            f"{self.excess_remaining:.2f}); held-out RMS {self.rms_before_mps2:.3g} -> "
-            f"{self.rms_after_mps2:.3g} m/s^2"
+            f"{self.excess_remaining:.2f}); held-out RMS {self.rms_before:.3g} -> "
+            f"{self.rms_after:.3g} {self.units}"
         )
         for s in self.statements:
             L.append(f"Note: {s}")
@@ -315,12 +354,27 @@ class GapReport:
         except ImportError as exc:  # pragma: no cover - optional dependency
             raise CalibrationError("plot() needs matplotlib: pip install accelcal[plot]") from exc
         d = self.dwells
+        if "pose_angle_deg" not in d:  # centrifuge / gradiometer: residuals by row
+            if fig is None:
+                fig = plt.figure(figsize=(7, 3.4))
+            ax = fig.subplots(1, 1)
+            x = np.arange(len(d["e"]))
+            ax.plot(x, d["e"], "o", ms=4, label="baseline")
+            ax.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(self.selected) or 'none'}")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_xlabel("row")
+            ax.set_ylabel("residual / sigma")
+            ax.legend(fontsize=8)
+            fig.suptitle(f"{self.system} gap: chi2/dof {self.chi2_per_dof:.2f}; best = {self.best}")
+            fig.tight_layout()
+            return fig
         if fig is None:
             fig = plt.figure(figsize=(11, 3.4))
         axs = fig.subplots(1, 3, sharey=True)
         t = d["t"] if d["t"] is not None else np.arange(self.n, dtype=float)
         has_t = d["t"] is not None
-        xs = [(t / 60.0 if has_t else t, "time, min" if has_t else "dwell")]
+        xs: list[tuple[Any, str]] = [(t / 60.0 if has_t else t,
+                                      "time, min" if has_t else "dwell")]
         xs.append((d["temperature"], "temperature") if d["temperature"] is not None else (None, ""))
         xs.append((d["pose_angle_deg"], "angle of the z axis from vertical, deg"))
         for axis, (x, lab) in zip(axs, xs, strict=True):
@@ -381,6 +435,14 @@ def diagnose(
     noise: ArrayLike | None = None,
     loo: bool = True,
     max_effects: int = 3,
+    test: str = "auto",
+    gate: str = "auto",
+    trust_level: float = 0.1,
+    correction: str = "minp",
+    n_draws: int = 4000,
+    gate_margin: float = 0.0,
+    t: ArrayLike | None = None,
+    temperature: ArrayLike | None = None,
 ) -> GapReport:
     """Diagnose the sim-to-real gap of a static session.
 
@@ -394,12 +456,42 @@ def diagnose(
     fit : optional StaticFit (or its 9 parameters) used as the start instead of the exact
         linear quadric fit.
     effects : "all" or a list of effect names (see :data:`EFFECTS`).
-    alpha : family-wise false-alarm level of the attribution (Bonferroni/Holm over the
-        testable candidates).
+    alpha : family-wise false-alarm level of the attribution over the testable candidates of
+        each stepwise stage (see ``correction``).
     fs : sample rate, Hz (raw streams).
     noise : optional std of each dwell mean, (k, 3) or (3,), raw units; overrides var/count.
     loo : compute the leave-one-dwell-out held-out gap (the "how far it shrinks" figures).
     max_effects : at most this many effects are added.
+    test : attribution test: "auto" (chi2 score test when the noise model is known and what
+        remains after the candidate is consistent with it, upper-tail p > 0.1; the sigma-free F
+        test otherwise), "chi2" or "f".
+    gate : held-out gate. "strict": an effect selected in-sample is reported as the
+        explanation only if it lowers the leave-one-dwell-out gap (selection redone in every
+        fold); otherwise it is listed with status "not_confirmed" and the selection stops
+        there. "auto" (default): the same, except that an effect after which the remaining
+        chi2 is consistent with the known noise model (p >= alpha) is kept (the held-out gap
+        is too noisy to confirm weak effects). "off": no held-out check. Needs ``loo=True``.
+    trust_level : with ``test="auto"``, the upper-tail p-value of the remaining chi2 above
+        which the noise model is trusted (chi2 test) for a candidate.
+    correction : family-wise correction over the candidates. "minp" (default): exact min-p
+        (Westfall-Young max-statistic) - the adjusted p-value of the best candidate is the
+        probability that the smallest p-value over the candidates, computed on the null
+        residual ``(I - H) z`` with ``z ~ N(0, I)`` (each candidate keeping the chi2 or F
+        test chosen on the data), is at most the observed one; Monte Carlo with fixed-seed
+        draws, so results are reproducible, and never above the Bonferroni bound. It gains
+        power over "bonferroni" (``p < alpha / M``) because the candidates' projected
+        columns are correlated.
+    n_draws : at most this many null draws per min-p decision (sequential: fewer when the
+        decision is clear; Monte Carlo error of the adjusted p near alpha = 0.05 about 0.0035
+        at 4000).
+    gate_margin : with ``gate="auto"``, an effect after which the remainder is consistent
+        in-sample is also kept when the held-out ``G^2`` grows by at most ``gate_margin *
+        sqrt(2/n)`` (a gentler gate: more weak effects confirmed, but more attributions
+        under a mis-scaled noise model; see docs/gap-validation.md).
+    t, temperature : with a raw sample stream, per-sample time (s) and temperature, (N,)
+        each, passed to :func:`accelcal.detect_dwells` (dwell mid time and mean temperature;
+        the temperature effects are testable on the raw path only with ``temperature``).
+        Not allowed with a DwellSet, which carries its own.
 
     Returns
     -------
@@ -408,12 +500,15 @@ def diagnose(
     eff = _effect_list(effects)
     inflation = None
     if isinstance(data, DwellSet):
+        if t is not None or temperature is not None:
+            raise CalibrationError("t= and temperature= are per-sample arrays for a raw stream; "
+                                   "a DwellSet carries its own t and temperature")
         d = data
     else:
         if fs is None:
             raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
         samples = np.asarray(data)
-        d = detect_dwells(samples, fs)
+        d = detect_dwells(samples, fs, t=t, temperature=temperature)
         if len(d) == 0:
             raise CalibrationError("no static dwells detected in the stream")
         inflation = noise_inflation(samples, d, fs)
@@ -455,7 +550,9 @@ def diagnose(
     r = _core.gap_diagnose_raw(
         mean, None if sig is None else np.ascontiguousarray(sig, dtype=np.float64), t, temp,
         float(g), eff, alpha=float(alpha), max_effects=int(max_effects), loo=bool(loo),
-        start=_start_from(fit),
+        start=_start_from(fit), test=str(test), gate=str(gate),
+        trust_level=float(trust_level), correction=str(correction), n_draws=int(n_draws),
+        gate_margin=float(gate_margin),
     )
     return _build_report(r, d, order, mean, t, temp, float(g), noise_model, statements, alpha)
 
@@ -488,10 +585,12 @@ def _build_report(
         "index": order.astype(np.int64),
         "t": t,
         "temperature": temp,
+        "resid": np.asarray(r["resid"]),
         "resid_mps2": np.asarray(r["resid"]),
         "e": e,
         "t_stud": t_stud,
         "flag": flag,
+        "resid_after": np.asarray(r["resid_after"]),
         "resid_after_mps2": np.asarray(r["resid_after"]),
         "e_after": np.asarray(r["e_after"]),
         "z_loo_before": np.asarray(loo["z_before"]) if loo else nan,
@@ -545,7 +644,8 @@ def _build_report(
         row = {
             "effect": c["effect"], "unit": c["unit"],
             "status": "selected" if c["effect"] in selected else st,
-            "p_value": c["p_f"], "p_chi2": c["p_chi2"] if noise_known else float("nan"),
+            "p_value": c["p"], "test": "chi2" if c["chi2_used"] else "F", "p_f": c["p_f"],
+            "p_chi2": c["p_chi2"] if noise_known else float("nan"),
             "bic_weight": c["weight"], "score": c["score"], "d": c["d"],
             "estimate": np.asarray(c["estimate"]), "std": np.asarray(c["std"]),
             "sines": list(c["sines"]),
@@ -577,6 +677,19 @@ def _build_report(
                                 1 if x["status"] == "testable" else 2,
                                 x["p_value"] if math.isfinite(x["p_value"]) else 2.0))
     best = selected[0] if selected else "none"
+    nc = r["not_confirmed"]
+    if nc is not None:
+        nm_, p_, ga_, gb_ = nc
+        for e_ in effects:
+            if e_["effect"] == nm_:
+                e_["status"] = "not_confirmed"
+        statements.append(
+            f"{nm_} improves the in-sample fit (p = {p_:.2g}) but does not reduce the held-out "
+            f"gap (G {ga_:.2f} -> {gb_:.2f}): not an explanation")
+        effects.sort(key=lambda x: (0 if x["status"] == "selected" else
+                                    1 if x["status"] == "not_confirmed" else
+                                    2 if x["status"] == "testable" else 3,
+                                    x["p_value"] if math.isfinite(x["p_value"]) else 2.0))
     ambiguous = []
     groups: dict[str, list[tuple[str, float]]] = {}
     for a_, b_, cos in r["ambiguous"]:
@@ -612,12 +725,15 @@ def _build_report(
         p_value=float(r["p_chi2"]), noise_model=noise_model, held_out_gap=g_b, dwells=dw,
         where=where, best=best, selected=selected, effects=effects, ambiguous=ambiguous,
         blind_spots=blind, shrink=shrink, held_out_gap_after=g_a, excess_remaining=excess,
-        rms_before_mps2=loo["rms_before"] if loo else float("nan"),
-        rms_after_mps2=loo["rms_after"] if loo else float("nan"),
+        rms_before=loo["rms_before"] if loo else float("nan"),
+        rms_after=loo["rms_after"] if loo else float("nan"),
         remaining={"chi2": float(r["chi2_after"]), "dof": float(r["dof_after"]), "p": p_after},
         statements=statements, params=np.asarray(r["base_params"]),
         params_after=np.asarray(r["params_after"]), std_after=np.asarray(r["std_after"]),
         alpha=float(alpha),
         raw={"weight_none": r["weight_none"], "step_p": r["step_p"], "stop_p": r["stop_p"],
-             "fold_counts": loo["fold_counts"] if loo else {}},
+             "step_p_adj": r["step_p_adj"], "step_m": r["step_m"],
+             "stop_p_adj": r["stop_p_adj"],
+             "fold_counts": loo["fold_counts"] if loo else {},
+             "g_steps": list(loo["g_steps"]) if loo else [], "not_confirmed": nc},
     )

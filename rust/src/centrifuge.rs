@@ -18,8 +18,12 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(x > 0.0)` deliberately rejects NaN too.
 
 use crate::error::{degenerate, invalid, CoreError, Result};
-use crate::lsq::{lstsq_qr, solve_nls, svd_report_qr, NlsOptions, Residuals};
-use nalgebra::DMatrix;
+use crate::lsq::{
+    cholesky_inverse_small, cholesky_small, lstsq_small, solve_nls, solve_normal_gn, svd_report_qr,
+    symmetric_eigenvalues_small, NlsOptions, NormalEquations, Residuals,
+};
+use nalgebra::{DMatrix, DVector};
+use std::cell::{OnceCell, RefCell};
 
 /// Internal parameter scales (columns of the Jacobian are scaled by these).
 /// Largest parameter count (S, b, K2, K3, misalignment, full lever arm).
@@ -238,38 +242,61 @@ fn inv_axis(h: f64, d: f64, e: f64) -> Option<(f64, f64)> {
     Some((f, hp))
 }
 
-/// The fitting problem (residuals and Jacobian in internal, scaled parameters).
-struct Problem<'a> {
-    data: &'a CentrifugeData<'a>,
-    rows: Vec<usize>,
-    model: ModelOptions,
-    scales: Vec<f64>,
-}
-
-struct RowEval {
-    /// Norm residual `(|f|^2 - T) / (2 sqrt T)` (g), unweighted.
-    r: f64,
-    /// d r / d p (external units), length n_params.
-    grad: [f64; MAX_PARAMS],
-}
-
 fn target(data: &CentrifugeData<'_>, k: usize) -> f64 {
     let a = data.omega[k] * data.omega[k] * data.radius / data.g;
     a * a + 1.0
 }
 
-/// Evaluate one row at external parameters `p`. `None`: outside the invertible range.
-fn eval_row(
-    data: &CentrifugeData<'_>,
-    model: &ModelOptions,
-    p: &[f64],
-    k: usize,
-    want_grad: bool,
-) -> Option<RowEval> {
-    let n = data.outputs[k];
-    let s = [p[0], p[1], p[2]];
-    let b = [p[3], p[4], p[5]];
-    let d = [p[6], p[7], p[8]];
+/// Per-row constants that do not depend on the parameters (computed once per fit).
+#[derive(Debug, Clone, Copy)]
+struct RowConst {
+    /// Target `T = A^2 + 1`.
+    t: f64,
+    /// `1 / sqrt T`.
+    inv_st: f64,
+    /// `1 / (2 sqrt T)`.
+    half_inv_st: f64,
+    /// `omega^2 / g`.
+    w2g: f64,
+    /// Residual weight `1 / sigma` (1 without sigma).
+    w: f64,
+    /// Spin-axis direction in the body frame (zero when not given).
+    c3: [f64; 3],
+}
+
+fn row_consts(data: &CentrifugeData<'_>) -> Vec<RowConst> {
+    (0..data.outputs.len())
+        .map(|k| {
+            let t = target(data, k);
+            let inv_st = 1.0 / t.sqrt();
+            RowConst {
+                t,
+                inv_st,
+                half_inv_st: 0.5 * inv_st,
+                w2g: data.omega[k] * data.omega[k] / data.g,
+                w: data.sigma.map(|s| 1.0 / s[k]).unwrap_or(1.0),
+                c3: data.spin_axis.map(|sa| sa[k]).unwrap_or([0.0; 3]),
+            }
+        })
+        .collect()
+}
+
+/// Parameter-dependent quantities shared by every row (external units).
+struct ParamPre<'p> {
+    p: &'p [f64],
+    inv_s: [f64; 3],
+    b: [f64; 3],
+    d: [f64; 3],
+    e: [f64; 3],
+    m: [f64; 3],
+    lever_at: usize,
+}
+
+/// `None` when a scale factor is zero (no row can be inverted).
+fn param_pre<'p>(model: &ModelOptions, p: &'p [f64]) -> Option<ParamPre<'p>> {
+    if p[0] == 0.0 || p[1] == 0.0 || p[2] == 0.0 {
+        return None;
+    }
     let mut idx = 9;
     let e = if model.k3 {
         idx += 3;
@@ -277,23 +304,41 @@ fn eval_row(
     } else {
         [0.0; 3]
     };
-    let (m1, m2, m3) = if model.misalignment {
-        let v = (p[idx], p[idx + 1], p[idx + 2]);
+    let m = if model.misalignment {
         idx += 3;
-        v
+        [p[idx - 3], p[idx - 2], p[idx - 1]]
     } else {
-        (0.0, 0.0, 0.0)
+        [0.0; 3]
     };
-    let lever_at = idx;
-    let mut u = [0.0; 3];
-    for i in 0..3 {
-        if s[i] == 0.0 {
-            return None;
-        }
-        u[i] = (n[i] - b[i]) / s[i];
-    }
-    // L = Phi^-1 (lower triangular).
-    let l = [[1.0, 0.0, 0.0], [-m1, 1.0, 0.0], [m1 * m3 - m2, -m3, 1.0]];
+    Some(ParamPre {
+        p,
+        inv_s: [1.0 / p[0], 1.0 / p[1], 1.0 / p[2]],
+        b: [p[3], p[4], p[5]],
+        d: [p[6], p[7], p[8]],
+        e,
+        m,
+        lever_at: idx,
+    })
+}
+
+/// Norm residual `(|f|^2 - T) / (2 sqrt T)` (g, unweighted) of one row; with `grad`, also
+/// `d r / d p` (external units, first `n_params` entries). `None`: outside the invertible
+/// range.
+#[inline(always)]
+fn row_eval(
+    n: &[f64; 3],
+    rc: &RowConst,
+    pp: &ParamPre<'_>,
+    model: &ModelOptions,
+    grad: Option<&mut [f64; MAX_PARAMS]>,
+) -> Option<f64> {
+    let [m1, m2, m3] = pp.m;
+    let u = [
+        (n[0] - pp.b[0]) * pp.inv_s[0],
+        (n[1] - pp.b[1]) * pp.inv_s[1],
+        (n[2] - pp.b[2]) * pp.inv_s[2],
+    ];
+    // h = L u with L = Phi^-1 (lower triangular).
     let h = [
         u[0],
         u[1] - m1 * u[0],
@@ -302,51 +347,50 @@ fn eval_row(
     let mut f = [0.0; 3];
     let mut hp = [0.0; 3];
     for i in 0..3 {
-        let (fi, hpi) = inv_axis(h[i], d[i], e[i])?;
+        let (fi, hpi) = inv_axis(h[i], pp.d[i], pp.e[i])?;
         f[i] = fi;
         hp[i] = hpi;
     }
-    let w2g = data.omega[k] * data.omega[k] / data.g;
-    let c3 = data.spin_axis.map(|sa| sa[k]).unwrap_or([0.0; 3]);
+    let w2g = rc.w2g;
+    let c3 = rc.c3;
+    let la = pp.lever_at;
+    let p = pp.p;
     // Lever-arm correction: f_center_i = f_i + w2g * [(I - c3 c3^T) r_i]_i.
     let mut fc = f;
     match model.lever {
         LeverArm::None => {}
         LeverArm::Along => {
             for i in 0..3 {
-                fc[i] += w2g * p[lever_at + i] * (1.0 - c3[i] * c3[i]);
+                fc[i] += w2g * p[la + i] * (1.0 - c3[i] * c3[i]);
             }
         }
         LeverArm::Full => {
             for i in 0..3 {
-                let r = &p[lever_at + 3 * i..lever_at + 3 * i + 3];
+                let r = &p[la + 3 * i..la + 3 * i + 3];
                 let cr = c3[0] * r[0] + c3[1] * r[1] + c3[2] * r[2];
                 fc[i] += w2g * (r[i] - c3[i] * cr);
             }
         }
     }
-    let t = target(data, k);
-    let st = t.sqrt();
     let norm2 = fc[0] * fc[0] + fc[1] * fc[1] + fc[2] * fc[2];
-    let r = (norm2 - t) / (2.0 * st);
+    let r = (norm2 - rc.t) * rc.half_inv_st;
     if !r.is_finite() {
         return None;
     }
-    if !want_grad {
-        return Some(RowEval {
-            r,
-            grad: [0.0; MAX_PARAMS],
-        });
-    }
-    let mut grad = [0.0; MAX_PARAMS];
-    // dr/dfc_i = fc_i / st ; dfc_i/dh_i = 1/hp_i
-    let gf: [f64; 3] = [fc[0] / st, fc[1] / st, fc[2] / st];
-    let gh: [f64; 3] = [gf[0] / hp[0], gf[1] / hp[1], gf[2] / hp[2]];
+    let Some(grad) = grad else {
+        return Some(r);
+    };
+    // dr/dfc_i = fc_i / sqrt T ; dfc_i/dh_i = 1/hp_i ; dh_i/du_j = L[i][j].
+    let gf = [fc[0] * rc.inv_st, fc[1] * rc.inv_st, fc[2] * rc.inv_st];
+    let gh = [gf[0] / hp[0], gf[1] / hp[1], gf[2] / hp[2]];
+    let dr_du = [
+        gh[0] - m1 * gh[1] + (m1 * m3 - m2) * gh[2],
+        gh[1] - m3 * gh[2],
+        gh[2],
+    ];
     for j in 0..3 {
-        // dh_i/du_j = l[i][j]
-        let dr_du: f64 = (0..3).map(|i| gh[i] * l[i][j]).sum();
-        grad[j] = dr_du * (-u[j] / s[j]);
-        grad[3 + j] = dr_du * (-1.0 / s[j]);
+        grad[j] = -dr_du[j] * u[j] * pp.inv_s[j];
+        grad[3 + j] = -dr_du[j] * pp.inv_s[j];
         grad[6 + j] = -gh[j] * f[j] * f[j];
     }
     let mut idx = 9;
@@ -380,38 +424,455 @@ fn eval_row(
             }
         }
     }
-    Some(RowEval { r, grad })
+    Some(r)
 }
 
-impl Problem<'_> {
-    fn external(&self, q: &[f64]) -> Vec<f64> {
-        q.iter().zip(&self.scales).map(|(a, s)| a * s).collect()
+/// The fitting problem on a set of rows (residuals and normal equations in internal, scaled
+/// parameters `q = p / scale`).
+struct Problem<'a> {
+    outputs: &'a [[f64; 3]],
+    rc: &'a [RowConst],
+    rows: &'a [usize],
+    model: ModelOptions,
+    scales: [f64; MAX_PARAMS],
+    np: usize,
+    /// The most recent normal-equation evaluation (reused by the final covariance step).
+    last: RefCell<LastNormal>,
+    /// Row data in columns for the vectorised base-model kernel (built at the first
+    /// normal-equation evaluation; `None` for other models).
+    soa: OnceCell<Option<Soa>>,
+}
+
+/// Rows of a base-model (S, b, K2) problem as contiguous columns, so that the per-row
+/// arithmetic (square roots and divisions included) vectorises across rows.
+struct Soa {
+    m: usize,
+    /// `nx, ny, nz, T, 1/(2 sqrt T), 1/sqrt T, w`, each `m` long.
+    cols: Vec<f64>,
+    /// Per evaluation: 9 weighted, scaled Jacobian columns, weighted residuals, min `h'`.
+    work: RefCell<Vec<f64>>,
+}
+
+impl Soa {
+    fn new(outputs: &[[f64; 3]], rc: &[RowConst], rows: &[usize]) -> Self {
+        let m = rows.len();
+        let mut cols = vec![0.0; 7 * m];
+        for (a, &k) in rows.iter().enumerate() {
+            let c = &rc[k];
+            let v = [
+                outputs[k][0],
+                outputs[k][1],
+                outputs[k][2],
+                c.t,
+                c.half_inv_st,
+                c.inv_st,
+                c.w,
+            ];
+            for (j, x) in v.into_iter().enumerate() {
+                cols[j * m + a] = x;
+            }
+        }
+        Soa {
+            m,
+            cols,
+            work: RefCell::new(vec![0.0; 11 * m]),
+        }
     }
-    fn weight(&self, k: usize) -> f64 {
-        self.data.sigma.map(|s| 1.0 / s[k]).unwrap_or(1.0)
+}
+
+/// The per-row part of [`Problem::normal_base`]: every output is a separate `&mut` argument
+/// (no aliasing, so the loop vectorises, square roots and divisions included).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn base_rows(
+    inp: [&[f64]; 7],
+    par: [[f64; 3]; 3],
+    sc: &[f64; MAX_PARAMS],
+    g0: &mut [f64],
+    g1: &mut [f64],
+    g2: &mut [f64],
+    g3: &mut [f64],
+    g4: &mut [f64],
+    g5: &mut [f64],
+    g6: &mut [f64],
+    g7: &mut [f64],
+    g8: &mut [f64],
+    rr: &mut [f64],
+    hpm: &mut [f64],
+) {
+    let [nx, ny, nz, t, hinv, inv_st, w] = inp;
+    let [is, b, d] = par;
+    let m = rr.len();
+    let (nx, ny, nz, t, hinv, inv_st, w) = (
+        &nx[..m],
+        &ny[..m],
+        &nz[..m],
+        &t[..m],
+        &hinv[..m],
+        &inv_st[..m],
+        &w[..m],
+    );
+    let (g0, g1, g2, g3, g4) = (
+        &mut g0[..m],
+        &mut g1[..m],
+        &mut g2[..m],
+        &mut g3[..m],
+        &mut g4[..m],
+    );
+    let (g5, g6, g7, g8, hpm) = (
+        &mut g5[..m],
+        &mut g6[..m],
+        &mut g7[..m],
+        &mut g8[..m],
+        &mut hpm[..m],
+    );
+    for a in 0..m {
+        let n = [nx[a], ny[a], nz[a]];
+        let mut f = [0.0; 3];
+        let mut u = [0.0; 3];
+        let mut hp = [0.0; 3];
+        for i in 0..3 {
+            u[i] = (n[i] - b[i]) * is[i];
+            let disc = 1.0 + 4.0 * d[i] * u[i];
+            f[i] = 2.0 * u[i] / (1.0 + disc.sqrt());
+            hp[i] = 1.0 + 2.0 * d[i] * f[i];
+        }
+        let norm2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
+        let r = (norm2 - t[a]) * hinv[a];
+        let gh = [
+            f[0] * inv_st[a] / hp[0],
+            f[1] * inv_st[a] / hp[1],
+            f[2] * inv_st[a] / hp[2],
+        ];
+        let wa = w[a];
+        rr[a] = wa * r;
+        hpm[a] = hp[0].min(hp[1]).min(hp[2]);
+        g0[a] = wa * (-gh[0] * u[0] * is[0]) * sc[0];
+        g1[a] = wa * (-gh[1] * u[1] * is[1]) * sc[1];
+        g2[a] = wa * (-gh[2] * u[2] * is[2]) * sc[2];
+        g3[a] = wa * (-gh[0] * is[0]) * sc[3];
+        g4[a] = wa * (-gh[1] * is[1]) * sc[4];
+        g5[a] = wa * (-gh[2] * is[2]) * sc[5];
+        g6[a] = wa * (-gh[0] * f[0] * f[0]) * sc[6];
+        g7[a] = wa * (-gh[1] * f[1] * f[1]) * sc[7];
+        g8[a] = wa * (-gh[2] * f[2] * f[2]) * sc[8];
+    }
+}
+
+/// Dot product with four independent partial sums (vectorises; the summation order differs
+/// from a sequential loop only by rounding).
+#[inline(always)]
+fn dot4(x: &[f64], y: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (xc, yc) = (x.chunks_exact(4), y.chunks_exact(4));
+    let (xr, yr) = (xc.remainder(), yc.remainder());
+    for (a, b) in xc.zip(yc) {
+        for l in 0..4 {
+            acc[l] += a[l] * b[l];
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (a, b) in xr.iter().zip(yr) {
+        s += a * b;
+    }
+    s
+}
+
+/// A normal-equation evaluation: external parameters, `J^T J` (row-major) and cost.
+#[derive(Debug, Clone, Default)]
+struct LastNormal {
+    p: Vec<f64>,
+    jtj: Vec<f64>,
+    cost: f64,
+}
+
+impl<'a> Problem<'a> {
+    fn new(
+        data: &'a CentrifugeData<'a>,
+        rc: &'a [RowConst],
+        rows: &'a [usize],
+        model: ModelOptions,
+    ) -> Self {
+        let s = model.scales();
+        let mut scales = [0.0; MAX_PARAMS];
+        scales[..s.len()].copy_from_slice(&s);
+        Problem {
+            outputs: data.outputs,
+            rc,
+            rows,
+            model,
+            scales,
+            np: s.len(),
+            last: RefCell::new(LastNormal::default()),
+            soa: OnceCell::new(),
+        }
+    }
+    fn external(&self, q: &[f64]) -> [f64; MAX_PARAMS] {
+        let mut p = [0.0; MAX_PARAMS];
+        for j in 0..self.np {
+            p[j] = q[j] * self.scales[j];
+        }
+        p
+    }
+    fn outside(&self, k: usize) -> CoreError {
+        CoreError::Degenerate(format!("row {k} lies outside the invertible range"))
+    }
+    fn pre<'p>(&self, p: &'p [f64]) -> Result<ParamPre<'p>> {
+        param_pre(&self.model, p)
+            .ok_or_else(|| self.outside(self.rows.first().copied().unwrap_or(0)))
     }
 }
 
 impl Residuals for Problem<'_> {
     fn n_params(&self) -> usize {
-        self.model.n_params()
+        self.np
     }
     fn n_residuals(&self) -> usize {
         self.rows.len()
     }
     fn eval(&self, q: &[f64], r: &mut [f64], jac: &mut DMatrix<f64>) -> Result<()> {
         let p = self.external(q);
+        let pp = self.pre(&p[..self.np])?;
+        let mut grad = [0.0; MAX_PARAMS];
         for (a, &k) in self.rows.iter().enumerate() {
-            let ev = eval_row(self.data, &self.model, &p, k, true).ok_or_else(|| {
-                CoreError::Degenerate(format!("row {k} lies outside the invertible range"))
-            })?;
-            let w = self.weight(k);
-            r[a] = w * ev.r;
-            for (j, gj) in ev.grad.iter().take(self.scales.len()).enumerate() {
-                jac[(a, j)] = w * gj * self.scales[j];
+            let rc = &self.rc[k];
+            let ev = row_eval(&self.outputs[k], rc, &pp, &self.model, Some(&mut grad))
+                .ok_or_else(|| self.outside(k))?;
+            r[a] = rc.w * ev;
+            for j in 0..self.np {
+                jac[(a, j)] = rc.w * grad[j] * self.scales[j];
             }
         }
         Ok(())
+    }
+}
+
+impl NormalEquations for Problem<'_> {
+    fn n_params(&self) -> usize {
+        self.np
+    }
+    fn n_residuals(&self) -> usize {
+        self.rows.len()
+    }
+    fn cost(&self, q: &[f64]) -> Result<f64> {
+        let p = self.external(q);
+        let pp = self.pre(&p[..self.np])?;
+        let mut cost = 0.0;
+        for &k in self.rows {
+            let rc = &self.rc[k];
+            let r = row_eval(&self.outputs[k], rc, &pp, &self.model, None)
+                .ok_or_else(|| self.outside(k))?;
+            cost += (rc.w * r) * (rc.w * r);
+        }
+        Ok(cost)
+    }
+    fn normal(&self, q: &[f64], jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) -> Result<f64> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above).
+                return unsafe { self.normal_avx2(q, jtj, jtr) };
+            }
+        }
+        self.normal_dispatch(q, jtj, jtr)
+    }
+}
+
+impl Problem<'_> {
+    /// [`Self::normal_dispatch`] compiled for AVX2 (wider vectors for the rank-1 updates;
+    /// no FMA, so the arithmetic and its rounding are those of the baseline build).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn normal_avx2(
+        &self,
+        q: &[f64],
+        jtj: &mut DMatrix<f64>,
+        jtr: &mut DVector<f64>,
+    ) -> Result<f64> {
+        self.normal_dispatch(q, jtj, jtr)
+    }
+
+    #[inline(always)]
+    fn normal_dispatch(
+        &self,
+        q: &[f64],
+        jtj: &mut DMatrix<f64>,
+        jtr: &mut DVector<f64>,
+    ) -> Result<f64> {
+        let soa = self.soa.get_or_init(|| {
+            (self.model == ModelOptions::default())
+                .then(|| Soa::new(self.outputs, self.rc, self.rows))
+        });
+        if let Some(soa) = soa {
+            if let Some(cost) = self.normal_base(soa, q, jtj, jtr) {
+                return Ok(cost);
+            }
+            // Some row is outside the invertible range: the row-wise path names it.
+        }
+        // Fixed sizes for the common models (the compiler unrolls the rank-1 updates).
+        match self.np {
+            9 => self.normal_n::<9>(q, jtj, jtr),
+            12 => self.normal_n::<12>(q, jtj, jtr),
+            15 => self.normal_n::<15>(q, jtj, jtr),
+            _ => self.normal_n::<MAX_PARAMS>(q, jtj, jtr),
+        }
+    }
+
+    /// [`NormalEquations::normal`] for the base model (S, b, K2) on column data: the same
+    /// formulas as [`row_eval`] evaluated for all rows in straight-line, vectorisable loops,
+    /// then `J^T J` and `J^T r` as dot products. `None` when a row cannot be inverted or the
+    /// cost is not finite (the caller then takes the row-wise path, which reports the row).
+    #[inline(always)]
+    fn normal_base(
+        &self,
+        soa: &Soa,
+        q: &[f64],
+        jtj: &mut DMatrix<f64>,
+        jtr: &mut DVector<f64>,
+    ) -> Option<f64> {
+        let m = soa.m;
+        let p = self.external(q);
+        if p[0] == 0.0 || p[1] == 0.0 || p[2] == 0.0 {
+            return None;
+        }
+        let is = [1.0 / p[0], 1.0 / p[1], 1.0 / p[2]];
+        let (b, d) = ([p[3], p[4], p[5]], [p[6], p[7], p[8]]);
+        let sc = &self.scales;
+        let c = &soa.cols;
+        let (nx, ny, nz) = (&c[..m], &c[m..2 * m], &c[2 * m..3 * m]);
+        let (t, hinv) = (&c[3 * m..4 * m], &c[4 * m..5 * m]);
+        let (inv_st, w) = (&c[5 * m..6 * m], &c[6 * m..7 * m]);
+        let mut work = soa.work.borrow_mut();
+        let mut cols: Vec<&mut [f64]> = work.chunks_exact_mut(m).collect();
+        let [g0, g1, g2, g3, g4, g5, g6, g7, g8, rr, hpm] = &mut cols[..] else {
+            return None;
+        };
+        // Equal, known lengths: no bounds checks in the loop, so it vectorises.
+        let (g0, g1, g2, g3, g4) = (
+            &mut g0[..m],
+            &mut g1[..m],
+            &mut g2[..m],
+            &mut g3[..m],
+            &mut g4[..m],
+        );
+        let (g5, g6, g7, g8) = (&mut g5[..m], &mut g6[..m], &mut g7[..m], &mut g8[..m]);
+        let (rr, hpm) = (&mut rr[..m], &mut hpm[..m]);
+        let (nx, ny, nz, t, hinv, inv_st, w) = (
+            &nx[..m],
+            &ny[..m],
+            &nz[..m],
+            &t[..m],
+            &hinv[..m],
+            &inv_st[..m],
+            &w[..m],
+        );
+        base_rows(
+            [nx, ny, nz, t, hinv, inv_st, w],
+            [is, b, d],
+            sc,
+            g0,
+            g1,
+            g2,
+            g3,
+            g4,
+            g5,
+            g6,
+            g7,
+            g8,
+            rr,
+            hpm,
+        );
+        let cost = dot4(rr, rr);
+        // NaN anywhere (a negative discriminant) makes the cost NaN.
+        if !cost.is_finite() || !hpm.iter().all(|v| *v > 0.0) {
+            return None;
+        }
+        let g = [&*g0, &*g1, &*g2, &*g3, &*g4, &*g5, &*g6, &*g7, &*g8];
+        let rr = &*rr;
+        let mut last = self.last.borrow_mut();
+        last.p.clear();
+        last.p.extend_from_slice(&p[..9]);
+        last.jtj.resize(81, 0.0);
+        for i in 0..9 {
+            jtr[i] = dot4(g[i], rr);
+            for j in i..9 {
+                let v = dot4(g[i], g[j]);
+                jtj[(i, j)] = v;
+                jtj[(j, i)] = v;
+                last.jtj[i * 9 + j] = v;
+                last.jtj[j * 9 + i] = v;
+            }
+        }
+        last.cost = cost;
+        Some(cost)
+    }
+
+    /// [`NormalEquations::normal`] with the parameter count bounded by `N` (`np <= N`).
+    #[inline(always)]
+    fn normal_n<const N: usize>(
+        &self,
+        q: &[f64],
+        jtj: &mut DMatrix<f64>,
+        jtr: &mut DVector<f64>,
+    ) -> Result<f64> {
+        let np = self.np;
+        debug_assert!(np <= N);
+        let p = self.external(q);
+        let pp = self.pre(&p[..np])?;
+        let mut acc = [[0.0f64; N]; N];
+        let mut g = [0.0f64; N];
+        let mut grad = [0.0f64; MAX_PARAMS];
+        let mut cost = 0.0;
+        for &k in self.rows {
+            let rc = &self.rc[k];
+            let r = row_eval(&self.outputs[k], rc, &pp, &self.model, Some(&mut grad))
+                .ok_or_else(|| self.outside(k))?;
+            let rw = rc.w * r;
+            cost += rw * rw;
+            // Entries beyond np stay zero (grad and scales are zero there).
+            let gs: [f64; N] = std::array::from_fn(|j| rc.w * grad[j] * self.scales[j]);
+            for a in 0..N {
+                let ga = gs[a];
+                g[a] += ga * rw;
+                for b in a..N {
+                    acc[a][b] += ga * gs[b];
+                }
+            }
+        }
+        let mut last = self.last.borrow_mut();
+        last.p.clear();
+        last.p.extend_from_slice(&p[..np]);
+        last.jtj.resize(np * np, 0.0);
+        for a in 0..np {
+            jtr[a] = g[a];
+            for b in a..np {
+                jtj[(a, b)] = acc[a][b];
+                jtj[(b, a)] = acc[a][b];
+                last.jtj[a * np + b] = acc[a][b];
+                last.jtj[b * np + a] = acc[a][b];
+            }
+        }
+        last.cost = cost;
+        Ok(cost)
+    }
+}
+
+/// Norm residuals (g, unweighted) of every row at external parameters `p` (`inf` where a
+/// row cannot be inverted).
+fn residuals_pre(
+    data: &CentrifugeData<'_>,
+    rc: &[RowConst],
+    model: &ModelOptions,
+    p: &[f64],
+) -> Vec<f64> {
+    match param_pre(model, p) {
+        None => vec![f64::INFINITY; data.outputs.len()],
+        Some(pp) => data
+            .outputs
+            .iter()
+            .zip(rc)
+            .map(|(n, c)| row_eval(n, c, &pp, model, None).unwrap_or(f64::INFINITY))
+            .collect(),
     }
 }
 
@@ -424,13 +885,7 @@ pub fn residuals(data: &CentrifugeData<'_>, model: &ModelOptions, p: &[f64]) -> 
             model.n_params()
         ));
     }
-    Ok((0..data.outputs.len())
-        .map(|k| {
-            eval_row(data, model, p, k, false)
-                .map(|e| e.r)
-                .unwrap_or(f64::INFINITY)
-        })
-        .collect())
+    Ok(residuals_pre(data, &row_consts(data), model, p))
 }
 
 /// Check the inputs; returns the number of distinct speeds.
@@ -577,17 +1032,24 @@ fn linear_start_n<const C: usize>(
             return None;
         }
     }
+    let ics: [f64; C] = std::array::from_fn(|j| 1.0 / cs[j]);
     let mut ata = SMatrix::<f64, C, C>::zeros();
     let mut aty = SVector::<f64, C>::zeros();
     for &k in rows {
         let raw = regs(data.outputs[k]);
-        let row: [f64; C] = std::array::from_fn(|j| raw[j] / cs[j]);
+        let row: [f64; C] = std::array::from_fn(|j| raw[j] * ics[j]);
         let t = target(data, k);
         for a in 0..C {
             aty[a] += row[a] * t;
-            for b in 0..C {
+            for b in a..C {
                 ata[(a, b)] += row[a] * row[b];
             }
+        }
+    }
+    // Symmetric: the lower triangle is the mirror (same products, same order).
+    for a in 0..C {
+        for b in 0..a {
+            ata[(a, b)] = ata[(b, a)];
         }
     }
     let c = ata.cholesky()?.solve(&aty);
@@ -614,25 +1076,21 @@ fn linear_start_n<const C: usize>(
 
 fn nls_on_rows(
     data: &CentrifugeData<'_>,
+    rc: &[RowConst],
     rows: &[usize],
     model: &ModelOptions,
     start: &[f64],
     max_iter: usize,
-) -> Result<(Vec<f64>, crate::lsq::NlsReport)> {
-    let scales = model.scales();
-    let prob = Problem {
-        data,
-        rows: rows.to_vec(),
-        model: *model,
-        scales: scales.clone(),
-    };
-    let q0: Vec<f64> = start.iter().zip(&scales).map(|(a, s)| a / s).collect();
+) -> Result<(Vec<f64>, crate::lsq::NlsReport, LastNormal)> {
+    let prob = Problem::new(data, rc, rows, *model);
+    let q0: Vec<f64> = start.iter().zip(&prob.scales).map(|(a, s)| a / s).collect();
     // Tolerances a little looser than the lsq defaults: at the data's noise floor the default
     // ftol makes LM search dozens of dampings for a last 1e-15 cost reduction. A relative step
     // of 1e-11 in scaled parameters is far below any parameter's standard deviation.
     // Gauss-Newton first: from the linear start it converges quadratically and stops one step
     // after the noise floor, where LM would search many dampings for a last tiny decrease.
-    // LM is the fallback whenever GN diverges or stalls.
+    // GN runs on normal equations accumulated row by row (no Jacobian storage, one pass per
+    // iteration); LM on the stored Jacobian is the fallback whenever GN diverges or stalls.
     let opt = NlsOptions {
         max_iter,
         ftol: 1e-12,
@@ -640,7 +1098,7 @@ fn nls_on_rows(
         gtol: 1e-10,
         gauss_newton: true,
     };
-    let rep = match solve_nls(
+    let rep = match solve_normal_gn(
         &prob,
         &q0,
         &NlsOptions {
@@ -658,8 +1116,8 @@ fn nls_on_rows(
             },
         )?,
     };
-    let p = prob.external(&rep.params);
-    Ok((p, rep))
+    let p = prob.external(&rep.params)[..prob.np].to_vec();
+    Ok((p, rep, prob.last.into_inner()))
 }
 
 /// Corrected closed-form recovery from the 13 Taylor coefficients (SPEC 2): returns
@@ -723,7 +1181,7 @@ pub fn taylor_coefficients(data: &CentrifugeData<'_>, rows: &[usize]) -> Result<
         }
         y.push(target(data, k));
     }
-    lstsq_qr(&a, m, 13, &y).map_err(|e| match e {
+    lstsq_small(&a, m, 13, &y).map_err(|e| match e {
         CoreError::Degenerate(msg) => CoreError::Degenerate(format!(
             "taylor-paper regression: {msg}; every axis needs at least five distinct output levels"
         )),
@@ -754,13 +1212,12 @@ fn kth_smallest(v: &[f64], k: usize) -> f64 {
 }
 
 /// Weighted robust residuals (`|r| / sigma`), inf for rows outside the invertible range.
-fn weighted_abs(data: &CentrifugeData<'_>, r: &[f64]) -> Vec<f64> {
+fn weighted_abs(rc: &[RowConst], r: &[f64]) -> Vec<f64> {
     r.iter()
-        .enumerate()
-        .map(|(k, v)| {
-            let w = data.sigma.map(|s| 1.0 / s[k]).unwrap_or(1.0);
+        .zip(rc)
+        .map(|(v, c)| {
             if v.is_finite() {
-                (v * w).abs()
+                (v * c.w).abs()
             } else {
                 f64::INFINITY
             }
@@ -772,7 +1229,7 @@ fn weighted_abs(data: &CentrifugeData<'_>, r: &[f64]) -> Vec<f64> {
 /// Returns (parameters of the base model, draws).
 /// Exact fit of the base model (S, b, K2) to a minimal subset of 9 rows: linear start, then
 /// Newton on the square system. `None` when the subset does not determine a solution.
-fn subset_fit(data: &CentrifugeData<'_>, subset: &[usize]) -> Option<[f64; 9]> {
+fn subset_fit(data: &CentrifugeData<'_>, rc: &[RowConst], subset: &[usize]) -> Option<[f64; 9]> {
     use nalgebra::{SMatrix, SVector};
     let base = ModelOptions::default();
     let st = linear_start(data, subset, &base).ok()?;
@@ -782,11 +1239,12 @@ fn subset_fit(data: &CentrifugeData<'_>, subset: &[usize]) -> Option<[f64; 9]> {
     for _ in 0..20 {
         let mut jm = SMatrix::<f64, 9, 9>::zeros();
         let mut r = SVector::<f64, 9>::zeros();
+        let pp = param_pre(&base, &p)?;
+        let mut grad = [0.0; MAX_PARAMS];
         for (a, &k) in subset.iter().enumerate() {
-            let ev = eval_row(data, &base, &p, k, true)?;
-            r[a] = ev.r;
+            r[a] = row_eval(&data.outputs[k], &rc[k], &pp, &base, Some(&mut grad))?;
             for j in 0..9 {
-                jm[(a, j)] = ev.grad[j] * sc[j];
+                jm[(a, j)] = grad[j] * sc[j];
             }
         }
         let step = jm.lu().solve(&(-r))?;
@@ -804,16 +1262,21 @@ fn subset_fit(data: &CentrifugeData<'_>, subset: &[usize]) -> Option<[f64; 9]> {
         }
     }
     // Not converged: accept only if the subset residuals are negligible.
-    let ok = subset
-        .iter()
-        .all(|&k| eval_row(data, &base, &p, k, false).is_some_and(|e| e.r.abs() < 1e-9));
+    let pp = param_pre(&base, &p)?;
+    let ok = subset.iter().all(|&k| {
+        row_eval(&data.outputs[k], &rc[k], &pp, &base, None).is_some_and(|r| r.abs() < 1e-9)
+    });
     ok.then_some(p)
 }
 
 /// Least median of squares over random minimal subsets of the base (S, b, K2) model.
 /// The number of draws assumes up to half the rows are bad (99.99 % confidence).
 /// Returns (parameters of the base model, draws).
-fn lmeds(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<(Vec<f64>, usize)> {
+fn lmeds(
+    data: &CentrifugeData<'_>,
+    rc: &[RowConst],
+    opt: &FitOptions,
+) -> Result<(Vec<f64>, usize)> {
     let base = ModelOptions::default();
     let n = data.outputs.len();
     let p = base.n_params();
@@ -843,13 +1306,15 @@ fn lmeds(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<(Vec<f64>, usize
         {
             continue;
         }
-        let Some(params) = subset_fit(data, &subset) else {
+        let Some(params) = subset_fit(data, rc, &subset) else {
             continue;
         };
-        for (k, ak) in a.iter_mut().enumerate() {
-            let wk = data.sigma.map(|s| 1.0 / s[k]).unwrap_or(1.0);
-            *ak = eval_row(data, &base, &params, k, false)
-                .map(|e| (e.r * wk).abs())
+        let Some(pp) = param_pre(&base, &params) else {
+            continue;
+        };
+        for ((ak, n), c) in a.iter_mut().zip(data.outputs).zip(rc) {
+            *ak = row_eval(n, c, &pp, &base, None)
+                .map(|r| (r * c.w).abs())
                 .unwrap_or(f64::INFINITY);
         }
         work.copy_from_slice(&a);
@@ -871,11 +1336,12 @@ fn lmeds(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<(Vec<f64>, usize
     }
 }
 
-/// (parameters, iterations, converged, Taylor coefficients).
-type FitOutcome = (Vec<f64>, usize, bool, Option<Vec<f64>>);
+/// (parameters, iterations, converged, Taylor coefficients, last normal equations (nls)).
+type FitOutcome = (Vec<f64>, usize, bool, Option<Vec<f64>>, Option<LastNormal>);
 
 fn final_fit(
     data: &CentrifugeData<'_>,
+    rc: &[RowConst],
     rows: &[usize],
     opt: &FitOptions,
     start: Option<&[f64]>,
@@ -891,8 +1357,8 @@ fn final_fit(
                 }
                 None => linear_start(data, rows, &opt.model)?,
             };
-            let (p, rep) = nls_on_rows(data, rows, &opt.model, &st, 200)?;
-            Ok((p, rep.iterations, rep.converged, None))
+            let (p, rep, last) = nls_on_rows(data, rc, rows, &opt.model, &st, 200)?;
+            Ok((p, rep.iterations, rep.converged, None, Some(last)))
         }
         Method::TaylorPaper => {
             if opt.model != ModelOptions::default() {
@@ -903,7 +1369,7 @@ fn final_fit(
             let c = taylor_coefficients(data, rows)?;
             let sbd = taylor_recover(&c)?;
             let p: Vec<f64> = sbd.iter().flatten().copied().collect();
-            Ok((p, 0, true, Some(c)))
+            Ok((p, 0, true, Some(c), None))
         }
     }
 }
@@ -963,38 +1429,44 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
     }
     let n = data.outputs.len();
     let p = opt.model.n_params();
+    let rc = row_consts(data);
     let all: Vec<usize> = (0..n).collect();
     let mut rows = all.clone();
     let mut draws = 0;
     let mut screen_sigma = 0.0;
-    let (mut params, mut iterations, mut converged, mut taylor) =
-        match final_fit(data, &rows, opt, None) {
+    let (mut params, mut iterations, mut converged, mut taylor, mut last) =
+        match final_fit(data, &rc, &rows, opt, None) {
             Ok(v) => v,
             Err(e) if opt.robust => {
                 // The plain fit can fail outright on gross outliers: go straight to the screen.
                 let _ = e;
-                (vec![f64::NAN; p], 0, false, None)
+                (vec![f64::NAN; p], 0, false, None, None)
             }
             Err(e) => return Err(e),
         };
+    // Residuals of every row at `params` when already computed (the robust pre-check).
+    let mut r_known: Option<Vec<f64>> = None;
     if opt.robust {
         let r0 = if params.iter().all(|v| v.is_finite()) {
-            residuals(data, &opt.model, &params)?
+            residuals_pre(data, &rc, &opt.model, &params)
         } else {
             vec![f64::INFINITY; n]
         };
-        let a0 = weighted_abs(data, &r0);
+        let a0 = weighted_abs(&rc, &r0);
         let sig0 = robust_scale(&a0, &all, p).max(opt.sigma_floor);
         let med0 = kth_smallest(&a0, n / 2);
         let mad0 = (1.4826 * med0).max(opt.sigma_floor);
         let clean = a0.iter().all(|v| *v <= opt.outlier_k * mad0) && sig0.is_finite();
-        if !clean {
-            let (base_p, d) = lmeds(data, opt)?;
+        if clean {
+            r_known = Some(r0);
+        } else {
+            r_known = None;
+            let (base_p, d) = lmeds(data, &rc, opt)?;
             draws = d;
             let mut start = base_p;
             let mut sig = f64::INFINITY;
-            let rb = residuals(data, &ModelOptions::default(), &start)?;
-            let ab = weighted_abs(data, &rb);
+            let rb = residuals_pre(data, &rc, &ModelOptions::default(), &start);
+            let ab = weighted_abs(&rc, &rb);
             let h = (n + 9).div_ceil(2);
             let crit = kth_smallest(&ab, h - 1);
             let sig_l = (1.4826 * (1.0 + 5.0 / (n - 9) as f64) * crit).max(opt.sigma_floor);
@@ -1012,9 +1484,9 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
                 } else {
                     None
                 };
-                let (pp, it, cv, tc) = final_fit(data, &rows, opt, st)?;
-                let r = residuals(data, &opt.model, &pp)?;
-                let a = weighted_abs(data, &r);
+                let (pp, it, cv, tc, ln) = final_fit(data, &rc, &rows, opt, st)?;
+                let r = residuals_pre(data, &rc, &opt.model, &pp);
+                let a = weighted_abs(&rc, &r);
                 sig = robust_scale(&a, &rows, p).max(opt.sigma_floor);
                 let new_rows: Vec<usize> =
                     (0..n).filter(|&k| a[k] <= opt.outlier_k * sig).collect();
@@ -1022,11 +1494,14 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
                 iterations = it;
                 converged = cv;
                 taylor = tc;
+                last = ln;
                 start = params.clone();
                 if new_rows == rows {
                     break;
                 }
                 rows = new_rows;
+                // Not refitted on these rows: the stored normal equations do not apply.
+                last = None;
             }
             screen_sigma = sig;
         }
@@ -1038,25 +1513,33 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
     }
     // Sign convention: S > 0 (a norm observation cannot fix it when D = 0). Flipping S_i
     // flips f_i, so D_i, the misalignment terms touching axis i and its lever arm flip too.
+    let before = params.clone();
     fold_sign(&mut params, &opt.model);
-    let r_all = residuals(data, &opt.model, &params)?;
-    // Observability and covariance at the final parameters on the rows used.
-    let scales = opt.model.scales();
-    let prob = Problem {
-        data,
-        rows: rows.clone(),
-        model: opt.model,
-        scales: scales.clone(),
+    let folded = params != before;
+    let r_all = match r_known {
+        Some(r) if !folded => r,
+        _ => residuals_pre(data, &rc, &opt.model, &params),
     };
-    let q: Vec<f64> = params.iter().zip(&scales).map(|(a, s)| a / s).collect();
-    let mut rr = vec![0.0; rows.len()];
-    let mut jac = DMatrix::<f64>::zeros(rows.len(), p);
-    prob.eval(&q, &mut rr, &mut jac)?;
-    let rms = (rr.iter().map(|v| v * v).sum::<f64>() / rows.len() as f64).sqrt();
-    // Column-normalised Jacobian for conditioning / null directions.
+    // Observability and covariance at the final parameters on the rows used (the solver's
+    // last evaluation is exactly there unless the sign was folded or LM took over).
+    let prob = Problem::new(data, &rc, &rows, opt.model);
+    let scales = &prob.scales[..p];
+    let q: Vec<f64> = params.iter().zip(scales).map(|(a, s)| a / s).collect();
+    let (jtj, cost) = match last {
+        Some(ln) if !folded && ln.p == params => (DMatrix::from_row_slice(p, p, &ln.jtj), ln.cost),
+        _ => {
+            let mut jtj = DMatrix::<f64>::zeros(p, p);
+            let mut jtr = DVector::<f64>::zeros(p);
+            let cost = prob.normal(&q, &mut jtj, &mut jtr)?;
+            (jtj, cost)
+        }
+    };
+    let rms = (cost / rows.len() as f64).sqrt();
+    // Column norms of the Jacobian (its columns are normalised for conditioning / null
+    // directions).
     let mut cn = vec![0.0; p];
     for j in 0..p {
-        cn[j] = jac.column(j).norm();
+        cn[j] = jtj[(j, j)].sqrt();
         if !(cn[j] > 0.0) {
             let names = opt.model.names();
             return degenerate(format!(
@@ -1065,11 +1548,92 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
             ));
         }
     }
-    let jn = DMatrix::<f64>::from_fn(rows.len(), p, |a, b| jac[(a, b)] / cn[b]);
+    let (singular_values, condition, cov_n) = match observability_normal(&jtj, &cn) {
+        Some(v) => v,
+        None => observability_svd(&prob, &q, &opt.model)?,
+    };
+    let dof = rows.len().saturating_sub(p).max(1) as f64;
+    let var = if data.sigma.is_some() {
+        1.0
+    } else {
+        cost / dof
+    };
+    // (J^T J)^-1 = diag(1/cn) Cn diag(1/cn) with Cn the inverse of the normalised normal matrix.
+    let mut cov = vec![0.0; p * p];
+    for a in 0..p {
+        for b in 0..p {
+            cov[a * p + b] = cov_n[(a, b)] / (cn[a] * cn[b]) * scales[a] * scales[b] * var;
+        }
+    }
+    let outliers: Vec<usize> = (0..n).filter(|k| !rows.contains(k)).collect();
+    Ok(CentrifugeFit {
+        params,
+        names: opt.model.names(),
+        covariance: cov,
+        residuals: r_all,
+        outliers,
+        residual_rms: rms,
+        screen_sigma,
+        draws,
+        condition,
+        singular_values,
+        iterations,
+        converged,
+        taylor_coefficients: taylor,
+    })
+}
+
+/// Column-normalised condition above which [`observability_normal`] defers to the SVD of
+/// the Jacobian (the normal matrix squares the condition number).
+const NORMAL_MAX_COND: f64 = 1e4;
+
+/// Singular values (descending), condition number and `Cn = (Jn^T Jn)^-1` of the
+/// column-normalised Jacobian `Jn = J diag(1/cn)`, from the normal matrix `jtj = J^T J`:
+/// eigenvalues of `Jn^T Jn` (no eigenvectors) and a Cholesky inverse. `None` when the
+/// condition number exceeds [`NORMAL_MAX_COND`] (or the factorisation fails): then the
+/// eigenvalues lose accuracy and a null direction must be named, so use [`observability_svd`].
+fn observability_normal(jtj: &DMatrix<f64>, cn: &[f64]) -> Option<(Vec<f64>, f64, DMatrix<f64>)> {
+    let p = cn.len();
+    let mut an = vec![0.0; p * p];
+    for a in 0..p {
+        for b in 0..p {
+            an[a * p + b] = jtj[(a, b)] / (cn[a] * cn[b]);
+        }
+    }
+    let ev = symmetric_eigenvalues_small(&an, p)?;
+    let s: Vec<f64> = ev.iter().rev().map(|l| l.max(0.0).sqrt()).collect();
+    let (smax, smin) = (s[0], s[p - 1]);
+    if !(smin > smax / NORMAL_MAX_COND) || !smax.is_finite() {
+        return None;
+    }
+    if !cholesky_small(&mut an, p) {
+        return None;
+    }
+    let c = cholesky_inverse_small(&an, p);
+    if !c.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    Some((s, smax / smin, DMatrix::from_row_slice(p, p, &c)))
+}
+
+/// [`observability_normal`] by the SVD of the column-normalised Jacobian itself: accurate
+/// for any conditioning; names the unobservable combinations of a singular design.
+fn observability_svd(
+    prob: &Problem<'_>,
+    q: &[f64],
+    model: &ModelOptions,
+) -> Result<(Vec<f64>, f64, DMatrix<f64>)> {
+    let p = prob.np;
+    let m = prob.rows.len();
+    let mut rr = vec![0.0; m];
+    let mut jac = DMatrix::<f64>::zeros(m, p);
+    prob.eval(q, &mut rr, &mut jac)?;
+    let cn: Vec<f64> = (0..p).map(|j| jac.column(j).norm()).collect();
+    let jn = DMatrix::<f64>::from_fn(m, p, |a, b| jac[(a, b)] / cn[b]);
     let svd_n = svd_report_qr(&jn)?;
     let null = svd_n.null_directions(1e-9);
     if !null.is_empty() {
-        let names = opt.model.names();
+        let names = model.names();
         let combos: Vec<String> = null
             .iter()
             .map(|&c| {
@@ -1090,39 +1654,11 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
             combos.join("; ")
         ));
     }
-    // (J^T J)^-1 from the column-normalised SVD: C = diag(1/cn) Vn Sn^-2 Vn^T diag(1/cn).
     let cov_n = svd_n
         .covariance()
         .ok_or_else(|| CoreError::Degenerate("singular normal matrix".into()))?;
-    let cov_s = DMatrix::<f64>::from_fn(p, p, |a, b| cov_n[(a, b)] / (cn[a] * cn[b]));
-    let dof = rows.len().saturating_sub(p).max(1) as f64;
-    let var = if data.sigma.is_some() {
-        1.0
-    } else {
-        rr.iter().map(|v| v * v).sum::<f64>() / dof
-    };
-    let mut cov = vec![0.0; p * p];
-    for a in 0..p {
-        for b in 0..p {
-            cov[a * p + b] = cov_s[(a, b)] * scales[a] * scales[b] * var;
-        }
-    }
-    let outliers: Vec<usize> = (0..n).filter(|k| !rows.contains(k)).collect();
-    Ok(CentrifugeFit {
-        params,
-        names: opt.model.names(),
-        covariance: cov,
-        residuals: r_all,
-        outliers,
-        residual_rms: rms,
-        screen_sigma,
-        draws,
-        condition: svd_n.condition(),
-        singular_values: svd_n.s,
-        iterations,
-        converged,
-        taylor_coefficients: taylor,
-    })
+    let condition = svd_n.condition();
+    Ok((svd_n.s, condition, cov_n))
 }
 
 #[cfg(test)]
@@ -1258,6 +1794,56 @@ mod tests {
         for (i, l) in lever.iter().enumerate() {
             assert!((f.params[9 + i] - l).abs() < 1e-8, "{:?}", f.params);
         }
+    }
+
+    #[test]
+    fn fast_normal_equations_and_observability_match_the_jacobian_path() {
+        let (mut o, w, _) = session();
+        // A little noise so that the residuals are not zero.
+        for (k, row) in o.iter_mut().enumerate() {
+            row[k % 3] += 1e-6 * ((k * 7919 % 13) as f64 - 6.0);
+        }
+        let d = data(&o, &w);
+        let rc = row_consts(&d);
+        let rows: Vec<usize> = (0..o.len()).collect();
+        let model = ModelOptions::default();
+        let f = fit(&d, &FitOptions::default()).unwrap();
+        let prob = Problem::new(&d, &rc, &rows, model);
+        let q: Vec<f64> = f
+            .params
+            .iter()
+            .zip(&prob.scales)
+            .map(|(a, s)| a / s)
+            .collect();
+        // Vectorised base kernel vs the row-wise kernel vs J^T J of the stored Jacobian.
+        let (mut a1, mut g1) = (DMatrix::zeros(9, 9), DVector::zeros(9));
+        let c1 = prob.normal(&q, &mut a1, &mut g1).unwrap();
+        let (mut a2, mut g2) = (DMatrix::zeros(9, 9), DVector::zeros(9));
+        let c2 = prob.normal_n::<9>(&q, &mut a2, &mut g2).unwrap();
+        let mut r = vec![0.0; rows.len()];
+        let mut jac = DMatrix::zeros(rows.len(), 9);
+        prob.eval(&q, &mut r, &mut jac).unwrap();
+        let a3 = jac.transpose() * &jac;
+        let c3: f64 = r.iter().map(|v| v * v).sum();
+        assert!((c1 - c3).abs() <= 1e-10 * c3 && (c2 - c3).abs() <= 1e-10 * c3);
+        assert!((&a1 - &a3).amax() <= 1e-12 * a3.amax());
+        assert!((&a2 - &a3).amax() <= 1e-12 * a3.amax());
+        // J^T r is ~0 at the optimum: compare on the scale of |J| |r|.
+        let jr = (c3 * a3.amax()).sqrt();
+        assert!((&g1 - &g2).amax() <= 1e-10 * jr);
+        let g3 = jac.transpose() * DVector::from_column_slice(&r);
+        assert!((&g1 - &g3).amax() <= 1e-10 * jr);
+        // Eigenvalues of the normal matrix vs the SVD of the Jacobian.
+        let cn: Vec<f64> = (0..9).map(|j| a1[(j, j)].sqrt()).collect();
+        let (s1, k1, c1) = observability_normal(&a1, &cn).unwrap();
+        let (s2, k2, c2) = observability_svd(&prob, &q, &model).unwrap();
+        for (x, y) in s1.iter().zip(&s2) {
+            assert!((x - y).abs() <= 1e-10 * s2[0]);
+        }
+        assert!((k1 - k2).abs() <= 1e-8 * k2);
+        assert!((&c1 - &c2).amax() <= 1e-9 * c2.amax());
+        assert_eq!(f.singular_values.len(), 9);
+        assert!((f.condition - k2).abs() <= 1e-8 * k2);
     }
 
     #[test]

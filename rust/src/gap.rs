@@ -20,9 +20,11 @@
 //!
 //! [`diagnose`] fits the baseline (exact linear quadric start, then Levenberg-Marquardt),
 //! screens every candidate by principal angles (identifiability) and a score test on the
-//! projected columns (F form for attribution, chi2 form alongside), selects forward-stepwise
-//! with a nonlinear re-fit after each step, and measures the leave-one-dwell-out held-out gap
-//! before and after with the selection redone inside each fold.
+//! projected columns ([`TestMode`]: chi2 when the noise model is known and the remainder after
+//! the candidate is consistent with it, the sigma-free F form otherwise), selects
+//! forward-stepwise with a nonlinear re-fit after each step, and measures the
+//! leave-one-dwell-out held-out gap after 0, 1, ... effects with the selection redone inside
+//! each fold. The held-out [`Gate`] then drops a selected effect that does not lower it.
 
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
@@ -175,6 +177,98 @@ pub struct GapOptions {
     pub min_temp_range: f64,
     /// Start values `[sx,sy,sz,bx,by,bz,m1,m2,m3]` instead of the linear quadric fit.
     pub start: Option<[f64; N_BASE]>,
+    /// Which test attributes (see [`TestMode`]).
+    pub test: TestMode,
+    /// [`TestMode::Auto`]: the chi2 score test is used for a candidate only when the chi2 of
+    /// what remains after it has an upper-tail p-value above this level (noise model trusted).
+    pub trust_level: f64,
+    /// Held-out gate (see [`Gate`]).
+    pub gate: Gate,
+    /// Family-wise correction over the candidates of a stepwise stage (see [`Correction`]).
+    pub correction: Correction,
+    /// [`Correction::MinP`]: at most this many null draws per decision (sequential: fewer
+    /// when the decision is clear).
+    pub n_draws: usize,
+    /// [`Gate::Auto`]: an effect after which the remainder is consistent in-sample is also
+    /// kept when the held-out `G^2` grows by at most `gate_margin * sqrt(2 / n)` (about
+    /// `gate_margin` standard deviations of `G^2`).
+    pub gate_margin: f64,
+}
+
+/// Family-wise correction of the attribution over the testable candidates of a stage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Correction {
+    /// Declare the best candidate when `p < alpha / M` (M testable candidates).
+    Bonferroni,
+    /// Exact min-p (Westfall-Young, max-statistic): the adjusted p-value of the best
+    /// candidate is the probability, under the null of the current model, that the smallest
+    /// p-value over the candidates is at most the observed one. The null whitened residual is
+    /// `(I - H) z`, `z ~ N(0, I)`; each candidate keeps the test (chi2 or sigma-free F) chosen
+    /// on the data. Monte Carlo with fixed-seed draws (deterministic), computed only when the
+    /// Bonferroni decision is not already clear (`alpha / M <= p < alpha`, always on the
+    /// full data for the reported value). Never above the Bonferroni bound `M p`.
+    MinP,
+}
+
+impl Correction {
+    /// Parse `"minp"` or `"bonferroni"`.
+    pub fn from_name(s: &str) -> Result<Correction> {
+        match s {
+            "minp" => Ok(Correction::MinP),
+            "bonferroni" => Ok(Correction::Bonferroni),
+            _ => invalid(format!("correction must be 'minp' or 'bonferroni'; got {s:?}")),
+        }
+    }
+}
+
+/// When a selected effect must also lower the held-out gap to count as an explanation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Gate {
+    /// No held-out check.
+    Off,
+    /// Every selected effect must lower the held-out gap.
+    Strict,
+    /// As `Strict`, except that an effect after which the remainder is consistent with the
+    /// (known) noise model is kept: remaining chi2 p >= alpha and held-out `G^2 <= 1 +
+    /// 2 sqrt(2/n)`. The held-out gap is too noisy to confirm weak effects, and a model that
+    /// fits to the noise level, in-sample and held out, needs no further explanation.
+    Auto,
+}
+
+impl Gate {
+    /// Parse `"auto"`, `"strict"` or `"off"`.
+    pub fn from_name(s: &str) -> Result<Gate> {
+        match s {
+            "off" => Ok(Gate::Off),
+            "strict" => Ok(Gate::Strict),
+            "auto" => Ok(Gate::Auto),
+            _ => invalid(format!("gate must be 'auto', 'strict' or 'off'; got {s:?}")),
+        }
+    }
+}
+
+/// Test statistic used to attribute (select) an effect.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TestMode {
+    /// Sigma-free F test (robust to a mis-scaled noise model, less power with few dwells).
+    F,
+    /// chi2 score test (trusts the noise model).
+    Chi2,
+    /// chi2 when the noise model is known and the remainder after the candidate is consistent
+    /// with it, F otherwise.
+    Auto,
+}
+
+impl TestMode {
+    /// Parse `"f"`, `"chi2"` or `"auto"`.
+    pub fn from_name(s: &str) -> Result<TestMode> {
+        match s {
+            "f" => Ok(TestMode::F),
+            "chi2" => Ok(TestMode::Chi2),
+            "auto" => Ok(TestMode::Auto),
+            _ => invalid(format!("test must be 'auto', 'chi2' or 'f'; got {s:?}")),
+        }
+    }
 }
 
 impl Default for GapOptions {
@@ -188,6 +282,12 @@ impl Default for GapOptions {
             ambiguity_cos: 0.9,
             min_temp_range: 0.05,
             start: None,
+            test: TestMode::Auto,
+            trust_level: 0.1,
+            gate: Gate::Auto,
+            correction: Correction::MinP,
+            n_draws: 4000,
+            gate_margin: 0.0,
         }
     }
 }
@@ -211,6 +311,10 @@ pub struct CandidateReport {
     pub p_f: f64,
     /// p-value of the chi2 score test (trusts the noise model).
     pub p_chi2: f64,
+    /// p-value used for attribution (chi2 or F, see [`TestMode`]).
+    pub p: f64,
+    /// Whether the chi2 form was used for `p`.
+    pub chi2_used: bool,
     /// BIC of baseline + this effect (sigma-free form).
     pub bic: f64,
     /// BIC weight among "none" and all testable candidates.
@@ -238,6 +342,9 @@ pub struct LooReport {
     pub z_before: Vec<f64>,
     /// The same after.
     pub z_after: Vec<f64>,
+    /// Held-out gap with at most k effects selected in each fold, k = 0, 1, ... (the number
+    /// selected on all dwells, before the gate).
+    pub g_steps: Vec<f64>,
     /// How many folds selected each effect (order of [`Effect::ALL`]).
     pub fold_counts: [usize; 6],
     /// Folds whose fit failed.
@@ -277,10 +384,20 @@ pub struct GapResult {
     pub weight_none: f64,
     /// Selected effects in order.
     pub selected: Vec<Effect>,
-    /// p-value (F) at which each was selected.
+    /// p-value at which each was selected (the candidate's own test).
     pub step_p: Vec<f64>,
-    /// p-value (F) of the best remaining candidate when the selection stopped (NaN: none left).
+    /// Family-wise adjusted p-value of each selection (min-p; the Bonferroni bound `M p`
+    /// with [`Correction::Bonferroni`]).
+    pub step_p_adj: Vec<f64>,
+    /// Number of testable candidates (family size M) at each selection.
+    pub step_m: Vec<usize>,
+    /// Effect selected in-sample but rejected by the held-out gate: (effect, p, G before, G
+    /// with it).
+    pub not_confirmed: Option<(Effect, f64, f64, f64)>,
+    /// p-value of the best remaining candidate when the selection stopped (NaN: none left).
     pub stop_p: f64,
+    /// Its family-wise adjusted p-value (NaN: none left).
+    pub stop_p_adj: f64,
     /// Parameters after (baseline then 3 per selected effect).
     pub params_after: Vec<f64>,
     /// Their standard deviations (scaled by the residual variance when it exceeds 1).
@@ -771,9 +888,19 @@ struct Screened {
     f: f64,
     p_f: f64,
     p_chi2: f64,
+    p: f64,
+    chi2_used: bool,
     est: [f64; 3],
     std: [f64; 3],
     w: DMatrix<f64>,
+}
+
+/// Test mode and trust level after accounting for an unknown noise model.
+#[derive(Clone, Copy)]
+struct TestCfg {
+    mode: TestMode,
+    trust_level: f64,
+    sine_tol: f64,
 }
 
 fn screen_one(
@@ -781,9 +908,10 @@ fn screen_one(
     b: &Basis,
     e: &DVector<f64>,
     rss: f64,
-    sine_tol: f64,
+    cfg: TestCfg,
     full: bool,
 ) -> Screened {
+    let sine_tol = cfg.sine_tol;
     let n = c.nrows();
     let mut out = Screened {
         status: Status::Blind,
@@ -793,6 +921,8 @@ fn screen_one(
         f: f64::NAN,
         p_f: f64::NAN,
         p_chi2: f64::NAN,
+        p: f64::NAN,
+        chi2_used: false,
         est: [f64::NAN; 3],
         std: [f64::NAN; 3],
         w: DMatrix::zeros(n, 0),
@@ -846,6 +976,12 @@ fn screen_one(
     out.f = (score / d as f64) / (rem / dof2);
     out.p_f = f_sf(out.f, d as f64, dof2);
     out.p_chi2 = chi2_sf(score, d as f64);
+    out.chi2_used = match cfg.mode {
+        TestMode::F => false,
+        TestMode::Chi2 => true,
+        TestMode::Auto => chi2_sf(rem, dof2) > cfg.trust_level,
+    };
+    out.p = if out.chi2_used { out.p_chi2 } else { out.p_f };
     if full {
         // Minimal-norm estimate on the projected columns, truncated like the test.
         let cp = c - &b.q * (b.q.transpose() * c);
@@ -859,7 +995,8 @@ fn screen_one(
                 if !(sk > sine_tol * nmax) {
                     continue;
                 }
-                let coef = u2.column(k).dot(e) / sk;
+                // The residual falls along e + C x: x = -C^+ e.
+                let coef = -u2.column(k).dot(e) / sk;
                 for i in 0..3 {
                     est[i] += vt2[(k, i)] * coef;
                     var[i] += (vt2[(k, i)] / sk).powi(2) * s2;
@@ -875,10 +1012,179 @@ fn screen_one(
 struct Stepwise {
     effects: Vec<Effect>,
     step_p: Vec<f64>,
+    step_p_adj: Vec<f64>,
+    step_m: Vec<usize>,
     stop_p: f64,
-    fit: Fit,
+    stop_p_adj: f64,
+    /// Fits after 0, 1, ... selected effects (the last is the final model).
+    history: Vec<Fit>,
     first: Vec<(Effect, Screened)>,
     basis0: Option<Basis>,
+}
+
+// ------------------------------------------------------------------------------------------
+// Family-wise correction: exact min-p by Monte Carlo under the null of the current model.
+
+/// One testable candidate of a stage, as the min-p correction needs it.
+struct Member {
+    /// Orthonormal projected directions (`n x d`), orthogonal to the current Jacobian.
+    w: DMatrix<f64>,
+    /// chi2 score test (else the sigma-free F test).
+    chi2: bool,
+    /// Denominator degrees of freedom of the F test.
+    dof2: f64,
+    /// Observed p-value.
+    p: f64,
+    /// Observed statistic (score for chi2, F for F).
+    stat: f64,
+}
+
+const POOL_LEN: usize = 1 << 18;
+const POOL_SEED: u64 = 0x9E37_79B9_7F4A_7C15;
+static NULL_POOL: std::sync::OnceLock<Vec<f64>> = std::sync::OnceLock::new();
+
+/// `len` standard normals from a fixed seed (xoshiro256++, Marsaglia polar method).
+fn normals(seed: u64, len: usize) -> Vec<f64> {
+    let mut sm = seed;
+    let mut next_sm = || {
+        sm = sm.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = sm;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    let mut st = [next_sm(), next_sm(), next_sm(), next_sm()];
+    let mut next = || {
+        let r = st[0].wrapping_add(st[3]).rotate_left(23).wrapping_add(st[0]);
+        let t = st[1] << 17;
+        st[2] ^= st[0];
+        st[3] ^= st[1];
+        st[1] ^= st[2];
+        st[0] ^= st[3];
+        st[2] ^= t;
+        st[3] = st[3].rotate_left(45);
+        (r >> 11) as f64 * (1.0 / (1u64 << 53) as f64) * 2.0 - 1.0
+    };
+    let mut out = Vec::with_capacity(len + 1);
+    while out.len() < len {
+        let (u, v) = (next(), next());
+        let s = u * u + v * v;
+        if s >= 1.0 || s == 0.0 {
+            continue;
+        }
+        let f = (-2.0 * s.ln() / s).sqrt();
+        out.push(u * f);
+        out.push(v * f);
+    }
+    out.truncate(len);
+    out
+}
+
+/// Upper-tail quantile: the statistic at which the test's p-value equals `p`.
+fn isf(p: f64, chi2: bool, d: f64, dof2: f64) -> f64 {
+    let sf = |x: f64| if chi2 { chi2_sf(x, d) } else { f_sf(x, d, dof2) };
+    let (mut lo, mut hi) = (0.0, 1.0);
+    let mut it = 0;
+    while sf(hi) > p && it < 1100 {
+        lo = hi;
+        hi *= 2.0;
+        it += 1;
+    }
+    for _ in 0..80 {
+        let mid = 0.5 * (lo + hi);
+        if sf(mid) > p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= 1e-12 * hi {
+            break;
+        }
+    }
+    hi
+}
+
+/// Min-p adjusted p-value of the best of `fam` (observed smallest p-value `p_obs`) under the
+/// null whitened residual `(I - Q Q^T) z`, `z ~ N(0, I)`, `Q` the orthonormal range basis
+/// of the current Jacobian. Sequential Monte Carlo (chunks of 500 fixed-seed draws, at most
+/// `n_draws`, stopped once the estimate is 3 standard errors from `alpha`); the estimate
+/// `(k + 1) / (b + 1)` is capped by the Bonferroni bound `M p_obs`.
+fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: usize) -> f64 {
+    let m_fam = fam.len();
+    if m_fam == 0 || !p_obs.is_finite() {
+        return f64::NAN;
+    }
+    let bonf = (p_obs * m_fam as f64).min(1.0);
+    if m_fam == 1 || !(p_obs > 0.0) || bonf < 1e-4 || n_draws == 0 {
+        return if m_fam == 1 { p_obs } else { bonf };
+    }
+    let m = q.nrows();
+    let r = q.ncols();
+    // Stacked columns [Q | W_1 | ... | W_M], transposed.
+    let ncol = r + fam.iter().map(|f| f.w.ncols()).sum::<usize>();
+    let mut at = DMatrix::zeros(ncol, m);
+    let mut off = vec![];
+    let mut c0 = 0;
+    for j in 0..r {
+        at.row_mut(c0 + j).copy_from(&q.column(j).transpose());
+    }
+    c0 += r;
+    for f in fam {
+        off.push(c0);
+        for j in 0..f.w.ncols() {
+            at.row_mut(c0 + j).copy_from(&f.w.column(j).transpose());
+        }
+        c0 += f.w.ncols();
+    }
+    let crit: Vec<f64> = fam
+        .iter()
+        .map(|f| {
+            let d = f.w.ncols() as f64;
+            if f.p <= p_obs {
+                f.stat
+            } else {
+                isf(p_obs, f.chi2, d, f.dof2)
+            }
+        })
+        .collect();
+    let local;
+    let pool: &[f64] = if m * n_draws <= POOL_LEN {
+        NULL_POOL.get_or_init(|| normals(POOL_SEED, POOL_LEN))
+    } else {
+        local = normals(POOL_SEED ^ m as u64, m * n_draws);
+        &local
+    };
+    const CHUNK: usize = 500;
+    let (mut hits, mut done) = (0usize, 0usize);
+    while done < n_draws {
+        let bc = CHUNK.min(n_draws - done);
+        let zs = nalgebra::DMatrixView::from_slice(&pool[done * m..(done + bc) * m], m, bc);
+        let pm = &at * zs;
+        for b in 0..bc {
+            let col = pm.column(b);
+            let zz: f64 = zs.column(b).norm_squared();
+            let ssq: f64 = (0..r).map(|j| col[j] * col[j]).sum();
+            let rss = zz - ssq;
+            let hit = fam.iter().enumerate().any(|(i, f)| {
+                let d = f.w.ncols();
+                let sc: f64 = (off[i]..off[i] + d).map(|j| col[j] * col[j]).sum();
+                if f.chi2 {
+                    sc >= crit[i]
+                } else {
+                    let rem = rss - sc;
+                    rem <= 0.0 || (sc / d as f64) >= crit[i] * rem / f.dof2
+                }
+            });
+            hits += hit as usize;
+        }
+        done += bc;
+        let ph = (hits + 1) as f64 / (done + 1) as f64;
+        let se = (alpha * (1.0 - alpha) / done as f64).sqrt();
+        if (ph - alpha).abs() > 3.0 * se {
+            break;
+        }
+    }
+    ((hits + 1) as f64 / (done + 1) as f64).min(bonf)
 }
 
 fn stepwise(
@@ -887,31 +1193,44 @@ fn stepwise(
     base: Fit,
     cands: &[Effect],
     opt: &GapOptions,
+    cfg: TestCfg,
     full: bool,
 ) -> Result<Stepwise> {
     let mut active: Vec<Effect> = vec![];
     let mut step_p = vec![];
+    let mut step_p_adj = vec![];
+    let mut step_m = vec![];
+    let mut history: Vec<Fit> = vec![];
     let mut cur = base;
     let mut first = vec![];
     let mut basis0 = None;
     let mut m_test = 0usize;
     let mut stop_p = f64::NAN;
+    let mut stop_p_adj = f64::NAN;
     let e_max = opt.max_effects.min(cands.len());
     for step in 0..=e_max {
         let b = basis(&cur.jac)?;
         let ev = DVector::from_column_slice(&cur.e);
         let evs = row_evals(s, rows, &cur.p, &active)?;
         let mut best: Option<(Effect, f64)> = None;
+        let mut fam: Vec<Member> = vec![];
         for &c in cands {
             if active.contains(&c) {
                 continue;
             }
             let cols = candidate_columns(s, rows, &evs, c);
-            let sc = screen_one(&cols, &b, &ev, cur.rss, opt.sine_tol, full && step == 0);
-            if sc.status == Status::Testable
-                && best.is_none_or(|(_, pb)| sc.p_f < pb || pb.is_nan())
-            {
-                best = Some((c, sc.p_f));
+            let sc = screen_one(&cols, &b, &ev, cur.rss, cfg, full && step == 0);
+            if sc.status == Status::Testable {
+                if best.is_none_or(|(_, pb)| sc.p < pb || pb.is_nan()) {
+                    best = Some((c, sc.p));
+                }
+                fam.push(Member {
+                    w: sc.w.clone(),
+                    chi2: sc.chi2_used,
+                    dof2: (rows.len() - b.rank - sc.d) as f64,
+                    p: sc.p,
+                    stat: if sc.chi2_used { sc.score } else { sc.f },
+                });
             }
             if step == 0 {
                 if sc.status == Status::Testable {
@@ -920,30 +1239,63 @@ fn stepwise(
                 first.push((c, sc));
             }
         }
+        let m_step = fam.len();
+        // Family-wise adjusted p-value of the best candidate and the decision.
+        let (p_adj, declare) = match best {
+            None => (f64::NAN, false),
+            Some((_, pb)) => match opt.correction {
+                Correction::Bonferroni => {
+                    let m_b = (m_test.saturating_sub(step)).max(1) as f64;
+                    ((pb * m_b).min(1.0), pb < opt.alpha / m_b)
+                }
+                Correction::MinP => {
+                    let bonf = (pb * m_step.max(1) as f64).min(1.0);
+                    if full {
+                        let pa = min_p(&b.q, &fam, pb, opt.alpha, opt.n_draws);
+                        (pa, pa < opt.alpha)
+                    } else if !(pb < opt.alpha) {
+                        (f64::NAN, false)
+                    } else if bonf < opt.alpha {
+                        (bonf, true)
+                    } else {
+                        let pa = min_p(&b.q, &fam, pb, opt.alpha, opt.n_draws);
+                        (pa, pa < opt.alpha)
+                    }
+                }
+            },
+        };
         if step == 0 {
             basis0 = Some(b);
         }
         if step == e_max {
             stop_p = best.map_or(f64::NAN, |x| x.1);
+            stop_p_adj = p_adj;
             break;
         }
         let Some((bc, pb)) = best else { break };
-        let thr = opt.alpha / (m_test.saturating_sub(step)).max(1) as f64;
-        if !(pb < thr) {
+        if !declare {
             stop_p = pb;
+            stop_p_adj = p_adj;
             break;
         }
         active.push(bc);
         step_p.push(pb);
+        step_p_adj.push(p_adj);
+        step_m.push(m_step);
         let mut p0 = cur.p.clone();
         p0.extend_from_slice(&[0.0; 3]);
-        cur = fit(s, rows, &active, &p0)?;
+        let next = fit(s, rows, &active, &p0)?;
+        history.push(std::mem::replace(&mut cur, next));
     }
+    history.push(cur);
     Ok(Stepwise {
         effects: active,
         step_p,
+        step_p_adj,
+        step_m,
         stop_p,
-        fit: cur,
+        stop_p_adj,
+        history,
         first,
         basis0,
     })
@@ -968,8 +1320,8 @@ fn predict(
     (ev.r * w, q.max(0.0), ev.r)
 }
 
-/// Held-out z and residual before, then after, and the effects selected in one fold.
-type FoldOut = (f64, f64, f64, f64, Vec<Effect>);
+/// Held-out (z, residual) after 0, 1, ... selected effects, and the effects, of one fold.
+type FoldOut = (Vec<(f64, f64)>, Vec<Effect>);
 
 /// Run the full static diagnosis.
 pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
@@ -1105,7 +1457,12 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
             None => cands.push(c),
         }
     }
-    let sw = stepwise(&s, &rows, base, &cands, opt, true)?;
+    let cfg = TestCfg {
+        mode: if noise_known { opt.test } else { TestMode::F },
+        trust_level: opt.trust_level,
+        sine_tol: opt.sine_tol,
+    };
+    let sw = stepwise(&s, &rows, base, &cands, opt, cfg, true)?;
 
     // Candidate reports and BIC weights (sigma-free form).
     let nf = n as f64;
@@ -1124,6 +1481,8 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
                 f: f64::NAN,
                 p_f: f64::NAN,
                 p_chi2: f64::NAN,
+                p: f64::NAN,
+                chi2_used: false,
                 bic: f64::NAN,
                 weight: f64::NAN,
                 estimate: [f64::NAN; 3],
@@ -1147,6 +1506,8 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
                 f: sc.f,
                 p_f: sc.p_f,
                 p_chi2: sc.p_chi2,
+                p: sc.p,
+                chi2_used: sc.chi2_used,
                 bic,
                 weight: f64::NAN,
                 estimate: sc.est,
@@ -1173,8 +1534,109 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
         }
     }
 
+    // Leave-one-dwell-out held-out gap, selection redone in every fold; the held-out z of
+    // each fold is kept after 0, 1, ... selected effects so that every in-sample step can be
+    // checked against the held-out gap of "select at most k effects".
+    let k_full = sw.effects.len();
+    let loo_raw = if opt.loo && n > N_BASE + 1 {
+        use rayon::prelude::*;
+        let one_fold = |j: usize| -> Result<FoldOut> {
+            let fr: Vec<usize> = (0..n).filter(|&k| k != j).collect();
+            let bfit = fit(&s, &fr, &[], &base_p)?;
+            let swf = stepwise(&s, &fr, bfit, &cands, opt, cfg, false)?;
+            let mut zs = Vec::with_capacity(swf.history.len());
+            for (k, h) in swf.history.iter().enumerate() {
+                let bb = basis(&h.jac)?;
+                let (z, q, r) = predict(&s, &h.p, &swf.effects[..k], &bb.cov, j);
+                zs.push((z / (1.0 + q).sqrt(), r));
+            }
+            Ok((zs, swf.effects))
+        };
+        let folds: Vec<Result<FoldOut>> = (0..n).into_par_iter().map(one_fold).collect();
+        // z[k][j], r[k][j] for k = 0..=k_full.
+        let mut zk = vec![vec![f64::NAN; n]; k_full + 1];
+        let mut rk = vec![vec![f64::NAN; n]; k_full + 1];
+        let mut counts = [0usize; 6];
+        let mut failed = 0usize;
+        for (j, f) in folds.into_iter().enumerate() {
+            match f {
+                Ok((zs, effs)) if !zs.is_empty() && zs.iter().all(|x| x.0.is_finite()) => {
+                    for k in 0..=k_full {
+                        let (z, r) = zs[k.min(zs.len() - 1)];
+                        zk[k][j] = z;
+                        rk[k][j] = r;
+                    }
+                    for e in &effs {
+                        if let Some(ix) = Effect::ALL.iter().position(|x| x == e) {
+                            counts[ix] += 1;
+                        }
+                    }
+                }
+                _ => failed += 1,
+            }
+        }
+        Some((zk, rk, counts, failed))
+    } else {
+        None
+    };
+    let rms = |v: &[f64]| {
+        let ok: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+        if ok.is_empty() {
+            f64::NAN
+        } else {
+            (ok.iter().map(|x| x * x).sum::<f64>() / ok.len() as f64).sqrt()
+        }
+    };
+    let g_steps: Vec<f64> = loo_raw
+        .as_ref()
+        .map_or(vec![], |(zk, _, _, _)| zk.iter().map(|z| rms(z)).collect());
+
+    // Held-out gate: an effect that does not lower the held-out gap is not an explanation.
+    let mut k_acc = k_full;
+    let mut not_confirmed = None;
+    if opt.gate != Gate::Off && g_steps.len() == k_full + 1 {
+        for k in 1..=k_full {
+            // Adequate: the remainder is consistent with the noise model both in-sample
+            // (chi2 p >= alpha) and held out (G^2 within 2 standard deviations of 1).
+            let adequate = opt.gate == Gate::Auto && noise_known && {
+                let h = &sw.history[k];
+                let rk = basis(&h.jac)?.rank;
+                n > rk
+                    && chi2_sf(h.rss, (n - rk) as f64) >= opt.alpha
+                    && (g_steps[k].powi(2) <= 1.0 + 3.0 * (2.0 / n as f64).sqrt()
+                        || g_steps[k].powi(2)
+                            <= g_steps[k - 1].powi(2) + opt.gate_margin * (2.0 / n as f64).sqrt())
+            };
+            if !(g_steps[k] < g_steps[k - 1]) && !adequate {
+                k_acc = k - 1;
+                not_confirmed = Some((
+                    sw.effects[k - 1],
+                    sw.step_p[k - 1],
+                    g_steps[k - 1],
+                    g_steps[k],
+                ));
+                break;
+            }
+        }
+    }
+    let selected: Vec<Effect> = sw.effects[..k_acc].to_vec();
+    let step_p: Vec<f64> = sw.step_p[..k_acc].to_vec();
+    let step_p_adj: Vec<f64> = sw.step_p_adj[..k_acc].to_vec();
+    let step_m: Vec<usize> = sw.step_m[..k_acc].to_vec();
+    let loo = loo_raw.map(|(zk, rk, counts, failed)| LooReport {
+        g_before: g_steps[0],
+        g_after: g_steps[k_acc],
+        rms_before: rms(&rk[0]),
+        rms_after: rms(&rk[k_acc]),
+        z_before: zk[0].clone(),
+        z_after: zk[k_acc].clone(),
+        g_steps: g_steps.clone(),
+        fold_counts: counts,
+        n_failed: failed,
+    });
+
     // Final model: parameters, errors, residuals.
-    let fin = &sw.fit;
+    let fin = &sw.history[k_acc];
     let bf = basis(&fin.jac)?;
     let dof_after = n.saturating_sub(bf.rank);
     let s2 = if dof_after > 0 {
@@ -1185,7 +1647,7 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
     let std_after: Vec<f64> = (0..fin.p.len())
         .map(|i| (bf.cov[(i, i)] * s2).sqrt())
         .collect();
-    for (j, &eff) in sw.effects.iter().enumerate() {
+    for (j, &eff) in selected.iter().enumerate() {
         if let Some(r) = reports.iter_mut().find(|r| r.effect == eff) {
             for i in 0..3 {
                 r.estimate[i] = fin.p[N_BASE + 3 * j + i];
@@ -1203,7 +1665,7 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
 
     // Ambiguity: the best candidate against others with similar evidence and aliased columns.
     let mut ambiguous = vec![];
-    if let Some(&best) = sw.effects.first() {
+    if let Some(&best) = selected.first() {
         if let Some(rb) = reports.iter().find(|r| r.effect == best) {
             for r in &reports {
                 if r.effect == best || r.status != Status::Testable || rb.w.ncols() == 0 {
@@ -1221,74 +1683,6 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
         }
     }
 
-    // Leave-one-dwell-out held-out gap, selection redone in every fold.
-    let loo = if opt.loo && n > N_BASE + 1 {
-        use rayon::prelude::*;
-        let one_fold = |j: usize| -> Result<FoldOut> {
-            let fr: Vec<usize> = (0..n).filter(|&k| k != j).collect();
-            let bfit = fit(&s, &fr, &[], &base_p)?;
-            let bb = basis(&bfit.jac)?;
-            let (z0, q0, r0) = predict(&s, &bfit.p, &[], &bb.cov, j);
-            let swf = stepwise(&s, &fr, bfit, &cands, opt, false)?;
-            let (z1, q1, r1) = if swf.effects.is_empty() {
-                (z0, q0, r0)
-            } else {
-                let ba = basis(&swf.fit.jac)?;
-                predict(&s, &swf.fit.p, &swf.effects, &ba.cov, j)
-            };
-            Ok((
-                z0 / (1.0 + q0).sqrt(),
-                r0,
-                z1 / (1.0 + q1).sqrt(),
-                r1,
-                swf.effects,
-            ))
-        };
-        let folds: Vec<Result<FoldOut>> = (0..n).into_par_iter().map(one_fold).collect();
-        let mut zb = vec![f64::NAN; n];
-        let mut za = vec![f64::NAN; n];
-        let mut rb = vec![f64::NAN; n];
-        let mut ra = vec![f64::NAN; n];
-        let mut counts = [0usize; 6];
-        let mut failed = 0usize;
-        for (j, f) in folds.into_iter().enumerate() {
-            match f {
-                Ok((a, b, c, d, effs)) if a.is_finite() && c.is_finite() => {
-                    zb[j] = a;
-                    rb[j] = b;
-                    za[j] = c;
-                    ra[j] = d;
-                    for e in &effs {
-                        if let Some(ix) = Effect::ALL.iter().position(|x| x == e) {
-                            counts[ix] += 1;
-                        }
-                    }
-                }
-                _ => failed += 1,
-            }
-        }
-        let rms = |v: &[f64]| {
-            let ok: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-            if ok.is_empty() {
-                f64::NAN
-            } else {
-                (ok.iter().map(|x| x * x).sum::<f64>() / ok.len() as f64).sqrt()
-            }
-        };
-        Some(LooReport {
-            g_before: rms(&zb),
-            g_after: rms(&za),
-            rms_before: rms(&rb),
-            rms_after: rms(&ra),
-            z_before: zb,
-            z_after: za,
-            fold_counts: counts,
-            n_failed: failed,
-        })
-    } else {
-        None
-    };
-
     Ok(GapResult {
         n,
         base_params: base_p,
@@ -1304,9 +1698,13 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
         candidates: reports,
         bic_none,
         weight_none,
-        selected: sw.effects.clone(),
-        step_p: sw.step_p.clone(),
+        selected,
+        step_p,
+        step_p_adj,
+        step_m,
+        not_confirmed,
         stop_p: sw.stop_p,
+        stop_p_adj: sw.stop_p_adj,
         params_after: fin.p.clone(),
         std_after,
         resid_after,

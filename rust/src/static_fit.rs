@@ -20,11 +20,14 @@
 //! Jacobian in *comparable units*: scale factors and misalignments relative to the mean scale,
 //! biases in units of g.
 
+// `!(x > t)` is deliberate throughout: it is true for NaN, so bad values fail the test.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use crate::dwell::Sample;
 use crate::error::{degenerate, invalid, CoreError, Result};
 use crate::lsq::{
-    covariance_small, lstsq_small, solve_normal, svd_report, top_eigen, NlsOptions, NormalEquations,
-    Residuals,
+    covariance_normal_fixed, lstsq_rows, solve_normal, solve_normal_fixed, svd_report,
+    top_eigen_fixed, NlsOptions, NormalEquations, NormalEquationsFixed, Residuals,
 };
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use ndarray::ArrayView2;
@@ -37,6 +40,9 @@ pub const PARAM_NAMES: [&str; 9] = ["sx", "sy", "sz", "bx", "by", "bz", "m1", "m
 pub const DEGENERATE_STD: f64 = 0.1;
 /// Default predicted std (comparable units) above which a parameter counts as weakly determined.
 pub const WEAK_STD: f64 = 1e-3;
+/// Scale factors above this multiple of the data's spread scale (median distance of the
+/// dwell means from their centroid, over g) count as a runaway fit.
+pub const RUNAWAY: f64 = 100.0;
 /// Relative singular value below which the design is exactly singular.
 pub const SINGULAR_RTOL: f64 = 1e-9;
 
@@ -251,6 +257,111 @@ impl StaticFit {
     pub fn observability(&self, set: &FitSettings) -> Result<Observability> {
         obs_report(&self.jc, self.obs_scale, set)
     }
+
+    /// The weakly determined parameters as text: predicted std (output units, covariance
+    /// scaled by chi2/dof when the noise is estimated) and relative std of every parameter
+    /// above `weak_std`. Python's `.3g` / `.2g` formatting, so the Python layer can use it
+    /// verbatim.
+    pub fn weak_text(&self, weak_std: f64) -> String {
+        let np = self.params.len();
+        let rel = &self.summary.std_comparable;
+        let sc = if self.noise_known { 1.0 } else { self.chi2_dof };
+        let std: Vec<f64> = (0..np)
+            .map(|i| {
+                let v = self.covariance[(i, i)] * sc;
+                if v >= 0.0 {
+                    v.sqrt()
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        if !std.iter().all(|v| v.is_finite()) {
+            return "no redundancy (as many dwells as parameters): the noise and the uncertainty \
+                    cannot be estimated"
+                .into();
+        }
+        let parts: Vec<String> = (0..np)
+            .filter(|&i| !(rel[i] <= weak_std))
+            .map(|i| {
+                let unit = if (3..6).contains(&i) { "g" } else { "of scale" };
+                format!(
+                    "{} +-{} ({} % {unit})",
+                    PARAM_NAMES[i],
+                    fmt_g(std[i], 3),
+                    fmt_g(100.0 * rel[i], 2)
+                )
+            })
+            .collect();
+        let mut txt = format!("predicted std {} (1 sigma)", parts.join(", "));
+        if self.model != Model::Diag && !rel[6..].iter().all(|r| *r <= weak_std) {
+            txt.push_str("; model='diag' (bias + scale) needs fewer attitudes");
+        }
+        txt
+    }
+}
+
+/// Python's `format(x, f".{prec}g")` (prec >= 1).
+pub fn fmt_g(x: f64, prec: usize) -> String {
+    if x.is_nan() {
+        return "nan".into();
+    }
+    if x.is_infinite() {
+        return if x > 0.0 { "inf".into() } else { "-inf".into() };
+    }
+    if x == 0.0 {
+        return if x.is_sign_negative() {
+            "-0".into()
+        } else {
+            "0".into()
+        };
+    }
+    let p = prec.max(1);
+    // Round once to p significant digits; lay the digits out in fixed or exponent form.
+    let e = format!("{:.*e}", p - 1, x.abs());
+    let (mant, exp) = e.split_once('e').unwrap_or((e.as_str(), "0"));
+    let exp: i32 = exp.parse().unwrap_or(0);
+    let digits: String = mant.chars().filter(|c| *c != '.').collect();
+    let digits = digits.trim_end_matches('0');
+    let digits = if digits.is_empty() { "0" } else { digits };
+    let mut out = String::with_capacity(p + 8);
+    if x < 0.0 {
+        out.push('-');
+    }
+    if -4 <= exp && exp < p as i32 {
+        if exp < 0 {
+            out.push_str("0.");
+            for _ in 0..(-exp - 1) {
+                out.push('0');
+            }
+            out.push_str(digits);
+        } else {
+            let int_len = exp as usize + 1;
+            if digits.len() <= int_len {
+                out.push_str(digits);
+                for _ in digits.len()..int_len {
+                    out.push('0');
+                }
+            } else {
+                out.push_str(&digits[..int_len]);
+                out.push('.');
+                out.push_str(&digits[int_len..]);
+            }
+        }
+    } else {
+        out.push_str(&digits[..1]);
+        if digits.len() > 1 {
+            out.push('.');
+            out.push_str(&digits[1..]);
+        }
+        out.push('e');
+        out.push(if exp < 0 { '-' } else { '+' });
+        if exp.abs() < 10 {
+            out.push('0');
+        }
+        out.push_str(&exp.abs().to_string());
+    }
+    out
 }
 
 // ------------------------------------------------------------------------------------------
@@ -270,7 +381,7 @@ impl Frame {
         }
         q
     }
-    fn from_frame(self, q: &[f64]) -> Vec<f64> {
+    fn unframe(self, q: &[f64]) -> Vec<f64> {
         let mut p: Vec<f64> = q.iter().map(|v| v * self.s).collect();
         for i in 0..3 {
             p[3 + i] = q[3 + i] * self.s + self.c[i];
@@ -350,30 +461,32 @@ fn not_ellipsoid(detail: &str) -> CoreError {
 
 /// Quadric regression `z^2 = x . beta` (9 columns, or 6 for the diagonal model).
 fn quadric_beta(pts: &[[f64; 3]], diag: bool) -> Result<Vec<f64>> {
-    let n = pts.len();
-    let ncol = if diag { 6 } else { 9 };
-    let mut a = Vec::with_capacity(n * ncol);
-    let mut y = Vec::with_capacity(n);
-    for p in pts {
-        let (x, yv, z) = (p[0], p[1], p[2]);
-        if diag {
-            a.extend_from_slice(&[x * x, yv * yv, 2.0 * x, 2.0 * yv, 2.0 * z, 1.0]);
-        } else {
-            a.extend_from_slice(&[
-                x * x,
-                yv * yv,
-                2.0 * x * yv,
-                2.0 * x * z,
-                2.0 * yv * z,
-                2.0 * x,
-                2.0 * yv,
-                2.0 * z,
-                1.0,
-            ]);
-        }
-        y.push(z * z);
+    let y: Vec<f64> = pts.iter().map(|p| p[2] * p[2]).collect();
+    if diag {
+        let rows: Vec<[f64; 6]> = pts
+            .iter()
+            .map(|&[x, yv, z]| [x * x, yv * yv, 2.0 * x, 2.0 * yv, 2.0 * z, 1.0])
+            .collect();
+        Ok(lstsq_rows(&rows, &y)?.to_vec())
+    } else {
+        let rows: Vec<[f64; 9]> = pts
+            .iter()
+            .map(|&[x, yv, z]| {
+                [
+                    x * x,
+                    yv * yv,
+                    2.0 * x * yv,
+                    2.0 * x * z,
+                    2.0 * yv * z,
+                    2.0 * x,
+                    2.0 * yv,
+                    2.0 * z,
+                    1.0,
+                ]
+            })
+            .collect();
+        Ok(lstsq_rows(&rows, &y)?.to_vec())
     }
-    lstsq_small(&a, n, ncol, &y)
 }
 
 /// Exact recovery (SPEC 1 steps 1-4) in the frame of `pts`; returns frame parameters.
@@ -389,8 +502,7 @@ fn quadric_fit(pts: &[[f64; 3]], g: f64, model: Model) -> Result<Vec<f64>> {
     } else {
         (
             Matrix3::new(
-                -beta[0], -beta[2], -beta[3], -beta[2], -beta[1], -beta[4], -beta[3], -beta[4],
-                1.0,
+                -beta[0], -beta[2], -beta[3], -beta[2], -beta[1], -beta[4], -beta[3], -beta[4], 1.0,
             ),
             Vector3::new(beta[5], beta[6], beta[7]),
             beta[8],
@@ -449,7 +561,9 @@ fn paper_fit(pts: &[[f64; 3]], g: f64, model: Model) -> Result<Vec<f64>> {
     let beta = quadric_beta(pts, diag)?;
     let (b1, b2) = (beta[0], beta[1]);
     if !(b1 < 0.0 && b2 < 0.0) {
-        return Err(not_ellipsoid("negative squared scale in the paper's back-substitution"));
+        return Err(not_ellipsoid(
+            "negative squared scale in the paper's back-substitution",
+        ));
     }
     let (t11, t22, t33) = ((-b1).sqrt(), (-b2).sqrt(), 1.0);
     let (k21, k31, k32, lin, c0) = if diag {
@@ -485,7 +599,9 @@ fn paper_fit(pts: &[[f64; 3]], g: f64, model: Model) -> Result<Vec<f64>> {
         - 2.0 * bt[1] * bt[2] * k32;
     let q = g * g / (ct + c0);
     if !(q > 0.0) || !q.is_finite() {
-        return Err(not_ellipsoid("the paper's back-substitution gives no real scale"));
+        return Err(not_ellipsoid(
+            "the paper's back-substitution gives no real scale",
+        ));
     }
     let r = q.sqrt();
     let (k11, k22, k33) = (r * t11, r * t22, r * t33);
@@ -511,6 +627,18 @@ pub struct NormProblem<'a> {
     pub inv_sigma: &'a [f64],
     /// Sensor model.
     pub model: Model,
+    /// Largest admissible `|K_ii|` during the search (guards the runaway to infinite scale).
+    pub kmax: f64,
+}
+
+impl NormProblem<'_> {
+    fn in_range(&self, p: &[f64]) -> Result<()> {
+        if p[..3].iter().all(|v| v.abs() <= self.kmax) {
+            Ok(())
+        } else {
+            invalid("scale factors out of range")
+        }
+    }
 }
 
 #[inline]
@@ -591,6 +719,7 @@ impl NormalEquations for NormProblem<'_> {
         self.pts.len()
     }
     fn cost(&self, p: &[f64]) -> Result<f64> {
+        self.in_range(p)?;
         let t = inv_k(self.model, p)?;
         let mut c = 0.0;
         for (k, am) in self.pts.iter().enumerate() {
@@ -604,6 +733,7 @@ impl NormalEquations for NormProblem<'_> {
         }
     }
     fn normal(&self, p: &[f64], jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) -> Result<f64> {
+        self.in_range(p)?;
         let t = inv_k(self.model, p)?;
         let np = self.model.n_params();
         let mut h = [[0.0f64; 9]; 9];
@@ -636,6 +766,74 @@ impl NormalEquations for NormProblem<'_> {
             }
         }
         Ok(c)
+    }
+}
+
+impl<const N: usize> NormalEquationsFixed<N> for NormProblem<'_> {
+    fn n_residuals(&self) -> usize {
+        self.pts.len()
+    }
+    fn cost(&self, p: &[f64; N]) -> Result<f64> {
+        NormalEquations::cost(self, p)
+    }
+    fn normal(&self, p: &[f64; N], jtj: &mut [[f64; N]; N], jtr: &mut [f64; N]) -> Result<f64> {
+        self.in_range(p)?;
+        let t = inv_k(self.model, p)?;
+        let mut h = [[0.0f64; N]; N];
+        let mut gr = [0.0f64; N];
+        let mut c = 0.0;
+        let mut row = [0.0f64; 9];
+        for (k, am) in self.pts.iter().enumerate() {
+            let a = calibrated(&t, p, am);
+            let na = a.norm();
+            if !(na > 0.0) || !na.is_finite() {
+                return invalid("a calibrated dwell has zero or non-finite norm");
+            }
+            let is = self.inv_sigma[k];
+            let w = t.transpose() * a / na;
+            let r = (na - self.g) * is;
+            c += r * r;
+            jac_row(self.model, &w, &a, is, &mut row);
+            for i in 0..N {
+                gr[i] += row[i] * r;
+                for j in i..N {
+                    h[i][j] += row[i] * row[j];
+                }
+            }
+        }
+        *jtr = gr;
+        for i in 0..N {
+            for j in i..N {
+                jtj[i][j] = h[i][j];
+                jtj[j][i] = h[i][j];
+            }
+        }
+        Ok(c)
+    }
+}
+
+/// LM / GN on the norm problem: the fixed-size solver for 6 and 9 parameters.
+fn solve_norm(
+    prob: &NormProblem<'_>,
+    p: &[f64],
+    opt: &NlsOptions,
+    lambda0: f64,
+) -> Result<(Vec<f64>, usize, bool)> {
+    fn run<const N: usize>(
+        prob: &NormProblem<'_>,
+        p: &[f64],
+        opt: &NlsOptions,
+        lambda0: f64,
+    ) -> Result<(Vec<f64>, usize, bool)> {
+        let mut p0 = [0.0f64; N];
+        p0.copy_from_slice(p);
+        let r = solve_normal_fixed::<N, _>(prob, &p0, opt, lambda0)?;
+        Ok((r.params.to_vec(), r.iterations, r.converged))
+    }
+    match p.len() {
+        6 => run::<6>(prob, p, opt, lambda0),
+        9 => run::<9>(prob, p, opt, lambda0),
+        _ => solve_normal(prob, p, opt, lambda0).map(|r| (r.params, r.iterations, r.converged)),
     }
 }
 
@@ -689,37 +887,72 @@ pub fn describe_combination(v: &[f64]) -> String {
         if n == 0 {
             s.push_str(&format!("{}{coef}{name}", if c < 0.0 { "-" } else { "" }));
         } else {
-            s.push_str(&format!(" {} {coef}{name}", if c < 0.0 { "-" } else { "+" }));
+            s.push_str(&format!(
+                " {} {coef}{name}",
+                if c < 0.0 { "-" } else { "+" }
+            ));
         }
     }
     s
 }
 
-/// Whitened Jacobian in comparable units: bias columns times g (biases in units of g).
-fn comparable(jw: &DMatrix<f64>, g: f64) -> DMatrix<f64> {
-    let mut jc = jw.clone();
-    for j in 3..6.min(jc.ncols()) {
-        for i in 0..jc.nrows() {
-            jc[(i, j)] *= g;
+/// Final evaluation: whitened residuals `rw`, the whitened Jacobian in comparable units
+/// `jc` (bias columns times g: biases in units of g) and its normal matrix, in one pass.
+#[allow(clippy::needless_range_loop)]
+fn final_eval<const N: usize>(
+    prob: &NormProblem<'_>,
+    p: &[f64],
+    rw: &mut [f64],
+    jc: &mut DMatrix<f64>,
+) -> Result<[[f64; N]; N]> {
+    let t = inv_k(prob.model, p)?;
+    let mut h = [[0.0f64; N]; N];
+    let mut row = [0.0f64; 9];
+    for (k, am) in prob.pts.iter().enumerate() {
+        let a = calibrated(&t, p, am);
+        let na = a.norm();
+        if !(na > 0.0) || !na.is_finite() {
+            return invalid("a calibrated dwell has zero or non-finite norm");
+        }
+        let is = prob.inv_sigma[k];
+        let w = t.transpose() * a / na;
+        rw[k] = (na - prob.g) * is;
+        jac_row(prob.model, &w, &a, is, &mut row);
+        for v in &mut row[3..6] {
+            *v *= prob.g;
+        }
+        for i in 0..N {
+            jc[(k, i)] = row[i];
+            for j in i..N {
+                h[i][j] += row[i] * row[j];
+            }
         }
     }
-    jc
+    for i in 0..N {
+        for j in 0..i {
+            h[i][j] = h[j][i];
+        }
+    }
+    Ok(h)
 }
 
-/// Quick observability summary from the QR covariance of `jc` (comparable units); returns
-/// the summary and the unscaled comparable covariance.
-fn obs_summary(jc: &DMatrix<f64>, scale: f64, set: &FitSettings) -> (ObsSummary, Option<DMatrix<f64>>) {
-    let np = jc.ncols();
+/// Quick observability summary from the covariance of the comparable normal matrix `h`;
+/// returns the summary and the unscaled comparable covariance.
+fn obs_summary<const N: usize>(
+    h: &[[f64; N]; N],
+    scale: f64,
+    set: &FitSettings,
+) -> (ObsSummary, Option<DMatrix<f64>>) {
     let sc = if scale.is_finite() { scale } else { 0.0 };
-    match covariance_small(jc, SINGULAR_RTOL) {
+    match covariance_normal_fixed(h, SINGULAR_RTOL) {
         Some(c) => {
-            let std: Vec<f64> = (0..np).map(|i| (c[(i, i)] * sc).sqrt()).collect();
+            let std: Vec<f64> = (0..N).map(|i| (c[i][i] * sc).sqrt()).collect();
             // lambda_max(C) <= trace(C): only when the cheap bound is inconclusive, iterate.
-            let tr: f64 = (0..np).map(|i| c[(i, i)]).sum();
+            let tr: f64 = (0..N).map(|i| c[i][i]).sum();
             let lam = if (tr * sc).sqrt() <= set.degenerate_std {
                 tr
             } else {
-                top_eigen(&c, 500).0
+                top_eigen_fixed(&c, 500).0
             };
             let wstd = (lam * sc).sqrt();
             let sum = ObsSummary {
@@ -728,17 +961,58 @@ fn obs_summary(jc: &DMatrix<f64>, scale: f64, set: &FitSettings) -> (ObsSummary,
                 std_comparable: std,
                 weakest_std: wstd,
             };
-            (sum, Some(c))
+            (sum, Some(DMatrix::from_fn(N, N, |i, j| c[i][j])))
         }
         None => (
             ObsSummary {
-                std_comparable: vec![f64::INFINITY; np],
+                std_comparable: vec![f64::INFINITY; N],
                 weakest_std: f64::INFINITY,
                 degenerate: true,
                 weak: true,
             },
             None,
         ),
+    }
+}
+
+/// Final residuals, cost and observability summary (dispatch on the parameter count).
+fn finish(
+    prob: &NormProblem<'_>,
+    p: &[f64],
+    noise_known: bool,
+    set: &FitSettings,
+    rw: &mut [f64],
+    jc: &mut DMatrix<f64>,
+) -> Result<(f64, f64, ObsSummary, Option<DMatrix<f64>>)> {
+    fn run<const N: usize>(
+        prob: &NormProblem<'_>,
+        p: &[f64],
+        noise_known: bool,
+        set: &FitSettings,
+        rw: &mut [f64],
+        jc: &mut DMatrix<f64>,
+    ) -> Result<(f64, f64, ObsSummary, Option<DMatrix<f64>>)> {
+        let h = final_eval::<N>(prob, p, rw, jc)?;
+        let cost: f64 = rw.iter().map(|v| v * v).sum();
+        let n = rw.len();
+        let chi2_dof = if n > N {
+            cost / (n - N) as f64
+        } else {
+            f64::NAN
+        };
+        // With the noise estimated, a (near) perfect fit would predict zero uncertainty and
+        // hide a singular design: floor the noise at 1e-7 g for the observability judgement.
+        let scale = if noise_known {
+            1.0
+        } else {
+            chi2_dof.max((1e-7 * prob.g).powi(2))
+        };
+        let (summary, cov) = obs_summary::<N>(&h, scale, set);
+        Ok((cost, scale, summary, cov))
+    }
+    match p.len() {
+        6 => run::<6>(prob, p, noise_known, set, rw, jc),
+        _ => run::<9>(prob, p, noise_known, set, rw, jc),
     }
 }
 
@@ -751,7 +1025,11 @@ pub fn obs_report(jc: &DMatrix<f64>, scale: f64, set: &FitSettings) -> Result<Ob
     let exact = !(smin > SINGULAR_RTOL * smax);
     let sc = if scale.is_finite() { scale } else { 0.0 };
     let weakest: Vec<f64> = (0..np).map(|i| svd.v[(i, np - 1)]).collect();
-    let weakest_std = if exact { f64::INFINITY } else { sc.sqrt() / smin };
+    let weakest_std = if exact {
+        f64::INFINITY
+    } else {
+        sc.sqrt() / smin
+    };
     let std_c: Vec<f64> = match svd.covariance().filter(|_| !exact) {
         Some(c) => (0..np).map(|i| (c[(i, i)] * sc).sqrt()).collect(),
         None => vec![f64::INFINITY; np],
@@ -769,7 +1047,6 @@ pub fn obs_report(jc: &DMatrix<f64>, scale: f64, set: &FitSettings) -> Result<Ob
 }
 
 fn degenerate_message(obs: &Observability, model: Model, n: usize, sum: &ObsSummary) -> String {
-    let note = "";
     let how = if obs.weakest_std.is_infinite() || sum.weakest_std.is_infinite() {
         "exactly singular design".to_string()
     } else {
@@ -779,16 +1056,13 @@ fn degenerate_message(obs: &Observability, model: Model, n: usize, sum: &ObsSumm
             obs.weakest_std, obs.condition
         )
     };
-    let mut s = format!(
+    let s = format!(
         "the {n} dwells cannot determine {} of model {:?} ({how}). Add poses with different \
          gravity directions (tilts in both axes at once, larger angles, ideally the whole \
          sphere), or fit model=\"diag\"",
         obs.combination,
         model.name()
     );
-    if !note.is_empty() {
-        s.push_str(&format!(" [{note}]"));
-    }
     s
 }
 
@@ -883,7 +1157,7 @@ pub fn fit_static(
                 ) / g,
             };
             match paper_fit(&fs.points(means), g, model) {
-                Ok(p) => fs.from_frame(&p),
+                Ok(p) => fs.unframe(&p),
                 Err(e @ CoreError::InvalidInput(_)) => return Err(e),
                 Err(e) => {
                     start_err = Some(e);
@@ -892,7 +1166,7 @@ pub fn fit_static(
             }
         }
         (None, _) => match quadric_fit(&f0.points(means), g, model) {
-            Ok(p) => f0.from_frame(&p),
+            Ok(p) => f0.unframe(&p),
             Err(e) => {
                 start_err = Some(e);
                 fallback_start(means, g, model, f0)?
@@ -909,7 +1183,11 @@ pub fn fit_static(
     let var_f: Option<Vec<[f64; 3]>> = match noise {
         Noise::Known(v) => {
             let s2 = f1.s * f1.s;
-            Some(v.iter().map(|r| [r[0] / s2, r[1] / s2, r[2] / s2]).collect())
+            Some(
+                v.iter()
+                    .map(|r| [r[0] / s2, r[1] / s2, r[2] / s2])
+                    .collect(),
+            )
         }
         Noise::Estimated => None,
     };
@@ -933,13 +1211,16 @@ pub fn fit_static(
     let lambda0 = if set.start.is_some() { 1e-3 } else { 1e-8 };
     let mut iterations = 0;
     let mut converged = true;
+    // Runaway guard: the norm cost tends to zero as K -> infinity (every dwell mapped to one
+    // vector of norm g). Scale factors are bounded at RUNAWAY x the data's spread scale.
+    let kmax = RUNAWAY * 10.0 * f0.s / f1.s;
     if iterate {
         let opt = NlsOptions {
             max_iter: set.max_iter,
             gauss_newton: set.method == Method::GaussNewton && start_err.is_none(),
             ftol: 1e-10,
             xtol: 1e-10,
-            gtol: 1e-10,
+            gtol: 1e-9,
         };
         for pass in 0..3 {
             let inv: Vec<f64> = sigma.iter().map(|s| 1.0 / s).collect();
@@ -948,11 +1229,15 @@ pub fn fit_static(
                 g,
                 inv_sigma: &inv,
                 model,
+                kmax,
             };
-            let rep = solve_normal(&prob, &p, &opt, lambda0)?;
-            iterations += rep.iterations;
-            converged = rep.converged;
-            p = rep.params;
+            let (pr, its, conv) = match solve_norm(&prob, &p, &opt, lambda0) {
+                Ok(r) => r,
+                Err(e) => return Err(start_err.unwrap_or(e)),
+            };
+            iterations += its;
+            converged = conv;
+            p = pr;
             if var_f.is_none() || !converged || pass == 2 {
                 break;
             }
@@ -969,6 +1254,18 @@ pub fn fit_static(
         }
     }
 
+    if iterate && p[..3].iter().any(|v| v.abs() * f1.s > RUNAWAY * f0.s) {
+        if let Some(e) = start_err {
+            return Err(e);
+        }
+        return Err(CoreError::NotConverged(format!(
+            "the fit ran away towards infinite scale factors (the norm cost tends to zero when \
+             every dwell is mapped to one vector): the {n} dwells span too small a part of the \
+             sphere for their noise to have a finite best fit near the start. Use the default \
+             start (exact quadric solution), larger tilts or more poses, or model=\"diag\""
+        )));
+    }
+
     // 4. Residuals, covariance, observability at the final parameters.
     let inv: Vec<f64> = sigma.iter().map(|s| 1.0 / s).collect();
     let prob = NormProblem {
@@ -976,26 +1273,17 @@ pub fn fit_static(
         g,
         inv_sigma: &inv,
         model,
+        kmax: f64::INFINITY,
     };
     let mut rw = vec![0.0; n];
-    let mut jw = DMatrix::<f64>::zeros(n, np);
-    prob.eval(&p, &mut rw, &mut jw)?;
-    let cost: f64 = rw.iter().map(|v| v * v).sum();
+    let mut jc = DMatrix::<f64>::zeros(n, np);
+    let noise_known = var_f.is_some();
+    let (cost, scale, summary, cov_c) = finish(&prob, &p, noise_known, set, &mut rw, &mut jc)?;
     let dof = n - np;
     let chi2_dof = if dof > 0 { cost / dof as f64 } else { f64::NAN };
-    let noise_known = var_f.is_some();
-    // With the noise estimated, a (near) perfect fit would predict zero uncertainty and hide
-    // a singular design: floor the noise at 1e-7 g for the observability judgement.
-    let scale = if noise_known {
-        1.0
-    } else {
-        chi2_dof.max((1e-7 * g).powi(2))
-    };
     let residuals: Vec<f64> = rw.iter().zip(&sigma).map(|(r, s)| r * s).collect();
     let s2 = f1.s * f1.s;
 
-    let jc = comparable(&jw, g);
-    let (summary, cov_c) = obs_summary(&jc, scale, set);
     if summary.degenerate && (set.raise_degenerate || start_err.is_some()) {
         let o = obs_report(&jc, scale, set)?;
         return degenerate(degenerate_message(&o, model, n, &summary));
@@ -1006,7 +1294,8 @@ pub fn fit_static(
     };
     for i in 0..np {
         for j in 0..np {
-            let f = if (3..6).contains(&i) { g } else { 1.0 } * if (3..6).contains(&j) { g } else { 1.0 };
+            let f = if (3..6).contains(&i) { g } else { 1.0 }
+                * if (3..6).contains(&j) { g } else { 1.0 };
             cov_frame[(i, j)] *= f;
         }
     }
@@ -1014,7 +1303,7 @@ pub fn fit_static(
         // The design is determined, so the linear solution failed because of the data.
         return Err(e);
     }
-    let params = f1.from_frame(&p);
+    let params = f1.unframe(&p);
     if params.iter().any(|v| !v.is_finite()) {
         return Err(CoreError::NotConverged(
             "the fit produced non-finite parameters".into(),
@@ -1043,7 +1332,7 @@ pub fn fit_static(
 /// Bias + scale start used to diagnose designs where the 9-term quadric fails.
 fn fallback_start(means: &[[f64; 3]], g: f64, model: Model, f0: Frame) -> Result<Vec<f64>> {
     let d = match quadric_fit(&f0.points(means), g, Model::Diag) {
-        Ok(p) => f0.from_frame(&p),
+        Ok(p) => f0.unframe(&p),
         Err(_) => {
             vec![f0.s, f0.s, f0.s, f0.c[0], f0.c[1], f0.c[2]]
         }
@@ -1215,7 +1504,11 @@ mod tests {
             .map(|_| {
                 let tx = lcg(&mut s) * tilt_deg.to_radians();
                 let ty = lcg(&mut s) * tilt_deg.to_radians();
-                let a = Vector3::new(-G * ty.sin(), G * tx.sin() * ty.cos(), G * tx.cos() * ty.cos());
+                let a = Vector3::new(
+                    -G * ty.sin(),
+                    G * tx.sin() * ty.cos(),
+                    G * tx.cos() * ty.cos(),
+                );
                 let am = k * a + Vector3::new(p[3], p[4], p[5]);
                 [am[0], am[1], am[2]]
             })
@@ -1223,22 +1516,41 @@ mod tests {
     }
 
     fn maxerr(a: &[f64], b: &[f64]) -> f64 {
-        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max)
     }
 
     #[test]
     fn quadric_and_lm_recover_truth_exactly() {
         let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 1);
         for method in [Method::Quadric, Method::Lm, Method::GaussNewton] {
-            let f = fit_static(&m, G, &Noise::Estimated, &FitSettings::new(Model::Lower, method)).unwrap();
-            assert!(maxerr(&f.params, &TRUTH) < 1e-9, "{method:?} {:?}", f.params);
+            let f = fit_static(
+                &m,
+                G,
+                &Noise::Estimated,
+                &FitSettings::new(Model::Lower, method),
+            )
+            .unwrap();
+            assert!(
+                maxerr(&f.params, &TRUTH) < 1e-9,
+                "{method:?} {:?}",
+                f.params
+            );
         }
     }
 
     #[test]
     fn paper_method_is_biased_by_the_dropped_terms() {
         let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 2);
-        let f = fit_static(&m, G, &Noise::Estimated, &FitSettings::new(Model::Lower, Method::LinearPaper)).unwrap();
+        let f = fit_static(
+            &m,
+            G,
+            &Noise::Estimated,
+            &FitSettings::new(Model::Lower, Method::LinearPaper),
+        )
+        .unwrap();
         let e = maxerr(&f.params, &TRUTH);
         assert!(e > 1e-5 && e < 1e-2, "paper error {e}");
     }
@@ -1247,20 +1559,45 @@ mod tests {
     fn upper_and_diag_models_round_trip() {
         let up = [1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, -0.02, 0.03];
         let m = simulate(Model::Upper, &up, 15, 90.0, 3);
-        let f = fit_static(&m, G, &Noise::Estimated, &FitSettings::new(Model::Upper, Method::Lm)).unwrap();
+        let f = fit_static(
+            &m,
+            G,
+            &Noise::Estimated,
+            &FitSettings::new(Model::Upper, Method::Lm),
+        )
+        .unwrap();
         assert!(maxerr(&f.params, &up) < 1e-9);
         let m = simulate(Model::Diag, &up[..6], 8, 90.0, 4);
-        let f = fit_static(&m, G, &Noise::Estimated, &FitSettings::new(Model::Diag, Method::Lm)).unwrap();
+        let f = fit_static(
+            &m,
+            G,
+            &Noise::Estimated,
+            &FitSettings::new(Model::Diag, Method::Lm),
+        )
+        .unwrap();
         assert!(maxerr(&f.params, &up[..6]) < 1e-9);
     }
 
     #[test]
     fn raw_counts_scale_is_handled() {
-        let p = [414.5, 412.0, 414.6, 33124.0, 33275.0, 32364.0, 1.2, -3.0, 8.0];
+        let p = [
+            414.5, 412.0, 414.6, 33124.0, 33275.0, 32364.0, 1.2, -3.0, 8.0,
+        ];
         let m = simulate(Model::Lower, &p, 30, 90.0, 5);
-        let f = fit_static(&m, G, &Noise::Estimated, &FitSettings::new(Model::Lower, Method::Lm)).unwrap();
+        let f = fit_static(
+            &m,
+            G,
+            &Noise::Estimated,
+            &FitSettings::new(Model::Lower, Method::Lm),
+        )
+        .unwrap();
         for (a, b) in f.params.iter().zip(&p) {
-            assert!((a - b).abs() < 1e-7 * b.abs().max(1.0), "{a} vs {b}: {:?} {}", f.params, f.note);
+            assert!(
+                (a - b).abs() < 1e-7 * b.abs().max(1.0),
+                "{a} vs {b}: {:?} {}",
+                f.params,
+                f.note
+            );
         }
     }
 
@@ -1270,16 +1607,31 @@ mod tests {
         let k = Model::Lower.k_matrix(&TRUTH);
         let mut m = Vec::new();
         for i in 0..10 {
-            for (tx, ty) in [(10.0f64, -30.0 + 6.0 * i as f64), (-30.0 + 6.0 * i as f64, 10.0)] {
+            for (tx, ty) in [
+                (10.0f64, -30.0 + 6.0 * i as f64),
+                (-30.0 + 6.0 * i as f64, 10.0),
+            ] {
                 let (tx, ty) = (tx.to_radians(), ty.to_radians());
-                let a = Vector3::new(-G * ty.sin(), G * tx.sin() * ty.cos(), G * tx.cos() * ty.cos());
+                let a = Vector3::new(
+                    -G * ty.sin(),
+                    G * tx.sin() * ty.cos(),
+                    G * tx.cos() * ty.cos(),
+                );
                 let am = k * a + Vector3::new(TRUTH[3], TRUTH[4], TRUTH[5]);
                 m.push([am[0], am[1], am[2]]);
             }
         }
-        let e = fit_static(&m, G, &Noise::Estimated, &FitSettings::new(Model::Lower, Method::Lm)).unwrap_err();
+        let e = fit_static(
+            &m,
+            G,
+            &Noise::Estimated,
+            &FitSettings::new(Model::Lower, Method::Lm),
+        )
+        .unwrap_err();
         match e {
-            CoreError::Degenerate(msg) => assert!(msg.contains("m1") || msg.contains("m2"), "{msg}"),
+            CoreError::Degenerate(msg) => {
+                assert!(msg.contains("m1") || msg.contains("m2"), "{msg}")
+            }
             other => panic!("{other:?}"),
         }
     }
@@ -1288,11 +1640,20 @@ mod tests {
     fn bad_input_is_reported() {
         let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 6);
         let set = FitSettings::new(Model::Lower, Method::Lm);
-        assert!(matches!(fit_static(&m[..5], G, &Noise::Estimated, &set), Err(CoreError::Degenerate(_))));
-        assert!(matches!(fit_static(&m, -1.0, &Noise::Estimated, &set), Err(CoreError::InvalidInput(_))));
+        assert!(matches!(
+            fit_static(&m[..5], G, &Noise::Estimated, &set),
+            Err(CoreError::Degenerate(_))
+        ));
+        assert!(matches!(
+            fit_static(&m, -1.0, &Noise::Estimated, &set),
+            Err(CoreError::InvalidInput(_))
+        ));
         let mut bad = m.clone();
         bad[3][1] = f64::NAN;
-        assert!(matches!(fit_static(&bad, G, &Noise::Estimated, &set), Err(CoreError::InvalidInput(_))));
+        assert!(matches!(
+            fit_static(&bad, G, &Noise::Estimated, &set),
+            Err(CoreError::InvalidInput(_))
+        ));
         // Points on a hyperboloid-like cloud: not an ellipsoid.
         let mut s = 9;
         let h: Vec<[f64; 3]> = (0..20)
@@ -1314,7 +1675,30 @@ mod tests {
         }
         let set = FitSettings::new(Model::Lower, Method::Lm);
         let rows = fit_batch(&all, 4, 20, &[G], Some(1e-3), &set).unwrap();
-        assert!(rows.iter().all(|r| r.status == 0 && maxerr(&r.params, &TRUTH) < 1e-9));
+        assert!(rows
+            .iter()
+            .all(|r| r.status == 0 && maxerr(&r.params, &TRUTH) < 1e-9));
+    }
+
+    #[test]
+    fn fmt_g_matches_python() {
+        // format(x, f".{p}g") in CPython, including exact ties (round half to even).
+        for (x, p, want) in [
+            (0.000123456, 3, "0.000123"),
+            (1.5e-5, 2, "1.5e-05"),
+            (123456.0, 3, "1.23e+05"),
+            (99.95, 3, "100"),
+            (0.0001, 2, "0.0001"),
+            (1e20, 3, "1e+20"),
+            (999.5, 3, "1e+03"),
+            (0.125, 2, "0.12"),
+            (2.5, 1, "2"),
+            (0.0185, 2, "0.018"),
+            (-0.00796, 3, "-0.00796"),
+            (1.0, 3, "1"),
+        ] {
+            assert_eq!(fmt_g(x, p), want, "{x} .{p}g");
+        }
     }
 
     #[test]
@@ -1331,116 +1715,5 @@ mod tests {
         ];
         let out = apply_model(&arr.view(), &kk, &[p[3], p[4], p[5]]).unwrap();
         assert!(maxerr(&out, &[1.0, -2.0, 9.0]) < 1e-12);
-    }
-}
-#[cfg(test)]
-mod timing {
-    use super::*;
-    #[test]
-    #[ignore]
-    fn time_parts() {
-        let p = [1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03];
-        let k = Model::Lower.k_matrix(&p);
-        let mut s: u64 = 7;
-        let mut rnd = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-        };
-        let m: Vec<[f64; 3]> = (0..20)
-            .map(|_| {
-                let (tx, ty) = (rnd() * 0.52, rnd() * 0.52);
-                let a = Vector3::new(-9.8 * ty.sin(), 9.8 * tx.sin() * ty.cos(), 9.8 * tx.cos() * ty.cos());
-                let am = k * a + Vector3::new(0.3, -0.6, 0.3);
-                [am[0] + 1e-3 * rnd(), am[1] + 1e-3 * rnd(), am[2] + 1e-3 * rnd()]
-            })
-            .collect();
-        let f0 = centroid_frame(&m, 9.8).unwrap();
-        let pts = f0.points(&m);
-        let n = 20000;
-        if std::env::var("FAER_SEQ").is_ok() { faer::set_global_parallelism(faer::Par::Seq); }
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(quadric_beta(&pts, false).unwrap());
-        }
-        println!("quadric_beta {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(quadric_fit(&pts, 9.8, Model::Lower).unwrap());
-        }
-        println!("quadric_fit {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let set = FitSettings::new(Model::Lower, Method::Lm);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(centroid_frame(&m, 9.8).unwrap());
-        }
-        println!("centroid {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let inv = vec![1.0; 20];
-        let prob = NormProblem { pts: &pts, g: 9.8, inv_sigma: &inv, model: Model::Lower };
-        let p0 = [1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03];
-        let mut jw = DMatrix::<f64>::zeros(20, 9);
-        let mut r = vec![0.0; 20];
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            prob.eval(&p0, &mut r, &mut jw).unwrap();
-            std::hint::black_box(&jw);
-        }
-        println!("eval {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let mut jtj = DMatrix::<f64>::zeros(9, 9);
-        let mut jtr = DVector::<f64>::zeros(9);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(prob.normal(&p0, &mut jtj, &mut jtr).unwrap());
-        }
-        println!("normal {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(prob.cost(&p0).unwrap());
-        }
-        println!("cost {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let jc = comparable(&jw, 9.8);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(obs_summary(&jc, 1.0, &set));
-        }
-        println!("obs_summary {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        for (nm, method) in [("quadric", Method::Quadric), ("lm", Method::Lm)] {
-            let set = FitSettings::new(Model::Lower, method);
-            let t = std::time::Instant::now();
-            let mut it = 0;
-            for _ in 0..n {
-                it = std::hint::black_box(fit_static(&m, 9.8, &Noise::Estimated, &set).unwrap()).iterations;
-            }
-            println!("{nm} {:.2} us ({it} it)", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        }
-        let mut jw = DMatrix::<f64>::zeros(20, 9);
-        for i in 0..20 { for j in 0..9 { jw[(i, j)] = rnd(); } }
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(svd_report(&jw).unwrap());
-        }
-        println!("svd {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let r = jw.rows(0, 9).into_owned();
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(nalgebra::SVD::new(r.clone(), false, true));
-        }
-        println!("nalgebra svd 9x9 {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(nalgebra::SVD::new(jw.clone(), false, true));
-        }
-        println!("nalgebra svd 20x9 {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            let q = jw.clone().qr();
-            std::hint::black_box(q.r());
-        }
-        println!("nalgebra qr 20x9 {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
-        let r9 = nalgebra::SMatrix::<f64, 9, 9>::from_fn(|i, j| r[(i, j)]);
-        let t = std::time::Instant::now();
-        for _ in 0..n {
-            std::hint::black_box(nalgebra::SVD::new(r9, false, true));
-        }
-        println!("nalgebra svd 9x9 static {:.2} us", t.elapsed().as_secs_f64() / n as f64 * 1e6);
     }
 }

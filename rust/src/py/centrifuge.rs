@@ -2,7 +2,7 @@
 
 use numpy::{IntoPyArray, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyList};
 
 use super::CalibrationError;
 use crate::centrifuge::{fit, CentrifugeData, FitOptions, LeverArm, Method, ModelOptions};
@@ -13,6 +13,10 @@ fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
             "{what} must have shape (k, 3); got {:?}",
             a.shape()
         )));
+    }
+    if let Ok(flat) = a.as_slice() {
+        // C-contiguous: no per-row views.
+        return Ok(flat.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect());
     }
     Ok(a.as_array()
         .rows()
@@ -95,8 +99,15 @@ pub fn centrifuge_fit_raw<'py>(
         py.detach(|| fit(&data, &opt))?
     };
     let p = res.params.len();
+    // Everything the Python layer needs, in final form (it only takes views).
+    let std: Vec<f64> = (0..p)
+        .map(|j| res.covariance[j * p + j].max(0.0).sqrt())
+        .collect();
+    // Keys named after the `CentrifugeFit` fields they fill (the Python layer copies the dict
+    // into the instance and adds views), plus `extra`.
     let d = PyDict::new(py);
     d.set_item("params", res.params.into_pyarray(py))?;
+    d.set_item("std", std.into_pyarray(py))?;
     d.set_item("names", res.names)?;
     let cov = ndarray::Array2::from_shape_vec((p, p), res.covariance)
         .map_err(|e| CalibrationError::new_err(e.to_string()))?;
@@ -111,15 +122,20 @@ pub fn centrifuge_fit_raw<'py>(
             .into_pyarray(py),
     )?;
     d.set_item("residual_rms", res.residual_rms)?;
-    d.set_item("screen_sigma", res.screen_sigma)?;
-    d.set_item("draws", res.draws)?;
-    d.set_item("singular_values", res.singular_values.into_pyarray(py))?;
-    d.set_item("condition", res.condition)?;
+    let obs = PyDict::new(py);
+    obs.set_item("singular_values", res.singular_values.into_pyarray(py))?;
+    obs.set_item("condition_number", res.condition)?;
+    obs.set_item("unobservable", PyList::empty(py))?;
+    d.set_item("observability", obs)?;
     d.set_item("iterations", res.iterations)?;
     d.set_item("converged", res.converged)?;
+    d.set_item("draws", res.draws)?;
     d.set_item(
         "taylor_coefficients",
         res.taylor_coefficients.map(|c| c.into_pyarray(py)),
     )?;
+    let extra = PyDict::new(py);
+    extra.set_item("screen_sigma", res.screen_sigma)?;
+    d.set_item("extra", extra)?;
     Ok(d)
 }

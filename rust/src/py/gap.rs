@@ -6,7 +6,7 @@ use pyo3::types::{PyDict, PyList};
 
 use super::convert::opt_slice;
 use super::CalibrationError;
-use crate::gap::{self, Effect, GapInput, GapOptions, N_BASE};
+use crate::gap::{self, Correction, Effect, GapInput, GapOptions, Gate, TestMode, N_BASE};
 
 fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
     let v = a.as_array();
@@ -33,7 +33,9 @@ fn effects_from(names: &[String]) -> PyResult<Vec<Effect>> {
 /// Static gap diagnosis on dwell means (raw units); returns a dict of arrays and lists.
 #[pyfunction]
 #[pyo3(signature = (mean, sigma_mean, t, temperature, g, effects, alpha=0.05, max_effects=3,
-                    loo=true, start=None, sine_tol=0.05, ambiguity_cos=0.9, min_temp_range=0.05))]
+                    loo=true, start=None, sine_tol=0.05, ambiguity_cos=0.9, min_temp_range=0.05,
+                    test="auto", trust_level=0.1, gate="auto", correction="minp",
+                    n_draws=4000, gate_margin=0.0))]
 #[allow(clippy::too_many_arguments)]
 pub fn gap_diagnose_raw<'py>(
     py: Python<'py>,
@@ -50,6 +52,12 @@ pub fn gap_diagnose_raw<'py>(
     sine_tol: f64,
     ambiguity_cos: f64,
     min_temp_range: f64,
+    test: &str,
+    trust_level: f64,
+    gate: &str,
+    correction: &str,
+    n_draws: usize,
+    gate_margin: f64,
 ) -> PyResult<Bound<'py, PyDict>> {
     let inp = GapInput {
         mean: rows3(&mean, "mean")?,
@@ -79,6 +87,12 @@ pub fn gap_diagnose_raw<'py>(
         ambiguity_cos,
         min_temp_range,
         start,
+        test: TestMode::from_name(test)?,
+        trust_level,
+        gate: Gate::from_name(gate)?,
+        correction: Correction::from_name(correction)?,
+        n_draws,
+        gate_margin,
     };
     let r = py.detach(|| gap::diagnose(&inp, &opt))?;
     let d = PyDict::new(py);
@@ -105,6 +119,8 @@ pub fn gap_diagnose_raw<'py>(
         cd.set_item("f", c.f)?;
         cd.set_item("p_f", c.p_f)?;
         cd.set_item("p_chi2", c.p_chi2)?;
+        cd.set_item("p", c.p)?;
+        cd.set_item("chi2_used", c.chi2_used)?;
         cd.set_item("bic", c.bic)?;
         cd.set_item("weight", c.weight)?;
         cd.set_item("estimate", c.estimate.to_vec())?;
@@ -119,7 +135,14 @@ pub fn gap_diagnose_raw<'py>(
         r.selected.iter().map(|e| e.name()).collect::<Vec<_>>(),
     )?;
     d.set_item("step_p", r.step_p)?;
+    d.set_item("step_p_adj", r.step_p_adj)?;
+    d.set_item("step_m", r.step_m)?;
     d.set_item("stop_p", r.stop_p)?;
+    d.set_item("stop_p_adj", r.stop_p_adj)?;
+    match r.not_confirmed {
+        None => d.set_item("not_confirmed", py.None())?,
+        Some((e, p, a, b)) => d.set_item("not_confirmed", (e.name(), p, a, b))?,
+    }
     d.set_item("params_after", r.params_after.into_pyarray(py))?;
     d.set_item("std_after", r.std_after.into_pyarray(py))?;
     d.set_item("resid_after", r.resid_after.into_pyarray(py))?;
@@ -144,6 +167,7 @@ pub fn gap_diagnose_raw<'py>(
             ld.set_item("rms_after", l.rms_after)?;
             ld.set_item("z_before", l.z_before.into_pyarray(py))?;
             ld.set_item("z_after", l.z_after.into_pyarray(py))?;
+            ld.set_item("g_steps", l.g_steps)?;
             let counts = PyDict::new(py);
             for (e, c) in Effect::ALL.iter().zip(l.fold_counts) {
                 counts.set_item(e.name(), c)?;
@@ -179,4 +203,16 @@ pub fn gap_model_residuals_raw<'py>(
         &eff,
     )?;
     Ok(r.into_pyarray(py))
+}
+
+/// Survival function of chi2 with `k` degrees of freedom (NaN for k <= 0).
+#[pyfunction]
+pub fn gap_chi2_sf(x: f64, k: f64) -> f64 {
+    gap::chi2_sf(x, k)
+}
+
+/// Survival function of F(d1, d2) (NaN for non-positive degrees of freedom).
+#[pyfunction]
+pub fn gap_f_sf(f: f64, d1: f64, d2: f64) -> f64 {
+    gap::f_sf(f, d1, d2)
 }

@@ -26,7 +26,9 @@ fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
 
 fn mat_to_py<'py>(py: Python<'py>, m: &nalgebra::DMatrix<f64>) -> Bound<'py, PyArray2<f64>> {
     let (r, c) = (m.nrows(), m.ncols());
-    let v: Vec<f64> = (0..r).flat_map(|i| (0..c).map(move |j| m[(i, j)])).collect();
+    let v: Vec<f64> = (0..r)
+        .flat_map(|i| (0..c).map(move |j| m[(i, j)]))
+        .collect();
     ndarray::Array2::from_shape_vec((r, c), v)
         .expect("shape matches length")
         .into_pyarray(py)
@@ -128,12 +130,19 @@ impl StaticFitRaw {
     fn weakest_std(&self) -> f64 {
         self.inner.summary.weakest_std
     }
+    /// Text naming the weakly determined parameters (predicted std above `weak_std`).
+    fn weak_text(&self, weak_std: f64) -> String {
+        self.inner.weak_text(weak_std)
+    }
     /// Observability report as a dict (singular values, condition, predicted std in
     /// comparable units, weakest combination), from the SVD of the whitened Jacobian.
     fn observability<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let o = self.inner.observability(&self.settings)?;
         let d = PyDict::new(py);
-        d.set_item("singular_values", o.singular_values.clone().into_pyarray(py))?;
+        d.set_item(
+            "singular_values",
+            o.singular_values.clone().into_pyarray(py),
+        )?;
         d.set_item("condition", o.condition)?;
         d.set_item("std_comparable", o.std_comparable.clone().into_pyarray(py))?;
         d.set_item("weakest", o.weakest.clone().into_pyarray(py))?;
@@ -167,7 +176,15 @@ pub fn static_fit_raw(
         Some(v) => Noise::Known(rows3(&v, "var")?),
         None => Noise::Estimated,
     };
-    let s = settings(model, method, start, max_iter, raise_degenerate, degenerate_std, weak_std)?;
+    let s = settings(
+        model,
+        method,
+        start,
+        max_iter,
+        raise_degenerate,
+        degenerate_std,
+        weak_std,
+    )?;
     let inner = fit_static(&m, g, &noise, &s)?;
     Ok(StaticFitRaw { inner, settings: s })
 }
