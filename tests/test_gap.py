@@ -99,14 +99,18 @@ def test_bad_inputs() -> None:
     assert math.isnan(r.p_value) and "not testable" in r.noise_model
 
 
-def test_mis_scaled_noise_flags_gap_not_an_effect() -> None:
+@pytest.mark.parametrize("preset, most", [("conservative", 6), ("targeted", 9)])
+def test_mis_scaled_noise_flags_gap_not_an_effect(preset: str, most: int) -> None:
+    # Noise twice what the DwellSet reports, no effect: the gap is visible; an effect is
+    # (wrongly) attributed in a minority of sessions, more often with the targeted preset
+    # (the trade-off documented in docs/gap-validation.md).
     alarms = 0
     for seed in range(30):
         s = gap_session((), rng=100 + seed, noise_scale=2.0)
-        r = diagnose(s.dwells, g=s.g, loo=False)
+        r = diagnose(s.dwells, g=s.g, loo=False, preset=preset)
         alarms += r.best != "none"
         assert r.chi2_per_dof > 1.5 or seed % 10  # the gap itself is visible
-    assert alarms <= 6
+    assert alarms <= most
 
 
 def test_allan_deviation_of_white_noise_and_random_walk() -> None:
@@ -264,3 +268,107 @@ def test_screening_estimate_has_the_sign_of_the_truth() -> None:
     est = next(e for e in r.effects if e["effect"] == "drift")
     assert r.best == "none"
     assert np.all(np.abs(est["estimate"] - s.effects["drift"]) < 5 * est["std"] + 50.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Min-p (Westfall-Young) family-wise correction.
+
+
+def test_min_p_is_between_raw_and_bonferroni_and_reproducible() -> None:
+    for seed, amp in ((11, 2.5), (12, 3.0), (13, 20.0)):
+        s = gap_session(("drift",), rng=4_000_000 + seed, amplitudes=[amp])
+        r = diagnose(s.dwells, g=s.g, loo=False)
+        r2 = diagnose(s.dwells, g=s.g, loo=False)
+        assert r.raw["step_p_adj"] == r2.raw["step_p_adj"]  # fixed seed: deterministic
+        assert r.raw["stop_p_adj"] == r2.raw["stop_p_adj"] or math.isnan(r.raw["stop_p_adj"])
+        for p, pa, m in zip(r.raw["step_p"], r.raw["step_p_adj"], r.raw["step_m"], strict=True):
+            assert p <= pa + 1e-15 and pa <= min(1.0, m * p) + 1e-15
+            assert pa < 0.05
+        # Bonferroni never declares more than min-p on the same data.
+        rb = diagnose(s.dwells, g=s.g, loo=False, correction="bonferroni")
+        assert len(rb.selected) <= len(r.selected)
+    with pytest.raises(CalibrationError, match="correction"):
+        diagnose(s.dwells, g=s.g, correction="holm")
+
+
+def test_min_p_null_calibration() -> None:
+    # On null sessions the first-stage adjusted p-value is (close to) uniform: about 20 % of
+    # sessions below 0.2 (Bonferroni's M p would give far fewer), and alarms near alpha.
+    below = 0
+    alarms = {"minp": 0, "bonferroni": 0}
+    for seed in range(100):
+        s = gap_session((), rng=5_000_000 + seed, n_dwells=24)
+        for corr in alarms:
+            r = diagnose(s.dwells, g=s.g, loo=False, correction=corr)
+            alarms[corr] += r.best != "none"
+            if corr == "minp":
+                pa = r.raw["step_p_adj"][0] if r.selected else r.raw["stop_p_adj"]
+                below += pa < 0.2
+    # binomial(100, 0.2): 8..33 holds with p > 0.999.
+    assert 8 <= below <= 33
+    assert alarms["minp"] <= 12
+    assert alarms["bonferroni"] <= alarms["minp"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Review fixes: units, labels, blind-spot text, small leave-one-out, raw-path t/temperature.
+
+
+def test_report_units_and_labels_of_the_systems() -> None:
+    s = _cf(lever_arm=np.diag([4e-5, -3e-5, 2e-5]))
+    r = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, g=s.g,
+                                     spin_axis=s.spin_axis, sigma=np.full((60, 3), 2e-6))
+    assert r.units == "g" and r.rms_before > r.rms_after > 0
+    with pytest.raises(AttributeError, match="static sessions only"):
+        _ = r.rms_before_mps2
+    txt = r.summary()
+    assert "by speed" in txt and "by time third" not in txt and "row(s)" in txt
+    reason = next(b["reason"] for b in r.blind_spots if b["effect"] == "common_scale_vs_radius")
+    assert "all 3 speeds" in reason and "single speed" not in reason
+    assert "resid" in r.dwells and "resid_mps2" not in r.dwells
+    az, y, t, _ = _grad(1)
+    r = accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5)
+    txt = r.summary()
+    assert "by channel" in txt and "by pose axis" not in txt and "residual" in txt
+    assert r.units == "E" and math.isfinite(r.rms_before)
+    # Static: unit-neutral names and the m/s^2 aliases agree.
+    s2 = gap_session(("drift",), rng=3, amplitudes=[20.0])
+    r = diagnose(s2.dwells, g=s2.g)
+    assert r.rms_before_mps2 == r.rms_before and r.units == "m/s^2"
+    assert np.array_equal(r.dwells["resid"], r.dwells["resid_mps2"])
+    assert "rms_before" in r.to_dict()
+
+
+def test_gradiometer_abba_too_small_for_held_out_gate() -> None:
+    az = np.array([0.0, 45.0, 45.0, 0.0])
+    t = np.array([30.0, 110.0, 190.0, 270.0])
+    c, s = np.cos(np.radians(2 * az)), np.sin(np.radians(2 * az))
+    y = np.column_stack([5 + 30 * c - 10 * s, 2 - 30 * s - 10 * c])
+    y += np.outer((t - t.mean()) / 3600, [200.0, -150.0])
+    y += np.random.default_rng(1).normal(0, 0.5, y.shape)
+    r = accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5, effects=["drift", "azimuth_error"])
+    assert r.best == "drift"
+    assert not any(e["status"] == "not_confirmed" for e in r.effects)
+    assert any("too small to judge" in x for x in r.statements)
+
+
+def test_raw_stream_with_per_sample_time_and_temperature() -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=200.0, n_dwells=24, dwell_s=6.0, move_s=2.0, max_tilt_deg=80.0,
+                      sigma=1e-3, rng=3)
+    temp = 20 + 8 * np.sin(np.pi * (s.t - s.t[0]) / (s.t[-1] - s.t[0]))  # heat, then cool
+    x = s.samples + 0.004 * (temp - temp.mean())[:, None] * np.array([1.0, -0.7, 0.5])
+    r = diagnose(x, fs=s.fs, g=s.g, t=s.t, temperature=temp)
+    assert r.best == "temperature_bias"
+    est = next(e for e in r.effects if e["effect"] == "temperature_bias")["estimate"]
+    # 0.004 (m/s^2)/K per axis = 1e6 * 0.004 / c_i ug/K with c_i = s_i g (truth scales).
+    truth = 1e6 * 0.004 * np.array([1.0, -0.7, 0.5]) / (s.truth[:3] * s.g)
+    assert np.all(np.abs(est - truth) < 0.1 * np.abs(truth) + 30.0)
+    r = diagnose(x, fs=s.fs, g=s.g, t=s.t)
+    assert r.best != "temperature_bias"
+    assert "temperature_bias" in {b["effect"] for b in r.blind_spots}
+    with pytest.raises(CalibrationError, match="one value per sample|temperature"):
+        diagnose(x, fs=s.fs, g=s.g, temperature=temp[:-5])
+    with pytest.raises(CalibrationError, match="DwellSet"):
+        diagnose(accelcal.detect_dwells(x, s.fs), g=s.g, temperature=temp)

@@ -4,7 +4,8 @@ The same method as the static :func:`accelcal.diagnose` (GAP-DESIGN.md): fit the
 model, screen every candidate effect of the system's dictionary by principal angles
 (identifiability: blind spots are reported, never "no effect") and a score test on its
 projected Jacobian columns (chi2 when the noise model is known and the remainder is consistent
-with it, sigma-free F otherwise), select forward-stepwise with a Bonferroni/Holm threshold and a
+with it, sigma-free F otherwise), select forward-stepwise with a Bonferroni/Holm threshold (the
+static diagnosis uses the exact min-p correction; these NumPy engines keep Bonferroni/Holm) and a
 nonlinear re-fit after each step, and measure the leave-one-row-out held-out gap before and
 after with the selection redone inside every fold; a selected effect that does not lower the
 held-out gap is reported as "not_confirmed" (held-out gate, as in the static diagnosis).
@@ -347,7 +348,20 @@ def _run(pb: _Problem, theta0: _F64, cands: list[str], unavailable: dict[str, st
         g_steps = [float(np.sqrt(np.nanmean(z**2))) for z in z_steps]
     k_acc = k_full
     not_confirmed = None
-    if gate != "off" and len(g_steps) == k_full + 1:
+    gate_note = None
+    if gate != "off" and len(g_steps) == k_full + 1 and k_full:
+        # Residual degrees of freedom a fold has left after the selected model: with fewer
+        # than 2 the held-out prediction of a left-out group cannot judge the effect.
+        n_max = int(np.bincount(pb.group).max())
+        rank_k = _orth(sw["history"][k_full][2]).shape[1]
+        fold_dof = n - n_max - rank_k
+        if fold_dof < 2:
+            gate_note = (
+                f"leave-one-out with {len(groups)} groups is too small to judge "
+                f"{', '.join(sw['effects'])} held out (a fold keeps {n - n_max} residuals for "
+                f"{rank_k} parameters): the held-out gate was skipped, the in-sample test "
+                "decides; record more dwells to confirm it held out")
+    if gate != "off" and len(g_steps) == k_full + 1 and gate_note is None:
         for k in range(1, k_full + 1):
             adequate = False
             if gate == "auto" and pb.noise_known:
@@ -361,6 +375,7 @@ def _run(pb: _Problem, theta0: _F64, cands: list[str], unavailable: dict[str, st
                                  g_steps[k])
                 break
     return {"sw": sw, "k_acc": k_acc, "not_confirmed": not_confirmed, "g_steps": g_steps,
+            "gate_note": gate_note,
             "z_steps": z_steps, "r_steps": r_steps, "fold_counts": fold_counts,
             "theta_b": theta_b, "e_b": e_b, "J_b": J_b, "rss_b": rss_b, "dof": dof,
             "rank0": rank0, "unavailable": unavailable, "cands": cands}
@@ -480,6 +495,8 @@ def _report(pb: _Problem, res: dict[str, Any], *, system: str, units: str,
 
     if not gs:
         statements.append("held-out gap not computed (too few rows)")
+    if res["gate_note"]:
+        statements.append(res["gate_note"])
     if pb.noise_known and p_chi2 < alpha:
         if not selected:
             statements.append("the gap is significant but no dictionary effect explains it: an "
@@ -502,8 +519,8 @@ def _report(pb: _Problem, res: dict[str, Any], *, system: str, units: str,
         shrink=g_a / g_b if gs and g_b > 0 else float("nan"),
         held_out_gap_after=g_a,
         excess_remaining=(g_a - 1) / (g_b - 1) if gs and g_b > 1 else float("nan"),
-        rms_before_mps2=rms(res["r_steps"][0]) * scale_out,
-        rms_after_mps2=rms(res["r_steps"][k_acc]) * scale_out,
+        rms_before=rms(res["r_steps"][0]) * scale_out,
+        rms_after=rms(res["r_steps"][k_acc]) * scale_out,
         remaining={"chi2": float(rss_f), "dof": float(dof_after), "p": p_after},
         statements=statements, params=res["theta_b"][: pb.n_base].copy(),
         params_after=theta_f.copy(), std_after=std_all, alpha=float(alpha), system=system,
@@ -677,10 +694,26 @@ def diagnose_centrifuge(
         unit_of={c: CENTRIFUGE_EFFECTS[c][1] for c in CENTRIFUGE_EFFECTS},
         fixes=_CENTRIFUGE_FIX, alpha=alpha, g=float(g), noise_model=noise_model,
         rows={"omega": om}, where_extra=_where_by(speeds, "omega", "segments"),
-        blind_fixed=[{"effect": "common_scale_vs_radius", "reason": "a radius error and a "
-                      "common scale error of A differ only through the 1 g term; with a "
-                      "single speed they are aliased"}],
+        blind_fixed=[{"effect": "common_scale_vs_radius", "reason": _radius_reason(om, radius,
+                                                                                    g)}],
         names=names, statements=[])
+
+
+def _radius_reason(om: _F64, radius: float, g: float) -> str:
+    """Why a radius error and a common scale error are (nearly) aliased in this design."""
+    sp = np.unique(np.round(np.abs(om), 6))
+    sp = sp[sp > 0]
+    a = sp**2 * radius / g
+    if sp.size <= 1:
+        return ("a radius error and a common scale error of A = omega^2 R / g are aliased: "
+                "with a single speed they change every reading by the same factor; add speeds "
+                "and an absolute radius measurement (or a 1 g reference)")
+    return (f"a radius error changes A = omega^2 R / g by the same factor at all {sp.size} "
+            f"speeds of this design (A = {', '.join(f'{x:.3g}' for x in a)} g), like a common "
+            "scale error of the radial readings: more speeds do not separate them, only the "
+            "1 g term differs and the per-axis scale factors absorb it (see the radius_error "
+            "candidate's principal-angle sines); measure the radius independently or add a "
+            "1 g reference")
 
 
 def _names(effects: str | Sequence[str], known: list[str]) -> list[str]:

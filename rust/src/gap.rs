@@ -22,7 +22,9 @@
 //! screens every candidate by principal angles (identifiability) and a score test on the
 //! projected columns ([`TestMode`]: chi2 when the noise model is known and the remainder after
 //! the candidate is consistent with it, the sigma-free F form otherwise), selects
-//! forward-stepwise with a nonlinear re-fit after each step, and measures the
+//! forward-stepwise with a family-wise correction over the candidates of each stage
+//! ([`Correction`]: exact min-p by fixed-seed Monte Carlo, or Bonferroni) and a nonlinear
+//! re-fit after each step, and measures the
 //! leave-one-dwell-out held-out gap after 0, 1, ... effects with the selection redone inside
 //! each fold. The held-out [`Gate`] then drops a selected effect that does not lower it.
 
@@ -216,7 +218,9 @@ impl Correction {
         match s {
             "minp" => Ok(Correction::MinP),
             "bonferroni" => Ok(Correction::Bonferroni),
-            _ => invalid(format!("correction must be 'minp' or 'bonferroni'; got {s:?}")),
+            _ => invalid(format!(
+                "correction must be 'minp' or 'bonferroni'; got {s:?}"
+            )),
         }
     }
 }
@@ -345,7 +349,8 @@ pub struct LooReport {
     /// Held-out gap with at most k effects selected in each fold, k = 0, 1, ... (the number
     /// selected on all dwells, before the gate).
     pub g_steps: Vec<f64>,
-    /// How many folds selected each effect (order of [`Effect::ALL`]).
+    /// How many folds selected each effect (order of [`Effect::ALL`]; a fold selects at most
+    /// as many effects as the full data did).
     pub fold_counts: [usize; 6],
     /// Folds whose fit failed.
     pub n_failed: usize,
@@ -416,6 +421,9 @@ pub struct GapResult {
     pub ambiguous: Vec<(Effect, Effect, f64)>,
     /// Held-out gap (when requested and possible).
     pub loo: Option<LooReport>,
+    /// The held-out gate was skipped: a leave-one-out fold keeps fewer than 2 residual
+    /// degrees of freedom after the selected model.
+    pub gate_skipped: bool,
 }
 
 // ------------------------------------------------------------------------------------------
@@ -1055,7 +1063,10 @@ fn normals(seed: u64, len: usize) -> Vec<f64> {
     };
     let mut st = [next_sm(), next_sm(), next_sm(), next_sm()];
     let mut next = || {
-        let r = st[0].wrapping_add(st[3]).rotate_left(23).wrapping_add(st[0]);
+        let r = st[0]
+            .wrapping_add(st[3])
+            .rotate_left(23)
+            .wrapping_add(st[0]);
         let t = st[1] << 17;
         st[2] ^= st[0];
         st[3] ^= st[1];
@@ -1082,7 +1093,13 @@ fn normals(seed: u64, len: usize) -> Vec<f64> {
 
 /// Upper-tail quantile: the statistic at which the test's p-value equals `p`.
 fn isf(p: f64, chi2: bool, d: f64, dof2: f64) -> f64 {
-    let sf = |x: f64| if chi2 { chi2_sf(x, d) } else { f_sf(x, d, dof2) };
+    let sf = |x: f64| {
+        if chi2 {
+            chi2_sf(x, d)
+        } else {
+            f_sf(x, d, dof2)
+        }
+    };
     let (mut lo, mut hi) = (0.0, 1.0);
     let mut it = 0;
     while sf(hi) > p && it < 1100 {
@@ -1097,7 +1114,7 @@ fn isf(p: f64, chi2: bool, d: f64, dof2: f64) -> f64 {
         } else {
             hi = mid;
         }
-        if hi - lo <= 1e-12 * hi {
+        if hi - lo <= 1e-9 * hi {
             break;
         }
     }
@@ -1106,8 +1123,8 @@ fn isf(p: f64, chi2: bool, d: f64, dof2: f64) -> f64 {
 
 /// Min-p adjusted p-value of the best of `fam` (observed smallest p-value `p_obs`) under the
 /// null whitened residual `(I - Q Q^T) z`, `z ~ N(0, I)`, `Q` the orthonormal range basis
-/// of the current Jacobian. Sequential Monte Carlo (chunks of 500 fixed-seed draws, at most
-/// `n_draws`, stopped once the estimate is 3 standard errors from `alpha`); the estimate
+/// of the current Jacobian. Sequential Monte Carlo (250 fixed-seed draws, then chunks of 500,
+/// at most `n_draws`, stopped once the estimate is 3 standard errors from `alpha`); the estimate
 /// `(k + 1) / (b + 1)` is capped by the Bonferroni bound `M p_obs`.
 fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: usize) -> f64 {
     let m_fam = fam.len();
@@ -1136,15 +1153,25 @@ fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: usiz
         }
         c0 += f.w.ncols();
     }
+    // Critical values at p_obs (one inversion per distinct test).
+    let mut cache: Vec<(bool, usize, f64, f64)> = vec![];
     let crit: Vec<f64> = fam
         .iter()
         .map(|f| {
-            let d = f.w.ncols() as f64;
+            let d = f.w.ncols();
             if f.p <= p_obs {
-                f.stat
-            } else {
-                isf(p_obs, f.chi2, d, f.dof2)
+                return f.stat;
             }
+            let key_dof2 = if f.chi2 { 0.0 } else { f.dof2 };
+            if let Some(c) = cache
+                .iter()
+                .find(|c| c.0 == f.chi2 && c.1 == d && c.2 == key_dof2)
+            {
+                return c.3;
+            }
+            let c = isf(p_obs, f.chi2, d as f64, f.dof2);
+            cache.push((f.chi2, d, key_dof2, c));
+            c
         })
         .collect();
     let local;
@@ -1154,10 +1181,9 @@ fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: usiz
         local = normals(POOL_SEED ^ m as u64, m * n_draws);
         &local
     };
-    const CHUNK: usize = 500;
     let (mut hits, mut done) = (0usize, 0usize);
     while done < n_draws {
-        let bc = CHUNK.min(n_draws - done);
+        let bc = (if done == 0 { 250 } else { 500 }).min(n_draws - done);
         let zs = nalgebra::DMatrixView::from_slice(&pool[done * m..(done + bc) * m], m, bc);
         let pm = &at * zs;
         for b in 0..bc {
@@ -1209,6 +1235,10 @@ fn stepwise(
     let mut stop_p_adj = f64::NAN;
     let e_max = opt.max_effects.min(cands.len());
     for step in 0..=e_max {
+        if !full && step == e_max {
+            // Inside a fold nothing more can be selected: no need to screen.
+            break;
+        }
         let b = basis(&cur.jac)?;
         let ev = DVector::from_column_slice(&cur.e);
         let evs = row_evals(s, rows, &cur.p, &active)?;
@@ -1538,12 +1568,17 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
     // each fold is kept after 0, 1, ... selected effects so that every in-sample step can be
     // checked against the held-out gap of "select at most k effects".
     let k_full = sw.effects.len();
+    // Folds select at most k_full effects (only g_steps[0..=k_full] is used).
+    let fold_opt = GapOptions {
+        max_effects: k_full,
+        ..opt.clone()
+    };
     let loo_raw = if opt.loo && n > N_BASE + 1 {
         use rayon::prelude::*;
         let one_fold = |j: usize| -> Result<FoldOut> {
             let fr: Vec<usize> = (0..n).filter(|&k| k != j).collect();
             let bfit = fit(&s, &fr, &[], &base_p)?;
-            let swf = stepwise(&s, &fr, bfit, &cands, opt, cfg, false)?;
+            let swf = stepwise(&s, &fr, bfit, &cands, &fold_opt, cfg, false)?;
             let mut zs = Vec::with_capacity(swf.history.len());
             for (k, h) in swf.history.iter().enumerate() {
                 let bb = basis(&h.jac)?;
@@ -1594,7 +1629,13 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
     // Held-out gate: an effect that does not lower the held-out gap is not an explanation.
     let mut k_acc = k_full;
     let mut not_confirmed = None;
-    if opt.gate != Gate::Off && g_steps.len() == k_full + 1 {
+    // A fold must keep at least 2 residual degrees of freedom after the selected model for
+    // its held-out prediction to judge the effect; otherwise the gate is skipped.
+    let gate_skipped = opt.gate != Gate::Off
+        && k_full > 0
+        && g_steps.len() == k_full + 1
+        && (n - 1).saturating_sub(basis(&sw.history[k_full].jac)?.rank) < 2;
+    if opt.gate != Gate::Off && g_steps.len() == k_full + 1 && !gate_skipped {
         for k in 1..=k_full {
             // Adequate: the remainder is consistent with the noise model both in-sample
             // (chi2 p >= alpha) and held out (G^2 within 2 standard deviations of 1).
@@ -1714,6 +1755,7 @@ pub fn diagnose(inp: &GapInput, opt: &GapOptions) -> Result<GapResult> {
         p_after,
         ambiguous,
         loo,
+        gate_skipped,
     })
 }
 
@@ -1874,6 +1916,41 @@ mod tests {
                 d.estimate
             );
         }
+    }
+
+    #[test]
+    fn min_p_matches_closed_forms() {
+        // n = 40, Q = first 5 unit vectors; members are further unit vectors (orthogonal to Q).
+        let n = 40;
+        let q = DMatrix::from_fn(n, 5, |a, b| if a == b { 1.0 } else { 0.0 });
+        let unit = |k: usize| DMatrix::from_fn(n, 1, |a, _| if a == k { 1.0 } else { 0.0 });
+        let p_obs: f64 = 0.02;
+        let crit = isf(p_obs, true, 1.0, 1.0);
+        assert!((chi2_sf(crit, 1.0) - p_obs).abs() < 1e-9);
+        let mk = |w: DMatrix<f64>, p: f64| Member {
+            w,
+            chi2: true,
+            dof2: 30.0,
+            p,
+            stat: isf(p, true, 1.0, 1.0),
+        };
+        // Two identical members: min-p = the single-test p-value (no multiplicity).
+        let same = [mk(unit(7), p_obs), mk(unit(7), 0.3)];
+        let pa = min_p(&q, &same, p_obs, 0.05, 4000);
+        assert!((pa - p_obs).abs() < 0.008, "{pa}");
+        // Four independent members: 1 - (1 - p)^4 = 0.0776 (Bonferroni 0.08).
+        let ind = [
+            mk(unit(7), p_obs),
+            mk(unit(8), 0.5),
+            mk(unit(9), 0.5),
+            mk(unit(10), 0.5),
+        ];
+        let pa = min_p(&q, &ind, p_obs, 0.05, 4000);
+        let want = 1.0 - (1.0 - p_obs).powi(4);
+        assert!((pa - want).abs() < 0.015, "{pa} vs {want}");
+        assert!(pa <= 4.0 * p_obs + 1e-12);
+        // Deterministic.
+        assert_eq!(pa, min_p(&q, &ind, p_obs, 0.05, 4000));
     }
 
     #[test]

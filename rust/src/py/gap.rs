@@ -139,6 +139,7 @@ pub fn gap_diagnose_raw<'py>(
     d.set_item("step_m", r.step_m)?;
     d.set_item("stop_p", r.stop_p)?;
     d.set_item("stop_p_adj", r.stop_p_adj)?;
+    d.set_item("gate_skipped", r.gate_skipped)?;
     match r.not_confirmed {
         None => d.set_item("not_confirmed", py.None())?,
         Some((e, p, a, b)) => d.set_item("not_confirmed", (e.name(), p, a, b))?,
