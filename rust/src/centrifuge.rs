@@ -449,7 +449,8 @@ struct Soa {
     m: usize,
     /// `nx, ny, nz, T, 1/(2 sqrt T), 1/sqrt T, w`, each `m` long.
     cols: Vec<f64>,
-    /// Per evaluation: 9 weighted, scaled Jacobian columns, weighted residuals, min `h'`.
+    /// Per evaluation: 9 weighted, scaled Jacobian columns, weighted residuals, min `h'`,
+    /// unweighted residuals.
     work: RefCell<Vec<f64>>,
 }
 
@@ -475,7 +476,7 @@ impl Soa {
         Soa {
             m,
             cols,
-            work: RefCell::new(vec![0.0; 11 * m]),
+            work: RefCell::new(vec![0.0; 12 * m]),
         }
     }
 }
@@ -499,6 +500,7 @@ fn base_rows(
     g8: &mut [f64],
     rr: &mut [f64],
     hpm: &mut [f64],
+    r_raw: &mut [f64],
 ) {
     let [nx, ny, nz, t, hinv, inv_st, w] = inp;
     let [is, b, d] = par;
@@ -526,6 +528,7 @@ fn base_rows(
         &mut g8[..m],
         &mut hpm[..m],
     );
+    let r_raw = &mut r_raw[..m];
     for a in 0..m {
         let n = [nx[a], ny[a], nz[a]];
         let mut f = [0.0; 3];
@@ -545,6 +548,7 @@ fn base_rows(
             f[2] * inv_st[a] / hp[2],
         ];
         let wa = w[a];
+        r_raw[a] = r;
         rr[a] = wa * r;
         hpm[a] = hp[0].min(hp[1]).min(hp[2]);
         g0[a] = wa * (-gh[0] * u[0] * is[0]) * sc[0];
@@ -584,6 +588,8 @@ struct LastNormal {
     p: Vec<f64>,
     jtj: Vec<f64>,
     cost: f64,
+    /// Unweighted residual of every row of the problem (base-model kernel only, else empty).
+    r: Vec<f64>,
 }
 
 impl<'a> Problem<'a> {
@@ -744,7 +750,7 @@ impl Problem<'_> {
         let (inv_st, w) = (&c[5 * m..6 * m], &c[6 * m..7 * m]);
         let mut work = soa.work.borrow_mut();
         let mut cols: Vec<&mut [f64]> = work.chunks_exact_mut(m).collect();
-        let [g0, g1, g2, g3, g4, g5, g6, g7, g8, rr, hpm] = &mut cols[..] else {
+        let [g0, g1, g2, g3, g4, g5, g6, g7, g8, rr, hpm, r_raw] = &mut cols[..] else {
             return None;
         };
         // Equal, known lengths: no bounds checks in the loop, so it vectorises.
@@ -781,6 +787,7 @@ impl Problem<'_> {
             g8,
             rr,
             hpm,
+            r_raw,
         );
         let cost = dot4(rr, rr);
         // NaN anywhere (a negative discriminant) makes the cost NaN.
@@ -804,6 +811,8 @@ impl Problem<'_> {
             }
         }
         last.cost = cost;
+        last.r.clear();
+        last.r.extend_from_slice(r_raw);
         Some(cost)
     }
 
@@ -853,6 +862,7 @@ impl Problem<'_> {
             }
         }
         last.cost = cost;
+        last.r.clear();
         Ok(cost)
     }
 }
@@ -1447,7 +1457,10 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
     // Residuals of every row at `params` when already computed (the robust pre-check).
     let mut r_known: Option<Vec<f64>> = None;
     if opt.robust {
-        let r0 = if params.iter().all(|v| v.is_finite()) {
+        let r0 = if let Some(ln) = last.as_ref().filter(|l| l.p == params && l.r.len() == n) {
+            // The solver's last evaluation on all rows is at `params`: same residuals.
+            ln.r.clone()
+        } else if params.iter().all(|v| v.is_finite()) {
             residuals_pre(data, &rc, &opt.model, &params)
         } else {
             vec![f64::INFINITY; n]
@@ -1843,6 +1856,11 @@ mod tests {
         assert!((k1 - k2).abs() <= 1e-8 * k2);
         assert!((&c1 - &c2).amax() <= 1e-9 * c2.amax());
         assert_eq!(f.singular_values.len(), 9);
+        // Residuals reused from the solver equal the row-wise evaluation.
+        let r_pub = residuals(&d, &model, &f.params).unwrap();
+        for (x, y) in f.residuals.iter().zip(&r_pub) {
+            assert!((x - y).abs() <= 1e-15, "{x} {y}");
+        }
         assert!((f.condition - k2).abs() <= 1e-8 * k2);
     }
 

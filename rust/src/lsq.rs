@@ -1,17 +1,67 @@
 //! Least-squares numerics in one reviewable place.
 //!
-//! - [`lstsq_qr`]: tall linear least squares by Householder QR (faer), with column scaling.
-//! - [`solve_nls`]: Levenberg-Marquardt (Marquardt scaling) or undamped Gauss-Newton on a
-//!   [`Residuals`] problem with an analytic Jacobian; the small normal systems use nalgebra.
+//! - [`lstsq_qr`]: tall linear least squares by Householder QR (faer), with column scaling;
+//!   [`lstsq_small`] and [`lstsq_rows`] for small designs.
+//! - [`solve_nls`], [`solve_normal`], [`solve_normal_fixed`], [`solve_normal_gn`]:
+//!   Levenberg-Marquardt (Marquardt scaling) or undamped Gauss-Newton. They are thin adapters
+//!   over one iteration (`lm_core`) on a small linear-algebra workspace (`Dense`): stack
+//!   arrays when the parameter count is known at compile time, heap buffers allocated once
+//!   otherwise.
 //! - [`svd_report`]: singular values and right singular vectors of a (whitened) Jacobian, for
 //!   covariance, conditioning and naming unobservable parameter combinations.
+//! - Small dense kernels (Cholesky solve/inverse, covariance, power iteration, eigenvalues),
+//!   each written once for any storage (`Mat`).
 
 // `!(x > t)` is deliberate throughout: it is true for NaN, so bad values fail the test.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+use std::ops::IndexMut;
+
 use crate::error::{degenerate, invalid, CoreError, Result};
 use faer::linalg::solvers::SolveLstsq;
 use nalgebra::{DMatrix, DVector};
+
+/// Unit-norm scale of every column of a row-major `m x n` design; degenerate when a column
+/// is zero or not finite.
+fn column_scales(a: &[f64], m: usize, n: usize) -> Result<Vec<f64>> {
+    let mut scale = vec![0.0; n];
+    for i in 0..m {
+        for j in 0..n {
+            scale[j] += a[i * n + j] * a[i * n + j];
+        }
+    }
+    finish_scales(&mut scale)?;
+    Ok(scale)
+}
+
+/// Square roots of the column sums of squares in `scale`; degenerate when one is zero or not
+/// finite.
+fn finish_scales(scale: &mut [f64]) -> Result<()> {
+    for (j, s) in scale.iter_mut().enumerate() {
+        *s = s.sqrt();
+        if !(*s > 0.0) || !s.is_finite() {
+            return degenerate(format!("design column {j} is zero or not finite"));
+        }
+    }
+    Ok(())
+}
+
+/// Rank test on the diagonal of `R` (of the column-scaled design).
+fn check_r_diagonal(diag: impl Iterator<Item = f64>) -> Result<()> {
+    let mut dmax: f64 = 0.0;
+    let mut dmin = f64::INFINITY;
+    for d in diag {
+        dmax = dmax.max(d.abs());
+        dmin = dmin.min(d.abs());
+    }
+    if !(dmin > 1e-13 * dmax) {
+        return degenerate(format!(
+            "design matrix is numerically singular (R diagonal ratio {:.2e})",
+            dmin / dmax
+        ));
+    }
+    Ok(())
+}
 
 /// Solve `min |A x - b|` for a tall `A` (row-major `m x n`, `m >= n`) by QR.
 ///
@@ -30,34 +80,11 @@ pub fn lstsq_qr(a: &[f64], m: usize, n: usize, b: &[f64]) -> Result<Vec<f64>> {
             "{m} equations cannot determine {n} unknowns (need at least {n})"
         ));
     }
-    let mut scale = vec![0.0; n];
-    for i in 0..m {
-        for j in 0..n {
-            scale[j] += a[i * n + j] * a[i * n + j];
-        }
-    }
-    for (j, s) in scale.iter_mut().enumerate() {
-        *s = s.sqrt();
-        if !(*s > 0.0) || !s.is_finite() {
-            return degenerate(format!("design column {j} is zero or not finite"));
-        }
-    }
+    let scale = column_scales(a, m, n)?;
     let mat = faer::Mat::<f64>::from_fn(m, n, |i, j| a[i * n + j] / scale[j]);
     let qr = mat.qr();
     let r = qr.thin_R();
-    let mut dmax: f64 = 0.0;
-    let mut dmin = f64::INFINITY;
-    for j in 0..n {
-        let d = r[(j, j)].abs();
-        dmax = dmax.max(d);
-        dmin = dmin.min(d);
-    }
-    if !(dmin > 1e-13 * dmax) {
-        return degenerate(format!(
-            "design matrix is numerically singular (R diagonal ratio {:.2e})",
-            dmin / dmax
-        ));
-    }
+    check_r_diagonal((0..n).map(|j| r[(j, j)]))?;
     let rhs = faer::Mat::<f64>::from_fn(m, 1, |i, _| b[i]);
     let x = qr.solve_lstsq(&rhs);
     Ok((0..n).map(|j| x[(j, 0)] / scale[j]).collect())
@@ -125,139 +152,33 @@ fn sumsq(r: &[f64]) -> f64 {
 ///
 /// Gauss-Newton takes full steps and fails with [`CoreError::NotConverged`] when it diverges
 /// (non-finite parameters or cost), as the undamped method can; Levenberg-Marquardt never
-/// accepts a step that increases the cost.
+/// accepts a step that increases the cost. Every trial point is evaluated with its Jacobian;
+/// the normal equations are formed from the accepted one (`Flavor::Classic` rules).
 pub fn solve_nls<P: Residuals>(prob: &P, p0: &[f64], opt: &NlsOptions) -> Result<NlsReport> {
     let (n, m) = (prob.n_params(), prob.n_residuals());
-    if p0.len() != n {
-        return invalid(format!("start has {} values, the model {n}", p0.len()));
-    }
-    if m < n {
-        return degenerate(format!(
-            "{m} observations cannot determine {n} parameters (need at least {n})"
-        ));
-    }
-    if p0.iter().any(|v| !v.is_finite()) {
-        return invalid("start values must be finite");
-    }
-    let mut p = p0.to_vec();
-    let mut r = vec![0.0; m];
-    let mut jac = DMatrix::<f64>::zeros(m, n);
-    prob.eval(&p, &mut r, &mut jac)?;
-    let mut cost = sumsq(&r);
-    if !cost.is_finite() {
-        return invalid("the model cannot be evaluated at the start values");
-    }
-    let mut lambda = 1e-3;
-    let mut r_new = vec![0.0; m];
-    let mut j_new = DMatrix::<f64>::zeros(m, n);
-    let mut converged = false;
-    let mut it = 0;
-    while it < opt.max_iter {
-        it += 1;
-        let jtj = jac.transpose() * &jac;
-        let g = jac.transpose() * DVector::from_column_slice(&r);
-        let diag: Vec<f64> = (0..n).map(|i| jtj[(i, i)].max(1e-300)).collect();
-        let gnorm = (0..n)
-            .map(|i| g[i].abs() / diag[i].sqrt())
-            .fold(0.0, f64::max);
-        if gnorm <= opt.gtol * cost.sqrt().max(1e-300) || cost == 0.0 {
-            converged = true;
-            break;
-        }
-        let mut accepted = false;
-        for _ in 0..60 {
-            let mut a = jtj.clone();
-            if !opt.gauss_newton {
-                for i in 0..n {
-                    a[(i, i)] += lambda * diag[i];
-                }
-            }
-            let step = match a.clone().cholesky() {
-                Some(c) => c.solve(&(-&g)),
-                None => match a.lu().solve(&(-&g)) {
-                    Some(s) => s,
-                    None => {
-                        if opt.gauss_newton {
-                            return Err(CoreError::NotConverged(
-                                "Gauss-Newton: singular normal equations".into(),
-                            ));
-                        }
-                        lambda *= 10.0;
-                        continue;
-                    }
-                },
-            };
-            let p_new: Vec<f64> = p.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
-            if p_new.iter().any(|v| !v.is_finite()) {
-                if opt.gauss_newton {
-                    return Err(CoreError::NotConverged(format!(
-                        "Gauss-Newton diverged at iteration {it} (non-finite parameters)"
-                    )));
-                }
-                lambda *= 10.0;
-                continue;
-            }
-            let ok = prob.eval(&p_new, &mut r_new, &mut j_new).is_ok();
-            let c_new = if ok { sumsq(&r_new) } else { f64::INFINITY };
-            let pn: f64 = p.iter().map(|v| v * v).sum::<f64>().sqrt();
-            let sn: f64 = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if opt.gauss_newton {
-                if !c_new.is_finite() || c_new > 1e300 {
-                    return Err(CoreError::NotConverged(format!(
-                        "Gauss-Newton diverged at iteration {it} (cost {c_new:.3e})"
-                    )));
-                }
-                let rel = (cost - c_new).abs() / cost.max(1e-300);
-                std::mem::swap(&mut r, &mut r_new);
-                std::mem::swap(&mut jac, &mut j_new);
-                p = p_new;
-                cost = c_new;
-                accepted = true;
-                if rel <= opt.ftol || sn <= opt.xtol * (pn + opt.xtol) {
-                    converged = true;
-                }
-                break;
-            }
-            if c_new <= cost {
-                let rel = (cost - c_new) / cost.max(1e-300);
-                std::mem::swap(&mut r, &mut r_new);
-                std::mem::swap(&mut jac, &mut j_new);
-                p = p_new;
-                cost = c_new;
-                lambda = (lambda / 3.0).max(1e-12);
-                accepted = true;
-                if rel <= opt.ftol || sn <= opt.xtol * (pn + opt.xtol) {
-                    converged = true;
-                }
-                break;
-            }
-            lambda *= 4.0;
-            if lambda > 1e16 {
-                break;
-            }
-        }
-        if converged {
-            break;
-        }
-        if !accepted {
-            // No step decreases the cost at any damping: a (numerical) minimum.
-            converged = true;
-            break;
-        }
-    }
-    if !converged && opt.gauss_newton {
-        return Err(CoreError::NotConverged(format!(
-            "Gauss-Newton did not converge in {} iterations",
-            opt.max_iter
-        )));
-    }
+    check_start(n, m, p0)?;
+    let mut ev = JacobianTrials {
+        prob,
+        r: DVector::zeros(m),
+        jac: DMatrix::zeros(m, n),
+        r_new: DVector::zeros(m),
+        j_new: DMatrix::zeros(m, n),
+        cost: f64::INFINITY,
+    };
+    let out = lm_core::<DMatrix<f64>, _>(
+        &mut ev,
+        DVector::from_column_slice(p0),
+        opt,
+        1e-3,
+        Flavor::Classic,
+    )?;
     Ok(NlsReport {
-        params: p,
-        residuals: r,
-        jacobian: jac,
-        cost,
-        iterations: it,
-        converged,
+        params: out.params.as_slice().to_vec(),
+        residuals: ev.r.as_slice().to_vec(),
+        jacobian: ev.jac,
+        cost: out.cost,
+        iterations: out.iterations,
+        converged: out.converged,
     })
 }
 
@@ -309,31 +230,59 @@ impl SvdReport {
     }
 }
 
-/// SVD of `J` (`m x n`, `m >= n`) with columns scaled to unit norm, then unscaled so that
-/// the singular vectors refer to the original parameters: returns the SVD of `J` itself when
-/// columns are already comparable; the column scaling only stabilises the decomposition.
-pub fn svd_report(j: &DMatrix<f64>) -> Result<SvdReport> {
-    let (m, n) = (j.nrows(), j.ncols());
+/// `m >= n` or the usual degenerate-data error.
+fn need_rows(m: usize, n: usize) -> Result<()> {
     if m < n {
         return degenerate(format!(
             "{m} observations cannot determine {n} parameters (need at least {n})"
         ));
     }
+    Ok(())
+}
+
+/// Singular values `s` and right singular vectors `v(row, k)` ordered by descending `s`.
+fn sorted_svd(s: &[f64], v: impl Fn(usize, usize) -> f64) -> SvdReport {
+    let n = s.len();
+    let mut idx: Vec<usize> = (0..n).collect();
+    idx.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
+    SvdReport {
+        s: idx.iter().map(|&i| s[i]).collect(),
+        v: DMatrix::<f64>::from_fn(n, n, |a, b| v(a, idx[b])),
+    }
+}
+
+/// SVD of `J` (`m x n`, `m >= n`) with columns scaled to unit norm, then unscaled so that
+/// the singular vectors refer to the original parameters: returns the SVD of `J` itself when
+/// columns are already comparable; the column scaling only stabilises the decomposition.
+pub fn svd_report(j: &DMatrix<f64>) -> Result<SvdReport> {
+    let (m, n) = (j.nrows(), j.ncols());
+    need_rows(m, n)?;
     let mat = faer::Mat::<f64>::from_fn(m, n, |a, b| j[(a, b)]);
     let svd = mat
         .thin_svd()
         .map_err(|_| CoreError::NotConverged("SVD of the Jacobian did not converge".into()))?;
     let s: Vec<f64> = (0..n).map(|i| svd.S()[i]).collect();
-    let v = DMatrix::<f64>::from_fn(n, n, |a, b| svd.V()[(a, b)]);
     // faer returns singular values in non-increasing order; keep that contract explicit.
-    let mut idx: Vec<usize> = (0..n).collect();
-    idx.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
-    let s_sorted = idx.iter().map(|&i| s[i]).collect();
-    let v_sorted = DMatrix::<f64>::from_fn(n, n, |a, b| v[(a, idx[b])]);
-    Ok(SvdReport {
-        s: s_sorted,
-        v: v_sorted,
-    })
+    Ok(sorted_svd(&s, |a, b| svd.V()[(a, b)]))
+}
+
+/// Same contract as [`svd_report`] for small problems (a few to a few dozen parameters):
+/// Householder QR of `J` (nalgebra), then the SVD of the small `n x n` factor `R`, whose
+/// singular values and right singular vectors are those of `J`. Avoids the fixed overhead of
+/// the large-matrix path, which dominates microsecond-scale fits.
+pub fn svd_report_qr(j: &DMatrix<f64>) -> Result<SvdReport> {
+    let (m, n) = (j.nrows(), j.ncols());
+    need_rows(m, n)?;
+    if j.iter().any(|v| !v.is_finite()) {
+        return invalid("the Jacobian is not finite");
+    }
+    let r = j.clone().qr().r();
+    let svd = r.svd(false, true);
+    let vt = svd
+        .v_t
+        .ok_or_else(|| CoreError::NotConverged("SVD of the Jacobian did not converge".into()))?;
+    let s: Vec<f64> = svd.singular_values.iter().copied().collect();
+    Ok(sorted_svd(&s, |a, b| vt[(b, a)]))
 }
 
 // ------------------------------------------------------------------------------------------
@@ -349,34 +298,11 @@ pub fn lstsq_small(a: &[f64], m: usize, n: usize, b: &[f64]) -> Result<Vec<f64>>
     if m > SMALL_ROWS || a.len() != m * n || b.len() != m || m < n {
         return lstsq_qr(a, m, n, b);
     }
-    let mut scale = vec![0.0; n];
-    for i in 0..m {
-        for j in 0..n {
-            scale[j] += a[i * n + j] * a[i * n + j];
-        }
-    }
-    for (j, s) in scale.iter_mut().enumerate() {
-        *s = s.sqrt();
-        if !(*s > 0.0) || !s.is_finite() {
-            return degenerate(format!("design column {j} is zero or not finite"));
-        }
-    }
+    let scale = column_scales(a, m, n)?;
     let mat = DMatrix::<f64>::from_fn(m, n, |i, j| a[i * n + j] / scale[j]);
     let qr = mat.qr();
     let r = qr.r();
-    let mut dmax: f64 = 0.0;
-    let mut dmin = f64::INFINITY;
-    for j in 0..n {
-        let d = r[(j, j)].abs();
-        dmax = dmax.max(d);
-        dmin = dmin.min(d);
-    }
-    if !(dmin > 1e-13 * dmax) {
-        return degenerate(format!(
-            "design matrix is numerically singular (R diagonal ratio {:.2e})",
-            dmin / dmax
-        ));
-    }
+    check_r_diagonal((0..n).map(|j| r[(j, j)]))?;
     let mut qtb = DVector::from_column_slice(b);
     qr.q_tr_mul(&mut qtb);
     let mut x = qtb.rows(0, n).into_owned();
@@ -395,157 +321,39 @@ pub fn covariance_small(j: &DMatrix<f64>, rtol: f64) -> Option<DMatrix<f64>> {
         return None;
     }
     // Normal matrix (column-major J: column dot products).
-    let mut a = vec![0.0f64; n * n];
+    let mut a = DMatrix::<f64>::zeros(n, n);
     let col = |k: usize| &j.as_slice()[k * m..(k + 1) * m];
     for p in 0..n {
         for q in p..n {
             let v: f64 = col(p).iter().zip(col(q)).map(|(x, y)| x * y).sum();
-            a[p * n + q] = v;
-            a[q * n + p] = v;
+            a[(p, q)] = v;
+            a[(q, p)] = v;
         }
     }
-    let d: Vec<f64> = (0..n).map(|i| a[i * n + i].sqrt()).collect();
-    if d.iter().any(|v| !(*v > 0.0) || !v.is_finite()) {
-        return None;
-    }
-    for p in 0..n {
-        for q in 0..n {
-            a[p * n + q] /= d[p] * d[q];
-        }
-    }
-    // In-place Cholesky (lower), then L^-1, then C = L^-T L^-1.
-    for k in 0..n {
-        let mut s = a[k * n + k];
-        for t in 0..k {
-            s -= a[k * n + t] * a[k * n + t];
-        }
-        if !(s > rtol * rtol) {
-            return None;
-        }
-        let l = s.sqrt();
-        a[k * n + k] = l;
-        for i in (k + 1)..n {
-            let mut v = a[i * n + k];
-            for t in 0..k {
-                v -= a[i * n + t] * a[k * n + t];
-            }
-            a[i * n + k] = v / l;
-        }
-    }
-    let mut li = vec![0.0f64; n * n];
-    for c in 0..n {
-        li[c * n + c] = 1.0 / a[c * n + c];
-        for i in (c + 1)..n {
-            let mut v = 0.0;
-            for t in c..i {
-                v -= a[i * n + t] * li[t * n + c];
-            }
-            li[i * n + c] = v / a[i * n + i];
-        }
-    }
-    let mut c = DMatrix::<f64>::zeros(n, n);
-    for p in 0..n {
-        for q in p..n {
-            let mut v = 0.0;
-            for t in q..n {
-                v += li[t * n + p] * li[t * n + q];
-            }
-            v /= d[p] * d[q];
-            c[(p, q)] = v;
-            c[(q, p)] = v;
-        }
-    }
-    if c.iter().all(|v| v.is_finite()) {
-        Some(c)
-    } else {
-        None
-    }
+    covariance_of_normal(a, rtol)
+}
+
+/// [`covariance_small`] from the normal matrix `J^T J` itself (fixed size, same column
+/// scaling, pivot test and arithmetic): `None` when singular at `rtol` or not finite.
+pub fn covariance_normal_fixed<const N: usize>(
+    normal: &[[f64; N]; N],
+    rtol: f64,
+) -> Option<[[f64; N]; N]> {
+    covariance_of_normal(*normal, rtol)
 }
 
 /// Largest eigenvalue and its eigenvector of a symmetric positive semi-definite matrix
 /// (at most 16 x 16) by power iteration (relative tolerance 1e-9 on the eigenvalue), enough to
 /// find the least determined combination of a covariance.
 pub fn top_eigen(c: &DMatrix<f64>, iters: usize) -> (f64, Vec<f64>) {
-    let n = c.nrows().min(16);
-    let mut v = [0.0f64; 16];
-    for (i, x) in v.iter_mut().enumerate().take(n) {
-        *x = 1.0 + 0.1 * i as f64;
-    }
-    let mut lam = 0.0;
-    for _ in 0..iters {
-        let mut w = [0.0f64; 16];
-        for i in 0..n {
-            w[i] = (0..n).map(|j| c[(i, j)] * v[j]).sum();
-        }
-        let nv = v[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
-        let nw = w[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
-        if !(nw > 0.0) || !nw.is_finite() {
-            return (nw, v[..n].to_vec());
-        }
-        let new_lam = nw / nv;
-        for i in 0..n {
-            v[i] = w[i] / nw;
-        }
-        let done = (new_lam - lam).abs() <= 1e-9 * new_lam;
-        lam = new_lam;
-        if done {
-            break;
-        }
-    }
+    let (lam, v, n) = power_iteration::<16, _>(c, iters);
     (lam, v[..n].to_vec())
 }
 
-/// Solve `(A + damp diag(d)) x = -g` by an in-place Cholesky in `l` (flat `n x n`); false
-/// when the damped matrix is not numerically positive definite.
-fn chol_solve_damped(
-    a: &DMatrix<f64>,
-    d: &[f64],
-    damp: f64,
-    g: &DVector<f64>,
-    l: &mut [f64],
-    x: &mut [f64],
-) -> bool {
-    let n = d.len();
-    for i in 0..n {
-        for j in 0..=i {
-            l[i * n + j] = a[(i, j)];
-        }
-        l[i * n + i] += damp * d[i];
-    }
-    for k in 0..n {
-        let mut s = l[k * n + k];
-        for t in 0..k {
-            s -= l[k * n + t] * l[k * n + t];
-        }
-        if !(s > 1e-300) || !(s > 1e-15 * a[(k, k)].abs().max(1e-300) * 1e-3) {
-            return false;
-        }
-        let lk = s.sqrt();
-        l[k * n + k] = lk;
-        for i in (k + 1)..n {
-            let mut v = l[i * n + k];
-            for t in 0..k {
-                v -= l[i * n + t] * l[k * n + t];
-            }
-            l[i * n + k] = v / lk;
-        }
-    }
-    // L y = -g, then L^T x = y.
-    for i in 0..n {
-        let mut v = -g[i];
-        for t in 0..i {
-            v -= l[i * n + t] * x[t];
-        }
-        x[i] = v / l[i * n + i];
-    }
-    for i in (0..n).rev() {
-        let mut v = x[i];
-        for t in (i + 1)..n {
-            v -= l[t * n + i] * x[t];
-        }
-        x[i] = v / l[i * n + i];
-    }
-    x.iter().all(|v| v.is_finite())
+/// [`top_eigen`] on a fixed-size matrix (same start, iteration and tolerance).
+pub fn top_eigen_fixed<const N: usize>(c: &[[f64; N]; N], iters: usize) -> (f64, [f64; N]) {
+    let (lam, v, _) = power_iteration::<N, _>(c, iters);
+    (lam, v)
 }
 
 /// A least-squares problem that supplies its normal equations directly: no Jacobian
@@ -564,6 +372,8 @@ pub trait NormalEquations {
 /// Levenberg-Marquardt / Gauss-Newton on a [`NormalEquations`] problem: the algorithm of
 /// [`solve_nls`] (Marquardt scaling, monotone LM, divergence errors for GN) with an initial
 /// damping `lambda0` (small when the start is already good, e.g. an exact linear solution).
+/// Trial points are evaluated by cost only; a step whose predicted gain is negligible ends
+/// the fit without another normal-equation evaluation (`Flavor::Predicted` rules).
 /// Returns the report without residuals/Jacobian (`jacobian` is empty).
 pub fn solve_normal<P: NormalEquations>(
     prob: &P,
@@ -571,178 +381,16 @@ pub fn solve_normal<P: NormalEquations>(
     opt: &NlsOptions,
     lambda0: f64,
 ) -> Result<NlsReport> {
-    let (n, m) = (prob.n_params(), prob.n_residuals());
-    if p0.len() != n {
-        return invalid(format!("start has {} values, the model {n}", p0.len()));
-    }
-    if m < n {
-        return degenerate(format!(
-            "{m} observations cannot determine {n} parameters (need at least {n})"
-        ));
-    }
-    if p0.iter().any(|v| !v.is_finite()) {
-        return invalid("start values must be finite");
-    }
-    let mut p = p0.to_vec();
-    let mut jtj = DMatrix::<f64>::zeros(n, n);
-    let mut g = DVector::<f64>::zeros(n);
-    let mut cost = prob.normal(&p, &mut jtj, &mut g).map_err(|_| {
-        CoreError::InvalidInput("the model cannot be evaluated at the start values".into())
-    })?;
-    if !cost.is_finite() {
-        return invalid("the model cannot be evaluated at the start values");
-    }
-    let mut lambda = lambda0;
-    let mut converged = false;
-    let mut it = 0;
-    let mut p_new = vec![0.0; n];
-    // Flat work buffers: the damped matrix and its Cholesky factor, the step.
-    let mut l = vec![0.0f64; n * n];
-    let mut step = vec![0.0f64; n];
-    let mut diag = vec![0.0f64; n];
-    while it < opt.max_iter {
-        it += 1;
-        for i in 0..n {
-            diag[i] = jtj[(i, i)].max(1e-300);
-        }
-        let gnorm = (0..n)
-            .map(|i| g[i].abs() / diag[i].sqrt())
-            .fold(0.0, f64::max);
-        if gnorm <= opt.gtol * cost.sqrt().max(1e-300) || cost == 0.0 {
-            converged = true;
-            break;
-        }
-        let mut accepted = false;
-        for _ in 0..60 {
-            let damp = if opt.gauss_newton { 0.0 } else { lambda };
-            let solved = chol_solve_damped(&jtj, &diag, damp, &g, &mut l, &mut step);
-            if !solved {
-                // Not positive definite (GN on a singular problem): general solver.
-                let mut a = jtj.clone();
-                for i in 0..n {
-                    a[(i, i)] += damp * diag[i];
-                }
-                match a.lu().solve(&(-&g)) {
-                    Some(s) => step.copy_from_slice(s.as_slice()),
-                    None => {
-                        if opt.gauss_newton {
-                            return Err(CoreError::NotConverged(
-                                "Gauss-Newton: singular normal equations".into(),
-                            ));
-                        }
-                        lambda = lambda.max(1e-12) * 10.0;
-                        continue;
-                    }
-                }
-            }
-            for i in 0..n {
-                p_new[i] = p[i] + step[i];
-            }
-            if p_new.iter().any(|v| !v.is_finite()) {
-                if opt.gauss_newton {
-                    return Err(CoreError::NotConverged(format!(
-                        "Gauss-Newton diverged at iteration {it} (non-finite parameters)"
-                    )));
-                }
-                lambda = lambda.max(1e-12) * 10.0;
-                continue;
-            }
-            let c_new = prob.cost(&p_new).unwrap_or(f64::INFINITY);
-            let pn: f64 = p.iter().map(|v| v * v).sum::<f64>().sqrt();
-            let sn: f64 = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-            // Predicted reduction of the local quadratic model: when even the full step can
-            // only gain a negligible fraction of the cost, take it (if it does not hurt) and stop
-            // without another normal-equation evaluation.
-            let mut pred = 0.0;
-            for i in 0..n {
-                let mut hs = 0.0;
-                for j in 0..n {
-                    hs += jtj[(i, j)] * step[j];
-                }
-                pred -= g[i] * step[i] + 0.5 * step[i] * hs;
-            }
-            if c_new <= cost && pred <= opt.ftol * cost {
-                std::mem::swap(&mut p, &mut p_new);
-                cost = c_new;
-                accepted = true;
-                converged = true;
-                break;
-            }
-            if opt.gauss_newton {
-                if !c_new.is_finite() || c_new > 1e300 {
-                    return Err(CoreError::NotConverged(format!(
-                        "Gauss-Newton diverged at iteration {it} (cost {c_new:.3e})"
-                    )));
-                }
-            } else if !(c_new <= cost) {
-                if sn <= opt.xtol * (pn + opt.xtol) {
-                    // Even a negligible step raises the cost: rounding-level minimum.
-                    converged = true;
-                    break;
-                }
-                lambda = lambda.max(1e-12) * 4.0;
-                if lambda > 1e16 {
-                    break;
-                }
-                continue;
-            }
-            let rel = (cost - c_new).abs() / cost.max(1e-300);
-            std::mem::swap(&mut p, &mut p_new);
-            cost = prob.normal(&p, &mut jtj, &mut g)?;
-            lambda /= 3.0;
-            accepted = true;
-            if rel <= opt.ftol || sn <= opt.xtol * (pn + opt.xtol) {
-                converged = true;
-            }
-            break;
-        }
-        if converged || !accepted {
-            converged = true;
-            break;
-        }
-    }
-    if !converged && opt.gauss_newton {
-        return Err(CoreError::NotConverged(format!(
-            "Gauss-Newton did not converge in {} iterations",
-            opt.max_iter
-        )));
-    }
-    Ok(NlsReport {
-        params: p,
-        residuals: Vec::new(),
-        jacobian: DMatrix::zeros(0, n),
-        cost,
-        iterations: it,
-        converged,
-    })
-}
-
-/// Same contract as [`svd_report`] for small problems (a few to a few dozen parameters):
-/// Householder QR of `J` (nalgebra), then the SVD of the small `n x n` factor `R`, whose
-/// singular values and right singular vectors are those of `J`. Avoids the fixed overhead of
-/// the large-matrix path, which dominates microsecond-scale fits.
-pub fn svd_report_qr(j: &DMatrix<f64>) -> Result<SvdReport> {
-    let (m, n) = (j.nrows(), j.ncols());
-    if m < n {
-        return degenerate(format!(
-            "{m} observations cannot determine {n} parameters (need at least {n})"
-        ));
-    }
-    if j.iter().any(|v| !v.is_finite()) {
-        return invalid("the Jacobian is not finite");
-    }
-    let r = j.clone().qr().r();
-    let svd = r.svd(false, true);
-    let vt = svd
-        .v_t
-        .ok_or_else(|| CoreError::NotConverged("SVD of the Jacobian did not converge".into()))?;
-    let s: Vec<f64> = svd.singular_values.iter().copied().collect();
-    let mut idx: Vec<usize> = (0..n).collect();
-    idx.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
-    Ok(SvdReport {
-        s: idx.iter().map(|&i| s[i]).collect(),
-        v: DMatrix::<f64>::from_fn(n, n, |a, b| vt[(idx[b], a)]),
-    })
+    let n = prob.n_params();
+    check_start(n, prob.n_residuals(), p0)?;
+    let out = lm_core::<DMatrix<f64>, _>(
+        &mut CostTrials(prob),
+        DVector::from_column_slice(p0),
+        opt,
+        lambda0,
+        Flavor::Predicted,
+    )?;
+    Ok(out.into_report(n))
 }
 
 /// Undamped Gauss-Newton on a [`NormalEquations`] problem, with the steps and convergence
@@ -757,120 +405,37 @@ pub fn solve_normal_gn<P: NormalEquations>(
     p0: &[f64],
     opt: &NlsOptions,
 ) -> Result<NlsReport> {
-    let (n, m) = (prob.n_params(), prob.n_residuals());
-    if p0.len() != n {
-        return invalid(format!("start has {} values, the model {n}", p0.len()));
-    }
-    if m < n {
-        return degenerate(format!(
-            "{m} observations cannot determine {n} parameters (need at least {n})"
-        ));
-    }
-    if p0.iter().any(|v| !v.is_finite()) {
-        return invalid("start values must be finite");
-    }
-    let mut p = p0.to_vec();
-    let mut jtj = DMatrix::<f64>::zeros(n, n);
-    let mut g = DVector::<f64>::zeros(n);
-    let mut cost = prob.normal(&p, &mut jtj, &mut g)?;
-    if !cost.is_finite() {
-        return invalid("the model cannot be evaluated at the start values");
-    }
-    let mut jtj_new = DMatrix::<f64>::zeros(n, n);
-    let mut g_new = DVector::<f64>::zeros(n);
-    let mut p_new = vec![0.0; n];
-    // Cholesky factor (lower triangle of the symmetric normal matrix) and step.
-    let mut fac = vec![0.0; n * n];
-    let mut step = vec![0.0; n];
-    let mut converged = false;
-    let mut it = 0;
-    while it < opt.max_iter {
-        it += 1;
-        let gnorm = (0..n)
-            .map(|i| g[i].abs() / jtj[(i, i)].max(1e-300).sqrt())
-            .fold(0.0, f64::max);
-        if gnorm <= opt.gtol * cost.sqrt().max(1e-300) || cost == 0.0 {
-            converged = true;
-            break;
-        }
-        fac.copy_from_slice(jtj.as_slice());
-        for i in 0..n {
-            step[i] = -g[i];
-        }
-        if !cholesky_small(&mut fac, n) {
-            let s = jtj.clone().lu().solve(&(-&g)).ok_or_else(|| {
-                CoreError::NotConverged("Gauss-Newton: singular normal equations".into())
-            })?;
-            step.copy_from_slice(s.as_slice());
-        } else {
-            cholesky_solve_small(&fac, n, &mut step);
-        }
-        for i in 0..n {
-            p_new[i] = p[i] + step[i];
-        }
-        if p_new.iter().any(|v| !v.is_finite()) {
-            return Err(CoreError::NotConverged(format!(
-                "Gauss-Newton diverged at iteration {it} (non-finite parameters)"
-            )));
-        }
-        let c_new = prob
-            .normal(&p_new, &mut jtj_new, &mut g_new)
-            .unwrap_or(f64::INFINITY);
-        if !c_new.is_finite() || c_new > 1e300 {
-            return Err(CoreError::NotConverged(format!(
-                "Gauss-Newton diverged at iteration {it} (cost {c_new:.3e})"
-            )));
-        }
-        let pn: f64 = p.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let sn: f64 = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let rel = (cost - c_new).abs() / cost.max(1e-300);
-        std::mem::swap(&mut p, &mut p_new);
-        std::mem::swap(&mut jtj, &mut jtj_new);
-        std::mem::swap(&mut g, &mut g_new);
-        cost = c_new;
-        if rel <= opt.ftol || sn <= opt.xtol * (pn + opt.xtol) {
-            converged = true;
-            break;
-        }
-    }
-    if !converged {
-        return Err(CoreError::NotConverged(format!(
-            "Gauss-Newton did not converge in {} iterations",
-            opt.max_iter
-        )));
-    }
-    Ok(NlsReport {
-        params: p,
-        residuals: Vec::new(),
-        jacobian: DMatrix::zeros(0, n),
-        cost,
-        iterations: it,
-        converged,
-    })
+    let n = prob.n_params();
+    check_start(n, prob.n_residuals(), p0)?;
+    let mut ev = NormalTrials {
+        prob,
+        jtj: DMatrix::zeros(n, n),
+        g: DVector::zeros(n),
+        cost: f64::INFINITY,
+    };
+    let opt = NlsOptions {
+        gauss_newton: true,
+        ..*opt
+    };
+    let out = lm_core::<DMatrix<f64>, _>(
+        &mut ev,
+        DVector::from_column_slice(p0),
+        &opt,
+        0.0,
+        Flavor::Classic,
+    )?;
+    Ok(out.into_report(n))
 }
 
 /// Cholesky factor `L` (lower, row-major `n x n`, upper part zeroed) of a symmetric positive
 /// definite row-major matrix, in place, without allocation. `false` when a pivot is not
 /// positive and finite (the matrix is not numerically positive definite).
 pub fn cholesky_small(a: &mut [f64], n: usize) -> bool {
+    let pivot_ok = |_, s: f64| s > 0.0 && s.is_finite();
+    if !cholesky_lower(&mut RowMajor { a: &mut *a, n }, pivot_ok) {
+        return false;
+    }
     for k in 0..n {
-        let mut s = a[k * n + k];
-        for t in 0..k {
-            s -= a[k * n + t] * a[k * n + t];
-        }
-        if !(s > 0.0) || !s.is_finite() {
-            return false;
-        }
-        let l = s.sqrt();
-        a[k * n + k] = l;
-        let inv = 1.0 / l;
-        for i in (k + 1)..n {
-            let mut v = a[i * n + k];
-            for t in 0..k {
-                v -= a[i * n + t] * a[k * n + t];
-            }
-            a[i * n + k] = v * inv;
-        }
         for j in (k + 1)..n {
             a[k * n + j] = 0.0;
         }
@@ -880,48 +445,14 @@ pub fn cholesky_small(a: &mut [f64], n: usize) -> bool {
 
 /// Solve `L L^T x = b` in place (`l` from [`cholesky_small`]).
 pub fn cholesky_solve_small(l: &[f64], n: usize, b: &mut [f64]) {
-    for i in 0..n {
-        let mut v = b[i];
-        for t in 0..i {
-            v -= l[i * n + t] * b[t];
-        }
-        b[i] = v / l[i * n + i];
-    }
-    for i in (0..n).rev() {
-        let mut v = b[i];
-        for t in (i + 1)..n {
-            v -= l[t * n + i] * b[t];
-        }
-        b[i] = v / l[i * n + i];
-    }
+    cholesky_solve(&RowMajor { a: l, n }, b);
 }
 
 /// `(L L^T)^-1` (row-major `n x n`, symmetric) from the factor of [`cholesky_small`].
 pub fn cholesky_inverse_small(l: &[f64], n: usize) -> Vec<f64> {
-    // L^-1 (lower), then C = L^-T L^-1.
-    let mut li = vec![0.0f64; n * n];
-    for c in 0..n {
-        li[c * n + c] = 1.0 / l[c * n + c];
-        for i in (c + 1)..n {
-            let mut v = 0.0;
-            for t in c..i {
-                v -= l[i * n + t] * li[t * n + c];
-            }
-            li[i * n + c] = v / l[i * n + i];
-        }
-    }
-    let mut c = vec![0.0f64; n * n];
-    for p in 0..n {
-        for q in p..n {
-            let mut v = 0.0;
-            for t in q..n {
-                v += li[t * n + p] * li[t * n + q];
-            }
-            c[p * n + q] = v;
-            c[q * n + p] = v;
-        }
-    }
-    c
+    let (mut li, mut c) = (RowMajor::zeros(n), RowMajor::zeros(n));
+    cholesky_inverse(&RowMajor { a: l, n }, &mut li, &mut c, |_, _, v| v);
+    c.a
 }
 
 fn pythag(a: f64, b: f64) -> f64 {
@@ -936,9 +467,10 @@ fn pythag(a: f64, b: f64) -> f64 {
 }
 
 /// Eigenvalues (ascending) of a small symmetric row-major `n x n` matrix (only its lower
-/// triangle is read), without eigenvectors: Householder reduction to tridiagonal form and the
-/// implicit QL iteration (the classic tred2 / tqli pair). Much cheaper than a general
-/// decomposition for a handful of parameters. `None` if the iteration does not converge or
+/// triangle is read), without eigenvectors: for n <= 24 a stack-allocated Householder
+/// reduction to tridiagonal form and the implicit QL iteration (the classic tred2 / tqli
+/// pair), much cheaper than a general decomposition for a handful of parameters; above that
+/// nalgebra's symmetric eigensolver. `None` if the iteration does not converge or
 /// the input is not finite.
 pub fn symmetric_eigenvalues_small(a: &[f64], n: usize) -> Option<Vec<f64>> {
     if n == 0 || a.len() != n * n || a.iter().any(|v| !v.is_finite()) {
@@ -950,114 +482,14 @@ pub fn symmetric_eigenvalues_small(a: &[f64], n: usize) -> Option<Vec<f64>> {
     if n <= 24 {
         return sym_eig_fixed::<24>(a, n);
     }
-    let mut z = a.to_vec();
-    let mut d = vec![0.0f64; n];
-    let mut e = vec![0.0f64; n];
-    // Householder tridiagonalisation (eigenvalues only).
-    for i in (1..n).rev() {
-        let l = i - 1;
-        let mut h = 0.0;
-        if l > 0 {
-            let scale: f64 = (0..i).map(|k| z[i * n + k].abs()).sum();
-            if scale == 0.0 {
-                e[i] = z[i * n + l];
-            } else {
-                for k in 0..i {
-                    z[i * n + k] /= scale;
-                    h += z[i * n + k] * z[i * n + k];
-                }
-                let f = z[i * n + l];
-                let g = if f >= 0.0 { -h.sqrt() } else { h.sqrt() };
-                e[i] = scale * g;
-                h -= f * g;
-                z[i * n + l] = f - g;
-                let mut f = 0.0;
-                for j in 0..i {
-                    let mut g = 0.0;
-                    for k in 0..=j {
-                        g += z[j * n + k] * z[i * n + k];
-                    }
-                    for k in (j + 1)..i {
-                        g += z[k * n + j] * z[i * n + k];
-                    }
-                    e[j] = g / h;
-                    f += e[j] * z[i * n + j];
-                }
-                let hh = f / (h + h);
-                for j in 0..i {
-                    let f = z[i * n + j];
-                    let g = e[j] - hh * f;
-                    e[j] = g;
-                    for k in 0..=j {
-                        z[j * n + k] -= f * e[k] + g * z[i * n + k];
-                    }
-                }
-            }
-        } else {
-            e[i] = z[i * n + l];
-        }
-    }
-    for i in 0..n {
-        d[i] = z[i * n + i];
-    }
-    // Implicit QL on the tridiagonal matrix (d diagonal, e[1..] sub-diagonal).
-    for i in 1..n {
-        e[i - 1] = e[i];
-    }
-    e[n - 1] = 0.0;
-    for l in 0..n {
-        let mut iter = 0;
-        loop {
-            let mut m = l;
-            while m < n - 1 {
-                let dd = d[m].abs() + d[m + 1].abs();
-                if e[m].abs() <= f64::EPSILON * dd {
-                    break;
-                }
-                m += 1;
-            }
-            if m == l {
-                break;
-            }
-            iter += 1;
-            if iter > 60 {
-                return None;
-            }
-            let mut g = (d[l + 1] - d[l]) / (2.0 * e[l]);
-            let mut r = pythag(g, 1.0);
-            g = d[m] - d[l] + e[l] / (g + if g >= 0.0 { r.abs() } else { -r.abs() });
-            let (mut s, mut c, mut p) = (1.0f64, 1.0f64, 0.0f64);
-            let mut underflow = false;
-            let mut i = m;
-            while i > l {
-                i -= 1;
-                let f = s * e[i];
-                let b = c * e[i];
-                r = pythag(f, g);
-                e[i + 1] = r;
-                if r == 0.0 {
-                    d[i + 1] -= p;
-                    e[m] = 0.0;
-                    underflow = true;
-                    break;
-                }
-                s = f / r;
-                c = g / r;
-                g = d[i + 1] - p;
-                r = (d[i] - g) * s + 2.0 * c * b;
-                p = s * r;
-                d[i + 1] = g + p;
-                g = c * r - b;
-            }
-            if underflow {
-                continue;
-            }
-            d[l] -= p;
-            e[l] = g;
-            e[m] = 0.0;
-        }
-    }
-    d.sort_by(|a, b| a.total_cmp(b));
+    // Larger problems are not on a hot path: nalgebra's symmetric eigensolver.
+    let m = DMatrix::<f64>::from_fn(
+        n,
+        n,
+        |i, j| if i >= j { a[i * n + j] } else { a[j * n + i] },
+    );
+    let mut d: Vec<f64> = m.symmetric_eigenvalues().iter().copied().collect();
+    d.sort_by(|x, y| x.total_cmp(y));
     d.iter().all(|v| v.is_finite()).then_some(d)
 }
 
@@ -1182,8 +614,8 @@ fn sym_eig_fixed<const N: usize>(a: &[f64], n: usize) -> Option<Vec<f64>> {
 
 // ------------------------------------------------------------------------------------------
 // Fixed-size small problems (parameter count known at compile time, e.g. the 6 or 9 of a
-// static fit): the algorithms of `lstsq_small`, `solve_normal`, `covariance_small` and
-// `top_eigen` on stack arrays with fully unrollable loops and no heap allocation.
+// static fit): `lstsq_small` and `solve_normal` on stack arrays with fully unrollable loops
+// and no heap allocation.
 
 /// Rows up to which [`lstsq_rows`] uses its own QR (more: [`lstsq_small`]).
 pub const FIXED_ROWS: usize = 64;
@@ -1205,12 +637,7 @@ pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; 
             scale[j] += r[j] * r[j];
         }
     }
-    for (j, s) in scale.iter_mut().enumerate() {
-        *s = s.sqrt();
-        if !(*s > 0.0) || !s.is_finite() {
-            return degenerate(format!("design column {j} is zero or not finite"));
-        }
-    }
+    finish_scales(&mut scale)?;
     // Column-major copy (column stride m), scaled.
     let mut a = vec![0.0f64; C * m];
     for (j, col) in a.chunks_exact_mut(m).enumerate() {
@@ -1248,18 +675,7 @@ pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; 
         }
         rdiag[j] = alpha;
     }
-    let mut dmax: f64 = 0.0;
-    let mut dmin = f64::INFINITY;
-    for d in rdiag {
-        dmax = dmax.max(d.abs());
-        dmin = dmin.min(d.abs());
-    }
-    if !(dmin > 1e-13 * dmax) {
-        return degenerate(format!(
-            "design matrix is numerically singular (R diagonal ratio {:.2e})",
-            dmin / dmax
-        ));
-    }
+    check_r_diagonal(rdiag.into_iter())?;
     let mut x = [0.0f64; C];
     for j in (0..C).rev() {
         let mut v = y[j];
@@ -1300,55 +716,6 @@ pub struct FixedReport<const N: usize> {
     pub converged: bool,
 }
 
-/// `chol_solve_damped` on stack arrays.
-#[allow(clippy::needless_range_loop)] // index form of the reference algorithm
-fn chol_solve_damped_fixed<const N: usize>(
-    a: &[[f64; N]; N],
-    d: &[f64; N],
-    damp: f64,
-    g: &[f64; N],
-    x: &mut [f64; N],
-) -> bool {
-    let mut l = [[0.0f64; N]; N];
-    for i in 0..N {
-        l[i][..=i].copy_from_slice(&a[i][..=i]);
-        l[i][i] += damp * d[i];
-    }
-    for k in 0..N {
-        let mut s = l[k][k];
-        for t in 0..k {
-            s -= l[k][t] * l[k][t];
-        }
-        if !(s > 1e-300) || !(s > 1e-15 * a[k][k].abs().max(1e-300) * 1e-3) {
-            return false;
-        }
-        let lk = s.sqrt();
-        l[k][k] = lk;
-        for i in (k + 1)..N {
-            let mut v = l[i][k];
-            for t in 0..k {
-                v -= l[i][t] * l[k][t];
-            }
-            l[i][k] = v / lk;
-        }
-    }
-    for i in 0..N {
-        let mut v = -g[i];
-        for t in 0..i {
-            v -= l[i][t] * x[t];
-        }
-        x[i] = v / l[i][i];
-    }
-    for i in (0..N).rev() {
-        let mut v = x[i];
-        for t in (i + 1)..N {
-            v -= l[t][i] * x[t];
-        }
-        x[i] = v / l[i][i];
-    }
-    x.iter().all(|v| v.is_finite())
-}
-
 /// [`solve_normal`] (same steps, damping schedule, convergence tests and errors) for a
 /// [`NormalEquationsFixed`] problem, without heap allocation. One addition: a step that
 /// raises the cost although its predicted gain is below `ftol * cost` ends the search at once
@@ -1359,36 +726,534 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
     opt: &NlsOptions,
     lambda0: f64,
 ) -> Result<FixedReport<N>> {
-    let m = prob.n_residuals();
-    if m < N {
-        return degenerate(format!(
-            "{m} observations cannot determine {N} parameters (need at least {N})"
-        ));
+    check_start(N, prob.n_residuals(), p0)?;
+    let out = lm_core::<[[f64; N]; N], _>(
+        &mut CostTrials(prob),
+        *p0,
+        opt,
+        lambda0,
+        Flavor::PredictedStrict,
+    )?;
+    Ok(FixedReport {
+        params: out.params,
+        cost: out.cost,
+        iterations: out.iterations,
+        converged: out.converged,
+    })
+}
+
+// ------------------------------------------------------------------------------------------
+// Small dense kernels, written once for any storage: `[[f64; N]; N]` (the size a
+// compile-time constant, so loops unroll and bounds checks vanish), nalgebra's `DMatrix`
+// and flat row-major slices.
+
+/// Read access to a square matrix.
+trait Mat {
+    /// Number of rows (= columns).
+    fn dim(&self) -> usize;
+    /// Element `(i, j)`.
+    fn at(&self, i: usize, j: usize) -> f64;
+}
+
+/// Write access to a square matrix.
+trait MatMut: Mat {
+    /// Element `(i, j)`.
+    fn at_mut(&mut self, i: usize, j: usize) -> &mut f64;
+}
+
+impl<const N: usize> Mat for [[f64; N]; N] {
+    #[inline(always)]
+    fn dim(&self) -> usize {
+        N
     }
+    #[inline(always)]
+    fn at(&self, i: usize, j: usize) -> f64 {
+        self[i][j]
+    }
+}
+
+impl<const N: usize> MatMut for [[f64; N]; N] {
+    #[inline(always)]
+    fn at_mut(&mut self, i: usize, j: usize) -> &mut f64 {
+        &mut self[i][j]
+    }
+}
+
+impl Mat for DMatrix<f64> {
+    #[inline(always)]
+    fn dim(&self) -> usize {
+        self.nrows()
+    }
+    #[inline(always)]
+    fn at(&self, i: usize, j: usize) -> f64 {
+        self[(i, j)]
+    }
+}
+
+impl MatMut for DMatrix<f64> {
+    #[inline(always)]
+    fn at_mut(&mut self, i: usize, j: usize) -> &mut f64 {
+        &mut self[(i, j)]
+    }
+}
+
+/// A flat row-major `n x n` matrix.
+struct RowMajor<S> {
+    a: S,
+    n: usize,
+}
+
+impl RowMajor<Vec<f64>> {
+    fn zeros(n: usize) -> Self {
+        RowMajor {
+            a: vec![0.0; n * n],
+            n,
+        }
+    }
+}
+
+impl<S: AsRef<[f64]>> Mat for RowMajor<S> {
+    #[inline(always)]
+    fn dim(&self) -> usize {
+        self.n
+    }
+    #[inline(always)]
+    fn at(&self, i: usize, j: usize) -> f64 {
+        self.a.as_ref()[i * self.n + j]
+    }
+}
+
+impl<S: AsRef<[f64]> + AsMut<[f64]>> MatMut for RowMajor<S> {
+    #[inline(always)]
+    fn at_mut(&mut self, i: usize, j: usize) -> &mut f64 {
+        &mut self.a.as_mut()[i * self.n + j]
+    }
+}
+
+/// Owned workspace of the solvers: a matrix type with its vector type, allocated once per
+/// solve (stack arrays for [`solve_normal_fixed`], heap buffers otherwise).
+trait Dense: MatMut {
+    /// `n`-vector.
+    type Vector: IndexMut<usize, Output = f64>;
+    /// Zero `n x n` matrix (a fixed size ignores `n`).
+    fn zeros(n: usize) -> Self;
+    /// Zero `n`-vector (a fixed size ignores `n`).
+    fn zeros_vector(n: usize) -> Self::Vector;
+    /// The vector as a slice.
+    fn slice(v: &Self::Vector) -> &[f64];
+}
+
+impl<const N: usize> Dense for [[f64; N]; N] {
+    type Vector = [f64; N];
+    #[inline(always)]
+    fn zeros(_: usize) -> Self {
+        [[0.0; N]; N]
+    }
+    #[inline(always)]
+    fn zeros_vector(_: usize) -> [f64; N] {
+        [0.0; N]
+    }
+    #[inline(always)]
+    fn slice(v: &[f64; N]) -> &[f64] {
+        v
+    }
+}
+
+impl Dense for DMatrix<f64> {
+    type Vector = DVector<f64>;
+    fn zeros(n: usize) -> Self {
+        DMatrix::zeros(n, n)
+    }
+    fn zeros_vector(n: usize) -> DVector<f64> {
+        DVector::zeros(n)
+    }
+    #[inline(always)]
+    fn slice(v: &DVector<f64>) -> &[f64] {
+        v.as_slice()
+    }
+}
+
+/// In-place Cholesky `A = L L^T` on the lower triangle of `a` (the strict upper triangle is
+/// neither read nor written). `pivot_ok(k, s)` judges the `k`-th pivot before its square
+/// root; false when it rejects one.
+#[inline(always)]
+fn cholesky_lower<M: MatMut>(a: &mut M, pivot_ok: impl Fn(usize, f64) -> bool) -> bool {
+    let n = a.dim();
+    for k in 0..n {
+        let mut s = a.at(k, k);
+        for t in 0..k {
+            s -= a.at(k, t) * a.at(k, t);
+        }
+        if !pivot_ok(k, s) {
+            return false;
+        }
+        let lk = s.sqrt();
+        *a.at_mut(k, k) = lk;
+        for i in (k + 1)..n {
+            let mut v = a.at(i, k);
+            for t in 0..k {
+                v -= a.at(i, t) * a.at(k, t);
+            }
+            *a.at_mut(i, k) = v / lk;
+        }
+    }
+    true
+}
+
+/// Solve `L L^T x = b` in place for `L` from [`cholesky_lower`].
+#[inline(always)]
+fn cholesky_solve<M: Mat, V: IndexMut<usize, Output = f64> + ?Sized>(l: &M, x: &mut V) {
+    let n = l.dim();
+    for i in 0..n {
+        let mut v = x[i];
+        for t in 0..i {
+            v -= l.at(i, t) * x[t];
+        }
+        x[i] = v / l.at(i, i);
+    }
+    for i in (0..n).rev() {
+        let mut v = x[i];
+        for t in (i + 1)..n {
+            v -= l.at(t, i) * x[t];
+        }
+        x[i] = v / l.at(i, i);
+    }
+}
+
+/// `c = (L L^T)^-1` with element `(p, q)` passed through `fin(p, q, value)`, from `L` of
+/// [`cholesky_lower`]; `li` receives `L^-1` (lower).
+#[inline(always)]
+fn cholesky_inverse<L: Mat, W: MatMut>(
+    l: &L,
+    li: &mut W,
+    c: &mut W,
+    fin: impl Fn(usize, usize, f64) -> f64,
+) {
+    let n = l.dim();
+    for col in 0..n {
+        *li.at_mut(col, col) = 1.0 / l.at(col, col);
+        for i in (col + 1)..n {
+            let mut v = 0.0;
+            for t in col..i {
+                v -= l.at(i, t) * li.at(t, col);
+            }
+            *li.at_mut(i, col) = v / l.at(i, i);
+        }
+    }
+    for p in 0..n {
+        for q in p..n {
+            let mut v = 0.0;
+            for t in q..n {
+                v += li.at(t, p) * li.at(t, q);
+            }
+            let v = fin(p, q, v);
+            *c.at_mut(p, q) = v;
+            *c.at_mut(q, p) = v;
+        }
+    }
+}
+
+/// Solve `(A + damp diag(d)) x = -g` by Cholesky in `l` (lower triangle of `a` read); false
+/// when the damped matrix is not numerically positive definite or the step is not finite.
+#[inline(always)]
+fn chol_solve_damped<M: MatMut, V: IndexMut<usize, Output = f64> + ?Sized>(
+    a: &M,
+    d: &V,
+    damp: f64,
+    g: &V,
+    l: &mut M,
+    x: &mut V,
+) -> bool {
+    let n = a.dim();
+    for i in 0..n {
+        for j in 0..=i {
+            *l.at_mut(i, j) = a.at(i, j);
+        }
+        *l.at_mut(i, i) += damp * d[i];
+    }
+    let ok = cholesky_lower(l, |k, s| {
+        s > 1e-300 && s > 1e-15 * a.at(k, k).abs().max(1e-300) * 1e-3
+    });
+    if !ok {
+        return false;
+    }
+    for i in 0..n {
+        x[i] = -g[i];
+    }
+    cholesky_solve(l, x);
+    (0..n).all(|i| x[i].is_finite())
+}
+
+/// `(A)^-1` of a normal matrix `A = J^T J` by Cholesky of the column-scaled matrix: `None`
+/// when a pivot falls below `rtol^2` or the inverse is not finite.
+#[inline(always)]
+fn covariance_of_normal<M: Dense>(mut a: M, rtol: f64) -> Option<M> {
+    let n = a.dim();
+    let mut d = M::zeros_vector(n);
+    for i in 0..n {
+        d[i] = a.at(i, i).sqrt();
+        if !(d[i] > 0.0) || !d[i].is_finite() {
+            return None;
+        }
+    }
+    for p in 0..n {
+        for q in 0..n {
+            *a.at_mut(p, q) /= d[p] * d[q];
+        }
+    }
+    if !cholesky_lower(&mut a, |_, s| s > rtol * rtol) {
+        return None;
+    }
+    let mut li = M::zeros(n);
+    let mut c = M::zeros(n);
+    cholesky_inverse(&a, &mut li, &mut c, |p, q, v| v / (d[p] * d[q]));
+    for p in 0..n {
+        for q in 0..n {
+            if !c.at(p, q).is_finite() {
+                return None;
+            }
+        }
+    }
+    Some(c)
+}
+
+/// Power iteration for the largest eigenvalue of the leading `min(dim, K)` block of `c`:
+/// `(eigenvalue, eigenvector in the first n entries, n)`.
+#[inline(always)]
+fn power_iteration<const K: usize, M: Mat>(c: &M, iters: usize) -> (f64, [f64; K], usize) {
+    let n = c.dim().min(K);
+    let mut v = [0.0f64; K];
+    for (i, x) in v.iter_mut().enumerate().take(n) {
+        *x = 1.0 + 0.1 * i as f64;
+    }
+    let mut lam = 0.0;
+    for _ in 0..iters {
+        let mut w = [0.0f64; K];
+        for (i, wi) in w.iter_mut().enumerate().take(n) {
+            *wi = (0..n).map(|j| c.at(i, j) * v[j]).sum();
+        }
+        let nv = v[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+        let nw = w[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+        if !(nw > 0.0) || !nw.is_finite() {
+            return (nw, v, n);
+        }
+        let new_lam = nw / nv;
+        for i in 0..n {
+            v[i] = w[i] / nw;
+        }
+        let done = (new_lam - lam).abs() <= 1e-9 * new_lam;
+        lam = new_lam;
+        if done {
+            break;
+        }
+    }
+    (lam, v, n)
+}
+
+// ------------------------------------------------------------------------------------------
+// The one Levenberg-Marquardt / Gauss-Newton iteration behind every public solver.
+
+/// Start checks shared by the solvers.
+fn check_start(n: usize, m: usize, p0: &[f64]) -> Result<()> {
+    if p0.len() != n {
+        return invalid(format!("start has {} values, the model {n}", p0.len()));
+    }
+    need_rows(m, n)?;
     if p0.iter().any(|v| !v.is_finite()) {
         return invalid("start values must be finite");
     }
-    let mut p = *p0;
-    let mut jtj = [[0.0f64; N]; N];
-    let mut g = [0.0f64; N];
-    let mut cost = prob.normal(&p, &mut jtj, &mut g).map_err(|_| {
-        CoreError::InvalidInput("the model cannot be evaluated at the start values".into())
-    })?;
-    if !cost.is_finite() {
-        return invalid("the model cannot be evaluated at the start values");
+    Ok(())
+}
+
+/// The few rules in which the public solvers differ; everything else is one code path.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Flavor {
+    /// [`solve_nls`], [`solve_normal_gn`]: an error evaluating the start is returned
+    /// unchanged; LM lowers the damping to no less than 1e-12; no predicted-gain test.
+    Classic,
+    /// [`solve_normal`]: an error evaluating the start reads "cannot be evaluated at the
+    /// start values"; a step that lowers the cost with a predicted gain below `ftol * cost`
+    /// is taken and ends the fit (no new normal equations); a negligible step (`xtol`) that
+    /// raises the cost ends the search; LM lowers the damping without a floor.
+    Predicted,
+    /// [`solve_normal_fixed`]: [`Flavor::Predicted`], and a step that raises the cost with a
+    /// predicted gain below `ftol * cost` also ends the search.
+    PredictedStrict,
+}
+
+/// How [`lm_core`] evaluates a problem: trial costs, and taking the last trial point as the
+/// current one (its normal equations).
+trait Evaluate<M: Dense> {
+    /// Cost at a trial point `p`.
+    fn trial(&mut self, p: &M::Vector) -> Result<f64>;
+    /// The last trial point `p` becomes current: fill `J^T J`, `J^T r`; return its cost.
+    fn accept(&mut self, p: &M::Vector, jtj: &mut M, g: &mut M::Vector) -> Result<f64>;
+    /// Fill `J^T J` and `J^T r` at the start `p`; return the cost.
+    fn start(&mut self, p: &M::Vector, jtj: &mut M, g: &mut M::Vector) -> Result<f64> {
+        self.trial(p)?;
+        self.accept(p, jtj, g)
     }
+}
+
+type Dm = DMatrix<f64>;
+type Dv = DVector<f64>;
+
+/// Cost-only trials, normal equations at accepted points ([`solve_normal`],
+/// [`solve_normal_fixed`]).
+struct CostTrials<'a, P>(&'a P);
+
+impl<P: NormalEquations> Evaluate<Dm> for CostTrials<'_, P> {
+    fn trial(&mut self, p: &Dv) -> Result<f64> {
+        self.0.cost(p.as_slice())
+    }
+    fn accept(&mut self, p: &Dv, jtj: &mut Dm, g: &mut Dv) -> Result<f64> {
+        self.0.normal(p.as_slice(), jtj, g)
+    }
+    fn start(&mut self, p: &Dv, jtj: &mut Dm, g: &mut Dv) -> Result<f64> {
+        self.accept(p, jtj, g)
+    }
+}
+
+impl<const N: usize, P: NormalEquationsFixed<N>> Evaluate<[[f64; N]; N]> for CostTrials<'_, P> {
+    #[inline(always)]
+    fn trial(&mut self, p: &[f64; N]) -> Result<f64> {
+        self.0.cost(p)
+    }
+    #[inline(always)]
+    fn accept(&mut self, p: &[f64; N], jtj: &mut [[f64; N]; N], g: &mut [f64; N]) -> Result<f64> {
+        self.0.normal(p, jtj, g)
+    }
+    #[inline(always)]
+    fn start(&mut self, p: &[f64; N], jtj: &mut [[f64; N]; N], g: &mut [f64; N]) -> Result<f64> {
+        self.accept(p, jtj, g)
+    }
+}
+
+/// Normal equations at every trial point, kept for when it is accepted
+/// ([`solve_normal_gn`]: Gauss-Newton accepts every finite step).
+struct NormalTrials<'a, P> {
+    prob: &'a P,
+    jtj: Dm,
+    g: Dv,
+    cost: f64,
+}
+
+impl<P: NormalEquations> Evaluate<Dm> for NormalTrials<'_, P> {
+    fn trial(&mut self, p: &Dv) -> Result<f64> {
+        self.cost = self.prob.normal(p.as_slice(), &mut self.jtj, &mut self.g)?;
+        Ok(self.cost)
+    }
+    fn accept(&mut self, _: &Dv, jtj: &mut Dm, g: &mut Dv) -> Result<f64> {
+        std::mem::swap(jtj, &mut self.jtj);
+        std::mem::swap(g, &mut self.g);
+        Ok(self.cost)
+    }
+}
+
+/// Residuals and Jacobian at every trial point; the normal equations are formed from the
+/// accepted Jacobian ([`solve_nls`], which reports both).
+struct JacobianTrials<'a, P> {
+    prob: &'a P,
+    r: Dv,
+    jac: Dm,
+    r_new: Dv,
+    j_new: Dm,
+    cost: f64,
+}
+
+impl<P: Residuals> Evaluate<Dm> for JacobianTrials<'_, P> {
+    fn trial(&mut self, p: &Dv) -> Result<f64> {
+        self.prob
+            .eval(p.as_slice(), self.r_new.as_mut_slice(), &mut self.j_new)?;
+        self.cost = sumsq(self.r_new.as_slice());
+        Ok(self.cost)
+    }
+    fn accept(&mut self, _: &Dv, jtj: &mut Dm, g: &mut Dv) -> Result<f64> {
+        std::mem::swap(&mut self.r, &mut self.r_new);
+        std::mem::swap(&mut self.jac, &mut self.j_new);
+        self.jac.tr_mul_to(&self.jac, jtj);
+        self.jac.tr_mul_to(&self.r, g);
+        Ok(self.cost)
+    }
+}
+
+/// Outcome of [`lm_core`].
+struct Solved<V> {
+    params: V,
+    cost: f64,
+    iterations: usize,
+    converged: bool,
+}
+
+impl Solved<DVector<f64>> {
+    /// As an [`NlsReport`] without residuals and Jacobian.
+    fn into_report(self, n: usize) -> NlsReport {
+        NlsReport {
+            params: self.params.as_slice().to_vec(),
+            residuals: Vec::new(),
+            jacobian: DMatrix::zeros(0, n),
+            cost: self.cost,
+            iterations: self.iterations,
+            converged: self.converged,
+        }
+    }
+}
+
+/// Predicted cost reduction `-(g^T s + s^T A s / 2)` of the local quadratic model.
+#[inline(always)]
+fn predicted_gain<M: Mat, V: IndexMut<usize, Output = f64> + ?Sized>(a: &M, g: &V, s: &V) -> f64 {
+    let n = a.dim();
+    let mut pred = 0.0;
+    for i in 0..n {
+        let mut hs = 0.0;
+        for j in 0..n {
+            hs += a.at(i, j) * s[j];
+        }
+        pred -= g[i] * s[i] + 0.5 * s[i] * hs;
+    }
+    pred
+}
+
+/// Levenberg-Marquardt (Marquardt scaling `diag(J^T J)`, initial damping `lambda0`, monotone:
+/// never accepts a step that raises the cost) or, with `opt.gauss_newton`, undamped
+/// Gauss-Newton, which takes every finite step and fails with [`CoreError::NotConverged`]
+/// when it diverges, meets singular normal equations or reaches the iteration limit. The
+/// start must have passed [`check_start`]. `flavor` selects the documented small
+/// differences between the public solvers.
+fn lm_core<M: Dense, E: Evaluate<M>>(
+    prob: &mut E,
+    mut p: M::Vector,
+    opt: &NlsOptions,
+    lambda0: f64,
+    flavor: Flavor,
+) -> Result<Solved<M::Vector>> {
+    const START: &str = "the model cannot be evaluated at the start values";
+    let n = M::slice(&p).len();
+    let mut jtj = M::zeros(n);
+    let mut g = M::zeros_vector(n);
+    let start = prob.start(&p, &mut jtj, &mut g);
+    let mut cost = match flavor {
+        Flavor::Classic => start?,
+        _ => start.map_err(|_| CoreError::InvalidInput(START.into()))?,
+    };
+    if !cost.is_finite() {
+        return invalid(START);
+    }
+    let predicted = flavor != Flavor::Classic;
     let mut lambda = lambda0;
     let mut converged = false;
     let mut it = 0;
-    let mut p_new = [0.0f64; N];
-    let mut step = [0.0f64; N];
-    let mut diag = [0.0f64; N];
+    let mut p_new = M::zeros_vector(n);
+    let mut step = M::zeros_vector(n);
+    let mut diag = M::zeros_vector(n);
+    // Cholesky factor of the damped matrix.
+    let mut l = M::zeros(n);
     while it < opt.max_iter {
         it += 1;
-        for i in 0..N {
-            diag[i] = jtj[i][i].max(1e-300);
+        for i in 0..n {
+            diag[i] = jtj.at(i, i).max(1e-300);
         }
-        let gnorm = (0..N)
+        let gnorm = (0..n)
             .map(|i| g[i].abs() / diag[i].sqrt())
             .fold(0.0, f64::max);
         if gnorm <= opt.gtol * cost.sqrt().max(1e-300) || cost == 0.0 {
@@ -1398,15 +1263,20 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
         let mut accepted = false;
         for _ in 0..60 {
             let damp = if opt.gauss_newton { 0.0 } else { lambda };
-            if !chol_solve_damped_fixed(&jtj, &diag, damp, &g, &mut step) {
-                // Rare (not positive definite): the general solver of `solve_normal`.
-                let mut a = DMatrix::<f64>::from_fn(N, N, |i, j| jtj[i][j]);
-                for i in 0..N {
+            if !chol_solve_damped(&jtj, &diag, damp, &g, &mut l, &mut step) {
+                // Not numerically positive definite (GN on a singular problem, say): the
+                // general solver.
+                let mut a = DMatrix::<f64>::from_fn(n, n, |i, j| jtj.at(i, j));
+                for i in 0..n {
                     a[(i, i)] += damp * diag[i];
                 }
-                let rhs = DVector::<f64>::from_fn(N, |i, _| -g[i]);
+                let rhs = DVector::<f64>::from_fn(n, |i, _| -g[i]);
                 match a.lu().solve(&rhs) {
-                    Some(s) => step.copy_from_slice(s.as_slice()),
+                    Some(s) => {
+                        for i in 0..n {
+                            step[i] = s[i];
+                        }
+                    }
                     None => {
                         if opt.gauss_newton {
                             return Err(CoreError::NotConverged(
@@ -1418,10 +1288,10 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
                     }
                 }
             }
-            for i in 0..N {
+            for i in 0..n {
                 p_new[i] = p[i] + step[i];
             }
-            if p_new.iter().any(|v| !v.is_finite()) {
+            if M::slice(&p_new).iter().any(|v| !v.is_finite()) {
                 if opt.gauss_newton {
                     return Err(CoreError::NotConverged(format!(
                         "Gauss-Newton diverged at iteration {it} (non-finite parameters)"
@@ -1430,18 +1300,14 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
                 lambda = lambda.max(1e-12) * 10.0;
                 continue;
             }
-            let c_new = prob.cost(&p_new).unwrap_or(f64::INFINITY);
-            let pn: f64 = p.iter().map(|v| v * v).sum::<f64>().sqrt();
-            let sn: f64 = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-            let mut pred = 0.0;
-            for i in 0..N {
-                let mut hs = 0.0;
-                for j in 0..N {
-                    hs += jtj[i][j] * step[j];
-                }
-                pred -= g[i] * step[i] + 0.5 * step[i] * hs;
-            }
-            if c_new <= cost && pred <= opt.ftol * cost {
+            let c_new = prob.trial(&p_new).unwrap_or(f64::INFINITY);
+            let pn: f64 = M::slice(&p).iter().map(|v| v * v).sum::<f64>().sqrt();
+            let sn: f64 = M::slice(&step).iter().map(|v| v * v).sum::<f64>().sqrt();
+            // Predicted reduction of the local quadratic model: when even the full step can
+            // only gain a negligible fraction of the cost, take it (if it does not hurt) and
+            // stop without another normal-equation evaluation.
+            let negligible = predicted && predicted_gain(&jtj, &g, &step) <= opt.ftol * cost;
+            if negligible && c_new <= cost {
                 std::mem::swap(&mut p, &mut p_new);
                 cost = c_new;
                 accepted = true;
@@ -1455,9 +1321,10 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
                     )));
                 }
             } else if !(c_new <= cost) {
-                // Even the full step can gain only a negligible fraction of the cost and it
-                // raises it instead: a rounding-level minimum (no point in raising lambda).
-                if sn <= opt.xtol * (pn + opt.xtol) || pred <= opt.ftol * cost {
+                // A step that raises the cost although it is negligible (or, strictly, could
+                // only gain a negligible fraction of the cost): a rounding-level minimum.
+                let tiny = sn <= opt.xtol * (pn + opt.xtol);
+                if predicted && (tiny || (negligible && flavor == Flavor::PredictedStrict)) {
                     converged = true;
                     break;
                 }
@@ -1469,8 +1336,11 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
             }
             let rel = (cost - c_new).abs() / cost.max(1e-300);
             std::mem::swap(&mut p, &mut p_new);
-            cost = prob.normal(&p, &mut jtj, &mut g)?;
-            lambda /= 3.0;
+            cost = prob.accept(&p, &mut jtj, &mut g)?;
+            lambda = match flavor {
+                Flavor::Classic => (lambda / 3.0).max(1e-12),
+                _ => lambda / 3.0,
+            };
             accepted = true;
             if rel <= opt.ftol || sn <= opt.xtol * (pn + opt.xtol) {
                 converged = true;
@@ -1478,6 +1348,7 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
             break;
         }
         if converged || !accepted {
+            // Converged, or no step decreases the cost at any damping: a (numerical) minimum.
             converged = true;
             break;
         }
@@ -1488,110 +1359,12 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
             opt.max_iter
         )));
     }
-    Ok(FixedReport {
+    Ok(Solved {
         params: p,
         cost,
         iterations: it,
         converged,
     })
-}
-
-/// [`covariance_small`] from the normal matrix `J^T J` itself (fixed size, same column
-/// scaling, pivot test and arithmetic): `None` when singular at `rtol` or not finite.
-#[allow(clippy::needless_range_loop)] // index form of the reference algorithm
-pub fn covariance_normal_fixed<const N: usize>(
-    normal: &[[f64; N]; N],
-    rtol: f64,
-) -> Option<[[f64; N]; N]> {
-    let mut a = *normal;
-    let mut d = [0.0f64; N];
-    for i in 0..N {
-        d[i] = a[i][i].sqrt();
-        if !(d[i] > 0.0) || !d[i].is_finite() {
-            return None;
-        }
-    }
-    for p in 0..N {
-        for q in 0..N {
-            a[p][q] /= d[p] * d[q];
-        }
-    }
-    for k in 0..N {
-        let mut s = a[k][k];
-        for t in 0..k {
-            s -= a[k][t] * a[k][t];
-        }
-        if !(s > rtol * rtol) {
-            return None;
-        }
-        let l = s.sqrt();
-        a[k][k] = l;
-        for i in (k + 1)..N {
-            let mut v = a[i][k];
-            for t in 0..k {
-                v -= a[i][t] * a[k][t];
-            }
-            a[i][k] = v / l;
-        }
-    }
-    let mut li = [[0.0f64; N]; N];
-    for c in 0..N {
-        li[c][c] = 1.0 / a[c][c];
-        for i in (c + 1)..N {
-            let mut v = 0.0;
-            for t in c..i {
-                v -= a[i][t] * li[t][c];
-            }
-            li[i][c] = v / a[i][i];
-        }
-    }
-    let mut c = [[0.0f64; N]; N];
-    for p in 0..N {
-        for q in p..N {
-            let mut v = 0.0;
-            for t in q..N {
-                v += li[t][p] * li[t][q];
-            }
-            v /= d[p] * d[q];
-            c[p][q] = v;
-            c[q][p] = v;
-        }
-    }
-    if c.iter().flatten().all(|v| v.is_finite()) {
-        Some(c)
-    } else {
-        None
-    }
-}
-
-/// [`top_eigen`] on a fixed-size matrix (same start, iteration and tolerance).
-pub fn top_eigen_fixed<const N: usize>(c: &[[f64; N]; N], iters: usize) -> (f64, [f64; N]) {
-    let mut v = [0.0f64; N];
-    for (i, x) in v.iter_mut().enumerate() {
-        *x = 1.0 + 0.1 * i as f64;
-    }
-    let mut lam = 0.0;
-    for _ in 0..iters {
-        let mut w = [0.0f64; N];
-        for i in 0..N {
-            w[i] = (0..N).map(|j| c[i][j] * v[j]).sum();
-        }
-        let nv = v.iter().map(|x| x * x).sum::<f64>().sqrt();
-        let nw = w.iter().map(|x| x * x).sum::<f64>().sqrt();
-        if !(nw > 0.0) || !nw.is_finite() {
-            return (nw, v);
-        }
-        let new_lam = nw / nv;
-        for i in 0..N {
-            v[i] = w[i] / nw;
-        }
-        let done = (new_lam - lam).abs() <= 1e-9 * new_lam;
-        lam = new_lam;
-        if done {
-            break;
-        }
-    }
-    (lam, v)
 }
 
 #[cfg(test)]
@@ -1607,7 +1380,7 @@ mod tests {
                 .wrapping_add(1442695040888963407);
             ((seed >> 11) as f64) / ((1u64 << 53) as f64) - 0.5
         };
-        for n in [1usize, 2, 3, 9, 12, 24] {
+        for n in [1usize, 2, 3, 9, 12, 13, 24, 30] {
             let b = DMatrix::<f64>::from_fn(n + 3, n, |_, _| rnd());
             let a = b.transpose() * &b;
             let flat: Vec<f64> = (0..n * n).map(|k| a[(k / n, k % n)]).collect();
@@ -1770,5 +1543,87 @@ mod tests {
         let rep = solve_normal(&prob, &[1.0, 0.1], &NlsOptions::default(), 1e-3).unwrap();
         assert!(rep.converged);
         assert!((rep.params[0] - 3.0).abs() < 1e-8 && (rep.params[1] - 0.7).abs() < 1e-8);
+    }
+
+    impl NormalEquationsFixed<2> for ExpoN {
+        fn n_residuals(&self) -> usize {
+            self.0.t.len()
+        }
+        fn cost(&self, p: &[f64; 2]) -> Result<f64> {
+            NormalEquations::cost(self, p)
+        }
+        fn normal(&self, p: &[f64; 2], jtj: &mut [[f64; 2]; 2], g: &mut [f64; 2]) -> Result<f64> {
+            let (mut a, mut b) = (DMatrix::zeros(2, 2), DVector::zeros(2));
+            let c = NormalEquations::normal(self, p, &mut a, &mut b)?;
+            for i in 0..2 {
+                g[i] = b[i];
+                for j in 0..2 {
+                    jtj[i][j] = a[(i, j)];
+                }
+            }
+            Ok(c)
+        }
+    }
+
+    #[test]
+    fn all_solver_adapters_agree_and_gn_errors_are_shared() {
+        // Noisy data: a non-zero minimum.
+        let t: Vec<f64> = (0..30).map(|i| i as f64 * 0.2).collect();
+        let y: Vec<f64> = (t.iter().enumerate())
+            .map(|(i, t)| 3.0 * (-0.7 * t).exp() + 1e-3 * ((i * 7919) % 13) as f64)
+            .collect();
+        let prob = ExpoN(Expo { t, y });
+        let p0 = [2.0, 0.5];
+        let lm = NlsOptions::default();
+        let gn = NlsOptions {
+            gauss_newton: true,
+            max_iter: 50,
+            ..lm
+        };
+        let want = solve_nls(&prob.0, &p0, &lm).unwrap();
+        let runs = [
+            solve_nls(&prob.0, &p0, &gn).unwrap().params,
+            solve_normal(&prob, &p0, &lm, 1e-3).unwrap().params,
+            solve_normal(&prob, &p0, &gn, 1e-3).unwrap().params,
+            solve_normal_gn(&prob, &p0, &lm).unwrap().params,
+            solve_normal_fixed(&prob, &p0, &lm, 1e-3)
+                .unwrap()
+                .params
+                .to_vec(),
+        ];
+        for got in runs {
+            for (a, b) in got.iter().zip(&want.params) {
+                assert!((a - b).abs() <= 1e-9 * b.abs(), "{got:?} {:?}", want.params);
+            }
+        }
+        // The residuals and Jacobian reported by solve_nls are those at the solution.
+        let (mut r, mut j) = (vec![0.0; 30], DMatrix::zeros(30, 2));
+        prob.0.eval(&want.params, &mut r, &mut j).unwrap();
+        assert_eq!(r, want.residuals);
+        assert_eq!(j, want.jacobian);
+        assert_eq!(want.cost, sumsq(&r));
+        // Undamped GN from far away: the same divergence error from every GN entry point.
+        let far = [1e3, -5.0];
+        let one = NlsOptions { max_iter: 1, ..gn };
+        let msgs = [
+            solve_nls(&prob.0, &far, &one).unwrap_err().to_string(),
+            solve_normal_gn(&prob, &far, &one).unwrap_err().to_string(),
+        ];
+        assert_eq!(msgs[0], msgs[1]);
+        assert!(msgs[0].contains("Gauss-Newton"), "{}", msgs[0]);
+        // Fixed-size and heap covariance / power iteration are the same arithmetic.
+        let jn = DMatrix::<f64>::from_fn(30, 3, |i, k| ((i + 1) as f64).powi(k as i32 - 1));
+        let c = covariance_small(&jn, 1e-12).unwrap();
+        let jtj = jn.transpose() * &jn;
+        let nf: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|k| jtj[(i, k)]));
+        let cf = covariance_normal_fixed(&nf, 1e-12).unwrap();
+        let (lam, v) = top_eigen(&c, 500);
+        let (lamf, vf) = top_eigen_fixed(&cf, 500);
+        assert!((lam / lamf - 1.0).abs() < 1e-12 && (v[0] / vf[0] - 1.0).abs() < 1e-9);
+        for i in 0..3 {
+            for k in 0..3 {
+                assert!((c[(i, k)] - cf[i][k]).abs() <= 1e-12 * c[(i, k)].abs().max(1e-300));
+            }
+        }
     }
 }

@@ -711,6 +711,43 @@ impl Residuals for NormProblem<'_> {
     }
 }
 
+impl NormProblem<'_> {
+    /// Cost, `J^T r` and the upper triangle of `J^T J` for the first `np <= K` parameters at
+    /// `p` (the rank-1 updates unroll when `np` is a compile-time constant).
+    #[inline(always)]
+    fn accumulate<const K: usize>(
+        &self,
+        p: &[f64],
+        np: usize,
+        h: &mut [[f64; K]; K],
+        gr: &mut [f64; K],
+    ) -> Result<f64> {
+        self.in_range(p)?;
+        let t = inv_k(self.model, p)?;
+        let mut c = 0.0;
+        let mut row = [0.0f64; 9];
+        for (k, am) in self.pts.iter().enumerate() {
+            let a = calibrated(&t, p, am);
+            let na = a.norm();
+            if !(na > 0.0) || !na.is_finite() {
+                return invalid("a calibrated dwell has zero or non-finite norm");
+            }
+            let is = self.inv_sigma[k];
+            let w = t.transpose() * a / na;
+            let r = (na - self.g) * is;
+            c += r * r;
+            jac_row(self.model, &w, &a, is, &mut row);
+            for i in 0..np {
+                gr[i] += row[i] * r;
+                for j in i..np {
+                    h[i][j] += row[i] * row[j];
+                }
+            }
+        }
+        Ok(c)
+    }
+}
+
 impl NormalEquations for NormProblem<'_> {
     fn n_params(&self) -> usize {
         self.model.n_params()
@@ -733,31 +770,10 @@ impl NormalEquations for NormProblem<'_> {
         }
     }
     fn normal(&self, p: &[f64], jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) -> Result<f64> {
-        self.in_range(p)?;
-        let t = inv_k(self.model, p)?;
         let np = self.model.n_params();
         let mut h = [[0.0f64; 9]; 9];
         let mut gr = [0.0f64; 9];
-        let mut c = 0.0;
-        let mut row = [0.0f64; 9];
-        for (k, am) in self.pts.iter().enumerate() {
-            let a = calibrated(&t, p, am);
-            let na = a.norm();
-            if !(na > 0.0) || !na.is_finite() {
-                return invalid("a calibrated dwell has zero or non-finite norm");
-            }
-            let is = self.inv_sigma[k];
-            let w = t.transpose() * a / na;
-            let r = (na - self.g) * is;
-            c += r * r;
-            jac_row(self.model, &w, &a, is, &mut row);
-            for i in 0..np {
-                gr[i] += row[i] * r;
-                for j in i..np {
-                    h[i][j] += row[i] * row[j];
-                }
-            }
-        }
+        let c = self.accumulate(p, np, &mut h, &mut gr)?;
         for i in 0..np {
             jtr[i] = gr[i];
             for j in i..np {
@@ -777,30 +793,9 @@ impl<const N: usize> NormalEquationsFixed<N> for NormProblem<'_> {
         NormalEquations::cost(self, p)
     }
     fn normal(&self, p: &[f64; N], jtj: &mut [[f64; N]; N], jtr: &mut [f64; N]) -> Result<f64> {
-        self.in_range(p)?;
-        let t = inv_k(self.model, p)?;
         let mut h = [[0.0f64; N]; N];
         let mut gr = [0.0f64; N];
-        let mut c = 0.0;
-        let mut row = [0.0f64; 9];
-        for (k, am) in self.pts.iter().enumerate() {
-            let a = calibrated(&t, p, am);
-            let na = a.norm();
-            if !(na > 0.0) || !na.is_finite() {
-                return invalid("a calibrated dwell has zero or non-finite norm");
-            }
-            let is = self.inv_sigma[k];
-            let w = t.transpose() * a / na;
-            let r = (na - self.g) * is;
-            c += r * r;
-            jac_row(self.model, &w, &a, is, &mut row);
-            for i in 0..N {
-                gr[i] += row[i] * r;
-                for j in i..N {
-                    h[i][j] += row[i] * row[j];
-                }
-            }
-        }
+        let c = self.accumulate(p, N, &mut h, &mut gr)?;
         *jtr = gr;
         for i in 0..N {
             for j in i..N {

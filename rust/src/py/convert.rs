@@ -84,7 +84,10 @@ pub fn bounds_from(b: &PyReadonlyArray2<'_, i64>) -> PyResult<Vec<[usize; 2]>> {
 }
 
 /// An optional contiguous 1-D float64 channel as a slice (zero copy).
-pub fn opt_slice<'a>(x: &'a Option<PyReadonlyArray1<'_, f64>>, what: &str) -> PyResult<Option<&'a [f64]>> {
+pub fn opt_slice<'a>(
+    x: &'a Option<PyReadonlyArray1<'_, f64>>,
+    what: &str,
+) -> PyResult<Option<&'a [f64]>> {
     match x {
         None => Ok(None),
         Some(a) => a.as_slice().map(Some).map_err(|_| {

@@ -28,32 +28,15 @@ fn table_to_dict<'py>(py: Python<'py>, t: DwellTable) -> PyResult<Bound<'py, PyD
     d.set_item("mean", to2(mean)?)?;
     d.set_item("var", to2(var)?)?;
     d.set_item("count", count.into_pyarray(py))?;
-    d.set_item(
-        "start",
-        t.bounds
-            .iter()
-            .map(|b| b[0] as i64)
-            .collect::<Vec<_>>()
-            .into_pyarray(py),
-    )?;
-    d.set_item(
-        "stop",
-        t.bounds
-            .iter()
-            .map(|b| b[1] as i64)
-            .collect::<Vec<_>>()
-            .into_pyarray(py),
-    )?;
+    for (key, end) in [("start", 0), ("stop", 1)] {
+        let v: Vec<i64> = t.bounds.iter().map(|b| b[end] as i64).collect();
+        d.set_item(key, v.into_pyarray(py))?;
+    }
     d.set_item("t", t.t_mid.map(|v| v.into_pyarray(py)))?;
     d.set_item("temperature", t.aux_mean.map(|v| v.into_pyarray(py)))?;
-    d.set_item(
-        "noise_var",
-        t.noise_var.map(|v| v.to_vec().into_pyarray(py)),
-    )?;
-    d.set_item(
-        "threshold",
-        t.threshold.map(|v| v.to_vec().into_pyarray(py)),
-    )?;
+    for (key, v) in [("noise_var", t.noise_var), ("threshold", t.threshold)] {
+        d.set_item(key, v.map(|v| v.to_vec().into_pyarray(py)))?;
+    }
     Ok(d)
 }
 
