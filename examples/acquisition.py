@@ -12,9 +12,8 @@ from __future__ import annotations
 import argparse
 import warnings
 
-import numpy as np
-
 import accelcal as ac
+import numpy as np
 from accelcal.sim import field_session
 
 

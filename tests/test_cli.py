@@ -8,9 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
-
 from accelcal.cli import main
+from click.testing import CliRunner
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 XSENS = DATA / "xsens-mti" / "xsens_acc.txt"

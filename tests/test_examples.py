@@ -6,7 +6,6 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
-
 from accelcal.sim import SEED000_TRUTH
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "acquisition.py"

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+import accelcal as ac
 import numpy as np
 import pytest
-
-import accelcal as ac
 from accelcal.sim import field_session, gravity_from_tilts, triad_matrix
 
 
@@ -25,7 +24,7 @@ def test_detected_dwells_lie_inside_true_static_intervals() -> None:
     d = ac.detect_dwells(s.samples, s.fs)
     assert len(d) == 8
     assert d.start is not None and d.stop is not None
-    for a, b in zip(d.start, d.stop):
+    for a, b in zip(d.start, d.stop, strict=True):
         assert np.any((s.bounds[:, 0] <= a) & (b <= s.bounds[:, 1])), (a, b)
     # Noise estimated from the data is the simulated one.
     assert d.noise_std is not None

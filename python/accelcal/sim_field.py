@@ -25,7 +25,10 @@ def triad_matrix(vector: ArrayLike) -> NDArray[np.float64]:
 
 
 def gravity_from_tilts(tx_rad: ArrayLike, ty_rad: ArrayLike, g: float) -> NDArray[np.float64]:
-    """Specific force at rest for platform tilts (SPEC 1): [-g sin ty, g sin tx cos ty, g cos tx cos ty]."""
+    """Specific force at rest for platform tilts (SPEC 1).
+
+    Returns ``[-g sin ty, g sin tx cos ty, g cos tx cos ty]`` (m/s^2 when g is).
+    """
     tx = np.asarray(tx_rad, dtype=np.float64)
     ty = np.asarray(ty_rad, dtype=np.float64)
     return np.stack(
@@ -109,14 +112,17 @@ def field_session(
             s = _smoothstep(u)
             tx[pos : pos + nm] = tl[k, 0] + s * (tl[k + 1, 0] - tl[k, 0])
             ty[pos : pos + nm] = tl[k, 1] + s * (tl[k + 1, 1] - tl[k, 1])
-            # Kinematic acceleration of the motion: a smooth bump of ~0.2 m/s^2 (handling, lever arm).
+            # Kinematic acceleration of the motion: a smooth bump of ~0.2 m/s^2
+            # (handling, lever arm).
             bump = 0.2 * np.sin(np.pi * u) * np.sin(6 * np.pi * u)
             kin[pos : pos + nm] = bump[:, None] * gen.normal(size=3)[None, :]
             pos += nm
     a = gravity_from_tilts(np.radians(tx), np.radians(ty), g) + kin
     v = np.asarray(truth, dtype=np.float64)
     if v.shape != (9,):
-        raise CalibrationError(f"truth must be the 9-vector [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {v.shape}")
+        raise CalibrationError(
+            f"truth must be the 9-vector [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {v.shape}"
+        )
     K = triad_matrix(v)
     out = a @ K.T + v[3:6] + gen.normal(scale=sigma, size=(total, 3))
     t = np.arange(total) / fs
