@@ -18,6 +18,7 @@ import accelcal
 import numpy as np
 from accelcal._files import atomic_write
 from accelcal.sim_gap import DICTIONARY_EFFECTS, gap_session
+from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -31,12 +32,16 @@ def _pct(k: int, n: int) -> str:
     return f"{100.0 * k / n:.1f} % ({k}/{n})" if n else "-"
 
 
+QUIET = False  # --quiet: no progress bars (they are also off when stderr is not a terminal)
+
+
 def run_cell(
     effects: tuple[str, ...], schedule: str, n: int, seed0: int,
     diag: dict | None = None, **kw: object
 ) -> list[dict]:
     out = []
-    for i in range(n):
+    label = f"{schedule} {'+'.join(effects) or 'null'}"
+    for i in tqdm(range(n), desc=label, leave=False, disable=True if QUIET else None):
         s = gap_session(effects, schedule=schedule, rng=seed0 + i, **kw)  # type: ignore[arg-type]
         r = accelcal.diagnose(s.dwells, g=s.g, **(diag or {}))
         out.append({
@@ -508,7 +513,10 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=200)
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--real-only", action="store_true")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
     a = ap.parse_args()
+    global QUIET
+    QUIET = a.quiet
     if not a.real_only:
         txt = validate(a.n)
         atomic_write(ROOT / "docs" / "gap-validation.md", txt)
