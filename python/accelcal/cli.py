@@ -75,6 +75,23 @@ def emit_json(obj: Any) -> None:
     click.echo(json.dumps(_jsonable(obj), indent=2))
 
 
+def recording_options(fn: F) -> F:
+    """``--fs`` and ``--columns``: how to read a recording."""
+    fn = click.option("--columns", default=None,
+                      help="Accelerometer columns, e.g. ax,ay,az or 1,2,3.")(fn)
+    return click.option("--fs", type=float, default=None,
+                        help="Sample rate, Hz (else from the file).")(fn)  # type: ignore[no-any-return]
+
+
+def gravity_options(fn: F) -> F:
+    """``--g`` or ``--lat``/``--height``: the reference gravity."""
+    fn = click.option("--height", type=float, default=0.0, show_default=True, help="Height, m.")(fn)
+    fn = click.option("--lat", type=float, default=None,
+                      help="Latitude, deg (when --g is not known).")(fn)
+    return click.option("--g", "g", type=float, default=None,
+                        help="Reference gravity, m/s^2.")(fn)  # type: ignore[no-any-return]
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="accelcal")
 def main() -> None:
@@ -97,8 +114,7 @@ def demo(quick: bool, out: str, no_figures: bool, seed: int) -> None:
 
 @main.command()
 @click.argument("file", type=click.Path())
-@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
-@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az or 1,2,3.")
+@recording_options
 @click.option("--window", "window_s", type=float, default=1.0, show_default=True, help="s")
 @click.option("--k", type=float, default=6.0, show_default=True, help="Threshold factor.")
 @click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True, help="s")
@@ -193,11 +209,8 @@ def calibrate() -> None:
 
 @calibrate.command("static")
 @click.argument("file", type=click.Path())
-@click.option("--g", "g", type=float, default=None, help="Reference gravity, m/s^2.")
-@click.option("--lat", type=float, default=None, help="Latitude, deg (when --g is not known).")
-@click.option("--height", type=float, default=0.0, show_default=True, help="Height, m.")
-@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
-@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
+@gravity_options
+@recording_options
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
               show_default=True, help="9-parameter triangle or 6-parameter bias + scale.")
 @click.option("--method", type=click.Choice(["lm", "gauss-newton", "quadric", "linear-paper"]),
@@ -347,8 +360,7 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
 @click.argument("file", type=click.Path())
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
               help="Calibrated stream: .csv (t_s, ax, ay, az in m/s^2) or .npy.")
-@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
-@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
+@recording_options
 @click.option("--chunk-rows", type=int, default=500_000, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @friendly
@@ -387,11 +399,8 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
 
 @main.command()
 @click.argument("file", type=click.Path())
-@click.option("--g", "g", type=float, default=None, help="Reference gravity, m/s^2.")
-@click.option("--lat", type=float, default=None, help="Latitude, deg (when --g is not known).")
-@click.option("--height", type=float, default=0.0, show_default=True, help="Height, m.")
-@click.option("--fs", type=float, default=None, help="Sample rate, Hz (else from the file).")
-@click.option("--columns", default=None, help="Accelerometer columns, e.g. ax,ay,az.")
+@gravity_options
+@recording_options
 @click.option("--noise", type=click.Choice(["allan", "white"]), default="allan",
               show_default=True,
               help="Dwell-mean noise: Allan deviation of the within-dwell samples, or "

@@ -1,29 +1,12 @@
 //! Bindings of the centrifuge calibration core.
 
-use numpy::{IntoPyArray, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
+use super::convert::rows3;
 use super::CalibrationError;
 use crate::centrifuge::{fit, CentrifugeData, FitOptions, LeverArm, Method, ModelOptions};
-
-fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
-    if a.shape()[1] != 3 {
-        return Err(CalibrationError::new_err(format!(
-            "{what} must have shape (k, 3); got {:?}",
-            a.shape()
-        )));
-    }
-    if let Ok(flat) = a.as_slice() {
-        // C-contiguous: no per-row views.
-        return Ok(flat.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect());
-    }
-    Ok(a.as_array()
-        .rows()
-        .into_iter()
-        .map(|r| [r[0], r[1], r[2]])
-        .collect())
-}
 
 /// Centrifuge calibration (see `accelcal.fit_centrifuge`); returns a dict of arrays.
 #[pyfunction]

@@ -95,3 +95,22 @@ pub fn opt_slice<'a>(
         }),
     }
 }
+
+/// `(k, 3)` float64 rows as fixed-size triples (one pass; no per-row views when contiguous).
+pub fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
+    if a.shape()[1] != 3 {
+        return Err(CalibrationError::new_err(format!(
+            "{what} must have shape (k, 3); got {:?}",
+            a.shape()
+        )));
+    }
+    if let Ok(flat) = a.as_slice() {
+        // C-contiguous: no per-row views.
+        return Ok(flat.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect());
+    }
+    Ok(a.as_array()
+        .rows()
+        .into_iter()
+        .map(|r| [r[0], r[1], r[2]])
+        .collect())
+}

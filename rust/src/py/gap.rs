@@ -4,20 +4,9 @@ use numpy::{IntoPyArray, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use super::convert::opt_slice;
+use super::convert::{opt_slice, rows3};
 use super::CalibrationError;
 use crate::gap::{self, Correction, Effect, GapInput, GapOptions, Gate, TestMode, N_BASE};
-
-fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
-    let v = a.as_array();
-    if v.ncols() != 3 {
-        return Err(CalibrationError::new_err(format!(
-            "{what} must have shape (k, 3); got {:?}",
-            v.shape()
-        )));
-    }
-    Ok(v.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect())
-}
 
 fn effects_from(names: &[String]) -> PyResult<Vec<Effect>> {
     let mut out = vec![];

@@ -7,22 +7,11 @@ use numpy::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::convert::{with_view, SampleArray};
+use super::convert::{rows3, with_view, SampleArray};
 use super::CalibrationError;
 use crate::static_fit::{
     apply_model, fit_batch, fit_static, FitSettings, Method, Model, Noise, StaticFit,
 };
-
-fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
-    let v = a.as_array();
-    if v.ncols() != 3 {
-        return Err(CalibrationError::new_err(format!(
-            "{what} must have shape (k, 3); got {:?}",
-            v.shape()
-        )));
-    }
-    Ok(v.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect())
-}
 
 fn mat_to_py<'py>(py: Python<'py>, m: &nalgebra::DMatrix<f64>) -> Bound<'py, PyArray2<f64>> {
     let (r, c) = (m.nrows(), m.ncols());
