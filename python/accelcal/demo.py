@@ -15,10 +15,9 @@ import numpy as np
 from .demo_centrifuge import demo_section as centrifuge_demo
 from .demo_gap import demo_section as gap_demo
 from .demo_gradiometer import demo_section as gradiometer_demo
-from .demo_static import demo_section as static_demo
+from .demo_static import fit_section as static_fit_section
 from .dwell import detect_dwells
 from .sim_field import field_session
-from .static import fit_static
 
 
 def field_section(*, quick: bool = False, seed: int = 0) -> str:
@@ -54,8 +53,8 @@ def _field(*, quick: bool, seed: int) -> tuple[str, Any, Any]:
     )
     lines.append(f"{ok}/{len(d)} detected dwells lie inside a true static interval")
     lines.append("")
-    lines.append(static_demo(d, s.g, truth=s.truth))
-    fit = fit_static(d, s.g, observability="ignore")
+    text, fit = static_fit_section(d, s.g, truth=s.truth)
+    lines.append(text)
     return "\n".join(lines), d, fit
 
 
@@ -88,10 +87,11 @@ def _figures(out: str, dwells: Any, fit: Any, seed: int) -> str:
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     written = []
-    fig = static_norm_figure(fit, dwells)
-    save_figure(fig, str(folder / "field_norm.png"))
-    written.append("field_norm.png (norm per dwell before/after, residuals)")
-    plt.close(fig)
+    if fit is not None:
+        fig = static_norm_figure(fit, dwells)
+        save_figure(fig, str(folder / "field_norm.png"))
+        written.append("field_norm.png (norm per dwell before/after, residuals)")
+        plt.close(fig)
     fig = poses_figure(plan_poses(20, 30.0))
     save_figure(fig, str(folder / "planned_poses.png"))
     written.append("planned_poses.png (20 D-optimal attitudes within +-30 deg)")
