@@ -104,9 +104,12 @@ pub fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]
             a.shape()
         )));
     }
-    if let Ok(flat) = a.as_slice() {
-        // C-contiguous: no per-row views.
-        return Ok(flat.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect());
+    // `as_slice` also succeeds on Fortran-ordered arrays (any contiguous memory): only a
+    // C-contiguous array may be read as consecutive rows.
+    if a.is_c_contiguous() {
+        if let Ok(flat) = a.as_slice() {
+            return Ok(flat.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect());
+        }
     }
     Ok(a.as_array()
         .rows()

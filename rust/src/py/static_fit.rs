@@ -202,9 +202,10 @@ pub fn static_fit_batch_raw<'py>(
     }
     let (b, n) = (sh[0], sh[1]);
     let s = settings(model, method, start, max_iter, true, degenerate_std, 1e-3)?;
-    let data: Vec<f64> = match means.as_slice() {
-        Ok(x) => x.to_vec(),
-        Err(_) => means.as_array().iter().copied().collect(),
+    // `as_array().iter()` walks in logical (C) order whatever the memory layout.
+    let data: Vec<f64> = match (means.is_c_contiguous(), means.as_slice()) {
+        (true, Ok(x)) => x.to_vec(),
+        _ => means.as_array().iter().copied().collect(),
     };
     let gv = g.as_array().to_vec();
     let rows = py.detach(|| fit_batch(&data, b, n, &gv, sigma, &s))?;
