@@ -268,7 +268,7 @@ def _cf_outputs(eff: str, phi: np.ndarray, base: dict, des: object) -> np.ndarra
 
 
 def centrifuge_validation(n: int) -> list[str]:
-    from accelcal.gap_systems import CENTRIFUGE_EFFECTS
+    from accelcal.gap import CENTRIFUGE_EFFECTS
     from accelcal.sim.centrifuge import paper_design
 
     des = paper_design()

@@ -28,8 +28,13 @@ from .design import (
     predict_startup_accuracy,
 )
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
-from .gap import GapReport, allan_deviation, diagnose
-from .gap_systems import diagnose_centrifuge, diagnose_gradiometer
+from .gap import (
+    GapReport,
+    allan_deviation,
+    diagnose,
+    diagnose_centrifuge,
+    diagnose_gradiometer,
+)
 from .gradiometer import (
     Demodulated,
     StartupBias,

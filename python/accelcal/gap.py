@@ -1,43 +1,67 @@
-"""Sim-to-real gap diagnosis of a static norm-observation session (numerics in Rust).
+"""Sim-to-real gap diagnosis of static, centrifuge and gradiometer sessions (numerics in Rust).
 
 "Sim" is what the fitted calibration model plus its noise model predicts; "real" is the
-recorded session. :func:`diagnose` measures the gap (chi2, held-out gap), locates it (dwells,
-axes, time, temperature), attributes it to an effect of a dictionary (temperature bias and
-scale, drift, K2, K3, settling), says which effects this session cannot see at all, and how far
-the held-out gap shrinks once the chosen effect is in the model (selection redone inside every
-leave-one-dwell-out fold); an effect that improves the in-sample fit but does not lower the
-held-out gap is reported as "not_confirmed", not as the explanation. See GAP-DESIGN.md for the
-method; :mod:`accelcal.gap_systems` applies it to the centrifuge and the gradiometer.
+recorded session. :func:`diagnose` (static), :func:`diagnose_centrifuge` and
+:func:`diagnose_gradiometer` run one engine: they measure the gap (chi2, held-out gap), locate
+it (rows beyond the Bonferroni limit, groups, time, temperature), attribute it to an effect of
+the system's dictionary with a family-wise (min-p) correction, say which effects the session
+cannot see at all, and how far the held-out gap shrinks once the chosen effect is in the model
+(selection redone inside every leave-one-out fold). An effect that improves the in-sample fit
+but does not lower the held-out gap is reported as "not_confirmed", not as the explanation.
+:attr:`GapReport.structure` then says what the remaining gap is made of, with advice.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field
-from statistics import NormalDist
-from typing import Any
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._core import CalibrationError
-from .dwell import DwellSet, detect_dwells
+from ._core import CalibrationError, DegenerateDataError
+from ._validate import samples_array
+from .dwell import DwellSet, detect_dwells, dwell_stats
 
-__all__ = ["EFFECTS", "GapReport", "allan_deviation", "diagnose", "noise_inflation"]
+__all__ = [
+    "CENTRIFUGE_EFFECTS",
+    "EFFECTS",
+    "GRADIOMETER_EFFECTS",
+    "GapReport",
+    "GapStructure",
+    "allan_deviation",
+    "diagnose",
+    "diagnose_centrifuge",
+    "diagnose_gradiometer",
+    "noise_inflation",
+]
+
+_F64 = NDArray[np.float64]
 
 #: The static effect dictionary, with the unit of each effect's per-axis parameters.
-EFFECTS: dict[str, str] = {
-    "temperature_bias": "ug/K",
-    "temperature_scale": "ppm/K",
-    "drift": "ug/h",
-    "k2": "ug/g^2",
-    "k3": "ug/g^3",
-    "settling": "ppm of step",
+EFFECTS: dict[str, str] = {n: u for n, u, _ in _core.gap_dictionary("static")}
+#: Centrifuge dictionary: effect -> (number of parameters, unit).
+CENTRIFUGE_EFFECTS: dict[str, tuple[int, str]] = {
+    n: (d, u) for n, u, d in _core.gap_dictionary("centrifuge")
+}
+#: Gradiometer dictionary: effect -> unit (azimuth_error has one parameter per dwell).
+GRADIOMETER_EFFECTS: dict[str, str] = {n: u for n, u, _ in _core.gap_dictionary("gradiometer")}
+
+#: Attribution presets: values of ``trust_level`` and ``gate_margin``. "targeted" is the
+#: engine's default setting (validated in docs/gap-validation.md).
+PRESETS: dict[str, dict[str, float]] = {
+    "targeted": {"trust_level": _core.GapSettings().trust_level,
+                 "gate_margin": _core.GapSettings().gate_margin},
+    "conservative": {"trust_level": 0.1, "gate_margin": 0.0},
 }
 
-_DESIGN_FIX = {
+# ----------------------------------------------------------------------------------------------
+# Text for people: design fixes, separating experiments, fixed blind spots, advice.
+
+_STATIC_FIX = {
     "temperature_bias": "vary the temperature independently of pose and time (heat, then cool)",
     "temperature_scale": "vary the temperature while revisiting poses on both sides of each axis",
     "drift": "revisit early poses at the end of the session (time-symmetric schedule)",
@@ -45,7 +69,26 @@ _DESIGN_FIX = {
     "k3": "add poses between the axes (tilts of 35-55 deg), not only axis-aligned ones",
     "settling": "randomise the pose order so that step sizes vary",
 }
-
+_CENTRIFUGE_FIX = {
+    "lever_along": "add positions where each sensing axis is radial at several speeds "
+    "(lever arms along an axis scale with omega^2 like the radial force)",
+    "lever_across": "add positions with the spin axis inclined to the sensing axes "
+    "(across-axis offsets enter through c3_i c3_j)",
+    "radius_error": "add a speed where the radial force is small (or a 1 g reference): a "
+    "radius error scales A^2 like a common scale error",
+    "k3": "add speeds (at least three non-zero) and positions with both signs of each axis",
+    "misalignment": "add positions between the axes (45 deg rotations of the fixture)",
+    "cross_coupling": "add positions where two axes share the radial force (45 deg)",
+    "rate_offset": "add speeds spanning a wider range (a rate offset changes A by 2 dw/w)",
+}
+_GRADIOMETER_FIX = {
+    "drift": "record dwell times and use a time-symmetric (return-to-start) sequence",
+    "azimuth_error": "use more azimuths than the minimum (each dwell's error needs redundancy)",
+    "channel_scale": "use azimuths that rotate the gradient through both channels "
+    "(a balanced set, e.g. 0/45/90/135 deg)",
+    "warmup": "record from power-on over several warm-up time constants (a warm-up much longer "
+    "than the session looks like a linear drift)",
+}
 _SEPARATING = {
     frozenset({"temperature_bias", "drift"}): "a heat-then-cool temperature profile (temperature "
     "not monotone in time) separates temperature from drift",
@@ -66,31 +109,67 @@ _SEPARATING = {
 _GENERIC_SEPARATION = (
     "repeat the poses in random order with a non-monotone (heat-then-cool) temperature profile"
 )
+_STATIC_BLIND = [
+    {"effect": "wrong_g", "reason": "a wrong gravity reference g(1+delta) is absorbed by the "
+     "common scale factor: no static norm session can see it; check g against an absolute "
+     "gravity value"},
+    {"effect": "upper_coupling", "reason": "coupling beyond the lower-triangular K is a "
+     "rotation of the sensor frame, invisible to |a|; it needs an external attitude reference"},
+]
+_GRADIOMETER_BLIND = [
+    {"effect": "common_azimuth_offset", "reason": "a common azimuth offset rotates the "
+     "estimated gradient and leaves the bias unchanged: no start-up session can see it (it does "
+     "not affect the bias)"},
+]
 
 
-def _wilson_hilferty_sf(x: float, k: float) -> float:
-    """chi2(k) survival function (Wilson-Hilferty approximation; localisation tables only)."""
-    if k <= 0 or not math.isfinite(x):
-        return float("nan")
-    if x <= 0:
-        return 1.0
-    z = ((x / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
-    return 1.0 - NormalDist().cdf(z)
+def _radius_reason(om: _F64, radius: float, g: float) -> str:
+    """Why a radius error and a common scale error are (nearly) aliased in this design."""
+    sp = np.unique(np.round(np.abs(om), 6))
+    sp = sp[sp > 0]
+    a = sp**2 * radius / g
+    if sp.size <= 1:
+        return ("a radius error and a common scale error of A = omega^2 R / g are aliased: "
+                "with a single speed they change every reading by the same factor; add speeds "
+                "and an absolute radius measurement (or a 1 g reference)")
+    return (f"a radius error changes A = omega^2 R / g by the same factor at all {sp.size} "
+            f"speeds of this design (A = {', '.join(f'{x:.3g}' for x in a)} g), like a common "
+            "scale error of the radial readings: more speeds do not separate them, only the "
+            "1 g term differs and the per-axis scale factors absorb it (see the radius_error "
+            "candidate's principal-angle sines); measure the radius independently or add a "
+            "1 g reference")
 
 
-def _corr_p(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float]:
-    """Pearson correlation and its two-sided p-value (Fisher z)."""
-    n = x.size
-    if n < 4 or np.std(x) == 0 or np.std(y) == 0:
-        return float("nan"), float("nan")
-    r = float(np.corrcoef(x, y)[0, 1])
-    r = max(min(r, 0.999999), -0.999999)
-    z = math.atanh(r) * math.sqrt(n - 3)
-    return r, 2.0 * (1.0 - NormalDist().cdf(abs(z)))
+@dataclass(frozen=True)
+class _System:
+    """How one system's report is worded."""
 
+    name: str
+    units: str
+    fixes: dict[str, str]
+    blind: list[dict[str, str]]
+    row: str
+    axis_label: str
+    segment_label: str
+    axis_name: Callable[[float], str]
+    segment_name: Callable[[float], str]
+    separation: Callable[[str, str], str]
+
+
+def _static_separation(a: str, b: str) -> str:
+    return _SEPARATING.get(frozenset({a, b}), _GENERIC_SEPARATION)
+
+
+def _fixes_separation(fixes: dict[str, str]) -> Callable[[str, str], str]:
+    return lambda a, b: f"{fixes[a]}; {fixes[b]}"
+
+
+_STATIC = _System("static", "m/s^2", _STATIC_FIX, _STATIC_BLIND, "dwell(s)", "by pose axis",
+                  "by time third", lambda k: "xyz"[int(k)],
+                  lambda k: ("early", "middle", "late")[int(k)], _static_separation)
 
 # ----------------------------------------------------------------------------------------------
-# Allan deviation of within-dwell samples.
+# Allan deviation and the noise of dwell means.
 
 
 def allan_deviation(
@@ -109,12 +188,18 @@ def allan_deviation(
     tau : (j,) averaging times, s.
     adev : (j,) or (j, c) Allan deviation, the unit of ``x``.
     """
-    a = np.asarray(x, dtype=np.float64)
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        raise CalibrationError(f"x: unsupported dtype {a.dtype}; give real numbers")
+    a = a.astype(np.float64)
+    fs_v = _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
     one = a.ndim == 1
-    a2 = a.reshape(a.shape[0], -1)
+    a2 = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
     n = a2.shape[0]
     if n < 3:
-        raise CalibrationError("Allan deviation needs at least 3 samples")
+        raise CalibrationError(f"Allan deviation needs at least 3 samples; got {n}")
+    if not np.all(np.isfinite(a2)):
+        raise CalibrationError("x contains NaN or inf samples: remove them first")
     if m is None:
         mm = 2 ** np.arange(int(np.floor(np.log2(max(n // 3, 1)))) + 1)
     else:
@@ -126,8 +211,43 @@ def allan_deviation(
         avg = (c[k:] - c[:-k]) / k
         d = avg[k:] - avg[:-k]
         out[j] = np.sqrt(0.5 * np.mean(d * d, axis=0))
-    tau = mm / float(fs)
+    tau = mm / fs_v
     return tau, (out[:, 0] if one else out)
+
+
+def _dwell_inflation(samples: NDArray[Any], dwells: DwellSet, fs: float) -> _F64:
+    """Per-dwell factor by which the dwell-mean noise exceeds white noise, (k, 3); NaN for
+    dwells shorter than 64 samples (see :func:`noise_inflation`)."""
+    if dwells.start is None or dwells.stop is None:
+        raise CalibrationError("noise_inflation needs dwell start/stop indices")
+    out = np.full((len(dwells), 3), np.nan)
+    for j, (s0, s1) in enumerate(zip(dwells.start, dwells.stop, strict=True)):
+        seg = np.asarray(samples[int(s0) : int(s1)], dtype=np.float64)
+        L = seg.shape[0]
+        if L < 64:
+            continue
+        m16, m4 = max(L // 16, 2), max(L // 4, 4)
+        _, ad = allan_deviation(seg, fs, [1, m16, m4])
+        if ad.shape[0] < 3:
+            continue
+        s1w = np.maximum(ad[0], 1e-300)
+        r16 = ad[1] * math.sqrt(m16) / s1w
+        r4 = ad[2] * math.sqrt(m4) / s1w
+        slope = np.clip(np.log(np.maximum(r4, 1e-12) / np.maximum(r16, 1e-12))
+                        / math.log(m4 / m16), 0.0, 1.0)
+        out[j] = r4 * (L / m4) ** slope
+    return out
+
+
+def _pool_inflation(per_dwell: _F64) -> _F64:
+    """The median over dwells per axis (>= 1), used for every dwell (one dwell's ratio is
+    noisy)."""
+    ok = np.all(np.isfinite(per_dwell), axis=1)
+    k = per_dwell.shape[0]
+    if not ok.any():
+        return np.ones((k, 3))
+    f = np.maximum(np.median(per_dwell[ok], axis=0), 1.0)
+    return np.tile(f, (k, 1))
 
 
 def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[np.float64]:
@@ -139,68 +259,251 @@ def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[
     those two points (clipped to [0, 1]). Per axis, the median over dwells is used for every
     dwell (a single dwell's ratio is noisy). Returns (k, 3), >= 1 where noise is correlated.
     """
-    a = np.asarray(samples)
-    if dwells.start is None or dwells.stop is None:
-        raise CalibrationError("noise_inflation needs dwell start/stop indices")
-    ratios = []
-    for s0, s1 in zip(dwells.start, dwells.stop, strict=True):
-        seg = a[int(s0) : int(s1)].astype(np.float64)
-        L = seg.shape[0]
-        if L < 64:
-            continue
-        m16, m4 = max(L // 16, 2), max(L // 4, 4)
-        _, ad = allan_deviation(seg, fs, [1, m16, m4])
-        if ad.shape[0] < 3:
-            continue
-        s1w = np.maximum(ad[0], 1e-300)
-        r16 = ad[1] * math.sqrt(m16) / s1w
-        r4 = ad[2] * math.sqrt(m4) / s1w
-        slope = np.clip(np.log(np.maximum(r4, 1e-12) / np.maximum(r16, 1e-12)) / math.log(m4 / m16),
-                        0.0, 1.0)
-        ratios.append(r4 * (L / m4) ** slope)
-    k = len(dwells)
-    if not ratios:
-        return np.ones((k, 3))
-    f = np.maximum(np.median(np.array(ratios), axis=0), 1.0)
-    return np.tile(f, (k, 1))
+    a = samples_array(samples, "samples")
+    fs_v = _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
+    return _pool_inflation(_dwell_inflation(a, dwells, fs_v))
+
+
+def _half_means(samples: NDArray[Any], d: DwellSet) -> _F64 | None:
+    """First- and second-half sample means of every dwell, (k, 2, 3)."""
+    if d.start is None or d.stop is None:
+        return None
+    start = np.asarray(d.start, dtype=np.int64)
+    stop = np.asarray(d.stop, dtype=np.int64)
+    if np.any(stop - start < 2):
+        return None
+    mid = (start + stop) // 2
+    bounds = np.column_stack([np.concatenate([start, mid]), np.concatenate([mid, stop])])
+    hs = dwell_stats(samples, bounds)
+    k = len(d)
+    return np.stack([hs.mean[:k], hs.mean[k:]], axis=1)
+
+
+def _lsb(samples: NDArray[Any]) -> _F64 | None:
+    """Output resolution per axis from the spacing of distinct sample values (1 count for
+    integer input); None when the values look continuous."""
+    if samples.dtype.kind in "iu":
+        return np.ones(3)
+    x = np.asarray(samples[: min(samples.shape[0], 200_000)], dtype=np.float64)
+    out = np.empty(3)
+    for i in range(3):
+        u = np.unique(x[:, i])
+        du = np.diff(u)
+        du = du[du > 0]
+        if du.size == 0:
+            return None
+        step = float(du.min())
+        # Quantised: every spacing is (close to) a multiple of the smallest one.
+        if du.size > 10 and np.median(np.abs(du / step - np.round(du / step))) > 1e-3:
+            return None
+        out[i] = step
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Argument checks (CalibrationError naming the argument, the value and the valid range).
+
+
+def _number(name: str, value: Any, lo: float, hi: float, *, integer: bool = False,
+            lo_open: bool = False, hi_open: bool = False, kind: str = "") -> Any:
+    rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    kind = kind or ("an integer" if integer else "a number")
+    ok_type = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_))
+    v = float(value) if ok_type else math.nan
+    bad = (not ok_type or not math.isfinite(v) or (integer and v != round(v)) or v < lo or v > hi
+           or (lo_open and v == lo) or (hi_open and v == hi))
+    if bad:
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {value!r}")
+    return int(v) if integer else v
+
+
+def _choice(name: str, value: Any, options: Sequence[str]) -> str:
+    if not isinstance(value, str) or value not in options:
+        raise CalibrationError(f"{name} must be one of {', '.join(map(repr, options))}; "
+                               f"got {value!r}")
+    return value
+
+
+def _settings(*, alpha: Any, max_effects: Any, loo: Any, test: Any, gate: Any,
+              trust_level: Any, correction: Any, n_draws: Any, gate_margin: Any,
+              preset: Any) -> _core.GapSettings:
+    """Validated engine settings; the preset fills ``trust_level`` / ``gate_margin``."""
+    pr = PRESETS[_choice("preset", preset, list(PRESETS))]
+    return _core.GapSettings(
+        alpha=_number("alpha", alpha, 0.0, 1.0, lo_open=True, hi_open=True),
+        max_effects=_number("max_effects", max_effects, 0, 16, integer=True),
+        loo=bool(loo),
+        test=_choice("test", test, ("auto", "chi2", "f")),
+        gate=_choice("gate", gate, ("auto", "strict", "off")),
+        trust_level=_number("trust_level", pr["trust_level"] if trust_level is None
+                            else trust_level, 0.0, 1.0, hi_open=True),
+        correction=_choice("correction", correction, ("minp", "bonferroni")),
+        n_draws=_number("n_draws", n_draws, 0, 1_000_000, integer=True),
+        gate_margin=_number("gate_margin", pr["gate_margin"] if gate_margin is None
+                            else gate_margin, 0.0, 1e6),
+    )
+
+
+def _names(effects: Any, known: Sequence[str]) -> list[str]:
+    if isinstance(effects, str):
+        effects = list(known) if effects == "all" else [effects]
+    try:
+        seq = list(effects)
+    except TypeError:
+        raise CalibrationError(f"effects must be 'all' or a list of names from "
+                               f"{', '.join(known)}; got {effects!r}") from None
+    out: list[str] = []
+    for e in seq:
+        if not isinstance(e, str) or e not in known:
+            raise CalibrationError(f"unknown effect {e!r}; known: {', '.join(known)}")
+        if e not in out:
+            out.append(e)
+    return out
+
+
+def _real(x: Any, name: str, shape: tuple[int, ...] | None = None) -> _F64:
+    """A real float64 array (bool, complex, object and text refused), optionally of a shape."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        raise CalibrationError(f"{name}: unsupported dtype {a.dtype}; give real numbers")
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if shape is not None and a.shape != shape:
+        raise CalibrationError(f"{name} must have shape {shape}; got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{name} contains NaN or inf")
+    return a
 
 
 # ----------------------------------------------------------------------------------------------
 # Report.
 
 
+@dataclass(frozen=True)
+class StructureTest:
+    """One structure test.
+
+    name : "attitude", "time", "temperature", "pose_history", "persistence", "quantization"
+        or "per_dwell".
+    status : "testable", "too_few_dwells" (not testable: too few degrees of freedom), "blind"
+        (every column absorbed by the model), "no_time", "no_temperature",
+        "constant_temperature".
+    n_columns, d : columns offered and directions tested (outside the model's range).
+    statistic : F for the smooth and persistence tests, chi2/dof with the quantisation bias in
+        the noise model for "quantization", chi2/dof for "per_dwell".
+    p_value, p_adjusted : p-value and its min-p family-wise adjustment (smooth tests).
+    explained : fraction of the residual chi2 the test explains (smooth tests), the persistent
+        fraction (persistence), the fraction of the excess chi2 (quantization), the per-dwell
+        share of the residual variance (per_dwell).
+    """
+
+    name: str
+    status: str
+    n_columns: int
+    d: int
+    dof2: float
+    statistic: float
+    p_value: float
+    p_adjusted: float
+    explained: float
+
+
+@dataclass(frozen=True)
+class NoiseEmpirical:
+    """Dwell-mean noise of the residual from the half-dwell differences ``(r1 - r2) / 2``
+    (includes 1/f noise), against the noise model used, white noise and the Allan model
+    (RMS in the report's units; ratios empirical / model)."""
+
+    n: int
+    rms: float
+    rms_model: float
+    rms_white: float
+    rms_allan: float
+    ratio_model: float
+    ratio_white: float
+    ratio_allan: float
+    p_model: float
+
+
+@dataclass(frozen=True)
+class GapStructure:
+    """What the remaining gap is made of.
+
+    verdict : "none", "noise_model", "attitude", "time", "temperature", "pose_history",
+        "quantization" or "per_dwell".
+    statistic, p_value : the statistic behind the verdict and its (adjusted) p-value.
+    persistence : correlation of the residuals from the first- and second-half dwell means,
+        calibration held fixed (NaN when half-dwell means are absent:
+        ``persistence_testable`` is then False).
+    per_dwell_rms : random per-dwell offset that makes chi2/dof = 1, in ``units`` (moment
+        estimate; NaN without a noise model).
+    quantization_rms : RMS of the predicted quantisation bias of the residuals (NaN without an
+        LSB and within-dwell variances).
+    tests : every structure test (:class:`StructureTest`).
+    noise_empirical : :class:`NoiseEmpirical` (None without half-dwell means).
+    units : units of the RMS figures.
+    """
+
+    verdict: str
+    statistic: float
+    p_value: float
+    persistence: float
+    persistence_testable: bool
+    per_dwell_rms: float
+    quantization_rms: float
+    tests: tuple[StructureTest, ...]
+    noise_empirical: NoiseEmpirical | None
+    units: str = "m/s^2"
+
+    def test(self, name: str) -> StructureTest:
+        """The test called ``name``."""
+        for t in self.tests:
+            if t.name == name:
+                return t
+        raise KeyError(name)
+
+    def summary(self) -> str:
+        """The verdict in words, with the advice that follows."""
+        return _structure_text(self)
+
+
 @dataclass
 class GapReport:
-    """Result of :func:`diagnose` (residuals in m/s^2 and in sigma units).
+    """Result of :func:`diagnose`, :func:`diagnose_centrifuge` or :func:`diagnose_gradiometer`.
 
     Attributes
     ----------
     chi2, dof, chi2_per_dof, p_value : the global gap of the baseline fit (p is NaN when the
         noise model is unknown).
-    noise_model : description of the per-dwell noise used.
-    held_out_gap : leave-one-dwell-out gap G of the baseline (1 for an adequate model).
+    noise_model : description of the per-row noise used.
+    held_out_gap : leave-one-out gap G of the baseline (1 for an adequate model).
     dwells : per-row table (dict of (k,) arrays): index, resid and resid_after (in
         ``units``), e, t_stud, flag, e_after, z_loo_before, z_loo_after; static sessions add
-        t, temperature, pose_angle_deg and the aliases resid_mps2, resid_after_mps2 (one row
-        per dwell); the centrifuge adds omega (one row per position and speed); the
-        gradiometer azimuth_deg and channel (two rows per azimuth dwell).
-    where : localisation: flagged dwells, axes, time segments, temperature, serial correlation.
-    best : "temperature_bias", "temperature_scale", "drift", "k2", "k3", "settling" or "none".
+        t, temperature, pose_angle_deg, direction (k, 3) and the aliases resid_mps2,
+        resid_after_mps2 (one row per dwell); the centrifuge adds omega (one row per position
+        and speed); the gradiometer azimuth_deg and channel (two rows per azimuth dwell).
+    where : localisation: flagged rows, threshold, axes, segments, serial correlation,
+        temperature correlation (exact p-values).
+    best : the first selected effect, or "none".
     selected : all effects added (forward stepwise), in order.
     effects : ranked candidates: effect, status ("selected", "not_confirmed" = selected
-        in-sample but rejected by the held-out gate, "testable", "blind", ...), p_value (the
-        attribution test, named in ``test``: "chi2" or "F"), p_f, p_chi2, bic_weight, estimate
-        and std per axis (physical units), unit, sines (identifiability).
+        in-sample but rejected by the held-out gate, "testable", "blind", "no_temperature",
+        "constant_temperature", "no_time", "no_spin_axis", "too_few_dwells"), p_value (the
+        attribution test, named in ``test``: "chi2" or "F"), p_f, p_chi2, bic_weight,
+        estimate and std (physical units), unit, sines (identifiability).
     ambiguous : aliased sets with the experiment that separates them.
     blind_spots : effects this session cannot see (never "no effect"), with the reason.
     shrink : G_after / G_before (held out, selection redone in each fold).
     held_out_gap_after, excess_remaining : held-out figures.
     rms_before, rms_after : held-out RMS of the residual before and after, in ``units``
         (m/s^2 for static sessions, g for the centrifuge, E for the gradiometer).
-        ``rms_before_mps2`` / ``rms_after_mps2`` are aliases for static sessions only.
     remaining : chi2, dof and p-value after the chosen effects.
+    structure : :class:`GapStructure`, what the remaining gap is made of.
     statements : plain-language findings (bad input, not testable, unexplained remainder).
     system : "static", "centrifuge" or "gradiometer".
+    noise_curves : for the Allan panel of :meth:`plot` (tau, adev per axis of the
+        within-dwell samples, dwell length, per-axis std of the dwell means under each noise
+        model, input units); empty when not available.
     """
 
     n: int
@@ -211,7 +514,7 @@ class GapReport:
     p_value: float
     noise_model: str
     held_out_gap: float
-    dwells: dict[str, NDArray[Any]]
+    dwells: dict[str, Any]
     where: dict[str, Any]
     best: str
     selected: list[str]
@@ -229,8 +532,10 @@ class GapReport:
     params_after: NDArray[np.float64]
     std_after: NDArray[np.float64]
     alpha: float
+    structure: GapStructure
     system: str = "static"
     units: str = "m/s^2"
+    noise_curves: dict[str, Any] = field(default_factory=dict)
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
 
     @property
@@ -252,176 +557,515 @@ class GapReport:
     # -- text ---------------------------------------------------------------------------------
     def summary(self) -> str:
         """A plain-text report."""
-        L = []
-        p = "n/a (noise unknown)" if not math.isfinite(self.p_value) else f"{self.p_value:.2g}"
-        L.append(
-            f"Gap: chi2/dof = {self.chi2_per_dof:.2f} ({self.chi2:.1f} on {self.dof} dof, "
-            f"p = {p}); held-out gap G = {self.held_out_gap:.2f} (1 = adequate)"
-        )
-        L.append(f"Noise model: {self.noise_model}")
-        w = self.where
-        fl = w.get("flagged", [])
-        row, ax_lab, seg_lab = {
-            "centrifuge": ("row(s) (position x speed)", "by axis", "by speed (omega, rad/s)"),
-            "gradiometer": ("residual(s) (2 per azimuth dwell: inline, cross)", "by channel",
-                            "by group"),
-        }.get(self.system, ("dwell(s)", "by pose axis", "by time third"))
-        L.append(
-            "Where: "
-            + (f"{len(fl)} {row} beyond the Bonferroni limit {w['threshold']:.2f}: {fl}"
-               if fl else f"no single {row.split('(s)')[0]} beyond the Bonferroni limit "
-               f"{w['threshold']:.2f}")
-        )
-        ax = w.get("axes", [])
-        if ax:
-            L.append(f"  {ax_lab}: " + "; ".join(
-                f"{a['axis']}: {a['n']} {'dwells' if self.system == 'static' else 'rows'}, "
-                f"mean e^2 {a['mean_e2']:.2f}" for a in ax))
-        seg = w.get("segments", [])
-        if seg:
-            L.append(f"  {seg_lab}: " + "; ".join(
-                f"{s['segment']}: mean e^2 {s['mean_e2']:.2f}" for s in seg))
-        sc = w.get("serial")
-        if sc:
-            L.append(f"  serial correlation (time order): lag-1 r = {sc['r1']:.2f} "
-                     f"(p = {sc['p']:.2g}), Durbin-Watson {sc['durbin_watson']:.2f}")
-        tc = w.get("temperature")
-        if tc:
-            L.append(f"  vs temperature: r = {tc['r_T']:.2f} (p = {tc['p_T']:.2g}); vs dT/dt: "
-                     f"r = {tc['r_dTdt']:.2f} (p = {tc['p_dTdt']:.2g})")
-        L.append(f"Which effect: best = {self.best}"
-                 + (f" (selected in order: {', '.join(self.selected)})" if self.selected else ""))
-        L.append(f"  {'effect':<18} {'status':<20} {'p':>9} {'test':>4} {'BIC w':>6}  "
-                 "estimate +- std")
-        for e in self.effects:
-            pv = e["p_value"]
-            est = e["estimate"]
-            if (e["status"] in ("testable", "selected", "not_confirmed")
-                    and np.all(np.isfinite(est))):
-                pairs = zip(est, e["std"], strict=True)
-                mag = ", ".join(f"{v:.3g}+-{s:.2g}" for v, s in pairs) + f" {e['unit']}"
-            else:
-                mag = "-"
-            pvs = f"{pv:9.2g}" if math.isfinite(pv) else f"{'-':>9}"
-            bw = f"{e['bic_weight']:6.2f}" if math.isfinite(e["bic_weight"]) else f"{'-':>6}"
-            ts = e.get("test", "-") if math.isfinite(pv) else "-"
-            L.append(f"  {e['effect']:<18} {e['status']:<20} {pvs} {ts:>4} {bw}  {mag}")
-        wn = self.raw.get("weight_none", float("nan"))
-        L.append(f"  {'none':<18} {'':<20} {'':>9} {'':>4} {wn:6.2f}")
-        for a in self.ambiguous:
-            L.append(f"Ambiguous: {' / '.join(a['effects'])} (cosine {a['cosine']:.2f}); "
-                     f"to separate them: {a['experiment']}")
-        for b in self.blind_spots:
-            L.append(f"Blind spot: {b['effect']}: {b['reason']}")
-        L.append(
-            f"How far it shrinks: held-out G {self.held_out_gap:.2f} -> "
-            f"{self.held_out_gap_after:.2f} (shrink {self.shrink:.2f}, excess remaining "
-            f"{self.excess_remaining:.2f}); held-out RMS {self.rms_before:.3g} -> "
-            f"{self.rms_after:.3g} {self.units}"
-        )
-        for s in self.statements:
-            L.append(f"Note: {s}")
-        return "\n".join(L)
+        return _summary(self)
 
     def __str__(self) -> str:
         return self.summary()
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary (arrays as lists, NaN kept as float NaN)."""
+        """JSON-ready dictionary (arrays as lists, NaN kept as float NaN); :meth:`from_dict`
+        rebuilds the report."""
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
 
-        def conv(v: Any) -> Any:
-            if isinstance(v, np.ndarray):
-                return v.tolist()
-            if isinstance(v, dict):
-                return {k: conv(x) for k, x in v.items()}
-            if isinstance(v, (list, tuple)):
-                return [conv(x) for x in v]
-            if isinstance(v, np.generic):
-                return v.item()
-            return v
-
-        out = {k: conv(getattr(self, k)) for k in self.__dataclass_fields__ if k != "raw"}
-        return out
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> GapReport:
+        """Rebuild a report from :meth:`to_dict` (after a JSON round trip too)."""
+        kw = dict(d)
+        st = dict(kw["structure"])
+        st["tests"] = tuple(StructureTest(**t) for t in st["tests"])
+        ne = st.get("noise_empirical")
+        st["noise_empirical"] = None if ne is None else NoiseEmpirical(**ne)
+        kw["structure"] = GapStructure(**st)
+        for k in ("params", "params_after", "std_after"):
+            kw[k] = np.asarray(kw[k], dtype=np.float64)
+        kw["dwells"] = {k: (None if v is None else np.asarray(v))
+                        for k, v in kw["dwells"].items()}
+        for e in kw["effects"]:
+            e["estimate"] = np.asarray(e["estimate"], dtype=np.float64)
+            e["std"] = np.asarray(e["std"], dtype=np.float64)
+        kw["noise_curves"] = {k: (np.asarray(v) if isinstance(v, list) else v)
+                              for k, v in kw.get("noise_curves", {}).items()}
+        return cls(**kw)
 
     # -- figures ------------------------------------------------------------------------------
     def plot(self, fig: Any = None) -> Any:
-        """Residuals (sigma units) against time, temperature and pose, before and after.
+        """The gap figure (needs matplotlib, ``pip install accelcal[plot]``); see
+        :func:`accelcal.plots.gap_figure`. Returns the figure."""
+        from .plots import gap_figure
 
-        Needs matplotlib (``pip install accelcal[plot]``). Returns the figure.
-        """
-        try:
-            import matplotlib.pyplot as plt
-        except ImportError as exc:  # pragma: no cover - optional dependency
-            raise CalibrationError("plot() needs matplotlib: pip install accelcal[plot]") from exc
-        d = self.dwells
-        if "pose_angle_deg" not in d:  # centrifuge / gradiometer: residuals by row
-            if fig is None:
-                fig = plt.figure(figsize=(7, 3.4))
-            ax = fig.subplots(1, 1)
-            x = np.arange(len(d["e"]))
-            ax.plot(x, d["e"], "o", ms=4, label="baseline")
-            ax.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(self.selected) or 'none'}")
-            ax.axhline(0, color="k", lw=0.5)
-            ax.set_xlabel("row")
-            ax.set_ylabel("residual / sigma")
-            ax.legend(fontsize=8)
-            fig.suptitle(f"{self.system} gap: chi2/dof {self.chi2_per_dof:.2f}; best = {self.best}")
-            fig.tight_layout()
-            return fig
-        if fig is None:
-            fig = plt.figure(figsize=(11, 3.4))
-        axs = fig.subplots(1, 3, sharey=True)
-        t = d["t"] if d["t"] is not None else np.arange(self.n, dtype=float)
-        has_t = d["t"] is not None
-        xs: list[tuple[Any, str]] = [(t / 60.0 if has_t else t,
-                                      "time, min" if has_t else "dwell")]
-        xs.append((d["temperature"], "temperature") if d["temperature"] is not None else (None, ""))
-        xs.append((d["pose_angle_deg"], "angle of the z axis from vertical, deg"))
-        for axis, (x, lab) in zip(axs, xs, strict=True):
-            if x is None:
-                axis.text(0.5, 0.5, "no temperature recorded", ha="center",
-                          transform=axis.transAxes)
-                axis.set_axis_off()
-                continue
-            axis.plot(x, d["e"], "o", ms=4, label="baseline")
-            axis.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(self.selected) or 'none'}")
-            axis.axhline(0, color="k", lw=0.5)
-            for s in (-2, 2):
-                axis.axhline(s, color="grey", lw=0.5, ls=":")
-            axis.set_xlabel(lab)
-        axs[0].set_ylabel("norm residual / sigma")
-        axs[0].legend(fontsize=8)
-        fig.suptitle(f"gap: chi2/dof {self.chi2_per_dof:.2f}, held-out G {self.held_out_gap:.2f}"
-                     f" -> {self.held_out_gap_after:.2f}; best = {self.best}")
-        fig.tight_layout()
-        return fig
+        return gap_figure(self, fig)
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    if hasattr(v, "__dataclass_fields__"):
+        return {f.name: _plain(getattr(v, f.name)) for f in fields(v)}
+    return v
 
 
 # ----------------------------------------------------------------------------------------------
-# The diagnosis.
+# The one builder: _core.GapRaw -> GapReport, for every system.
 
 
-def _effect_list(effects: str | Sequence[str]) -> list[str]:
-    if isinstance(effects, str):
-        if effects == "all":
-            return list(EFFECTS)
-        effects = [effects]
-    out = []
-    for e in effects:
-        if e not in EFFECTS:
-            raise CalibrationError(f"unknown effect {e!r}; known: {', '.join(EFFECTS)}")
-        out.append(e)
+def _fmt_p(p: float) -> str:
+    return f"{p:.2g}" if math.isfinite(p) else "n/a"
+
+
+def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[str, Any]],
+                                                                       list[dict[str, str]]]:
+    effects = []
+    blind = [dict(b) for b in sysw.blind]
+    selected = list(raw.selected)
+    for c in raw.candidates:
+        st, nm = c.status, c.name
+        effects.append({
+            "effect": nm, "unit": c.unit,
+            "status": "selected" if nm in selected else st,
+            "p_value": c.p, "test": "chi2" if c.chi2_used else "F", "p_f": c.p_f,
+            "p_chi2": c.p_chi2 if noise_known else math.nan,
+            "bic_weight": c.weight, "score": c.score, "d": c.d,
+            "estimate": np.asarray(c.estimate, dtype=np.float64),
+            "std": np.asarray(c.std, dtype=np.float64), "sines": list(c.sines),
+        })
+        fix = sysw.fixes.get(nm, "")
+        reason = {
+            "blind": "every direction of it is absorbed by the calibration parameters "
+            f"(principal-angle sines {', '.join(f'{s:.3f}' for s in c.sines) or 'n/a'} < "
+            f"0.05): not testable with this design, NOT evidence of absence; to expose it: "
+            f"{fix}",
+            "no_temperature": "not testable: no temperature was recorded (this is not 'no "
+            "effect'); record the temperature of every dwell",
+            "constant_temperature": "not testable: temperature constant; heat or cool the "
+            "sensor between dwells to test it",
+            "no_time": "not testable: no dwell times t given (this is not 'no effect')",
+            "no_spin_axis": "not testable: no spin_axis given (lever arms need the body-frame "
+            "spin axis of every row; this is not 'no effect')",
+            "too_few_dwells": f"not testable: too few {sysw.row.split('(')[0]}s ({raw.n}) for "
+            f"its {c.d or len(c.estimate)} direction(s) beside the "
+            f"{raw.n - raw.dof} calibration parameters; to expose it: add "
+            f"{sysw.row.split('(')[0]}s" + (f" or {fix}" if fix else ""),
+        }.get(st)
+        if reason:
+            blind.append({"effect": nm, "reason": reason})
+    order = {"selected": 0, "not_confirmed": 1, "testable": 2}
+    nc = raw.not_confirmed
+    if nc is not None:
+        for e in effects:
+            if e["effect"] == nc[0]:
+                e["status"] = "not_confirmed"
+    effects.sort(key=lambda x: (order.get(x["status"], 3),
+                                x["p_value"] if math.isfinite(x["p_value"]) else 2.0))
+    return effects, blind
+
+
+def _where(raw: Any, sysw: _System) -> dict[str, Any]:
+    loc = raw.location
+    w: dict[str, Any] = {"threshold": loc.threshold, "flagged": list(loc.flagged)}
+    w["axes"] = [{"axis": sysw.axis_name(g.key), "n": g.n, "mean_e2": g.mean_e2, "p": g.p}
+                 for g in loc.axes]
+    w["segments"] = [{"segment": sysw.segment_name(g.key), "n": g.n, "mean_e2": g.mean_e2,
+                      "p": g.p} for g in loc.segments]
+    if loc.serial is not None:
+        r1, p1, dw = loc.serial
+        w["serial"] = {"r1": r1, "p": p1, "durbin_watson": dw}
+    if loc.temperature is not None:
+        rT, pT, rd, pd = loc.temperature
+        w["temperature"] = {"r_T": rT, "p_T": pT, "r_dTdt": rd, "p_dTdt": pd}
+    return w
+
+
+def _structure_of(raw: Any, units: str) -> GapStructure:
+    s = raw.structure
+    ne = s.noise_empirical
+    return GapStructure(
+        verdict=s.verdict, statistic=s.statistic, p_value=s.p_value,
+        persistence=s.persistence, persistence_testable=s.persistence_testable,
+        per_dwell_rms=s.per_dwell_rms, quantization_rms=s.quantization_rms,
+        tests=tuple(StructureTest(name=t.name, status=t.status, n_columns=t.n_columns, d=t.d,
+                                  dof2=t.dof2, statistic=t.statistic, p_value=t.p_value,
+                                  p_adjusted=t.p_adjusted, explained=t.explained)
+                    for t in s.tests),
+        noise_empirical=None if ne is None else NoiseEmpirical(
+            n=ne.n, rms=ne.rms, rms_model=ne.rms_model, rms_white=ne.rms_white,
+            rms_allan=ne.rms_allan, ratio_model=ne.ratio_model, ratio_white=ne.ratio_white,
+            ratio_allan=ne.ratio_allan, p_model=ne.p_model),
+        units=units,
+    )
+
+
+def _statements(raw: Any, selected: list[str], alpha: float, sysw: _System,
+                statements: list[str]) -> list[str]:
+    out = list(statements)
+    n = raw.n
+    loo = raw.loo
+    nc = raw.not_confirmed
+    testable_or_not = [c for c in raw.candidates if c.status not in (
+        "blind", "no_temperature", "constant_temperature", "no_time", "no_spin_axis")]
+    if testable_or_not and all(c.status == "too_few_dwells" for c in testable_or_not):
+        out.append(f"too few {sysw.row.split('(')[0]}s ({n}) for any effect test; add "
+                   f"{sysw.row.split('(')[0]}s")
+    if nc is not None:
+        out.append(f"{nc[0]} improves the in-sample fit (p = {nc[1]:.2g}) but does not reduce "
+                   f"the held-out gap (G {nc[2]:.2f} -> {nc[3]:.2f}): not an explanation")
+    if loo is None:
+        out.append(f"held-out gap not computed ({n} rows: too few for leave-one-out)")
+    elif loo.n_failed:
+        out.append(f"{loo.n_failed} leave-one-out fold(s) could not be fitted")
+    if raw.gate_skipped:
+        out.append(f"leave-one-out with {n} rows is too small to judge {', '.join(selected)} "
+                   "held out (a fold keeps fewer than 2 residual degrees of freedom): the "
+                   "held-out gate was skipped, the in-sample test decides; add rows to confirm "
+                   "it held out")
+    if raw.noise_known and math.isfinite(raw.p_chi2) and raw.p_chi2 < alpha:
+        if not selected:
+            out.append("the gap is significant but no dictionary effect explains it: see "
+                       "'Structure' for what it is made of")
+        elif math.isfinite(raw.p_after) and raw.p_after < alpha:
+            out.append(f"after {', '.join(selected)} a significant gap remains (chi2/dof "
+                       f"{raw.chi2_after / max(raw.dof_after, 1):.2f}): no dictionary effect "
+                       "fully explains it; see 'Structure'")
     return out
 
 
-def _start_from(fit: Any) -> list[float] | None:
+def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_model: str,
+                  statements: list[str], rows: dict[str, Any],
+                  noise_curves: dict[str, Any] | None = None) -> GapReport:
+    """The one builder of :class:`GapReport` for every system."""
+    n = raw.n
+    noise_known = bool(raw.noise_known)
+    effects, blind = _effect_rows(raw, sysw, noise_known)
+    selected = list(raw.selected)
+    loo = raw.loo
+    nan = np.full(n, np.nan)
+    loc = raw.location
+    dw: dict[str, Any] = {
+        "index": np.asarray(rows.pop("index", np.arange(n)), dtype=np.int64),
+        "resid": np.asarray(raw.resid), "e": np.asarray(raw.e),
+        "t_stud": np.asarray(loc.t_stud), "flag": np.isin(np.arange(n), loc.flagged),
+        "resid_after": np.asarray(raw.resid_after), "e_after": np.asarray(raw.e_after),
+        "z_loo_before": np.asarray(loo.z_before) if loo else nan,
+        "z_loo_after": np.asarray(loo.z_after) if loo else nan,
+        **rows,
+    }
+    where = _where(raw, sysw)
+    where["flagged"] = [int(dw["index"][k]) for k in loc.flagged]
+    ambiguous = []
+    groups: dict[str, list[tuple[str, float]]] = {}
+    for a_, b_, cos in raw.ambiguous:
+        groups.setdefault(a_, []).append((b_, cos))
+    for a_, lst in groups.items():
+        exps = [sysw.separation(a_, b) for b, _ in lst]
+        ambiguous.append({"effects": [a_] + [b for b, _ in lst],
+                          "cosine": max(c for _, c in lst),
+                          "experiment": "; ".join(dict.fromkeys(exps))})
+    g_b = loo.g_before if loo else math.nan
+    g_a = loo.g_after if loo else math.nan
+    chi2, dof = float(raw.chi2), int(raw.dof)
+    return GapReport(
+        n=n, g=g, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof if dof else math.nan,
+        p_value=float(raw.p_chi2), noise_model=noise_model, held_out_gap=g_b, dwells=dw,
+        where=where, best=selected[0] if selected else "none", selected=selected,
+        effects=effects, ambiguous=ambiguous, blind_spots=blind,
+        shrink=g_a / g_b if loo and g_b > 0 else math.nan, held_out_gap_after=g_a,
+        excess_remaining=(g_a - 1.0) / (g_b - 1.0) if loo and g_b > 1.0 else math.nan,
+        rms_before=loo.rms_before if loo else math.nan,
+        rms_after=loo.rms_after if loo else math.nan,
+        remaining={"chi2": float(raw.chi2_after), "dof": float(raw.dof_after),
+                   "p": float(raw.p_after)},
+        statements=_statements(raw, selected, alpha, sysw, statements),
+        params=np.asarray(raw.base_params), params_after=np.asarray(raw.params_after),
+        std_after=np.asarray(raw.std_after), alpha=float(alpha),
+        structure=_structure_of(raw, sysw.units), system=sysw.name, units=sysw.units,
+        noise_curves=noise_curves or {},
+        raw={"weight_none": raw.weight_none, "step_p": list(raw.step_p),
+             "stop_p": raw.stop_p, "step_p_adj": list(raw.step_p_adj),
+             "step_m": list(raw.step_m), "stop_p_adj": raw.stop_p_adj,
+             "fold_counts": dict(zip([nm for nm, _, _ in _core.gap_dictionary(sysw.name)],
+                                     loo.fold_counts, strict=True)) if loo else {},
+             "g_steps": list(loo.g_steps) if loo else [],
+             "not_confirmed": None if raw.not_confirmed is None else tuple(raw.not_confirmed),
+             "noise_scale": raw.noise_scale},
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Summary text.
+
+
+def _smooth_phrase(name: str) -> str:
+    return {"attitude": "attitude", "time": "time", "temperature": "temperature",
+            "pose_history": "previous pose"}[name]
+
+
+def _mag(v: float, units: str) -> str:
+    if units == "m/s^2" and math.isfinite(v):
+        return f"{1e3 * v:.2g} mm/s^2"
+    return f"{v:.3g} {units}"
+
+
+def _structure_text(s: GapStructure) -> str:
+    """The verdict in words, with advice."""
+    tested = [t for t in s.tests if t.name in ("attitude", "time", "temperature", "pose_history")]
+    smooth_ok = [t for t in tested if t.status == "testable"]
+    untestable = [t for t in tested if t.status == "too_few_dwells"]
+    not_smooth = ", ".join(_smooth_phrase(t.name) for t in smooth_ok) or "nothing tested"
+    pers = (f"half-dwell residual correlation {s.persistence:.2f}" if s.persistence_testable
+            else "persistence untestable (no half-dwell means)")
+    v = s.verdict
+    if v == "none":
+        txt = ("none: the residuals are consistent with the noise model and show no structure "
+               f"(smooth in {not_smooth}: none significant)")
+    elif v == "noise_model":
+        ne = s.noise_empirical
+        emp = ""
+        if ne is not None:
+            emp = (f"; the half-dwell differences give a dwell-mean noise of "
+                   f"{_mag(ne.rms, s.units)} RMS, {ne.ratio_model:.2g}x the noise model's")
+        txt = (f"noise_model: the excess does not persist within a dwell ({pers}; F = "
+               f"{s.statistic:.2f}, p = {_fmt_p(s.p_value)}){emp}: the noise model is too "
+               "optimistic (noise correlated within the dwells); use the empirical or the "
+               "Allan noise model; longer dwells won't help with 1/f noise, more dwells will")
+    elif v in ("attitude", "time", "temperature", "pose_history"):
+        t = next(x for x in s.tests if x.name == v)
+        what = {
+            "attitude": "a smooth function of attitude (real spherical harmonics of degree 3 "
+            "and 4 of the gravity direction; degree <= 2 is absorbed by the 9 calibration "
+            "parameters and cannot be seen): a nonlinearity or cross-axis term beyond the "
+            "model; add poses between the axes and test K2/K3, or fit a higher-order model",
+            "time": "a smooth function of time beyond the dictionary's linear drift (bias or "
+            "scale): warm the sensor up longer, use a time-symmetric schedule, or model the "
+            "drift with a higher-order term",
+            "temperature": "a smooth function of temperature beyond the dictionary's linear "
+            "terms: calibrate at several temperatures or stabilise the temperature",
+            "pose_history": "a dependence on the previous pose (hysteresis of the mount or the "
+            "sensor): approach every pose from different directions, wait longer after each "
+            "move, or check the mount",
+        }[v]
+        txt = (f"{v}: {what} (F = {t.statistic:.2f}, p adjusted = {_fmt_p(t.p_adjusted)}, "
+               f"explains {100 * t.explained:.0f} % of the residual chi2)")
+    elif v == "quantization":
+        t = next(x for x in s.tests if x.name == "quantization")
+        txt = (f"quantization: the within-dwell noise is below about one LSB, so the dwell "
+               f"means carry a quantisation bias (predicted {_mag(s.quantization_rms, s.units)} "
+               f"RMS on the residual, {100 * t.explained:.0f} % of the excess chi2); add "
+               "dither (noise or vibration of about one LSB), use a finer output resolution, "
+               "or include the quantisation bias in the noise model")
+    else:
+        mag = _mag(s.per_dwell_rms, s.units) if math.isfinite(s.per_dwell_rms) else "n/a"
+        if s.persistence_testable:
+            txt = (f"per_dwell: per-dwell offsets of {mag} RMS, persistent within dwells "
+                   f"({pers}), not smooth in {not_smooth}: suspect handling or mounting "
+                   "(each placement seats differently); repeat three poses to measure it")
+        else:
+            txt = (f"per_dwell: a per-dwell excess of {mag} RMS, not smooth in {not_smooth}; "
+                   f"{pers}: it is either per-dwell offsets (handling, mounting) or noise the "
+                   "model misses; record half-dwell means (the dwell pass keeps them) to tell "
+                   "them apart")
+    if untestable:
+        txt += "; not testable (too few dwells): " + ", ".join(
+            f"{t.name} ({t.n_columns} columns need > {t.n_columns + 9} dwells)"
+            for t in untestable)
+    return txt
+
+
+def _summary(r: GapReport) -> str:
+    L = []
+    p = "n/a (noise unknown)" if not math.isfinite(r.p_value) else f"{r.p_value:.2g}"
+    L.append(f"Gap: chi2/dof = {r.chi2_per_dof:.2f} ({r.chi2:.1f} on {r.dof} dof, p = {p}); "
+             f"held-out gap G = {r.held_out_gap:.2f} (1 = adequate)")
+    L.append(f"Noise model: {r.noise_model}")
+    w = r.where
+    fl = w.get("flagged", [])
+    row, ax_lab, seg_lab = {
+        "centrifuge": ("row(s) (position x speed)", "by axis", "by speed (omega, rad/s)"),
+        "gradiometer": ("residual(s) (2 per azimuth dwell: inline, cross)", "by channel",
+                        "by group"),
+    }.get(r.system, ("dwell(s)", "by pose axis", "by time third"))
+    L.append("Where: " + (f"{len(fl)} {row} beyond the Bonferroni limit {w['threshold']:.2f}: "
+                          f"{fl}" if fl else f"no single {row.split('(s)')[0]} beyond the "
+                          f"Bonferroni limit {w['threshold']:.2f}"))
+    if w.get("axes"):
+        L.append(f"  {ax_lab}: " + "; ".join(
+            f"{a['axis']}: {a['n']} {'dwells' if r.system == 'static' else 'rows'}, "
+            f"mean e^2 {a['mean_e2']:.2f}" for a in w["axes"]))
+    if w.get("segments"):
+        L.append(f"  {seg_lab}: " + "; ".join(f"{s['segment']}: mean e^2 {s['mean_e2']:.2f}"
+                                             for s in w["segments"]))
+    sc = w.get("serial")
+    if sc:
+        L.append(f"  serial correlation (time order): lag-1 r = {sc['r1']:.2f} "
+                 f"(p = {_fmt_p(sc['p'])}), Durbin-Watson {sc['durbin_watson']:.2f}")
+    tc = w.get("temperature")
+    if tc:
+        L.append(f"  vs temperature: r = {tc['r_T']:.2f} (p = {_fmt_p(tc['p_T'])}); vs dT/dt: "
+                 f"r = {tc['r_dTdt']:.2f} (p = {_fmt_p(tc['p_dTdt'])})")
+    L.append(f"Which effect: best = {r.best}"
+             + (f" (selected in order: {', '.join(r.selected)})" if r.selected else ""))
+    L.append(f"  {'effect':<18} {'status':<20} {'p':>9} {'test':>4} {'BIC w':>6}  "
+             "estimate +- std")
+    for e in r.effects:
+        pv, est = e["p_value"], e["estimate"]
+        if (e["status"] in ("testable", "selected", "not_confirmed") and len(est)
+                and np.all(np.isfinite(est))):
+            mag = ", ".join(f"{v:.3g}+-{s:.2g}" for v, s in zip(est, e["std"], strict=True))
+            mag += f" {e['unit']}"
+        else:
+            mag = "-"
+        pvs = f"{pv:9.2g}" if math.isfinite(pv) else f"{'-':>9}"
+        bw = f"{e['bic_weight']:6.2f}" if math.isfinite(e["bic_weight"]) else f"{'-':>6}"
+        ts = e.get("test", "-") if math.isfinite(pv) else "-"
+        L.append(f"  {e['effect']:<18} {e['status']:<20} {pvs} {ts:>4} {bw}  {mag}")
+    L.append(f"  {'none':<18} {'':<20} {'':>9} {'':>4} {r.raw.get('weight_none', math.nan):6.2f}")
+    for a in r.ambiguous:
+        L.append(f"Ambiguous: {' / '.join(a['effects'])} (cosine {a['cosine']:.2f}); to "
+                 f"separate them: {a['experiment']}")
+    for b in r.blind_spots:
+        L.append(f"Blind spot: {b['effect']}: {b['reason']}")
+    L.append(f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
+             f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining "
+             f"{r.excess_remaining:.2f}); held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} "
+             f"{r.units}")
+    L.append(f"Structure: {r.structure.summary()}")
+    ne = r.structure.noise_empirical
+    if ne is not None:
+        parts = [f"{ne.ratio_model:.2f}x the model"]
+        if math.isfinite(ne.ratio_white):
+            parts.append(f"{ne.ratio_white:.2f}x white")
+        if math.isfinite(ne.ratio_allan):
+            parts.append(f"{ne.ratio_allan:.2f}x Allan")
+        L.append(f"  dwell-mean noise from half-dwell differences: {_mag(ne.rms, r.units)} RMS "
+                 f"({', '.join(parts)})")
+    for s in r.statements:
+        L.append(f"Note: {s}")
+    return "\n".join(L)
+
+
+# ----------------------------------------------------------------------------------------------
+# Static diagnosis.
+
+
+def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bool] | None:
+    """(K, b, fixed) of a StaticFit (start), a TriadModel (held fixed) or 9 parameters."""
+    from .static import StaticFit, TriadModel
+
     if fit is None:
         return None
-    p = getattr(fit, "params", fit)
-    v = np.asarray(p, dtype=np.float64).reshape(-1)
+    if isinstance(fit, TriadModel):
+        K = np.asarray(fit.K, dtype=np.float64)
+        if fit.units == "g":
+            K = K / g
+        return K.tolist(), np.asarray(fit.bias, dtype=np.float64).tolist(), True
+    if isinstance(fit, StaticFit):
+        return (np.asarray(fit.K, dtype=np.float64).tolist(),
+                np.asarray(fit.bias, dtype=np.float64).tolist(), False)
+    try:
+        v = np.asarray(fit, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        v = np.zeros(0)
     if v.size != 9 or not np.all(np.isfinite(v)):
-        raise CalibrationError("fit must be a StaticFit or [sx,sy,sz,bx,by,bz,m1,m2,m3]")
-    return [float(x) for x in v]
+        raise CalibrationError("fit must be a StaticFit (used as the start), a TriadModel (an "
+                               "existing calibration, checked against this session) or the 9 "
+                               f"values [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {type(fit).__name__}")
+    K = [[v[0], 0.0, 0.0], [v[6], v[1], 0.0], [v[7], v[8], v[2]]]
+    return K, v[3:6].tolist(), False
+
+
+def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
+               ) -> tuple[DwellSet, NDArray[Any] | None, float | None]:
+    """The DwellSet (detected from a raw stream when needed), the samples and fs."""
+    if isinstance(data, DwellSet):
+        if t is not None or temperature is not None:
+            raise CalibrationError("t= and temperature= are per-sample arrays for a raw stream; "
+                                   "a DwellSet carries its own t and temperature")
+        return data, None, data.fs
+    if fs is None:
+        raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
+    fs_v = _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
+    samples = samples_array(data, "samples")
+    try:
+        d = detect_dwells(samples, fs_v, t=t, temperature=temperature)
+    except CalibrationError as exc:
+        if "(0, 3)" in str(exc) or "no dwell" in str(exc).lower():
+            d = None
+        else:
+            raise
+    if d is None or len(d) == 0:
+        raise CalibrationError(
+            f"no static dwells detected in the stream ({samples.shape[0]} samples at "
+            f"{fs_v:g} Hz): the sensor never rests long enough, or fs is wrong; check the "
+            "detector settings (accelcal.detect_dwells) or pass a DwellSet")
+    return d, samples, fs_v
+
+
+def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
+           order: NDArray[np.int64]) -> tuple[_F64 | None, str, _F64 | None, _F64 | None]:
+    """Per-axis variance of each dwell mean used, its description, and the white and Allan
+    variances (for the empirical-noise comparison)."""
+    k = len(d)
+    white = allan = None
+    if d.var is not None and d.count is not None:
+        white = (d.var / d.count[:, None])[order]
+        if inflation is not None:
+            allan = white * inflation[order] ** 2
+    if noise is not None:
+        nz = _real(noise, "noise")
+        if nz.size == 3:
+            sig = np.broadcast_to(nz.reshape(1, 3), (k, 3))
+        elif nz.shape == (k, 3):
+            sig = nz[order]
+        else:
+            raise CalibrationError(f"noise must have shape (3,) or ({k}, 3); got {nz.shape}")
+        if np.any(sig <= 0):
+            raise CalibrationError("noise must be positive (std of each dwell mean)")
+        return np.ascontiguousarray(sig**2), "given std of each dwell mean", white, allan
+    if white is None:
+        return (None, "unknown (no var/count): unit weights scaled to the baseline fit; the "
+                "absolute gap is not testable, attribution uses sigma-free F tests", None, None)
+    if np.any(white <= 0):
+        bad = np.where(np.any(white <= 0, axis=1))[0]
+        raise CalibrationError(f"dwell(s) {order[bad].tolist()} have zero variance: the noise "
+                               "model needs var > 0 (quantised constant output?)")
+    use_allan = allan is not None and noise_model in ("auto", "allan")
+    if noise_model == "allan" and allan is None:
+        raise CalibrationError("noise_model='allan' needs the raw stream (or a DwellSet with "
+                               "inflation)")
+    if use_allan:
+        assert inflation is not None and allan is not None
+        f = np.nanmedian(inflation, axis=0)
+        return (np.ascontiguousarray(allan), "Allan deviation of the within-dwell samples at "
+                f"tau = dwell length (inflation over white noise x/y/z "
+                f"{', '.join(f'{v:.2f}' for v in f)})", white, allan)
+    return np.ascontiguousarray(white), "white noise: var / count of each dwell", white, allan
+
+
+def _noise_curves(samples: NDArray[Any] | None, d: DwellSet, fs: float | None,
+                  var_used: _F64 | None, white: _F64 | None, allan: _F64 | None,
+                  half: _F64 | None) -> dict[str, Any]:
+    """Data of the Allan panel (input units; tau in s)."""
+    out: dict[str, Any] = {}
+    if d.count is not None and fs:
+        out["dwell_s"] = float(np.median(d.count) / fs)
+    if samples is not None and fs and d.start is not None and d.stop is not None:
+        L = int(np.max(d.stop - d.start))
+        j = int(np.argmax(d.stop - d.start))
+        seg = samples[int(d.start[j]) : int(d.stop[j])]
+        if L >= 8:
+            tau, ad = allan_deviation(seg, fs)
+            out["tau"], out["adev"] = tau, ad
+    for nm, v in (("std_used", var_used), ("std_white", white), ("std_allan", allan)):
+        if v is not None:
+            out[nm] = np.sqrt(np.median(v, axis=0))
+    if half is not None:
+        dh = 0.5 * (half[:, 0] - half[:, 1])
+        out["std_empirical"] = np.sqrt(np.mean(dh**2, axis=0))
+    return out
 
 
 def diagnose(
@@ -444,28 +1088,32 @@ def diagnose(
     preset: str = "targeted",
     t: ArrayLike | None = None,
     temperature: ArrayLike | None = None,
+    noise_model: Literal["auto", "white", "allan"] = "auto",
 ) -> GapReport:
     """Diagnose the sim-to-real gap of a static session.
 
     Parameters
     ----------
     data : DwellSet (dwell means in raw units, with ``var`` and ``count`` for the noise model,
-        ``t`` in s and, when recorded, ``temperature``), or a raw (N, 3) sample stream (then
-        ``fs`` is required: dwells are detected and the noise of each dwell mean comes from the
-        Allan deviation of its samples, see :func:`noise_inflation`).
+        ``t`` in s and, when recorded, ``temperature``; ``half_mean``, ``inflation`` and
+        ``lsb`` when the dwell pass kept them), or a raw (N, 3) sample stream (then ``fs`` is
+        required: dwells are detected, and the half-dwell means, the Allan-deviation noise of
+        every dwell mean (:func:`noise_inflation`) and the output resolution come from the
+        samples).
     g : local gravity, m/s^2.
-    fit : optional StaticFit (or its 9 parameters) used as the start instead of the exact
-        linear quadric fit.
+    fit : a StaticFit (its calibration is the start instead of the exact linear quadric fit),
+        a TriadModel (an existing calibration, held fixed: the diagnosis checks it against
+        this session instead of refitting it), or the 9 values [sx,sy,sz,bx,by,bz,m1,m2,m3].
     effects : "all" or a list of effect names (see :data:`EFFECTS`).
     alpha : family-wise false-alarm level of the attribution over the testable candidates of
-        each stepwise stage (see ``correction``).
+        each stepwise stage (see ``correction``) and of the structure tests.
     fs : sample rate, Hz (raw streams).
     noise : optional std of each dwell mean, (k, 3) or (3,), raw units; overrides var/count.
     loo : compute the leave-one-dwell-out held-out gap (the "how far it shrinks" figures).
-    max_effects : at most this many effects are added.
+    max_effects : at most this many effects are added (0-16).
     test : attribution test: "auto" (chi2 score test when the noise model is known and what
-        remains after the candidate is consistent with it, upper-tail p > 0.1; the sigma-free F
-        test otherwise), "chi2" or "f".
+        remains after the candidate is consistent with it, upper-tail p > ``trust_level``;
+        the sigma-free F test otherwise), "chi2" or "f".
     gate : held-out gate. "strict": an effect selected in-sample is reported as the
         explanation only if it lowers the leave-one-dwell-out gap (selection redone in every
         fold); otherwise it is listed with status "not_confirmed" and the selection stops
@@ -479,281 +1127,247 @@ def diagnose(
         probability that the smallest p-value over the candidates, computed on the null
         residual ``(I - H) z`` with ``z ~ N(0, I)`` (each candidate keeping the chi2 or F
         test chosen on the data), is at most the observed one; Monte Carlo with fixed-seed
-        draws, so results are reproducible, and never above the Bonferroni bound. It gains
-        power over "bonferroni" (``p < alpha / M``) because the candidates' projected
-        columns are correlated.
-    n_draws : at most this many null draws per min-p decision (sequential: fewer when the
-        decision is clear; Monte Carlo error of the adjusted p near alpha = 0.05 about 0.0035
-        at 4000).
+        draws, so results are reproducible, and never above the Bonferroni bound. "bonferroni":
+        ``p < alpha / M``.
+    n_draws : at most this many null draws per min-p decision (0 - 1e6).
     gate_margin : with ``gate="auto"``, an effect after which the remainder is consistent
         in-sample is also kept when the held-out ``G^2`` grows by at most ``gate_margin *
-        sqrt(2/n)`` (a gentler gate: more weak effects confirmed, but more attributions
-        under a mis-scaled noise model; see docs/gap-validation.md).
-    preset : defaults of ``trust_level`` / ``gate_margin`` when they are not given.
-        "targeted" (default; 0.02 / 1.0): the setting validated to meet the issue's targets
-        (false alarms <= 5 %, top-1 >= 99 % at lambda >= 30 and >= 80 % at lambda 10-30 with a
-        designed schedule); when the reported noise is 1.5x too small it attributes an effect
-        in about 21 % of effect-free sessions (the summary then also reports a remaining
-        gap). "conservative" (0.1 / 0.0): about 12 % in that case, at the price of about 75 %
-        top-1 for weak effects. Use "conservative" when the noise model is in doubt.
+        sqrt(2/n)``.
+    preset : defaults of ``trust_level`` / ``gate_margin`` when they are not given (see
+        :data:`PRESETS`). "targeted" (default): the engine's default, validated to meet the
+        targets of docs/gap-validation.md. "conservative" (0.1 / 0.0): fewer attributions when
+        the reported noise is too small, at the price of power for weak effects. Use
+        "conservative" when the noise model is in doubt.
     t, temperature : with a raw sample stream, per-sample time (s) and temperature, (N,)
-        each, passed to :func:`accelcal.detect_dwells` (dwell mid time and mean temperature;
-        the temperature effects are testable on the raw path only with ``temperature``).
-        Not allowed with a DwellSet, which carries its own.
+        each, passed to :func:`accelcal.detect_dwells`. Not allowed with a DwellSet, which
+        carries its own.
+    noise_model : "auto" (the Allan model when within-dwell information is available - a raw
+        stream or a DwellSet with ``inflation`` - white noise otherwise), "white" or "allan".
 
     Returns
     -------
     GapReport
     """
-    presets = {"targeted": (0.02, 1.0), "conservative": (0.1, 0.0)}
-    if preset not in presets:
-        raise CalibrationError(f"preset must be one of {sorted(presets)}; got {preset!r}")
-    if trust_level is None:
-        trust_level = presets[preset][0]
-    if gate_margin is None:
-        gate_margin = presets[preset][1]
-    eff = _effect_list(effects)
-    inflation = None
-    if isinstance(data, DwellSet):
-        if t is not None or temperature is not None:
-            raise CalibrationError("t= and temperature= are per-sample arrays for a raw stream; "
-                                   "a DwellSet carries its own t and temperature")
-        d = data
-    else:
-        if fs is None:
-            raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
-        samples = np.asarray(data)
-        d = detect_dwells(samples, fs, t=t, temperature=temperature)
-        if len(d) == 0:
-            raise CalibrationError("no static dwells detected in the stream")
-        inflation = noise_inflation(samples, d, fs)
+    settings = _settings(alpha=alpha, max_effects=max_effects, loo=loo, test=test, gate=gate,
+                         trust_level=trust_level, correction=correction, n_draws=n_draws,
+                         gate_margin=gate_margin, preset=preset)
+    g_v = _number("g", g, 0.0, math.inf, lo_open=True, hi_open=True,
+                  kind="a positive gravity value in m/s^2")
+    eff = _names(effects, list(EFFECTS))
+    cal = _calibration(fit, g_v)
+    noise_model = _choice("noise_model", noise_model, ("auto", "white", "allan"))
+    d, samples, fs_v = _dwells_of(data, fs, t, temperature)
+    inflation = getattr(d, "inflation", None)
+    half = getattr(d, "half_mean", None)
+    lsb = getattr(d, "lsb", None)
+    if samples is not None and fs_v is not None:
+        if inflation is None:
+            inflation = _pool_inflation(_dwell_inflation(samples, d, fs_v))
+        if half is None:
+            half = _half_means(samples, d)
+        if lsb is None:
+            lsb = _lsb(samples)
+    elif inflation is not None:
+        inflation = _pool_inflation(np.asarray(inflation, dtype=np.float64))
     k = len(d)
     order = np.arange(k)
     if d.t is not None and np.any(np.diff(d.t) < 0):
         order = np.argsort(d.t, kind="stable")
+    need = 2 if cal is not None and cal[2] else 10
+    if k < need:
+        raise DegenerateDataError(
+            f"{k} dwells: the 9-parameter model needs at least 10 dwells for any gap test"
+            + (" (at least 2 to check a fixed calibration)" if need == 2 else ""))
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)
-    t = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
+    tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None
             else np.ascontiguousarray(d.temperature[order], dtype=np.float64))
-    statements: list[str] = []
-    if noise is not None:
-        nz = np.asarray(noise, dtype=np.float64)
-        sig = np.broadcast_to(nz.reshape(-1, 3) if nz.size != 3 else nz.reshape(1, 3), (k, 3))
-        sig = np.ascontiguousarray(sig[order] if sig.shape[0] == k and nz.size != 3 else sig)
-        noise_model = "given std of each dwell mean"
-    elif d.var is not None and d.count is not None:
-        sig = np.sqrt(d.var[order] / d.count[order, None])
-        noise_model = "white noise: sqrt(var / count) of each dwell"
-        if inflation is not None:
-            sig = sig * inflation[order]
-            noise_model = ("Allan deviation of the within-dwell samples at tau = dwell length "
-                           f"(inflation over white noise x/y/z "
-                           f"{', '.join(f'{v:.2f}' for v in inflation[0])})")
-        if np.any(sig <= 0):
-            bad = np.where(np.any(sig <= 0, axis=1))[0]
-            raise CalibrationError(f"dwell(s) {order[bad].tolist()} have zero variance: the noise "
-                                   "model needs var > 0 (quantised constant output?)")
-    else:
-        sig = None
-        noise_model = ("unknown (no var/count): unit weights scaled to the baseline fit; the "
-                       "absolute gap is not testable, attribution uses sigma-free F tests")
-        statements.append("no per-dwell variance given: chi2 gap not testable (F tests only)")
-    if k < 10:
-        raise _core.DegenerateDataError(
-            f"{k} dwells: the 9-parameter model needs at least 10 dwells for any gap test"
-        )
-    r = _core.gap_diagnose_raw(
-        mean, None if sig is None else np.ascontiguousarray(sig, dtype=np.float64), t, temp,
-        float(g), eff, alpha=float(alpha), max_effects=int(max_effects), loo=bool(loo),
-        start=_start_from(fit), test=str(test), gate=str(gate),
-        trust_level=float(trust_level), correction=str(correction), n_draws=int(n_draws),
-        gate_margin=float(gate_margin),
-    )
-    return _build_report(r, d, order, mean, t, temp, float(g), noise_model, statements, alpha)
+    var, nm_text, white, allan = _noise(d, noise, inflation, noise_model, order)
+    hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
+    statements = [] if var is not None else [
+        "no per-dwell variance given: chi2 gap not testable (F tests only)"]
+    svar = None if d.var is None else np.ascontiguousarray(d.var[order], dtype=np.float64)
+    raw = _core.gap_diagnose_static(
+        mean, var, tt, temp, g_v, eff, settings, calibration=cal, half_mean=hm,
+        white_var=None if white is None else np.ascontiguousarray(white),
+        allan_var=None if allan is None else np.ascontiguousarray(allan),
+        sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
+    if cal is not None and cal[2]:
+        statements.append("calibration held fixed (an existing TriadModel checked against "
+                          "this session): no calibration parameter was fitted")
+    rows = {"index": order, "t": tt, "temperature": temp,
+            "resid_mps2": np.asarray(raw.resid), "resid_after_mps2": np.asarray(raw.resid_after),
+            "pose_angle_deg": np.asarray(raw.pose_angle_deg),
+            "direction": np.asarray(raw.direction, dtype=np.float64).reshape(-1, 3)}
+    curves = _noise_curves(samples, d, fs_v, var, white, allan, hm)
+    return _build_report(raw, _STATIC, g=g_v, alpha=float(settings.alpha),
+                         noise_model=nm_text, statements=statements, rows=rows,
+                         noise_curves=curves)
 
 
-def _build_report(
-    r: dict[str, Any],
-    d: DwellSet,
-    order: NDArray[np.int64],
-    mean: NDArray[np.float64],
-    t: NDArray[np.float64] | None,
-    temp: NDArray[np.float64] | None,
-    g: float,
-    noise_model: str,
-    statements: list[str],
-    alpha: float,
+# ----------------------------------------------------------------------------------------------
+# Centrifuge and gradiometer.
+
+
+def diagnose_centrifuge(
+    outputs: ArrayLike,
+    omega: ArrayLike,
+    radius: float,
+    *,
+    g: float = 9.80665,
+    spin_axis: ArrayLike | None = None,
+    sigma: float | ArrayLike | None = None,
+    alpha: float = 0.05,
+    effects: str | Sequence[str] = "all",
+    loo: bool = True,
+    max_effects: int = 3,
+    test: str = "auto",
+    gate: str = "auto",
 ) -> GapReport:
-    n = int(r["n"])
-    e = np.asarray(r["e"])
-    h = np.clip(np.asarray(r["leverage"]), 0.0, 0.999999)
-    t_stud = e / np.sqrt(1.0 - h)
-    thr = NormalDist().inv_cdf(1.0 - alpha / (2 * n))
-    flag = np.abs(t_stud) > thr
-    p = np.asarray(r["base_params"])
-    K = np.array([[p[0], 0, 0], [p[6], p[1], 0], [p[7], p[8], p[2]]])
-    a = np.linalg.solve(K, (mean - p[3:6]).T).T
-    u = a / np.linalg.norm(a, axis=1, keepdims=True)
-    loo = r["loo"]
-    nan = np.full(n, np.nan)
-    dw = {
-        "index": order.astype(np.int64),
-        "t": t,
-        "temperature": temp,
-        "resid": np.asarray(r["resid"]),
-        "resid_mps2": np.asarray(r["resid"]),
-        "e": e,
-        "t_stud": t_stud,
-        "flag": flag,
-        "resid_after": np.asarray(r["resid_after"]),
-        "resid_after_mps2": np.asarray(r["resid_after"]),
-        "e_after": np.asarray(r["e_after"]),
-        "z_loo_before": np.asarray(loo["z_before"]) if loo else nan,
-        "z_loo_after": np.asarray(loo["z_after"]) if loo else nan,
-        "pose_angle_deg": np.degrees(np.arccos(np.clip(u[:, 2], -1, 1))),
-    }
-    noise_known = bool(r["noise_known"])
-    where: dict[str, Any] = {"threshold": thr, "flagged": order[flag].tolist()}
-    dom = np.argmax(np.abs(u), axis=1)
-    axes = []
-    for i, nm in enumerate("xyz"):
-        sel = dom == i
-        if sel.any():
-            s2 = float(np.sum(e[sel] ** 2))
-            axes.append({"axis": nm, "n": int(sel.sum()), "mean_e2": s2 / sel.sum(),
-                         "p": _wilson_hilferty_sf(s2, float(sel.sum())) if noise_known
-                         else float("nan")})
-    where["axes"] = axes
-    segs = []
-    for j, part in enumerate(np.array_split(np.arange(n), 3)):
-        if part.size:
-            s2 = float(np.sum(e[part] ** 2))
-            segs.append({"segment": ("early", "middle", "late")[j], "n": int(part.size),
-                         "mean_e2": s2 / part.size,
-                         "p": _wilson_hilferty_sf(s2, float(part.size)) if noise_known
-                         else float("nan")})
-    where["segments"] = segs
-    if n >= 4:
-        r1, p1 = _corr_p(e[:-1], e[1:])
-        where["serial"] = {"r1": r1, "p": p1,
-                           "durbin_watson": float(np.sum(np.diff(e) ** 2)
-                                                  / max(np.sum(e**2), 1e-300))}
-    if temp is not None and np.ptp(temp) > 0:
-        rT, pT = _corr_p(temp, e)
-        tt = t if t is not None else np.arange(n, dtype=float)
-        dTdt = np.gradient(temp, tt) if np.all(np.diff(tt) > 0) else np.gradient(temp)
-        rd, pd = _corr_p(dTdt, e)
-        where["temperature"] = {"r_T": rT, "p_T": pT, "r_dTdt": rd, "p_dTdt": pd}
+    """Diagnose the gap of a centrifuge session against the scale + bias + K2 norm model.
 
-    selected = list(r["selected"])
-    effects = []
-    blind = [
-        {"effect": "wrong_g", "reason": "a wrong gravity reference g(1+delta) is absorbed by the "
-         "common scale factor: no static norm session can see it; check g against an absolute "
-         "gravity value"},
-        {"effect": "upper_coupling", "reason": "coupling beyond the lower-triangular K is a "
-         "rotation of the sensor frame, invisible to |a|; it needs an external attitude reference"},
-    ]
-    for c in r["candidates"]:
-        st = c["status"]
-        row = {
-            "effect": c["effect"], "unit": c["unit"],
-            "status": "selected" if c["effect"] in selected else st,
-            "p_value": c["p"], "test": "chi2" if c["chi2_used"] else "F", "p_f": c["p_f"],
-            "p_chi2": c["p_chi2"] if noise_known else float("nan"),
-            "bic_weight": c["weight"], "score": c["score"], "d": c["d"],
-            "estimate": np.asarray(c["estimate"]), "std": np.asarray(c["std"]),
-            "sines": list(c["sines"]),
-        }
-        effects.append(row)
-        nm = c["effect"]
-        if st == "blind":
-            blind.append({"effect": nm, "reason": "every direction of it is absorbed by the "
-                          "calibration parameters (principal-angle sines "
-                          f"{', '.join(f'{s:.3f}' for s in c['sines']) or 'n/a'} < 0.05): not "
-                          f"testable with these poses, NOT evidence of absence; to expose it: "
-                          f"{_DESIGN_FIX[nm]}"})
-        elif st == "no_temperature":
-            blind.append({"effect": nm, "reason": "not testable: no temperature was recorded "
-                          "(this is not 'no effect'); record the temperature of every dwell"})
-        elif st == "constant_temperature":
-            rng = float(np.ptp(temp)) if temp is not None else 0.0
-            blind.append({"effect": nm, "reason": f"not testable: temperature constant (range "
-                          f"{rng:.3g}); heat or cool the sensor between dwells to test it"})
-        elif st == "no_time":
-            blind.append({"effect": nm, "reason": "not testable: no dwell times were given"})
-        elif st == "too_few_dwells":
-            blind.append({"effect": nm, "reason": f"not testable: too few dwells ({n}); a "
-                          "3-parameter effect needs at least 13 (9 + 3 + 1)"})
-    if all(e_["status"] == "too_few_dwells" for e_ in effects if e_["status"] not in
-           ("blind", "no_temperature", "constant_temperature", "no_time")) and effects:
-        statements.append(f"too few dwells ({n}) for any effect test; add dwells")
-    effects.sort(key=lambda x: (0 if x["status"] == "selected" else
-                                1 if x["status"] == "testable" else 2,
-                                x["p_value"] if math.isfinite(x["p_value"]) else 2.0))
-    best = selected[0] if selected else "none"
-    nc = r["not_confirmed"]
-    if nc is not None:
-        nm_, p_, ga_, gb_ = nc
-        for e_ in effects:
-            if e_["effect"] == nm_:
-                e_["status"] = "not_confirmed"
-        statements.append(
-            f"{nm_} improves the in-sample fit (p = {p_:.2g}) but does not reduce the held-out "
-            f"gap (G {ga_:.2f} -> {gb_:.2f}): not an explanation")
-        effects.sort(key=lambda x: (0 if x["status"] == "selected" else
-                                    1 if x["status"] == "not_confirmed" else
-                                    2 if x["status"] == "testable" else 3,
-                                    x["p_value"] if math.isfinite(x["p_value"]) else 2.0))
-    ambiguous = []
-    groups: dict[str, list[tuple[str, float]]] = {}
-    for a_, b_, cos in r["ambiguous"]:
-        groups.setdefault(a_, []).append((b_, cos))
-    for a_, lst in groups.items():
-        names = [a_] + [b for b, _ in lst]
-        exps = [_SEPARATING.get(frozenset({a_, b}), _GENERIC_SEPARATION) for b, _ in lst]
-        ambiguous.append({"effects": names, "cosine": max(c for _, c in lst),
-                          "experiment": "; ".join(dict.fromkeys(exps))})
-    g_b = loo["g_before"] if loo else float("nan")
-    g_a = loo["g_after"] if loo else float("nan")
-    shrink = g_a / g_b if loo and g_b > 0 else float("nan")
-    excess = (g_a - 1.0) / (g_b - 1.0) if loo and g_b > 1.0 else float("nan")
-    if not loo:
-        statements.append(f"held-out gap not computed ({n} dwells; leave-one-out needs >= 11)")
-    if r["gate_skipped"]:
-        statements.append(
-            f"leave-one-out with {n} dwells is too small to judge {', '.join(selected)} held "
-            "out (a fold keeps fewer than 2 residual degrees of freedom): the held-out gate was "
-            "skipped, the in-sample test decides; add dwells to confirm it held out")
-    if loo and loo["n_failed"]:
-        statements.append(f"{loo['n_failed']} leave-one-out fold(s) could not be fitted")
-    chi2, dof = float(r["chi2"]), int(r["dof"])
-    p_after = float(r["p_after"])
-    if noise_known and math.isfinite(r["p_chi2"]) and r["p_chi2"] < alpha:
-        if not selected:
-            statements.append(
-                "the gap is significant but no dictionary effect explains it: correlated noise "
-                "(check the Allan deviation of the within-dwell samples), an effect outside the "
-                "dictionary (bias random walk, vibration), or a mis-scaled noise model")
-        elif math.isfinite(p_after) and p_after < alpha:
-            statements.append(
-                f"after {', '.join(selected)} a significant gap remains (chi2/dof "
-                f"{r['chi2_after'] / max(r['dof_after'], 1):.2f}): no dictionary effect fully "
-                "explains it (fall back to a smooth discrepancy over time/temperature)")
-    return GapReport(
-        n=n, g=g, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof if dof else float("nan"),
-        p_value=float(r["p_chi2"]), noise_model=noise_model, held_out_gap=g_b, dwells=dw,
-        where=where, best=best, selected=selected, effects=effects, ambiguous=ambiguous,
-        blind_spots=blind, shrink=shrink, held_out_gap_after=g_a, excess_remaining=excess,
-        rms_before=loo["rms_before"] if loo else float("nan"),
-        rms_after=loo["rms_after"] if loo else float("nan"),
-        remaining={"chi2": float(r["chi2_after"]), "dof": float(r["dof_after"]), "p": p_after},
-        statements=statements, params=np.asarray(r["base_params"]),
-        params_after=np.asarray(r["params_after"]), std_after=np.asarray(r["std_after"]),
-        alpha=float(alpha),
-        raw={"weight_none": r["weight_none"], "step_p": r["step_p"], "stop_p": r["stop_p"],
-             "step_p_adj": r["step_p_adj"], "step_m": r["step_m"],
-             "stop_p_adj": r["stop_p_adj"],
-             "fold_counts": loo["fold_counts"] if loo else {},
-             "g_steps": list(loo["g_steps"]) if loo else [], "not_confirmed": nc},
-    )
+    Same engine as :func:`diagnose` (min-p family-wise correction, held-out gate, statuses,
+    ambiguity rule, structure), with the centrifuge dictionary.
+
+    Parameters
+    ----------
+    outputs : (k, 3) mean outputs per position and speed, g.
+    omega : (k,) spin rate of each row, rad/s.
+    radius : nominal radius, m.
+    g : gravity used to express A = omega^2 R / g in g, m/s^2.
+    spin_axis : (k, 3) spin-axis unit vector in the body frame per row; without it the lever
+        arms are not testable (reported as such).
+    sigma : noise std of each row's norm residual (scalar or (k,), g) or of each output
+        ((k, 3), g, propagated to the norm); None: unit weights scaled to the baseline fit
+        (F tests only, no absolute gap test).
+    alpha : family-wise false-alarm level of the attribution.
+    effects : "all" or names from :data:`CENTRIFUGE_EFFECTS`: ``lever_along`` (offset of each
+        accelerometer along its own axis, mm), ``lever_across`` (the six across-axis offsets,
+        mm), ``radius_error`` (mm), ``k3`` (ug/g^3), ``misalignment`` (the three observable
+        small angles, mrad), ``cross_coupling`` (K_ij f_i f_j, i != j, ug/g^2) and
+        ``rate_offset`` (spin-rate offset, e.g. the Earth rate Omega sin(latitude), urad/s).
+    loo, max_effects, test, gate : as in :func:`accelcal.diagnose`.
+
+    Returns
+    -------
+    GapReport (``system="centrifuge"``; residuals and RMS in g; estimates in the units above).
+    """
+    settings = _settings(alpha=alpha, max_effects=max_effects, loo=loo, test=test, gate=gate,
+                         trust_level=None, correction="minp", n_draws=4000, gate_margin=None,
+                         preset="targeted")
+    out = _real(outputs, "outputs")
+    if out.ndim != 2 or out.shape[1] != 3:
+        raise CalibrationError(f"outputs must have shape (k, 3) in g; got {out.shape}")
+    k = out.shape[0]
+    om = _real(omega, "omega").reshape(-1)
+    if om.shape != (k,):
+        raise CalibrationError(f"omega must have {k} values (rad/s); got {om.shape}")
+    radius_v = _number("radius", radius, 0.0, math.inf, lo_open=True, hi_open=True)
+    g_v = _number("g", g, 0.0, math.inf, lo_open=True, hi_open=True)
+    c3 = None if spin_axis is None else _real(spin_axis, "spin_axis", (k, 3))
+    names = _names(effects, list(CENTRIFUGE_EFFECTS))
+    s_norm = s_axis = None
+    if sigma is None:
+        noise_model = "unknown: unit weights scaled to the baseline fit (F tests only)"
+    else:
+        s_ = _real(sigma, "sigma")
+        if s_.ndim == 2:
+            if s_.shape != out.shape:
+                raise CalibrationError(f"sigma must be scalar, ({k},) or ({k}, 3) (g); got "
+                                       f"{s_.shape}")
+            s_axis = s_
+            noise_model = "given per-axis output noise of each row, propagated to the norm"
+        else:
+            if s_.size not in (1, k):
+                raise CalibrationError(f"sigma must be scalar, ({k},) or ({k}, 3) (g); got "
+                                       f"{s_.shape}")
+            s_norm = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (k,)))
+            noise_model = "given noise std of each row's norm residual"
+    raw = _core.gap_diagnose_centrifuge(out, om, radius_v, g_v, names, settings,
+                                        spin_axis=c3, sigma_norm=s_norm, sigma_axis=s_axis)
+    sysw = _System("centrifuge", "g", _CENTRIFUGE_FIX,
+                   [{"effect": "common_scale_vs_radius",
+                     "reason": _radius_reason(om, radius_v, g_v)}],
+                   "row(s)", "by axis", "by speed", lambda x: f"{x:g}", lambda x: f"{x:g}",
+                   _fixes_separation(_CENTRIFUGE_FIX))
+    return _build_report(raw, sysw, g=g_v, alpha=float(alpha), noise_model=noise_model,
+                         statements=[], rows={"omega": om})
+
+
+def diagnose_gradiometer(
+    azimuth_deg: ArrayLike,
+    outputs: ArrayLike,
+    *,
+    t: ArrayLike | None = None,
+    sigma: float | ArrayLike | None = None,
+    alpha: float = 0.05,
+    effects: str | Sequence[str] = "all",
+    warmup_tau_s: float = 600.0,
+    loo: bool = True,
+    max_effects: int = 3,
+    test: str = "auto",
+    gate: str = "auto",
+) -> GapReport:
+    """Diagnose the gap of a gradiometer start-up against ``y = bias + R(2 theta) gamma``.
+
+    Same engine as :func:`diagnose` (min-p family-wise correction, held-out gate, statuses,
+    ambiguity rule, structure), with the gradiometer dictionary.
+
+    Parameters
+    ----------
+    azimuth_deg : (m,) commanded platform azimuths, deg.
+    outputs : (m, 2) average inline and cross output per azimuth, E.
+    t : (m,) dwell mid times, s (needed for drift and warm-up).
+    sigma : noise std of an average (scalar or (m,), E); None: scaled to the baseline fit.
+    alpha : family-wise false-alarm level of the attribution.
+    effects : "all" or names from :data:`GRADIOMETER_EFFECTS`: ``drift`` (linear bias drift
+        per channel, E/h), ``azimuth_error`` (one error per dwell, deg; a common offset is
+        absorbed by the gradient and reported by the identifiability check), ``channel_scale``
+        (inline/cross gain mismatch kappa and symmetric cross-talk mu, %) and ``warmup``
+        (bias ``a exp(-(t - t0) / warmup_tau_s)`` per channel, E).
+    warmup_tau_s : time constant of the warm-up term, s.
+    loo, max_effects, test, gate : as in :func:`accelcal.diagnose`; held-out = leave one
+        azimuth dwell (both channels) out.
+
+    Returns
+    -------
+    GapReport (``system="gradiometer"``; residuals and RMS in E).
+    """
+    settings = _settings(alpha=alpha, max_effects=max_effects, loo=loo, test=test, gate=gate,
+                         trust_level=None, correction="minp", n_draws=4000, gate_margin=None,
+                         preset="targeted")
+    az = _real(azimuth_deg, "azimuth_deg").reshape(-1)
+    m = az.size
+    y = _real(outputs, "outputs", (m, 2))
+    if m < 3:
+        raise DegenerateDataError(f"{m} azimuths: the 4-parameter model needs at least 3")
+    tt = None if t is None else _real(t, "t").reshape(-1)
+    if tt is not None and tt.shape != (m,):
+        raise CalibrationError(f"t must have {m} finite values (s); got {tt.shape}")
+    tau = _number("warmup_tau_s", warmup_tau_s, 0.0, math.inf, lo_open=True, hi_open=True)
+    names = _names(effects, list(GRADIOMETER_EFFECTS))
+    if sigma is None:
+        sig = None
+        noise_model = "unknown: unit weights scaled to the baseline fit (F tests only)"
+    else:
+        s_ = _real(sigma, "sigma")
+        if s_.size not in (1, m):
+            raise CalibrationError(f"sigma must be scalar or ({m},) (E); got {s_.shape}")
+        sig = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (m,)))
+        if not np.all(sig > 0):
+            raise CalibrationError("sigma must be positive and finite (E)")
+        noise_model = "given noise std of each average"
+    sc = np.exp(2j * np.radians(az))
+    if abs(sc.sum()) > m - 1e-9:
+        raise DegenerateDataError("the azimuth set cannot separate bias and gradient (all "
+                                  "azimuths equal modulo 180 deg, e.g. 0/180 deg): add an "
+                                  "azimuth 45 or 90 deg away")
+    raw = _core.gap_diagnose_gradiometer(az, y, names, settings, t=tt, sigma=sig,
+                                         warmup_tau_s=tau)
+    sysw = _System("gradiometer", "E", _GRADIOMETER_FIX, _GRADIOMETER_BLIND,
+                   "residual(s)", "by channel", "by group",
+                   lambda x: ("inline", "cross")[int(x)], lambda x: f"{x:g}",
+                   _fixes_separation(_GRADIOMETER_FIX))
+    chan = np.tile(np.array(["inline", "cross"]), m)
+    return _build_report(raw, sysw, g=math.nan, alpha=float(alpha), noise_model=noise_model,
+                         statements=[], rows={"azimuth_deg": np.repeat(az, 2), "channel": chan})

@@ -90,3 +90,47 @@ def allan_figure(taus: Any, adev: Any, labels: tuple[str, ...] = ("x", "y", "z")
     ax.legend()
     fig.tight_layout()
     return fig
+
+
+def gap_figure(rep: Any, fig: Any = None) -> Any:
+    """The gap of a :class:`accelcal.GapReport`: residuals (sigma units) before and after
+    against time, temperature and pose (static), or by row (centrifuge, gradiometer)."""
+    plt = _plt()
+    d = rep.dwells
+    if rep.system != "static":
+        if fig is None:
+            fig = plt.figure(figsize=(7, 3.4))
+        ax = fig.subplots(1, 1)
+        x = np.arange(len(d["e"]))
+        ax.plot(x, d["e"], "o", ms=4, label="baseline")
+        ax.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(rep.selected) or 'none'}")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel("row")
+        ax.set_ylabel("residual / sigma")
+        ax.legend(fontsize=8)
+        fig.suptitle(f"{rep.system} gap: chi2/dof {rep.chi2_per_dof:.2f}; best = {rep.best}")
+        fig.tight_layout()
+        return fig
+    if fig is None:
+        fig = plt.figure(figsize=(11, 3.4))
+    axs = fig.subplots(1, 3, sharey=True)
+    has_t = d["t"] is not None
+    t = d["t"] if has_t else np.arange(rep.n, dtype=float)
+    xs: list[tuple[Any, str]] = [(t / 60.0 if has_t else t, "time, min" if has_t else "dwell")]
+    xs.append((d["temperature"], "temperature") if d["temperature"] is not None else (None, ""))
+    xs.append((d["pose_angle_deg"], "angle of the z axis from vertical, deg"))
+    for axis, (x, lab) in zip(axs, xs, strict=True):
+        if x is None:
+            axis.text(0.5, 0.5, "no temperature recorded", ha="center", transform=axis.transAxes)
+            axis.set_axis_off()
+            continue
+        axis.plot(x, d["e"], "o", ms=4, label="baseline")
+        axis.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(rep.selected) or 'none'}")
+        axis.axhline(0, color="k", lw=0.5)
+        axis.set_xlabel(lab)
+    axs[0].set_ylabel("norm residual / sigma")
+    axs[0].legend(fontsize=8)
+    fig.suptitle(f"gap: chi2/dof {rep.chi2_per_dof:.2f}, held-out G {rep.held_out_gap:.2f} -> "
+                 f"{rep.held_out_gap_after:.2f}; best = {rep.best}")
+    fig.tight_layout()
+    return fig

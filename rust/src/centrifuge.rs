@@ -214,8 +214,9 @@ pub struct CentrifugeFit {
     pub taylor_coefficients: Option<Vec<f64>>,
 }
 
-fn inv_axis(h: f64, d: f64, e: f64) -> Option<(f64, f64)> {
-    // f + d f^2 (+ e f^3) = h; root continuous with d -> 0. Returns (f, dh/df).
+/// Invert one axis of the instrument model: the `f` with `f + d f^2 + e f^3 = h` continuous
+/// with `d -> 0`, and `dh/df`; `None` outside the invertible range.
+pub fn inv_axis(h: f64, d: f64, e: f64) -> Option<(f64, f64)> {
     let disc = 1.0 + 4.0 * d * h;
     if !(disc >= 0.0) {
         return None;
@@ -240,6 +241,22 @@ fn inv_axis(h: f64, d: f64, e: f64) -> Option<(f64, f64)> {
         return None;
     }
     Some((f, hp))
+}
+
+/// Instrument input `h = Phi^-1 S^-1 (n - b)` of one output row (small-angle misalignment
+/// `m = (m_yx, m_zx, m_zy)`, `Phi` lower triangular): the model's first step, for diagnostics
+/// that extend it (the gap diagnosis adds cross-coupling, rate and radius errors).
+pub fn instrument_input(n: &[f64; 3], s: &[f64; 3], b: &[f64; 3], m: &[f64; 3]) -> [f64; 3] {
+    let u = [
+        (n[0] - b[0]) / s[0],
+        (n[1] - b[1]) / s[1],
+        (n[2] - b[2]) / s[2],
+    ];
+    [
+        u[0],
+        u[1] - m[0] * u[0],
+        u[2] - m[1] * u[0] - m[2] * (u[1] - m[0] * u[0]),
+    ]
 }
 
 fn target(data: &CentrifugeData<'_>, k: usize) -> f64 {

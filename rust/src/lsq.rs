@@ -1367,6 +1367,79 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
     })
 }
 
+// ------------------------------------------------------------------------------------------
+// Range bases for diagnostics (principal angles, projections, pseudo-inverse covariance).
+
+/// Thin SVD `A = U diag(s) V^T` of a small dense matrix: `U` (`m x r`), `s` (`r`, descending),
+/// `V^T` (`r x n`) with `r = min(m, n)`. An empty matrix gives empty factors.
+pub fn thin_svd(a: &DMatrix<f64>) -> Result<(DMatrix<f64>, Vec<f64>, DMatrix<f64>)> {
+    let (m, n) = (a.nrows(), a.ncols());
+    if m == 0 || n == 0 {
+        return Ok((DMatrix::zeros(m, 0), vec![], DMatrix::zeros(0, n)));
+    }
+    if a.iter().any(|v| !v.is_finite()) {
+        return invalid("a design matrix is not finite");
+    }
+    let svd = a.clone().svd(true, true);
+    let (u, vt) = match (svd.u, svd.v_t) {
+        (Some(u), Some(vt)) => (u, vt),
+        _ => return Err(CoreError::NotConverged("SVD did not converge".into())),
+    };
+    let s: Vec<f64> = svd.singular_values.iter().copied().collect();
+    let mut idx: Vec<usize> = (0..s.len()).collect();
+    idx.sort_by(|&x, &y| s[y].total_cmp(&s[x]));
+    let us = DMatrix::from_fn(m, idx.len(), |i, k| u[(i, idx[k])]);
+    let vts = DMatrix::from_fn(idx.len(), n, |k, j| vt[(idx[k], j)]);
+    Ok((us, idx.iter().map(|&i| s[i]).collect(), vts))
+}
+
+/// Orthonormal range basis of a Jacobian, its rank, and the pseudo-inverse `(J^T J)^+`.
+#[derive(Debug, Clone)]
+pub struct RangeBasis {
+    /// Orthonormal basis of `range(J)` (`m x rank`).
+    pub q: DMatrix<f64>,
+    /// `(J^T J)^+` on the kept directions (`n x n`).
+    pub cov: DMatrix<f64>,
+    /// Numerical rank.
+    pub rank: usize,
+}
+
+/// [`RangeBasis`] of `j` with columns scaled to unit norm for a scale-free rank decision:
+/// singular values below `rtol` times the largest are dropped.
+pub fn range_basis(j: &DMatrix<f64>, rtol: f64) -> Result<RangeBasis> {
+    let (m, n) = (j.nrows(), j.ncols());
+    let d: Vec<f64> = (0..n)
+        .map(|c| {
+            let v = j.column(c).norm();
+            if v > 0.0 {
+                v
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let js = DMatrix::from_fn(m, n, |a, b| j[(a, b)] / d[b]);
+    let (u, s, vt) = thin_svd(&js)?;
+    let smax = s.first().copied().unwrap_or(0.0);
+    let keep: Vec<usize> = (0..s.len()).filter(|&i| s[i] > rtol * smax).collect();
+    let q = DMatrix::from_fn(m, keep.len(), |a, b| u[(a, keep[b])]);
+    let mut cov = DMatrix::zeros(n, n);
+    for &k in &keep {
+        let w = 1.0 / (s[k] * s[k]);
+        for a in 0..n {
+            let va = vt[(k, a)] * w / d[a];
+            for b in 0..n {
+                cov[(a, b)] += va * vt[(k, b)] / d[b];
+            }
+        }
+    }
+    Ok(RangeBasis {
+        q,
+        cov,
+        rank: keep.len(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -27,27 +27,32 @@ from ._common import (
                    "white noise (variance / count).")
 @click.option("--preset", type=click.Choice(["targeted", "conservative"]), default="targeted",
               show_default=True, help="Attribution settings (conservative: noise model in doubt).")
+@click.option("--calibration", "calibration", type=click.Path(dir_okay=False), default=None,
+              help="Check an existing calibration (a TriadModel JSON written by "
+                   "'calibrate static -o') against this session instead of refitting it.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="Residuals against time, temperature and pose, before and after.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
-             columns: str | None, noise: str, preset: str, plot_path: str | None,
-             as_json: bool) -> None:
+             columns: str | None, noise: str, preset: str, calibration: str | None,
+             plot_path: str | None, as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording."""
     from ..dwell import detect_dwells
     from ..gap import diagnose as run_diagnose
+    from ..static import TriadModel
 
     _need_plot(plot_path)
+    fit = TriadModel.load(calibration) if calibration else None
     gv, _ = _resolve_g(g, lat, height)
     st = _load_stream(file, fs, columns)
     if noise == "allan":
         rep = run_diagnose(st.samples, g=gv, fs=st.fs, t=st.t, temperature=st.temperature,
-                           preset=preset)
+                           preset=preset, fit=fit)
         n_dwells = rep.n
     else:
         d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature)
-        rep = run_diagnose(d, g=gv, preset=preset)
+        rep = run_diagnose(d, g=gv, preset=preset, fit=fit, noise_model="white")
         n_dwells = len(d)
     if plot_path:
         _save_fig(rep.plot(), plot_path)

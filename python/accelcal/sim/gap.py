@@ -96,11 +96,12 @@ def signal_strength(mean: NDArray[np.float64], sigma: NDArray[np.float64], g: fl
                     temperature: NDArray[np.float64] | None) -> float:
     """lambda: chi2 a baseline fit leaves on noise-free dwell means (whitened by ``sigma``)."""
     try:
-        r = _core.gap_diagnose_raw(np.ascontiguousarray(mean), np.ascontiguousarray(sigma), t,
-                                   temperature, float(g), [], loo=False)
+        r = _core.gap_diagnose_static(
+            np.ascontiguousarray(mean), np.ascontiguousarray(np.asarray(sigma) ** 2), t,
+            temperature, float(g), [], _core.GapSettings(loo=False, max_effects=0))
     except CalibrationError:
         return float("nan")
-    return float(r["chi2"])
+    return float(r.chi2)
 
 
 def gap_session(

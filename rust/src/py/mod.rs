@@ -40,7 +40,11 @@ mod _core {
     #[pymodule_export]
     use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
     #[pymodule_export]
-    use super::gap::{gap_chi2_sf, gap_diagnose_raw, gap_f_sf, gap_model_residuals_raw};
+    use super::gap::{
+        gap_diagnose_centrifuge, gap_diagnose_gradiometer, gap_diagnose_static, gap_dictionary,
+        GapCandidate, GapGroup, GapHeldOut, GapLocation, GapNoiseEmpirical, GapRaw, GapSettings,
+        GapStructure, GapStructureTest,
+    };
     #[pymodule_export]
     use super::gradiometer::{demodulate_raw, startup_bias_raw, startup_predict_raw};
     #[pymodule_export]

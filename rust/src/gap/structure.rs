@@ -1,0 +1,600 @@
+//! What the remaining gap is made of: the structure tests on the residual after the
+//! calibration fit (and any selected dictionary effect).
+//!
+//! - Smooth tests, each a set of columns `X` projected off the model's Jacobian and tested by
+//!   the sigma-free F form (robust to a mis-scaled noise model), corrected for the family by
+//!   the exact min-p method: "attitude" (real spherical harmonics of degree 3 and 4 of the
+//!   gravity direction; degree <= 2 is absorbed by the 9 calibration parameters, whose
+//!   Jacobian spans `u_i u_j` and `u_i`), "time" and "temperature" (per-axis bias and common
+//!   scale, Legendre degree 1 and 2 of the normalised variable), "pose_history" (the previous
+//!   dwell's gravity direction: hysteresis).
+//! - Persistence: residuals of the first- and second-half dwell means with the calibration
+//!   held fixed. Their correlation is near 1 for persistent per-dwell errors and near 0 when
+//!   the excess is noise; the test compares the residual scatter per degree of freedom with the
+//!   scatter of the half-dwell differences (`F(dof, n)` under noise that does not persist).
+//! - Empirical dwell-mean noise from the half-dwell differences, `var((m1 - m2)/2)` propagated
+//!   to the norm, against the noise model used, white noise and the Allan model.
+//! - Quantisation: the bias a dwell mean carries when the within-dwell noise is below about one
+//!   LSB (variance from the Fourier series of the quantiser error under Gaussian noise).
+//! - Per-dwell random offset: `s_d` solving `sum r_k^2 / (sigma_k^2 + s_d^2) = dof` (moment
+//!   estimate, Paule-Mandel form), in the residual's units.
+
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
+use super::engine::{basis, member_of, screen, EngineResult, TestCfg};
+use super::minp::min_p;
+use super::special::{chi2_sf, f_sf, pearson};
+use super::{GapOptions, Status, TestMode};
+use crate::error::Result;
+use nalgebra::{DMatrix, DVector};
+
+/// The verdict: what the remaining gap is made of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    /// No gap and no structure.
+    None,
+    /// The excess does not persist within a dwell: the noise model is too optimistic.
+    NoiseModel,
+    /// A smooth function of attitude beyond what the calibration absorbs.
+    Attitude,
+    /// A smooth function of time.
+    Time,
+    /// A smooth function of temperature.
+    Temperature,
+    /// It depends on the previous pose (hysteresis).
+    PoseHistory,
+    /// Dwell means carry a quantisation bias (within-dwell noise below about one LSB).
+    Quantization,
+    /// Persistent per-dwell offsets, smooth in nothing tested.
+    PerDwell,
+}
+
+impl Verdict {
+    /// Public name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Verdict::None => "none",
+            Verdict::NoiseModel => "noise_model",
+            Verdict::Attitude => "attitude",
+            Verdict::Time => "time",
+            Verdict::Temperature => "temperature",
+            Verdict::PoseHistory => "pose_history",
+            Verdict::Quantization => "quantization",
+            Verdict::PerDwell => "per_dwell",
+        }
+    }
+
+    fn of_smooth(name: &str) -> Verdict {
+        match name {
+            "attitude" => Verdict::Attitude,
+            "time" => Verdict::Time,
+            "temperature" => Verdict::Temperature,
+            _ => Verdict::PoseHistory,
+        }
+    }
+}
+
+/// A smooth structure test as a system provides it: per-row columns (physical units, before
+/// whitening) or why it cannot run.
+#[derive(Debug, Clone)]
+pub struct SmoothTest {
+    /// "attitude", "time", "temperature" or "pose_history".
+    pub name: &'static str,
+    /// Columns (`n x c`), or `None` when unavailable.
+    pub cols: Option<DMatrix<f64>>,
+    /// Why it is unavailable.
+    pub status: Status,
+}
+
+impl SmoothTest {
+    /// A test with its columns.
+    pub fn ready(name: &'static str, cols: DMatrix<f64>) -> Self {
+        SmoothTest {
+            name,
+            cols: Some(cols),
+            status: Status::Testable,
+        }
+    }
+    /// A test that cannot run on this session.
+    pub fn unavailable(name: &'static str, status: Status) -> Self {
+        SmoothTest {
+            name,
+            cols: None,
+            status,
+        }
+    }
+}
+
+/// What the structure stage needs besides the engine's result (per residual row).
+#[derive(Debug, Clone, Default)]
+pub struct StructureInput {
+    /// Smooth tests.
+    pub smooth: Vec<SmoothTest>,
+    /// Residuals (physical) of the first- and second-half means, calibration held fixed.
+    pub halves: Option<(Vec<f64>, Vec<f64>)>,
+    /// Predicted variance of each residual from the quantisation bias of the dwell mean.
+    pub quant_var: Option<Vec<f64>>,
+    /// Standard deviation of each residual under white noise (var / count).
+    pub white_sigma: Option<Vec<f64>>,
+    /// Standard deviation of each residual under the Allan model at the dwell length.
+    pub allan_sigma: Option<Vec<f64>>,
+    /// Unused by static sessions; reserved for systems whose rows come in groups.
+    pub group_rows: Option<Vec<usize>>,
+}
+
+/// One structure test's outcome.
+#[derive(Debug, Clone)]
+pub struct StructureTest {
+    /// "attitude", "time", "temperature", "pose_history", "persistence", "quantization",
+    /// "per_dwell".
+    pub name: &'static str,
+    /// Testable, blind (absorbed), too few rows, or why unavailable.
+    pub status: Status,
+    /// Columns offered.
+    pub n_columns: usize,
+    /// Directions tested (outside the model's range).
+    pub d: usize,
+    /// Denominator degrees of freedom (F tests).
+    pub dof2: f64,
+    /// Test statistic (F for the smooth and persistence tests; see the module docs).
+    pub statistic: f64,
+    /// p-value.
+    pub p_value: f64,
+    /// Family-wise adjusted p-value (smooth tests; the p-value itself otherwise).
+    pub p_adjusted: f64,
+    /// Fraction of the residual (chi2) it explains.
+    pub explained: f64,
+}
+
+impl StructureTest {
+    fn new(name: &'static str, status: Status) -> Self {
+        StructureTest {
+            name,
+            status,
+            n_columns: 0,
+            d: 0,
+            dof2: f64::NAN,
+            statistic: f64::NAN,
+            p_value: f64::NAN,
+            p_adjusted: f64::NAN,
+            explained: f64::NAN,
+        }
+    }
+}
+
+/// Empirical dwell-mean noise from the half-dwell differences.
+#[derive(Debug, Clone, Copy)]
+pub struct NoiseEmpirical {
+    /// Rows with both halves.
+    pub n: usize,
+    /// RMS of `(r1 - r2)/2`: the dwell-mean noise of the residual (physical units).
+    pub rms: f64,
+    /// RMS of the noise model used.
+    pub rms_model: f64,
+    /// RMS of the white-noise model (NaN when not given).
+    pub rms_white: f64,
+    /// RMS of the Allan model (NaN when not given).
+    pub rms_allan: f64,
+    /// Empirical over model noise (RMS of the whitened half differences).
+    pub ratio_model: f64,
+    /// Empirical over white noise.
+    pub ratio_white: f64,
+    /// Empirical over the Allan model.
+    pub ratio_allan: f64,
+    /// p-value of "the half differences are consistent with the model": chi2(n).
+    pub p_model: f64,
+}
+
+/// The structure of the remaining gap.
+#[derive(Debug, Clone)]
+pub struct Structure {
+    /// The verdict.
+    pub verdict: Verdict,
+    /// The statistic behind it (F of the deciding test; chi2/dof for "none").
+    pub statistic: f64,
+    /// Its p-value.
+    pub p_value: f64,
+    /// Correlation of the half-dwell residuals (NaN: untestable).
+    pub persistence: f64,
+    /// Whether half-dwell means were given.
+    pub persistence_testable: bool,
+    /// Random per-dwell offset that makes chi2/dof = 1 (residual units; NaN without a noise
+    /// model).
+    pub per_dwell_rms: f64,
+    /// RMS of the predicted quantisation bias of the residual (NaN without LSB and variance).
+    pub quantization_rms: f64,
+    /// Every test.
+    pub tests: Vec<StructureTest>,
+    /// Empirical dwell-mean noise (None without half means).
+    pub noise_empirical: Option<NoiseEmpirical>,
+}
+
+// ------------------------------------------------------------------------------------------
+// Columns.
+
+/// Real spherical harmonics of degree 3 and 4 (16 columns, unnormalised) of unit vectors.
+pub fn harmonics_34(u: &[[f64; 3]]) -> DMatrix<f64> {
+    DMatrix::from_fn(u.len(), 16, |k, c| {
+        let [x, y, z] = u[k];
+        let (x2, y2, z2) = (x * x, y * y, z * z);
+        match c {
+            0 => y * (3.0 * x2 - y2),
+            1 => x * y * z,
+            2 => y * (5.0 * z2 - 1.0),
+            3 => z * (5.0 * z2 - 3.0),
+            4 => x * (5.0 * z2 - 1.0),
+            5 => z * (x2 - y2),
+            6 => x * (x2 - 3.0 * y2),
+            7 => x * y * (x2 - y2),
+            8 => y * z * (3.0 * x2 - y2),
+            9 => x * y * (7.0 * z2 - 1.0),
+            10 => y * z * (7.0 * z2 - 3.0),
+            11 => 35.0 * z2 * z2 - 30.0 * z2 + 3.0,
+            12 => x * z * (7.0 * z2 - 3.0),
+            13 => (x2 - y2) * (7.0 * z2 - 1.0),
+            14 => x * z * (x2 - 3.0 * y2),
+            _ => x2 * (x2 - 3.0 * y2) - y2 * (3.0 * x2 - y2),
+        }
+    })
+}
+
+/// Smooth trend columns in a variable `x` (time or temperature): a per-axis bias
+/// (`w_i P_j(s)`, `w = d r / d am`) and a common scale (`P_j(s)`), Legendre `P_1`, `P_2` of
+/// `s` = `x` mapped to [-1, 1] (8 columns).
+pub fn trend_columns(x: &[f64], w: &[[f64; 3]]) -> DMatrix<f64> {
+    let lo = x.iter().cloned().fold(f64::INFINITY, f64::min);
+    let hi = x.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let span = (hi - lo).max(1e-300);
+    DMatrix::from_fn(x.len(), 8, |k, c| {
+        let s = 2.0 * (x[k] - lo) / span - 1.0;
+        let p = [s, 1.5 * s * s - 0.5];
+        match c {
+            0..=5 => w[k][c % 3] * p[c / 3],
+            _ => p[c - 6],
+        }
+    })
+}
+
+/// Variance of the bias of a dwell mean from quantisation to steps of `lsb`, for Gaussian
+/// noise whose quantised samples have variance `sample_var` (Sheppard-corrected to the
+/// underlying variance): `sum_j lsb^2 / (2 pi^2 j^2) exp(-4 pi^2 j^2 s^2 / lsb^2)`, which is
+/// `lsb^2 / 12` without noise and vanishes once the noise exceeds about one LSB.
+pub fn quantization_bias_var(sample_var: f64, lsb: f64) -> f64 {
+    if !(lsb > 0.0) || !sample_var.is_finite() {
+        return 0.0;
+    }
+    let s2 = (sample_var - lsb * lsb / 12.0).max(0.0);
+    if s2 == 0.0 {
+        return lsb * lsb / 12.0;
+    }
+    let pi2 = std::f64::consts::PI * std::f64::consts::PI;
+    let x = 4.0 * pi2 * s2 / (lsb * lsb);
+    let mut sum = 0.0;
+    for j in 1..=2000 {
+        let jf = j as f64;
+        let term = (-x * jf * jf).exp() / (jf * jf);
+        sum += term;
+        if term < 1e-17 * sum {
+            break;
+        }
+    }
+    lsb * lsb / (2.0 * pi2) * sum
+}
+
+// ------------------------------------------------------------------------------------------
+// Stages.
+
+/// Screen every smooth test against the final model and correct for the family by min-p.
+fn smooth_stage(
+    sin: &StructureInput,
+    eng: &EngineResult,
+    opt: &GapOptions,
+) -> Result<Vec<StructureTest>> {
+    let b = basis(&eng.jac_after)?;
+    let e = DVector::from_column_slice(&eng.e_after);
+    let rss = eng.chi2_after;
+    let cfg = TestCfg {
+        mode: TestMode::F,
+        trust_level: opt.trust_level,
+        sine_tol: opt.sine_tol,
+    };
+    let mut out = vec![];
+    let mut fam = vec![];
+    for st in &sin.smooth {
+        let Some(cols) = &st.cols else {
+            out.push(StructureTest::new(st.name, st.status));
+            continue;
+        };
+        let wc = DMatrix::from_fn(cols.nrows(), cols.ncols(), |k, c| {
+            cols[(k, c)] / eng.sigma_after[k]
+        });
+        let sc = screen(&wc, &b, &e, rss, cfg, false);
+        let mut t = StructureTest::new(st.name, sc.status);
+        t.n_columns = cols.ncols();
+        t.d = sc.d;
+        t.dof2 = sc.dof2;
+        if sc.status == Status::Testable {
+            t.statistic = sc.f;
+            t.p_value = sc.p_f;
+            t.explained = sc.score / rss.max(1e-300);
+            fam.push(member_of(&sc));
+        }
+        out.push(t);
+    }
+    for t in out.iter_mut().filter(|t| t.status == Status::Testable) {
+        t.p_adjusted = min_p(&b.q, &fam, t.p_value, opt.alpha, opt.n_draws);
+    }
+    Ok(out)
+}
+
+/// Persistence test and the empirical noise from the half-dwell residuals.
+fn persistence(
+    sin: &StructureInput,
+    eng: &EngineResult,
+) -> (StructureTest, f64, Option<NoiseEmpirical>) {
+    let mut t = StructureTest::new("persistence", Status::TooFewRows);
+    let Some((r1, r2)) = &sin.halves else {
+        return (t, f64::NAN, None);
+    };
+    let sig = &eng.sigma_after;
+    let ok: Vec<usize> = (0..r1.len())
+        .filter(|&k| r1[k].is_finite() && r2[k].is_finite() && sig[k] > 0.0)
+        .collect();
+    let n = ok.len();
+    let d1: Vec<f64> = ok.iter().map(|&k| r1[k] / sig[k]).collect();
+    let d2: Vec<f64> = ok.iter().map(|&k| r2[k] / sig[k]).collect();
+    let corr = pearson(&d1, &d2).0;
+    let half: Vec<f64> = ok.iter().map(|&k| 0.5 * (r1[k] - r2[k])).collect();
+    let dw2: f64 = ok
+        .iter()
+        .zip(&half)
+        .map(|(&k, h)| (h / sig[k]).powi(2))
+        .sum();
+    let ratio_of = |s: &Option<Vec<f64>>| {
+        s.as_ref().map_or(f64::NAN, |s| {
+            (ok.iter()
+                .zip(&half)
+                .map(|(&k, h)| (h / s[k]).powi(2))
+                .sum::<f64>()
+                / n as f64)
+                .sqrt()
+        })
+    };
+    let rms_of = |s: &Option<Vec<f64>>| {
+        s.as_ref().map_or(f64::NAN, |s| {
+            (ok.iter().map(|&k| s[k] * s[k]).sum::<f64>() / n as f64).sqrt()
+        })
+    };
+    let ne = NoiseEmpirical {
+        n,
+        rms: super::engine::rms(&half),
+        rms_model: rms_of(&Some(sig.clone())),
+        rms_white: rms_of(&sin.white_sigma),
+        rms_allan: rms_of(&sin.allan_sigma),
+        ratio_model: (dw2 / n.max(1) as f64).sqrt(),
+        ratio_white: ratio_of(&sin.white_sigma),
+        ratio_allan: ratio_of(&sin.allan_sigma),
+        p_model: if eng.noise_known {
+            chi2_sf(dw2, n as f64)
+        } else {
+            f64::NAN
+        },
+    };
+    let dof = eng.dof_after as f64;
+    if n >= 3 && dof >= 1.0 && dw2 > 0.0 {
+        t.status = Status::Testable;
+        t.statistic = (eng.chi2_after / dof) / (dw2 / n as f64);
+        t.p_value = f_sf(t.statistic, dof, n as f64);
+        t.p_adjusted = t.p_value;
+        t.dof2 = n as f64;
+        t.explained = (1.0 - 1.0 / t.statistic).max(0.0);
+    }
+    (t, corr, Some(ne))
+}
+
+/// Per-dwell random offset `s` with `sum r_k^2 / (sigma_k^2 + s^2) = dof` (0 when the
+/// residuals do not exceed the noise model).
+pub fn per_dwell_offset(r: &[f64], sigma: &[f64], dof: usize) -> f64 {
+    let f = |s2: f64| -> f64 {
+        r.iter()
+            .zip(sigma)
+            .map(|(r, s)| r * r / (s * s + s2))
+            .sum::<f64>()
+    };
+    let dof = dof as f64;
+    if !(dof > 0.0) || !(f(0.0) > dof) {
+        return 0.0;
+    }
+    let (mut lo, mut hi) = (0.0, r.iter().map(|v| v * v).sum::<f64>().max(1e-300));
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if f(mid) > dof {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= 1e-12 * hi {
+            break;
+        }
+    }
+    (0.5 * (lo + hi)).sqrt()
+}
+
+/// The quantisation test: how much of the excess chi2 the predicted quantisation bias of the
+/// dwell means explains, and the p-value of what remains with it in the noise model.
+fn quantization(sin: &StructureInput, eng: &EngineResult) -> (StructureTest, f64) {
+    let mut t = StructureTest::new("quantization", Status::TooFewRows);
+    let Some(q) = &sin.quant_var else {
+        return (t, f64::NAN);
+    };
+    let qrms = (q.iter().sum::<f64>() / q.len().max(1) as f64).sqrt();
+    if !eng.noise_known || eng.dof_after == 0 {
+        return (t, qrms);
+    }
+    let (r, s) = (&eng.resid_after, &eng.sigma_after);
+    let chi2_q: f64 = (0..r.len())
+        .map(|k| r[k] * r[k] / (s[k] * s[k] + q[k]))
+        .sum();
+    let dof = eng.dof_after as f64;
+    t.status = Status::Testable;
+    t.statistic = chi2_q / dof;
+    t.p_value = chi2_sf(chi2_q, dof);
+    t.p_adjusted = t.p_value;
+    t.explained = if eng.chi2_after > dof {
+        ((eng.chi2_after - chi2_q) / (eng.chi2_after - dof)).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (t, qrms)
+}
+
+/// The per-dwell offset as a test: its share of the residual variance and the remaining gap.
+fn per_dwell(eng: &EngineResult) -> (StructureTest, f64) {
+    let mut t = StructureTest::new("per_dwell", Status::TooFewRows);
+    if !eng.noise_known || eng.dof_after == 0 {
+        return (t, f64::NAN);
+    }
+    let s = per_dwell_offset(&eng.resid_after, &eng.sigma_after, eng.dof_after);
+    let ms2 = eng.sigma_after.iter().map(|v| v * v).sum::<f64>() / eng.n as f64;
+    t.status = Status::Testable;
+    t.statistic = eng.chi2_after / eng.dof_after as f64;
+    t.p_value = eng.p_after;
+    t.p_adjusted = eng.p_after;
+    t.explained = s * s / (s * s + ms2);
+    (t, s)
+}
+
+/// The verdict from the tests (see the module docs for the order of the decisions).
+fn decide(
+    tests: &[StructureTest],
+    eng: &EngineResult,
+    halves: bool,
+    noise_emp: Option<&NoiseEmpirical>,
+    alpha: f64,
+) -> (Verdict, f64, f64) {
+    let find = |nm: &str| tests.iter().find(|t| t.name == nm);
+    let best_smooth = tests
+        .iter()
+        .filter(|t| {
+            matches!(t.name, "attitude" | "time" | "temperature" | "pose_history")
+                && t.status == Status::Testable
+        })
+        .min_by(|a, b| a.p_adjusted.total_cmp(&b.p_adjusted));
+    if let Some(t) = best_smooth.filter(|t| t.p_adjusted < alpha) {
+        return (Verdict::of_smooth(t.name), t.statistic, t.p_adjusted);
+    }
+    let pers = find("persistence").filter(|t| t.status == Status::Testable);
+    let gap = if eng.noise_known {
+        eng.p_after < alpha
+    } else {
+        pers.is_some_and(|t| t.p_value < alpha)
+    };
+    if !gap {
+        return (
+            Verdict::None,
+            eng.chi2_after / eng.dof_after.max(1) as f64,
+            eng.p_after,
+        );
+    }
+    if let Some(q) = find("quantization").filter(|t| t.status == Status::Testable) {
+        if q.explained >= 0.5 && q.p_value >= alpha {
+            return (Verdict::Quantization, q.explained, q.p_value);
+        }
+    }
+    match (halves, pers) {
+        (true, Some(p)) if p.p_value >= alpha && noise_emp.is_some_and(|ne| ne.p_model < alpha) => {
+            (Verdict::NoiseModel, p.statistic, p.p_value)
+        }
+        (true, Some(p)) => (Verdict::PerDwell, p.statistic, p.p_value),
+        _ => (
+            Verdict::PerDwell,
+            eng.chi2_after / eng.dof_after.max(1) as f64,
+            eng.p_after,
+        ),
+    }
+}
+
+/// Run every structure test on the engine's final model.
+pub fn run(sin: &StructureInput, eng: &EngineResult, opt: &GapOptions) -> Result<Structure> {
+    let mut tests = smooth_stage(sin, eng, opt)?;
+    let (pt, corr, ne) = persistence(sin, eng);
+    let (qt, qrms) = quantization(sin, eng);
+    let (dt, s) = per_dwell(eng);
+    tests.extend([pt, qt, dt]);
+    let (verdict, statistic, p_value) =
+        decide(&tests, eng, sin.halves.is_some(), ne.as_ref(), opt.alpha);
+    Ok(Structure {
+        verdict,
+        statistic,
+        p_value,
+        persistence: corr,
+        persistence_testable: sin.halves.is_some(),
+        per_dwell_rms: s,
+        quantization_rms: qrms,
+        tests,
+        noise_empirical: ne,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn harmonics_are_orthogonal_on_a_dense_sphere() {
+        // Fibonacci sphere: the 16 degree-3/4 harmonics are orthogonal to every polynomial of
+        // degree <= 2 (what the calibration absorbs) and have full rank.
+        let n = 2000;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        let u: Vec<[f64; 3]> = (0..n)
+            .map(|k| {
+                let z = 1.0 - 2.0 * (k as f64 + 0.5) / n as f64;
+                let r = (1.0 - z * z).sqrt();
+                let th = golden * k as f64;
+                [r * th.cos(), r * th.sin(), z]
+            })
+            .collect();
+        let h = harmonics_34(&u);
+        let low = DMatrix::from_fn(n, 10, |k, c| {
+            let [x, y, z] = u[k];
+            [1.0, x, y, z, x * x, y * y, z * z, x * y, x * z, y * z][c]
+        });
+        let g = low.transpose() * &h / n as f64;
+        assert!(g.amax() < 2e-3, "{}", g.amax());
+        let b = basis(&h).unwrap();
+        assert_eq!(b.rank, 16);
+    }
+
+    #[test]
+    fn quantization_bias_variance_limits() {
+        let lsb = 2.0;
+        assert!((quantization_bias_var(0.0, lsb) - lsb * lsb / 12.0).abs() < 1e-3);
+        assert!(quantization_bias_var(4.0 * lsb * lsb, lsb) < 1e-12);
+        // 0.3 LSB noise (observed variance includes the quantisation's lsb^2/12).
+        let v = quantization_bias_var(0.09 * lsb * lsb + lsb * lsb / 12.0, lsb);
+        let want = lsb * lsb / (2.0 * std::f64::consts::PI.powi(2))
+            * (-4.0 * std::f64::consts::PI.powi(2) * 0.09).exp();
+        assert!((v - want).abs() < 1e-3 * want, "{v} {want}");
+    }
+
+    #[test]
+    fn per_dwell_offset_solves_the_moment_equation() {
+        let r = [0.3, -0.5, 0.2, 0.6, -0.4, 0.1];
+        let s = [0.1; 6];
+        let sd = per_dwell_offset(&r, &s, 4);
+        let lhs: f64 = r.iter().map(|v| v * v / (0.01 + sd * sd)).sum();
+        assert!((lhs - 4.0).abs() < 1e-9, "{lhs}");
+        assert_eq!(per_dwell_offset(&[0.01; 6], &s, 4), 0.0);
+    }
+
+    #[test]
+    fn trend_columns_span_bias_and_scale_trends() {
+        let x: Vec<f64> = (0..10).map(|k| k as f64).collect();
+        let w = vec![[1.0, 0.5, -0.2]; 10];
+        let c = trend_columns(&x, &w);
+        assert_eq!(c.ncols(), 8);
+        assert!((c[(0, 0)] + 1.0).abs() < 1e-12 && (c[(9, 6)] - 1.0).abs() < 1e-12);
+        assert!((c[(9, 7)] - 1.0).abs() < 1e-12 && (c[(0, 4)] - 0.5).abs() < 1e-12);
+    }
+}
