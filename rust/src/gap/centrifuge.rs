@@ -205,7 +205,6 @@ impl CentrifugeModel {
         cols: &[usize],
         e: &mut [f64],
         jac: &mut DMatrix<f64>,
-        jc0: usize,
     ) -> Result<()> {
         let x = self.extra(active, p);
         for (ri, &k) in rows.iter().enumerate() {
@@ -221,7 +220,7 @@ impl CentrifugeModel {
             let xm = self.extra(active, &pp);
             for (ri, &k) in rows.iter().enumerate() {
                 let m = self.residual(k, &pp, &xm);
-                jac[(ri, jc0 + jc)] = (plus[ri] - m) / (2.0 * h) / self.sig[k];
+                jac[(ri, jc)] = (plus[ri] - m) / (2.0 * h) / self.sig[k];
             }
             pp[c] = p[c];
         }
@@ -262,7 +261,7 @@ impl GapModel for CentrifugeModel {
         jac: &mut DMatrix<f64>,
     ) -> Result<()> {
         let cols: Vec<usize> = (0..p.len()).collect();
-        self.fd(rows, active, p, &cols, e, jac, 0)
+        self.fd(rows, active, p, &cols, e, jac)
     }
     fn columns(
         &self,
@@ -279,7 +278,7 @@ impl GapModel for CentrifugeModel {
         let cols: Vec<usize> = (p.len()..p.len() + dim).collect();
         let mut e = vec![0.0; rows.len()];
         let mut out = DMatrix::zeros(rows.len(), dim);
-        self.fd(rows, &act, &pc, &cols, &mut e, &mut out, 0)?;
+        self.fd(rows, &act, &pc, &cols, &mut e, &mut out)?;
         Ok(out)
     }
     fn sigma(&self, rows: &[usize], _active: &[usize], _p: &[f64]) -> Result<Vec<f64>> {

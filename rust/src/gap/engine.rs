@@ -279,6 +279,8 @@ pub struct TestCfg {
     pub trust_level: f64,
     /// See [`GapOptions::sine_tol`].
     pub sine_tol: f64,
+    /// Compute the linearised estimate of the candidate's parameters.
+    pub estimate: bool,
 }
 
 impl TestCfg {
@@ -288,7 +290,13 @@ impl TestCfg {
             mode: if noise_known { opt.test } else { TestMode::F },
             trust_level: opt.trust_level,
             sine_tol: opt.sine_tol,
+            estimate: false,
         }
+    }
+
+    /// The same with `estimate` set.
+    pub fn with_estimate(self, estimate: bool) -> Self {
+        TestCfg { estimate, ..self }
     }
 }
 
@@ -374,14 +382,14 @@ fn projected_estimate(
 }
 
 /// Screen one candidate's whitened columns `c` against the current model (`b`, residual `e`,
-/// `rss`): identifiability, score and F tests, and with `estimate` the linearised estimate.
+/// `rss`): identifiability, score and F tests, and with `cfg.estimate` the linearised
+/// estimate.
 pub fn screen(
     c: &DMatrix<f64>,
     b: &RangeBasis,
     e: &DVector<f64>,
     rss: f64,
     cfg: TestCfg,
-    estimate: bool,
 ) -> Screened {
     let n = c.nrows();
     let mut out = empty_screen(n, c.ncols());
@@ -414,7 +422,7 @@ pub fn screen(
         TestMode::Auto => chi2_sf(rem, dof2) > cfg.trust_level,
     };
     out.p = if out.chi2_used { out.p_chi2 } else { out.p_f };
-    if estimate {
+    if cfg.estimate {
         (out.est, out.std) = projected_estimate(c, &b.q, e, rem / dof2, cfg.sine_tol);
     }
     out
@@ -488,8 +496,18 @@ pub struct Stepwise {
     pub first: Vec<(usize, Screened)>,
 }
 
-/// Screen every candidate not yet active; returns the screens, the best (index, p) and the
-/// min-p family.
+/// One stepwise stage's screening: every candidate not yet active, the best (index, p) and
+/// the min-p family of the testable ones.
+pub struct Stage {
+    /// Screen of every candidate not yet active.
+    pub screens: Vec<(usize, Screened)>,
+    /// The testable candidate with the smallest p-value.
+    pub best: Option<(usize, f64)>,
+    /// The family of testable candidates.
+    pub fam: Vec<Member>,
+}
+
+/// Screen every candidate not yet active against the current fit `cur` (basis `b`).
 fn screen_stage<M: GapModel>(
     ctx: &Ctx<'_, M>,
     rows: &[usize],
@@ -498,24 +516,25 @@ fn screen_stage<M: GapModel>(
     active: &[usize],
     cands: &[usize],
     cfg: TestCfg,
-    estimate: bool,
-) -> (Vec<(usize, Screened)>, Option<(usize, f64)>, Vec<Member>) {
+) -> Stage {
     let ev = DVector::from_column_slice(&cur.e);
-    let mut screens = vec![];
-    let mut best: Option<(usize, f64)> = None;
-    let mut fam = vec![];
+    let mut st = Stage {
+        screens: vec![],
+        best: None,
+        fam: vec![],
+    };
     for &c in cands.iter().filter(|c| !active.contains(c)) {
         let cols = ctx.columns(rows, active, &cur.p, c);
-        let sc = screen(&cols, b, &ev, cur.rss, cfg, estimate);
+        let sc = screen(&cols, b, &ev, cur.rss, cfg);
         if sc.status == Status::Testable {
-            if best.is_none_or(|(_, pb)| sc.p < pb || pb.is_nan()) {
-                best = Some((c, sc.p));
+            if st.best.is_none_or(|(_, pb)| sc.p < pb || pb.is_nan()) {
+                st.best = Some((c, sc.p));
             }
-            fam.push(member_of(&sc));
+            st.fam.push(member_of(&sc));
         }
-        screens.push((c, sc));
+        st.screens.push((c, sc));
     }
-    (screens, best, fam)
+    st
 }
 
 /// Forward stepwise selection from the baseline fit `base`. `full`: the run on all rows
@@ -547,24 +566,17 @@ pub fn stepwise<M: GapModel>(
             break; // inside a fold nothing more can be selected: no need to screen
         }
         let b = basis(&cur.jac)?;
-        let (screens, best, fam) = screen_stage(
-            ctx,
-            rows,
-            &cur,
-            &b,
-            &sw.effects,
-            cands,
-            cfg,
-            full && step == 0,
-        );
+        let cfg_s = cfg.with_estimate(full && step == 0);
+        let st = screen_stage(ctx, rows, &cur, &b, &sw.effects, cands, cfg_s);
+        let fam = st.fam;
         if step == 0 {
             m_test = fam.len();
-            sw.first = screens;
+            sw.first = st.screens;
         }
         let m_bonf = m_test.saturating_sub(step);
-        let pb = best.map_or(f64::NAN, |x| x.1);
+        let pb = st.best.map_or(f64::NAN, |x| x.1);
         let (p_adj, declare) = family_decision(&b.q, &fam, pb, m_bonf, ctx.opt, full);
-        let Some((bc, pb)) = best.filter(|_| declare && step < e_max) else {
+        let Some((bc, pb)) = st.best.filter(|_| declare && step < e_max) else {
             sw.stop_p = pb;
             sw.stop_p_adj = p_adj;
             break;
@@ -977,12 +989,19 @@ pub struct EngineResult {
     pub gate_skipped: bool,
 }
 
-/// Final parameters, their errors and residuals of the accepted model.
-pub fn finish<M: GapModel>(
-    ctx: &Ctx<'_, M>,
-    fin: &Fit,
-    selected: &[usize],
-) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>, usize)> {
+/// Parameter errors, residual noise and degrees of freedom of the accepted model.
+#[derive(Debug, Clone)]
+pub struct Finished {
+    /// Standard deviations of the parameters (scaled by the residual variance above 1).
+    pub std: Vec<f64>,
+    /// Standard deviation of each residual, physical units.
+    pub sigma: Vec<f64>,
+    /// Residual degrees of freedom.
+    pub dof: usize,
+}
+
+/// Final parameter errors and residual noise of the accepted model.
+pub fn finish<M: GapModel>(ctx: &Ctx<'_, M>, fin: &Fit, selected: &[usize]) -> Result<Finished> {
     let n = fin.e.len();
     let bf = basis(&fin.jac)?;
     let dof = n.saturating_sub(bf.rank);
@@ -1001,7 +1020,11 @@ pub fn finish<M: GapModel>(
         .iter()
         .map(|s| s * ctx.scale)
         .collect();
-    Ok((std, sig, fin.e.clone(), dof))
+    Ok(Finished {
+        std,
+        sigma: sig,
+        dof,
+    })
 }
 
 fn availability<M: GapModel>(m: &M, effects: &[usize]) -> (Vec<usize>, Vec<(usize, Status)>) {
@@ -1016,7 +1039,7 @@ fn availability<M: GapModel>(m: &M, effects: &[usize]) -> (Vec<usize>, Vec<(usiz
     (cands, unavailable)
 }
 
-/// Baseline fit, noise scale and the derived baseline figures.
+/// Baseline fit, its noise scale and range basis.
 fn baseline<M: GapModel>(m: &M, start: &[f64], opt: &GapOptions) -> Result<(Fit, f64, RangeBasis)> {
     let n = m.n_rows();
     let rows: Vec<usize> = (0..n).collect();
@@ -1040,6 +1063,73 @@ fn baseline<M: GapModel>(m: &M, start: &[f64], opt: &GapOptions) -> Result<(Fit,
     Ok((base, scale, b0))
 }
 
+/// Figures of the baseline fit kept for the report.
+struct BaseFigures {
+    params: Vec<f64>,
+    std: Vec<f64>,
+    e: Vec<f64>,
+    sigma: Vec<f64>,
+    leverage: Vec<f64>,
+    chi2: f64,
+    dof: usize,
+    rank: usize,
+}
+
+fn base_figures<M: GapModel>(ctx: &Ctx<'_, M>, base: &Fit, b0: &RangeBasis) -> Result<BaseFigures> {
+    let n = base.e.len();
+    let rows: Vec<usize> = (0..n).collect();
+    Ok(BaseFigures {
+        params: base.p.clone(),
+        std: (0..ctx.m.n_base()).map(|i| b0.cov[(i, i)].sqrt()).collect(),
+        e: base.e.clone(),
+        sigma: ctx
+            .m
+            .sigma(&rows, &[], &base.p)?
+            .iter()
+            .map(|s| s * ctx.scale)
+            .collect(),
+        leverage: (0..n).map(|k| b0.q.row(k).norm_squared()).collect(),
+        chi2: base.rss,
+        dof: n - b0.rank,
+        rank: b0.rank,
+    })
+}
+
+/// Number of held-out groups and the size of the largest.
+pub fn group_sizes<M: GapModel>(m: &M) -> (usize, usize) {
+    let mut g: Vec<usize> = (0..m.n_rows()).map(|r| m.group(r)).collect();
+    g.sort_unstable();
+    let mut sizes: Vec<usize> = vec![];
+    for (i, &x) in g.iter().enumerate() {
+        if i == 0 || g[i - 1] != x {
+            sizes.push(0);
+        }
+        if let Some(s) = sizes.last_mut() {
+            *s += 1;
+        }
+    }
+    (sizes.len(), sizes.into_iter().max().unwrap_or(1))
+}
+
+/// The held-out gap of every step and the gate's decision on the selection `sw`.
+fn held_out_and_gate<M: GapModel>(
+    ctx: &Ctx<'_, M>,
+    bf: &BaseFigures,
+    cands: &[usize],
+    sw: &Stepwise,
+    cfg: TestCfg,
+) -> Result<(Option<HeldOut>, Vec<f64>, GateOutcome)> {
+    let n = ctx.m.n_rows();
+    let (n_groups, n_max_group) = group_sizes(ctx.m);
+    let ho = (ctx.opt.loo && n_groups > 2 && bf.dof > n_max_group)
+        .then(|| held_out(ctx, &bf.params, cands, sw.effects.len(), cfg));
+    let g_steps: Vec<f64> = ho
+        .as_ref()
+        .map_or(vec![], |h| h.z.iter().map(|z| rms(z)).collect());
+    let go = gate(sw, &g_steps, n, n_max_group, ctx.m.noise_known(), ctx.opt)?;
+    Ok((ho, g_steps, go))
+}
+
 /// Run the whole diagnosis of model `m` from the baseline start `start`, on the requested
 /// `effects` (dictionary indices).
 pub fn run<M: GapModel>(
@@ -1049,121 +1139,472 @@ pub fn run<M: GapModel>(
     opt: &GapOptions,
 ) -> Result<EngineResult> {
     opt.validate()?;
-    let n = m.n_rows();
     let (base, scale, b0) = baseline(m, start, opt)?;
     let ctx = Ctx { m, scale, opt };
-    let rows: Vec<usize> = (0..n).collect();
-    let noise_known = m.noise_known();
-    let cfg = TestCfg::of(opt, noise_known);
+    let rows: Vec<usize> = (0..m.n_rows()).collect();
+    let cfg = TestCfg::of(opt, m.noise_known());
     let (cands, unavailable) = availability(m, effects);
-    let base_p = base.p.clone();
-    let (chi2, dof) = (base.rss, n - b0.rank);
-    let e0 = base.e.clone();
-    let sig0: Vec<f64> = m
-        .sigma(&rows, &[], &base_p)?
-        .iter()
-        .map(|s| s * scale)
-        .collect();
+    let bf = base_figures(&ctx, &base, &b0)?;
     let sw = stepwise(&ctx, &rows, base, &cands, opt.max_effects, cfg, true)?;
-    let (mut reports, bic_none, weight_none) =
-        candidate_reports(m, &sw.first, &unavailable, chi2, b0.rank, n);
-    let k_full = sw.effects.len();
-    let n_groups = {
-        let mut g: Vec<usize> = rows.iter().map(|&r| m.group(r)).collect();
-        g.sort_unstable();
-        g.dedup();
-        g.len()
-    };
-    let n_max_group = (0..n)
-        .map(|g| rows.iter().filter(|&&r| m.group(r) == g).count())
-        .max()
-        .unwrap_or(1);
-    let ho = (opt.loo && n_groups > 2 && dof > n_max_group)
-        .then(|| held_out(&ctx, &base_p, &cands, k_full, cfg));
-    let g_steps: Vec<f64> = ho
-        .as_ref()
-        .map_or(vec![], |h| h.z.iter().map(|z| rms(z)).collect());
-    let go = gate(&sw, &g_steps, n, n_max_group, noise_known, opt)?;
-    let k_acc = go.k_acc;
-    let selected = sw.effects[..k_acc].to_vec();
-    let fin = &sw.history[k_acc];
-    let (std_after, sigma_after, e_after, dof_after) = finish(&ctx, fin, &selected)?;
+    let reports = candidate_reports(m, &sw.first, &unavailable, bf.chi2, bf.rank, m.n_rows());
+    let (ho, g_steps, go) = held_out_and_gate(&ctx, &bf, &cands, &sw, cfg)?;
+    let selected = sw.effects[..go.k_acc].to_vec();
+    let done = finish(&ctx, &sw.history[go.k_acc], &selected)?;
+    let loo = ho.map(|h| LooReport {
+        g_before: g_steps[0],
+        g_after: g_steps[go.k_acc],
+        rms_before: rms(&h.r[0]),
+        rms_after: rms(&h.r[go.k_acc]),
+        z_before: h.z[0].clone(),
+        z_after: h.z[go.k_acc].clone(),
+        g_steps: g_steps.clone(),
+        fold_counts: h.counts,
+        n_failed: h.failed,
+    });
+    Ok(assemble(&ctx, bf, reports, &sw, go, done, loo))
+}
+
+/// The engine's result from its parts (selected effects' estimates from the final fit).
+fn assemble<M: GapModel>(
+    ctx: &Ctx<'_, M>,
+    bf: BaseFigures,
+    (mut reports, bic_none, weight_none): (Vec<CandidateReport>, f64, f64),
+    sw: &Stepwise,
+    go: GateOutcome,
+    done: Finished,
+    loo: Option<LooReport>,
+) -> EngineResult {
+    let (m, k) = (ctx.m, go.k_acc);
+    let fin = &sw.history[k];
+    let selected = sw.effects[..k].to_vec();
     let mut off = m.n_base();
     for &c in &selected {
         let dim = m.dictionary()[c].dim;
         if let Some(r) = reports.iter_mut().find(|r| r.effect == c) {
             r.estimate = fin.p[off..off + dim].to_vec();
-            r.std = std_after[off..off + dim].to_vec();
+            r.std = done.std[off..off + dim].to_vec();
         }
         off += dim;
     }
     let ambiguous = selected
         .first()
-        .map_or(vec![], |&b| ambiguity(&reports, b, opt));
-    let loo = ho.map(|h| LooReport {
-        g_before: g_steps[0],
-        g_after: g_steps[k_acc],
-        rms_before: rms(&h.r[0]),
-        rms_after: rms(&h.r[k_acc]),
-        z_before: h.z[0].clone(),
-        z_after: h.z[k_acc].clone(),
-        g_steps: g_steps.clone(),
-        fold_counts: h.counts,
-        n_failed: h.failed,
-    });
-    let leverage: Vec<f64> = (0..n).map(|k| b0.q.row(k).norm_squared()).collect();
-    let s2b = if noise_known { 1.0 } else { 1.0 };
-    Ok(EngineResult {
-        n,
-        base_std: (0..m.n_base())
-            .map(|i| (b0.cov[(i, i)] * s2b).sqrt())
-            .collect(),
-        base_params: base_p,
-        resid: e0.iter().zip(&sig0).map(|(e, s)| e * s).collect(),
-        sigma: sig0,
-        e: e0,
-        leverage,
-        chi2,
-        dof,
-        p_chi2: if noise_known {
-            chi2_sf(chi2, dof as f64)
+        .map_or(vec![], |&b| ambiguity(&reports, b, ctx.opt));
+    let known = m.noise_known();
+    EngineResult {
+        n: m.n_rows(),
+        resid: bf.e.iter().zip(&bf.sigma).map(|(e, s)| e * s).collect(),
+        p_chi2: if known {
+            chi2_sf(bf.chi2, bf.dof as f64)
         } else {
             f64::NAN
         },
-        noise_known,
-        noise_scale: scale,
-        candidates: {
-            reports.sort_by_key(|r| r.effect);
-            reports
-        },
+        base_params: bf.params,
+        base_std: bf.std,
+        sigma: bf.sigma,
+        e: bf.e,
+        leverage: bf.leverage,
+        chi2: bf.chi2,
+        dof: bf.dof,
+        noise_known: known,
+        noise_scale: ctx.scale,
+        candidates: reports,
         bic_none,
         weight_none,
-        step_p: sw.step_p[..k_acc].to_vec(),
-        step_p_adj: sw.step_p_adj[..k_acc].to_vec(),
-        step_m: sw.step_m[..k_acc].to_vec(),
+        step_p: sw.step_p[..k].to_vec(),
+        step_p_adj: sw.step_p_adj[..k].to_vec(),
+        step_m: sw.step_m[..k].to_vec(),
         selected,
         not_confirmed: go.not_confirmed,
         stop_p: sw.stop_p,
         stop_p_adj: sw.stop_p_adj,
         params_after: fin.p.clone(),
-        std_after,
-        resid_after: e_after
-            .iter()
-            .zip(&sigma_after)
-            .map(|(e, s)| e * s)
-            .collect(),
-        e_after,
-        sigma_after,
+        std_after: done.std,
+        resid_after: fin.e.iter().zip(&done.sigma).map(|(e, s)| e * s).collect(),
+        e_after: fin.e.clone(),
+        sigma_after: done.sigma,
         jac_after: fin.jac.clone(),
         chi2_after: fin.rss,
-        dof_after,
-        p_after: if noise_known && dof_after > 0 {
-            chi2_sf(fin.rss, dof_after as f64)
+        dof_after: done.dof,
+        p_after: if known && done.dof > 0 {
+            chi2_sf(fin.rss, done.dof as f64)
         } else {
             f64::NAN
         },
         ambiguous,
         loo,
         gate_skipped: go.skipped,
-    })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gap::statics::tests::Rng;
+
+    /// A linear toy system: `y_k = a + b x_k + sum_c theta_c f_c(x_k) + noise`, `x` on
+    /// [-0.5, 0.5], known noise 0.1. Effects: quadratic, cubic, "alias" (= x, absorbed by the
+    /// baseline: blind), step (a jump at the middle) and "quad2" (x^2 plus a little x^4:
+    /// aliased with the quadratic).
+    struct Toy {
+        x: Vec<f64>,
+        y: Vec<f64>,
+        known: bool,
+        pairs: bool,
+    }
+
+    const DICT: [EffectInfo; 5] = [
+        EffectInfo {
+            name: "quad",
+            unit: "u",
+            dim: 1,
+        },
+        EffectInfo {
+            name: "cubic",
+            unit: "u",
+            dim: 1,
+        },
+        EffectInfo {
+            name: "alias",
+            unit: "u",
+            dim: 1,
+        },
+        EffectInfo {
+            name: "step",
+            unit: "u",
+            dim: 1,
+        },
+        EffectInfo {
+            name: "quad2",
+            unit: "u",
+            dim: 1,
+        },
+    ];
+    const SIG: f64 = 0.1;
+
+    fn f(c: usize, x: f64) -> f64 {
+        match c {
+            0 => x * x,
+            1 => x * x * x,
+            2 => x,
+            3 => f64::from(u8::from(x > 0.0)),
+            _ => x * x + 0.3 * x.powi(4),
+        }
+    }
+
+    impl Toy {
+        fn new(n: usize, effect: Option<(usize, f64)>, seed: u64) -> Self {
+            let mut rng = Rng(seed);
+            let x: Vec<f64> = (0..n).map(|k| k as f64 / (n - 1) as f64 - 0.5).collect();
+            let y = x
+                .iter()
+                .map(|&xk| {
+                    1.0 + 2.0 * xk + effect.map_or(0.0, |(c, a)| a * f(c, xk)) + SIG * rng.normal()
+                })
+                .collect();
+            Toy {
+                x,
+                y,
+                known: true,
+                pairs: false,
+            }
+        }
+    }
+
+    impl GapModel for Toy {
+        fn n_rows(&self) -> usize {
+            self.x.len()
+        }
+        fn n_base(&self) -> usize {
+            2
+        }
+        fn dictionary(&self) -> &[EffectInfo] {
+            &DICT
+        }
+        fn unavailable(&self, _c: usize) -> Option<Status> {
+            None
+        }
+        fn group(&self, row: usize) -> usize {
+            if self.pairs {
+                row / 2
+            } else {
+                row
+            }
+        }
+        fn noise_known(&self) -> bool {
+            self.known
+        }
+        fn eval(
+            &self,
+            rows: &[usize],
+            active: &[usize],
+            p: &[f64],
+            e: &mut [f64],
+            jac: &mut DMatrix<f64>,
+        ) -> Result<()> {
+            for (ri, &k) in rows.iter().enumerate() {
+                let x = self.x[k];
+                let mut m = p[0] + p[1] * x;
+                jac[(ri, 0)] = -1.0 / SIG;
+                jac[(ri, 1)] = -x / SIG;
+                for (j, &c) in active.iter().enumerate() {
+                    m += p[2 + j] * f(c, x);
+                    jac[(ri, 2 + j)] = -f(c, x) / SIG;
+                }
+                e[ri] = (self.y[k] - m) / SIG;
+            }
+            Ok(())
+        }
+        fn columns(
+            &self,
+            rows: &[usize],
+            _a: &[usize],
+            _p: &[f64],
+            c: usize,
+        ) -> Result<DMatrix<f64>> {
+            Ok(DMatrix::from_fn(rows.len(), 1, |ri, _| {
+                -f(c, self.x[rows[ri]]) / SIG
+            }))
+        }
+        fn sigma(&self, rows: &[usize], _a: &[usize], _p: &[f64]) -> Result<Vec<f64>> {
+            Ok(vec![SIG; rows.len()])
+        }
+    }
+
+    fn ctx(t: &Toy) -> Ctx<'_, Toy> {
+        Ctx {
+            m: t,
+            scale: 1.0,
+            opt: &OPT,
+        }
+    }
+    static OPT: std::sync::LazyLock<GapOptions> = std::sync::LazyLock::new(GapOptions::default);
+
+    fn all(n: usize) -> Vec<usize> {
+        (0..n).collect()
+    }
+
+    /// Ordinary least squares of `y` on columns (closed form by the normal equations).
+    fn ols(cols: &[Vec<f64>], y: &[f64]) -> Vec<f64> {
+        let p = cols.len();
+        let a = DMatrix::from_fn(p, p, |i, j| {
+            cols[i].iter().zip(&cols[j]).map(|(u, v)| u * v).sum()
+        });
+        let b = DVector::from_fn(p, |i, _| cols[i].iter().zip(y).map(|(u, v)| u * v).sum());
+        a.lu().solve(&b).unwrap().as_slice().to_vec()
+    }
+
+    #[test]
+    fn fit_is_least_squares_and_anchors_unseen_directions() {
+        let t = Toy::new(30, Some((0, 0.8)), 1);
+        let c = ctx(&t);
+        let f1 = fit(&c, &all(30), &[0], &[0.0, 0.0, 0.0]).unwrap();
+        let want = ols(
+            &[
+                vec![1.0; 30],
+                t.x.clone(),
+                t.x.iter().map(|x| x * x).collect(),
+            ],
+            &t.y,
+        );
+        for i in 0..3 {
+            assert!((f1.p[i] - want[i]).abs() < 1e-8, "{:?} {want:?}", f1.p);
+        }
+        // "alias" duplicates the slope: the data see only b + theta. From a start at the
+        // least-squares slope, theta stays where it started (minimum-norm change).
+        let lin = ols(&[vec![1.0; 30], t.x.clone()], &t.y);
+        let f2 = fit(&c, &all(30), &[2], &[lin[0], lin[1], 0.0]).unwrap();
+        assert!(f2.p[2].abs() < 1e-6, "{:?}", f2.p);
+        assert!((f2.p[1] + f2.p[2] - lin[1]).abs() < 1e-8);
+        // From zero the sum still fits.
+        let f3 = fit(&c, &all(30), &[2], &[0.0, 0.0, 0.0]).unwrap();
+        assert!((f3.p[1] + f3.p[2] - lin[1]).abs() < 1e-8);
+    }
+
+    #[test]
+    fn basis_rank_and_pseudo_inverse() {
+        let j = DMatrix::from_fn(10, 3, |i, c| {
+            if c == 2 {
+                2.0 * i as f64
+            } else {
+                [1.0, i as f64][c]
+            }
+        });
+        let b = basis(&j).unwrap();
+        assert_eq!(b.rank, 2);
+        assert!((b.q.transpose() * &b.q - DMatrix::identity(2, 2)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn screen_matches_the_closed_form_f_test_and_finds_blind_spots() {
+        let t = Toy::new(30, Some((0, 0.5)), 2);
+        let c = ctx(&t);
+        let base = fit(&c, &all(30), &[], &[0.0, 0.0]).unwrap();
+        let b = basis(&base.jac).unwrap();
+        let e = DVector::from_column_slice(&base.e);
+        let cfg = TestCfg::of(&OPT, true).with_estimate(true);
+        let q = screen(&c.columns(&all(30), &[], &base.p, 0), &b, &e, base.rss, cfg);
+        assert_eq!(q.status, Status::Testable);
+        // Closed form: F = (RSS0 - RSS1) / (RSS1 / (n - 3)).
+        let r1: f64 = {
+            let w = ols(
+                &[
+                    vec![1.0; 30],
+                    t.x.clone(),
+                    t.x.iter().map(|x| x * x).collect(),
+                ],
+                &t.y,
+            );
+            t.x.iter()
+                .zip(&t.y)
+                .map(|(x, y)| ((y - w[0] - w[1] * x - w[2] * x * x) / SIG).powi(2))
+                .sum()
+        };
+        let f_want = (base.rss - r1) / (r1 / 27.0);
+        assert!((q.f - f_want).abs() < 1e-8 * f_want, "{} {f_want}", q.f);
+        assert!((q.p_f - f_sf(f_want, 1.0, 27.0)).abs() < 1e-12);
+        assert!(
+            (q.est[0] - 0.5).abs() < 4.0 * q.std[0],
+            "{:?} {:?}",
+            q.est,
+            q.std
+        );
+        let a = screen(&c.columns(&all(30), &[], &base.p, 2), &b, &e, base.rss, cfg);
+        assert_eq!(a.status, Status::Blind);
+        assert!(a.sines[0] < 1e-8);
+    }
+
+    #[test]
+    fn family_decision_bonferroni_and_min_p() {
+        let q = DMatrix::from_fn(40, 2, |a, b| f64::from(u8::from(a == b)));
+        let mk = |k: usize, p: f64| Member {
+            w: DMatrix::from_fn(40, 1, |a, _| f64::from(u8::from(a == k))),
+            chi2: true,
+            dof2: 30.0,
+            p,
+            stat: crate::gap::special::chi2_isf(p, 1.0),
+        };
+        let fam = [mk(5, 0.02), mk(6, 0.5), mk(7, 0.5)];
+        let bon = GapOptions {
+            correction: Correction::Bonferroni,
+            ..GapOptions::default()
+        };
+        assert_eq!(
+            family_decision(&q, &fam, 0.02, 3, &bon, true),
+            (0.06, false)
+        );
+        let (pa, dec) = family_decision(&q, &fam, 0.02, 3, &OPT, true);
+        assert!(pa > 0.02 && pa <= 0.06 && !dec, "{pa}");
+        // A clear case is declared without Monte Carlo inside folds.
+        let (pa, dec) = family_decision(&q, &fam, 1e-4, 3, &OPT, false);
+        assert!((pa - 3e-4).abs() < 1e-15 && dec);
+        assert!(family_decision(&q, &fam, f64::NAN, 3, &OPT, true)
+            .0
+            .is_nan());
+    }
+
+    #[test]
+    fn stepwise_selects_the_hidden_effect_and_records_the_stop() {
+        let t = Toy::new(40, Some((3, 0.6)), 3);
+        let c = ctx(&t);
+        let base = fit(&c, &all(40), &[], &[0.0, 0.0]).unwrap();
+        let cfg = TestCfg::of(&OPT, true);
+        let sw = stepwise(&c, &all(40), base, &[0, 1, 2, 3], 3, cfg, true).unwrap();
+        assert_eq!(sw.effects, vec![3]);
+        assert_eq!(sw.history.len(), 2);
+        assert!(sw.step_p_adj[0] < 0.05 && sw.stop_p_adj >= 0.05, "{:?}", sw);
+        assert_eq!(sw.first.len(), 4);
+        assert!(
+            (sw.history[1].p[2] - 0.6).abs() < 0.15,
+            "{:?}",
+            sw.history[1].p
+        );
+    }
+
+    #[test]
+    fn held_out_z_is_the_studentised_residual_for_a_linear_model() {
+        let t = Toy::new(25, None, 4);
+        let c = ctx(&t);
+        let base = fit(&c, &all(25), &[], &[0.0, 0.0]).unwrap();
+        let b = basis(&base.jac).unwrap();
+        let cfg = TestCfg::of(&OPT, true);
+        let ho = held_out(&c, &base.p, &[0, 1, 3], 0, cfg);
+        assert_eq!(ho.failed, 0);
+        for k in 0..25 {
+            let h = b.q.row(k).norm_squared();
+            let want = base.e[k] / (1.0 - h).sqrt();
+            assert!(
+                (ho.z[0][k] - want).abs() < 1e-6,
+                "{k}: {} {want}",
+                ho.z[0][k]
+            );
+        }
+        let (ng, nmax) = group_sizes(&Toy {
+            pairs: true,
+            ..Toy::new(6, None, 1)
+        });
+        assert_eq!((ng, nmax), (3, 2));
+    }
+
+    #[test]
+    fn gate_rejects_an_effect_that_does_not_predict() {
+        let t = Toy::new(30, Some((0, 3.0)), 5);
+        let c = ctx(&t);
+        let base = fit(&c, &all(30), &[], &[0.0, 0.0]).unwrap();
+        let sw = stepwise(&c, &all(30), base, &[0], 1, TestCfg::of(&OPT, true), true).unwrap();
+        assert_eq!(sw.effects, vec![0]);
+        let strict = GapOptions {
+            gate: Gate::Strict,
+            ..GapOptions::default()
+        };
+        let keep = gate(&sw, &[3.0, 1.0], 30, 1, true, &strict).unwrap();
+        assert_eq!(keep.k_acc, 1);
+        let drop = gate(&sw, &[1.5, 1.6], 30, 1, true, &strict).unwrap();
+        assert_eq!(drop.k_acc, 0);
+        assert_eq!(drop.not_confirmed.unwrap().effect, 0);
+        // Auto keeps an effect after which the model is adequate, in-sample and held out.
+        let auto = gate(&sw, &[1.05, 1.06], 30, 1, true, &OPT).unwrap();
+        assert_eq!(auto.k_acc, 1);
+        // Folds without 2 residual degrees of freedom: skipped.
+        assert!(
+            gate(&sw, &[3.0, 1.0], 30, 27, true, &strict)
+                .unwrap()
+                .skipped
+        );
+    }
+
+    #[test]
+    fn reports_weights_and_ambiguity() {
+        let t = Toy::new(40, Some((0, 3.0)), 6);
+        let r = run(&t, &[0.0, 0.0], &[0, 1, 2, 4], &OPT).unwrap();
+        assert_eq!(r.selected.first(), Some(&0));
+        let wsum: f64 = r.weight_none
+            + r.candidates
+                .iter()
+                .filter(|c| c.weight.is_finite())
+                .map(|c| c.weight)
+                .sum::<f64>();
+        assert!((wsum - 1.0).abs() < 1e-12);
+        assert_eq!(
+            r.candidates.iter().find(|c| c.effect == 2).unwrap().status,
+            Status::Blind
+        );
+        // quad2 is aliased with quad and has similar evidence.
+        assert!(
+            r.ambiguous.iter().any(|a| a.other == 4 && a.cosine > 0.9),
+            "{:?}",
+            r.ambiguous
+        );
+        assert!(r
+            .loo
+            .as_ref()
+            .is_some_and(|l| l.g_before > 1.5 && l.g_after < 1.3));
+        let fin = finish(
+            &ctx(&t),
+            &fit(&ctx(&t), &all(40), &[0], &r.params_after).unwrap(),
+            &[0],
+        )
+        .unwrap();
+        assert_eq!(fin.dof, 37);
+        assert!((fin.std[2] - r.std_after[2]).abs() < 1e-12);
+    }
 }

@@ -298,6 +298,7 @@ fn smooth_stage(
         mode: TestMode::F,
         trust_level: opt.trust_level,
         sine_tol: opt.sine_tol,
+        estimate: false,
     };
     let mut out = vec![];
     let mut fam = vec![];
@@ -309,7 +310,7 @@ fn smooth_stage(
         let wc = DMatrix::from_fn(cols.nrows(), cols.ncols(), |k, c| {
             cols[(k, c)] / eng.sigma_after[k]
         });
-        let sc = screen(&wc, &b, &e, rss, cfg, false);
+        let sc = screen(&wc, &b, &e, rss, cfg);
         let mut t = StructureTest::new(st.name, sc.status);
         t.n_columns = cols.ncols();
         t.d = sc.d;
@@ -596,5 +597,123 @@ mod tests {
         assert_eq!(c.ncols(), 8);
         assert!((c[(0, 0)] + 1.0).abs() < 1e-12 && (c[(9, 6)] - 1.0).abs() < 1e-12);
         assert!((c[(9, 7)] - 1.0).abs() < 1e-12 && (c[(0, 4)] - 0.5).abs() < 1e-12);
+    }
+}
+
+#[cfg(test)]
+mod session_tests {
+    use super::*;
+    use crate::gap::statics::tests::Rng;
+    use crate::gap::statics::{self, DwellExtras, Effect, StaticInput};
+
+    /// A 40-dwell static session with half-dwell means: white noise `scale * sigma` per half
+    /// (reported `sigma`), persistent per-dwell offsets `offset` (m/s^2, along gravity) and an
+    /// attitude pattern of degree 3 (`att`, m/s^2).
+    fn session(seed: u64, scale: f64, offset: f64, att: f64) -> StaticInput {
+        let mut rng = Rng(seed);
+        let (g, sigma, n) = (9.81, 1e-4, 40);
+        let b = [0.05, -0.03, 0.02];
+        let (mut mean, mut half, mut t) = (vec![], vec![], vec![]);
+        for i in 0..n {
+            let mut u = [rng.normal(), rng.normal(), rng.normal()];
+            let r = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
+            u.iter_mut().for_each(|v| *v /= r);
+            let extra = offset * rng.normal() + att * u[0] * u[1] * u[2] * 10.0;
+            let a: Vec<f64> = u.iter().map(|v| v * (g + extra)).collect();
+            let h: Vec<[f64; 3]> = (0..2)
+                .map(|_| {
+                    let mut m = [0.0; 3];
+                    for r in 0..3 {
+                        m[r] = a[r] + b[r] + scale * sigma * 2f64.sqrt() * rng.normal();
+                    }
+                    m
+                })
+                .collect();
+            mean.push([0, 1, 2].map(|r| 0.5 * (h[0][r] + h[1][r])));
+            half.push([h[0], h[1]]);
+            t.push(90.0 * i as f64);
+        }
+        StaticInput {
+            mean,
+            var: Some(vec![[sigma * sigma; 3]; n]),
+            t: Some(t),
+            temperature: None,
+            g,
+            calibration: None,
+            extras: DwellExtras {
+                half_mean: Some(half),
+                ..DwellExtras::default()
+            },
+        }
+    }
+
+    fn verdict(inp: &StaticInput) -> Structure {
+        statics::diagnose(inp, &Effect::ALL, &GapOptions::default())
+            .unwrap()
+            .structure
+    }
+
+    #[test]
+    fn verdicts_of_simulated_classes() {
+        let none = verdict(&session(1, 1.0, 0.0, 0.0));
+        assert_eq!(none.verdict, Verdict::None, "{none:?}");
+        let pd = verdict(&session(2, 1.0, 5e-4, 0.0));
+        assert_eq!(pd.verdict, Verdict::PerDwell, "{pd:?}");
+        assert!(pd.persistence > 0.8, "{}", pd.persistence);
+        assert!(
+            (pd.per_dwell_rms / 5e-4 - 1.0).abs() < 0.5,
+            "{}",
+            pd.per_dwell_rms
+        );
+        let nm = verdict(&session(3, 3.0, 0.0, 0.0));
+        assert_eq!(nm.verdict, Verdict::NoiseModel, "{nm:?}");
+        let ne = nm.noise_empirical.unwrap();
+        assert!(
+            (ne.ratio_model / 3.0 - 1.0).abs() < 0.3,
+            "{}",
+            ne.ratio_model
+        );
+        assert!(nm.persistence.abs() < 0.5);
+        let at = verdict(&session(4, 1.0, 0.0, 1e-3));
+        assert_eq!(at.verdict, Verdict::Attitude, "{at:?}");
+        let t = at.tests.iter().find(|t| t.name == "attitude").unwrap();
+        assert!(t.explained > 0.5 && t.p_adjusted < 1e-3, "{t:?}");
+        // Without half-dwell means persistence is untestable.
+        let mut s = session(2, 1.0, 5e-4, 0.0);
+        s.extras.half_mean = None;
+        let pd = verdict(&s);
+        assert!(!pd.persistence_testable && pd.persistence.is_nan());
+        assert_eq!(pd.verdict, Verdict::PerDwell);
+    }
+
+    #[test]
+    fn attitude_is_not_testable_with_few_dwells() {
+        let mut s = session(5, 1.0, 0.0, 0.0);
+        s.mean.truncate(20);
+        s.var.as_mut().unwrap().truncate(20);
+        s.t.as_mut().unwrap().truncate(20);
+        s.extras.half_mean.as_mut().unwrap().truncate(20);
+        let st = verdict(&s);
+        let t = st.tests.iter().find(|t| t.name == "attitude").unwrap();
+        assert_eq!(t.status, Status::TooFewRows);
+        assert_eq!(t.n_columns, 16);
+    }
+
+    #[test]
+    fn quantization_explains_a_gap_it_predicts() {
+        // Dwell means quantised to 1e-3 m/s^2 steps with almost no noise: the bias is up to
+        // half a step per axis; the predicted quantisation variance explains the excess.
+        let mut s = session(6, 0.1, 0.0, 0.0);
+        let lsb = 1e-3;
+        for m in s.mean.iter_mut() {
+            m.iter_mut().for_each(|v| *v = (*v / lsb).round() * lsb);
+        }
+        s.extras.half_mean = None;
+        s.extras.sample_var = Some(vec![[1e-10; 3]; 40]);
+        s.extras.lsb = Some([lsb; 3]);
+        s.var = Some(vec![[1e-10; 3]; 40]);
+        let st = verdict(&s);
+        assert_eq!(st.verdict, Verdict::Quantization, "{st:?}");
+        assert!((st.quantization_rms / (lsb / 12f64.sqrt()) - 1.0).abs() < 0.3);
     }
 }
