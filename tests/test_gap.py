@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Any
 
 import accelcal
 import numpy as np
@@ -372,3 +373,184 @@ def test_raw_stream_with_per_sample_time_and_temperature() -> None:
         diagnose(x, fs=s.fs, g=s.g, temperature=temp[:-5])
     with pytest.raises(CalibrationError, match="DwellSet"):
         diagnose(accelcal.detect_dwells(x, s.fs), g=s.g, temperature=temp)
+
+
+# ----------------------------------------------------------------------------------------------
+# Round 2: one engine, typed report, fixed calibrations, structure, clear errors.
+
+
+def _half_means(samples: np.ndarray, d: DwellSet) -> np.ndarray:
+    """Independent NumPy reference: first- and second-half sample means of each dwell."""
+    out = np.empty((len(d), 2, 3))
+    for k, (a, b) in enumerate(zip(d.start, d.stop, strict=True)):
+        mid = (int(a) + int(b)) // 2
+        out[k, 0] = samples[int(a):mid].mean(axis=0)
+        out[k, 1] = samples[mid:int(b)].mean(axis=0)
+    return out
+
+
+def test_report_pickles_and_round_trips() -> None:
+    import pickle
+
+    from accelcal.gap import GapReport
+
+    s = gap_session(("drift",), rng=3, amplitudes=[20.0])
+    r = diagnose(s.dwells, g=s.g)
+    r2 = pickle.loads(pickle.dumps(r))
+    assert r2.summary() == r.summary()
+    assert np.array_equal(r2.dwells["e"], r.dwells["e"])
+    r3 = GapReport.from_dict(json.loads(json.dumps(r.to_dict())))
+    assert r3.summary() == r.summary()
+    assert repr(r3.structure) == repr(r.structure)  # NaN-aware
+    assert np.allclose(r3.params_after, r.params_after)
+
+
+def test_ml_baseline_matches_a_scipy_reference() -> None:
+    # The baseline is maximum likelihood: sigma_k^2 = w^T Sigma_k w, w = K^-T a / |a|,
+    # re-evaluated at every parameter vector. Independent reference: scipy least_squares on
+    # the same cost from the same start.
+    from scipy.optimize import least_squares
+
+    s = gap_session((), rng=21, n_dwells=20, sigma=3e-3)
+    d = s.dwells
+    var = np.tile([1e-6, 9e-6, 2.5e-7], (len(d), 1)) * (1 + np.arange(len(d)))[:, None] / 10
+    r = diagnose(d, g=s.g, noise=np.sqrt(var), effects=[], loo=False)
+
+    def cost(p: np.ndarray) -> np.ndarray:
+        K = np.array([[p[0], 0, 0], [p[6], p[1], 0], [p[7], p[8], p[2]]])
+        T = np.linalg.inv(K)
+        a = (T @ (d.mean - p[3:6]).T).T
+        na = np.linalg.norm(a, axis=1)
+        w = (T.T @ (a / na[:, None]).T).T
+        sig = np.sqrt(np.sum(w**2 * var, axis=1))
+        return (na - s.g) / sig
+
+    ref = least_squares(cost, r.params + 1e-4, method="lm", xtol=1e-14, ftol=1e-14)
+    assert np.allclose(ref.x, r.params, rtol=0, atol=1e-8 * np.abs(r.params).max() + 1e-9)
+    assert abs(2 * ref.cost - r.chi2) < 1e-6 * r.chi2
+
+
+def test_existing_calibration_is_checked_not_refitted(tmp_path: Any) -> None:
+    from accelcal import TriadModel, fit_static
+
+    s = gap_session((), rng=31, n_dwells=16)
+    d = s.dwells
+    truth = s.nuisance
+    K = np.array([[truth[0], 0, 0], [truth[6], truth[1], 0], [truth[7], truth[8], truth[2]]])
+    good = diagnose(d, g=s.g, fit=TriadModel(K, truth[3:6]))
+    assert good.dof == 16 and "held fixed" in " ".join(good.statements)
+    assert good.p_value > 1e-3
+    # The bias moved since that calibration: a clear gap (chi2 from 16 dwells, no refit).
+    bad = diagnose(d, g=s.g, fit=TriadModel(K, truth[3:6] + [0, 0, 2e-3]))
+    assert bad.p_value < 1e-6 and bad.chi2 > 10 * good.chi2
+    # A StaticFit is a start: the calibration is refitted (9 parameters).
+    f = fit_static(d, g=s.g)
+    r = diagnose(d, g=s.g, fit=f)
+    assert r.dof == 16 - 9
+    with pytest.raises(CalibrationError, match="StaticFit .* TriadModel"):
+        diagnose(d, g=s.g, fit="cal.json")
+    # The CLI does the same with --calibration.
+    from accelcal.cli import main
+    from accelcal.sim import field_session
+    from click.testing import CliRunner
+
+    fs_ = field_session(fs=100.0, n_dwells=14, dwell_s=4.0, move_s=2.0, max_tilt_deg=80.0,
+                        sigma=1e-3, rng=4)
+    path = tmp_path / "rec.csv"
+    np.savetxt(path, np.column_stack([fs_.t, fs_.samples]), delimiter=",",
+               header="t,ax,ay,az", comments="")
+    t0 = fs_.truth
+    Kt = np.array([[t0[0], 0, 0], [t0[6], t0[1], 0], [t0[7], t0[8], t0[2]]])
+    cal = tmp_path / "cal.json"
+    TriadModel(Kt, t0[3:6]).save(cal)
+    out = CliRunner().invoke(main, ["diagnose", str(path), "--g", f"{fs_.g}", "--calibration",
+                                    str(cal), "--json"])
+    assert out.exit_code == 0, out.output
+    rep = json.loads(out.output)
+    assert rep["dof"] == rep["n"] and "held fixed" in " ".join(rep["statements"])
+
+
+def test_centrifuge_and_gradiometer_run_the_same_engine() -> None:
+    s = _cf(lever_arm=np.diag([4e-5, -3e-5, 2e-5]))
+    r = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, g=s.g,
+                                     spin_axis=s.spin_axis, sigma=np.full((60, 3), 2e-6))
+    # Min-p family-wise adjusted p-value, between the raw p and the Bonferroni bound.
+    p, pa, m = r.raw["step_p"][0], r.raw["step_p_adj"][0], r.raw["step_m"][0]
+    assert p <= pa <= min(1.0, m * p) + 1e-15
+    assert r.structure.verdict in {"none", "per_dwell"}
+    statuses = {e["status"] for e in r.effects}
+    assert statuses <= {"selected", "testable", "blind", "too_few_dwells", "no_spin_axis",
+                        "not_confirmed"}
+    az, y, t, _ = _grad(2, drift_E_per_s=(2e-3, -1.5e-3))
+    r = accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5)
+    assert r.raw["step_p_adj"] and r.raw["step_p_adj"][0] <= min(1.0, r.raw["step_m"][0]
+                                                                  * r.raw["step_p"][0])
+    assert math.isfinite(r.structure.per_dwell_rms)
+
+
+@pytest.mark.parametrize("name, bad", [
+    ("max_effects", None), ("max_effects", "3"), ("max_effects", math.inf),
+    ("max_effects", 2.5), ("n_draws", -1), ("n_draws", "many"), ("alpha", 0.0),
+    ("alpha", None), ("trust_level", math.nan), ("gate_margin", math.inf), ("alpha", True),
+])
+def test_bad_option_values_name_the_argument(name: str, bad: Any) -> None:
+    s = gap_session((), rng=5)
+    with pytest.raises(CalibrationError, match=rf"{name} must be .* in [\[(].*got"):
+        diagnose(s.dwells, g=s.g, **{name: bad})
+    if name in ("max_effects", "alpha"):
+        az, y, t, _ = _grad(1)
+        with pytest.raises(CalibrationError, match=name):
+            accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5, **{name: bad})
+        c = _cf()
+        with pytest.raises(CalibrationError, match=name):
+            accelcal.diagnose_centrifuge(c.outputs, c.omega, c.radius, **{name: bad})
+
+
+def test_bad_arrays_are_clear_errors() -> None:
+    az, y, t, _ = _grad(1)
+    with pytest.raises(CalibrationError, match="azimuth_deg: unsupported dtype bool"):
+        accelcal.diagnose_gradiometer(az > 90, y, t=t, sigma=0.5)
+    with pytest.raises(CalibrationError, match="outputs contains NaN"):
+        accelcal.diagnose_gradiometer(az, np.where(y > 40, np.nan, y), t=t, sigma=0.5)
+    with pytest.raises(CalibrationError, match="complex"):
+        accelcal.diagnose_gradiometer(az, y.astype(complex), sigma=0.5)
+    with pytest.raises(CalibrationError, match="preset"):
+        diagnose(gap_session((), rng=1).dwells, g=9.8, preset="bold")
+    # A stream in which the sensor never rests: the diagnosis says so.
+    tt = np.arange(3000) / 100.0
+    moving = np.column_stack([9.81 * np.sin(2 * tt), 9.81 * np.cos(2 * tt), 0.1 * np.sin(7 * tt)])
+    with pytest.raises(CalibrationError, match="no static dwells detected"):
+        diagnose(moving, g=9.81, fs=100.0)
+
+
+def test_no_nan_without_a_status() -> None:
+    # Few dwells: every NaN figure comes with the statement or status that explains it.
+    s = gap_session((), rng=8, n_dwells=11)
+    r = diagnose(s.dwells, g=s.g)
+    for e in r.effects:
+        if not math.isfinite(e["p_value"]):
+            assert e["status"] != "testable" and e["effect"] in {b["effect"]
+                                                                 for b in r.blind_spots}
+    if not math.isfinite(r.held_out_gap):
+        assert any("held-out" in x for x in r.statements)
+    for t in r.structure.tests:
+        if t.status == "testable":
+            assert math.isfinite(t.p_value), t
+        else:
+            assert not math.isfinite(t.p_value)
+
+
+def test_raw_stream_gives_half_dwell_means_and_persistence() -> None:
+    from accelcal.gap import _half_means as half_of
+    from accelcal.sim import field_session
+
+    s = field_session(fs=200.0, n_dwells=30, dwell_s=6.0, move_s=2.0, max_tilt_deg=80.0,
+                      sigma=1e-3, rng=9)
+    d = accelcal.detect_dwells(s.samples, s.fs)
+    assert np.allclose(half_of(s.samples, d), _half_means(s.samples, d), atol=1e-12)
+    r = diagnose(s.samples, g=s.g, fs=s.fs)
+    st = r.structure
+    assert st.persistence_testable and math.isfinite(st.persistence)
+    assert st.noise_empirical is not None and 0.6 < st.noise_empirical.ratio_model < 1.6
+    assert st.verdict == "none", r.summary()
+    assert "Structure: none" in r.summary()

@@ -318,7 +318,7 @@ def _number(name: str, value: Any, lo: float, hi: float, *, integer: bool = Fals
     return int(v) if integer else v
 
 
-def _choice(name: str, value: Any, options: Sequence[str]) -> str:
+def _choice(name: str, value: Any, options: Sequence[str]) -> Any:
     if not isinstance(value, str) or value not in options:
         raise CalibrationError(f"{name} must be one of {', '.join(map(repr, options))}; "
                                f"got {value!r}")
@@ -787,7 +787,7 @@ def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_mode
         raw={"weight_none": raw.weight_none, "step_p": list(raw.step_p),
              "stop_p": raw.stop_p, "step_p_adj": list(raw.step_p_adj),
              "step_m": list(raw.step_m), "stop_p_adj": raw.stop_p_adj,
-             "fold_counts": dict(zip([nm for nm, _, _ in _core.gap_dictionary(sysw.name)],
+             "fold_counts": dict(zip([nm for nm, _, _ in _core.gap_dictionary(sysw.name)],  # type: ignore[arg-type]
                                      loo.fold_counts, strict=True)) if loo else {},
              "g_steps": list(loo.g_steps) if loo else [],
              "not_confirmed": None if raw.not_confirmed is None else tuple(raw.not_confirmed),
@@ -973,8 +973,8 @@ def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bo
         raise CalibrationError("fit must be a StaticFit (used as the start), a TriadModel (an "
                                "existing calibration, checked against this session) or the 9 "
                                f"values [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {type(fit).__name__}")
-    K = [[v[0], 0.0, 0.0], [v[6], v[1], 0.0], [v[7], v[8], v[2]]]
-    return K, v[3:6].tolist(), False
+    k9 = [[v[0], 0.0, 0.0], [v[6], v[1], 0.0], [v[7], v[8], v[2]]]
+    return k9, v[3:6].tolist(), False
 
 
 def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
@@ -1155,7 +1155,7 @@ def diagnose(
                   kind="a positive gravity value in m/s^2")
     eff = _names(effects, list(EFFECTS))
     cal = _calibration(fit, g_v)
-    noise_model = _choice("noise_model", noise_model, ("auto", "white", "allan"))
+    nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))
     d, samples, fs_v = _dwells_of(data, fs, t, temperature)
     inflation = getattr(d, "inflation", None)
     half = getattr(d, "half_mean", None)
@@ -1182,7 +1182,7 @@ def diagnose(
     tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None
             else np.ascontiguousarray(d.temperature[order], dtype=np.float64))
-    var, nm_text, white, allan = _noise(d, noise, inflation, noise_model, order)
+    var, nm_text, white, allan = _noise(d, noise, inflation, nm_choice, order)
     hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]
