@@ -1005,7 +1005,8 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
 
 
 def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
-           order: NDArray[np.int64]) -> tuple[_F64 | None, str, _F64 | None, _F64 | None]:
+           order: NDArray[np.int64], lsb: Any = None
+           ) -> tuple[_F64 | None, str, _F64 | None, _F64 | None]:
     """Per-axis variance of each dwell mean used, its description, and the white and Allan
     variances (for the empirical-noise comparison)."""
     k = len(d)
@@ -1028,6 +1029,18 @@ def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
     if white is None:
         return (None, "unknown (no var/count): unit weights scaled to the baseline fit; the "
                 "absolute gap is not testable, attribution uses sigma-free F tests", None, None)
+    floored = ""
+    if lsb is not None and d.count is not None:
+        # Quantised output: a dwell whose samples barely change has a sample variance below
+        # the quantisation noise LSB^2 / 12 (zero when constant); floor it there.
+        q = (np.asarray(lsb, dtype=np.float64) ** 2 / 12.0)[None, :] / d.count[order, None]
+        low = np.any(white < q, axis=1)
+        if np.any(low):
+            white = np.maximum(white, q)
+            if allan is not None:
+                allan = np.maximum(allan, q)
+            floored = (f"; variance of {int(low.sum())} dwell(s) floored at the quantisation "
+                       "noise LSB^2/12")
     if np.any(white <= 0):
         bad = np.where(np.any(white <= 0, axis=1))[0]
         raise CalibrationError(f"dwell(s) {order[bad].tolist()} have zero variance: the noise "
@@ -1041,8 +1054,9 @@ def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
         f = np.nanmedian(inflation, axis=0)
         return (np.ascontiguousarray(allan), "Allan deviation of the within-dwell samples at "
                 f"tau = dwell length (inflation over white noise x/y/z "
-                f"{', '.join(f'{v:.2f}' for v in f)})", white, allan)
-    return np.ascontiguousarray(white), "white noise: var / count of each dwell", white, allan
+                f"{', '.join(f'{v:.2f}' for v in f)}){floored}", white, allan)
+    return (np.ascontiguousarray(white), f"white noise: var / count of each dwell{floored}",
+            white, allan)
 
 
 def _noise_curves(samples: NDArray[Any] | None, d: DwellSet, fs: float | None,
@@ -1182,7 +1196,7 @@ def diagnose(
     tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None
             else np.ascontiguousarray(d.temperature[order], dtype=np.float64))
-    var, nm_text, white, allan = _noise(d, noise, inflation, nm_choice, order)
+    var, nm_text, white, allan = _noise(d, noise, inflation, nm_choice, order, lsb)
     hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]

@@ -10,6 +10,7 @@ parameters are in the same physical units (ug/K, ppm/K, ug/h, ug/g^2, ug/g^3, pp
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,7 +23,15 @@ from .._core import CalibrationError
 from .._triad import fibonacci_sphere
 from ..dwell import DwellSet
 
-__all__ = ["DICTIONARY_EFFECTS", "GapSession", "OTHER_EFFECTS", "gap_session", "signal_strength"]
+__all__ = [
+    "DICTIONARY_EFFECTS",
+    "GapSession",
+    "OTHER_EFFECTS",
+    "STRUCTURE_CLASSES",
+    "gap_session",
+    "signal_strength",
+    "structure_session",
+]
 
 DICTIONARY_EFFECTS = ("temperature_bias", "temperature_scale", "drift", "k2", "k3", "settling")
 #: Effects outside the dictionary (random walk) or invisible to any static norm fit.
@@ -237,3 +246,231 @@ def gap_session(
         schedule=schedule, poses=poses, nuisance=np.concatenate([s, b, m]), sigma=sigma,
         noise_scale=noise_scale, meta={"T": T, "dirs": dirs},
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# Sessions whose gap has a known structure (for the structure verdict).
+
+#: Simulated structure class -> the verdict the diagnosis should give.
+STRUCTURE_CLASSES: dict[str, str] = {
+    "per_dwell": "per_dwell",
+    "correlated_noise": "noise_model",
+    "attitude": "attitude",
+    "hysteresis": "pose_history",
+    "quantization": "quantization",
+    "time": "time",
+    "temperature": "temperature",
+}
+
+
+def _monomials34(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The mixed monomials of degree 3 and 4 of the unit vectors u (n, 19): the pure powers
+    u_i^3 and u_i^4 are what the K2 and K3 effects of the dictionary produce."""
+    cols = []
+    for deg in (3, 4):
+        for a in range(deg + 1):
+            for b in range(deg + 1 - a):
+                c = deg - a - b
+                if max(a, b, c) < deg:
+                    cols.append(u[:, 0] ** a * u[:, 1] ** b * u[:, 2] ** c)
+    return np.column_stack(cols)
+
+
+def _correlated(gen: np.random.Generator, n_sub: int) -> NDArray[np.float64]:
+    """(n_sub,) noise correlated over a fraction of a dwell: an AR(1) ("random-walk bias"
+    with a correlation time of 1/32 dwell) plus pink (1/f) noise above 8 cycles per dwell,
+    unit RMS."""
+    rho = math.exp(-32.0 / n_sub)
+    w = gen.normal(size=n_sub)
+    ar = np.empty(n_sub)
+    ar[0] = w[0]
+    for i in range(1, n_sub):
+        ar[i] = rho * ar[i - 1] + math.sqrt(1 - rho * rho) * w[i]
+    f = np.fft.rfftfreq(n_sub)
+    spec = (gen.normal(size=f.size) + 1j * gen.normal(size=f.size))
+    spec[f < 8.0 / n_sub] = 0.0
+    spec[f > 0] /= np.sqrt(f[f > 0])
+    pink = np.fft.irfft(spec, n_sub)
+    x = ar / ar.std() + pink / max(pink.std(), 1e-300)
+    return x / x.std()
+
+
+def _structure_terms(kind: str, gen: np.random.Generator, u: NDArray[np.float64],
+                     ku: NDArray[np.float64], s_t: NDArray[np.float64],
+                     s_T: NDArray[np.float64] | None) -> tuple[NDArray[np.float64],
+                                                               NDArray[np.float64]]:
+    """Unit-amplitude structure terms in the output (k, 3) for each half (k, 2, 3)."""
+    n = u.shape[0]
+    if kind == "per_dwell":
+        d = gen.normal(size=(n, 3))
+        return d, np.stack([d, d], axis=1)
+    if kind == "correlated_noise":
+        h = np.empty((n, 2, 3))
+        for k in range(n):
+            for i in range(3):
+                x = _correlated(gen, 128)
+                h[k, 0, i], h[k, 1, i] = x[:64].mean(), x[64:].mean()
+        return h.mean(axis=1), h
+    if kind == "attitude":
+        f = _monomials34(u) @ gen.normal(size=19)
+    elif kind == "hysteresis":
+        prev = np.vstack([np.zeros((1, 3)), u[:-1]])
+        f = prev @ gen.normal(size=3)
+    elif kind in ("time", "temperature"):
+        s = s_t if kind == "time" else s_T
+        assert s is not None
+        v = gen.normal(size=3)
+        term = np.outer(1.5 * s * s - 0.5, v / np.linalg.norm(v))
+        return term, np.stack([term, term], axis=1)
+    else:
+        raise CalibrationError(f"unknown structure class {kind!r}; known: "
+                               f"{', '.join(STRUCTURE_CLASSES)}")
+    term = f[:, None] * ku  # a norm offset f (m/s^2 per unit) along the gravity direction
+    return term, np.stack([term, term], axis=1)
+
+
+def structure_session(
+    kind: str,
+    *,
+    lam: float | None = None,
+    lam_range: tuple[float, float] = (30.0, 300.0),
+    n_dwells: int = 60,
+    sigma: float = 1e-4,
+    rng: int | np.random.Generator | None = None,
+    g: float = 9.80665,
+    dwell_s: float = 60.0,
+    move_s: float = 30.0,
+    fs: float = 10.0,
+) -> GapSession:
+    """A static session whose gap has a known structure, with half-dwell means.
+
+    Parameters
+    ----------
+    kind : a class of :data:`STRUCTURE_CLASSES`: "per_dwell" (persistent random per-axis
+        offsets per dwell, as from handling or mounting), "correlated_noise" (noise correlated
+        within the dwells: a short-memory random-walk bias and 1/f noise, not in the reported
+        white variance), "attitude" (a norm error that is a random polynomial of degree 3-4 of
+        the gravity direction), "hysteresis" (a norm error linear in the previous dwell's
+        gravity direction), "quantization" (outputs quantised with noise of 0.3 LSB; the dwell
+        length sets the strength), "time" (a per-axis bias quadratic in time; no temperature
+        recorded), "temperature" (a per-axis bias quadratic in the temperature, which goes
+        through two heat-cool cycles).
+    lam : signal strength: chi2 the structure leaves after a baseline fit, noise free, in units
+        of the reported dwell-mean noise (default: log-uniform over ``lam_range``).
+    n_dwells, sigma, rng, g, dwell_s, move_s, fs : as in :func:`gap_session` (random poses in
+        random order; reported white noise ``sigma`` per dwell-mean axis).
+
+    Returns
+    -------
+    GapSession (``effects = {"structure": kind}``, ``meta["verdict"]`` the expected verdict).
+    The DwellSet carries ``half_mean`` (k, 2, 3) and, for "quantization", ``lsb`` (3,).
+    """
+    gen = np.random.default_rng(rng)
+    if kind not in STRUCTURE_CLASSES:
+        raise CalibrationError(f"unknown structure class {kind!r}; known: "
+                               f"{', '.join(STRUCTURE_CLASSES)}")
+    n = int(n_dwells)
+    target = float(lam) if lam is not None else float(np.exp(gen.uniform(*np.log(lam_range))))
+    u = fibonacci_sphere(n) @ _random_rotation(gen).T
+    u = u[gen.permutation(n)]
+    t = (np.arange(n) * (dwell_s + move_s) + dwell_s / 2).astype(np.float64)
+    s_t = 2.0 * (t - t[0]) / (t[-1] - t[0]) - 1.0
+    temp = None
+    s_T = None
+    if kind != "time":
+        phase = (t - t[0]) / (t[-1] - t[0]) * (4.0 if kind == "temperature" else 2.0)
+        tri = 1.0 - np.abs((phase % 2.0) - 1.0)
+        temp = 20.0 + gen.uniform(5.0, 15.0) * tri + gen.normal(scale=0.05, size=n)
+        s_T = 2.0 * (temp - temp.min()) / np.ptp(temp) - 1.0
+    s = 1.0 + gen.normal(scale=0.02, size=3)
+    m = gen.normal(scale=2e-3, size=3)
+    b = gen.normal(scale=0.05, size=3)
+    K = np.array([[s[0], 0, 0], [m[0], s[1], 0], [m[1], m[2], s[2]]])
+    clean = (g * u) @ K.T + b
+    ku = u @ K.T
+    if kind == "quantization":
+        return _quantized_session(gen, u, clean, t, temp, K, b, s, m, g, sigma, target, n, fs)
+    term, half_term = _structure_terms(kind, gen, u, ku, s_t, s_T)
+    sig = np.full((n, 3), sigma)
+    lam1 = signal_strength(clean + term, sig, g, t, temp)
+    amp = math.sqrt(target / lam1) if lam1 > 0 else 0.0
+    count = int(round(dwell_s * fs))
+    halves = clean[:, None, :] + amp * half_term + gen.normal(
+        scale=sigma * math.sqrt(2.0), size=(n, 2, 3))
+    mean = halves.mean(axis=1)
+    d = DwellSet(mean, np.full((n, 3), sigma**2 * count), np.full(n, count), t, temp, fs=fs,
+                 units="m/s^2")
+    d.half_mean = halves  # type: ignore[attr-defined]
+    lam_real = signal_strength(clean + amp * term, sig, g, t, temp)
+    return GapSession(dwells=d, g=g, effects={"structure": kind},
+                      amplitude_sigma={kind: amp / sigma}, lam=lam_real,
+                      lam_each={kind: lam_real}, schedule="designed", poses="sphere",
+                      nuisance=np.concatenate([s, b, m]), sigma=sigma, noise_scale=1.0,
+                      meta={"T": temp, "dirs": u, "verdict": STRUCTURE_CLASSES[kind]})
+
+
+def _quantizer_bias(mu: NDArray[np.float64], sd: float, lsb: float) -> NDArray[np.float64]:
+    """Deterministic bias E[round(x / lsb) lsb] - mu of quantised Gaussian samples."""
+    from statistics import NormalDist
+
+    nd = NormalDist()
+    out = np.empty(mu.size)
+    for i, m in enumerate(np.asarray(mu, dtype=np.float64).reshape(-1)):
+        k0, k1 = math.floor((m - 8 * sd) / lsb), math.ceil((m + 8 * sd) / lsb)
+        e = 0.0
+        for k in range(k0, k1 + 1):
+            lo, hi = (k - 0.5) * lsb, (k + 0.5) * lsb
+            e += k * lsb * (nd.cdf((hi - m) / sd) - nd.cdf((lo - m) / sd))
+        out[i] = e - m
+    return out
+
+
+def _quantized_dwells(gen: np.random.Generator, clean: NDArray[np.float64],
+                      t: NDArray[np.float64], temp: NDArray[np.float64] | None, g: float,
+                      sigma: float, count: int, fs: float) -> tuple[DwellSet, float, float]:
+    """Dwells of ``count`` samples with noise 0.3 LSB, quantised; lambda against the reported
+    white noise of the mean."""
+    n = clean.shape[0]
+    sd = sigma * math.sqrt(count)  # per-sample noise so that the dwell-mean noise is sigma
+    lsb = sd / 0.3
+    mean = np.empty((n, 3))
+    var = np.empty((n, 3))
+    halves = np.empty((n, 2, 3))
+    bias = np.empty((n, 3))
+    for k in range(n):
+        x = clean[k] + gen.normal(scale=sd, size=(count, 3))
+        q = np.round(x / lsb) * lsb
+        mean[k] = q.mean(axis=0)
+        var[k] = q.var(axis=0, ddof=1)
+        halves[k, 0] = q[: count // 2].mean(axis=0)
+        halves[k, 1] = q[count // 2 :].mean(axis=0)
+        bias[k] = _quantizer_bias(clean[k], sd, lsb)
+    sig = np.sqrt(var / count)  # the noise model the diagnosis will use (reported)
+    lam = signal_strength(clean + bias, sig, g, t, temp)
+    d = DwellSet(mean, var, np.full(n, count), t, temp, fs=fs, units="m/s^2")
+    d.half_mean = halves  # type: ignore[attr-defined]
+    d.lsb = np.full(3, lsb)  # type: ignore[attr-defined]
+    return d, lam, lsb
+
+
+def _quantized_session(gen: np.random.Generator, u: NDArray[np.float64],
+                       clean: NDArray[np.float64], t: NDArray[np.float64],
+                       temp: NDArray[np.float64] | None, K: NDArray[np.float64],
+                       b: NDArray[np.float64], s: NDArray[np.float64], m: NDArray[np.float64],
+                       g: float, sigma: float, target: float, n: int, fs: float) -> GapSession:
+    """Outputs quantised to steps of LSB with sample noise 0.3 LSB; the number of samples per
+    dwell sets the strength (the bias of a dwell mean is fixed, its noise falls as 1/sqrt N).
+    The count is set from a first trial so that lambda is near the target."""
+    # Bias variance per axis ~ 0.00147 LSB^2 at 0.3 LSB noise; the reported variance of the
+    # quantised samples is ~0.173 LSB^2, so lambda is about n N 0.0085.
+    count = int(np.clip(round(target / (n * 0.0085)), 16, 20000))
+    trial = np.random.default_rng(gen.integers(2**32))
+    _, lam1, _ = _quantized_dwells(trial, clean, t, temp, g, sigma, count, fs)
+    count = int(np.clip(round(count * target / max(lam1, 1e-9)), 16, 20000))
+    d, lam, lsb = _quantized_dwells(gen, clean, t, temp, g, sigma, count, fs)
+    return GapSession(dwells=d, g=g, effects={"structure": "quantization"},
+                      amplitude_sigma={"quantization": lsb / sigma}, lam=lam,
+                      lam_each={"quantization": lam}, schedule="designed",
+                      poses="sphere", nuisance=np.concatenate([s, b, m]), sigma=sigma,
+                      noise_scale=1.0, meta={"T": temp, "dirs": u, "verdict": "quantization",
+                                             "lsb": lsb, "count": count})

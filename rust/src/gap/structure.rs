@@ -11,7 +11,14 @@
 //! - Persistence: residuals of the first- and second-half dwell means with the calibration
 //!   held fixed. Their correlation is near 1 for persistent per-dwell errors and near 0 when
 //!   the excess is noise; the test compares the residual scatter per degree of freedom with the
-//!   scatter of the half-dwell differences (`F(dof, n)` under noise that does not persist).
+//!   scatter of the half-dwell differences (`F(dof, n)` under noise that does not persist), and
+//!   with a known noise model the persistent share of the excess is `(c - k^2) / (c - 1)`, `c`
+//!   the residual chi2/dof and `k^2` the mean squared whitened half-dwell difference (the
+//!   excess the half differences show is noise; the rest persists within the dwells). The
+//!   verdict is "noise_model" when the likelihood ratio of the residuals and the half
+//!   differences prefers "the excess is noise" (one excess variance for both) over "it
+//!   persists" (the half differences at the model's noise), else "per_dwell". Noise with memory longer than a dwell (1/f below the dwell rate, a random
+//!   walk across the session) is a per-dwell offset by this definition.
 //! - Empirical dwell-mean noise from the half-dwell differences, `var((m1 - m2)/2)` propagated
 //!   to the norm, against the noise model used, white noise and the Allan model.
 //! - Quantisation: the bias a dwell mean carries when the within-dwell noise is below about one
@@ -294,6 +301,11 @@ fn smooth_stage(
     let b = basis(&eng.jac_after)?;
     let e = DVector::from_column_slice(&eng.e_after);
     let rss = eng.chi2_after;
+    // The sigma-free F form: the alternative to a smooth structure is an unstructured excess
+    // of unknown size (per-dwell offsets, correlated noise, quantisation), under which F is
+    // exact. (A chi2 form, even when the half-dwell differences confirm the noise model,
+    // mistakes per-dwell offsets for structure: the remainder after 16 columns is too short to
+    // show that the noise model does not hold.)
     let cfg = TestCfg {
         mode: TestMode::F,
         trust_level: opt.trust_level,
@@ -316,8 +328,8 @@ fn smooth_stage(
         t.d = sc.d;
         t.dof2 = sc.dof2;
         if sc.status == Status::Testable {
-            t.statistic = sc.f;
-            t.p_value = sc.p_f;
+            t.statistic = if sc.chi2_used { sc.score } else { sc.f };
+            t.p_value = sc.p;
             t.explained = sc.score / rss.max(1e-300);
             fam.push(member_of(&sc));
         }
@@ -389,7 +401,14 @@ fn persistence(
         t.p_value = f_sf(t.statistic, dof, n as f64);
         t.p_adjusted = t.p_value;
         t.dof2 = n as f64;
-        t.explained = (1.0 - 1.0 / t.statistic).max(0.0);
+        // Persistent share of the excess: with a known noise model, the part of the excess
+        // chi2/dof (c - 1) that the half-dwell differences (kappa^2 - 1) do not show.
+        let (c, k2) = (eng.chi2_after / dof, dw2 / n as f64);
+        t.explained = if eng.noise_known && c > 1.0 {
+            ((c - k2) / (c - 1.0)).clamp(0.0, 1.0)
+        } else {
+            (1.0 - 1.0 / t.statistic).max(0.0)
+        };
     }
     (t, corr, Some(ne))
 }
@@ -466,6 +485,26 @@ fn per_dwell(eng: &EngineResult) -> (StructureTest, f64) {
     (t, s)
 }
 
+/// Whether the half-dwell differences show the residual's excess (noise) rather than none
+/// of it (persistent offsets). Whitened by the noise model, the residuals `s` (`m` degrees of
+/// freedom, mean square `c`) and the half-dwell differences `d` (`n` dwells, mean square
+/// `k^2`) are independent normals with variance `v` and `w`: "noise" is `w = v` (one
+/// variance, fitted to both), "persistent" is `w = 1` (the model's noise, `v` fitted to `s`).
+/// The likelihood ratio prefers noise when `n + (m + n) ln v_hat < m ln c + n k^2` with the
+/// pooled `v_hat = (m c + n k^2) / (m + n)`. Without a noise model: never (the F test of
+/// persistence decides).
+fn excess_is_noise(eng: &EngineResult, ne: &NoiseEmpirical) -> bool {
+    let k2 = ne.ratio_model * ne.ratio_model;
+    let m = eng.dof_after as f64;
+    let n = ne.n as f64;
+    let c = eng.chi2_after / m.max(1.0);
+    if !eng.noise_known || !(c > 1.0) || !(m > 0.0 && n > 0.0) {
+        return false;
+    }
+    let v = (m * c + n * k2) / (m + n);
+    n + (m + n) * v.ln() < m * c.ln() + n * k2
+}
+
 /// The verdict from the tests (see the module docs for the order of the decisions).
 fn decide(
     tests: &[StructureTest],
@@ -499,15 +538,15 @@ fn decide(
         );
     }
     if let Some(q) = find("quantization").filter(|t| t.status == Status::Testable) {
-        if q.explained >= 0.5 && q.p_value >= alpha {
+        if q.explained >= 0.5 {
             return (Verdict::Quantization, q.explained, q.p_value);
         }
     }
     match (halves, pers) {
-        (true, Some(p)) if p.p_value >= alpha && noise_emp.is_some_and(|ne| ne.p_model < alpha) => {
-            (Verdict::NoiseModel, p.statistic, p.p_value)
+        (true, Some(p)) if noise_emp.is_some_and(|ne| excess_is_noise(eng, ne)) => {
+            (Verdict::NoiseModel, p.explained, p.p_value)
         }
-        (true, Some(p)) => (Verdict::PerDwell, p.statistic, p.p_value),
+        (true, Some(p)) => (Verdict::PerDwell, p.explained, p.p_value),
         _ => (
             Verdict::PerDwell,
             eng.chi2_after / eng.dof_after.max(1) as f64,
