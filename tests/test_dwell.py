@@ -566,3 +566,175 @@ def test_unreadable_file(path: str, tmp_path: Path) -> None:
         accelcal.io.read_stream(path)
     with clear_error(str(path)):
         accelcal.io.stream_dwells(path, fs=100.0)
+
+
+# ---- panics, ranges and no silent NaN ---------------------------------------------------------
+SETTINGS_BAD: list[tuple[str, Any]] = [
+    (name, v)
+    for name in ("window_s", "k", "min_dwell_s", "trim_s", "noise_quantile", "block_s")
+    for v in (None, "1", np.inf, -np.inf, np.nan, -1.0, 4e38, 10**400, 1 + 2j, True)
+]
+
+
+@pytest.mark.parametrize(("name", "value"), SETTINGS_BAD)
+def test_bad_detector_settings_name_value_and_range(name: str, value: Any) -> None:
+    # noise_quantile = -1 and 4e38 are out of range; 0 <= min_dwell_s/trim_s allow neither.
+    with clear_error(name, "must be a finite number in"):
+        detect_dwells(GOOD, 100.0, **{name: value})
+    with clear_error(name):
+        DwellAccumulator(fs=100.0, **{name: value})
+
+
+@pytest.mark.parametrize("fs", [None, "100", np.inf, 4e38, 1e10, 1 + 0j, True])
+def test_bad_fs_values_name_and_range(fs: Any) -> None:
+    with clear_error("fs"):
+        detect_dwells(GOOD, fs)
+    with clear_error("fs"):
+        DwellAccumulator(fs=fs)
+
+
+def test_huge_window_is_an_error_not_a_panic() -> None:
+    # Once a PanicException: window_blocks() saturated and `blocks.len() < w + 1` wrapped.
+    for w in (4e38, 3.7e17, 1e18, 1e7):
+        with clear_error("window_s", "must be a finite number in (0, 1e+06]"):
+            detect_dwells(GOOD, 100.0, window_s=w)
+    with clear_error("fs"):
+        detect_dwells(GOOD, 4e38)
+    with clear_error("window_s", "spans", "sample rate"):
+        detect_dwells(GOOD, 1.0)  # 1 Hz: a 1 s window of one sample
+    with clear_error("unknown detector setting", "window"):
+        detect_dwells(GOOD, 100.0, window=2.0)
+
+
+def test_one_sample_dwells_are_refused() -> None:
+    with clear_error("dwell 1", "at least 2 samples"):
+        dwell_stats(GOOD, [[0, 10], [20, 21]])
+    with clear_error("at least 2 samples"):
+        DwellAccumulator([[5, 6]])
+
+
+def test_no_dwell_found_says_so() -> None:
+    ramp = np.cumsum(np.ones((3000, 3)), axis=0) + 1e-3 * GOOD[:1].repeat(3000, axis=0)
+    with pytest.raises(accelcal.DegenerateDataError, match="no static dwell found in 3000 samples"):
+        detect_dwells(ramp, 100.0, noise_std=(1e-3, 1e-3, 1e-3))
+    acc = DwellAccumulator(fs=100.0, noise_std=(1e-3, 1e-3, 1e-3))
+    acc.push(ramp)
+    with pytest.raises(accelcal.DegenerateDataError, match="no static dwell found"):
+        acc.finish()
+
+
+def test_nan_inside_given_bounds_is_refused_with_where() -> None:
+    x = GOOD.copy()
+    x[[30, 31, 40], 1] = np.nan
+    with clear_error("dwell 1 [20, 50)", "3 row(s)", "first at sample 30"):
+        dwell_stats(x, [[0, 20], [20, 50], [60, 100]])
+    acc = DwellAccumulator([[0, 20], [20, 50], [60, 100]])
+    push_in_chunks(acc, [25, 35, 41], x)
+    with clear_error("dwell 1 [20, 50)", "3 row(s)", "first at sample 30"):
+        acc.finish()
+    # Outside every dwell it changes nothing.
+    assert_same(dwell_stats(x, [[0, 20], [60, 100]]), dwell_stats(GOOD, [[0, 20], [60, 100]]))
+
+
+@pytest.mark.parametrize("channel_name", ["t", "temperature"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_nan_time_or_temperature_is_refused(channel_name: str, bad: float) -> None:
+    ch = np.arange(2000.0) / 100.0
+    ch[1500] = bad
+    for call in (
+        lambda: dwell_stats(GOOD, [[0, 100]], **{channel_name: ch}),
+        lambda: detect_dwells(GOOD, 100.0, **{channel_name: ch}),
+    ):
+        with clear_error(channel_name, "nan or inf", "row 1500"):
+            call()
+    acc = DwellAccumulator(fs=100.0)
+    acc.push(GOOD[:1000], **{channel_name: ch[:1000]})
+    with clear_error(channel_name, "row 500"):
+        acc.push(GOOD[1000:], **{channel_name: ch[1000:]})
+    # The failed push kept nothing: the accumulator goes on as if it never happened.
+    assert acc.position == 1000
+    fixed = ch.copy()
+    fixed[1500] = 15.0
+    acc.push(GOOD[1000:], **{channel_name: fixed[1000:]})
+    assert_same(acc.finish(), detect_dwells(GOOD, 100.0, **{channel_name: fixed}))
+
+
+def test_complex_input_is_refused() -> None:
+    with clear_error("complex"):
+        dwell_stats(GOOD + 1j, [[0, 100]])
+    with clear_error("t", "complex"):
+        dwell_stats(GOOD, [[0, 100]], t=np.arange(2000) + 0j)
+    with clear_error("complex"):
+        DwellAccumulator(fs=100.0).push(GOOD + 0j)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"var": np.ones((3, 4))}, ["var", "shape (4, 3)", "(3, 4)"]),
+        ({"var": np.full((4, 3), np.nan)}, ["var", "nan"]),
+        ({"var": np.full((4, 3), np.inf)}, ["var", "inf"]),
+        ({"var": -np.ones((4, 3))}, ["var", "non-negative"]),
+        ({"count": [1.0, np.nan, 3.0, 4.0]}, ["count", "whole numbers"]),
+        ({"count": [1.5, 2.0, 3.0, 4.0]}, ["count", "whole numbers"]),
+        ({"count": [0, 2, 3, 4]}, ["count", ">= 1"]),
+        ({"t": [0.0, np.nan, 1.0, 2.0]}, ["t", "nan"]),
+        ({"temperature": [0.0, 1.0, np.inf, 2.0]}, ["temperature", "inf"]),
+        ({"fs": 0.0}, ["fs", "(0, inf)"]),
+        ({"fs": np.nan}, ["fs"]),
+        ({"fs": "fast"}, ["fs", "'fast'"]),
+        ({"half_mean": np.zeros((4, 3, 2))}, ["half_mean", "(4, 2, 3)"]),
+        ({"inflation": np.full((4, 3), np.inf)}, ["inflation"]),
+        ({"lsb": [1.0, 0.0, 1.0]}, ["lsb", "positive"]),
+        ({"start": [0, 10, 20, 30], "stop": [5, 10, 25, 35]}, ["start", "< stop"]),
+        ({"dropped": -1}, ["dropped"]),
+        ({"mean": np.zeros((0, 3))}, ["at least one dwell"]),
+        ({"mean": np.zeros((4, 3)) + 1j}, ["mean", "complex"]),
+    ],
+)
+def test_dwellset_refuses_what_it_cannot_hold(kwargs: dict[str, Any], words: list[str]) -> None:
+    args = {"mean": np.zeros((4, 3)), **kwargs}
+    with clear_error(*words):
+        DwellSet(**args)
+
+
+def test_dwellset_accepts_what_it_documents() -> None:
+    d = DwellSet(
+        np.zeros((2, 3)), np.ones((2, 3)), [10, 20.0], fs=100, inflation=[[1.0, np.nan, 2.0]] * 2,
+        lsb=(1, 1, 1), half_mean=np.zeros((2, 2, 3)),
+    )
+    assert d.count is not None and d.count.dtype == np.int64 and d.fs == 100.0
+    assert d.inflation is not None and np.isnan(d.inflation[0, 1])
+    assert len(d[[1]]) == 1 and d[[1]].lsb is not None
+
+
+def test_cli_dwells_huge_window_is_one_line(tmp_path: Path) -> None:
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    f = tmp_path / "rec.csv"
+    np.savetxt(f, GOOD, delimiter=",", header="ax,ay,az", comments="")
+    r = CliRunner().invoke(main, ["dwells", str(f), "--fs", "100", "--window", "1e18"])
+    assert r.exit_code == 2, r.output
+    assert r.output.strip().count("\n") == 0 and "window_s" in r.output
+
+
+def test_cli_last_resort_catches_a_panic(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A PanicException is a BaseException: the CLI still prints one line and exits 3."""
+    import accelcal.io
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    class PanicException(BaseException):
+        pass
+
+    def boom(*a: Any, **k: Any) -> None:
+        raise PanicException("range end index 18446744073709551615 out of range\n" + "x\n" * 999)
+
+    monkeypatch.setattr(accelcal.io, "stream_dwells", boom)
+    f = tmp_path / "rec.csv"
+    np.savetxt(f, GOOD, delimiter=",", header="ax,ay,az", comments="")
+    r = CliRunner().invoke(main, ["dwells", str(f), "--fs", "100"])
+    assert r.exit_code == 3
+    assert r.output.strip().count("\n") == 0, r.output
+    assert "internal error: PanicException: range end index" in r.output

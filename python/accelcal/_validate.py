@@ -49,6 +49,8 @@ def real_array(x: Any, name: str) -> NDArray[Any]:
         )
     if not a.dtype.isnative:
         a = a.astype(a.dtype.newbyteorder("="))
+    if not a.flags.aligned:  # e.g. a view into a packed record array: Rust reads aligned data
+        a = a.copy()
     return a
 
 
@@ -83,7 +85,7 @@ def channel(x: Any, n: int, name: str) -> NDArray[np.float64] | None:
     a = real_array(x, name)
     if a.ndim != 1 or a.shape[0] != n:
         raise CalibrationError(f"{name} must have shape ({n},) to match the samples; got {a.shape}")
-    return np.ascontiguousarray(a, dtype=np.float64)
+    return np.require(a, dtype=np.float64, requirements=["C", "A"])
 
 
 def bounds_array(b: Any) -> NDArray[np.int64]:

@@ -880,6 +880,10 @@ impl DwellBuild {
         let mut p = lo;
         while p < hi && self.cum.len() < nsub {
             let e = self.edge(self.cum.len() + 1);
+            if e <= p {
+                // Unreachable for a consistent state (checked when one is decoded).
+                break;
+            }
             let end = e.min(hi);
             self.cur.push_view(chunk, p - c0, end - c0);
             if !self.cur.is_finite() {

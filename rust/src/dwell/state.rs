@@ -404,8 +404,26 @@ fn decode_bounds(d: &mut Dec<'_>) -> Result<DwellAccumulator> {
     s.has_t = d.flag()?;
     s.has_aux = d.flag()?;
     s.lsb = d.lsb()?;
+    // The open dwell is the one the position is inside, with everything before it pushed.
+    let inside = (0..k).find(|&j| s.bounds[j][0] < s.pos && s.pos < s.bounds[j][1]);
+    let open_ok = match (&s.open, inside) {
+        (None, None) => true,
+        (Some((kk, b)), Some(j)) => {
+            let n = (s.pos - b.a) as u64;
+            *kk == j
+                && b.cur.count() == n
+                && b.edge(b.cum.len()) <= s.pos
+                && s.pos < b.edge(b.cum.len() + 1)
+                && b.cum
+                    .iter()
+                    .enumerate()
+                    .all(|(i, m)| m.n == (b.edge(i + 1) - b.a) as u64)
+        }
+        _ => false,
+    };
     // Dwells done exactly when the stream has passed them, the first open one in order.
-    let consistent = s.first_open <= k
+    let consistent = open_ok
+        && s.first_open <= k
         && s.bounds
             .iter()
             .zip(&s.done)
