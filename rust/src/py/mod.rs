@@ -38,7 +38,7 @@ mod _core {
     #[pymodule_export]
     use super::centrifuge::centrifuge_fit_raw;
     #[pymodule_export]
-    use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
+    use super::dwell::{detect_dwells_raw, dwell_stats_raw, DwellTableRaw, RawDwellAccumulator};
     #[pymodule_export]
     use super::gap::{
         gap_diagnose_centrifuge, gap_diagnose_gradiometer, gap_diagnose_static, gap_dictionary,
