@@ -541,13 +541,14 @@ def test_no_nan_without_a_status() -> None:
 
 
 def test_raw_stream_gives_half_dwell_means_and_persistence() -> None:
-    from accelcal.gap import _half_means as half_of
     from accelcal.sim import field_session
 
     s = field_session(fs=200.0, n_dwells=30, dwell_s=6.0, move_s=2.0, max_tilt_deg=80.0,
                       sigma=1e-3, rng=9)
-    d = accelcal.detect_dwells(s.samples, s.fs)
-    assert np.allclose(half_of(s.samples, d), _half_means(s.samples, d), atol=1e-12)
+    d = accelcal.dwell_stats(s.samples, np.column_stack([accelcal.detect_dwells(
+        s.samples, s.fs).start, accelcal.detect_dwells(s.samples, s.fs).stop]))
+    assert d.half_mean is not None
+    assert np.allclose(d.half_mean, _half_means(s.samples, d), atol=1e-12)
     r = diagnose(s.samples, g=s.g, fs=s.fs)
     st = r.structure
     assert st.persistence_testable and math.isfinite(st.persistence)

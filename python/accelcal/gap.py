@@ -215,89 +215,35 @@ def allan_deviation(
     return tau, (out[:, 0] if one else out)
 
 
-def _dwell_inflation(samples: NDArray[Any], dwells: DwellSet, fs: float) -> _F64:
-    """Per-dwell factor by which the dwell-mean noise exceeds white noise, (k, 3); NaN for
-    dwells shorter than 64 samples (see :func:`noise_inflation`)."""
-    if dwells.start is None or dwells.stop is None:
-        raise CalibrationError("noise_inflation needs dwell start/stop indices")
-    out = np.full((len(dwells), 3), np.nan)
-    for j, (s0, s1) in enumerate(zip(dwells.start, dwells.stop, strict=True)):
-        seg = np.asarray(samples[int(s0) : int(s1)], dtype=np.float64)
-        L = seg.shape[0]
-        if L < 64:
-            continue
-        m16, m4 = max(L // 16, 2), max(L // 4, 4)
-        _, ad = allan_deviation(seg, fs, [1, m16, m4])
-        if ad.shape[0] < 3:
-            continue
-        s1w = np.maximum(ad[0], 1e-300)
-        r16 = ad[1] * math.sqrt(m16) / s1w
-        r4 = ad[2] * math.sqrt(m4) / s1w
-        slope = np.clip(np.log(np.maximum(r4, 1e-12) / np.maximum(r16, 1e-12))
-                        / math.log(m4 / m16), 0.0, 1.0)
-        out[j] = r4 * (L / m4) ** slope
-    return out
-
-
 def _pool_inflation(per_dwell: _F64) -> _F64:
     """The median over dwells per axis (>= 1), used for every dwell (one dwell's ratio is
-    noisy)."""
-    ok = np.all(np.isfinite(per_dwell), axis=1)
+    noisy); NaN entries (dwells too short to estimate) are left out."""
     k = per_dwell.shape[0]
-    if not ok.any():
-        return np.ones((k, 3))
-    f = np.maximum(np.median(per_dwell[ok], axis=0), 1.0)
+    f = np.ones(3)
+    for i in range(3):
+        col = per_dwell[:, i]
+        col = col[np.isfinite(col)]
+        if col.size:
+            f[i] = max(float(np.median(col)), 1.0)
     return np.tile(f, (k, 1))
 
 
 def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[np.float64]:
     """Factor by which each dwell mean's noise exceeds white noise, per dwell and axis.
 
-    For every dwell the overlapping Allan deviation of its samples at cluster sizes L/16 and
-    L/4 (L = dwell length) is compared with white noise of the same per-sample deviation
-    (ADEV at one sample); the ratio is extrapolated to tau = L with the log-log slope between
-    those two points (clipped to [0, 1]). Per axis, the median over dwells is used for every
-    dwell (a single dwell's ratio is noisy). Returns (k, 3), >= 1 where noise is correlated.
+    For every dwell the overlapping Allan deviation of its samples at cluster sizes of about
+    L/16 and L/4 (L = dwell length) is compared with white noise of the same per-sample
+    deviation; the ratio is extrapolated to tau = L with the log-log slope between those two
+    points (the dwell pass's ``DwellSet.inflation``). Per axis, the median over dwells is used
+    for every dwell (a single dwell's ratio is noisy), at least 1. Returns (k, 3).
     """
-    a = samples_array(samples, "samples")
-    fs_v = _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
-    return _pool_inflation(_dwell_inflation(a, dwells, fs_v))
-
-
-def _half_means(samples: NDArray[Any], d: DwellSet) -> _F64 | None:
-    """First- and second-half sample means of every dwell, (k, 2, 3)."""
-    if d.start is None or d.stop is None:
-        return None
-    start = np.asarray(d.start, dtype=np.int64)
-    stop = np.asarray(d.stop, dtype=np.int64)
-    if np.any(stop - start < 2):
-        return None
-    mid = (start + stop) // 2
-    bounds = np.column_stack([np.concatenate([start, mid]), np.concatenate([mid, stop])])
-    hs = dwell_stats(samples, bounds)
-    k = len(d)
-    return np.stack([hs.mean[:k], hs.mean[k:]], axis=1)
-
-
-def _lsb(samples: NDArray[Any]) -> _F64 | None:
-    """Output resolution per axis from the spacing of distinct sample values (1 count for
-    integer input); None when the values look continuous."""
-    if samples.dtype.kind in "iu":
-        return np.ones(3)
-    x = np.asarray(samples[: min(samples.shape[0], 200_000)], dtype=np.float64)
-    out = np.empty(3)
-    for i in range(3):
-        u = np.unique(x[:, i])
-        du = np.diff(u)
-        du = du[du > 0]
-        if du.size == 0:
-            return None
-        step = float(du.min())
-        # Quantised: every spacing is (close to) a multiple of the smallest one.
-        if du.size > 10 and np.median(np.abs(du / step - np.round(du / step))) > 1e-3:
-            return None
-        out[i] = step
-    return out
+    _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
+    if dwells.start is None or dwells.stop is None:
+        raise CalibrationError("noise_inflation needs dwell start/stop indices")
+    per = dwell_stats(samples, np.column_stack([dwells.start, dwells.stop])).inflation
+    if per is None:
+        return np.ones((len(dwells), 3))
+    return _pool_inflation(np.asarray(per, dtype=np.float64))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -991,16 +937,10 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
     samples = samples_array(data, "samples")
     try:
         d = detect_dwells(samples, fs_v, t=t, temperature=temperature)
-    except CalibrationError as exc:
-        if "(0, 3)" in str(exc) or "no dwell" in str(exc).lower():
-            d = None
-        else:
+    except DegenerateDataError as exc:
+        if "no static dwell" not in str(exc):
             raise
-    if d is None or len(d) == 0:
-        raise CalibrationError(
-            f"no static dwells detected in the stream ({samples.shape[0]} samples at "
-            f"{fs_v:g} Hz): the sensor never rests long enough, or fs is wrong; check the "
-            "detector settings (accelcal.detect_dwells) or pass a DwellSet")
+        raise DegenerateDataError(f"no static dwells detected in the stream: {exc}") from None
     return d, samples, fs_v
 
 
@@ -1171,18 +1111,8 @@ def diagnose(
     cal = _calibration(fit, g_v)
     nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))
     d, samples, fs_v = _dwells_of(data, fs, t, temperature)
-    inflation = getattr(d, "inflation", None)
-    half = getattr(d, "half_mean", None)
-    lsb = getattr(d, "lsb", None)
-    if samples is not None and fs_v is not None:
-        if inflation is None:
-            inflation = _pool_inflation(_dwell_inflation(samples, d, fs_v))
-        if half is None:
-            half = _half_means(samples, d)
-        if lsb is None:
-            lsb = _lsb(samples)
-    elif inflation is not None:
-        inflation = _pool_inflation(np.asarray(inflation, dtype=np.float64))
+    inflation = None if d.inflation is None else _pool_inflation(d.inflation)
+    half, lsb = d.half_mean, d.lsb
     k = len(d)
     order = np.arange(k)
     if d.t is not None and np.any(np.diff(d.t) < 0):

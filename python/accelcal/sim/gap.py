@@ -399,8 +399,7 @@ def structure_session(
         scale=sigma * math.sqrt(2.0), size=(n, 2, 3))
     mean = halves.mean(axis=1)
     d = DwellSet(mean, np.full((n, 3), sigma**2 * count), np.full(n, count), t, temp, fs=fs,
-                 units="m/s^2")
-    d.half_mean = halves  # type: ignore[attr-defined]
+                 units="m/s^2", half_mean=halves)
     lam_real = signal_strength(clean + amp * term, sig, g, t, temp)
     return GapSession(dwells=d, g=g, effects={"structure": kind},
                       amplitude_sigma={kind: amp / sigma}, lam=lam_real,
@@ -447,9 +446,8 @@ def _quantized_dwells(gen: np.random.Generator, clean: NDArray[np.float64],
         bias[k] = _quantizer_bias(clean[k], sd, lsb)
     sig = np.sqrt(var / count)  # the noise model the diagnosis will use (reported)
     lam = signal_strength(clean + bias, sig, g, t, temp)
-    d = DwellSet(mean, var, np.full(n, count), t, temp, fs=fs, units="m/s^2")
-    d.half_mean = halves  # type: ignore[attr-defined]
-    d.lsb = np.full(3, lsb)  # type: ignore[attr-defined]
+    d = DwellSet(mean, var, np.full(n, count), t, temp, fs=fs, units="m/s^2", half_mean=halves,
+                 lsb=np.full(3, lsb))
     return d, lam, lsb
 
 
