@@ -37,7 +37,7 @@ def test_demo_quick_finds_all_dwells_and_writes_figures(tmp_path: Path) -> None:
     for section in ("Static field", "gap diagnosis", "Centrifuge", "Gradiometer"):
         assert section.lower() in out.lower()
     pngs = sorted(p.name for p in (tmp_path / "figs").glob("*.png"))
-    assert pngs == ["field_norm.png", "gap_drift.png", "planned_poses.png"]
+    assert pngs == ["field_norm.png", "gap.png", "planned_poses.png"]
 
 
 def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:

@@ -659,7 +659,8 @@ def _statements(raw: Any, selected: list[str], alpha: float, sysw: _System,
                    f"{sysw.row.split('(')[0]}s")
     if nc is not None:
         out.append(f"{nc[0]} improves the in-sample fit (p = {nc[1]:.2g}) but does not reduce "
-                   f"the held-out gap (G {nc[2]:.2f} -> {nc[3]:.2f}): not an explanation")
+                   f"the held-out gap by more than its parameters cost held out (G {nc[2]:.2f} "
+                   f"-> {nc[3]:.2f}): not an explanation")
     if loo is None:
         out.append(f"held-out gap not computed ({n} rows: too few for leave-one-out)")
     elif loo.n_failed:

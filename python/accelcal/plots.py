@@ -92,45 +92,127 @@ def allan_figure(taus: Any, adev: Any, labels: tuple[str, ...] = ("x", "y", "z")
     return fig
 
 
+def _flag_limits(axis: Any, thr: float) -> None:
+    axis.axhline(0, color="k", lw=0.5)
+    for v in (-thr, thr):
+        axis.axhline(v, color="C3", lw=0.8, ls="--")
+
+
+def _residual_panel(axis: Any, x: Any, rep: Any, label: str) -> None:
+    """Studentised baseline residuals and whitened residuals after, flagged dwells ringed."""
+    d = rep.dwells
+    flag = np.asarray(d["flag"], dtype=bool)
+    axis.plot(x, d["t_stud"], "o", ms=4, color="C0", label="baseline (studentised)")
+    axis.plot(x, d["e_after"], "x", ms=5, color="C1",
+              label=f"+ {', '.join(rep.selected) or 'none'}")
+    if flag.any():
+        axis.plot(np.asarray(x)[flag], np.asarray(d["t_stud"])[flag], "o", ms=10, mfc="none",
+                  mec="C3", label="flagged")
+    _flag_limits(axis, rep.where["threshold"])
+    axis.set_xlabel(label)
+
+
+def _sphere_panel(fig: Any, spec: Any, rep: Any) -> None:
+    """Residual against pose: the gravity direction in the sensor frame on an equal-area
+    (Mollweide) map, coloured by the studentised residual; flagged dwells ringed."""
+    d = rep.dwells
+    u = np.asarray(d["direction"], dtype=np.float64)
+    lon = np.arctan2(u[:, 1], u[:, 0])
+    lat = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
+    ax = fig.add_subplot(spec, projection="mollweide")
+    t = np.asarray(d["t_stud"])
+    thr = rep.where["threshold"]
+    lim = max(float(np.max(np.abs(t))), thr)
+    sc = ax.scatter(lon, lat, c=t, cmap="coolwarm", vmin=-lim, vmax=lim, s=40, edgecolors="k",
+                    linewidths=0.3)
+    flag = np.asarray(d["flag"], dtype=bool)
+    if flag.any():
+        ax.scatter(lon[flag], lat[flag], s=160, facecolors="none", edgecolors="C3",
+                   linewidths=1.5)
+    cb = fig.colorbar(sc, ax=ax, orientation="horizontal", pad=0.08, fraction=0.05)
+    for v in (-thr, thr):
+        cb.ax.axvline(v, color="C3", lw=1.2, ls="--")
+    cb.set_label(f"studentised residual (Bonferroni limit +-{thr:.2f} dashed)")
+    ax.set_title("residual against pose (gravity direction, sensor frame)", fontsize=9)
+    ax.grid(True, lw=0.3)
+    ax.tick_params(labelsize=6)
+
+
+def _allan_panel(axis: Any, rep: Any) -> None:
+    """Allan deviation of the within-dwell samples with the dwell-mean noise of each model."""
+    nc = rep.noise_curves
+    axes = "xyz"
+    if "tau" in nc and "adev" in nc:
+        tau, ad = np.asarray(nc["tau"]), np.asarray(nc["adev"])
+        for i in range(ad.shape[1]):
+            axis.loglog(tau, ad[:, i], "-", color=f"C{i}", lw=1, label=f"ADEV {axes[i]}")
+            axis.loglog(tau, ad[0, i] * np.sqrt(tau[0] / tau), ":", color=f"C{i}", lw=0.7)
+    L = nc.get("dwell_s")
+    if L:
+        marks = (("std_used", "s", "noise model used"), ("std_white", "v", "white model"),
+                 ("std_allan", "^", "Allan model"), ("std_empirical", "D",
+                                                     "half-dwell differences"))
+        for key, mk, lab in marks:
+            if key in nc:
+                v = np.asarray(nc[key])
+                for i in range(3):
+                    axis.loglog([L], [v[i]], mk, color=f"C{i}", mfc="none" if i else None,
+                                ms=7, label=lab if i == 0 else None)
+        axis.axvline(L, color="grey", lw=0.5)
+    if not axis.lines:
+        axis.text(0.5, 0.5, "no within-dwell noise information", ha="center",
+                  transform=axis.transAxes)
+        axis.set_axis_off()
+        return
+    axis.set_xlabel("tau, s (dwell length: grey line)")
+    axis.set_ylabel("deviation, input units")
+    axis.legend(fontsize=6, ncol=2)
+    axis.set_title("noise: Allan deviation and dwell-mean noise", fontsize=9)
+
+
 def gap_figure(rep: Any, fig: Any = None) -> Any:
-    """The gap of a :class:`accelcal.GapReport`: residuals (sigma units) before and after
-    against time, temperature and pose (static), or by row (centrifuge, gradiometer)."""
+    """The gap of a :class:`accelcal.GapReport`.
+
+    Static sessions, four panels: residuals (studentised, sigma units) before and after
+    against time; against temperature, or - when no temperature was recorded - against pose
+    on an equal-area sphere map; against the tilt of the z axis; and the Allan deviation of
+    the within-dwell samples with the dwell-mean noise of the model used (white, Allan and
+    half-dwell empirical levels at the dwell length). Flagged dwells are ringed and the
+    Bonferroni limit dashed. Centrifuge and gradiometer: residuals by row.
+    """
     plt = _plt()
     d = rep.dwells
     if rep.system != "static":
         if fig is None:
             fig = plt.figure(figsize=(7, 3.4))
         ax = fig.subplots(1, 1)
-        x = np.arange(len(d["e"]))
-        ax.plot(x, d["e"], "o", ms=4, label="baseline")
-        ax.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(rep.selected) or 'none'}")
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel("row")
+        _residual_panel(ax, np.arange(len(d["e"])), rep, "row")
         ax.set_ylabel("residual / sigma")
         ax.legend(fontsize=8)
-        fig.suptitle(f"{rep.system} gap: chi2/dof {rep.chi2_per_dof:.2f}; best = {rep.best}")
+        fig.suptitle(f"{rep.system} gap: chi2/dof {rep.chi2_per_dof:.2f}; best = {rep.best}; "
+                     f"structure: {rep.structure.verdict}")
         fig.tight_layout()
         return fig
     if fig is None:
-        fig = plt.figure(figsize=(11, 3.4))
-    axs = fig.subplots(1, 3, sharey=True)
+        fig = plt.figure(figsize=(11, 7.5))
+    gs = fig.add_gridspec(2, 2)
     has_t = d["t"] is not None
-    t = d["t"] if has_t else np.arange(rep.n, dtype=float)
-    xs: list[tuple[Any, str]] = [(t / 60.0 if has_t else t, "time, min" if has_t else "dwell")]
-    xs.append((d["temperature"], "temperature") if d["temperature"] is not None else (None, ""))
-    xs.append((d["pose_angle_deg"], "angle of the z axis from vertical, deg"))
-    for axis, (x, lab) in zip(axs, xs, strict=True):
-        if x is None:
-            axis.text(0.5, 0.5, "no temperature recorded", ha="center", transform=axis.transAxes)
-            axis.set_axis_off()
-            continue
-        axis.plot(x, d["e"], "o", ms=4, label="baseline")
-        axis.plot(x, d["e_after"], "x", ms=5, label=f"+ {', '.join(rep.selected) or 'none'}")
-        axis.axhline(0, color="k", lw=0.5)
-        axis.set_xlabel(lab)
-    axs[0].set_ylabel("norm residual / sigma")
-    axs[0].legend(fontsize=8)
+    t = np.asarray(d["t"]) / 60.0 if has_t else np.arange(rep.n, dtype=float)
+    ax0 = fig.add_subplot(gs[0, 0])
+    _residual_panel(ax0, t, rep, "time, min" if has_t else "dwell")
+    ax0.set_ylabel("norm residual / sigma")
+    ax0.legend(fontsize=7)
+    if d["temperature"] is not None:
+        ax1 = fig.add_subplot(gs[0, 1], sharey=ax0)
+        _residual_panel(ax1, d["temperature"], rep, "temperature")
+    else:
+        _sphere_panel(fig, gs[0, 1], rep)
+    ax2 = fig.add_subplot(gs[1, 0], sharey=ax0)
+    _residual_panel(ax2, d["pose_angle_deg"], rep, "angle of the z axis from vertical, deg")
+    ax2.set_ylabel("norm residual / sigma")
+    _allan_panel(fig.add_subplot(gs[1, 1]), rep)
     fig.suptitle(f"gap: chi2/dof {rep.chi2_per_dof:.2f}, held-out G {rep.held_out_gap:.2f} -> "
-                 f"{rep.held_out_gap_after:.2f}; best = {rep.best}")
+                 f"{rep.held_out_gap_after:.2f}; best = {rep.best}; structure: "
+                 f"{rep.structure.verdict}")
     fig.tight_layout()
     return fig

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 
@@ -13,6 +14,11 @@ from ..sim.gap import DICTIONARY_EFFECTS, gap_session
 def demo_section(rng_seed: int = 0) -> str:
     """Simulate a designed session with one hidden effect (undisclosed to the diagnoser),
     diagnose it, and compare with the truth."""
+    return demo_report(rng_seed)[0]
+
+
+def demo_report(rng_seed: int = 0) -> tuple[str, Any]:
+    """The section's text and the GapReport it printed (the demo's figure shows the same)."""
     gen = np.random.default_rng(rng_seed)
     effect = str(DICTIONARY_EFFECTS[int(gen.integers(len(DICTIONARY_EFFECTS)))])
     s = gap_session((effect,), rng=gen, amplitudes=[25.0])
@@ -28,4 +34,4 @@ def demo_section(rng_seed: int = 0) -> str:
         f"truth: {effect} = [{truth}] {EFFECTS[effect]} -> "
         + ("attributed correctly" if r.best == effect else f"attributed to {r.best}"),
     ]
-    return "\n".join(lines)
+    return "\n".join(lines), r

@@ -444,7 +444,9 @@ def _quantized_dwells(gen: np.random.Generator, clean: NDArray[np.float64],
         halves[k, 0] = q[: count // 2].mean(axis=0)
         halves[k, 1] = q[count // 2 :].mean(axis=0)
         bias[k] = _quantizer_bias(clean[k], sd, lsb)
-    sig = np.sqrt(var / count)  # the noise model the diagnosis will use (reported)
+    # The noise model the diagnosis will use: reported var / count, floored at the
+    # quantisation noise LSB^2 / 12 (a dwell whose samples never change has var = 0).
+    sig = np.sqrt(np.maximum(var, lsb * lsb / 12.0) / count)
     lam = signal_strength(clean + bias, sig, g, t, temp)
     d = DwellSet(mean, var, np.full(n, count), t, temp, fs=fs, units="m/s^2", half_mean=halves,
                  lsb=np.full(3, lsb))
@@ -464,7 +466,8 @@ def _quantized_session(gen: np.random.Generator, u: NDArray[np.float64],
     count = int(np.clip(round(target / (n * 0.0085)), 16, 20000))
     trial = np.random.default_rng(gen.integers(2**32))
     _, lam1, _ = _quantized_dwells(trial, clean, t, temp, g, sigma, count, fs)
-    count = int(np.clip(round(count * target / max(lam1, 1e-9)), 16, 20000))
+    if math.isfinite(lam1) and lam1 > 0:
+        count = int(np.clip(round(count * target / lam1), 16, 20000))
     d, lam, lsb = _quantized_dwells(gen, clean, t, temp, g, sigma, count, fs)
     return GapSession(dwells=d, g=g, effects={"structure": "quantization"},
                       amplitude_sigma={"quantization": lsb / sigma}, lam=lam,

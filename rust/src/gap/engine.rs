@@ -61,6 +61,11 @@ pub trait GapModel: Sync {
     ) -> Result<DMatrix<f64>>;
     /// Standard deviation of each row's residual (physical units) at `p`.
     fn sigma(&self, rows: &[usize], active: &[usize], p: &[f64]) -> Result<Vec<f64>>;
+    /// Whether effect `c` can predict a held-out group (false for parameters that belong to
+    /// one group, like a per-dwell azimuth error: the held-out gate does not judge those).
+    fn predictable(&self, _c: usize) -> bool {
+        true
+    }
 }
 
 /// Number of parameters of the model with `active` effects.
@@ -338,12 +343,20 @@ fn projected_directions(
             0.0
         }
     });
-    let (uc, sc, _) = thin_svd(&cn).ok()?;
-    let kc: Vec<usize> = (0..sc.len()).filter(|&i| sc[i] > 1e-8).collect();
+    // Orthonormal basis of range(C) by Householder QR (columns of unit norm, so the diagonal
+    // of R measures what each column adds to the previous ones).
+    if n < cn.ncols() || cn.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let qr = cn.qr();
+    let (qm, r) = (qr.q(), qr.r());
+    let kc: Vec<usize> = (0..r.nrows().min(r.ncols()))
+        .filter(|&i| r[(i, i)].abs() > 1e-8)
+        .collect();
     if kc.is_empty() {
         return None;
     }
-    let ucn = DMatrix::from_fn(n, kc.len(), |a, b| uc[(a, kc[b])]);
+    let ucn = DMatrix::from_fn(n, kc.len(), |a, b| qm[(a, kc[b])]);
     let p = &ucn - q * (q.transpose() * &ucn);
     let (up, sines, _) = thin_svd(&p).ok()?;
     let kept: Vec<usize> = (0..sines.len()).filter(|&i| sines[i] > sine_tol).collect();
@@ -750,14 +763,17 @@ pub struct GateOutcome {
     pub skipped: bool,
 }
 
-/// Apply the held-out gate to the selection `sw` given the held-out gaps `g_steps`
-/// (`n`: rows, `n_max_group`: the largest group, `noise_known`).
+/// Apply the held-out gate to the selection `sw` given the held-out gaps `g_steps` (`n`:
+/// rows, `n_max_group`: the largest group, `noise_known`). `cost[k]`: the relative increase of
+/// the held-out `G^2` that the k-th selected effect's parameters would cause if they were
+/// useless (`d / n` for `d` parameters: leave-one-out charges every fitted parameter about
+/// `1 / n`); the effect must lower `G^2` by more than that. `None`: the effect cannot predict a
+/// held-out group (its parameters belong to one group) and is not judged held out.
 pub fn gate(
     sw: &Stepwise,
     g_steps: &[f64],
-    n: usize,
-    n_max_group: usize,
-    noise_known: bool,
+    (n, n_max_group, noise_known): (usize, usize, bool),
+    cost: &[Option<f64>],
     opt: &GapOptions,
 ) -> Result<GateOutcome> {
     let k_full = sw.effects.len();
@@ -784,7 +800,12 @@ pub fn gate(
                 && (g_steps[k].powi(2) <= 1.0 + opt.gate_sd * sd
                     || g_steps[k].powi(2) <= g_steps[k - 1].powi(2) + opt.gate_margin * sd)
         };
-        if !(g_steps[k] < g_steps[k - 1]) && !adequate {
+        let lowers = cost
+            .get(k - 1)
+            .copied()
+            .flatten()
+            .is_none_or(|c| g_steps[k].powi(2) < g_steps[k - 1].powi(2) * (1.0 - c));
+        if !lowers && !adequate {
             out.k_acc = k - 1;
             out.not_confirmed = Some(NotConfirmed {
                 effect: sw.effects[k - 1],
@@ -1126,7 +1147,22 @@ fn held_out_and_gate<M: GapModel>(
     let g_steps: Vec<f64> = ho
         .as_ref()
         .map_or(vec![], |h| h.z.iter().map(|z| rms(z)).collect());
-    let go = gate(sw, &g_steps, n, n_max_group, ctx.m.noise_known(), ctx.opt)?;
+    let cost: Vec<Option<f64>> = sw
+        .effects
+        .iter()
+        .map(|&c| {
+            ctx.m
+                .predictable(c)
+                .then(|| ctx.m.dictionary()[c].dim as f64 / n as f64)
+        })
+        .collect();
+    let go = gate(
+        sw,
+        &g_steps,
+        (n, n_max_group, ctx.m.noise_known()),
+        &cost,
+        ctx.opt,
+    )?;
     Ok((ho, g_steps, go))
 }
 
@@ -1556,20 +1592,23 @@ mod tests {
             gate: Gate::Strict,
             ..GapOptions::default()
         };
-        let keep = gate(&sw, &[3.0, 1.0], 30, 1, true, &strict).unwrap();
+        let keep = gate(&sw, &[3.0, 1.0], (30, 1, true), &[Some(0.1)], &strict).unwrap();
         assert_eq!(keep.k_acc, 1);
-        let drop = gate(&sw, &[1.5, 1.6], 30, 1, true, &strict).unwrap();
+        let drop = gate(&sw, &[1.5, 1.6], (30, 1, true), &[Some(0.1)], &strict).unwrap();
         assert_eq!(drop.k_acc, 0);
         assert_eq!(drop.not_confirmed.unwrap().effect, 0);
         // Auto keeps an effect after which the model is adequate, in-sample and held out.
-        let auto = gate(&sw, &[1.05, 1.06], 30, 1, true, &OPT).unwrap();
+        let auto = gate(&sw, &[1.05, 1.06], (30, 1, true), &[Some(0.1)], &OPT).unwrap();
         assert_eq!(auto.k_acc, 1);
         // Folds without 2 residual degrees of freedom: skipped.
-        assert!(
-            gate(&sw, &[3.0, 1.0], 30, 27, true, &strict)
-                .unwrap()
-                .skipped
-        );
+        let skip = gate(&sw, &[3.0, 1.0], (30, 27, true), &[Some(0.1)], &strict).unwrap();
+        assert!(skip.skipped);
+        // A decrease smaller than the cost of the effect's parameters is not a confirmation;
+        // an effect that cannot predict held out is not judged.
+        let small = gate(&sw, &[2.0, 1.99], (30, 1, true), &[Some(0.1)], &strict).unwrap();
+        assert_eq!(small.k_acc, 0);
+        let per_group = gate(&sw, &[2.0, 2.5], (30, 1, true), &[None], &strict).unwrap();
+        assert_eq!(per_group.k_acc, 1);
     }
 
     #[test]

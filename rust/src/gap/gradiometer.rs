@@ -227,6 +227,9 @@ impl GapModel for GradiometerModel {
     fn sigma(&self, rows: &[usize], _active: &[usize], _p: &[f64]) -> Result<Vec<f64>> {
         Ok(rows.iter().map(|&r| self.sig[r / 2]).collect())
     }
+    fn predictable(&self, c: usize) -> bool {
+        c != 1 // a held-out dwell's own azimuth error is unknown
+    }
 }
 
 fn check(inp: &GradiometerInput) -> Result<()> {

@@ -249,8 +249,34 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
         ]);
         y.push(x[2] * x[2]);
     }
-    let beta = lstsq_qr(&a, n, 9, &y)?;
-    quadric_recover(&beta, g, sc, mu)
+    let fit = lstsq_qr(&a, n, 9, &y).and_then(|beta| quadric_recover(&beta, g, sc, mu));
+    fit.map_err(|e| match e {
+        CoreError::Degenerate(m) => {
+            let k = distinct_poses(mean, 0.05 * sc);
+            CoreError::Degenerate(if k < N_BASE {
+                format!(
+                    "the {n} dwells are at only {k} distinct poses: the 9-parameter norm                      model needs at least 9 (tilted poses between the axes, not only the faces);                      this session cannot test it ({m})"
+                )
+            } else {
+                m
+            })
+        }
+        other => other,
+    })
+}
+
+/// Number of distinct poses among dwell means: clusters closer than `tol` (raw units).
+fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
+    let mut centres: Vec<[f64; 3]> = vec![];
+    for m in mean {
+        let near = centres
+            .iter()
+            .any(|c| (0..3).map(|i| (c[i] - m[i]).powi(2)).sum::<f64>().sqrt() < tol);
+        if !near {
+            centres.push(*m);
+        }
+    }
+    centres.len()
 }
 
 /// Exact recovery of `K` and `b` from the quadric regression coefficients (scaled frame).
@@ -945,6 +971,18 @@ pub(crate) mod tests {
         )
         .unwrap();
         assert!(bad.engine.p_chi2 < 1e-10, "{}", bad.engine.p_chi2);
+    }
+
+    #[test]
+    fn six_faces_are_named_as_too_few_poses() {
+        let mut mean = vec![];
+        for k in 0..13 {
+            let mut m = [0.1, -0.2, 0.3];
+            m[k % 3] += if (k / 3) % 2 == 0 { 9.81 } else { -9.81 };
+            mean.push(m);
+        }
+        let msg = quadric_start(&mean, 9.81).unwrap_err().to_string();
+        assert!(msg.contains("only 6 distinct poses"), "{msg}");
     }
 
     #[test]
