@@ -907,8 +907,9 @@ pub struct Ambiguity {
     pub cosine: f64,
 }
 
-/// Candidates aliased with the first selected effect (cosine above `ambiguity_cos`) whose BIC
-/// weight is at least `ambiguity_weight` times the best's.
+/// Candidates aliased with the first selected effect (cosine above `ambiguity_cos`) with
+/// similar evidence: a BIC weight at least `ambiguity_weight` times the best's, or a p-value
+/// that would be significant on its own (below `alpha / M`, M testable candidates).
 pub fn ambiguity(reports: &[CandidateReport], best: usize, opt: &GapOptions) -> Vec<Ambiguity> {
     let Some(rb) = reports.iter().find(|r| r.effect == best) else {
         return vec![];
@@ -916,6 +917,11 @@ pub fn ambiguity(reports: &[CandidateReport], best: usize, opt: &GapOptions) -> 
     if rb.screen.w.ncols() == 0 {
         return vec![];
     }
+    let m_test = reports
+        .iter()
+        .filter(|r| r.status == Status::Testable)
+        .count()
+        .max(1) as f64;
     let mut out = vec![];
     for r in reports {
         if r.effect == best || r.status != Status::Testable || r.screen.w.ncols() == 0 {
@@ -923,7 +929,11 @@ pub fn ambiguity(reports: &[CandidateReport], best: usize, opt: &GapOptions) -> 
         }
         let m = rb.screen.w.transpose() * &r.screen.w;
         let cos = thin_svd(&m).map_or(0.0, |(_, s, _)| s.first().copied().unwrap_or(0.0));
-        if cos > opt.ambiguity_cos && r.weight > opt.ambiguity_weight * rb.weight {
+        // Similar evidence: a BIC weight within `ambiguity_weight` of the best's, or a test
+        // that would be significant on its own at the Bonferroni level of the first stage.
+        let similar =
+            r.weight > opt.ambiguity_weight * rb.weight || r.screen.p < opt.alpha / m_test;
+        if cos > opt.ambiguity_cos && similar {
             out.push(Ambiguity {
                 best,
                 other: r.effect,

@@ -255,7 +255,9 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
             let k = distinct_poses(mean, 0.05 * sc);
             CoreError::Degenerate(if k < N_BASE {
                 format!(
-                    "the {n} dwells are at only {k} distinct poses: the 9-parameter norm                      model needs at least 9 (tilted poses between the axes, not only the faces);                      this session cannot test it ({m})"
+                    "the {n} dwells are at only {k} distinct poses: the 9-parameter norm model \
+                     needs at least 9 (tilted poses between the axes, not only the faces); this \
+                     session cannot test it ({m})"
                 )
             } else {
                 m

@@ -15,9 +15,9 @@
 //!   with a known noise model the persistent share of the excess is `(c - k^2) / (c - 1)`, `c`
 //!   the residual chi2/dof and `k^2` the mean squared whitened half-dwell difference (the
 //!   excess the half differences show is noise; the rest persists within the dwells). The
-//!   verdict is "noise_model" when the likelihood ratio of the residuals and the half
-//!   differences prefers "the excess is noise" (one excess variance for both) over "it
-//!   persists" (the half differences at the model's noise), else "per_dwell". Noise with memory longer than a dwell (1/f below the dwell rate, a random
+//!   verdict is "noise_model" or "per_dwell" by the likelihood of the residual and
+//!   half-difference scatter under "the excess is noise", "it persists" and their mixture
+//!   (see `excess_is_noise`). Noise with memory longer than a dwell (1/f below the dwell rate, a random
 //!   walk across the session) is a per-dwell offset by this definition.
 //! - Empirical dwell-mean noise from the half-dwell differences, `var((m1 - m2)/2)` propagated
 //!   to the norm, against the noise model used, white noise and the Allan model.
@@ -31,7 +31,7 @@
 
 use super::engine::{basis, member_of, screen, EngineResult, TestCfg};
 use super::minp::min_p;
-use super::special::{chi2_sf, f_sf, pearson};
+use super::special::{chi2_isf, chi2_sf, f_sf, pearson};
 use super::{GapOptions, Status, TestMode};
 use crate::error::Result;
 use nalgebra::{DMatrix, DVector};
@@ -497,24 +497,34 @@ fn per_dwell(eng: &EngineResult) -> (StructureTest, f64) {
     (t, s)
 }
 
-/// Whether the half-dwell differences show the residual's excess (noise) rather than none
-/// of it (persistent offsets). Whitened by the noise model, the residuals `s` (`m` degrees of
-/// freedom, mean square `c`) and the half-dwell differences `d` (`n` dwells, mean square
-/// `k^2`) are independent normals with variance `v` and `w`: "noise" is `w = v` (one
-/// variance, fitted to both), "persistent" is `w = 1` (the model's noise, `v` fitted to `s`).
-/// The likelihood ratio prefers noise when `n + (m + n) ln v_hat < m ln c + n k^2` with the
-/// pooled `v_hat = (m c + n k^2) / (m + n)`. Without a noise model: never (the F test of
-/// persistence decides).
-fn excess_is_noise(eng: &EngineResult, ne: &NoiseEmpirical) -> bool {
+/// Whether the excess is mostly noise (the half-dwell differences show it) rather than
+/// persistent offsets. Whitened by the noise model, the residuals `s` (`m` degrees of freedom,
+/// mean square `c`) and the half-dwell differences `d` (`n` dwells, mean square `k^2`) are
+/// independent normals with variances `v_s` and `v_d`, with log-likelihood
+/// `-(m/2)(c/v_s + ln v_s) - (n/2)(k^2/v_d + ln v_d)`. Three models: "noise" (`v_s = v_d`,
+/// fitted to both), "persistent" (`v_d = 1`, the model's noise) and their mixture (`v_d >= 1`
+/// noise excess, `v_s >= v_d`, both fitted). When the mixture fits significantly better than
+/// the better pure model (likelihood-ratio chi2(1) at level `alpha`), the larger component
+/// decides (persistent share `(c - v_d) / (c - 1)` at least one half: persistent); otherwise the
+/// better pure model. Without a noise model: never (the F test of persistence decides).
+fn excess_is_noise(eng: &EngineResult, ne: &NoiseEmpirical, alpha: f64) -> bool {
     let k2 = ne.ratio_model * ne.ratio_model;
     let m = eng.dof_after as f64;
     let n = ne.n as f64;
     let c = eng.chi2_after / m.max(1.0);
-    if !(eng.noise_known && c > 1.0 && m > 0.0 && n > 0.0) {
+    if !(eng.noise_known && c > 1.0 && m > 0.0 && n > 0.0 && k2 > 0.0) {
         return false;
     }
-    let v = (m * c + n * k2) / (m + n);
-    n + (m + n) * v.ln() < m * c.ln() + n * k2
+    let ll = |vs: f64, vd: f64| -0.5 * m * (c / vs + vs.ln()) - 0.5 * n * (k2 / vd + vd.ln());
+    let vn = (m * c + n * k2) / (m + n);
+    let (l_noise, l_pers) = (ll(vn, vn), ll(c, 1.0));
+    let vd = k2.max(1.0);
+    let l_mix = ll(c.max(vd), vd);
+    if 2.0 * (l_mix - l_noise.max(l_pers)) > chi2_isf(alpha, 1.0) {
+        (c - vd) / (c - 1.0) < 0.5
+    } else {
+        l_noise > l_pers
+    }
 }
 
 /// The verdict from the tests (see the module docs for the order of the decisions).
@@ -555,7 +565,7 @@ fn decide(
         }
     }
     match (halves, pers) {
-        (true, Some(p)) if noise_emp.is_some_and(|ne| excess_is_noise(eng, ne)) => {
+        (true, Some(p)) if noise_emp.is_some_and(|ne| excess_is_noise(eng, ne, alpha)) => {
             (Verdict::NoiseModel, p.explained, p.p_value)
         }
         (true, Some(p)) => (Verdict::PerDwell, p.explained, p.p_value),
