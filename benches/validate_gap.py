@@ -84,10 +84,19 @@ def validate(n: int) -> str:
         "(`test='auto'`); family-wise correction over the testable candidates of each stepwise "
         "stage by the exact min-p (Westfall-Young max-statistic, fixed-seed Monte Carlo under "
         "the null residual (I - H) z, `correction='minp'`); held-out gate "
-        "`gate='auto'` (a selected effect must lower G, unless the remainder is consistent "
-        "with the noise model in-sample, chi2 p >= alpha, and held out, G^2 <= 1 + "
-        "3 sqrt(2/n), and G^2 grows by at most 1 sqrt(2/n), `gate_margin=1`); otherwise it is "
-        "reported as `not_confirmed` and best = none.",
+        "`gate='auto'` (a selected effect must lower G^2 by more than the leave-one-out cost "
+        "of its d parameters, a factor 1 - d/n, unless the remainder is consistent with the "
+        "noise model in-sample, chi2 p >= alpha, and held out, G^2 <= 1 + 3 sqrt(2/n) or G^2 "
+        "growing by at most 1 sqrt(2/n), `gate_margin=1`); otherwise it is reported as "
+        "`not_confirmed` and best = none. The baseline is the maximum-likelihood fit (the "
+        "noise of each norm residual re-evaluated at every parameter vector).",
+        "",
+        "Targets and where they are measured: false alarms <= 5 % and top-1 >= 99 % (designed) / "
+        ">= 93 % (naive) at lambda >= 30 (the first two tables); structure verdict >= 90 % per "
+        "class at lambda >= 30 (structure table); top-1 >= 95 % at lambda_emp = 30 and >= 99 % "
+        "at 100 for every dictionary effect on real noise, false alarms <= 5 % on the real "
+        "session with a synthetic temperature channel (semi-synthetic table). The figures are "
+        "reported as measured, met or not; nothing was tuned to the shared recordings.",
         "",
         "## False alarms on null data",
         "",
@@ -625,6 +634,7 @@ def real_noise_validation(n: int) -> list[str]:
         lines.append(f"| {row[0]} | {row[1]} | {row[2]} | {' / '.join(amb)} | {det30} | "
                      f"{gtxt} |")
         print(lines[-1], file=sys.stderr)
+    ctrl = _control_nulls(gen, 2 * n)
     fa = sum(r.best != "none" for r in nulls)
     picked: dict[str, int] = {}
     verdicts: dict[str, int] = {}
@@ -639,8 +649,40 @@ def real_noise_validation(n: int) -> list[str]:
            else "") + ". Structure verdict of those null sessions: "
         + ", ".join(f"{k} {_pct(v, 2 * n)}" for k, v in sorted(verdicts.items(),
                                                                key=lambda x: -x[1])) + ".",
+        "", "The xsens recording is not effect-free: its structure verdict is a smooth bias "
+        "trend in time (docs/gap-real-data.md), and the attributions above are drift (the "
+        "linear part of that trend) or temperature_bias (the synthetic heat-then-cool channel "
+        "is itself a smooth function of time). The same null sessions built from the three "
+        "MPU-9150 control recordings (18 of 22 dwells, synthetic temperature, no effect): "
+        + ctrl + ".",
     ]
     return lines
+
+
+def _control_nulls(gen: np.random.Generator, n: int) -> str:
+    """False attributions on the control boards with a synthetic temperature channel."""
+    recs = [r for r in _load_recordings() if r["key"].startswith("mpu9150")]
+    alarms = tot = 0
+    picked: dict[str, int] = {}
+    for i in range(n):
+        rec = recs[i % len(recs)]
+        d = accelcal.detect_dwells(rec["samples"], rec["fs"], t=rec["t"])
+        keep = np.sort(gen.choice(len(d), size=min(18, len(d)), replace=False))
+        t = rec["t"]
+        t0, t1 = t[d.start[keep[0]]], t[d.stop[keep[-1]] - 1]
+        peak = t0 + gen.uniform(0.35, 0.65) * (t1 - t0)
+        T = 20.0 + gen.uniform(5.0, 15.0) * np.where(t < peak, (t - t0) / (peak - t0),
+                                                     (t1 - t) / (t1 - peak))
+        dd = accelcal.dwell_stats(rec["samples"], np.column_stack([d.start[keep],
+                                                                    d.stop[keep]]),
+                                  t=t, temperature=T)
+        r = accelcal.diagnose(dd, g=rec["g"])
+        tot += 1
+        if r.best != "none":
+            alarms += 1
+            picked[r.best] = picked.get(r.best, 0) + 1
+    return (f"false alarms {_pct(alarms, tot)}"
+            + (f" ({', '.join(f'{k} {v}' for k, v in picked.items())})" if picked else ""))
 
 
 # ----------------------------------------------------------------------------------------------
