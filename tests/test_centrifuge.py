@@ -189,3 +189,29 @@ def test_summary_and_to_dict_and_exports():
     assert d["scale"] == pytest.approx(S.tolist(), rel=1e-6)
     assert d["observability"]["condition_number"] > 1
     assert accelcal.sim.centrifuge_session is centrifuge_session
+
+
+def _centripetal_g(design, latitude_deg):
+    """A (g) of every row from the forward model with a unit sensor: |f|^2 = A^2 + 1."""
+    from accelcal.centrifuge import centrifuge_outputs
+
+    f = centrifuge_outputs(design, scale=[1, 1, 1], bias=[0, 0, 0], k2=[0, 0, 0],
+                           latitude_deg=latitude_deg, g=9.8)
+    return np.sqrt(np.sum(f**2, axis=1) - 1.0)
+
+
+def test_earth_rate_adds_to_the_signed_spin_rate_and_cancels_in_forward_reverse_pairs():
+    from accelcal.centrifuge import EARTH_RATE, paper_design
+
+    w = 2 * np.pi  # 1 rev/s
+    des = paper_design(omegas=[w, -w])
+    a0 = _centripetal_g(des, None)
+    a = _centripetal_g(des, 39.0)
+    fwd, rev = a[:20] / a0[:20] - 1, a[20:] / a0[20:] - 1
+    # dA/A = 2 Omega sin(lat) / omega: 1.46e-5 at 1 rev/s and 39 deg, + forward, - reverse.
+    size = 2 * EARTH_RATE * np.sin(np.radians(39.0)) / w
+    assert size == pytest.approx(1.46e-5, rel=0.01)
+    np.testing.assert_allclose(fwd, size, rtol=1e-4)
+    np.testing.assert_allclose(rev, -size, rtol=1e-4)
+    # The pair cancels to first order: what is left is (Omega sin(lat) / omega)^2 ~ 5e-11.
+    assert np.max(np.abs(0.5 * (fwd + rev))) < 1e-9

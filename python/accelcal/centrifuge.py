@@ -154,7 +154,11 @@ def centrifuge_outputs(
         )
     w = design.omega * (1.0 + rate_error)
     if latitude_deg is not None:
-        w = w + np.sign(w) * EARTH_RATE * np.sin(np.radians(latitude_deg))
+        # The platform's inertial rate about the local vertical is the commanded (signed) rate
+        # plus the Earth rate's vertical part, whichever way the arm turns: a forward run
+        # (w > 0, counter-clockwise seen from above) sees w + Omega sin(lat), a reverse run
+        # -(|w| - Omega sin(lat)), so a forward/reverse pair cancels it to first order.
+        w = w + EARTH_RATE * np.sin(np.radians(latitude_deg))
     r_true = design.radius + radius_error
     a = w**2 * r_true / g
     c1, c3 = design.radial, design.spin_axis

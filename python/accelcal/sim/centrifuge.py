@@ -10,7 +10,8 @@ run at 2pi, 4pi and 6pi rad/s.
 
 Error sources: misalignment ``Phi = I + M`` (small angles, any off-diagonal pattern), lever
 arms (one body-frame offset vector per accelerometer, m), radius and rate errors, Earth rate
-at a latitude (adds ``Omega_ie sin(lat)`` to the spin rate), output noise.
+at a latitude (the platform's inertial rate about the vertical is ``omega + Omega_ie sin(lat)``
+for a signed spin rate ``omega``, positive counter-clockwise seen from above), output noise.
 """
 
 from __future__ import annotations
@@ -100,7 +101,11 @@ def centrifuge_session(
     rate_error : float
         Relative spin-rate error (true = commanded x (1 + rate_error)).
     latitude_deg : float, optional
-        Adds the vertical Earth rate ``Omega_ie sin(lat)`` to the spin rate.
+        Adds the vertical Earth rate ``Omega_ie sin(lat)`` to the signed spin rate (rad/s,
+        positive counter-clockwise seen from above): a forward run spins ``Omega_ie sin(lat)``
+        faster in inertial space, a reverse run (negative omega) as much slower, so
+        ``dA/A = +-2 Omega_ie sin(lat) / |omega|`` (1.5e-5 at 1 rev/s and 39 deg) and a
+        forward/reverse pair cancels it to first order.
     noise_g : float
         Standard deviation of white noise on every output (g).
     g : float
