@@ -163,7 +163,7 @@ def test_bad_inputs():
         fit_centrifuge(o, np.zeros_like(w), 1.0)
     with pytest.raises(DegenerateDataError, match="K2 cannot be separated"):
         fit_centrifuge(o, np.full_like(w, w[0]), 1.0)
-    with pytest.raises(CalibrationError, match="radius must be positive"):
+    with pytest.raises(CalibrationError, match=r"radius must be a number in \(0, inf\) m; got -1"):
         fit_centrifuge(o, w, -1.0)
     with pytest.raises(CalibrationError, match="omega has 59 values"):
         fit_centrifuge(o, w[:-1], 1.0)

@@ -78,3 +78,46 @@ def positive(x: Any, name: str, unit: str = "") -> float:
     if not np.isfinite(v) or v <= 0:
         raise CalibrationError(f"{name} must be positive and finite{unit}; got {x!r}")
     return v
+
+
+def number(
+    x: Any,
+    name: str,
+    *,
+    lo: float = -np.inf,
+    hi: float = np.inf,
+    lo_open: bool = False,
+    integer: bool = False,
+    unit: str = "",
+) -> Any:
+    """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), an int when ``integer``;
+    otherwise a CalibrationError naming the argument, the value received and the valid range."""
+    left = "(" if lo_open else "["
+    right = ")" if np.isinf(hi) else "]"
+    rng = f"{left}{lo:g}, {hi:g}{right}" + (f" {unit}" if unit else "")
+    kind = "an integer" if integer else "a number"
+    if isinstance(x, bool) or x is None or isinstance(x, (str, bytes)):
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}")
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}") from None
+    ok = np.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi
+    if integer and ok:
+        ok = v == int(v)
+    if not ok:
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}")
+    return int(v) if integer else v
+
+
+def real_array(x: Any, name: str, unit: str = "") -> NDArray[np.float64]:
+    """``x`` (array, list, DataFrame/Series, any layout, integer or float dtype, either byte
+    order) as float64 in logical order; boolean, complex, text and object arrays are refused."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        what = {"b": "boolean", "c": "complex", "O": "object", "U": "text", "S": "text"}.get(
+            a.dtype.kind, str(a.dtype))
+        raise CalibrationError(
+            f"{name} must be real numbers{f' ({unit})' if unit else ''}; got a {what} array"
+        )
+    return np.asarray(a, dtype=np.float64)
