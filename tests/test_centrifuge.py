@@ -3,6 +3,7 @@ simulator round trips, error-source sensitivity, bad input."""
 
 from __future__ import annotations
 
+import warnings
 from functools import partial
 
 import accelcal
@@ -215,3 +216,61 @@ def test_earth_rate_adds_to_the_signed_spin_rate_and_cancels_in_forward_reverse_
     np.testing.assert_allclose(rev, -size, rtol=1e-4)
     # The pair cancels to first order: what is left is (Omega sin(lat) / omega)^2 ~ 5e-11.
     assert np.max(np.abs(0.5 * (fwd + rev))) < 1e-9
+
+
+def test_sigma_is_per_axis_output_noise_and_the_std_matches_monte_carlo():
+    # 400 seeded sessions with white noise of 1e-5 g on every output; sigma= is that noise.
+    noise = 1e-5
+    est, std_known, std_est, rms = [], [], [], []
+    for seed in range(400):
+        s = centrifuge_session(noise_g=noise, rng=seed, g=9.8)
+        fk = fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8, sigma=noise)
+        fu = fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+        est.append(fk.params)
+        std_known.append(fk.std)
+        std_est.append(fu.std)
+        rms.append(fk.residual_rms)
+        assert fk.noise_known and not fu.noise_known
+    scatter = np.std(est, axis=0, ddof=1)
+    # The empirical std of 400 estimates is good to ~3.5 % (1 sigma): tolerance 12 %. The old
+    # reading of sigma as the norm std made the reported std 1.28x too large.
+    ratio = scatter / np.mean(std_known, axis=0)
+    assert np.all(np.abs(ratio - 1) < 0.12), ratio
+    ratio_est = scatter / np.sqrt(np.mean(np.square(std_est), axis=0))
+    assert np.all(np.abs(ratio_est - 1) < 0.12), ratio_est
+    # Whitened residual RMS ~ sqrt((k - p) / k) when the noise is right.
+    assert np.mean(rms) == pytest.approx(np.sqrt(51 / 60), rel=0.03)
+    # The truth lies within the reported error bars as often as it should.
+    z = (np.array(est) - np.r_[S, B, D]) / np.array(std_known)
+    assert 0.9 < np.std(z) < 1.1
+
+
+@pytest.mark.parametrize("what, change, word", [
+    ("omega", lambda o, w, r: (o, w * 60 / (2 * np.pi), r), "rev/min"),
+    ("omega", lambda o, w, r: (o, np.degrees(w), r), "deg/s"),
+    ("omega", lambda o, w, r: (o, w / (2 * np.pi), r), "rev/s"),
+    ("radius", lambda o, w, r: (o, w, r * 1000), "mm"),
+    ("radius", lambda o, w, r: (o, w, r * 100), "cm"),
+    ("outputs", lambda o, w, r: (o * 9.8, w, r), "m/s\\^2"),
+])
+def test_wrong_units_are_refused_naming_the_likely_unit(what, change, word):
+    s = centrifuge_session(noise_g=1e-6, rng=0, g=9.8)
+    o, w, r = change(s.outputs, s.omega, s.radius)
+    with pytest.raises(CalibrationError, match=f"^{what} looks? like {word}"):
+        fit_centrifuge(o, w, r, g=9.8)
+    # Turning the check off fits as given (the scale factor then absorbs the units).
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CentrifugeOutlierWarning)
+        f = fit_centrifuge(o, w, r, g=9.8, check_units=False)
+    assert np.all(np.isfinite(f.params))
+
+
+def test_unit_check_does_not_fire_on_plausible_sensors():
+    # Scale factors from 0.3 to 3 (outputs in g) and a small arm at high speed pass.
+    for sc in (0.3, 1.0, 3.0):
+        s = centrifuge_session(scale=[sc, sc * 1.1, sc * 0.9], noise_g=1e-6, rng=1, g=9.8)
+        fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+    from accelcal.centrifuge import paper_design
+    s = centrifuge_session(paper_design(omegas=[20.0, 40.0, 60.0], radius=0.1), noise_g=1e-6,
+                           rng=1, g=9.8)
+    fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)

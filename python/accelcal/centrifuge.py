@@ -396,7 +396,8 @@ def _unit_message(found: tuple[float, list[Any]], off: str) -> str:
         return (f"implausible units: {need}. Give the outputs in g, omega in rad/s and the "
                 f"radius in m, or {off} if this scale factor is right")
     what, unit, want, fix, s, rms = findings[0]
-    msg = (f"{what} looks like {unit}, not {want}: {need}; with {what} converted ({fix}) they "
+    verb = "look" if what == "outputs" else "looks"
+    msg = (f"{what} {verb} like {unit}, not {want}: {need}; with {what} converted ({fix}) they "
            f"need {s:.3g}")
     if np.isfinite(rms):
         msg += f" and the fit leaves {rms:.2g} g rms"

@@ -2276,6 +2276,7 @@ fn observability_svd(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::f64::consts::TAU;
 
     /// The paper's 20-position design: (radial-inward, up) unit vectors in the body frame.
     fn design() -> Vec<([f64; 3], [f64; 3])> {
@@ -2461,6 +2462,153 @@ mod tests {
             assert!((x - y).abs() <= 1e-15, "{x} {y}");
         }
         assert!((f.condition - k2).abs() <= 1e-8 * k2);
+    }
+
+    /// A session with small deterministic pseudo-noise on every output (g).
+    fn noisy(level: f64) -> (Vec<[f64; 3]>, Vec<f64>) {
+        let (mut o, w, _) = session();
+        let mut rng = Rng(7);
+        for row in o.iter_mut() {
+            for v in row.iter_mut() {
+                // Sum of uniforms: roughly normal, std `level`.
+                let u: f64 = (0..12)
+                    .map(|_| (rng.next() >> 11) as f64 / (1u64 << 53) as f64)
+                    .sum();
+                *v += level * (u - 6.0);
+            }
+        }
+        (o, w)
+    }
+
+    #[test]
+    fn stage_start_is_close_and_noise_weights_match_numeric_propagation() {
+        let (o, w) = noisy(1e-6);
+        let sig = vec![[1e-6, 2e-6, 3e-6]; o.len()];
+        let mut d = data(&o, &w);
+        d.sigma = Some(&sig);
+        let model = ModelOptions::default();
+        let all: Vec<usize> = (0..o.len()).collect();
+        let mut rc = row_consts(&d);
+        let st = start_values(&d, &mut rc, &all, &model).unwrap();
+        for i in 0..3 {
+            assert!((st[i] - S[i]).abs() < 1e-3 * S[i], "{st:?}");
+        }
+        // 1 / w = |sigma * dr/dN| by central differences on the outputs.
+        let p: Vec<f64> = [S, B, D].concat();
+        noise_weights(&d, &mut rc, &model, &p);
+        let pp = param_pre(&model, &p).unwrap();
+        for k in [0usize, 17, 45] {
+            let mut v = 0.0;
+            for j in 0..3 {
+                let h = 1e-6;
+                let (mut up, mut dn) = (o[k], o[k]);
+                up[j] += h;
+                dn[j] -= h;
+                let ru = row_eval(&up, &rc[k], &pp, &model, None).unwrap();
+                let rd = row_eval(&dn, &rc[k], &pp, &model, None).unwrap();
+                v += (sig[k][j] * (ru - rd) / (2.0 * h)).powi(2);
+            }
+            assert!((1.0 / rc[k].w - v.sqrt()).abs() < 1e-6 * v.sqrt());
+        }
+    }
+
+    #[test]
+    fn stage_threshold_is_the_student_quantile_of_the_normal_tail() {
+        // scipy: t.isf(norm.sf(2), 10) and t.isf(norm.sf(5), 50).
+        assert!((t_threshold(2.0, 10, false) - 2.28367820247793).abs() < 1e-9);
+        assert!((t_threshold(5.0, 50, false) - 5.730061794672849).abs() < 1e-8);
+        assert_eq!(t_threshold(5.0, 50, true), 5.0);
+    }
+
+    #[test]
+    fn stage_studentize_matches_a_leave_one_out_refit() {
+        let (mut o, w) = noisy(1e-5);
+        o[7][2] += 3e-5; // make row 7 stand out a little
+        let d = data(&o, &w);
+        let opt = FitOptions::default();
+        let all: Vec<usize> = (0..o.len()).collect();
+        let mut rc = row_consts(&d);
+        let out = fit_rows(&d, &mut rc, &all, &opt, None).unwrap();
+        let st = studentize(&d, &rc, &opt, &out.params, &all);
+        assert_eq!(st.dof, 51);
+        // Without row 7: its prediction residual over its prediction std.
+        let rest: Vec<usize> = all.iter().copied().filter(|&k| k != 7).collect();
+        let o2 = fit_rows(&d, &mut rc, &rest, &opt, Some(&out.params)).unwrap();
+        let st2 = studentize(&d, &rc, &opt, &o2.params, &rest);
+        assert!(st.t[7].abs() > 0.1);
+        assert!(
+            (st.t[7] - st2.t[7]).abs() < 1e-3 * st.t[7].abs(),
+            "{} {}",
+            st.t[7],
+            st2.t[7]
+        );
+    }
+
+    #[test]
+    fn stage_screen_keeps_a_clean_session_whole() {
+        let (o, w) = noisy(1e-5);
+        let f = fit(&data(&o, &w), &FitOptions::default()).unwrap();
+        assert!(f.outliers.is_empty() && f.draws == 0);
+        assert!(f.studentized.iter().all(|t| t.abs() <= f.threshold));
+        assert!((f.screen_sigma - 1e-5).abs() < 0.3e-5, "{}", f.screen_sigma);
+    }
+
+    #[test]
+    fn stage_fold_sign_keeps_the_residuals() {
+        let (_, w, up) = session();
+        let model = ModelOptions {
+            k3: true,
+            misalignment: true,
+            lever: LeverArm::Along,
+        };
+        let mut p = vec![
+            -1.29, 1.21, -1.26, 0.2, 0.3, 0.5, 5e-5, 3e-5, 4e-5, 1e-7, -2e-7, 3e-7, 1e-3, -2e-3,
+            5e-4, 0.01, -0.02, 0.005,
+        ];
+        let (o, _, _) = session();
+        let mut d = data(&o, &w);
+        d.spin_axis = Some(&up);
+        let r0 = residuals(&d, &model, &p).unwrap();
+        assert!(fold_sign(&mut p, &model));
+        assert!(p[0] > 0.0 && p[2] > 0.0);
+        let r1 = residuals(&d, &model, &p).unwrap();
+        for (a, b) in r0.iter().zip(&r1) {
+            assert!((a - b).abs() <= 1e-12 * (1.0 + a.abs()), "{a} {b}");
+        }
+        assert!(!fold_sign(&mut p, &model));
+    }
+
+    #[test]
+    fn stage_units_name_the_likely_mistake() {
+        let (o, w, _) = session();
+        assert!(check_units(&data(&o, &w), &FitOptions::default()).is_none());
+        let rpm: Vec<f64> = w.iter().map(|v| v * 60.0 / TAU).collect();
+        let u = check_units(&data(&o, &rpm), &FitOptions::default()).unwrap();
+        assert!((u.scale - 0.0137).abs() < 2e-3, "{u:?}");
+        assert_eq!(
+            (u.findings[0].what, u.findings[0].unit),
+            ("omega", "rev/min (rpm)")
+        );
+        assert!(u.findings[0].rms < 1e-9);
+        let e = fit(&data(&o, &rpm), &FitOptions::default()).unwrap_err();
+        assert!(matches!(e, CoreError::InvalidInput(m) if m.contains("rev/min")));
+        let mut d = data(&o, &w);
+        d.radius = 100.0;
+        let u = check_units(&d, &FitOptions::default()).unwrap();
+        assert_eq!((u.findings[0].what, u.findings[0].unit), ("radius", "cm"));
+    }
+
+    #[test]
+    fn correct_inverts_the_sensor_model() {
+        let (o, w, _) = session();
+        let p: Vec<f64> = [S, B, D].concat();
+        let f = correct(&ModelOptions::default(), &p, &o).unwrap();
+        let d = data(&o, &w);
+        for (k, fk) in f.iter().enumerate() {
+            let n2: f64 = fk.iter().map(|v| v * v).sum();
+            assert!((n2 - target(&d, k)).abs() < 1e-9 * target(&d, k));
+        }
+        assert!(correct(&ModelOptions::default(), &p, &[[f64::NAN; 3]]).is_err());
     }
 
     #[test]

@@ -1049,6 +1049,64 @@ mod tests {
     }
 
     #[test]
+    fn startup_bias_scales_the_covariance_to_the_noise() {
+        let th = deg(&[0.0, 45.0, 90.0, 135.0, 10.0]);
+        let mut y = synth(&th, [1.0, 2.0], [30.0, -10.0], None);
+        y[1][0] += 0.3;
+        y[3][1] -= 0.2;
+        let f = fit_startup_bias(&th, &y, None, 0.0, &[1.0; 5]).unwrap();
+        let est = startup_bias(&th, &y, None, 0.0, None).unwrap();
+        let s2 = f.rss / f.dof as f64;
+        assert!(est.sigma_estimated && est.dof == 6);
+        for (a, b) in est.covariance.iter().zip(&f.unit_cov) {
+            assert!((a - b * s2).abs() <= 1e-15 * (b * s2).abs().max(1e-300));
+        }
+        assert!((est.std[0] - (f.unit_cov[0] * s2).sqrt()).abs() < 1e-15);
+        let given = startup_bias(&th, &y, None, 0.0, Some(&[0.5; 5])).unwrap();
+        assert!(!given.sigma_estimated && given.sigma == Some(vec![0.5; 5]));
+        // No redundancy and no noise given: the covariance cannot be known.
+        let two = startup_bias(&th[..2], &y[..2], None, 0.0, None).unwrap();
+        assert!(two.dof == 0 && two.sigma.is_none() && two.covariance.iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn prediction_adds_azimuth_errors_and_gives_the_closed_form() {
+        let th = deg(&[0.0, 45.0, 90.0, 135.0]);
+        let p = predict_startup(
+            &th,
+            None,
+            0.0,
+            &[0.5; 4],
+            GradientPrior::Magnitude(50.0),
+            0.01,
+        )
+        .unwrap();
+        assert!((p.closed_form_variance - 0.25 * 0.25).abs() < 1e-15);
+        assert!((p.covariance[0] - 0.0625).abs() < 1e-12);
+        let want = 0.0625 + 2.0 * 1e-4 * 2500.0 / 4.0;
+        assert!(
+            (p.total_covariance[0] - want).abs() < 1e-12 && (p.std[0] - want.sqrt()).abs() < 1e-12
+        );
+    }
+
+    #[test]
+    fn mid_times_of_demodulated_dwells() {
+        let d = DemodDwell {
+            inline_e: 0.0,
+            cross_e: 0.0,
+            std_e: [0.0; 2],
+            resid_rms: 0.0,
+            nuisance: [0.0; 3],
+            start: 2,
+            stop: 6,
+            revolutions: 1,
+        };
+        let t = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        assert_eq!(mid_times(&t, &[d]).unwrap(), vec![3.5]);
+        assert!(mid_times(&t[..4], &[d]).is_err());
+    }
+
+    #[test]
     fn fast_sincos_matches_libm() {
         let mut worst: f64 = 0.0;
         for i in 0..200_000 {

@@ -118,39 +118,37 @@ pub fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]
         .collect())
 }
 
-/// Mark a NumPy array read-only (result arrays belong to frozen result objects).
-fn freeze(a: &Bound<'_, PyAny>) {
-    let py = a.py();
-    let kw = pyo3::types::PyDict::new(py);
-    // Cannot fail on a freshly made array; a failure would only leave it writeable.
-    let _ = kw.set_item("write", false);
-    let _ = a.call_method("setflags", (), Some(&kw));
-}
-
 /// A read-only 1-D array holding `v`.
 pub fn frozen1<T: numpy::Element>(py: Python<'_>, v: Vec<T>) -> Py<numpy::PyArray1<T>> {
-    use numpy::IntoPyArray;
+    use numpy::{IntoPyArray, PyArrayMethods};
     let a = v.into_pyarray(py);
-    freeze(a.as_any());
+    // A fresh array has no other borrow; were there one, it would only stay writeable.
+    if let Ok(rw) = a.try_readwrite() {
+        drop(rw.make_nonwriteable());
+    }
     a.unbind()
 }
 
 /// A read-only `(rows, cols)` array from row-major values (`v.len()` must be `rows * cols`;
 /// otherwise an empty `(0, cols)` array, which callers never produce).
 pub fn frozen2(py: Python<'_>, v: Vec<f64>, rows: usize, cols: usize) -> Py<numpy::PyArray2<f64>> {
-    use numpy::IntoPyArray;
+    use numpy::{IntoPyArray, PyArrayMethods};
     let arr = ndarray::Array2::from_shape_vec((rows, cols), v)
         .unwrap_or_else(|_| ndarray::Array2::zeros((0, cols)));
     let a = arr.into_pyarray(py);
-    freeze(a.as_any());
+    if let Ok(rw) = a.try_readwrite() {
+        drop(rw.make_nonwriteable());
+    }
     a.unbind()
 }
 
-fn writeable(a: &Bound<'_, PyAny>) -> bool {
-    a.getattr("flags")
-        .and_then(|f| f.getattr("writeable"))
-        .and_then(|w| w.extract::<bool>())
-        .unwrap_or(true)
+fn writeable<T: numpy::Element, D: ndarray::Dimension>(
+    a: &Bound<'_, numpy::PyArray<T, D>>,
+) -> bool {
+    use numpy::PyUntypedArrayMethods;
+    // SAFETY: reads the flags word of a live array object (no write, no borrow).
+    let flags = unsafe { (*numpy::npyffi::_PyArray_GET_ITEM_DATA(a.as_array_ptr())).flags };
+    flags & numpy::npyffi::NPY_ARRAY_WRITEABLE != 0
 }
 
 /// A 1-D array argument of a result's constructor: shared when already read-only (another
@@ -159,7 +157,7 @@ pub fn frozen_copy1<T: numpy::Element + Copy>(
     a: &PyReadonlyArray1<'_, T>,
 ) -> Py<numpy::PyArray1<T>> {
     let b: &Bound<'_, numpy::PyArray1<T>> = a;
-    if !writeable(b.as_any()) {
+    if !writeable(b) {
         return b.clone().unbind();
     }
     frozen1(a.py(), a.as_array().to_vec())
@@ -168,7 +166,7 @@ pub fn frozen_copy1<T: numpy::Element + Copy>(
 /// [`frozen_copy1`] for a 2-D float64 argument.
 pub fn frozen_copy2(a: &PyReadonlyArray2<'_, f64>) -> Py<numpy::PyArray2<f64>> {
     let b: &Bound<'_, numpy::PyArray2<f64>> = a;
-    if !writeable(b.as_any()) {
+    if !writeable(b) {
         return b.clone().unbind();
     }
     let (r, c) = (a.shape()[0], a.shape()[1]);
