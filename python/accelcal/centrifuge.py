@@ -13,7 +13,7 @@ import csv
 import os
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -174,6 +174,11 @@ def centrifuge_outputs(
 
 
 
+#: Estimation methods of :func:`fit_centrifuge`.
+CentrifugeMethod = Literal["nls", "taylor-paper"]
+#: Lever-arm models of :func:`fit_centrifuge`.
+LeverModel = Literal["along", "full"]
+
 _PAPER_TABLE2 = {
     "k2": np.array([5.700684e-5, 3.100221e-5, 4.500459e-5]),
     "scale": np.array([1.28999, 1.21001, 1.25996]),
@@ -324,7 +329,8 @@ class CentrifugeFit(_core.CentrifugeFitCore):
         if n.ndim != 2 or n.shape[1] != 3:
             raise CalibrationError(f"outputs must have shape (k, 3) in g; got {n.shape}")
         return np.asarray(_core.centrifuge_correct_raw(
-            self.params, n, self.fit_k3, self.fit_misalignment, self.lever_model))
+            self.params, n, self.fit_k3, self.fit_misalignment,
+            cast("LeverModel | None", self.lever_model)))
 
     def summary(self) -> str:
         """Human-readable table of parameters with standard deviations; the excluded rows are
@@ -412,10 +418,10 @@ def fit_centrifuge(
     radius: float,
     *,
     g: float = 9.80665,
-    method: str = "nls",
+    method: CentrifugeMethod = "nls",
     k3: bool = False,
     misalignment: bool = False,
-    lever_arm: str | None = None,
+    lever_arm: LeverModel | None = None,
     spin_axis: Any = None,
     sigma: Any = None,
     robust: bool = True,

@@ -22,7 +22,7 @@ from . import _core
 from ._core import CalibrationError, DegenerateDataError
 from ._triad import PARAM_NAMES, attitudes_to_force, fibonacci_sphere, k_matrix, n_params
 from ._validate import number, real_array
-from .centrifuge import SEED004_TRUTH, centrifuge_outputs, paper_design
+from .centrifuge import SEED004_TRUTH, CentrifugeMethod, centrifuge_outputs, paper_design
 from .gradiometer import _F64, _azimuths, _dwell_std, _times
 
 __all__ = [
@@ -474,7 +474,7 @@ def centrifuge_sensitivity(
     source: str = "lever_along_x",
     magnitudes: Any = (0.02,),
     *,
-    method: str = "taylor-paper",
+    method: CentrifugeMethod = "taylor-paper",
     g: float = 9.8,
 ) -> CentrifugeSensitivity:
     """Shift of the fitted S, b, K2 caused by an error source the fit does not model.

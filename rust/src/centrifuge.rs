@@ -1127,9 +1127,10 @@ fn linear_start_n<const C: usize>(
         }
     }
     // Symmetric: the lower triangle is the mirror (same products, same order).
-    for a in 0..C {
-        for b in 0..a {
-            ata[a][b] = ata[b][a];
+    for a in 1..C {
+        let (upper, lower) = ata.split_at_mut(a);
+        for (b, row) in upper.iter().enumerate() {
+            lower[0][b] = row[a];
         }
     }
     let l = ata.as_flattened_mut();
