@@ -274,3 +274,70 @@ def test_unit_check_does_not_fire_on_plausible_sensors():
     s = centrifuge_session(paper_design(omegas=[20.0, 40.0, 60.0], radius=0.1), noise_g=1e-6,
                            rng=1, g=9.8)
     fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+
+
+def test_cli_names_rows_by_speed_and_position_once_and_plots(tmp_path):
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    png = tmp_path / "resid.png"
+    r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(PRINTED()), "--radius", "1",
+                                  "--g", "9.8", "--plot", str(png)])
+    assert r.exit_code == 0, r.output
+    # The excluded rows are listed once, each by index and by speed and position.
+    assert r.output.count("excluded 23 of 60 rows") == 1
+    assert "row 0 (speed 1, position 1)" in r.output
+    assert "row 56 (speed 3, position 17)" in r.output
+    assert png.stat().st_size > 10_000
+    r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(PRINTED()), "--radius", "1",
+                                  "--g", "9.8", "--json"])
+    out = __import__("json").loads(r.output)
+    assert out["row_labels"][20] == "speed 2, position 1" and len(out["warnings"]) == 1
+    assert out["rows"][20] == {"index": 20, "speed_index": 2, "position": 1,
+                               "omega_rad_s": pytest.approx(4 * np.pi)}
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--radius", "-1"], "--radius must be a number in (0, inf) m; got -1"),
+    (["--radius", "100"], "use --no-unit-check"),
+    (["--radius", "1", "--outlier-k", "0"], "--outlier-k must be"),
+    (["--radius", "1", "--sigma", "-1"], "--sigma (per-axis output noise, g) must be"),
+])
+def test_cli_errors_name_cli_options(args, needle):
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(CORRECTED()), "--g", "9.8",
+                                  *args])
+    assert r.exit_code == 2
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], lines
+    assert "check_units" not in lines[0] and "outlier_k" not in lines[0]
+    # ... and the unit check can be turned off from the command line.
+    if "--no-unit-check" in needle:
+        r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(CORRECTED()), "--g", "9.8",
+                                      *args, "--no-unit-check"])
+        assert r.exit_code == 0, r.output
+
+
+def test_residual_figure_marks_excluded_rows():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from accelcal.plots import centrifuge_residual_figure
+
+    t = read_centrifuge_table(PRINTED())
+    with pytest.warns(CentrifugeOutlierWarning):
+        fit = fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, labels=t.labels())
+    fig = centrifuge_residual_figure(fit, t.speed_index, t.position)
+    ax = fig.axes[0]
+    assert ax.get_ylabel().endswith("[ug]") and ax.get_xlabel() == "position"
+    # 3 speeds of good rows, 3 of excluded ones (x markers): 23 excluded points in all.
+    xs = [ln for ln in ax.lines if ln.get_marker() == "x" and len(ln.get_xdata())]
+    assert sum(len(ln.get_xdata()) for ln in xs) == 23
+    good = [ln for ln in ax.lines if ln.get_marker() == "o"]
+    assert sum(len(ln.get_xdata()) for ln in good) == 37
+    fig.canvas.draw()
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)

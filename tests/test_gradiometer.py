@@ -355,3 +355,41 @@ def test_azimuth_error_prediction():
     assert pm.bias_std == pytest.approx([want, want], rel=1e-6)
     with pytest.raises(CalibrationError, match="gradient"):
         accelcal.predict_startup_accuracy(az, sigma_theta=0.1)
+
+
+def test_cli_gradiometer_plot_and_option_words(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from accelcal.cli import main
+    from accelcal.plots import gradiometer_figure
+    from click.testing import CliRunner
+
+    az = [0.0, 45.0, 90.0, 135.0, 0.0]
+    t = [0.0, 60.0, 120.0, 180.0, 240.0]
+    y = model(az, [3.0, -2.0], [10.0, 5.0], t, [0.01, -0.02], t_ref=120.0)
+    y += np.array([[0.1, -0.05], [0.0, 0.08], [-0.07, 0.0], [0.02, 0.03], [-0.04, -0.06]])
+    tab = tmp_path / "startup.csv"
+    tab.write_text("azimuth_deg,inline_E,cross_E,t_s\n" + "\n".join(
+        f"{a},{u},{v},{s}" for a, (u, v), s in zip(az, y, t, strict=True)) + "\n")
+    png = tmp_path / "g.png"
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab), "--plot", str(png)])
+    assert r.exit_code == 0, r.output
+    assert png.stat().st_size > 10_000
+    # The summary's caution names the CLI option, not the Python keyword.
+    assert "sigma=" not in r.output and "--sigma" in r.output
+    sb = accelcal.startup_bias(az, y, t=t, drift=True)
+    fig = gradiometer_figure(sb)
+    a0, a1 = fig.axes
+    assert a0.get_ylabel() == "inline I  [E]" and a1.get_xlabel() == "platform azimuth  [deg]"
+    # The drawn averages, drift removed, lie on the fitted curve up to the residuals.
+    pts = a0.lines[0].get_ydata() if a0.lines[0].get_marker() == "o" else None
+    curve = [ln for ln in a0.lines if ln.get_label().startswith("fit")][0]
+    grid, cv = curve.get_xdata(), curve.get_ydata()
+    assert pts is None or np.allclose(
+        np.asarray(pts) - np.interp(np.mod(az, 180), grid, cv), sb.residuals[:, 0], atol=1e-3)
+    plt.close(fig)
+    # Errors name CLI options.
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab), "--sigma", "-1"])
+    assert r.exit_code == 2 and "--sigma must" in r.output, r.output
