@@ -1626,13 +1626,24 @@ fn studentize(
     }
     let c = (cn.iter().all(|v| *v > 0.0 && v.is_finite()) && cholesky_small(&mut an, np))
         .then(|| cholesky_inverse_small(&an, np));
+    let mut icn = [0.0f64; MAX_PARAMS];
+    for j in 0..np {
+        icn[j] = 1.0 / cn[j];
+    }
     let leverage = |k: usize| -> f64 {
         let Some(c) = &c else { return 0.0 };
-        let x: Vec<f64> = (0..np).map(|j| jr[k][j] / cn[j]).collect();
+        let mut x = [0.0f64; MAX_PARAMS];
+        for j in 0..np {
+            x[j] = jr[k][j] * icn[j];
+        }
         let mut h = 0.0;
         for i in 0..np {
             let ci = &c[i * np..(i + 1) * np];
-            h += x[i] * ci.iter().zip(&x).map(|(u, v)| u * v).sum::<f64>();
+            let mut v = 0.0;
+            for j in 0..np {
+                v += ci[j] * x[j];
+            }
+            h += x[i] * v;
         }
         h
     };
@@ -1690,17 +1701,54 @@ fn t_threshold(k: f64, dof: usize, known: bool) -> f64 {
     if known || dof == 0 || dof > 100_000 {
         return k;
     }
-    let p = chi2_sf(k * k, 1.0);
-    let nu = dof as f64;
-    let tail = |t: f64| f_sf(t * t, 1.0, nu);
-    let (mut lo, mut hi) = (k, 2.0 * k);
-    while tail(hi) > p && hi < 1e12 {
+    thread_local! {
+        /// The last threshold computed: (k, dof, threshold). A fit asks for the same one again.
+        static LAST: std::cell::Cell<(f64, usize, f64)> = const { std::cell::Cell::new((f64::NAN, 0, 0.0)) };
+    }
+    let (k0, d0, t0) = LAST.with(|c| c.get());
+    if k0 == k && d0 == dof {
+        return t0;
+    }
+    let t = student_quantile(chi2_sf(k * k, 1.0), dof as f64, k);
+    LAST.with(|c| c.set((k, dof, t)));
+    t
+}
+
+/// `t > 0` with two-sided Student tail `P(|T_nu| > t) = p`: secant steps on `ln P` from the
+/// Cornish-Fisher expansion around the normal quantile `z`, then bisection if they stall.
+fn student_quantile(p: f64, nu: f64, z: f64) -> f64 {
+    let ln_tail = |t: f64| f_sf(t * t, 1.0, nu).ln() - p.ln();
+    let (z3, z5, z7) = (z.powi(3), z.powi(5), z.powi(7));
+    let cf = z
+        + (z3 + z) / (4.0 * nu)
+        + (5.0 * z5 + 16.0 * z3 + 3.0 * z) / (96.0 * nu * nu)
+        + (3.0 * z7 + 19.0 * z5 + 17.0 * z3 - 15.0 * z) / (384.0 * nu.powi(3));
+    let (mut a, mut b) = (cf.max(z), cf.max(z) * 1.001);
+    let (mut fa, mut fb) = (ln_tail(a), ln_tail(b));
+    for _ in 0..30 {
+        if !(fa.is_finite() && fb.is_finite()) || fb == fa {
+            break;
+        }
+        let c = b - fb * (b - a) / (fb - fa);
+        if !(c > 0.0) || !c.is_finite() {
+            break;
+        }
+        (a, fa) = (b, fb);
+        b = c;
+        fb = ln_tail(b);
+        if (b - a).abs() <= 1e-12 * b {
+            return b;
+        }
+    }
+    // Bisection (the tail falls with t).
+    let (mut lo, mut hi) = (z, 2.0 * z.max(1.0));
+    while ln_tail(hi) > 0.0 && hi < 1e12 {
         lo = hi;
         hi *= 2.0;
     }
     for _ in 0..200 {
         let mid = 0.5 * (lo + hi);
-        if tail(mid) > p {
+        if ln_tail(mid) > 0.0 {
             lo = mid;
         } else {
             hi = mid;

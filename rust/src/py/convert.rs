@@ -120,25 +120,32 @@ pub fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]
 
 /// A read-only 1-D array holding `v`.
 pub fn frozen1<T: numpy::Element>(py: Python<'_>, v: Vec<T>) -> Py<numpy::PyArray1<T>> {
-    use numpy::{IntoPyArray, PyArrayMethods};
+    use numpy::IntoPyArray;
     let a = v.into_pyarray(py);
-    // A fresh array has no other borrow; were there one, it would only stay writeable.
-    if let Ok(rw) = a.try_readwrite() {
-        drop(rw.make_nonwriteable());
-    }
+    clear_writeable(&a);
     a.unbind()
+}
+
+/// Clear the WRITEABLE flag of an array this module has just made (what numpy's
+/// `PyReadwriteArray::make_nonwriteable` does, without its borrow bookkeeping: nothing else
+/// can hold a borrow of a fresh array).
+fn clear_writeable<T: numpy::Element, D: ndarray::Dimension>(a: &Bound<'_, numpy::PyArray<T, D>>) {
+    use numpy::PyUntypedArrayMethods;
+    // SAFETY: `a` is a live array created by the caller and not yet shared with anyone.
+    unsafe {
+        (*numpy::npyffi::_PyArray_GET_ITEM_DATA(a.as_array_ptr())).flags &=
+            !numpy::npyffi::NPY_ARRAY_WRITEABLE;
+    }
 }
 
 /// A read-only `(rows, cols)` array from row-major values (`v.len()` must be `rows * cols`;
 /// otherwise an empty `(0, cols)` array, which callers never produce).
 pub fn frozen2(py: Python<'_>, v: Vec<f64>, rows: usize, cols: usize) -> Py<numpy::PyArray2<f64>> {
-    use numpy::{IntoPyArray, PyArrayMethods};
+    use numpy::IntoPyArray;
     let arr = ndarray::Array2::from_shape_vec((rows, cols), v)
         .unwrap_or_else(|_| ndarray::Array2::zeros((0, cols)));
     let a = arr.into_pyarray(py);
-    if let Ok(rw) = a.try_readwrite() {
-        drop(rw.make_nonwriteable());
-    }
+    clear_writeable(&a);
     a.unbind()
 }
 
