@@ -91,7 +91,7 @@ def main() -> None:
         "b to ~1e-6 and D to 1e-4..3e-4 relative (well inside the 2 % the truncated series "
         "allows); the paper's own Table 2 matches it to its printed digits.",
         "",
-        "## The paper's equations as printed vs corrected (SPEC 2 errata)",
+        "## The paper's equations as printed vs corrected",
         "",
         "Same 13 regression coefficients, formulas exactly as printed:",
         "",

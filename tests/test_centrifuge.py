@@ -1,4 +1,4 @@
-"""Centrifuge calibration (seed 004): reproduction on the paper's table, robust screening,
+"""Centrifuge calibration: reproduction on the paper's table, robust screening,
 simulator round trips, error-source sensitivity, bad input."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Gradiometer per-startup bias (SPEC 3): estimator, design, demodulation, simulator, workflow."""
+"""Gradiometer per-startup bias: estimator, design, demodulation, simulator, workflow."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from accelcal.sim import gradiometer_session
 
 
 def model(az_deg, bias, gamma, t=None, drift=None, t_ref=0.0):
-    """SPEC 3 measurement model y_k = b + R(2 theta_k) gamma (+ drift (t - t_ref))."""
+    """Measurement model y_k = b + R(2 theta_k) gamma (+ drift (t - t_ref))."""
     th = np.radians(np.asarray(az_deg, dtype=float))
     c, s = np.cos(2 * th), np.sin(2 * th)
     y = np.column_stack(
@@ -174,7 +174,7 @@ def test_demodulation_recovers_gradient_and_rate_terms(frame):
     )
     d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m, t=s.t)
     tr = s.truth
-    # SPEC 3: residual rates add -(Wx^2 - Wy^2)/2 to I and -Wx Wy to C (platform-frame rates).
+    # Residual rates add -(Wx^2 - Wy^2)/2 to I and -Wx Wy to C (platform-frame rates).
     pw = tr.platform_rates_rad_s
     formula = np.column_stack([-(pw[:, 0] ** 2 - pw[:, 1] ** 2) / 2, -pw[:, 0] * pw[:, 1]]) / 1e-9
     assert np.abs(formula).max() > 3.0
@@ -347,7 +347,7 @@ def test_azimuth_error_prediction():
     emp = np.var(np.array(est), axis=0)
     p = accelcal.predict_startup_accuracy(az, sigma=1e-12, sigma_theta=st, gradient=g)
     assert np.allclose(emp, np.diag(p.azimuth_covariance)[:2], rtol=0.15)
-    # Magnitude only: SPEC 3 sigma_bias ~ sqrt(2) sigma_theta |gamma| / sqrt(m).
+    # Magnitude only: sigma_bias ~ sqrt(2) sigma_theta |gamma| / sqrt(m).
     pm = accelcal.predict_startup_accuracy(
         az, sigma=1e-12, sigma_theta=st, gradient=np.linalg.norm(g)
     )

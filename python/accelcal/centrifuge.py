@@ -1,7 +1,8 @@
-"""Centrifuge calibration with quadratic (K2) coefficients by norm observation (seed 004).
+"""Centrifuge calibration with quadratic (K2) coefficients by norm observation.
 
 Model (g units): ``N = S Phi (f + K2 f^2 [+ K3 f^3]) + b``, constraint ``|f|^2 = A^2 + 1`` with
-``A = omega^2 R / g``. See SPEC section 2 and ``docs/centrifuge-reproduction.md``.
+``A = omega^2 R / g``: the method of Wang and Li (2021), doi:10.19306/j.cnki.2095-8110.2021.06.019,
+with its printed equations corrected (``docs/centrifuge-reproduction.md``).
 
 Sign convention: the norm cannot tell ``S_i`` from ``-S_i`` (exactly so when K2 = 0); results
 always have ``S_i > 0`` (with K2, misalignment and lever arm signs folded accordingly).
@@ -43,7 +44,7 @@ __all__ = [
 #: Earth rotation rate (rad/s).
 EARTH_RATE = 7.2921150e-5
 
-#: Truth of the seed-004 simulation (SPEC 2).
+#: Truth of the paper's simulation (its Table 1 reproduces from it).
 SEED004_TRUTH: dict[str, NDArray[np.float64]] = {
     "scale": np.array([1.29, 1.21, 1.26]),
     "bias": np.array([0.213, 0.256, 0.516]),
@@ -547,7 +548,8 @@ def fit_centrifuge(
 
 @dataclass(frozen=True)
 class CentrifugeTable:
-    """A centrifuge table in the seed-004 CSV format (per-position mean outputs in g)."""
+    """A centrifuge table: columns speed_index, omega_rad_s, position, N_ax_g, N_ay_g, N_az_g
+    (per-position mean outputs in g; the format of the paper's Table 1)."""
 
     speed_index: NDArray[np.int64]
     omega: NDArray[np.float64]
@@ -600,7 +602,8 @@ def read_centrifuge_table(path: str | os.PathLike[str]) -> CentrifugeTable:
 def calibrate_centrifuge_table(
     path: str | os.PathLike[str], radius: float, g: float = 9.80665, **kwargs: Any
 ) -> CentrifugeFit:
-    """Read a seed-004-format table and run :func:`fit_centrifuge` on it (CLI entry point)."""
+    """Read a centrifuge table (:func:`read_centrifuge_table`) and run :func:`fit_centrifuge` on
+    it, naming the rows by speed and position."""
     t = read_centrifuge_table(path)
     kwargs.setdefault("labels", t.labels())
     return fit_centrifuge(t.outputs, t.omega, radius, g=g, **kwargs)

@@ -484,7 +484,7 @@ def centrifuge_sensitivity(
     design : CentrifugeDesign, optional
         Default: the paper's 20 positions x 3 speeds, R = 1 m.
     truth : dict, optional
-        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the seed-004 truth.
+        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the paper's truth.
     source : str
         ``misalignment`` (all six paper angles = magnitude, rad); ``lever_along_<axis>``
         (accelerometer <axis> displaced along its own axis, m); ``lever_<accel>_<dir>``

@@ -1,4 +1,6 @@
-"""Gravity gradiometer per-startup bias by platform azimuth rotation (SPEC section 3).
+"""Gravity gradiometer per-startup bias by platform azimuth rotation (the procedure of the patent
+on system-level calibration of the per-startup zero of a rotating-accelerometer gravity
+gradiometer, generalised to any azimuth set).
 
 A rotating-accelerometer gravity gradiometer on a stabilised, level platform has two outputs,
 inline ``I = (Gxx - Gyy) / 2`` and cross ``C = Gxy`` (Eotvos, 1 E = 1e-9 s^-2), each with a
@@ -209,7 +211,7 @@ def startup_bias(
     sigma: float | ArrayLike | None = None,
     t_ref: float | None = None,
 ) -> StartupBias:
-    """Per-startup bias of the inline and cross channels by least squares (SPEC 3).
+    """Per-startup bias of the inline and cross channels by least squares.
 
     Parameters
     ----------

@@ -1,4 +1,5 @@
-//! Centrifuge norm-observation calibration with quadratic (K2) coefficients (SPEC section 2).
+//! Centrifuge norm-observation calibration with quadratic (K2) coefficients (Wang and Li 2021,
+//! doi:10.19306/j.cnki.2095-8110.2021.06.019, with its printed equations corrected).
 //!
 //! Model per accelerometer triad, in g units:
 //! `N = S Phi (h) + b`, `h_i = f_i + D_i f_i^2 [+ E_i f_i^3]`, `Phi = I + M` (small-angle,
@@ -8,7 +9,7 @@
 //! - [`fit`] with [`Method::Nls`]: exact inversion of every row (`f_i` from `h_i` by the root
 //!   continuous with `D -> 0`) and weighted least squares on the norm, via [`crate::lsq`].
 //! - [`Method::TaylorPaper`]: the paper's 13-column regression of `A^2 + 1` on
-//!   `[1, N, N^2, N^3, N^4]` with the corrected closed-form recovery (SPEC 2 errata).
+//!   `[1, N, N^2, N^3, N^4]` with the corrected closed-form recovery (eqs. 19, 21, 22 corrected).
 //! - Robust screening: least median of squares over random minimal subsets (seeded, so
 //!   deterministic), then iterated refit / reclassification at `k` robust sigmas.
 //!
@@ -1205,7 +1206,7 @@ fn nls_on_rows(
     Ok((p, rep, prob.last.into_inner()))
 }
 
-/// Corrected closed-form recovery from the 13 Taylor coefficients (SPEC 2): returns
+/// Corrected closed-form recovery from the 13 Taylor coefficients: returns
 /// `(S, b, D)` per axis.
 pub fn taylor_recover(c: &[f64]) -> Result<[[f64; 3]; 3]> {
     if c.len() != 13 {

@@ -1,4 +1,4 @@
-//! Gravity gradiometer per-startup bias by platform azimuth rotation (SPEC section 3).
+//! Gravity gradiometer per-startup bias by platform azimuth rotation.
 //!
 //! Two parts, both pure:
 //!
@@ -491,7 +491,7 @@ pub fn azimuth_error_covariance(
     Ok(cov)
 }
 
-/// SPEC 3 closed form for equal weights, no drift: `Var(bias_j) = Var(gamma_j) =
+/// Closed form for equal weights, no drift: `Var(bias_j) = Var(gamma_j) =
 /// m / (m^2 - |U|^2)` per unit variance, `U = sum exp(-2i theta_k)`. Infinite when singular.
 pub fn balanced_variance(theta: &[f64]) -> f64 {
     let m = theta.len() as f64;
@@ -1166,7 +1166,7 @@ mod tests {
             "{o:?}"
         );
         assert_eq!(o.revolutions, 21); // 70 s at 0.3 Hz
-                                       // SPEC 3: balanced set, sigma_bias^2 = 2 sigma_theta^2 |gamma|^2 / m.
+                                       // Balanced set, sigma_bias^2 = 2 sigma_theta^2 |gamma|^2 / m.
         let th = deg(&[0.0, 45.0, 90.0, 135.0]);
         let c = azimuth_error_covariance(
             &th,

@@ -33,7 +33,7 @@ def demo_section(rng_seed: int = 0) -> str:
     dt = time.perf_counter() - t0
     truth = np.r_[SEED004_TRUTH["scale"], SEED004_TRUTH["bias"], SEED004_TRUTH["k2"]]
     lines = [
-        "== Centrifuge calibration with K2 (seed 004) ==",
+        "== Centrifuge calibration with K2 (norm observation, Wang and Li 2021) ==",
         f"simulated {len(s.omega)} rows (20 positions x 3 speeds, R = {s.radius:g} m), noise "
         f"1e-5 g, Earth rate at 39 deg N (unmodelled); nls fit in {dt * 1e3:.2f} ms, "
         f"residual rms {fit.residual_rms:.2g} g",
@@ -64,7 +64,7 @@ def demo_section(rng_seed: int = 0) -> str:
 
     d = next((p for p in _SEED_DIRS if (p / "table1_as_printed.csv").exists()), None)
     if d is None:
-        lines.append("(seed-004 table not found: skipping the reproduction lines)")
+        lines.append("(the paper's Table 1 was not found: skipping the reproduction lines)")
         return "\n".join(lines)
     ok = read_centrifuge_table(d / "table1_sign_corrected.csv")
     bad = read_centrifuge_table(d / "table1_as_printed.csv")

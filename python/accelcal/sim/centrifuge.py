@@ -1,4 +1,4 @@
-"""Centrifuge session simulator (seed 004) with known truth and unmodelled error sources.
+"""Centrifuge session simulator (the paper's design) with known truth and unmodelled error sources.
 
 Geometry. Every row is one static position of the triad on the centrifuge arm at one speed.
 In the body frame, the specific force at the triad centre is ``f = A c1 + c3`` (g units) with
@@ -86,7 +86,7 @@ def centrifuge_session(
     design : CentrifugeDesign, optional
         Default: the paper's 20 positions x (2pi, 4pi, 6pi) rad/s at ``radius``.
     scale, bias, k2, k3 : array_like (3,), optional
-        Truth per axis; bias in g, k2 in g/g^2, k3 in g/g^3. Default: the seed-004 truth
+        Truth per axis; bias in g, k2 in g/g^2, k3 in g/g^3. Default: the paper's truth
         (S = 1.29, 1.21, 1.26; b = 0.213, 0.256, 0.516 g; K2 = 0.57, 0.31, 0.45 x 1e-4) and
         no K3.
     misalignment : array_like (3, 3), optional
