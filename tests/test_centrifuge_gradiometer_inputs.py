@@ -315,3 +315,17 @@ def test_demodulate_bit_identical_with_one_and_two_rayon_threads():
                            text=True, timeout=300, check=True)
         outs.append(r.stdout)
     assert outs[0] == outs[1] and outs[0].strip()
+
+
+def test_startup_calibration_refuses_bad_values_by_name():
+    c = ac.StartupCalibration()
+    for bad in (None, "north", float("nan")):
+        with pytest.raises(CalibrationError, match="azimuth_deg must be a number"):
+            c.record_mean(bad, 1.0, 2.0)
+    with pytest.raises(CalibrationError, match="inline_E must be a number"):
+        c.record_mean(0.0, None, 2.0)
+    with pytest.raises(CalibrationError, match="std must be a number in \\(0, inf\\) E"):
+        c.record_mean(0.0, 1.0, 2.0, std=-1)
+    with pytest.raises(CalibrationError, match="sigma must be a number, an array, 'stream'"):
+        ac.StartupCalibration(sigma="noise")
+    assert len(c) == 0

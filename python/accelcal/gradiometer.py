@@ -395,6 +395,10 @@ class StartupCalibration:
         radius_m: float | None = None,
     ) -> None:
         self.drift = bool(drift)
+        if isinstance(sigma, str) and sigma != "stream":
+            raise CalibrationError(
+                f"sigma must be a number, an array, 'stream' or None; got {sigma!r}"
+            )
         self.sigma = sigma
         self.radius_m = None if radius_m is None else positive(radius_m, "radius_m", " (m)")
         self._az: list[float] = []
@@ -411,14 +415,12 @@ class StartupCalibration:
 
     def _add(self, az: float, y: tuple[float, float], t: float | None, sem: float | None,
              n: int) -> None:
-        a = float(az)
-        if not np.isfinite(a):
-            raise CalibrationError("azimuth must be finite (deg)")
+        a = number(az, "azimuth_deg", unit="deg")
         if not (np.isfinite(y[0]) and np.isfinite(y[1])):
             raise CalibrationError(f"azimuth {a:g} deg: channel average is NaN or inf")
         self._az.append(a)
         self._y.append((float(y[0]), float(y[1])))
-        self._t.append(None if t is None else float(t))
+        self._t.append(None if t is None else number(t, "t", unit="s"))
         self._sem.append(sem)
         self._n.append(n)
 
@@ -475,7 +477,9 @@ class StartupCalibration:
         std: float | None = None,
     ) -> None:
         """Record averages computed elsewhere (E; ``t`` the dwell mid time in s)."""
-        self._add(azimuth_deg, (float(inline_E), float(cross_E)), t, std, 0)
+        sd = None if std is None else number(std, "std", lo=0.0, lo_open=True, unit="E")
+        self._add(azimuth_deg, (number(inline_E, "inline_E", unit="E"),
+                                number(cross_E, "cross_E", unit="E")), t, sd, 0)
 
     @property
     def azimuth_deg(self) -> _F64:
