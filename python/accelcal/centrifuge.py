@@ -336,7 +336,7 @@ class CentrifugeFit(_core.CentrifugeFitCore):
     def summary(self) -> str:
         """Human-readable table of parameters with standard deviations; the excluded rows are
         named once, by index and label."""
-        noise = "given noise" if self.noise_known else "noise from the residuals"
+        noise = "the given noise" if self.noise_known else "the residual scatter"
         unit = "(whitened)" if self.noise_known else "g"
         lines = [
             f"centrifuge fit ({self.method}): {len(self.residuals)} rows, "
@@ -348,7 +348,11 @@ class CentrifugeFit(_core.CentrifugeFitCore):
             u = units.get(n.split("_")[0].rstrip("xyz") or n[0], "")
             lines.append(f"  {n:<10} {v: .9g}  +- {s:.2g} {u}")
         if len(self.outliers):
-            lines.append("  " + self.excluded_text())
+            lines.append(f"  excluded {len(self.outliers)} of {len(self.residuals)} rows "
+                         "inconsistent with |f|^2 = A^2 + 1 (residual, studentised):")
+            for k, r in zip(self.outliers, self.outlier_residuals, strict=True):
+                t = self.studentized[k]
+                lines.append(f"    {self.row_name(k):<32} {r:+11.4g} g  {t:+9.3g}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
