@@ -184,8 +184,9 @@ def main() -> None:
         "## Speed",
         "",
         f"60-row nls fit from Python (`fit_centrifuge`, unit check and screening statistic "
-        f"included): {t_fit * 1e6:.0f} us of thread CPU time (best of 5 x {n}); see `benches/bench_centrifuge.py` for the "
-        "ratio to scipy.optimize.least_squares on the same residual. Robust screening of "
+        f"included): {t_fit * 1e6:.0f} us of thread CPU time (best of 5 x {n}); see "
+        "`benches/bench_centrifuge.py` for the ratio to scipy.optimize.least_squares on the "
+        "same residual. Robust screening of "
         f"the printed table (~4700 minimal subsets) takes {t_scr * 1e3:.0f} ms when needed "
         "(clean data take the fast path).",
         "",

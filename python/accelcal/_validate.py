@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -92,21 +93,26 @@ def number(
 ) -> Any:
     """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), an int when ``integer``;
     otherwise a CalibrationError naming the argument, the value received and the valid range."""
-    left = "(" if lo_open else "["
-    right = ")" if np.isinf(hi) else "]"
-    rng = f"{left}{lo:g}, {hi:g}{right}" + (f" {unit}" if unit else "")
-    kind = "an integer" if integer else "a number"
-    if isinstance(x, bool) or x is None or isinstance(x, (str, bytes)):
-        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}")
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}") from None
-    ok = np.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi
-    if integer and ok:
-        ok = v == int(v)
+    v = None
+    if not isinstance(x, (bool, str, bytes)) and x is not None:
+        try:
+            v = float(x)
+        except (TypeError, ValueError):
+            v = None
+    ok = (
+        v is not None
+        and math.isfinite(v)
+        and (v > lo if lo_open else v >= lo)
+        and v <= hi
+        and (not integer or v == int(v))
+    )
     if not ok:
+        left = "(" if lo_open else "["
+        right = ")" if math.isinf(hi) else "]"
+        rng = f"{left}{lo:g}, {hi:g}{right}" + (f" {unit}" if unit else "")
+        kind = "an integer" if integer else "a number"
         raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}")
+    assert v is not None
     return int(v) if integer else v
 
 
@@ -114,6 +120,8 @@ def real_array(x: Any, name: str, unit: str = "") -> NDArray[np.float64]:
     """``x`` (array, list, DataFrame/Series, any layout, integer or float dtype, either byte
     order) as float64 in logical order; boolean, complex, text and object arrays are refused."""
     a = np.asarray(x)
+    if a.dtype == np.float64:
+        return a
     if a.dtype.kind not in "fiu":
         what = {"b": "boolean", "c": "complex", "O": "object", "U": "text", "S": "text"}.get(
             a.dtype.kind, str(a.dtype))

@@ -509,7 +509,7 @@ def fit_centrifuge(
     gg = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
     k_out = number(outlier_k, "outlier_k", lo=0.0, lo_open=True, unit="standard deviations")
     draws = number(max_draws, "max_draws", lo=1, hi=10_000_000, integer=True)
-    sd = number(seed, "seed", lo=0, hi=2.0**64 - 1, integer=True)
+    sd = number(seed, "seed", lo=0, hi=2.0**53, integer=True)
     if method not in ("nls", "taylor-paper"):
         raise CalibrationError(f"unknown method {method!r}; use 'nls' or 'taylor-paper'")
     sa = None
