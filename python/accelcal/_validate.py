@@ -72,12 +72,16 @@ def bounds_array(b: Any) -> NDArray[np.int64]:
 
 def positive(x: Any, name: str, unit: str = "") -> float:
     """A positive finite float, or a CalibrationError naming it."""
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{name} must be a number; got {x!r}") from None
-    if not np.isfinite(v) or v <= 0:
-        raise CalibrationError(f"{name} must be positive and finite{unit}; got {x!r}")
+    v = None
+    if not isinstance(x, (bool, str, bytes)) and x is not None:
+        try:
+            v = float(x)
+        except (TypeError, ValueError):
+            v = None
+    if v is None or not math.isfinite(v) or v <= 0:
+        raise CalibrationError(
+            f"{name} must be positive and finite{unit}, a number in (0, inf); got {x!r}"
+        )
     return v
 
 

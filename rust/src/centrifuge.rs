@@ -2649,6 +2649,47 @@ mod tests {
     }
 
     #[test]
+    fn stage_uncertainty_is_the_inverse_normal_matrix() {
+        // With the noise given, the covariance is (J^T W J)^-1 of the weighted Jacobian at the
+        // fit, whichever path (the solver's last normal equations or afresh) computes it.
+        let (o, w) = noisy(1e-6);
+        let sig = vec![[1e-6; 3]; o.len()];
+        let mut d = data(&o, &w);
+        d.sigma = Some(&sig);
+        let opt = FitOptions::default();
+        let all: Vec<usize> = (0..o.len()).collect();
+        let mut rc = row_consts(&d);
+        let out = fit_rows(&d, &mut rc, &all, &opt, None).unwrap();
+        let u1 = uncertainty(&d, &rc, &all, &opt, &out.params, out.last.as_ref()).unwrap();
+        let u2 = uncertainty(&d, &rc, &all, &opt, &out.params, None).unwrap();
+        let prob = Problem::new(&d, &rc, &all, opt.model);
+        let q: Vec<f64> = out
+            .params
+            .iter()
+            .zip(&prob.scales)
+            .map(|(a, s)| a / s)
+            .collect();
+        let mut r = vec![0.0; all.len()];
+        let mut jac = DMatrix::zeros(all.len(), 9);
+        prob.eval(&q, &mut r, &mut jac).unwrap();
+        let cq = (jac.transpose() * &jac).try_inverse().unwrap();
+        for a in 0..9 {
+            for b in 0..9 {
+                let want = cq[(a, b)] * prob.scales[a] * prob.scales[b];
+                let tol = 1e-6
+                    * (want.abs()
+                        + 1e-3
+                            * (cq[(a, a)] * cq[(b, b)]).sqrt()
+                            * prob.scales[a]
+                            * prob.scales[b]);
+                assert!((u1.covariance[a * 9 + b] - want).abs() <= tol, "{a} {b}");
+                assert!((u2.covariance[a * 9 + b] - want).abs() <= tol, "{a} {b}");
+            }
+        }
+        assert!((u1.rms - u2.rms).abs() < 1e-12 && u1.condition > 1.0);
+    }
+
+    #[test]
     fn correct_inverts_the_sensor_model() {
         let (o, w, _) = session();
         let p: Vec<f64> = [S, B, D].concat();
