@@ -329,3 +329,80 @@ def test_startup_calibration_refuses_bad_values_by_name():
     with pytest.raises(CalibrationError, match="sigma must be a number, an array, 'stream'"):
         ac.StartupCalibration(sigma="noise")
     assert len(c) == 0
+
+
+# ---- property-based: any array gives a result or a clear error ---------------------------------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=64),
+    st.sampled_from([0.0, 1.0, -1.0, 1e300, -1e300, 1e-300, 6.283185307179586]),
+)
+
+
+@st.composite
+def _arrays(draw: Any, ncols: int | None) -> np.ndarray:
+    rows = draw(st.integers(0, 30))
+    shape = (rows,) if ncols is None else (rows, draw(st.sampled_from([ncols, ncols, 2, 4])))
+    dtype = draw(st.sampled_from([np.float64, np.float32, np.int16, np.int32, ">f8", bool,
+                                  np.complex128]))
+    if np.dtype(dtype).kind in "iub":
+        a = draw(hnp.arrays(dtype, shape))
+    else:
+        with np.errstate(over="ignore"):  # 1e300 as float32 is inf: also a case to try
+            a = draw(hnp.arrays(np.float64, shape, elements=_VALUES)).astype(dtype)
+    if draw(st.booleans()) and a.ndim == 2:
+        a = np.asfortranarray(a)
+    return a
+
+
+def _clear(call: Callable[[], Any], names: tuple[str, ...]) -> None:
+    """A result without NaN where none was asked for, or a CalibrationError naming an input."""
+    try:
+        r = call()
+    except CalibrationError as e:
+        msg = str(e)
+        assert any(n in msg for n in names) or "row" in msg or "speed" in msg or "design" in msg \
+            or "dwell" in msg or "azimuth" in msg or "rotation" in msg or "parameter" in msg \
+            or "units" in msg or "scale" in msg or "converge" in msg or "consistent" in msg, msg
+        return
+    assert r is not None
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(out=_arrays(3), om=_arrays(None))
+def test_fit_centrifuge_any_array(out, om):
+    def call():
+        with __import__("warnings").catch_warnings():
+            __import__("warnings").simplefilter("ignore", ac.CentrifugeOutlierWarning)
+            f = ac.fit_centrifuge(out, om, 1.0, g=9.8, max_draws=200)
+        assert np.all(np.isfinite(f.params)) and np.all(np.isfinite(f.std))
+        return f
+
+    _clear(call, ("outputs", "omega"))
+
+
+@settings(max_examples=150, deadline=None)
+@given(az=_arrays(None), y=_arrays(2))
+def test_startup_bias_any_array(az, y):
+    def call():
+        r = ac.startup_bias(az, y, sigma=1.0)
+        assert np.all(np.isfinite(r.params)) and np.all(np.isfinite(r.covariance))
+        return r
+
+    _clear(call, ("azimuth_deg", "outputs", "sigma"))
+    _clear(lambda: ac.predict_startup_accuracy(az, sigma=1.0), ("azimuths", "sigma"))
+
+
+@settings(max_examples=100, deadline=None)
+@given(acc=_arrays(4), ph=_arrays(None))
+def test_demodulate_any_array(acc, ph):
+    def call():
+        d = ac.demodulate(acc, ph, radius_m=0.1)
+        assert np.all(np.isfinite(d.inline_E)) and np.all(np.isfinite(d.cross_E))
+        return d
+
+    _clear(call, ("accel", "phase", "samples"))
