@@ -247,34 +247,8 @@ class CentrifugeFitCore:
     """Result of one centrifuge fit; `accelcal.CentrifugeFit` subclasses it. Arrays are
     read-only; pickles."""
 
-    def __new__(
-        cls,
-        params: NDArray[np.float64],
-        names: list[str],
-        covariance: NDArray[np.float64],
-        std: NDArray[np.float64],
-        residuals: NDArray[np.float64],
-        outliers: NDArray[np.int64],
-        residual_rms: float,
-        screen_sigma: float,
-        studentized: NDArray[np.float64],
-        threshold: float,
-        residual_std: NDArray[np.float64],
-        draws: int,
-        singular_values: NDArray[np.float64],
-        condition_number: float,
-        iterations: int,
-        converged: bool,
-        taylor_coefficients: NDArray[np.float64] | None,
-        method: str,
-        radius: float,
-        g: float,
-        fit_k3: bool,
-        fit_misalignment: bool,
-        lever_model: str | None,
-        noise_known: bool,
-        labels: list[str],
-    ) -> Self: ...
+    def __new__(cls, *args: Any) -> Self:
+        """``(fit)``: the same result, arrays shared; ``(*fields)``: rebuilt (pickling)."""
     def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
     @property
     def params(self) -> NDArray[np.float64]: ...

@@ -541,7 +541,7 @@ def fit_centrifuge(
         out, om, r, gg, method, bool(k3), bool(misalignment), lever_arm, sa, sg,
         bool(robust), k_out, 1e-9, draws, sd, False, lab,
     )
-    res = CentrifugeFit(*fit.__reduce__()[1])
+    res = CentrifugeFit(fit)  # the same result as the Python type (arrays shared)
     if len(res.outliers):
         warnings.warn(res.excluded_text(), CentrifugeOutlierWarning, stacklevel=2)
     return res

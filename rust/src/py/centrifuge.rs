@@ -132,39 +132,76 @@ impl From<(CoreFit, Settings)> for PyCentrifugeFit {
     }
 }
 
+impl PyCentrifugeFit {
+    /// The same result, sharing every (read-only) array.
+    fn share(&self, py: Python<'_>) -> Self {
+        PyCentrifugeFit {
+            params: self.params.clone_ref(py),
+            names: self.names.clone(),
+            covariance: self.covariance.clone_ref(py),
+            std: self.std.clone_ref(py),
+            residuals: self.residuals.clone_ref(py),
+            outliers: self.outliers.clone_ref(py),
+            residual_rms: self.residual_rms,
+            screen_sigma: self.screen_sigma,
+            studentized: self.studentized.clone_ref(py),
+            threshold: self.threshold,
+            residual_std: self.residual_std.clone_ref(py),
+            draws: self.draws,
+            singular_values: self.singular_values.clone_ref(py),
+            condition_number: self.condition_number,
+            iterations: self.iterations,
+            converged: self.converged,
+            taylor_coefficients: self.taylor_coefficients.as_ref().map(|a| a.clone_ref(py)),
+            method: self.method.clone(),
+            radius: self.radius,
+            g: self.g,
+            fit_k3: self.fit_k3,
+            fit_misalignment: self.fit_misalignment,
+            lever_model: self.lever_model.clone(),
+            noise_known: self.noise_known,
+            labels: self.labels.clone(),
+        }
+    }
+}
+
 #[pymethods]
 impl PyCentrifugeFit {
-    /// Rebuild a fit from its fields in declaration order (what pickling uses).
+    /// `CentrifugeFitCore(fit)`: the same result (arrays shared, not copied), for a Python
+    /// subclass to wrap the core's result; `CentrifugeFitCore(*fields)`: rebuilt from its fields
+    /// in declaration order (what pickling uses).
     #[new]
-    #[pyo3(signature = (params, names, covariance, std, residuals, outliers, residual_rms, screen_sigma, studentized, threshold, residual_std, draws, singular_values, condition_number, iterations, converged, taylor_coefficients, method, radius, g, fit_k3, fit_misalignment, lever_model, noise_known, labels))]
-    #[allow(clippy::too_many_arguments)]
-    fn new(
-        params: PyReadonlyArray1<'_, f64>,
-        names: Vec<String>,
-        covariance: PyReadonlyArray2<'_, f64>,
-        std: PyReadonlyArray1<'_, f64>,
-        residuals: PyReadonlyArray1<'_, f64>,
-        outliers: PyReadonlyArray1<'_, i64>,
-        residual_rms: f64,
-        screen_sigma: f64,
-        studentized: PyReadonlyArray1<'_, f64>,
-        threshold: f64,
-        residual_std: PyReadonlyArray1<'_, f64>,
-        draws: usize,
-        singular_values: PyReadonlyArray1<'_, f64>,
-        condition_number: f64,
-        iterations: usize,
-        converged: bool,
-        taylor_coefficients: Option<PyReadonlyArray1<'_, f64>>,
-        method: String,
-        radius: f64,
-        g: f64,
-        fit_k3: bool,
-        fit_misalignment: bool,
-        lever_model: Option<String>,
-        noise_known: bool,
-        labels: Vec<String>,
-    ) -> PyResult<Self> {
+    #[pyo3(signature = (*args))]
+    fn new(args: &Bound<'_, PyTuple>) -> PyResult<Self> {
+        let py = args.py();
+        if args.len() == 1 {
+            let a = args.get_item(0)?;
+            let f = a.cast::<PyCentrifugeFit>().map_err(|_| {
+                CalibrationError::new_err("CentrifugeFit(fit) takes a centrifuge fit result")
+            })?;
+            return Ok(f.get().share(py));
+        }
+        if args.len() != 25 {
+            return Err(CalibrationError::new_err(format!(
+                "CentrifugeFit takes a fit result or its 25 fields; got {} arguments",
+                args.len()
+            )));
+        }
+        macro_rules! arg {
+            ($i:expr) => {
+                args.get_item($i)?.extract()?
+            };
+        }
+        let params: PyReadonlyArray1<'_, f64> = arg!(0);
+        let names: Vec<String> = arg!(1);
+        let covariance: PyReadonlyArray2<'_, f64> = arg!(2);
+        let std: PyReadonlyArray1<'_, f64> = arg!(3);
+        let residuals: PyReadonlyArray1<'_, f64> = arg!(4);
+        let outliers: PyReadonlyArray1<'_, i64> = arg!(5);
+        let studentized: PyReadonlyArray1<'_, f64> = arg!(8);
+        let residual_std: PyReadonlyArray1<'_, f64> = arg!(10);
+        let singular_values: PyReadonlyArray1<'_, f64> = arg!(12);
+        let taylor: Option<PyReadonlyArray1<'_, f64>> = arg!(16);
         let p = params.len();
         let k = residuals.len();
         if names.len() != p
@@ -184,25 +221,25 @@ impl PyCentrifugeFit {
             std: frozen_copy1(&std),
             residuals: frozen_copy1(&residuals),
             outliers: frozen_copy1(&outliers),
-            residual_rms,
-            screen_sigma,
+            residual_rms: arg!(6),
+            screen_sigma: arg!(7),
             studentized: frozen_copy1(&studentized),
-            threshold,
+            threshold: arg!(9),
             residual_std: frozen_copy1(&residual_std),
-            draws,
+            draws: arg!(11),
             singular_values: frozen_copy1(&singular_values),
-            condition_number,
-            iterations,
-            converged,
-            taylor_coefficients: taylor_coefficients.as_ref().map(frozen_copy1),
-            method,
-            radius,
-            g,
-            fit_k3,
-            fit_misalignment,
-            lever_model,
-            noise_known,
-            labels,
+            condition_number: arg!(13),
+            iterations: arg!(14),
+            converged: arg!(15),
+            taylor_coefficients: taylor.as_ref().map(frozen_copy1),
+            method: arg!(17),
+            radius: arg!(18),
+            g: arg!(19),
+            fit_k3: arg!(20),
+            fit_misalignment: arg!(21),
+            lever_model: arg!(22),
+            noise_known: arg!(23),
+            labels: arg!(24),
         })
     }
 
