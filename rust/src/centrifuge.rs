@@ -1515,6 +1515,45 @@ fn noise_weights(data: &CentrifugeData<'_>, rc: &mut [RowConst], model: &ModelOp
     }
 }
 
+/// Standard deviation (g) of each row's norm residual from the per-axis output noise
+/// `data.sigma`, propagated at the parameters `p` (first order, as the fit weighs the rows);
+/// for callers that test residuals against the noise (e.g. the gap diagnosis). Errors when
+/// `sigma` is missing or a row cannot be inverted at `p`.
+pub fn residual_std(
+    data: &CentrifugeData<'_>,
+    model: &ModelOptions,
+    p: &[f64],
+) -> Result<Vec<f64>> {
+    validate(data, model)?;
+    if data.sigma.is_none() {
+        return invalid("residual_std needs the per-axis output noise (sigma, g)");
+    }
+    if p.len() != model.n_params() {
+        return invalid(format!(
+            "{} parameters given, the model has {}",
+            p.len(),
+            model.n_params()
+        ));
+    }
+    let mut rc = row_consts(data);
+    for c in rc.iter_mut() {
+        c.w = f64::NAN;
+    }
+    noise_weights(data, &mut rc, model, p);
+    rc.iter()
+        .enumerate()
+        .map(|(k, c)| {
+            if c.w.is_finite() {
+                Ok(1.0 / c.w)
+            } else {
+                invalid(format!(
+                    "row {k} lies outside the invertible range at these parameters"
+                ))
+            }
+        })
+        .collect()
+}
+
 /// Parameters at which the noise weights are first evaluated when no start exists: a unit
 /// triad (only the direction of `dr/dN` matters much, and it is close to that of `N`).
 fn nominal_params(model: &ModelOptions) -> Vec<f64> {
@@ -2559,6 +2598,24 @@ mod tests {
                 v += (sig[k][j] * (ru - rd) / (2.0 * h)).powi(2);
             }
             assert!((1.0 / rc[k].w - v.sqrt()).abs() < 1e-6 * v.sqrt());
+        }
+    }
+
+    #[test]
+    fn residual_std_is_the_inverse_noise_weight() {
+        let (o, w) = noisy(1e-6);
+        let sig = vec![[2e-6; 3]; o.len()];
+        let mut d = data(&o, &w);
+        assert!(residual_std(&d, &ModelOptions::default(), &[S, B, D].concat()).is_err());
+        d.sigma = Some(&sig);
+        let p: Vec<f64> = [S, B, D].concat();
+        let sd = residual_std(&d, &ModelOptions::default(), &p).unwrap();
+        let mut rc = row_consts(&d);
+        noise_weights(&d, &mut rc, &ModelOptions::default(), &p);
+        for (s, c) in sd.iter().zip(&rc) {
+            assert_eq!(*s, 1.0 / c.w);
+            // |dr/dN| = |f / S| / sqrt(T) ~ 1/S for these scale factors.
+            assert!(*s > 2e-6 / 1.3 * 0.9 && *s < 2e-6 / 1.2 * 1.1, "{s}");
         }
     }
 
