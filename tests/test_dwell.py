@@ -738,3 +738,79 @@ def test_cli_last_resort_catches_a_panic(monkeypatch: pytest.MonkeyPatch, tmp_pa
     assert r.exit_code == 3
     assert r.output.strip().count("\n") == 0, r.output
     assert "internal error: PanicException: range end index" in r.output
+
+
+# ---- threads ----------------------------------------------------------------------------------
+def _run_py(code: str, timeout: float, **env: str) -> str:
+    import os
+    import subprocess
+    import sys
+
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout,
+        env={**os.environ, **env},
+    )
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def test_concurrent_push_position_finish_do_not_deadlock() -> None:
+    """The reproducer of the GIL / mutex lock-order inversion, in a subprocess with a timeout
+    (a deadlock fails the test instead of hanging the suite)."""
+    code = """
+import threading, numpy as np, accelcal as ac
+from accelcal import CalibrationError
+for acc in (ac.DwellAccumulator(fs=5000.0), ac.DwellAccumulator([[0, 10], [4000000, 4100000]])):
+    x = np.random.default_rng(0).normal(size=(400_000, 3))
+    t = threading.Thread(target=lambda: [acc.push(x) for _ in range(20)])
+    t.start()
+    reads = 0
+    while t.is_alive():
+        acc.position
+        reads += 1
+        if reads % 200 == 0:
+            try:
+                acc.finish()
+            except CalibrationError:
+                pass
+    t.join()
+    assert acc.position == 20 * 400_000, acc.position
+    assert len(acc.finish()) >= 1
+    print("ok", reads)
+"""
+    out = _run_py(code, timeout=300)
+    assert out.count("ok") == 2
+
+
+def test_entry_points_identical_from_many_threads() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    x = np.round(piecewise_static(21, fs=500.0) * 3000).astype(np.int16)
+    b = np.array([[0, 1000], [1000, 2500], [3000, 4000]])
+    one_stats, one_det = dwell_stats(x, b), detect_dwells(x, 500.0)
+    with ThreadPoolExecutor(4) as ex:
+        stats = list(ex.map(lambda _: dwell_stats(x, b), range(16)))
+        dets = list(ex.map(lambda _: detect_dwells(x, 500.0), range(16)))
+    for s in stats:
+        assert_same(s, one_stats)
+    for d in dets:
+        assert_same(d, one_det)
+
+
+def test_bit_identical_with_one_and_two_rayon_threads() -> None:
+    code = """
+import hashlib, numpy as np, accelcal as ac
+rng = np.random.default_rng(3)
+x = np.cumsum(rng.normal(size=(600_000, 3)), axis=0) * 1e-3 + rng.normal(size=(600_000, 3))
+b = np.array([[i * 20_000 + 7, (i + 1) * 20_000 - 3] for i in range(30)])
+h = hashlib.sha256()
+for d in (ac.dwell_stats(x, b), ac.detect_dwells(x, 1000.0, k=1e6)):
+    for name in ("mean", "var", "count", "half_mean", "inflation", "threshold"):
+        v = getattr(d, name)
+        if v is not None:
+            h.update(np.ascontiguousarray(v).tobytes())
+print(h.hexdigest())
+"""
+    one = _run_py(code, timeout=120, RAYON_NUM_THREADS="1")
+    two = _run_py(code, timeout=120, RAYON_NUM_THREADS="2")
+    assert one == two and len(one.strip()) == 64
