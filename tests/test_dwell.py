@@ -814,3 +814,48 @@ print(h.hexdigest())
     one = _run_py(code, timeout=120, RAYON_NUM_THREADS="1")
     two = _run_py(code, timeout=120, RAYON_NUM_THREADS="2")
     assert one == two and len(one.strip()) == 64
+
+
+# ---- streaming = one-shot, property-based, on a simulated stream and on xsens -----------------
+@st.composite
+def chunkings(draw: st.DrawFn, n: int, boundaries: list[int]) -> list[int]:
+    """Cut positions: at or next to dwell boundaries, anywhere, and runs of 1-sample chunks."""
+    cuts: set[int] = set()
+    if boundaries:
+        for b in draw(st.lists(st.sampled_from(boundaries), max_size=12)):
+            cuts.add(b + draw(st.integers(-2, 2)))
+    cuts |= set(draw(st.lists(st.integers(1, n - 1), max_size=30)))
+    for _ in range(draw(st.integers(0, 2))):
+        a = draw(st.integers(0, n - 1))
+        cuts |= set(range(a, min(n, a + draw(st.integers(1, 300)))))
+    return sorted(c for c in cuts if 0 < c < n)
+
+
+def _check_stream(x: np.ndarray, fs: float, t: np.ndarray, data: st.DataObject) -> None:
+    one = detect_dwells(x, fs, t=t)
+    assert one.start is not None and one.stop is not None
+    edges = sorted({int(v) for v in np.concatenate([one.start, one.stop])})
+    cuts = data.draw(chunkings(x.shape[0], edges))
+    acc = DwellAccumulator(fs=fs)
+    push_in_chunks(acc, cuts, x, t=t)
+    assert acc.position == x.shape[0]
+    assert_same(acc.finish(), one)
+    bounds = np.column_stack([one.start, one.stop])
+    acc_b = DwellAccumulator(bounds, fs=fs)
+    push_in_chunks(acc_b, cuts, x, t=t)
+    assert_same(acc_b.finish(), dwell_stats(x, bounds, t=t, fs=fs))
+
+
+@HYP
+@given(seed=st.integers(0, 10_000), data=st.data())
+def test_streaming_equals_one_shot_simulated(seed: int, data: st.DataObject) -> None:
+    x = piecewise_static(seed)
+    _check_stream(x, 100.0, np.arange(x.shape[0]) / 100.0, data)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_streaming_equals_one_shot_xsens(data: st.DataObject) -> None:
+    s = read_stream(XSENS())
+    assert s.fs is not None and s.t is not None
+    _check_stream(np.asarray(s.samples), s.fs, np.asarray(s.t, dtype=np.float64), data)
