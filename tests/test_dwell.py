@@ -649,7 +649,7 @@ def test_nan_time_or_temperature_is_refused(channel_name: str, bad: float) -> No
             call()
     acc = DwellAccumulator(fs=100.0)
     acc.push(GOOD[:1000], **{channel_name: ch[:1000]})
-    with clear_error(channel_name, "row 500"):
+    with clear_error(channel_name, "row 500", "still holds the 1000 samples", "stays usable"):
         acc.push(GOOD[1000:], **{channel_name: ch[1000:]})
     # The failed push kept nothing: the accumulator goes on as if it never happened.
     assert acc.position == 1000

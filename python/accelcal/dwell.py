@@ -623,13 +623,23 @@ class DwellAccumulator:
         t: ArrayLike | None = None,
         temperature: ArrayLike | None = None,
     ) -> None:
-        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature)."""
-        a = real_array(chunk, "chunk")
-        if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
-            return
-        c = samples_array(a, "chunk")
-        m = c.shape[0]
-        self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature).
+
+        On error nothing of the chunk is kept: the accumulator holds what it held before the
+        call, stays usable, and the message says so.
+        """
+        try:
+            a = real_array(chunk, "chunk")
+            if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
+                return
+            c = samples_array(a, "chunk")
+            m = c.shape[0]
+            self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+        except CalibrationError as e:
+            raise type(e)(
+                f"{e} (nothing of this chunk was kept: the accumulator still holds the "
+                f"{self.position} samples pushed before and stays usable)"
+            ) from None
 
     def finish(self) -> DwellSet:
         """The dwell table of everything pushed so far (the accumulator stays usable)."""
