@@ -579,7 +579,7 @@ SETTINGS_BAD: list[tuple[str, Any]] = [
 @pytest.mark.parametrize(("name", "value"), SETTINGS_BAD)
 def test_bad_detector_settings_name_value_and_range(name: str, value: Any) -> None:
     # noise_quantile = -1 and 4e38 are out of range; 0 <= min_dwell_s/trim_s allow neither.
-    with clear_error(name, "must be a finite number in"):
+    with clear_error(name, "must be a number in"):
         detect_dwells(GOOD, 100.0, **{name: value})
     with clear_error(name):
         DwellAccumulator(fs=100.0, **{name: value})
@@ -596,7 +596,7 @@ def test_bad_fs_values_name_and_range(fs: Any) -> None:
 def test_huge_window_is_an_error_not_a_panic() -> None:
     # Once a PanicException: window_blocks() saturated and `blocks.len() < w + 1` wrapped.
     for w in (4e38, 3.7e17, 1e18, 1e7):
-        with clear_error("window_s", "must be a finite number in (0, 1e+06]"):
+        with clear_error("window_s", "must be a number in (0, 1e+06]"):
             detect_dwells(GOOD, 100.0, window_s=w)
     with clear_error("fs"):
         detect_dwells(GOOD, 4e38)
