@@ -8,12 +8,45 @@ from typing_extensions import Self, disjoint_base
 class CalibrationError(ValueError): ...
 class DegenerateDataError(CalibrationError): ...
 
+@final
+class DwellTableRaw:
+    """A finished dwell table (see ``accelcal.DwellSet`` for each field)."""
+
+    @property
+    def start(self) -> NDArray[np.int64]: ...
+    @property
+    def stop(self) -> NDArray[np.int64]: ...
+    @property
+    def count(self) -> NDArray[np.int64]: ...
+    @property
+    def mean(self) -> NDArray[np.float64]: ...
+    @property
+    def var(self) -> NDArray[np.float64]: ...
+    @property
+    def half_mean(self) -> NDArray[np.float64]: ...
+    @property
+    def inflation(self) -> NDArray[np.float64]: ...
+    @property
+    def lsb(self) -> NDArray[np.float64] | None: ...
+    @property
+    def dropped(self) -> int: ...
+    @property
+    def t(self) -> NDArray[np.float64] | None: ...
+    @property
+    def temperature(self) -> NDArray[np.float64] | None: ...
+    @property
+    def noise_var(self) -> NDArray[np.float64] | None: ...
+    @property
+    def threshold(self) -> NDArray[np.float64] | None: ...
+
 def dwell_stats_raw(
     samples: NDArray[Any],
     bounds: NDArray[np.int64],
     t: NDArray[np.float64] | None = None,
     temperature: NDArray[np.float64] | None = None,
-) -> dict[str, Any]: ...
+) -> DwellTableRaw:
+    """Per-dwell statistics over explicit ``[start, stop)`` bounds."""
+
 def detect_dwells_raw(
     samples: NDArray[Any],
     fs: float,
@@ -26,10 +59,13 @@ def detect_dwells_raw(
     noise_var: list[float] | None = None,
     t: NDArray[np.float64] | None = None,
     temperature: NDArray[np.float64] | None = None,
-) -> dict[str, Any]: ...
+) -> DwellTableRaw:
+    """Automatic static-interval detection plus per-dwell statistics."""
 
 @final
 class RawDwellAccumulator:
+    """Streaming accumulator (bounds or detector mode); safe to share between threads."""
+
     def __new__(
         cls,
         bounds: NDArray[np.int64] | None = None,
@@ -47,10 +83,24 @@ class RawDwellAccumulator:
         chunk: NDArray[Any],
         t: NDArray[np.float64] | None = None,
         temperature: NDArray[np.float64] | None = None,
-    ) -> None: ...
+    ) -> None:
+        """Push a chunk; on error nothing of it is kept."""
+
     @property
-    def position(self) -> int: ...
-    def finish(self) -> dict[str, Any]: ...
+    def position(self) -> int:
+        """Samples pushed so far."""
+
+    def finish(self) -> DwellTableRaw:
+        """The dwell table of everything pushed so far."""
+
+    def to_state(self) -> bytes:
+        """The state as versioned bytes."""
+
+    @staticmethod
+    def from_state(state: bytes) -> RawDwellAccumulator:
+        """Rebuild an accumulator from ``to_state`` bytes."""
+
+    def __reduce__(self) -> tuple[Any, ...]: ...
 
 # --- gradiometer start-up bias and demodulation (rust/src/py/gradiometer.rs) ---
 @disjoint_base
@@ -413,6 +463,7 @@ __all__ = [
     "centrifuge_correct_raw",
     "centrifuge_fit_raw",
     "centrifuge_unit_check_raw",
+    "DwellTableRaw",
     "detect_dwells_raw",
     "dwell_stats_raw",
     "RawDwellAccumulator",

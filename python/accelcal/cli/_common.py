@@ -43,11 +43,17 @@ def friendly(fn: F) -> F:
             _fail(f"file not found: {e.filename or e}")
         except (OSError, ValueError) as e:
             _fail(str(e))
-        except Exception as e:  # an internal bug: still one line, the traceback on request
+        except (KeyboardInterrupt, SystemExit, GeneratorExit):
+            raise
+        except BaseException as e:  # noqa: BLE001 - the last resort (a Rust panic surfaces as
+            # pyo3's PanicException, a BaseException): one line, the traceback on request.
             if os.environ.get("ACCELCAL_DEBUG"):
                 raise
+            first = (str(e).strip().splitlines() or [""])[0]
+            if len(first) > 200:
+                first = first[:197] + "..."
             click.echo(
-                f"accelcal: internal error: {type(e).__name__}: {e} "
+                f"accelcal: internal error: {type(e).__name__}: {first} "
                 "(set ACCELCAL_DEBUG=1 for the traceback and please report it)",
                 err=True,
             )

@@ -40,7 +40,7 @@ mod _core {
         centrifuge_correct_raw, centrifuge_fit_raw, centrifuge_unit_check_raw, PyCentrifugeFit,
     };
     #[pymodule_export]
-    use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
+    use super::dwell::{detect_dwells_raw, dwell_stats_raw, DwellTableRaw, RawDwellAccumulator};
     #[pymodule_export]
     use super::gap::{gap_chi2_sf, gap_diagnose_raw, gap_f_sf, gap_model_residuals_raw};
     #[pymodule_export]
