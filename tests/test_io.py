@@ -133,8 +133,8 @@ def test_three_columns_no_header_is_xyz(tmp_path: Path) -> None:
         ("", ["empty"]),
         ("\n\n", ["no numeric data"]),
         ("a,b,c\n", ["no numeric data"]),
-        ("ax,ay,az\n1,2,3\n4,x,6\n", ["non-numeric"]),
-        ("ax,ay,az\n1,2,3\n4,5\n", ["ragged"]),
+        ("ax,ay,az\n1,2,3\n4,x,6\n", ["line 3", 'column "ay"', "not a number"]),
+        ("ax,ay,az\n1,2,3\n4,5\n", ["line 3", "2 fields where the data rows have 3"]),
         ("3,1,2,3,4\n4,5,6,7,8\n", ["columns="]),
         ("5,1,2,3\n4,5,6,7\n", ["columns="]),  # 4 columns, first not increasing
         ("gx,gy,gz\n1,2,3\n", ["no accelerometer columns"]),

@@ -23,7 +23,7 @@ fn layout_from(
     ncols: usize,
     groups: Vec<Vec<(usize, f64, bool)>>,
     decimal_comma: bool,
-    comment: Option<&str>,
+    comment: &str,
     names: Option<Vec<String>>,
     first_line: u64,
     t0: Option<(i64, i64)>,
@@ -40,7 +40,12 @@ fn layout_from(
         None => Delimiter::Whitespace,
         Some(d) => Delimiter::Byte(one_byte(d, "delimiter")?),
     };
-    let comment = comment.map(|c| one_byte(c, "comment")).transpose()?;
+    // An empty string: no comment lines.
+    let comment = if comment.is_empty() {
+        None
+    } else {
+        Some(one_byte(comment, "comment")?)
+    };
     let groups = groups
         .into_iter()
         .map(|g| {
@@ -151,7 +156,7 @@ pub struct TextBlocks {
 #[pymethods]
 impl TextBlocks {
     #[new]
-    #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment=Some("#"), names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304))]
+    #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         path: Option<&str>,
@@ -160,7 +165,7 @@ impl TextBlocks {
         groups: Vec<Vec<(usize, f64, bool)>>,
         delimiter: Option<&str>,
         decimal_comma: bool,
-        comment: Option<&str>,
+        comment: &str,
         names: Option<Vec<String>>,
         first_line: u64,
         t0: Option<(i64, i64)>,
@@ -217,7 +222,7 @@ impl TextBlocks {
 /// ``progress(rows, bytes)`` is called after every block (it may raise to stop); Ctrl-C stops
 /// the read. Returns ``(arrays, rows, bytes, repeats)``.
 #[pyfunction]
-#[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment=Some("#"), names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None))]
+#[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn text_read_all<'py>(
     py: Python<'py>,
@@ -227,7 +232,7 @@ pub fn text_read_all<'py>(
     groups: Vec<Vec<(usize, f64, bool)>>,
     delimiter: Option<&str>,
     decimal_comma: bool,
-    comment: Option<&str>,
+    comment: &str,
     names: Option<Vec<String>>,
     first_line: u64,
     t0: Option<(i64, i64)>,
@@ -288,7 +293,7 @@ pub fn text_read_all<'py>(
 ///
 /// Returns ``(arrays, rows, bytes, lines)``.
 #[pyfunction]
-#[pyo3(signature = (data, ncols, groups, *, delimiter=None, decimal_comma=false, comment=Some("#"), names=None, first_line=1, t0=None, max_rows=None))]
+#[pyo3(signature = (data, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, max_rows=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn text_parse_head<'py>(
     py: Python<'py>,
@@ -297,7 +302,7 @@ pub fn text_parse_head<'py>(
     groups: Vec<Vec<(usize, f64, bool)>>,
     delimiter: Option<&str>,
     decimal_comma: bool,
-    comment: Option<&str>,
+    comment: &str,
     names: Option<Vec<String>>,
     first_line: u64,
     t0: Option<(i64, i64)>,
