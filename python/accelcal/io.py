@@ -51,8 +51,8 @@ __all__ = ["Stream", "iter_stream", "read_stream", "stream_dwells"]
 
 #: Rows sniffed at the start of a text file (layout, time-column check, fs estimate).
 _SNIFF_ROWS = 10_000
-#: Most lines accepted before the first data row.
-_MAX_PREAMBLE = 1_000
+#: Most lines accepted before the first data row (the sniffed head ends before that anyway).
+_MAX_PREAMBLE = 100_000
 #: Bytes read to decide the layout of a text file.
 _HEAD_BYTES = 1 << 21
 #: Fraction of repeated rows above which the sensor is taken to be read faster than it updates.
@@ -854,19 +854,13 @@ class _ArraySource:
     def chunk(self, a: int, b: int) -> tuple[NDArray[Any], Any, Any]:
         lay = self.lay
         if isinstance(self.table, _Columns):
-            want = lay.acc + [j for j in (lay.time, lay.temp) if j is not None]
-            block = self.table.rows(a, b, want)
-            samples = block[:, :3]
-            if self.table.dtype.kind in "iuf":
-                samples = samples.astype(self.table.dtype, copy=False)
-            k = 3
+            cols = self.table.cols
+            samples = np.ascontiguousarray(self.table.rows(a, b, lay.acc))
             t = temp = None
             if lay.time is not None:
-                t = np.asarray(block[:, k], dtype=np.float64) * lay.time_scale
-                k += 1
+                t = np.asarray(cols[lay.time][a:b], dtype=np.float64) * lay.time_scale
             if lay.temp is not None:
-                temp = np.asarray(block[:, k], dtype=np.float64)
-            samples = np.ascontiguousarray(samples)
+                temp = np.asarray(cols[lay.temp][a:b], dtype=np.float64)
         else:
             raw = np.asarray(self.table[a:b])
             samples = raw if lay.acc == [0, 1, 2] and raw.shape[1] == 3 else raw[:, lay.acc]
@@ -964,7 +958,12 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
             raise CalibrationError(
                 "reading a DataFrame-interchange object needs pandas: pip install pandas"
             ) from None
-        df = pd.api.interchange.from_dataframe(obj)
+        import warnings
+
+        with warnings.catch_warnings():
+            # pandas 3 deprecates the protocol but still reads it.
+            warnings.simplefilter("ignore")
+            df = pd.api.interchange.from_dataframe(obj)
     cols: dict[str, Any] = {}
     for name in df.columns:
         c = df[name]
