@@ -54,16 +54,21 @@ def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
     calibrated = tmp_path / "cal.npy"
     code, out = run("apply", str(cal), str(XSENS()), "-o", str(calibrated), "--quiet")
     assert code == 0, out
-    a = np.load(calibrated)
-    assert a.shape == (51175, 3)
+    ta = np.load(calibrated)
+    assert ta.shape == (51175, 4)  # t_s, ax, ay, az: the time column is kept
+    np.testing.assert_array_equal(ta[:, 0], np.loadtxt(XSENS())[:, 0])
+    a = ta[:, 1:]
     norm = np.linalg.norm(a[:4000], axis=1)  # the initial 40 s of rest
     assert abs(np.mean(norm) - 9.81744) < 5e-3
-    # CSV output carries time and the same numbers.
+    # CSV output carries time and the same numbers (shortest round-trip text: identical).
     csv = tmp_path / "cal.csv"
     code, _ = run("apply", str(cal), str(XSENS()), "-o", str(csv), "--quiet")
     assert code == 0
-    tab = np.loadtxt(csv, delimiter=",", skiprows=2)
-    np.testing.assert_allclose(tab[:, 1:], a, rtol=1e-8, atol=1e-8)
+    lines = csv.read_text().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    assert lines[len(head)] == "t_s,ax,ay,az" and "# units: m/s^2" in head
+    tab = np.loadtxt(csv, delimiter=",", skiprows=len(head) + 1)
+    np.testing.assert_array_equal(tab, ta)
 
 
 def test_calibrate_static_plot_and_readable_output(tmp_path: Path) -> None:
