@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import sys
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -385,6 +386,13 @@ def _open_bytes(path: str) -> Any:
 
 def _read_head(path: str) -> _TextSource:
     if path == "-":
+        try:
+            real = sys.stdin.fileno() == 0
+        except (AttributeError, ValueError, OSError):
+            real = False
+        if not real:  # a replaced sys.stdin (an embedding program, a test runner)
+            data = sys.stdin.buffer.read() if hasattr(sys.stdin, "buffer") else b""
+            return _TextSource(path, data, True, None)
         parts: list[bytes] = []
         n = 0
         eof = False
@@ -627,14 +635,14 @@ def _decide(
         fsv, src = None, None
     if fsv is not None and src != "time column" and fs_time is not None:
         if abs(fs_time / fsv - 1.0) > 0.01:
-            said = "fs" if src == "given" else "the file's metadata"
+            said = "fs= " if src == "given" else "the file's metadata says "
             notes.append(
-                f"the time column's median interval gives {fs_time:.6g} Hz but {said} says "
+                f"the time column's median interval gives {fs_time:.6g} Hz but {said}"
                 f"{fsv:.6g} Hz; {fsv:.6g} Hz is used (the detected dwells depend on it)"
             )
     if fsv is None:
         notes.append(
-            "the sample rate is not in the file (no rate metadata or time column); give fs "
+            "the sample rate is not in the file (no rate metadata or time column); give fs= "
             "(Hz): dwell detection and sample times need it"
         )
     return _Layout(
