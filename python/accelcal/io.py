@@ -415,13 +415,12 @@ def _read_head(path: str) -> _TextSource:
     return _TextSource(path, head, len(head) < _HEAD_BYTES or len(head) >= size, size)
 
 
-def _head_lines(src: _TextSource) -> list[tuple[int, str]]:
+def _head_lines(src: _TextSource) -> Iterator[tuple[int, str]]:
     """(byte offset, text) of each complete line of the head (a partial last line dropped)."""
     data = src.head
     if b"\x00" in data[:65536]:
         raise CalibrationError(f"{src.path}: not a text file (it contains NUL bytes)")
     start = 3 if data.startswith(b"\xef\xbb\xbf") else 0
-    out: list[tuple[int, str]] = []
     pos = start
     while pos < len(data):
         nl = data.find(b"\n", pos)
@@ -434,19 +433,19 @@ def _head_lines(src: _TextSource) -> list[tuple[int, str]]:
             text = raw.decode("utf-8")
         except UnicodeDecodeError:
             text = raw.decode("latin-1")  # a header in a legacy encoding; data rows are ASCII
-        out.append((pos, text.rstrip("\r")))
+        yield pos, text.rstrip("\r")
         pos = nl + 1
-    return out
 
 
 def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -> _Layout:
     path = src.path
-    lines = _head_lines(src)
+    lines: list[tuple[int, str]] = []  # the lines up to the first data row
     meta: dict[str, str] = {}
     header: str | None = None
     first: int | None = None
     fmt: _RowFormat | None = None
-    for i, (_, line) in enumerate(lines):
+    for i, (pos, line) in enumerate(_head_lines(src)):
+        lines.append((pos, line))
         s = line.strip()
         if not s:
             continue
@@ -489,8 +488,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         )
     delim, ncols = fmt.delim, len(fmt.fields)
     offset, first_line = lines[first][0], first + 1
-    data_lines = [ln for _, ln in lines[first:] if ln.strip()][:_SNIFF_ROWS]
-    decimal_comma = delim != "," and any("," in ln for ln in data_lines[:1000])
+    decimal_comma = delim != "," and b"," in src.head[offset:]
     iso = {j for j, k in enumerate(fmt.kinds) if k == "iso"}
     t0 = t0_text = None
     if iso:
