@@ -66,16 +66,29 @@ def generate(path: Path, rows: int, seed: int = 0) -> None:
             f.write(_core.format_rows(np.round(x, 6), t))
 
 
-def rss_child(args: list[str]) -> tuple[float, float, int, str]:
-    """Run a child process; (wall s, peak RSS MB, exit code, stderr tail)."""
+#: Prepended to every child: report the peak resident memory of the child's own image at
+#: exit (``VmHWM``; ``ru_maxrss`` would include this big parent's memory copied at fork).
+_HWM = (
+    "import atexit, os\n"
+    "def _hwm():\n"
+    "    for ln in open('/proc/self/status'):\n"
+    "        if ln.startswith('VmHWM'):\n"
+    "            os.write(2, ('\\nVmHWM_kB ' + ln.split()[1] + '\\n').encode())\n"
+    "atexit.register(_hwm)\n"
+)
+
+
+def rss_child(code: str, args: list[str]) -> tuple[float, float, int, str]:
+    """Run ``code`` in a child Python with ``sys.argv[1:] = args``; (wall s, peak RSS MB,
+    exit code, stderr tail)."""
     t0 = time.perf_counter()
-    p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    assert p.stderr is not None
-    err = p.stderr.read()
-    _, status, ru = os.wait4(p.pid, 0)
-    p.returncode = os.waitstatus_to_exitcode(status)
+    p = subprocess.run([sys.executable, "-c", _HWM + code, *args], stdout=subprocess.DEVNULL,
+                       stderr=subprocess.PIPE, check=False)
     dt = time.perf_counter() - t0
-    return dt, ru.ru_maxrss / 1024.0, p.returncode, err.decode(errors="replace")[-400:]
+    err = p.stderr.decode(errors="replace")
+    hwm = [ln.split()[1] for ln in err.splitlines() if ln.startswith("VmHWM_kB ")]
+    mb = float(hwm[-1]) / 1024.0 if hwm else float("nan")
+    return dt, mb, p.returncode, err[-400:]
 
 
 def best(fn: Any, repeat: int) -> tuple[float, Any]:
@@ -122,23 +135,23 @@ def main() -> None:
     del st, ref
     t_dw, d = best(lambda: stream_dwells(path), ns.repeat)
     res.update(pandas_s=t_pd, read_stream_s=t_rs, stream_dwells_s=t_dw, n_dwells=len(d))
-    exe = [sys.executable, "-c", "import sys; from accelcal.cli import main; main()"]
+    cli = "import sys; from accelcal.cli import main; main(sys.argv[1:])"
     cal = folder / "cal.json"
     children = {
-        "pandas.read_csv (child, for memory)": [sys.executable, "-c",
-                                                f"import pandas; pandas.read_csv({str(path)!r})"],
-        "calibrate static": exe + ["calibrate", "static", str(path), "--g", str(G), "--quiet",
-                                   "-o", str(cal)],
-        "dwells": exe + ["dwells", str(path), "--quiet"],
-        "diagnose": exe + ["diagnose", str(path), "--g", str(G), "--quiet"],
-        "apply -o csv": exe + ["apply", str(cal), str(path), "-o", str(folder / "out.csv"),
-                               "--quiet"],
-        "apply -o npy": exe + ["apply", str(cal), str(path), "-o", str(folder / "out.npy"),
-                               "--quiet"],
+        "pandas.read_csv (child, for memory)": (
+            "import sys, pandas; pandas.read_csv(sys.argv[1], engine='c')", [str(path)]),
+        "calibrate static": (cli, ["calibrate", "static", str(path), "--g", str(G), "--quiet",
+                                   "-o", str(cal)]),
+        "dwells": (cli, ["dwells", str(path), "--quiet"]),
+        "diagnose": (cli, ["diagnose", str(path), "--g", str(G), "--quiet"]),
+        "apply -o csv": (cli, ["apply", str(cal), str(path), "-o", str(folder / "out.csv"),
+                               "--quiet"]),
+        "apply -o npy": (cli, ["apply", str(cal), str(path), "-o", str(folder / "out.npy"),
+                               "--quiet"]),
     }
     res["children"] = {}
-    for name, args in children.items():
-        dt, mb, code, err = rss_child(args)
+    for name, (code_, args) in children.items():
+        dt, mb, code, err = rss_child(code_, args)
         res["children"][name] = {"s": dt, "peak_rss_mb": mb, "exit": code}
         if code != 0:
             print(f"{name}: exit {code}: {err}", file=sys.stderr)

@@ -692,9 +692,22 @@ pub enum Next {
     Pending,
 }
 
-/// Blocks of a text source, read and parsed ahead on a background thread.
+/// What the reader thread hands over for one block: the receiving end of its parse job.
+type Job = Receiver<std::result::Result<Block, JobError>>;
+
+enum JobError {
+    /// A bad row, by its line within the block.
+    Row(RowError),
+    /// The source could not be read.
+    Read(CoreError),
+}
+
+/// Blocks of a text source, read on a background thread and parsed ahead on the rayon pool
+/// (several blocks at once), handed over in file order.
 pub struct TextStream {
-    rx: Receiver<Result<Block>>,
+    jobs: Receiver<Job>,
+    current: Option<Job>,
+    line: u64,
     stop: Arc<AtomicBool>,
     done: bool,
 }
@@ -709,17 +722,21 @@ impl TextStream {
             opts.parallel
         };
         let block_bytes = opts.block_bytes.max(1);
-        // Parsed blocks in flight: one batch being handed over while the next is parsed.
-        let (tx, rx) = sync_channel(par);
+        // Blocks in flight: `par` parse jobs queued or running, one being handed over.
+        let (tx, jobs) = sync_channel(par);
         let stop = Arc::new(AtomicBool::new(false));
         let stop2 = Arc::clone(&stop);
         let Source::Reader(reader) = source;
+        let first_line = layout.first_line;
+        let layout = Arc::new(layout);
         std::thread::Builder::new()
             .name("accelcal-text".into())
-            .spawn(move || read_loop(reader, &layout, block_bytes, par, &tx, &stop2))
+            .spawn(move || read_loop(reader, layout, block_bytes, &tx, &stop2))
             .map_err(|e| CoreError::InvalidInput(format!("cannot start the reader thread: {e}")))?;
         Ok(TextStream {
-            rx,
+            jobs,
+            current: None,
+            line: first_line,
             stop,
             done: false,
         })
@@ -730,16 +747,36 @@ impl TextStream {
         if self.done {
             return Ok(Next::Done);
         }
-        match self.rx.recv_timeout(timeout) {
-            Ok(Ok(b)) => Ok(Next::Block(b)),
+        let job = match self.current.take() {
+            Some(j) => j,
+            None => match self.jobs.recv_timeout(timeout) {
+                Ok(j) => j,
+                Err(RecvTimeoutError::Timeout) => return Ok(Next::Pending),
+                Err(RecvTimeoutError::Disconnected) => {
+                    self.done = true;
+                    return Ok(Next::Done);
+                }
+            },
+        };
+        match job.recv_timeout(timeout) {
+            Ok(Ok(b)) => {
+                self.line += b.lines;
+                Ok(Next::Block(b))
+            }
             Ok(Err(e)) => {
                 self.done = true;
-                Err(e)
+                Err(match e {
+                    JobError::Row(r) => locate(r, self.line),
+                    JobError::Read(e) => e,
+                })
             }
-            Err(RecvTimeoutError::Timeout) => Ok(Next::Pending),
+            Err(RecvTimeoutError::Timeout) => {
+                self.current = Some(job);
+                Ok(Next::Pending)
+            }
             Err(RecvTimeoutError::Disconnected) => {
                 self.done = true;
-                Ok(Next::Done)
+                invalid("the text reader stopped unexpectedly")
             }
         }
     }
@@ -762,7 +799,7 @@ impl Iterator for TextStream {
 
 impl Drop for TextStream {
     fn drop(&mut self) {
-        // The reader thread stops at its next read or send; it owns nothing of ours.
+        // The reader thread stops at its next read or hand-over; it owns nothing of ours.
         self.stop.store(true, Ordering::Relaxed);
     }
 }
@@ -784,67 +821,53 @@ fn fill(src: &mut dyn Read, buf: &mut Vec<u8>, target: usize) -> std::io::Result
 
 fn read_loop(
     mut src: Box<dyn Read + Send>,
-    layout: &TextLayout,
+    layout: Arc<TextLayout>,
     block_bytes: usize,
-    par: usize,
-    tx: &SyncSender<Result<Block>>,
+    tx: &SyncSender<Job>,
     stop: &AtomicBool,
 ) {
     let mut carry: Vec<u8> = Vec::new();
     let mut eof = false;
-    let mut line = layout.first_line;
     while !eof {
-        let mut batch: Vec<Vec<u8>> = Vec::with_capacity(par);
-        while batch.len() < par && !eof {
-            if stop.load(Ordering::Relaxed) {
-                return;
-            }
-            let mut buf = std::mem::take(&mut carry);
-            buf.reserve(block_bytes + (1 << 16));
-            let mut target = block_bytes.max(buf.len() + 1);
-            loop {
-                match fill(src.as_mut(), &mut buf, target) {
-                    Ok(true) => {
-                        eof = true;
-                        break;
-                    }
-                    Ok(false) => {}
-                    Err(e) => {
-                        let _ = tx.send(invalid(format!("cannot read the data: {e}")));
-                        return;
-                    }
+        if stop.load(Ordering::Relaxed) {
+            return;
+        }
+        let mut buf = std::mem::take(&mut carry);
+        buf.reserve(block_bytes + (1 << 16));
+        let mut target = block_bytes.max(buf.len() + 1);
+        let (jtx, jrx) = sync_channel(1);
+        loop {
+            match fill(src.as_mut(), &mut buf, target) {
+                Ok(true) => {
+                    eof = true;
+                    break;
                 }
-                match memchr::memrchr(b'\n', &buf) {
-                    Some(p) => {
-                        carry = buf[p + 1..].to_vec();
-                        buf.truncate(p + 1);
-                        break;
-                    }
-                    None => target = 2 * buf.len(), // one line longer than a block
+                Ok(false) => {}
+                Err(e) => {
+                    let msg = format!("cannot read the data: {e}");
+                    let _ = jtx.send(Err(JobError::Read(CoreError::InvalidInput(msg))));
+                    let _ = tx.send(jrx);
+                    return;
                 }
             }
-            if !buf.is_empty() {
-                batch.push(buf);
+            match memchr::memrchr(b'\n', &buf) {
+                Some(p) => {
+                    carry = buf[p + 1..].to_vec();
+                    buf.truncate(p + 1);
+                    break;
+                }
+                None => target = 2 * buf.len(), // one line longer than a block
             }
         }
-        let parsed: Vec<RowResult<Block>> = batch
-            .par_iter()
-            .map(|b| parse_block_rel(b, layout, None))
-            .collect();
-        drop(batch);
-        for r in parsed {
-            let msg = match r {
-                Ok(b) => {
-                    let lines = b.lines;
-                    if tx.send(Ok(b)).is_err() {
-                        return;
-                    }
-                    line += lines;
-                    continue;
-                }
-                Err(e) => Err(locate(e, line)),
-            };
-            let _ = tx.send(msg);
+        if buf.is_empty() {
+            break;
+        }
+        let lay = Arc::clone(&layout);
+        rayon::spawn(move || {
+            let r = parse_block_rel(&buf, &lay, None).map_err(JobError::Row);
+            let _ = jtx.send(r);
+        });
+        if tx.send(jrx).is_err() {
             return;
         }
     }
