@@ -109,9 +109,8 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="also write the results as JSON here")
     ns = ap.parse_args()
     rows = int(ns.rows)
-    import pandas as pd
-
     import accelcal
+    import pandas as pd
     from accelcal.io import read_stream, stream_dwells
 
     tmp = tempfile.TemporaryDirectory(dir=ns.dir)

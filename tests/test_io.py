@@ -520,3 +520,27 @@ def test_hdf5_separate_axis_datasets(tmp_path: Path) -> None:
     assert s.samples.dtype == np.int16 and s.fs == pytest.approx(500.0)
     got = np.concatenate([c for c, _ in iter_stream(path, chunk_rows=1234)])
     np.testing.assert_array_equal(got, x)
+
+
+def test_progress_bar_has_total_percentage_and_eta(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    x = _table(200_000, 8)
+    p = tmp_path / "bar.csv"
+    p.write_text("t,ax,ay,az,temp\n" + "\n".join(",".join(r) for r in _fmt(x)) + "\n")
+    from accelcal.io import _progress_bar, _Recording
+
+    rec = _Recording(p, None, None, None)
+    est = rec.rows_estimate()
+    assert est is not None and abs(est - 200_000) < 0.05 * 200_000  # from the file size
+    bar = _progress_bar(rec, "dwells", True)
+    with bar as cb:
+        assert cb is not None
+        for _ in rec.chunks(None, cb):
+            pass
+    assert bar.bar.total == bar.bar.n == 200_000
+    err = capsys.readouterr().err
+    assert "100%" in err and "200k/200k" in err and "rows" in err and "<" in err  # ETA
+    # Off a terminal with progress=None, and with progress=False: nothing.
+    read_stream(p, progress=None)
+    read_stream(p, progress=False)
+    assert capsys.readouterr().err == ""

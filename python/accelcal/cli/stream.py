@@ -138,10 +138,12 @@ def dwells(
     click.echo(source_line(file, rec, d) if rec is not None else
                f"{file}: {len(d)} dwells")
     if d.noise_std is not None and d.threshold is not None:
+        unit = (_units_of(_names(rec)) if rec is not None else "") or d.units or (
+            "the recording's units")
         click.echo(
-            "noise std per axis (from the data): "
+            "noise std per axis x, y, z (from the data): "
             + " ".join(f"{v:.4g}" for v in d.noise_std)
-            + f"; threshold = {k:g} x noise variance"
+            + f" [{unit}]; threshold = {k:g} x noise variance"
         )
     click.echo(d.table())
     for p in (output, plot_path):
@@ -250,12 +252,14 @@ class _Output:
 
     def write(self, t: np.ndarray | None, a: np.ndarray) -> None:
         m = a.shape[0]
+        if self.has_t and t is None:
+            raise CalibrationError(f"{self.path}: a chunk came without its sample times")
         if self.kind == "csv":
             from .._core import format_rows
 
             self.fh.write(format_rows(a, t if self.has_t else None))
         elif self.kind == "npy":
-            self.npy[0].write(np.column_stack([t, a]) if self.has_t else a)
+            self.npy[0].write(a if t is None or not self.has_t else np.column_stack([t, a]))
         elif self.kind == "npz":
             self.npy[0].write(a)
             if self.has_t:
