@@ -300,3 +300,17 @@ def test_dwells_plot_shows_the_stream_with_dwells(tmp_path: Path) -> None:
     x0 = sorted(p.get_x() for p in spans)
     np.testing.assert_allclose(x0, np.sort(d.start / d.fs))
     plt.close(fig)
+
+
+def test_diagnose_reads_a_dwell_table(tmp_path: Path) -> None:
+    table = tmp_path / "dwells.csv"
+    code, out = run("dwells", str(XSENS()), "-o", str(table), "--quiet")
+    assert code == 0, out
+    code, a = run("diagnose", str(XSENS()), "--g", "9.81744", "--noise", "white", "--json",
+                  "--quiet")
+    assert code == 0, a
+    code, b = run("diagnose", str(table), "--g", "9.81744", "--noise", "white", "--json")
+    assert code == 0, b
+    ra, rb = json.loads(a), json.loads(b)
+    assert ra["chi2_per_dof"] == pytest.approx(rb["chi2_per_dof"], rel=1e-12)
+    assert ra["chi2_per_dof"] > 3

@@ -54,8 +54,23 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     kw: dict[str, Any] = {}
     if noise == "white" and d.var is not None and d.count is not None:
         kw["noise"] = d.sem
-    rep = run_diagnose(d, g=gv, preset=preset, **kw)
-    notes = [] if rec is None else rec.notes()
+    extra: list[str] = []
+    no_allan = noise == "allan" and getattr(d, "inflation", None) is None
+    if no_allan and (rec is None or file == "-"):
+        extra.append("the Allan noise model needs the samples (not in a dwell table, and "
+                     "standard input cannot be read twice): white noise (variance / count) used")
+    if no_allan and rec is not None and file != "-":
+        # This build's dwell accumulator does not give the within-dwell Allan statistics:
+        # the Allan noise model needs the samples themselves, so read them (whole file).
+        from ..io import read_stream
+
+        st = read_stream(file, columns=columns, fs=fs, time_column=time_column,
+                         progress=False if quiet else None)
+        rep = run_diagnose(st.samples, g=gv, fs=st.fs, t=st.t, temperature=st.temperature,
+                           preset=preset)
+    else:
+        rep = run_diagnose(d, g=gv, preset=preset, **kw)
+    notes = ([] if rec is None else rec.notes()) + extra
     if plot_path:
         _save_fig(rep.plot(), plot_path)
     if as_json:
