@@ -1104,7 +1104,10 @@ class _Recording:
         elif hasattr(path, "__array__") or isinstance(path, (list, tuple)):
             self.arrays = _plain_array_source(path, columns, fs, time_column)
         else:
-            _path(path)  # raises with the accepted kinds
+            raise CalibrationError(
+                "a recording must be a file path, '-' (standard input), a DataFrame or an "
+                f"array; got {type(path).__name__}"
+            )
         if self.arrays is not None:
             self.lay = self.arrays.lay
         self.path = self.lay.path
