@@ -314,3 +314,37 @@ def test_diagnose_reads_a_dwell_table(tmp_path: Path) -> None:
     ra, rb = json.loads(a), json.loads(b)
     assert ra["chi2_per_dof"] == pytest.approx(rb["chi2_per_dof"], rel=1e-12)
     assert ra["chi2_per_dof"] > 3
+
+
+def test_ctrl_c_during_apply_leaves_the_old_output(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from accelcal import _core
+
+    cal = _calibration(tmp_path)
+    rec = tmp_path / "long.csv"
+    n = 3_000_000
+    with open(rec, "wb") as f:
+        f.write(b"t,ax,ay,az\n")
+        for a in range(0, n, 500_000):
+            i = np.arange(a, a + 500_000, dtype=np.float64)
+            x = np.column_stack([33000 + i % 7, 33200 - i % 5, 36400 + i % 3])
+            f.write(_core.format_rows(x, i / 100.0))
+    out = tmp_path / "out.npy"
+    np.save(out, np.zeros((2, 4)))
+    before = out.read_bytes()
+    code = "import sys; from accelcal.cli import main; main(sys.argv[1:])"
+    p = subprocess.Popen([sys.executable, "-c", code, "apply", str(cal), str(rec), "-o",
+                          str(out), "--chunk-rows", "20000"], stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while not any(q.name.startswith(".out.npy") for q in tmp_path.iterdir()):
+        assert p.poll() is None and time.monotonic() < deadline, "apply ended too soon"
+        time.sleep(0.01)
+    time.sleep(0.2)
+    p.send_signal(signal.SIGINT)
+    assert p.wait(timeout=60) != 0
+    assert out.read_bytes() == before
+    assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []
