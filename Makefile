@@ -25,7 +25,10 @@ $(VENV)/.deps: pyproject.toml Makefile
 
 venv: $(VENV)/.deps
 
+# A stale per-version extension (e.g. _core.cpython-311-*.so from a non-abi3 build) would
+# shadow the abi3 one that maturin installs: remove any before installing.
 build: venv
+	rm -f python/accelcal/_core.*.so
 	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH $(VENV)/bin/maturin develop --release -q
 
 cargo-test:
