@@ -6,6 +6,7 @@ mod dwell;
 mod gap;
 mod gradiometer;
 mod static_fit;
+mod text;
 
 use crate::error::CoreError;
 use pyo3::exceptions::PyValueError;
@@ -50,6 +51,8 @@ mod _core {
     };
     #[pymodule_export]
     use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
+    #[pymodule_export]
+    use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
 }
