@@ -340,7 +340,7 @@ def test_ctrl_c_during_apply_leaves_the_old_output(tmp_path: Path) -> None:
     p = subprocess.Popen([sys.executable, "-c", code, "apply", str(cal), str(rec), "-o",
                           str(out), "--chunk-rows", "20000"], stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
-    while not any(q.name.startswith(".out.npy") for q in tmp_path.iterdir()):
+    while not any(q.name.startswith(".accelcal-tmp-out.npy") for q in tmp_path.iterdir()):
         assert p.poll() is None and time.monotonic() < deadline, "apply ended too soon"
         time.sleep(0.01)
     time.sleep(0.2)

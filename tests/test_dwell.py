@@ -721,7 +721,7 @@ def test_cli_dwells_huge_window_is_one_line(tmp_path: Path) -> None:
 
 def test_cli_last_resort_catches_a_panic(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """A PanicException is a BaseException: the CLI still prints one line and exits 3."""
-    import accelcal.io
+    import accelcal.cli.stream
     from accelcal.cli import main
     from click.testing import CliRunner
 
@@ -731,7 +731,7 @@ def test_cli_last_resort_catches_a_panic(monkeypatch: pytest.MonkeyPatch, tmp_pa
     def boom(*a: Any, **k: Any) -> None:
         raise PanicException("range end index 18446744073709551615 out of range\n" + "x\n" * 999)
 
-    monkeypatch.setattr(accelcal.io, "stream_dwells", boom)
+    monkeypatch.setattr(accelcal.cli.stream, "stream_dwells", boom)
     f = tmp_path / "rec.csv"
     np.savetxt(f, GOOD, delimiter=",", header="ax,ay,az", comments="")
     r = CliRunner().invoke(main, ["dwells", str(f), "--fs", "100"])
