@@ -19,7 +19,7 @@ use std::ops::IndexMut;
 
 use crate::error::{degenerate, invalid, CoreError, Result};
 use faer::linalg::solvers::SolveLstsq;
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, Matrix3};
 
 /// Unit-norm scale of every column of a row-major `m x n` design; degenerate when a column
 /// is zero or not finite.
@@ -623,33 +623,56 @@ pub const FIXED_ROWS: usize = 64;
 /// [`lstsq_small`] for `C` columns given as rows: same column scaling, rank test and error
 /// messages; a plain Householder QR for up to [`FIXED_ROWS`] rows (no matrix set-up cost).
 pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; C]> {
-    let m = rows.len();
-    if m > FIXED_ROWS || b.len() != m || m < C {
-        let flat: Vec<f64> = rows.iter().flat_map(|r| r.iter().copied()).collect();
-        let x = lstsq_small(&flat, m, C, b)?;
+    if b.len() != rows.len() {
+        return invalid(format!(
+            "lstsq_rows: {} rows, rhs {}",
+            rows.len(),
+            b.len()
+        ));
+    }
+    lstsq_fn(rows.len(), |i| (rows[i], b[i]))
+}
+
+/// [`lstsq_rows`] with row `i` and its right-hand side produced by `row(i)`: no allocation for
+/// up to [`FIXED_ROWS`] rows (the design lives on the stack, column-major).
+#[inline(always)]
+pub fn lstsq_fn<const C: usize>(m: usize, row: impl Fn(usize) -> ([f64; C], f64)) -> Result<[f64; C]> {
+    if m > FIXED_ROWS || m < C {
+        let mut flat = Vec::with_capacity(m * C);
+        let mut b = Vec::with_capacity(m);
+        for i in 0..m {
+            let (r, y) = row(i);
+            flat.extend_from_slice(&r);
+            b.push(y);
+        }
+        let x = lstsq_small(&flat, m, C, &b)?;
         let mut out = [0.0; C];
         out.copy_from_slice(&x);
         return Ok(out);
     }
+    // Column-major design (column stride FIXED_ROWS) and right-hand side.
+    let mut a = [[0.0f64; FIXED_ROWS]; C];
+    let mut y = [0.0f64; FIXED_ROWS];
     let mut scale = [0.0f64; C];
-    for r in rows {
+    for i in 0..m {
+        let (r, yi) = row(i);
+        y[i] = yi;
         for j in 0..C {
+            a[j][i] = r[j];
             scale[j] += r[j] * r[j];
         }
     }
     finish_scales(&mut scale)?;
-    // Column-major copy (column stride m), scaled.
-    let mut a = vec![0.0f64; C * m];
-    for (j, col) in a.chunks_exact_mut(m).enumerate() {
-        for (x, r) in col.iter_mut().zip(rows) {
-            *x = r[j] / scale[j];
+    for j in 0..C {
+        let inv = 1.0 / scale[j];
+        for x in &mut a[j][..m] {
+            *x *= inv;
         }
     }
-    let mut y = b.to_vec();
     let mut rdiag = [0.0f64; C];
     for j in 0..C {
-        let (head, tail) = a.split_at_mut((j + 1) * m);
-        let v = &mut head[j * m + j..(j + 1) * m];
+        let (head, tail) = a.split_at_mut(j + 1);
+        let v = &mut head[j][j..m];
         let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt();
         if !(norm > 0.0) {
             rdiag[j] = 0.0;
@@ -660,7 +683,7 @@ pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; 
         let vv = v.iter().map(|x| x * x).sum::<f64>();
         if vv > 0.0 {
             let f = 2.0 / vv;
-            for col in tail.chunks_exact_mut(m) {
+            for col in tail.iter_mut() {
                 let c = &mut col[j..m];
                 let s = f * v.iter().zip(c.iter()).map(|(a, b)| a * b).sum::<f64>();
                 for (ci, vi) in c.iter_mut().zip(v.iter()) {
@@ -680,7 +703,7 @@ pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; 
     for j in (0..C).rev() {
         let mut v = y[j];
         for k in (j + 1)..C {
-            v -= a[k * m + j] * x[k];
+            v -= a[k][j] * x[k];
         }
         x[j] = v / rdiag[j];
     }
@@ -691,6 +714,19 @@ pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; 
         x[j] /= scale[j];
     }
     Ok(x)
+}
+
+/// Inverse of a 3 x 3 matrix (closed form); `None` when singular or not finite.
+#[inline]
+pub fn inverse3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+    m.try_inverse().filter(|t| t.iter().all(|v| v.is_finite()))
+}
+
+/// Lower Cholesky factor `L` (`L L^T = m`) of a symmetric 3 x 3 matrix; `None` when it is not
+/// positive definite.
+#[inline]
+pub fn cholesky3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+    m.cholesky().map(|c| c.l())
 }
 
 /// [`NormalEquations`] with `N` parameters fixed at compile time.
