@@ -16,7 +16,7 @@ from typing import Any
 import accelcal
 import numpy as np
 import pytest
-from accelcal.gradiometer import demodulate_reference
+from accelcal._reference import demodulate_reference
 from accelcal.sim import gradiometer_session
 
 _MEDIANS: dict[str, float] = {}

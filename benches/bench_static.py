@@ -21,7 +21,7 @@ from typing import Any
 import accelcal as ac
 import numpy as np
 import pytest
-from accelcal.sim_static import static_dwell_means
+from accelcal.sim.static import static_dwell_means
 from scipy.optimize import least_squares
 
 _MEDIANS: dict[str, float] = {}

@@ -12,12 +12,12 @@ import numpy as np
 from accelcal._files import atomic_write
 from accelcal.centrifuge import (
     CentrifugeOutlierWarning,
-    centrifuge_sensitivity,
     fit_centrifuge,
     paper_table2,
     read_centrifuge_table,
 )
-from accelcal.sim_centrifuge import SEED004_TRUTH
+from accelcal.design import centrifuge_sensitivity
+from accelcal.sim.centrifuge import SEED004_TRUTH
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "seed004"

@@ -31,7 +31,8 @@ from pathlib import Path
 import accelcal as ac
 import numpy as np
 from accelcal._files import atomic_write
-from accelcal.sim_static import (
+from accelcal._triad import k_matrix as _k_matrix
+from accelcal.sim.static import (
     G0,
     SEED000_TRUTH,
     attitudes_to_force,
@@ -39,7 +40,6 @@ from accelcal.sim_static import (
     static_dwell_means,
     uniform_attitudes,
 )
-from accelcal.static import _k_matrix
 from scipy.optimize import least_squares
 
 ROOT = Path(__file__).resolve().parents[1]

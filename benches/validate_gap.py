@@ -17,7 +17,7 @@ from pathlib import Path
 import accelcal
 import numpy as np
 from accelcal._files import atomic_write
-from accelcal.sim_gap import DICTIONARY_EFFECTS, gap_session
+from accelcal.sim.gap import DICTIONARY_EFFECTS, gap_session
 from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -238,7 +238,7 @@ def _cf_outputs(eff: str, phi: np.ndarray, base: dict, des: object) -> np.ndarra
     """Noise-free centrifuge outputs (g) with one effect, parameters in the diagnosis units."""
     import dataclasses
 
-    from accelcal.sim_centrifuge import centrifuge_outputs
+    from accelcal.sim.centrifuge import centrifuge_outputs
 
     kw: dict = {}
     d = des
@@ -269,7 +269,7 @@ def _cf_outputs(eff: str, phi: np.ndarray, base: dict, des: object) -> np.ndarra
 
 def centrifuge_validation(n: int) -> list[str]:
     from accelcal.gap_systems import CENTRIFUGE_EFFECTS
-    from accelcal.sim_centrifuge import paper_design
+    from accelcal.sim.centrifuge import paper_design
 
     des = paper_design()
     noise = 2e-6
@@ -340,7 +340,7 @@ def centrifuge_outputs_noisy(clean: np.ndarray, noise: float,
 
 
 def gradiometer_validation(n: int) -> list[str]:
-    from accelcal.gradiometer import plan_azimuths
+    from accelcal.design import plan_azimuths
     from accelcal.sim import gradiometer_session
 
     az = plan_azimuths(12, drift=True)

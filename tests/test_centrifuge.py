@@ -3,7 +3,7 @@ simulator round trips, error-source sensitivity, bad input."""
 
 from __future__ import annotations
 
-from pathlib import Path
+from functools import partial
 
 import accelcal
 import accelcal.sim
@@ -13,16 +13,17 @@ from accelcal import CalibrationError, DegenerateDataError
 from accelcal.centrifuge import (
     CentrifugeOutlierWarning,
     calibrate_centrifuge_table,
-    centrifuge_sensitivity,
     fit_centrifuge,
     read_centrifuge_table,
 )
-from accelcal.sim_centrifuge import centrifuge_session, paper_design
+from accelcal.sim.centrifuge import centrifuge_session
+from conftest import shared_data
 from scipy.optimize import least_squares
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seed004"
-PRINTED = DATA / "table1_as_printed.csv"
-CORRECTED = DATA / "table1_sign_corrected.csv"
+PRINTED = partial(shared_data, 'seed004', 'table1_as_printed.csv')
+CORRECTED = partial(shared_data, 'seed004', 'table1_sign_corrected.csv')
+
+
 S = np.array([1.29, 1.21, 1.26])
 B = np.array([0.213, 0.256, 0.516])
 D = np.array([0.57e-4, 0.31e-4, 0.45e-4])
@@ -46,7 +47,7 @@ def _scipy_reference(out, omega, radius, g, x0):
 
 
 def test_nls_reproduces_stated_truth_on_corrected_table():
-    fit = calibrate_centrifuge_table(CORRECTED, 1.0, g=9.8)
+    fit = calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8)
     assert len(fit.outliers) == 0 and fit.converged
     np.testing.assert_allclose(fit.scale, S, rtol=1e-7)
     np.testing.assert_allclose(fit.bias, B, atol=1e-6)  # g; the table has 6 decimals
@@ -55,7 +56,7 @@ def test_nls_reproduces_stated_truth_on_corrected_table():
     np.testing.assert_allclose(fit.k2[[0, 2]], D[[0, 2]], rtol=3e-6)
     np.testing.assert_allclose(fit.k2[1], D[1], rtol=1e-4)
     # The fit is at least as good as the truth on its own cost (it converged) ...
-    t = read_centrifuge_table(CORRECTED)
+    t = read_centrifuge_table(CORRECTED())
     ref, res = _scipy_reference(t.outputs, t.omega, 1.0, 9.8, fit.params)
     assert np.sum(fit.residuals**2) <= np.sum(res(np.r_[S, B, D * 1e4]) ** 2)
     # ... equals an independent SciPy solution, and the truth lies within its error bars.
@@ -65,7 +66,7 @@ def test_nls_reproduces_stated_truth_on_corrected_table():
 
 
 def test_taylor_paper_reproduces_s_and_b_and_d_to_two_percent():
-    fit = calibrate_centrifuge_table(CORRECTED, 1.0, g=9.8, method="taylor-paper")
+    fit = calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8, method="taylor-paper")
     np.testing.assert_allclose(fit.scale, S, rtol=1e-6)
     np.testing.assert_allclose(fit.bias, B, atol=3e-6)
     np.testing.assert_allclose(fit.k2, D, rtol=0.02)
@@ -77,7 +78,7 @@ def test_taylor_paper_reproduces_s_and_b_and_d_to_two_percent():
 
 
 def test_printed_eq19_root_is_wrong_and_corrected_root_is_right():
-    c = calibrate_centrifuge_table(CORRECTED, 1.0, g=9.8, method="taylor-paper")
+    c = calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8, method="taylor-paper")
     q = c.taylor_coefficients
     assert q is not None
     for i in range(3):
@@ -91,8 +92,8 @@ def test_printed_eq19_root_is_wrong_and_corrected_root_is_right():
 
 
 def test_printed_table_all_23_sign_errors_found_and_no_good_row():
-    t_bad = read_centrifuge_table(PRINTED)
-    t_ok = read_centrifuge_table(CORRECTED)
+    t_bad = read_centrifuge_table(PRINTED())
+    t_ok = read_centrifuge_table(CORRECTED())
     truly_bad = np.flatnonzero(np.any(t_bad.outputs != t_ok.outputs, axis=1))
     assert len(truly_bad) == 23
     with pytest.warns(CentrifugeOutlierWarning, match="excluded 23 of 60 rows"):
@@ -105,13 +106,13 @@ def test_printed_table_all_23_sign_errors_found_and_no_good_row():
 
 
 def test_screening_is_deterministic_and_skipped_on_clean_data():
-    t = read_centrifuge_table(PRINTED)
+    t = read_centrifuge_table(PRINTED())
     with pytest.warns(CentrifugeOutlierWarning):
         a = fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, seed=3)
     with pytest.warns(CentrifugeOutlierWarning):
         b = fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, seed=3)
     np.testing.assert_array_equal(a.params, b.params)
-    clean = fit_centrifuge(read_centrifuge_table(CORRECTED).outputs, t.omega, 1.0, g=9.8)
+    clean = fit_centrifuge(read_centrifuge_table(CORRECTED()).outputs, t.omega, 1.0, g=9.8)
     assert clean.draws == 0
 
 
@@ -123,7 +124,7 @@ def test_simulator_round_trip_with_noise():
     assert fit.residual_rms < 5e-5
     np.testing.assert_allclose(fit.k2, D, rtol=0.05)
     # the simulator reproduces the paper's table (sign-corrected) to its printed digits
-    t = read_centrifuge_table(CORRECTED)
+    t = read_centrifuge_table(CORRECTED())
     exact = centrifuge_session()
     np.testing.assert_allclose(exact.outputs, t.outputs, atol=2e-6)
 
@@ -155,39 +156,8 @@ def test_full_lever_arm_names_what_the_paper_design_cannot_see():
                        spin_axis=s.spin_axis)
 
 
-def test_sensitivity_along_axis_lever_arm_is_not_negligible():
-    # SPEC 2: 2 cm along the x accelerometer's own axis -> |dbx| ~ 0.285 g, |dDx| ~ 4.2e-4.
-    sens = centrifuge_sensitivity(paper_design(), None, "lever_along_x", [0.02, -0.02])
-    dbx = sens.shifts[:, 3]
-    ddx = sens.shifts[:, 6]
-    assert np.all((np.abs(dbx) > 0.28) & (np.abs(dbx) < 0.295))
-    assert np.all((np.abs(ddx) > 4.0e-4) & (np.abs(ddx) < 4.3e-4))
-    assert abs(ddx[0]) > 7 * D[0]
-    # Across-axis offsets are small (the paper's Table 3 regime); along y exactly zero here.
-    across = centrifuge_sensitivity(None, None, "lever_x_y", [0.02])
-    assert np.all(np.abs(across.shifts) < 1e-9)
-    # nls sees the same error (different split between bias and K2)
-    nls = centrifuge_sensitivity(None, None, "lever_along_x", [0.02], method="nls")
-    assert abs(nls.shifts[0, 3]) > 0.1
-
-
-def test_sensitivity_misalignment_and_radius():
-    mags = np.array([2e-4, 4e-4, 6e-4, 8e-4, 1e-3])
-    sens = centrifuge_sensitivity(None, None, "misalignment", mags)
-    # first-order: shifts grow linearly and stay small (< 1e-3 relative on S)
-    ratio = sens.shifts[-1, :3] / sens.shifts[0, :3]
-    np.testing.assert_allclose(ratio, 5.0, rtol=0.05)
-    assert np.all(np.abs(sens.shifts[:, :3]) < 1e-3 * S)
-    rad = centrifuge_sensitivity(None, None, "radius", [1e-3])
-    # dA/A = dR/R: scale factors absorb it (dS/S = 1e-3), biases do not move
-    np.testing.assert_allclose(rad.shifts[0, :3] / S, 1e-3, rtol=0.01)
-    assert np.all(np.abs(rad.shifts[0, 3:6]) < 1e-6)
-    with pytest.raises(CalibrationError, match="unknown error source"):
-        centrifuge_sensitivity(None, None, "wind", [1.0])
-
-
 def test_bad_inputs():
-    t = read_centrifuge_table(CORRECTED)
+    t = read_centrifuge_table(CORRECTED())
     o, w = t.outputs, t.omega
     with pytest.raises(DegenerateDataError, match="no rotation"):
         fit_centrifuge(o, np.zeros_like(w), 1.0)
@@ -208,11 +178,11 @@ def test_bad_inputs():
     with pytest.raises(CalibrationError, match="taylor-paper"):
         fit_centrifuge(o, w, 1.0, method="taylor-paper", k3=True)
     with pytest.raises(CalibrationError, match="missing column"):
-        read_centrifuge_table(DATA.parent / "README.md")
+        read_centrifuge_table(shared_data("README.md"))
 
 
 def test_summary_and_to_dict_and_exports():
-    fit = accelcal.calibrate_centrifuge_table(CORRECTED, 1.0, g=9.8)
+    fit = accelcal.calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8)
     text = fit.summary()
     assert "k2y" in text and "nls" in text
     d = fit.to_dict()

@@ -4,18 +4,23 @@ from __future__ import annotations
 
 import json
 import re
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from accelcal.cli import main
 from click.testing import CliRunner
+from conftest import shared_data
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-XSENS = DATA / "xsens-mti" / "xsens_acc.txt"
-MPU = DATA / "mpu6050-10poses" / "example_data_calibration.csv"
-IMUCAL = DATA / "imucal" / "example_ferraris_session.csv"
-SEED004 = DATA / "seed004"
+XSENS = partial(shared_data, 'xsens-mti', 'xsens_acc.txt')
+MPU = partial(shared_data, 'mpu6050-10poses', 'example_data_calibration.csv')
+IMUCAL = partial(shared_data, 'imucal', 'example_ferraris_session.csv')
+SEED004 = partial(shared_data, 'seed004')
+PRINTED_TABLE = partial(shared_data, 'seed004', 'table1_as_printed.csv')
+
+
 
 
 def run(*args: str) -> tuple[int, str]:
@@ -37,7 +42,7 @@ def test_demo_quick_finds_all_dwells_and_writes_figures(tmp_path: Path) -> None:
 
 def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
     cal = tmp_path / "cal.json"
-    code, out = run("calibrate", "static", str(XSENS), "--g", "9.81744", "-o", str(cal),
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "-o", str(cal),
                     "--json")
     assert code == 0, out
     res = json.loads(out)
@@ -47,7 +52,7 @@ def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
     assert json.loads(cal.read_text())["version"] >= 1
     # Apply it to the same recording: static samples then have |a| close to g.
     calibrated = tmp_path / "cal.npy"
-    code, out = run("apply", str(cal), str(XSENS), "-o", str(calibrated), "--quiet")
+    code, out = run("apply", str(cal), str(XSENS()), "-o", str(calibrated), "--quiet")
     assert code == 0, out
     a = np.load(calibrated)
     assert a.shape == (51175, 3)
@@ -55,7 +60,7 @@ def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
     assert abs(np.mean(norm) - 9.81744) < 5e-3
     # CSV output carries time and the same numbers.
     csv = tmp_path / "cal.csv"
-    code, _ = run("apply", str(cal), str(XSENS), "-o", str(csv), "--quiet")
+    code, _ = run("apply", str(cal), str(XSENS()), "-o", str(csv), "--quiet")
     assert code == 0
     tab = np.loadtxt(csv, delimiter=",", skiprows=2)
     np.testing.assert_allclose(tab[:, 1:], a, rtol=1e-8, atol=1e-8)
@@ -63,7 +68,7 @@ def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
 
 def test_calibrate_static_plot_and_readable_output(tmp_path: Path) -> None:
     png = tmp_path / "norm.png"
-    code, out = run("calibrate", "static", str(XSENS), "--g", "9.81744", "--plot", str(png))
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "--plot", str(png))
     assert code == 0, out
     assert png.stat().st_size > 10_000
     for name in ("sx", "bz", "m3"):
@@ -71,20 +76,20 @@ def test_calibrate_static_plot_and_readable_output(tmp_path: Path) -> None:
 
 
 def test_weak_and_degenerate_designs_are_explained() -> None:
-    code, out = run("calibrate", "static", str(MPU), "--g", "9.81")
+    code, out = run("calibrate", "static", str(MPU()), "--g", "9.81")
     assert code == 0
     assert "weak" in out.lower() and "m1" in out
-    code, out = run("calibrate", "static", str(IMUCAL), "--fs", "102.4", "--g", "9.81")
+    code, out = run("calibrate", "static", str(IMUCAL()), "--fs", "102.4", "--g", "9.81")
     assert code == 2
     assert "cannot determine" in out and "diag" in out
-    code, out = run("calibrate", "static", str(IMUCAL), "--fs", "102.4", "--g", "9.81",
+    code, out = run("calibrate", "static", str(IMUCAL()), "--fs", "102.4", "--g", "9.81",
                     "--model", "diag", "--json")
     assert code == 0
     assert len(json.loads(out)["vector"]) == 6
 
 
 def test_diagnose_reports_the_xsens_gap(tmp_path: Path) -> None:
-    code, out = run("diagnose", str(XSENS), "--g", "9.81744", "--json")
+    code, out = run("diagnose", str(XSENS()), "--g", "9.81744", "--json")
     assert code == 0, out
     rep = json.loads(out)
     assert rep["chi2_per_dof"] > 3  # the documented real gap
@@ -93,7 +98,7 @@ def test_diagnose_reports_the_xsens_gap(tmp_path: Path) -> None:
 
 
 def test_centrifuge_and_gradiometer_tables(tmp_path: Path) -> None:
-    code, out = run("calibrate", "centrifuge", str(SEED004 / "table1_as_printed.csv"),
+    code, out = run("calibrate", "centrifuge", str(SEED004() / "table1_as_printed.csv"),
                     "--radius", "1", "--g", "9.8", "--json")
     assert code == 0, out
     res = json.loads(out)
@@ -124,16 +129,15 @@ def test_plan_prints_attitudes_and_predicted_std() -> None:
     "args, needle",
     [
         (["dwells", "/nonexistent/recording.txt", "--fs", "100"], "/nonexistent/recording.txt"),
-        (["calibrate", "static", str(XSENS)], "--g"),
-        (["calibrate", "static", str(XSENS), "--g", "-1"], "g"),
-        (["calibrate", "centrifuge", str(SEED004 / "table1_as_printed.csv"), "--radius", "-1"],
-         "radius"),
-        (["apply", "/nonexistent/cal.json", str(XSENS), "-o", "/tmp/x.csv"], "cal.json"),
-        (["calibrate", "static", str(IMUCAL), "--g", "9.81"], "--fs"),
+        (["calibrate", "static", XSENS], "--g"),
+        (["calibrate", "static", XSENS, "--g", "-1"], "g"),
+        (["calibrate", "centrifuge", PRINTED_TABLE, "--radius", "-1"], "radius"),
+        (["apply", "/nonexistent/cal.json", XSENS, "-o", "/tmp/x.csv"], "cal.json"),
+        (["calibrate", "static", IMUCAL, "--g", "9.81"], "--fs"),
     ],
 )
-def test_bad_input_is_one_clear_line(args: list[str], needle: str) -> None:
-    code, out = run(*args)
+def test_bad_input_is_one_clear_line(args: list[Any], needle: str) -> None:
+    code, out = run(*(str(a()) if callable(a) else a for a in args))
     assert code == 2
     lines = [ln for ln in out.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("accelcal: error:")

@@ -20,9 +20,9 @@ import matplotlib
 import pytest
 from accelcal.cli import main
 from click.testing import CliRunner
+from conftest import shared_root
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
 GUIDES = sorted((ROOT / "docs").glob("guide-*.md"))
 
 
@@ -53,7 +53,7 @@ def test_guide_examples_run(guide: Path, tmp_path: Path) -> None:
     matplotlib.use("Agg")
     work = tmp_path / "main"
     work.mkdir()
-    (tmp_path / "shared").symlink_to(SHARED)
+    (tmp_path / "shared").symlink_to(shared_root())
     (work / "examples").symlink_to(ROOT / "examples")
     blocks = _blocks(guide.read_text())
     assert blocks, f"{guide.name} has no examples"

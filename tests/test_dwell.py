@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -14,14 +15,16 @@ import numpy as np
 import pytest
 from accelcal import CalibrationError, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from accelcal.io import read_stream
+from conftest import shared_data
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-XSENS = DATA / "xsens-mti" / "xsens_acc.txt"
-MPU = DATA / "mpu6050-10poses" / "example_data_calibration.csv"
-IMUCAL = DATA / "imucal" / "example_ferraris_session.csv"
-IMUCAL_LIST = DATA / "imucal" / "example_ferraris_session_list.json"
+XSENS = partial(shared_data, 'xsens-mti', 'xsens_acc.txt')
+MPU = partial(shared_data, 'mpu6050-10poses', 'example_data_calibration.csv')
+IMUCAL = partial(shared_data, 'imucal', 'example_ferraris_session.csv')
+IMUCAL_LIST = partial(shared_data, 'imucal', 'example_ferraris_session_list.json')
+
+
 
 HYP = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 DTYPES = [np.float64, np.float32, np.int16, np.int32]
@@ -270,7 +273,9 @@ G_UNITS = {"xsens": 4070.0, "mpu": 16384.0, "imucal": 9.81}  # one g in the file
 @pytest.fixture(scope="module")
 def real() -> dict[str, tuple[np.ndarray, DwellSet]]:
     out = {}
-    for name, path, fs in (("xsens", XSENS, None), ("mpu", MPU, None), ("imucal", IMUCAL, 102.4)):
+    for name, path, fs in (
+        ("xsens", XSENS(), None), ("mpu", MPU(), None), ("imucal", IMUCAL(), 102.4)
+    ):
         s = read_stream(path, fs=fs)
         assert s.fs is not None
         out[name] = (s.samples, detect_dwells(s.samples, s.fs))
@@ -289,7 +294,7 @@ def test_mpu6050_finds_about_ten_poses(real: Any) -> None:
 
 def test_imucal_faces_found_and_rotations_avoided(real: Any) -> None:
     _, d = real["imucal"]
-    sections = json.loads(IMUCAL_LIST.read_text())
+    sections = json.loads(IMUCAL_LIST().read_text())
     for name, sec in sections.items():
         a, b = sec["start"], sec["end"]
         overlap = np.clip(np.minimum(d.stop, b) - np.maximum(d.start, a), 0, None)

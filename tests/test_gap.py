@@ -219,7 +219,7 @@ def test_centrifuge_misalignment_and_rate_offset() -> None:
 
 
 def _grad(seed: int, **kw: object) -> tuple[np.ndarray, np.ndarray, np.ndarray, object]:
-    from accelcal.gradiometer import plan_azimuths
+    from accelcal.design import plan_azimuths
     from accelcal.sim import gradiometer_session
 
     az = plan_azimuths(12, drift=True)

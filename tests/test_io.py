@@ -3,6 +3,8 @@ reading and streaming into the dwell accumulator."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -10,11 +12,13 @@ import numpy as np
 import pytest
 from accelcal import CalibrationError, detect_dwells, dwell_stats
 from accelcal.io import Stream, iter_stream, read_stream, stream_dwells
+from conftest import shared_data
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-XSENS = DATA / "xsens-mti" / "xsens_acc.txt"
-MPU = DATA / "mpu6050-10poses" / "example_data_calibration.csv"
-IMUCAL = DATA / "imucal" / "example_ferraris_session.csv"
+XSENS = partial(shared_data, 'xsens-mti', 'xsens_acc.txt')
+MPU = partial(shared_data, 'mpu6050-10poses', 'example_data_calibration.csv')
+IMUCAL = partial(shared_data, 'imucal', 'example_ferraris_session.csv')
+
+
 
 
 def line_count(p: Path) -> int:
@@ -22,11 +26,11 @@ def line_count(p: Path) -> int:
 
 
 def test_xsens_whitespace_no_header() -> None:
-    s = read_stream(XSENS)
+    s = read_stream(XSENS())
     assert isinstance(s, Stream)
     assert s.samples.shape == (51175, 3) and s.samples.dtype == np.float64
     np.testing.assert_array_equal(s.samples[0], [33108.0, 33329.0, 36429.0])
-    np.testing.assert_array_equal(s.samples[-1], np.loadtxt(XSENS)[-1, 1:])
+    np.testing.assert_array_equal(s.samples[-1], np.loadtxt(XSENS())[-1, 1:])
     assert s.t is not None
     assert s.t[0] == pytest.approx(0.02984) and s.t[1] == pytest.approx(0.039857)
     assert s.fs == pytest.approx(100.0, rel=1e-3)  # from the time column
@@ -34,33 +38,34 @@ def test_xsens_whitespace_no_header() -> None:
 
 
 def test_mpu6050_metadata_then_header() -> None:
-    s = read_stream(MPU)
+    s = read_stream(MPU())
     assert s.fs == 100.0  # from the `Fs,100` metadata line
     assert s.metadata["Logging Type"] == "0"
     assert s.metadata["Initialization time"] == "36.5"
     assert s.metadata["Waiting time"] == "3"
     assert s.names == ("ax", "ay", "az")
-    assert s.samples.shape == (line_count(MPU) - 5, 3)
+    assert s.samples.shape == (line_count(MPU()) - 5, 3)
     np.testing.assert_array_equal(s.samples[:2], [[-12, -812, 15032], [-208, -828, 14796]])
     assert s.t is not None
     np.testing.assert_allclose(s.t[:3], [0.0, 0.01, 0.02])
 
 
 def test_imucal_picks_accelerometer_columns() -> None:
-    s = read_stream(IMUCAL)
+    s = read_stream(IMUCAL())
     assert s.names == ("acc_x", "acc_y", "acc_z")
-    assert s.samples.shape == (line_count(IMUCAL) - 1, 3)
+    assert s.samples.shape == (line_count(IMUCAL()) - 1, 3)
     np.testing.assert_allclose(s.samples[0], [10.332114257812501, -0.5795947265625, 0.51732421875])
     assert s.fs is None and s.t is None  # 102.4 Hz is not in the file
-    s2 = read_stream(IMUCAL, fs=102.4)
+    s2 = read_stream(IMUCAL(), fs=102.4)
     assert s2.fs == 102.4 and s2.t is not None and s2.t[1] == pytest.approx(1 / 102.4)
-    g = read_stream(IMUCAL, columns="gyr_x,gyr_y,gyr_z")
+    g = read_stream(IMUCAL(), columns="gyr_x,gyr_y,gyr_z")
     np.testing.assert_allclose(g.samples[0], [-0.6103515625, -0.30517578125, 0.06103515625])
-    np.testing.assert_array_equal(read_stream(IMUCAL, columns=[4, 5, 6]).samples, s.samples)
+    np.testing.assert_array_equal(read_stream(IMUCAL(), columns=[4, 5, 6]).samples, s.samples)
 
 
-@pytest.mark.parametrize(("path", "fs"), [(XSENS, None), (MPU, None), (IMUCAL, 102.4)])
-def test_stream_dwells_equals_detect_dwells(path: Path, fs: float | None) -> None:
+@pytest.mark.parametrize(("data", "fs"), [(XSENS, None), (MPU, None), (IMUCAL, 102.4)])
+def test_stream_dwells_equals_detect_dwells(data: Callable[[], Path], fs: float | None) -> None:
+    path = data()
     s = read_stream(path, fs=fs)
     assert s.fs is not None
     one = detect_dwells(s.samples, s.fs, t=s.t, temperature=s.temperature)
@@ -78,8 +83,8 @@ def test_stream_dwells_equals_detect_dwells(path: Path, fs: float | None) -> Non
 
 
 def test_iter_stream_chunks_concatenate_to_read_stream() -> None:
-    s = read_stream(MPU)
-    chunks = list(iter_stream(MPU, chunk_rows=1000))
+    s = read_stream(MPU())
+    chunks = list(iter_stream(MPU(), chunk_rows=1000))
     assert all(c.shape[0] <= 1000 for c, _ in chunks) and len(chunks) == 11
     np.testing.assert_array_equal(np.concatenate([c for c, _ in chunks]), s.samples)
     np.testing.assert_array_equal(np.concatenate([t for _, t in chunks]), s.t)
@@ -158,7 +163,7 @@ def test_bad_text_files(tmp_path: Path, text: str, words: list[str]) -> None:
 )
 def test_bad_arguments(kw: dict[str, Any], words: list[str]) -> None:
     with pytest.raises(CalibrationError) as ei:
-        read_stream(MPU, **kw)
+        read_stream(MPU(), **kw)
     for w in words:
         assert w in str(ei.value)
 
@@ -169,9 +174,9 @@ def test_missing_file_and_unknown_rate(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="not found"):
         read_stream(tmp_path / "nope.npy")
     with pytest.raises(CalibrationError, match="fs="):
-        stream_dwells(IMUCAL)
+        stream_dwells(IMUCAL())
     with pytest.raises(CalibrationError, match="chunk_rows"):
-        list(iter_stream(MPU, chunk_rows=0))
+        list(iter_stream(MPU(), chunk_rows=0))
 
 
 # ---- numpy files ------------------------------------------------------------------------------

@@ -11,7 +11,8 @@ import accelcal as ac
 import numpy as np
 import pytest
 from accelcal import CalibrationError, DegenerateDataError, WeakDesignWarning
-from accelcal.sim_static import (
+from accelcal._triad import k_matrix as _k_matrix
+from accelcal.sim.static import (
     G0,
     SEED000_TRUTH,
     attitudes_to_force,
@@ -19,10 +20,9 @@ from accelcal.sim_static import (
     static_dwell_means,
     uniform_attitudes,
 )
-from accelcal.static import _k_matrix
+from conftest import shared_data
 from scipy.optimize import least_squares
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 UPPER_TRUTH = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, -0.02, 0.03])
 
 
@@ -261,37 +261,9 @@ def test_reported_std_is_calibrated():
     assert np.all(bias < 4.5)
 
 
-# ---- pose planning -----------------------------------------------------------------------
-def test_predict_accuracy_matches_spec_orders():
-    rng = np.random.default_rng(16)
-    bz = [
-        ac.predict_accuracy(uniform_attitudes(20, 30, rng), 1e-3, truth=SEED000_TRUTH).std[5]
-        for _ in range(30)
-    ]
-    assert 0.1 < np.median(bz) < 0.6  # SPEC 1: CRLB std of bz = 0.29 at +-30 deg
-    sph = ac.predict_accuracy(sphere_attitudes(20, rng), 1e-3, truth=SEED000_TRUTH).std[5]
-    assert sph < 3e-3 and sph < np.median(bz) / 50
-    sweep = np.linspace(-30, 30, 10)
-    two_plane = np.r_[np.c_[np.zeros(10), sweep], np.c_[sweep, np.zeros(10)]]
-    p = ac.predict_accuracy(two_plane, 1e-3)
-    assert p.singular and ("m1" in p.combination or "m2" in p.combination)
-
-
-def test_plan_poses_beats_random_designs():
-    plan = ac.plan_poses(20, 30, sigma=1e-3, rng=0)
-    assert plan.tilts_deg is not None and plan.tilts_deg.shape == (20, 2)
-    assert np.all(np.abs(plan.tilts_deg) <= 30 + 1e-9)
-    rng = np.random.default_rng(17)
-    rand = [ac.predict_accuracy(uniform_attitudes(20, 30, rng), 1e-3).std for _ in range(30)]
-    assert plan.std[5] < np.min([r[5] for r in rand])
-    assert np.prod(plan.std) < np.min([np.prod(r) for r in rand])
-    sphere = ac.plan_poses(20, None, sigma=1e-3)
-    assert sphere.std.max() < plan.std.max() / 20
-
-
 # ---- real data -----------------------------------------------------------------------------
 def test_xsens_real_session():
-    raw = np.loadtxt(DATA / "xsens-mti" / "xsens_acc.txt")[:, 1:4]
+    raw = np.loadtxt(shared_data("xsens-mti", "xsens_acc.txt"))[:, 1:4]
     ds = ac.detect_dwells(raw, fs=100)
     assert 30 <= len(ds) <= 45
     f = ac.fit_static(ds, 9.81744)
@@ -312,7 +284,7 @@ def test_xsens_real_session():
 
 
 def test_mpu6050_few_poses_reported_weak():
-    raw = np.loadtxt(DATA / "mpu6050-10poses" / "example_data_calibration.csv", delimiter=",",
+    raw = np.loadtxt(shared_data("mpu6050-10poses", "example_data_calibration.csv"), delimiter=",",
                      skiprows=5)[:, :3]
     ds = ac.detect_dwells(raw.astype(np.int32), fs=100)
     assert len(ds) <= 12
@@ -324,8 +296,8 @@ def test_mpu6050_few_poses_reported_weak():
 
 
 def test_imucal_six_faces_needs_diag():
-    x = np.loadtxt(DATA / "imucal" / "example_ferraris_session.csv", delimiter=",", skiprows=1)
-    sec = json.loads((DATA / "imucal" / "example_ferraris_session_list.json").read_text())
+    x = np.loadtxt(shared_data("imucal", "example_ferraris_session.csv"), delimiter=",", skiprows=1)
+    sec = json.loads(shared_data("imucal", "example_ferraris_session_list.json").read_text())
     b = [[v["start"], v["end"]] for k, v in sec.items() if not k.endswith("rot")]
     ds = ac.dwell_stats(x[:, 4:7], b, fs=102.4)
     with pytest.raises(DegenerateDataError, match="diag"):

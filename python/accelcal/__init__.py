@@ -12,11 +12,20 @@ from ._core import CalibrationError, DegenerateDataError
 from .centrifuge import (
     CentrifugeFit,
     CentrifugeOutlierWarning,
-    CentrifugeSensitivity,
     calibrate_centrifuge_table,
-    centrifuge_sensitivity,
     fit_centrifuge,
     read_centrifuge_table,
+)
+from .design import (
+    CentrifugeSensitivity,
+    PosePlan,
+    Prediction,
+    StartupPrediction,
+    centrifuge_sensitivity,
+    plan_azimuths,
+    plan_poses,
+    predict_accuracy,
+    predict_startup_accuracy,
 )
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from .gap import GapReport, allan_deviation, diagnose
@@ -25,25 +34,18 @@ from .gradiometer import (
     Demodulated,
     StartupBias,
     StartupCalibration,
-    StartupPrediction,
     calibrate_gradiometer_table,
     demodulate,
-    plan_azimuths,
-    predict_startup_accuracy,
     startup_bias,
 )
 from .static import (
     BatchFit,
-    PosePlan,
-    Prediction,
     StaticFit,
     TriadModel,
     WeakDesignWarning,
     fit_static,
     fit_static_batch,
     local_gravity,
-    plan_poses,
-    predict_accuracy,
 )
 
 __version__ = "0.1.0"

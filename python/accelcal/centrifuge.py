@@ -23,15 +23,152 @@ from . import _core
 from ._core import CalibrationError
 
 __all__ = [
+    "EARTH_RATE",
+    "SEED004_TRUTH",
+    "CentrifugeDesign",
+    "centrifuge_outputs",
+    "paper_design",
+    "paper_positions",
     "CentrifugeFit",
     "CentrifugeOutlierWarning",
-    "CentrifugeSensitivity",
     "CentrifugeTable",
     "calibrate_centrifuge_table",
-    "centrifuge_sensitivity",
     "fit_centrifuge",
     "read_centrifuge_table",
 ]
+
+# ------------------------------------------------------------------------------------------
+# Forward model of a centrifuge test (deterministic physics; the simulator adds noise)
+# ------------------------------------------------------------------------------------------
+#: Earth rotation rate (rad/s).
+EARTH_RATE = 7.2921150e-5
+
+#: Truth of the seed-004 simulation (SPEC 2).
+SEED004_TRUTH: dict[str, NDArray[np.float64]] = {
+    "scale": np.array([1.29, 1.21, 1.26]),
+    "bias": np.array([0.213, 0.256, 0.516]),
+    "k2": np.array([0.57e-4, 0.31e-4, 0.45e-4]),
+}
+
+
+@dataclass(frozen=True)
+class CentrifugeDesign:
+    """Positions x speeds of a centrifuge test.
+
+    Attributes
+    ----------
+    omega : ndarray (k,)
+        Spin rate per row (rad/s).
+    radial : ndarray (k, 3)
+        Inward radial unit vector in the body frame per row.
+    spin_axis : ndarray (k, 3)
+        Spin-axis (up) unit vector in the body frame per row.
+    position : ndarray (k,) int
+        Position number (1-based).
+    speed_index : ndarray (k,) int
+        Speed number (1-based).
+    radius : float
+        Nominal radius (m).
+    """
+
+    omega: NDArray[np.float64]
+    radial: NDArray[np.float64]
+    spin_axis: NDArray[np.float64]
+    position: NDArray[np.int64]
+    speed_index: NDArray[np.int64]
+    radius: float = 1.0
+
+    def __len__(self) -> int:
+        return int(self.omega.shape[0])
+
+
+def paper_positions() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The paper's 20 positions: (radial (20, 3), spin_axis (20, 3)) body-frame unit vectors."""
+    rad = np.empty((20, 3))
+    up = np.empty((20, 3))
+    k = 0
+    for a_deg in (0.0, 45.0, 90.0, 135.0, 180.0):
+        a = np.radians(a_deg)
+        for t_deg in (180.0, 120.0, 60.0, 0.0):
+            t = np.radians(t_deg)
+            rad[k] = (np.cos(a) * np.cos(t), -np.sin(a), -np.cos(a) * np.sin(t))
+            up[k] = (np.sin(t), 0.0, np.cos(t))
+            k += 1
+    rad[np.abs(rad) < 1e-15] = 0.0
+    up[np.abs(up) < 1e-15] = 0.0
+    return rad, up
+
+
+def paper_design(
+    omegas: Any = (2 * np.pi, 4 * np.pi, 6 * np.pi), radius: float = 1.0
+) -> CentrifugeDesign:
+    """The seed paper's 20-position x 3-speed design (rows ordered speed-major like Table 1)."""
+    om = np.asarray(omegas, dtype=np.float64).ravel()
+    rad, up = paper_positions()
+    n = len(om)
+    return CentrifugeDesign(
+        omega=np.repeat(om, 20),
+        radial=np.tile(rad, (n, 1)),
+        spin_axis=np.tile(up, (n, 1)),
+        position=np.tile(np.arange(1, 21), n),
+        speed_index=np.repeat(np.arange(1, n + 1), 20),
+        radius=float(radius),
+    )
+
+
+def _vec3(x: Any, name: str, default: Any) -> NDArray[np.float64]:
+    a = np.asarray(default if x is None else x, dtype=np.float64)
+    if a.shape != (3,):
+        raise CalibrationError(f"{name} must have 3 values (x, y, z); got shape {a.shape}")
+    return a
+
+
+def centrifuge_outputs(
+    design: CentrifugeDesign,
+    *,
+    scale: Any = None,
+    bias: Any = None,
+    k2: Any = None,
+    k3: Any = None,
+    misalignment: Any = None,
+    lever_arm: Any = None,
+    radius_error: float = 0.0,
+    rate_error: float = 0.0,
+    latitude_deg: float | None = None,
+    g: float = 9.8,
+) -> NDArray[np.float64]:
+    """Noise-free outputs (k, 3) in g of a triad on ``design`` (see :func:`centrifuge_session`)."""
+    s = _vec3(scale, "scale", SEED004_TRUTH["scale"])
+    b = _vec3(bias, "bias", SEED004_TRUTH["bias"])
+    d = _vec3(k2, "k2", SEED004_TRUTH["k2"])
+    e = _vec3(k3, "k3", np.zeros(3))
+    m = np.zeros((3, 3)) if misalignment is None else np.asarray(misalignment, dtype=np.float64)
+    if m.shape != (3, 3):
+        raise CalibrationError(f"misalignment must be a (3, 3) small-angle matrix; got {m.shape}")
+    phi = np.eye(3) + m - np.diag(np.diag(m))
+    lev = np.zeros((3, 3)) if lever_arm is None else np.asarray(lever_arm, dtype=np.float64)
+    if lev.shape != (3, 3):
+        raise CalibrationError(
+            "lever_arm must be (3, 3): row i = body-frame offset (m) of accelerometer i; "
+            f"got {lev.shape}"
+        )
+    w = design.omega * (1.0 + rate_error)
+    if latitude_deg is not None:
+        w = w + np.sign(w) * EARTH_RATE * np.sin(np.radians(latitude_deg))
+    r_true = design.radius + radius_error
+    a = w**2 * r_true / g
+    c1, c3 = design.radial, design.spin_axis
+    f0 = a[:, None] * c1 + c3
+    # Accelerometer i at offset r_i sees -(w^2/g) (I - c3 c3^T) r_i more specific force.
+    f = np.empty_like(f0)
+    for i in range(3):
+        r = lev[i]
+        proj = r[i] - c3[:, i] * (c3 @ r)
+        f[:, i] = f0[:, i] - (w**2 / g) * proj
+    h = f + d * f**2 + e * f**3
+    return np.asarray((h @ phi.T) * s + b, dtype=np.float64)
+
+
 
 _PAPER_TABLE2 = {
     "k2": np.array([5.700684e-5, 3.100221e-5, 4.500459e-5]),
@@ -392,136 +529,6 @@ def calibrate_centrifuge_table(
 
 
 # --------------------------------------------------------------------------- sensitivity
-
-
-@dataclass(frozen=True)
-class CentrifugeSensitivity:
-    """Parameter shifts caused by an unmodelled error source.
-
-    Attributes
-    ----------
-    source : str
-    magnitudes : ndarray (m,)
-    names : list of str
-        ``sx, sy, sz, bx, by, bz, k2x, k2y, k2z``.
-    shifts : ndarray (m, 9)
-        Fitted minus fitted-without-the-error (so the method's own bias cancels).
-    baseline : ndarray (9,)
-        Fit on the error-free outputs.
-    method : str
-    """
-
-    source: str
-    magnitudes: NDArray[np.float64]
-    names: list[str]
-    shifts: NDArray[np.float64]
-    baseline: NDArray[np.float64]
-    method: str
-
-    def table(self) -> str:
-        """Text table: one row per magnitude."""
-        head = f"{'magnitude':>10} " + " ".join(f"{n:>10}" for n in self.names)
-        lines = [f"source {self.source} ({self.method})", head]
-        for m, row in zip(self.magnitudes, self.shifts, strict=True):
-            lines.append(f"{m:>10.3g} " + " ".join(f"{v:>10.3g}" for v in row))
-        return "\n".join(lines)
-
-
-SENSITIVITY_SOURCES = (
-    "misalignment",
-    "lever_along_x", "lever_along_y", "lever_along_z",
-    "lever_<accel>_<dir>  (accel, dir in x, y, z; e.g. lever_x_z: x accelerometer moved along z)",
-    "radius", "rate", "earth_rate",
-)
-
-
-def _error_kwargs(source: str, mag: float) -> dict[str, Any]:
-    axes = "xyz"
-    if source == "misalignment":
-        gm = mag
-        return {"misalignment": np.array([[0, -gm, gm], [gm, 0, -gm], [-gm, gm, 0]], float)}
-    parts = source.split("_")
-    if len(parts) == 3 and parts[0] == "lever":
-        if parts[1] == "along" and parts[2] in axes:
-            i = j = axes.index(parts[2])
-        elif parts[1] in axes and parts[2] in axes:
-            i, j = axes.index(parts[1]), axes.index(parts[2])
-        else:
-            raise CalibrationError(f"unknown lever-arm source {source!r}")
-        lev = np.zeros((3, 3))
-        lev[i, j] = mag
-        return {"lever_arm": lev}
-    if source == "radius":
-        return {"radius_error": mag}
-    if source == "rate":
-        return {"rate_error": mag}
-    if source == "earth_rate":
-        return {"latitude_deg": mag}
-    raise CalibrationError(f"unknown error source {source!r}; choose from {SENSITIVITY_SOURCES}")
-
-
-def centrifuge_sensitivity(
-    design: Any = None,
-    truth: dict[str, Any] | None = None,
-    source: str = "lever_along_x",
-    magnitudes: Any = (0.02,),
-    *,
-    method: str = "taylor-paper",
-    g: float = 9.8,
-) -> CentrifugeSensitivity:
-    """Shift of the fitted S, b, K2 caused by an error source the fit does not model.
-
-    Parameters
-    ----------
-    design : CentrifugeDesign, optional
-        Default: the paper's 20 positions x 3 speeds, R = 1 m.
-    truth : dict, optional
-        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the seed-004 truth.
-    source : str
-        ``misalignment`` (all six paper angles = magnitude, rad); ``lever_along_<axis>``
-        (accelerometer <axis> displaced along its own axis, m); ``lever_<accel>_<dir>``
-        (accelerometer <accel> displaced along body axis <dir>, m; in the paper's design the
-        body y axis is always horizontal, so e.g. ``lever_x_y`` has exactly no first-order
-        effect while ``lever_x_z`` does); ``radius`` (true - nominal, m); ``rate`` (relative
-        rate error); ``earth_rate`` (magnitude = latitude, deg).
-    magnitudes : array_like (m,)
-    method : {"taylor-paper", "nls"}
-        The paper's analysis (Table 3 / Fig. 4) used its closed form: the default.
-    g : float
-        Gravity (m/s^2) of the simulation and the fit.
-
-    Returns
-    -------
-    CentrifugeSensitivity
-    """
-    from .sim_centrifuge import SEED004_TRUTH, centrifuge_outputs, paper_design
-
-    des = design if design is not None else paper_design()
-    tr = dict(SEED004_TRUTH)
-    if truth:
-        tr.update({k: np.asarray(v, float) for k, v in truth.items()})
-    kw: dict[str, Any] = {"scale": tr["scale"], "bias": tr["bias"], "k2": tr["k2"], "g": g}
-    mags = np.atleast_1d(np.asarray(magnitudes, dtype=np.float64))
-    _error_kwargs(source, 0.0)  # validate the name first
-
-    def run(n: NDArray[np.float64]) -> NDArray[np.float64]:
-        d = _core.centrifuge_fit_raw(
-            np.ascontiguousarray(n), des.omega, des.radius, g, method, False, False, None,
-            None, None, False, 5.0, 1e-9, 0, 0,
-        )
-        return np.asarray(d["params"])
-
-    base = run(centrifuge_outputs(des, **kw))
-    shifts = np.array([run(centrifuge_outputs(des, **kw, **_error_kwargs(source, m))) - base
-                       for m in mags])
-    return CentrifugeSensitivity(
-        source=source,
-        magnitudes=mags,
-        names=["sx", "sy", "sz", "bx", "by", "bz", "k2x", "k2y", "k2z"],
-        shifts=shifts,
-        baseline=base,
-        method=method,
-    )
 
 
 def paper_table2() -> dict[str, NDArray[np.float64]]:

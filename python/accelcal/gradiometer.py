@@ -31,11 +31,8 @@ __all__ = [
     "Demodulated",
     "StartupBias",
     "StartupCalibration",
-    "StartupPrediction",
     "calibrate_gradiometer_table",
     "demodulate",
-    "plan_azimuths",
-    "predict_startup_accuracy",
     "startup_bias",
 ]
 
@@ -296,174 +293,6 @@ def startup_bias(
 # ------------------------------------------------------------------------------------------
 # Sequence design
 # ------------------------------------------------------------------------------------------
-def plan_azimuths(m: int, drift: bool = False) -> _F64:
-    """Azimuth sequence (deg, in [0, 180)) of ``m`` dwells minimising the bias variance.
-
-    Without drift: the balanced set ``theta_k = 180 k / m`` (``sum exp(2i theta_k) = 0``), for
-    which the bias is the plain mean and ``Var(bias_j) = sigma^2 / m``. With drift: a
-    palindromic (time-symmetric, return-to-start) sequence, which with equally spaced dwells
-    decorrelates the drift from bias and gradient; for even ``m`` it repeats a balanced set
-    forwards then backwards (ABBA for ``m = 4``), for odd ``m >= 5`` the angles are chosen so the
-    set is still balanced; ``m = 3`` gives 0/90/0 (bias variance 3/8).
-    """
-    if isinstance(m, bool) or int(m) != m:
-        raise CalibrationError(f"m must be an integer number of dwells; got {m!r}")
-    m = int(m)
-    if not drift:
-        if m < 2:
-            raise DegenerateDataError(
-                "at least 2 azimuths 90 deg apart are needed to separate bias and gradient"
-            )
-        return 180.0 * np.arange(m) / m
-    if m < 3:
-        raise DegenerateDataError(
-            "the drift model needs at least 3 dwells (e.g. the return-to-start sequence 0/90/0)"
-        )
-    if m == 3:
-        return np.array([0.0, 90.0, 0.0])
-    if m % 2 == 0:
-        half = 180.0 * np.arange(m // 2) / (m // 2)
-        return np.concatenate([half, half[::-1]])
-    # Odd m = 2n + 1: pairs (2 theta = +-alpha) plus a centre at 0 deg, balanced:
-    # 2 sum(pairs) + 1 = 0.
-    n = (m - 1) // 2
-    if n % 2 == 0:
-        alpha = np.degrees(np.arccos(-1.0 / (2 * n)))
-        pairs2 = np.tile([alpha, -alpha], n // 2)
-    else:
-        alpha = np.degrees(np.arccos(1.0 / (2 * (n - 1))))
-        pairs2 = np.concatenate([[180.0], np.tile([alpha, -alpha], (n - 1) // 2)])
-    pairs = np.mod(pairs2 / 2.0, 180.0)
-    return np.concatenate([pairs, [0.0], pairs[::-1]])
-
-
-@dataclass(frozen=True)
-class StartupPrediction:
-    """Predicted accuracy of a start-up sequence before it is run.
-
-    Attributes
-    ----------
-    covariance : (p, p)
-        From the noise alone (``sigma`` per average), order ``[bias_I, bias_C, I, C, (drift)]``.
-    azimuth_covariance : (p, p)
-        From independent azimuth errors ``sigma_theta`` (first order).
-    total_covariance : (p, p)
-        Their sum.
-    std : (p,)
-        Square roots of the total covariance diagonal.
-    closed_form_variance : float
-        SPEC 3 closed form ``sigma^2 m / (m^2 - |U|^2)`` (equal weights, no drift).
-    condition : float
-        Condition number of the design.
-    """
-
-    covariance: _F64
-    azimuth_covariance: _F64
-    total_covariance: _F64
-    std: _F64
-    closed_form_variance: float
-    condition: float
-    names: tuple[str, ...]
-
-    @property
-    def bias_std(self) -> _F64:
-        """Predicted std of the bias, E."""
-        return self.std[:2]
-
-    @property
-    def gradient_std(self) -> _F64:
-        """Predicted std of the gradient, E."""
-        return self.std[2:4]
-
-    @property
-    def drift_std(self) -> _F64 | None:
-        """Predicted std of the drift, E/s (drift model only)."""
-        return self.std[4:6] if self.std.size == 6 else None
-
-
-def predict_startup_accuracy(
-    azimuths: ArrayLike,
-    times: ArrayLike | None = None,
-    sigma: float | ArrayLike = 1.0,
-    sigma_theta: float = 0.0,
-    *,
-    gradient: float | ArrayLike | None = None,
-    drift: bool | None = None,
-    t_ref: float | None = None,
-) -> StartupPrediction:
-    """Covariance of the start-up estimate for a planned sequence.
-
-    Parameters
-    ----------
-    azimuths : (m,) float
-        Planned azimuths, deg.
-    times : (m,) float, optional
-        Planned dwell mid times, s; the drift model is used when given (unless ``drift``).
-    sigma : float or (m,) float
-        Noise std of one average, E.
-    sigma_theta : float
-        Std of independent azimuth errors, deg (a common offset does not affect the bias).
-    gradient : float or (2,) float, optional
-        Navigation-frame gradient ``(I, C)`` in E for the exact azimuth-error effect, or its
-        magnitude (effect averaged over the direction: ``Var(bias_j) ~ 2 sigma_theta^2
-        |gamma|^2 / m`` for balanced sets). Required when ``sigma_theta > 0``.
-    drift : bool, optional
-        Force the drift model on or off (default: on when ``times`` are given).
-    t_ref : float, optional
-        Reference time of the bias with drift (default the mean time).
-    """
-    az = _azimuths(azimuths)
-    m = az.size
-    tt = _times(times, m, "times")
-    use_drift = tt is not None if drift is None else bool(drift)
-    if use_drift and tt is None:
-        raise CalibrationError("the drift model needs the planned dwell times")
-    sd = _dwell_std(sigma, m)
-    st = float(sigma_theta)
-    if not np.isfinite(st) or st < 0:
-        raise CalibrationError("sigma_theta must be >= 0 (deg)")
-    gvec = None
-    gmag = 0.0
-    if gradient is not None:
-        g = np.asarray(gradient, dtype=np.float64).reshape(-1)
-        if g.size == 1:
-            gmag = float(abs(g[0]))
-        elif g.size == 2:
-            gvec = [float(g[0]), float(g[1])]
-        else:
-            raise CalibrationError("gradient must be a magnitude or (I, C) in E")
-    elif st > 0:
-        raise CalibrationError(
-            "sigma_theta > 0 needs the gradient (E): its effect on the bias scales with |gamma|"
-        )
-    tref = 0.0
-    if use_drift:
-        assert tt is not None
-        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
-    raw = _core.startup_predict_raw(
-        np.radians(az),
-        sd,
-        tt if use_drift else None,
-        tref,
-        gvec,
-        gmag,
-        np.radians(st),
-    )
-    cov = np.asarray(raw["unit_cov"])
-    tcov = np.asarray(raw["theta_cov"])
-    tot = cov + tcov
-    p = cov.shape[0]
-    return StartupPrediction(
-        covariance=cov,
-        azimuth_covariance=tcov,
-        total_covariance=tot,
-        std=np.sqrt(np.diag(tot)),
-        closed_form_variance=float(np.mean(sd) ** 2 * raw["closed_form"]),
-        condition=float(raw["condition"]),
-        names=PARAM_NAMES[:p],
-    )
-
-
 # ------------------------------------------------------------------------------------------
 # 2-omega demodulation
 # ------------------------------------------------------------------------------------------
@@ -580,21 +409,6 @@ def demodulate(
         nuisance=d["nuisance"],
         t=tm,
     )
-
-
-def demodulate_reference(
-    accel: ArrayLike, phase: ArrayLike, start: int, stop: int, radius_m: float
-) -> tuple[float, float]:
-    """Slow pure-NumPy reference of :func:`demodulate` on samples ``[start, stop)``."""
-    a = np.asarray(accel, dtype=np.float64)[start:stop]
-    ph = np.asarray(phase, dtype=np.float64)[start:stop]
-    d = (a[:, 0] + a[:, 2]) - (a[:, 1] + a[:, 3])
-    x = np.column_stack(
-        [np.ones_like(ph), np.cos(ph), np.sin(ph), np.cos(2 * ph), np.sin(2 * ph)]
-    )
-    beta = np.linalg.lstsq(x, d - d[0], rcond=None)[0]
-    g = 1.0 / (4.0 * radius_m * 1e-9)
-    return float(beta[4] * g), float(-beta[3] * g)
 
 
 # ------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ import json
 import math
 import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
@@ -31,29 +31,25 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._core import CalibrationError, DegenerateDataError
+from ._core import CalibrationError
 from ._files import atomic_write
+from ._triad import PARAM_NAMES
+from ._triad import k_matrix as _k_matrix
+from ._triad import n_params as _n_params
 from ._validate import samples_array
 from .dwell import DwellSet
-from .sim_static import attitudes_to_force
 
 __all__ = [
     "PARAM_NAMES",
     "BatchFit",
-    "PosePlan",
-    "Prediction",
     "StaticFit",
     "TriadModel",
     "WeakDesignWarning",
     "fit_static",
     "fit_static_batch",
     "local_gravity",
-    "plan_poses",
-    "predict_accuracy",
 ]
 
-PARAM_NAMES = ("sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3")
-_MODELS = ("lower", "diag", "upper")
 _METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
 
 
@@ -61,23 +57,6 @@ class WeakDesignWarning(UserWarning):
     """The dwells determine the parameters only weakly (large predicted std)."""
 
 
-def _n_params(model: str) -> int:
-    if model not in _MODELS:
-        raise CalibrationError(
-            f"unknown model {model!r}; use 'lower' (9 parameters, seed 000), 'diag' (6: bias + "
-            "scale) or 'upper' (9, imu_tk's triangle)"
-        )
-    return 6 if model == "diag" else 9
-
-
-def _k_matrix(v: NDArray[np.float64], model: str) -> NDArray[np.float64]:
-    sx, sy, sz = v[0], v[1], v[2]
-    if model == "diag":
-        return np.diag([sx, sy, sz])
-    m1, m2, m3 = v[6], v[7], v[8]
-    if model == "upper":
-        return np.array([[sx, m1, m2], [0.0, sy, m3], [0.0, 0.0, sz]])
-    return np.array([[sx, 0.0, 0.0], [m1, sy, 0.0], [m2, m3, sz]])
 
 
 def _check_g(g: Any, check: bool) -> float:
@@ -746,223 +725,3 @@ def local_gravity(lat_deg: float, height_m: float = 0.0) -> float:
 
 
 # ------------------------------------------------------------------------------------------
-def _design_rows(
-    force: NDArray[np.float64], v: NDArray[np.float64], model: str, sigma: float
-) -> NDArray[np.float64]:
-    """Whitened Jacobian rows d|a|/dtheta at true force ``force`` (n, 3), truth ``v``."""
-    K = _k_matrix(v, model)
-    T = np.linalg.inv(K)
-    na = np.linalg.norm(force, axis=1, keepdims=True)
-    w = (force / na) @ T  # rows: (T^T u)^T
-    sr = sigma * np.linalg.norm(w, axis=1)
-    cols = [
-        -w[:, 0] * force[:, 0],
-        -w[:, 1] * force[:, 1],
-        -w[:, 2] * force[:, 2],
-        -w[:, 0],
-        -w[:, 1],
-        -w[:, 2],
-    ]
-    if model == "lower":
-        cols += [-w[:, 1] * force[:, 0], -w[:, 2] * force[:, 0], -w[:, 2] * force[:, 1]]
-    elif model == "upper":
-        cols += [-w[:, 0] * force[:, 1], -w[:, 0] * force[:, 2], -w[:, 1] * force[:, 2]]
-    return np.stack(cols, axis=1) / sr[:, None]
-
-
-def _default_truth(model: str, truth: ArrayLike | None) -> NDArray[np.float64]:
-    p = _n_params(model)
-    if truth is None:
-        return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])[:p]
-    v = np.asarray(truth, dtype=np.float64).reshape(-1)
-    if v.size < p:
-        raise CalibrationError(f"truth needs {p} values for model {model!r}")
-    return v[:p]
-
-
-@dataclass
-class Prediction:
-    """Cramer-Rao bound of a pose design: ``std`` (p,) and ``covariance`` (p, p) in output
-    units, ``singular`` when some combination is undetermined (``combination`` names it)."""
-
-    names: tuple[str, ...]
-    std: NDArray[np.float64]
-    covariance: NDArray[np.float64]
-    singular: bool
-    combination: str
-    condition: float
-
-    def table(self) -> str:
-        return "\n".join(f"  {n:<4} +-{s:.3g}" for n, s in zip(self.names, self.std, strict=True))
-
-
-def _describe(v: NDArray[np.float64]) -> str:
-    vmax = np.max(np.abs(v))
-    i0 = int(np.argmax(np.abs(v)))
-    sgn = np.sign(v[i0])
-    order = np.argsort(-np.abs(v))
-    parts = []
-    for j, i in enumerate(order):
-        if abs(v[i]) < 0.1 * vmax:
-            break
-        c = sgn * v[i] / vmax
-        nm = PARAM_NAMES[i] + ("/g" if 3 <= i < 6 else "")
-        coef = "" if abs(abs(c) - 1) < 5e-3 else f"{abs(c):.2f} "
-        sign = ("-" if c < 0 else "") if j == 0 else (" - " if c < 0 else " + ")
-        parts.append(f"{sign}{coef}{nm}")
-    return "".join(parts)
-
-
-def predict_accuracy(
-    attitudes: ArrayLike,
-    sigma: float,
-    model: str = "lower",
-    *,
-    g: float = 9.80665,
-    truth: ArrayLike | None = None,
-) -> Prediction:
-    """Cramer-Rao bound of a pose design before any test is run.
-
-    Parameters
-    ----------
-    attitudes : (n, 2) platform tilts (tx, ty) in degrees, or (n, 3) gravity directions
-    sigma : std of each dwell mean per axis (output units)
-    model : "lower", "diag" or "upper";  g : gravity (units of the calibrated output)
-    truth : parameter vector at which to evaluate (default K = I, b = 0)
-    """
-    s = float(sigma)
-    if not (s > 0 and math.isfinite(s)):
-        raise CalibrationError("sigma must be positive and finite")
-    v = _default_truth(model, truth)
-    force = attitudes_to_force(attitudes, float(g))
-    J = _design_rows(force, v, model, s)
-    p = J.shape[1]
-    names = PARAM_NAMES[:p]
-    D = np.ones(p)
-    D[3:6] = float(g)
-    Jc = J * D
-    if J.shape[0] < p:
-        return Prediction(
-            names, np.full(p, np.inf), np.full((p, p), np.inf), True,
-            f"too few poses ({J.shape[0]} < {p})", np.inf,
-        )
-    _, sv, vt = np.linalg.svd(Jc, full_matrices=False)
-    cond = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
-    singular = not sv[-1] > 1e-9 * sv[0]
-    comb = _describe(vt[-1])
-    if singular:
-        cov = np.full((p, p), np.inf)
-    else:
-        cc = (vt.T / sv**2) @ vt
-        cov = cc * np.outer(D, D)
-    return Prediction(names, np.sqrt(np.diag(cov)), cov, singular, comb, float(cond))
-
-
-@dataclass
-class PosePlan:
-    """D-optimal pose set from :func:`plan_poses`.
-
-    tilts_deg : (n, 2) platform tilts (tx, ty), or None for the full sphere;
-    directions : (n, 3) unit gravity directions in the sensor frame;
-    prediction : Cramer-Rao bound of the plan; logdet : log det of the information matrix.
-    """
-
-    tilts_deg: NDArray[np.float64] | None
-    directions: NDArray[np.float64]
-    prediction: Prediction
-    logdet: float
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def std(self) -> NDArray[np.float64]:
-        return self.prediction.std
-
-    @property
-    def attitudes(self) -> NDArray[np.float64]:
-        return self.tilts_deg if self.tilts_deg is not None else self.directions
-
-
-def _fibonacci_sphere(n: int) -> NDArray[np.float64]:
-    i = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * i / n
-    r = np.sqrt(1.0 - z * z)
-    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def _fedorov(
-    F: NDArray[np.float64], n: int, gen: np.random.Generator
-) -> tuple[NDArray[np.int64], float]:
-    """Fedorov exchange for D-optimality over candidate rows F (C, p); repeats allowed."""
-    C, p = F.shape
-    idx = gen.choice(C, size=n, replace=C < n)
-    ridge = 1e-10 * np.trace(F.T @ F) / C
-    for _ in range(200):
-        M = F[idx].T @ F[idx] + ridge * np.eye(p)
-        Mi = np.linalg.inv(M)
-        G = F @ Mi  # (C, p)
-        dc = np.einsum("ij,ij->i", G, F)  # d(c)
-        di = dc[idx]  # d(i)
-        dic = G[idx] @ F.T  # (n, C): d(i, c)
-        delta = (1 + dc[None, :]) * (1 - di[:, None]) + dic**2 - 1
-        i, c = np.unravel_index(int(np.argmax(delta)), delta.shape)
-        if delta[i, c] <= 1e-10:
-            break
-        idx[i] = c
-    M = F[idx].T @ F[idx]
-    sign, logdet = np.linalg.slogdet(M)
-    return idx, float(logdet) if sign > 0 else -np.inf
-
-
-def plan_poses(
-    n: int,
-    max_tilt_deg: float | None = 30.0,
-    *,
-    sigma: float = 1e-3,
-    model: str = "lower",
-    g: float = 9.80665,
-    truth: ArrayLike | None = None,
-    grid_step_deg: float | None = None,
-    restarts: int = 4,
-    rng: int | np.random.Generator | None = 0,
-) -> PosePlan:
-    """Choose ``n`` attitudes minimising the predicted covariance (D-optimal).
-
-    ``max_tilt_deg`` bounds both tilts of a two-axis platform (candidates on a grid of
-    ``grid_step_deg``, default max_tilt/20; 90 therefore reaches only the upper hemisphere
-    with z up or level); ``None`` plans over the whole sphere (2000
-    near-uniform directions). Returns the plan with the Cramer-Rao std of every parameter
-    for dwell-mean noise ``sigma`` (output units). Attitudes may repeat (that is what a
-    D-optimal design does when n exceeds the number of distinct useful poses).
-    """
-    p = _n_params(model)
-    if int(n) < p:
-        raise DegenerateDataError(f"{n} poses cannot determine {p} parameters (need >= {p})")
-    v = _default_truth(model, truth)
-    gen = np.random.default_rng(rng)
-    if max_tilt_deg is None:
-        cand_dirs = _fibonacci_sphere(2000)
-        tilts = None
-        force = g * cand_dirs
-    else:
-        mt = float(max_tilt_deg)
-        if not (0 < mt <= 90):
-            raise CalibrationError("max_tilt_deg must be in (0, 90] (None for the full sphere)")
-        step = grid_step_deg or mt / 20.0
-        ax = np.arange(-mt, mt + 1e-9, step)
-        tx, ty = np.meshgrid(ax, ax, indexing="ij")
-        tilts = np.stack([tx.ravel(), ty.ravel()], axis=1)
-        force = attitudes_to_force(tilts, g)
-        cand_dirs = force / g
-    F = _design_rows(force, v, model, float(sigma))
-    best: tuple[NDArray[np.int64], float] | None = None
-    for _ in range(max(1, int(restarts))):
-        idx, ld = _fedorov(F, int(n), gen)
-        if best is None or ld > best[1]:
-            best = (idx.copy(), ld)
-    assert best is not None
-    idx = best[0]
-    dirs = cand_dirs[idx]
-    tl = None if tilts is None else tilts[idx]
-    pred = predict_accuracy(dirs, sigma, model, g=g, truth=v)
-    return PosePlan(tl, dirs, pred, best[1], {"candidates": F.shape[0], "model": model})

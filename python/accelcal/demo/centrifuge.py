@@ -8,17 +8,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .centrifuge import (
+from ..centrifuge import (
     CentrifugeOutlierWarning,
-    centrifuge_sensitivity,
     fit_centrifuge,
     paper_table2,
     read_centrifuge_table,
 )
-from .sim_centrifuge import SEED004_TRUTH, centrifuge_session
+from ..design import centrifuge_sensitivity
+from ..sim.centrifuge import SEED004_TRUTH, centrifuge_session
 
 _SEED_DIRS = (
-    Path(__file__).resolve().parents[3] / "shared" / "data" / "seed004",
+    Path(__file__).resolve().parents[4] / "shared" / "data" / "seed004",
     Path.cwd().parent / "shared" / "data" / "seed004",
 )
 

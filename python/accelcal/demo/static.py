@@ -7,9 +7,9 @@ import warnings
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ._core import CalibrationError
-from .dwell import DwellSet
-from .static import StaticFit, WeakDesignWarning, fit_static
+from .._core import CalibrationError
+from ..dwell import DwellSet
+from ..static import StaticFit, WeakDesignWarning, fit_static
 
 __all__ = ["demo_section", "fit_section"]
 

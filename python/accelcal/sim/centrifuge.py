@@ -21,82 +21,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ._core import CalibrationError
-
-#: Earth rotation rate (rad/s).
-EARTH_RATE = 7.2921150e-5
-
-#: Truth of the seed-004 simulation (SPEC 2).
-SEED004_TRUTH: dict[str, NDArray[np.float64]] = {
-    "scale": np.array([1.29, 1.21, 1.26]),
-    "bias": np.array([0.213, 0.256, 0.516]),
-    "k2": np.array([0.57e-4, 0.31e-4, 0.45e-4]),
-}
-
-
-@dataclass(frozen=True)
-class CentrifugeDesign:
-    """Positions x speeds of a centrifuge test.
-
-    Attributes
-    ----------
-    omega : ndarray (k,)
-        Spin rate per row (rad/s).
-    radial : ndarray (k, 3)
-        Inward radial unit vector in the body frame per row.
-    spin_axis : ndarray (k, 3)
-        Spin-axis (up) unit vector in the body frame per row.
-    position : ndarray (k,) int
-        Position number (1-based).
-    speed_index : ndarray (k,) int
-        Speed number (1-based).
-    radius : float
-        Nominal radius (m).
-    """
-
-    omega: NDArray[np.float64]
-    radial: NDArray[np.float64]
-    spin_axis: NDArray[np.float64]
-    position: NDArray[np.int64]
-    speed_index: NDArray[np.int64]
-    radius: float = 1.0
-
-    def __len__(self) -> int:
-        return int(self.omega.shape[0])
-
-
-def paper_positions() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The paper's 20 positions: (radial (20, 3), spin_axis (20, 3)) body-frame unit vectors."""
-    rad = np.empty((20, 3))
-    up = np.empty((20, 3))
-    k = 0
-    for a_deg in (0.0, 45.0, 90.0, 135.0, 180.0):
-        a = np.radians(a_deg)
-        for t_deg in (180.0, 120.0, 60.0, 0.0):
-            t = np.radians(t_deg)
-            rad[k] = (np.cos(a) * np.cos(t), -np.sin(a), -np.cos(a) * np.sin(t))
-            up[k] = (np.sin(t), 0.0, np.cos(t))
-            k += 1
-    rad[np.abs(rad) < 1e-15] = 0.0
-    up[np.abs(up) < 1e-15] = 0.0
-    return rad, up
-
-
-def paper_design(
-    omegas: Any = (2 * np.pi, 4 * np.pi, 6 * np.pi), radius: float = 1.0
-) -> CentrifugeDesign:
-    """The seed paper's 20-position x 3-speed design (rows ordered speed-major like Table 1)."""
-    om = np.asarray(omegas, dtype=np.float64).ravel()
-    rad, up = paper_positions()
-    n = len(om)
-    return CentrifugeDesign(
-        omega=np.repeat(om, 20),
-        radial=np.tile(rad, (n, 1)),
-        spin_axis=np.tile(up, (n, 1)),
-        position=np.tile(np.arange(1, 21), n),
-        speed_index=np.repeat(np.arange(1, n + 1), 20),
-        radius=float(radius),
-    )
+from ..centrifuge import (
+    SEED004_TRUTH,
+    CentrifugeDesign,
+    _vec3,
+    centrifuge_outputs,
+    paper_design,
+)
 
 
 @dataclass(frozen=True)
@@ -128,59 +59,6 @@ class CentrifugeSession:
     speed_index: NDArray[np.int64]
     g: float
     truth: dict[str, Any] = field(default_factory=dict)
-
-
-def _vec3(x: Any, name: str, default: Any) -> NDArray[np.float64]:
-    a = np.asarray(default if x is None else x, dtype=np.float64)
-    if a.shape != (3,):
-        raise CalibrationError(f"{name} must have 3 values (x, y, z); got shape {a.shape}")
-    return a
-
-
-def centrifuge_outputs(
-    design: CentrifugeDesign,
-    *,
-    scale: Any = None,
-    bias: Any = None,
-    k2: Any = None,
-    k3: Any = None,
-    misalignment: Any = None,
-    lever_arm: Any = None,
-    radius_error: float = 0.0,
-    rate_error: float = 0.0,
-    latitude_deg: float | None = None,
-    g: float = 9.8,
-) -> NDArray[np.float64]:
-    """Noise-free outputs (k, 3) in g of a triad on ``design`` (see :func:`centrifuge_session`)."""
-    s = _vec3(scale, "scale", SEED004_TRUTH["scale"])
-    b = _vec3(bias, "bias", SEED004_TRUTH["bias"])
-    d = _vec3(k2, "k2", SEED004_TRUTH["k2"])
-    e = _vec3(k3, "k3", np.zeros(3))
-    m = np.zeros((3, 3)) if misalignment is None else np.asarray(misalignment, dtype=np.float64)
-    if m.shape != (3, 3):
-        raise CalibrationError(f"misalignment must be a (3, 3) small-angle matrix; got {m.shape}")
-    phi = np.eye(3) + m - np.diag(np.diag(m))
-    lev = np.zeros((3, 3)) if lever_arm is None else np.asarray(lever_arm, dtype=np.float64)
-    if lev.shape != (3, 3):
-        raise CalibrationError(
-            "lever_arm must be (3, 3): row i = body-frame offset (m) of accelerometer i; "
-            f"got {lev.shape}"
-        )
-    w = design.omega * (1.0 + rate_error)
-    if latitude_deg is not None:
-        w = w + np.sign(w) * EARTH_RATE * np.sin(np.radians(latitude_deg))
-    r_true = design.radius + radius_error
-    a = w**2 * r_true / g
-    c1, c3 = design.radial, design.spin_axis
-    f0 = a[:, None] * c1 + c3
-    # Accelerometer i at offset r_i sees -(w^2/g) (I - c3 c3^T) r_i more specific force.
-    f = np.empty_like(f0)
-    for i in range(3):
-        r = lev[i]
-        proj = r[i] - c3[:, i] * (c3 @ r)
-        f[:, i] = f0[:, i] - (w**2 / g) * proj
-    h = f + d * f**2 + e * f**3
-    return np.asarray((h @ phi.T) * s + b, dtype=np.float64)
 
 
 def centrifuge_session(

@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from . import _core
-from ._core import CalibrationError
-from .dwell import DwellSet
+from .. import _core
+from .._core import CalibrationError
+from .._triad import fibonacci_sphere
+from ..dwell import DwellSet
 
 __all__ = ["DICTIONARY_EFFECTS", "GapSession", "OTHER_EFFECTS", "gap_session", "signal_strength"]
 
@@ -57,13 +58,6 @@ class GapSession:
     noise_scale: float
     meta: dict[str, Any] = field(default_factory=dict)
 
-
-def _fibonacci_sphere(n: int) -> NDArray[np.float64]:
-    i = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * i / n
-    phi = np.pi * (1.0 + 5**0.5) * i
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def _random_rotation(gen: np.random.Generator) -> NDArray[np.float64]:
@@ -158,7 +152,7 @@ def gap_session(
     n = n_dwells
     # Poses.
     if poses == "sphere":
-        dirs = _fibonacci_sphere(n) @ _random_rotation(gen).T
+        dirs = fibonacci_sphere(n) @ _random_rotation(gen).T
     elif poses == "faces":
         faces = np.vstack([np.eye(3), -np.eye(3)])
         dirs = faces[np.arange(n) % 6]

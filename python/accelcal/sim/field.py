@@ -8,32 +8,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._core import CalibrationError
+from .._core import CalibrationError
+from .._triad import gravity_from_tilts, k_matrix
 
-__all__ = ["SEED000_TRUTH", "FieldSession", "field_session", "gravity_from_tilts", "triad_matrix"]
+__all__ = ["SEED000_TRUTH", "FieldSession", "field_session", "gravity_from_tilts"]
 
 #: The seed's truth [sx, sy, sz, bx, by, bz, m1, m2, m3] (SPEC 1; b in m/s^2).
 SEED000_TRUTH: NDArray[np.float64] = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
 
-
-def triad_matrix(vector: ArrayLike) -> NDArray[np.float64]:
-    """K = S + M (lower triangular) from [sx, sy, sz, bx, by, bz, m1, m2, m3]."""
-    v = np.asarray(vector, dtype=np.float64)
-    sx, sy, sz = v[0:3]
-    m1, m2, m3 = (v[6:9] if v.size >= 9 else np.zeros(3))
-    return np.array([[sx, 0.0, 0.0], [m1, sy, 0.0], [m2, m3, sz]])
-
-
-def gravity_from_tilts(tx_rad: ArrayLike, ty_rad: ArrayLike, g: float) -> NDArray[np.float64]:
-    """Specific force at rest for platform tilts (SPEC 1).
-
-    Returns ``[-g sin ty, g sin tx cos ty, g cos tx cos ty]`` (m/s^2 when g is).
-    """
-    tx = np.asarray(tx_rad, dtype=np.float64)
-    ty = np.asarray(ty_rad, dtype=np.float64)
-    return np.stack(
-        [-g * np.sin(ty), g * np.sin(tx) * np.cos(ty), g * np.cos(tx) * np.cos(ty)], axis=-1
-    )
 
 
 @dataclass
@@ -123,7 +105,7 @@ def field_session(
         raise CalibrationError(
             f"truth must be the 9-vector [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {v.shape}"
         )
-    K = triad_matrix(v)
+    K = k_matrix(v, "lower")
     out = a @ K.T + v[3:6] + gen.normal(scale=sigma, size=(total, 3))
     t = np.arange(total) / fs
     return FieldSession(

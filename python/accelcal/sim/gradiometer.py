@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._core import CalibrationError
+from .._core import CalibrationError
 
 __all__ = ["GradiometerSession", "GradiometerTruth", "gradiometer_session"]
 

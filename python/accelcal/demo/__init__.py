@@ -12,12 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from .demo_centrifuge import demo_section as centrifuge_demo
-from .demo_gap import demo_section as gap_demo
-from .demo_gradiometer import demo_section as gradiometer_demo
-from .demo_static import fit_section as static_fit_section
-from .dwell import detect_dwells
-from .sim_field import field_session
+from ..dwell import detect_dwells
+from ..sim.field import field_session
+from .centrifuge import demo_section as centrifuge_demo
+from .gap import demo_section as gap_demo
+from .gradiometer import demo_section as gradiometer_demo
+from .static import fit_section as static_fit_section
 
 
 def field_section(*, quick: bool = False, seed: int = 0) -> str:
@@ -79,10 +79,10 @@ def _figures(out: str, dwells: Any, fit: Any, seed: int) -> str:
         return "figures skipped: install the plot extra (pip install 'accelcal[plot]')"
     import matplotlib.pyplot as plt
 
-    from .gap import diagnose
-    from .plots import poses_figure, save_figure, static_norm_figure
-    from .sim_gap import gap_session
-    from .static import plan_poses
+    from ..design import plan_poses
+    from ..gap import diagnose
+    from ..plots import poses_figure, save_figure, static_norm_figure
+    from ..sim.gap import gap_session
 
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)

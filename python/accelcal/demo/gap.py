@@ -6,8 +6,8 @@ import time
 
 import numpy as np
 
-from .gap import EFFECTS, diagnose
-from .sim_gap import DICTIONARY_EFFECTS, gap_session
+from ..gap import EFFECTS, diagnose
+from ..sim.gap import DICTIONARY_EFFECTS, gap_session
 
 
 def demo_section(rng_seed: int = 0) -> str:

@@ -6,8 +6,9 @@ import time
 
 import numpy as np
 
-from .gradiometer import demodulate, plan_azimuths, predict_startup_accuracy, startup_bias
-from .sim_gradiometer import gradiometer_session
+from ..design import plan_azimuths, predict_startup_accuracy
+from ..gradiometer import demodulate, startup_bias
+from ..sim.gradiometer import gradiometer_session
 
 __all__ = ["demo_section"]
 

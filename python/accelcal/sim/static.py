@@ -13,9 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._core import CalibrationError
-from .dwell import DwellSet
-from .sim_field import SEED000_TRUTH
+from .._core import CalibrationError
+from .._triad import attitudes_to_force, k_matrix
+from ..dwell import DwellSet
+from .field import SEED000_TRUTH
 
 __all__ = [
     "G0",
@@ -50,32 +51,6 @@ def sphere_attitudes(
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def attitudes_to_force(attitudes: ArrayLike, g: float) -> NDArray[np.float64]:
-    """Specific force at rest (n, 3) in m/s^2 from tilts (n, 2) deg or directions (n, 3)."""
-    a = np.asarray(attitudes, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] not in (2, 3):
-        raise CalibrationError(
-            f"attitudes must be tilts (n, 2) in degrees or unit directions (n, 3); got {a.shape}"
-        )
-    if not np.all(np.isfinite(a)):
-        raise CalibrationError("attitudes contain NaN or inf")
-    if a.shape[1] == 3:
-        nrm = np.linalg.norm(a, axis=1, keepdims=True)
-        if np.any(nrm == 0):
-            raise CalibrationError("a gravity direction is the zero vector")
-        return g * a / nrm
-    tx, ty = np.radians(a[:, 0]), np.radians(a[:, 1])
-    return np.stack(
-        [-g * np.sin(ty), g * np.sin(tx) * np.cos(ty), g * np.cos(tx) * np.cos(ty)], axis=1
-    )
-
-
-def _k_matrix(v: NDArray[np.float64], model: str) -> NDArray[np.float64]:
-    sx, sy, sz = v[:3]
-    m1, m2, m3 = v[6:9] if v.size >= 9 else (0.0, 0.0, 0.0)
-    if model == "upper":
-        return np.array([[sx, m1, m2], [0.0, sy, m3], [0.0, 0.0, sz]])
-    return np.array([[sx, 0.0, 0.0], [m1, sy, 0.0], [m2, m3, sz]])
 
 
 @dataclass
@@ -142,7 +117,7 @@ def static_dwell_means(
     else:
         att = np.asarray(n_or_attitudes, dtype=np.float64)
     a = attitudes_to_force(att, g)
-    K = _k_matrix(v, model)
+    K = k_matrix(v, model)
     means = a @ K.T + v[3:6] + gen.normal(0.0, sigma, size=a.shape)
     gm = float(g + gen.normal(0.0, sigma_g)) if sigma_g > 0 else float(g)
     return StaticSession(means, float(g), gm, a, att, v, float(sigma), model)

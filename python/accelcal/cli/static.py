@@ -1,0 +1,170 @@
+"""``calibrate static`` (static field calibration of a recording) and ``plan`` (pose design)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+import numpy as np
+
+from .._core import CalibrationError
+from ._common import (
+    _load_stream,
+    _need_plot,
+    _resolve_g,
+    _save_fig,
+    calibrate,
+    emit_json,
+    friendly,
+    gravity_options,
+    main,
+    recording_options,
+)
+
+
+@calibrate.command("static")
+@click.argument("file", type=click.Path())
+@gravity_options
+@recording_options
+@click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
+              show_default=True, help="9-parameter triangle or 6-parameter bias + scale.")
+@click.option("--method", type=click.Choice(["lm", "gauss-newton", "quadric", "linear-paper"]),
+              default="lm", show_default=True, help="Fit method (lm = maximum likelihood).")
+@click.option("--window", "window_s", type=float, default=1.0, show_default=True,
+              help="Dwell detector window, s.")
+@click.option("--k", "k_thr", type=float, default=6.0, show_default=True,
+              help="Dwell detector threshold factor (x noise variance).")
+@click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
+              help="Shortest dwell kept, s.")
+@click.option("--sensor-id", default="", help="Stored in the calibration file.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write the calibration (versioned JSON).")
+@click.option("--dwells-out", type=click.Path(dir_okay=False), default=None,
+              help="Write the dwell table (CSV).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Norm before/after and per-dwell residuals (PNG/PDF/SVG).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def calibrate_static(
+    file: str, g: float | None, lat: float | None, height: float, fs: float | None,
+    columns: str | None, model: str, method: str, window_s: float, k_thr: float,
+    min_dwell_s: float, sensor_id: str, output: str | None,
+    dwells_out: str | None, plot_path: str | None, as_json: bool,
+) -> None:
+    """Static field calibration: detect dwells, fit scale, bias and non-orthogonality."""
+    import datetime
+    import warnings
+
+    from .._core import DegenerateDataError
+    from ..dwell import detect_dwells
+    from ..static import fit_static
+
+    _need_plot(plot_path)
+    gv, g_src = _resolve_g(g, lat, height)
+    st = _load_stream(file, fs, columns)
+    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, window_s=window_s,
+                      k=k_thr, min_dwell_s=min_dwell_s)
+    if dwells_out:
+        d.to_csv(dwells_out)
+    notes: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            fit = fit_static(d, gv, model=model, method=method)
+        except DegenerateDataError as e:
+            hint = ""
+            if model != "diag" and "diag" not in str(e):
+                hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
+            raise CalibrationError(
+                f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
+                f"model: {e}.{hint}"
+            ) from None
+    for w in caught:
+        notes.append(str(w.message))
+    if output:
+        temp = None if d.temperature is None else float(np.mean(d.temperature))
+        meta = {"source": str(file), "n_dwells": len(d)}
+        fit.to_model(sensor_id=sensor_id, date=datetime.date.today().isoformat(),
+                     temperature=temp, metadata=meta).save(output)
+    if plot_path:
+        from ..plots import static_norm_figure
+
+        _save_fig(static_norm_figure(fit, d), plot_path)
+    if as_json:
+        out = fit.to_dict()
+        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file))
+        emit_json(out)
+        return
+    click.echo(f"{file}: {len(st.samples)} samples at {st.fs:g} Hz -> {len(d)} dwells")
+    click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
+    click.echo(fit.summary())
+    for n in notes:
+        click.echo(f"warning: {n}")
+    if output:
+        click.echo(f"wrote {output}")
+    if plot_path:
+        click.echo(f"wrote {plot_path}")
+
+
+@main.command()
+@click.option("--n", "n", type=int, required=True, help="Number of attitudes.")
+@click.option("--max-tilt", type=float, default=30.0, show_default=True,
+              help="Two-axis platform tilt limit, deg (use 180 for the full sphere).")
+@click.option("--sigma", type=float, default=1e-3, show_default=True,
+              help="Noise std of one dwell mean, m/s^2.")
+@click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
+              show_default=True)
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Planned attitudes on the sphere.")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | None,
+         as_json: bool) -> None:
+    """Plan n attitudes (D-optimal) and print the accuracy they predict."""
+    from ..design import plan_poses
+
+    _need_plot(plot_path)
+    mt = None if max_tilt >= 180 else max_tilt
+    p = plan_poses(n, mt, sigma=sigma, model=model)
+    if plot_path:
+        from ..plots import poses_figure
+
+        _save_fig(poses_figure(p), plot_path)
+    if as_json:
+        emit_json(_plan_dict(p, sigma, model))
+        return
+    click.echo(_plan_text(p, sigma, model))
+    if plot_path:
+        click.echo(f"wrote {plot_path}")
+
+
+def _plan_dict(p: Any, sigma: float, model: str) -> dict[str, Any]:
+    pred = p.prediction
+    return {
+        "n": int(len(p.directions)),
+        "model": model,
+        "sigma_mps2": sigma,
+        "tilts_deg": None if p.tilts_deg is None else p.tilts_deg,
+        "directions": p.directions,
+        "predicted_std": dict(zip(pred.names, pred.std, strict=True)),
+        "singular": bool(pred.singular),
+        "condition": pred.condition,
+    }
+
+
+def _plan_text(p: Any, sigma: float, model: str) -> str:
+    pred = p.prediction
+    lines = [f"{len(p.directions)} attitudes (D-optimal), model {model!r}, "
+             f"dwell-mean noise {sigma:g} m/s^2"]
+    if p.tilts_deg is not None:
+        lines.append(f"{'#':>3} {'tilt_x_deg':>11} {'tilt_y_deg':>11}")
+        lines += [f"{i:>3} {a:>11.2f} {b:>11.2f}" for i, (a, b) in enumerate(p.tilts_deg)]
+    else:
+        lines.append(f"{'#':>3} {'gx':>8} {'gy':>8} {'gz':>8}  (unit gravity direction)")
+        lines += [f"{i:>3} {a:>8.4f} {b:>8.4f} {c:>8.4f}" for i, (a, b, c) in
+                  enumerate(p.directions)]
+    lines.append("predicted std (Cramer-Rao bound, 1 sigma):")
+    lines.append(pred.table())
+    if pred.singular:
+        lines.append(f"SINGULAR design: {pred.combination}")
+    return "\n".join(lines)

@@ -1,0 +1,559 @@
+"""Experiment design before any test is run: which poses, azimuths or error budgets give the
+accuracy a user needs.
+
+- Static field calibration: :func:`predict_accuracy` (Cramer-Rao bound of a pose set) and
+  :func:`plan_poses` (D-optimal attitudes within a platform's reach).
+- Gradiometer start-up: :func:`plan_azimuths` (balanced / time-symmetric azimuth sequences)
+  and :func:`predict_startup_accuracy`.
+- Centrifuge: :func:`centrifuge_sensitivity` (parameter shifts caused by an error source the
+  fit does not model).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import _core
+from ._core import CalibrationError, DegenerateDataError
+from ._triad import PARAM_NAMES, attitudes_to_force, fibonacci_sphere, k_matrix, n_params
+from .centrifuge import SEED004_TRUTH, centrifuge_outputs, paper_design
+from .gradiometer import _F64, _azimuths, _dwell_std, _times
+from .gradiometer import PARAM_NAMES as STARTUP_PARAM_NAMES
+
+__all__ = [
+    "CentrifugeSensitivity",
+    "PosePlan",
+    "Prediction",
+    "SENSITIVITY_SOURCES",
+    "StartupPrediction",
+    "centrifuge_sensitivity",
+    "plan_azimuths",
+    "plan_poses",
+    "predict_accuracy",
+    "predict_startup_accuracy",
+]
+
+
+# ------------------------------------------------------------------------------------------
+# Static field calibration: pose design
+# ------------------------------------------------------------------------------------------
+def _design_rows(
+    force: NDArray[np.float64], v: NDArray[np.float64], model: str, sigma: float
+) -> NDArray[np.float64]:
+    """Whitened Jacobian rows d|a|/dtheta at true force ``force`` (n, 3), truth ``v``."""
+    K = k_matrix(v, model)
+    T = np.linalg.inv(K)
+    na = np.linalg.norm(force, axis=1, keepdims=True)
+    w = (force / na) @ T  # rows: (T^T u)^T
+    sr = sigma * np.linalg.norm(w, axis=1)
+    cols = [
+        -w[:, 0] * force[:, 0],
+        -w[:, 1] * force[:, 1],
+        -w[:, 2] * force[:, 2],
+        -w[:, 0],
+        -w[:, 1],
+        -w[:, 2],
+    ]
+    if model == "lower":
+        cols += [-w[:, 1] * force[:, 0], -w[:, 2] * force[:, 0], -w[:, 2] * force[:, 1]]
+    elif model == "upper":
+        cols += [-w[:, 0] * force[:, 1], -w[:, 0] * force[:, 2], -w[:, 1] * force[:, 2]]
+    return np.stack(cols, axis=1) / sr[:, None]
+
+
+def _default_truth(model: str, truth: ArrayLike | None) -> NDArray[np.float64]:
+    p = n_params(model)
+    if truth is None:
+        return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])[:p]
+    v = np.asarray(truth, dtype=np.float64).reshape(-1)
+    if v.size < p:
+        raise CalibrationError(f"truth needs {p} values for model {model!r}")
+    return v[:p]
+
+
+@dataclass
+class Prediction:
+    """Cramer-Rao bound of a pose design: ``std`` (p,) and ``covariance`` (p, p) in output
+    units, ``singular`` when some combination is undetermined (``combination`` names it)."""
+
+    names: tuple[str, ...]
+    std: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    singular: bool
+    combination: str
+    condition: float
+
+    def table(self) -> str:
+        return "\n".join(f"  {n:<4} +-{s:.3g}" for n, s in zip(self.names, self.std, strict=True))
+
+
+def _describe(v: NDArray[np.float64]) -> str:
+    vmax = np.max(np.abs(v))
+    i0 = int(np.argmax(np.abs(v)))
+    sgn = np.sign(v[i0])
+    order = np.argsort(-np.abs(v))
+    parts = []
+    for j, i in enumerate(order):
+        if abs(v[i]) < 0.1 * vmax:
+            break
+        c = sgn * v[i] / vmax
+        nm = PARAM_NAMES[i] + ("/g" if 3 <= i < 6 else "")
+        coef = "" if abs(abs(c) - 1) < 5e-3 else f"{abs(c):.2f} "
+        sign = ("-" if c < 0 else "") if j == 0 else (" - " if c < 0 else " + ")
+        parts.append(f"{sign}{coef}{nm}")
+    return "".join(parts)
+
+
+def predict_accuracy(
+    attitudes: ArrayLike,
+    sigma: float,
+    model: str = "lower",
+    *,
+    g: float = 9.80665,
+    truth: ArrayLike | None = None,
+) -> Prediction:
+    """Cramer-Rao bound of a pose design before any test is run.
+
+    Parameters
+    ----------
+    attitudes : (n, 2) platform tilts (tx, ty) in degrees, or (n, 3) gravity directions
+    sigma : std of each dwell mean per axis (output units)
+    model : "lower", "diag" or "upper";  g : gravity (units of the calibrated output)
+    truth : parameter vector at which to evaluate (default K = I, b = 0)
+    """
+    s = float(sigma)
+    if not (s > 0 and math.isfinite(s)):
+        raise CalibrationError("sigma must be positive and finite")
+    v = _default_truth(model, truth)
+    force = attitudes_to_force(attitudes, float(g))
+    J = _design_rows(force, v, model, s)
+    p = J.shape[1]
+    names = PARAM_NAMES[:p]
+    D = np.ones(p)
+    D[3:6] = float(g)
+    Jc = J * D
+    if J.shape[0] < p:
+        return Prediction(
+            names, np.full(p, np.inf), np.full((p, p), np.inf), True,
+            f"too few poses ({J.shape[0]} < {p})", np.inf,
+        )
+    _, sv, vt = np.linalg.svd(Jc, full_matrices=False)
+    cond = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
+    singular = not sv[-1] > 1e-9 * sv[0]
+    comb = _describe(vt[-1])
+    if singular:
+        cov = np.full((p, p), np.inf)
+    else:
+        cc = (vt.T / sv**2) @ vt
+        cov = cc * np.outer(D, D)
+    return Prediction(names, np.sqrt(np.diag(cov)), cov, singular, comb, float(cond))
+
+
+@dataclass
+class PosePlan:
+    """D-optimal pose set from :func:`plan_poses`.
+
+    tilts_deg : (n, 2) platform tilts (tx, ty), or None for the full sphere;
+    directions : (n, 3) unit gravity directions in the sensor frame;
+    prediction : Cramer-Rao bound of the plan; logdet : log det of the information matrix.
+    """
+
+    tilts_deg: NDArray[np.float64] | None
+    directions: NDArray[np.float64]
+    prediction: Prediction
+    logdet: float
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def std(self) -> NDArray[np.float64]:
+        return self.prediction.std
+
+    @property
+    def attitudes(self) -> NDArray[np.float64]:
+        return self.tilts_deg if self.tilts_deg is not None else self.directions
+
+
+
+def _fedorov(
+    F: NDArray[np.float64], n: int, gen: np.random.Generator
+) -> tuple[NDArray[np.int64], float]:
+    """Fedorov exchange for D-optimality over candidate rows F (C, p); repeats allowed."""
+    C, p = F.shape
+    idx = gen.choice(C, size=n, replace=C < n)
+    ridge = 1e-10 * np.trace(F.T @ F) / C
+    for _ in range(200):
+        M = F[idx].T @ F[idx] + ridge * np.eye(p)
+        Mi = np.linalg.inv(M)
+        G = F @ Mi  # (C, p)
+        dc = np.einsum("ij,ij->i", G, F)  # d(c)
+        di = dc[idx]  # d(i)
+        dic = G[idx] @ F.T  # (n, C): d(i, c)
+        delta = (1 + dc[None, :]) * (1 - di[:, None]) + dic**2 - 1
+        i, c = np.unravel_index(int(np.argmax(delta)), delta.shape)
+        if delta[i, c] <= 1e-10:
+            break
+        idx[i] = c
+    M = F[idx].T @ F[idx]
+    sign, logdet = np.linalg.slogdet(M)
+    return idx, float(logdet) if sign > 0 else -np.inf
+
+
+def plan_poses(
+    n: int,
+    max_tilt_deg: float | None = 30.0,
+    *,
+    sigma: float = 1e-3,
+    model: str = "lower",
+    g: float = 9.80665,
+    truth: ArrayLike | None = None,
+    grid_step_deg: float | None = None,
+    restarts: int = 4,
+    rng: int | np.random.Generator | None = 0,
+) -> PosePlan:
+    """Choose ``n`` attitudes minimising the predicted covariance (D-optimal).
+
+    ``max_tilt_deg`` bounds both tilts of a two-axis platform (candidates on a grid of
+    ``grid_step_deg``, default max_tilt/20; 90 therefore reaches only the upper hemisphere
+    with z up or level); ``None`` plans over the whole sphere (2000
+    near-uniform directions). Returns the plan with the Cramer-Rao std of every parameter
+    for dwell-mean noise ``sigma`` (output units). Attitudes may repeat (that is what a
+    D-optimal design does when n exceeds the number of distinct useful poses).
+    """
+    p = n_params(model)
+    if int(n) < p:
+        raise DegenerateDataError(f"{n} poses cannot determine {p} parameters (need >= {p})")
+    v = _default_truth(model, truth)
+    gen = np.random.default_rng(rng)
+    if max_tilt_deg is None:
+        cand_dirs = fibonacci_sphere(2000)
+        tilts = None
+        force = g * cand_dirs
+    else:
+        mt = float(max_tilt_deg)
+        if not (0 < mt <= 90):
+            raise CalibrationError("max_tilt_deg must be in (0, 90] (None for the full sphere)")
+        step = grid_step_deg or mt / 20.0
+        ax = np.arange(-mt, mt + 1e-9, step)
+        tx, ty = np.meshgrid(ax, ax, indexing="ij")
+        tilts = np.stack([tx.ravel(), ty.ravel()], axis=1)
+        force = attitudes_to_force(tilts, g)
+        cand_dirs = force / g
+    F = _design_rows(force, v, model, float(sigma))
+    best: tuple[NDArray[np.int64], float] | None = None
+    for _ in range(max(1, int(restarts))):
+        idx, ld = _fedorov(F, int(n), gen)
+        if best is None or ld > best[1]:
+            best = (idx.copy(), ld)
+    assert best is not None
+    idx = best[0]
+    dirs = cand_dirs[idx]
+    tl = None if tilts is None else tilts[idx]
+    pred = predict_accuracy(dirs, sigma, model, g=g, truth=v)
+    return PosePlan(tl, dirs, pred, best[1], {"candidates": F.shape[0], "model": model})
+
+
+# ------------------------------------------------------------------------------------------
+# Gradiometer start-up: azimuth sequence design
+# ------------------------------------------------------------------------------------------
+def plan_azimuths(m: int, drift: bool = False) -> _F64:
+    """Azimuth sequence (deg, in [0, 180)) of ``m`` dwells minimising the bias variance.
+
+    Without drift: the balanced set ``theta_k = 180 k / m`` (``sum exp(2i theta_k) = 0``), for
+    which the bias is the plain mean and ``Var(bias_j) = sigma^2 / m``. With drift: a
+    palindromic (time-symmetric, return-to-start) sequence, which with equally spaced dwells
+    decorrelates the drift from bias and gradient; for even ``m`` it repeats a balanced set
+    forwards then backwards (ABBA for ``m = 4``), for odd ``m >= 5`` the angles are chosen so the
+    set is still balanced; ``m = 3`` gives 0/90/0 (bias variance 3/8).
+    """
+    if isinstance(m, bool) or int(m) != m:
+        raise CalibrationError(f"m must be an integer number of dwells; got {m!r}")
+    m = int(m)
+    if not drift:
+        if m < 2:
+            raise DegenerateDataError(
+                "at least 2 azimuths 90 deg apart are needed to separate bias and gradient"
+            )
+        return 180.0 * np.arange(m) / m
+    if m < 3:
+        raise DegenerateDataError(
+            "the drift model needs at least 3 dwells (e.g. the return-to-start sequence 0/90/0)"
+        )
+    if m == 3:
+        return np.array([0.0, 90.0, 0.0])
+    if m % 2 == 0:
+        half = 180.0 * np.arange(m // 2) / (m // 2)
+        return np.concatenate([half, half[::-1]])
+    # Odd m = 2n + 1: pairs (2 theta = +-alpha) plus a centre at 0 deg, balanced:
+    # 2 sum(pairs) + 1 = 0.
+    n = (m - 1) // 2
+    if n % 2 == 0:
+        alpha = np.degrees(np.arccos(-1.0 / (2 * n)))
+        pairs2 = np.tile([alpha, -alpha], n // 2)
+    else:
+        alpha = np.degrees(np.arccos(1.0 / (2 * (n - 1))))
+        pairs2 = np.concatenate([[180.0], np.tile([alpha, -alpha], (n - 1) // 2)])
+    pairs = np.mod(pairs2 / 2.0, 180.0)
+    return np.concatenate([pairs, [0.0], pairs[::-1]])
+
+
+@dataclass(frozen=True)
+class StartupPrediction:
+    """Predicted accuracy of a start-up sequence before it is run.
+
+    Attributes
+    ----------
+    covariance : (p, p)
+        From the noise alone (``sigma`` per average), order ``[bias_I, bias_C, I, C, (drift)]``.
+    azimuth_covariance : (p, p)
+        From independent azimuth errors ``sigma_theta`` (first order).
+    total_covariance : (p, p)
+        Their sum.
+    std : (p,)
+        Square roots of the total covariance diagonal.
+    closed_form_variance : float
+        SPEC 3 closed form ``sigma^2 m / (m^2 - |U|^2)`` (equal weights, no drift).
+    condition : float
+        Condition number of the design.
+    """
+
+    covariance: _F64
+    azimuth_covariance: _F64
+    total_covariance: _F64
+    std: _F64
+    closed_form_variance: float
+    condition: float
+    names: tuple[str, ...]
+
+    @property
+    def bias_std(self) -> _F64:
+        """Predicted std of the bias, E."""
+        return self.std[:2]
+
+    @property
+    def gradient_std(self) -> _F64:
+        """Predicted std of the gradient, E."""
+        return self.std[2:4]
+
+    @property
+    def drift_std(self) -> _F64 | None:
+        """Predicted std of the drift, E/s (drift model only)."""
+        return self.std[4:6] if self.std.size == 6 else None
+
+
+def predict_startup_accuracy(
+    azimuths: ArrayLike,
+    times: ArrayLike | None = None,
+    sigma: float | ArrayLike = 1.0,
+    sigma_theta: float = 0.0,
+    *,
+    gradient: float | ArrayLike | None = None,
+    drift: bool | None = None,
+    t_ref: float | None = None,
+) -> StartupPrediction:
+    """Covariance of the start-up estimate for a planned sequence.
+
+    Parameters
+    ----------
+    azimuths : (m,) float
+        Planned azimuths, deg.
+    times : (m,) float, optional
+        Planned dwell mid times, s; the drift model is used when given (unless ``drift``).
+    sigma : float or (m,) float
+        Noise std of one average, E.
+    sigma_theta : float
+        Std of independent azimuth errors, deg (a common offset does not affect the bias).
+    gradient : float or (2,) float, optional
+        Navigation-frame gradient ``(I, C)`` in E for the exact azimuth-error effect, or its
+        magnitude (effect averaged over the direction: ``Var(bias_j) ~ 2 sigma_theta^2
+        |gamma|^2 / m`` for balanced sets). Required when ``sigma_theta > 0``.
+    drift : bool, optional
+        Force the drift model on or off (default: on when ``times`` are given).
+    t_ref : float, optional
+        Reference time of the bias with drift (default the mean time).
+    """
+    az = _azimuths(azimuths)
+    m = az.size
+    tt = _times(times, m, "times")
+    use_drift = tt is not None if drift is None else bool(drift)
+    if use_drift and tt is None:
+        raise CalibrationError("the drift model needs the planned dwell times")
+    sd = _dwell_std(sigma, m)
+    st = float(sigma_theta)
+    if not np.isfinite(st) or st < 0:
+        raise CalibrationError("sigma_theta must be >= 0 (deg)")
+    gvec = None
+    gmag = 0.0
+    if gradient is not None:
+        g = np.asarray(gradient, dtype=np.float64).reshape(-1)
+        if g.size == 1:
+            gmag = float(abs(g[0]))
+        elif g.size == 2:
+            gvec = [float(g[0]), float(g[1])]
+        else:
+            raise CalibrationError("gradient must be a magnitude or (I, C) in E")
+    elif st > 0:
+        raise CalibrationError(
+            "sigma_theta > 0 needs the gradient (E): its effect on the bias scales with |gamma|"
+        )
+    tref = 0.0
+    if use_drift:
+        assert tt is not None
+        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
+    raw = _core.startup_predict_raw(
+        np.radians(az),
+        sd,
+        tt if use_drift else None,
+        tref,
+        gvec,
+        gmag,
+        np.radians(st),
+    )
+    cov = np.asarray(raw["unit_cov"])
+    tcov = np.asarray(raw["theta_cov"])
+    tot = cov + tcov
+    p = cov.shape[0]
+    return StartupPrediction(
+        covariance=cov,
+        azimuth_covariance=tcov,
+        total_covariance=tot,
+        std=np.sqrt(np.diag(tot)),
+        closed_form_variance=float(np.mean(sd) ** 2 * raw["closed_form"]),
+        condition=float(raw["condition"]),
+        names=STARTUP_PARAM_NAMES[:p],
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Centrifuge: sensitivity to unmodelled error sources
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CentrifugeSensitivity:
+    """Parameter shifts caused by an unmodelled error source.
+
+    Attributes
+    ----------
+    source : str
+    magnitudes : ndarray (m,)
+    names : list of str
+        ``sx, sy, sz, bx, by, bz, k2x, k2y, k2z``.
+    shifts : ndarray (m, 9)
+        Fitted minus fitted-without-the-error (so the method's own bias cancels).
+    baseline : ndarray (9,)
+        Fit on the error-free outputs.
+    method : str
+    """
+
+    source: str
+    magnitudes: NDArray[np.float64]
+    names: list[str]
+    shifts: NDArray[np.float64]
+    baseline: NDArray[np.float64]
+    method: str
+
+    def table(self) -> str:
+        """Text table: one row per magnitude."""
+        head = f"{'magnitude':>10} " + " ".join(f"{n:>10}" for n in self.names)
+        lines = [f"source {self.source} ({self.method})", head]
+        for m, row in zip(self.magnitudes, self.shifts, strict=True):
+            lines.append(f"{m:>10.3g} " + " ".join(f"{v:>10.3g}" for v in row))
+        return "\n".join(lines)
+
+
+SENSITIVITY_SOURCES = (
+    "misalignment",
+    "lever_along_x", "lever_along_y", "lever_along_z",
+    "lever_<accel>_<dir>  (accel, dir in x, y, z; e.g. lever_x_z: x accelerometer moved along z)",
+    "radius", "rate", "earth_rate",
+)
+
+
+def _error_kwargs(source: str, mag: float) -> dict[str, Any]:
+    axes = "xyz"
+    if source == "misalignment":
+        gm = mag
+        return {"misalignment": np.array([[0, -gm, gm], [gm, 0, -gm], [-gm, gm, 0]], float)}
+    parts = source.split("_")
+    if len(parts) == 3 and parts[0] == "lever":
+        if parts[1] == "along" and parts[2] in axes:
+            i = j = axes.index(parts[2])
+        elif parts[1] in axes and parts[2] in axes:
+            i, j = axes.index(parts[1]), axes.index(parts[2])
+        else:
+            raise CalibrationError(f"unknown lever-arm source {source!r}")
+        lev = np.zeros((3, 3))
+        lev[i, j] = mag
+        return {"lever_arm": lev}
+    if source == "radius":
+        return {"radius_error": mag}
+    if source == "rate":
+        return {"rate_error": mag}
+    if source == "earth_rate":
+        return {"latitude_deg": mag}
+    raise CalibrationError(f"unknown error source {source!r}; choose from {SENSITIVITY_SOURCES}")
+
+
+def centrifuge_sensitivity(
+    design: Any = None,
+    truth: dict[str, Any] | None = None,
+    source: str = "lever_along_x",
+    magnitudes: Any = (0.02,),
+    *,
+    method: str = "taylor-paper",
+    g: float = 9.8,
+) -> CentrifugeSensitivity:
+    """Shift of the fitted S, b, K2 caused by an error source the fit does not model.
+
+    Parameters
+    ----------
+    design : CentrifugeDesign, optional
+        Default: the paper's 20 positions x 3 speeds, R = 1 m.
+    truth : dict, optional
+        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the seed-004 truth.
+    source : str
+        ``misalignment`` (all six paper angles = magnitude, rad); ``lever_along_<axis>``
+        (accelerometer <axis> displaced along its own axis, m); ``lever_<accel>_<dir>``
+        (accelerometer <accel> displaced along body axis <dir>, m; in the paper's design the
+        body y axis is always horizontal, so e.g. ``lever_x_y`` has exactly no first-order
+        effect while ``lever_x_z`` does); ``radius`` (true - nominal, m); ``rate`` (relative
+        rate error); ``earth_rate`` (magnitude = latitude, deg).
+    magnitudes : array_like (m,)
+    method : {"taylor-paper", "nls"}
+        The paper's analysis (Table 3 / Fig. 4) used its closed form: the default.
+    g : float
+        Gravity (m/s^2) of the simulation and the fit.
+
+    Returns
+    -------
+    CentrifugeSensitivity
+    """
+    des = design if design is not None else paper_design()
+    tr = dict(SEED004_TRUTH)
+    if truth:
+        tr.update({k: np.asarray(v, float) for k, v in truth.items()})
+    kw: dict[str, Any] = {"scale": tr["scale"], "bias": tr["bias"], "k2": tr["k2"], "g": g}
+    mags = np.atleast_1d(np.asarray(magnitudes, dtype=np.float64))
+    _error_kwargs(source, 0.0)  # validate the name first
+
+    def run(n: NDArray[np.float64]) -> NDArray[np.float64]:
+        d = _core.centrifuge_fit_raw(
+            np.ascontiguousarray(n), des.omega, des.radius, g, method, False, False, None,
+            None, None, False, 5.0, 1e-9, 0, 0,
+        )
+        return np.asarray(d["params"])
+
+    base = run(centrifuge_outputs(des, **kw))
+    shifts = np.array([run(centrifuge_outputs(des, **kw, **_error_kwargs(source, m))) - base
+                       for m in mags])
+    return CentrifugeSensitivity(
+        source=source,
+        magnitudes=mags,
+        names=["sx", "sy", "sz", "bx", "by", "bz", "k2x", "k2y", "k2z"],
+        shifts=shifts,
+        baseline=base,
+        method=method,
+    )

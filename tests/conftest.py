@@ -1,0 +1,34 @@
+"""Shared test helpers.
+
+``shared_data(*parts)`` is the one way tests reach the reference recordings, which live in
+``../shared/data`` beside the checkout (CI lays it out that way): it returns the path, or skips
+the calling test with a clear reason when the folder is absent (a bare source checkout).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+SHARED_DATA = SHARED / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    """Path of ``../shared/data/<parts>``; skips the calling test when it is absent."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(
+            f"reference data {p} is not present: the real recordings live in ../shared/data "
+            "beside the repository (as in CI)"
+        )
+    return p
+
+
+def shared_root() -> Path:
+    """``../shared`` itself (the docs tests lay out a scratch copy around it)."""
+    if not SHARED_DATA.exists():
+        pytest.skip(f"{SHARED} is not present beside the repository")
+    return SHARED

@@ -1,0 +1,114 @@
+"""Experiment design: Cramer-Rao predictions and pose plans (static), azimuth sequences and
+their predicted accuracy (gradiometer), error-source sensitivity (centrifuge)."""
+
+from __future__ import annotations
+
+import accelcal
+import accelcal as ac
+import accelcal.sim
+import numpy as np
+import pytest
+from accelcal import CalibrationError, DegenerateDataError
+from accelcal.design import centrifuge_sensitivity
+from accelcal.sim.centrifuge import paper_design
+from accelcal.sim.static import (
+    SEED000_TRUTH,
+    sphere_attitudes,
+    uniform_attitudes,
+)
+
+
+# ---- pose planning -----------------------------------------------------------------------
+def test_predict_accuracy_matches_spec_orders():
+    rng = np.random.default_rng(16)
+    bz = [
+        ac.predict_accuracy(uniform_attitudes(20, 30, rng), 1e-3, truth=SEED000_TRUTH).std[5]
+        for _ in range(30)
+    ]
+    assert 0.1 < np.median(bz) < 0.6  # SPEC 1: CRLB std of bz = 0.29 at +-30 deg
+    sph = ac.predict_accuracy(sphere_attitudes(20, rng), 1e-3, truth=SEED000_TRUTH).std[5]
+    assert sph < 3e-3 and sph < np.median(bz) / 50
+    sweep = np.linspace(-30, 30, 10)
+    two_plane = np.r_[np.c_[np.zeros(10), sweep], np.c_[sweep, np.zeros(10)]]
+    p = ac.predict_accuracy(two_plane, 1e-3)
+    assert p.singular and ("m1" in p.combination or "m2" in p.combination)
+
+
+def test_plan_poses_beats_random_designs():
+    plan = ac.plan_poses(20, 30, sigma=1e-3, rng=0)
+    assert plan.tilts_deg is not None and plan.tilts_deg.shape == (20, 2)
+    assert np.all(np.abs(plan.tilts_deg) <= 30 + 1e-9)
+    rng = np.random.default_rng(17)
+    rand = [ac.predict_accuracy(uniform_attitudes(20, 30, rng), 1e-3).std for _ in range(30)]
+    assert plan.std[5] < np.min([r[5] for r in rand])
+    assert np.prod(plan.std) < np.min([np.prod(r) for r in rand])
+    sphere = ac.plan_poses(20, None, sigma=1e-3)
+    assert sphere.std.max() < plan.std.max() / 20
+
+
+def test_balanced_set_variances():
+    for az, v in [([0, 90], 0.5), ([0, 60, 120], 1 / 3), ([0, 45, 90, 135], 0.25)]:
+        p = accelcal.predict_startup_accuracy(az, sigma=1.0)
+        assert p.bias_std ** 2 == pytest.approx([v, v], rel=1e-12)
+
+
+@pytest.mark.parametrize("m", [2, 3, 4, 5, 8])
+def test_plan_balanced(m):
+    az = accelcal.plan_azimuths(m)
+    assert abs(np.exp(2j * np.radians(az)).sum()) < 1e-12
+    p = accelcal.predict_startup_accuracy(az, sigma=1.0)
+    assert p.bias_std ** 2 == pytest.approx([1 / m, 1 / m], rel=1e-10)
+
+
+@pytest.mark.parametrize("m", [3, 4, 5, 6, 7, 9])
+def test_plan_with_drift(m):
+    az = accelcal.plan_azimuths(m, drift=True)
+    assert az.size == m and np.allclose(az, az[::-1])  # time-symmetric, returns to start
+    t = np.arange(m) * 100.0
+    p = accelcal.predict_startup_accuracy(az, t, 1.0)
+    assert np.allclose(p.covariance[:4, 4:], 0.0, atol=1e-12)
+    want = 3 / 8 if m == 3 else 1 / m
+    assert p.bias_std ** 2 == pytest.approx([want, want], rel=1e-9)
+
+
+def test_plan_refuses_impossible():
+    with pytest.raises(DegenerateDataError):
+        accelcal.plan_azimuths(1)
+    with pytest.raises(DegenerateDataError):
+        accelcal.plan_azimuths(2, drift=True)
+
+
+# The centrifuge paper's simulation truth: scale and K2 (g/g^2) per axis.
+S = np.array([1.29, 1.21, 1.26])
+D = np.array([0.57e-4, 0.31e-4, 0.45e-4])
+
+
+def test_sensitivity_along_axis_lever_arm_is_not_negligible():
+    # SPEC 2: 2 cm along the x accelerometer's own axis -> |dbx| ~ 0.285 g, |dDx| ~ 4.2e-4.
+    sens = centrifuge_sensitivity(paper_design(), None, "lever_along_x", [0.02, -0.02])
+    dbx = sens.shifts[:, 3]
+    ddx = sens.shifts[:, 6]
+    assert np.all((np.abs(dbx) > 0.28) & (np.abs(dbx) < 0.295))
+    assert np.all((np.abs(ddx) > 4.0e-4) & (np.abs(ddx) < 4.3e-4))
+    assert abs(ddx[0]) > 7 * D[0]
+    # Across-axis offsets are small (the paper's Table 3 regime); along y exactly zero here.
+    across = centrifuge_sensitivity(None, None, "lever_x_y", [0.02])
+    assert np.all(np.abs(across.shifts) < 1e-9)
+    # nls sees the same error (different split between bias and K2)
+    nls = centrifuge_sensitivity(None, None, "lever_along_x", [0.02], method="nls")
+    assert abs(nls.shifts[0, 3]) > 0.1
+
+
+def test_sensitivity_misalignment_and_radius():
+    mags = np.array([2e-4, 4e-4, 6e-4, 8e-4, 1e-3])
+    sens = centrifuge_sensitivity(None, None, "misalignment", mags)
+    # first-order: shifts grow linearly and stay small (< 1e-3 relative on S)
+    ratio = sens.shifts[-1, :3] / sens.shifts[0, :3]
+    np.testing.assert_allclose(ratio, 5.0, rtol=0.05)
+    assert np.all(np.abs(sens.shifts[:, :3]) < 1e-3 * S)
+    rad = centrifuge_sensitivity(None, None, "radius", [1e-3])
+    # dA/A = dR/R: scale factors absorb it (dS/S = 1e-3), biases do not move
+    np.testing.assert_allclose(rad.shifts[0, :3] / S, 1e-3, rtol=0.01)
+    assert np.all(np.abs(rad.shifts[0, 3:6]) < 1e-6)
+    with pytest.raises(CalibrationError, match="unknown error source"):
+        centrifuge_sensitivity(None, None, "wind", [1.0])
