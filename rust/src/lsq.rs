@@ -624,11 +624,7 @@ pub const FIXED_ROWS: usize = 64;
 /// messages; a plain Householder QR for up to [`FIXED_ROWS`] rows (no matrix set-up cost).
 pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; C]> {
     if b.len() != rows.len() {
-        return invalid(format!(
-            "lstsq_rows: {} rows, rhs {}",
-            rows.len(),
-            b.len()
-        ));
+        return invalid(format!("lstsq_rows: {} rows, rhs {}", rows.len(), b.len()));
     }
     lstsq_fn(rows.len(), |i| (rows[i], b[i]))
 }
@@ -636,7 +632,10 @@ pub fn lstsq_rows<const C: usize>(rows: &[[f64; C]], b: &[f64]) -> Result<[f64; 
 /// [`lstsq_rows`] with row `i` and its right-hand side produced by `row(i)`: no allocation for
 /// up to [`FIXED_ROWS`] rows (the design lives on the stack, column-major).
 #[inline(always)]
-pub fn lstsq_fn<const C: usize>(m: usize, row: impl Fn(usize) -> ([f64; C], f64)) -> Result<[f64; C]> {
+pub fn lstsq_fn<const C: usize>(
+    m: usize,
+    row: impl Fn(usize) -> ([f64; C], f64),
+) -> Result<[f64; C]> {
     if m > FIXED_ROWS || m < C {
         let mut flat = Vec::with_capacity(m * C);
         let mut b = Vec::with_capacity(m);
@@ -744,18 +743,24 @@ pub trait NormalEquationsFixed<const N: usize> {
 pub struct FixedReport<const N: usize> {
     /// Final parameters.
     pub params: [f64; N],
-    /// Sum of squared residuals.
+    /// Sum of squared residuals at `params`.
     pub cost: f64,
+    /// `J^T J` at `params`.
+    pub jtj: [[f64; N]; N],
+    /// `J^T r` at `params`.
+    pub jtr: [f64; N],
     /// Iterations taken.
     pub iterations: usize,
     /// True when a tolerance was met (false: iteration limit).
     pub converged: bool,
 }
 
-/// [`solve_normal`] (same steps, damping schedule, convergence tests and errors) for a
-/// [`NormalEquationsFixed`] problem, without heap allocation. One addition: a step that
-/// raises the cost although its predicted gain is below `ftol * cost` ends the search at once
-/// (a rounding-level minimum) instead of raising the damping until the step vanishes.
+/// Levenberg-Marquardt (or Gauss-Newton) for a [`NormalEquationsFixed`] problem without heap
+/// allocation. Every trial point is evaluated with its normal equations (near a good start
+/// almost every step is accepted, so this saves a pass over the data per step), and the fit
+/// ends at a point whose normal equations are known: when the next step could gain less than
+/// `ftol * cost`, it is not taken. The report carries `J^T J` and `J^T r` there, for the
+/// covariance and a convergence check. Errors as [`solve_normal`].
 pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
     prob: &P,
     p0: &[f64; N],
@@ -763,16 +768,18 @@ pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
     lambda0: f64,
 ) -> Result<FixedReport<N>> {
     check_start(N, prob.n_residuals(), p0)?;
-    let out = lm_core::<[[f64; N]; N], _>(
-        &mut CostTrials(prob),
-        *p0,
-        opt,
-        lambda0,
-        Flavor::PredictedStrict,
-    )?;
+    let mut ev = FixedNormalTrials {
+        prob,
+        jtj: [[0.0; N]; N],
+        g: [0.0; N],
+        cost: f64::INFINITY,
+    };
+    let out = lm_core::<[[f64; N]; N], _>(&mut ev, *p0, opt, lambda0, Flavor::Stationary)?;
     Ok(FixedReport {
         params: out.params,
         cost: out.cost,
+        jtj: out.jtj,
+        jtr: out.g,
         iterations: out.iterations,
         converged: out.converged,
     })
@@ -924,13 +931,14 @@ fn cholesky_lower<M: MatMut>(a: &mut M, pivot_ok: impl Fn(usize, f64) -> bool) -
             return false;
         }
         let lk = s.sqrt();
+        let inv = 1.0 / lk;
         *a.at_mut(k, k) = lk;
         for i in (k + 1)..n {
             let mut v = a.at(i, k);
             for t in 0..k {
                 v -= a.at(i, t) * a.at(k, t);
             }
-            *a.at_mut(i, k) = v / lk;
+            *a.at_mut(i, k) = v * inv;
         }
     }
     true
@@ -1112,9 +1120,11 @@ enum Flavor {
     /// is taken and ends the fit (no new normal equations); a negligible step (`xtol`) that
     /// raises the cost ends the search; LM lowers the damping without a floor.
     Predicted,
-    /// [`solve_normal_fixed`]: [`Flavor::Predicted`], and a step that raises the cost with a
-    /// predicted gain below `ftol * cost` also ends the search.
-    PredictedStrict,
+    /// [`solve_normal_fixed`]: normal equations at every trial point (kept when accepted);
+    /// when the step's predicted gain at small damping is below `ftol * cost` the fit ends
+    /// *at the current point*, whose normal equations are then known; otherwise the rules of
+    /// [`Flavor::Predicted`].
+    Stationary,
 }
 
 /// How [`lm_core`] evaluates a problem: trial costs, and taking the last trial point as the
@@ -1186,6 +1196,30 @@ impl<P: NormalEquations> Evaluate<Dm> for NormalTrials<'_, P> {
     }
 }
 
+/// [`NormalTrials`] on stack arrays ([`solve_normal_fixed`]).
+struct FixedNormalTrials<'a, P, const N: usize> {
+    prob: &'a P,
+    jtj: [[f64; N]; N],
+    g: [f64; N],
+    cost: f64,
+}
+
+impl<const N: usize, P: NormalEquationsFixed<N>> Evaluate<[[f64; N]; N]>
+    for FixedNormalTrials<'_, P, N>
+{
+    #[inline(always)]
+    fn trial(&mut self, p: &[f64; N]) -> Result<f64> {
+        self.cost = self.prob.normal(p, &mut self.jtj, &mut self.g)?;
+        Ok(self.cost)
+    }
+    #[inline(always)]
+    fn accept(&mut self, _: &[f64; N], jtj: &mut [[f64; N]; N], g: &mut [f64; N]) -> Result<f64> {
+        *jtj = self.jtj;
+        *g = self.g;
+        Ok(self.cost)
+    }
+}
+
 /// Residuals and Jacobian at every trial point; the normal equations are formed from the
 /// accepted Jacobian ([`solve_nls`], which reports both).
 struct JacobianTrials<'a, P> {
@@ -1214,14 +1248,16 @@ impl<P: Residuals> Evaluate<Dm> for JacobianTrials<'_, P> {
 }
 
 /// Outcome of [`lm_core`].
-struct Solved<V> {
-    params: V,
+struct Solved<M: Dense> {
+    params: M::Vector,
     cost: f64,
+    jtj: M,
+    g: M::Vector,
     iterations: usize,
     converged: bool,
 }
 
-impl Solved<DVector<f64>> {
+impl Solved<DMatrix<f64>> {
     /// As an [`NlsReport`] without residuals and Jacobian.
     fn into_report(self, n: usize) -> NlsReport {
         NlsReport {
@@ -1262,7 +1298,7 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
     opt: &NlsOptions,
     lambda0: f64,
     flavor: Flavor,
-) -> Result<Solved<M::Vector>> {
+) -> Result<Solved<M>> {
     const START: &str = "the model cannot be evaluated at the start values";
     let n = M::slice(&p).len();
     let mut jtj = M::zeros(n);
@@ -1336,6 +1372,15 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
                 lambda = lambda.max(1e-12) * 10.0;
                 continue;
             }
+            if flavor == Flavor::Stationary
+                && (opt.gauss_newton || lambda <= 1e-6)
+                && predicted_gain(&jtj, &g, &step) <= opt.ftol * cost
+            {
+                // The current point is a minimum to the tolerance: stay (its normal
+                // equations are known).
+                converged = true;
+                break;
+            }
             let c_new = prob.trial(&p_new).unwrap_or(f64::INFINITY);
             let pn: f64 = M::slice(&p).iter().map(|v| v * v).sum::<f64>().sqrt();
             let sn: f64 = M::slice(&step).iter().map(|v| v * v).sum::<f64>().sqrt();
@@ -1343,7 +1388,7 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
             // only gain a negligible fraction of the cost, take it (if it does not hurt) and
             // stop without another normal-equation evaluation.
             let negligible = predicted && predicted_gain(&jtj, &g, &step) <= opt.ftol * cost;
-            if negligible && c_new <= cost {
+            if negligible && c_new <= cost && flavor != Flavor::Stationary {
                 std::mem::swap(&mut p, &mut p_new);
                 cost = c_new;
                 accepted = true;
@@ -1360,7 +1405,7 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
                 // A step that raises the cost although it is negligible (or, strictly, could
                 // only gain a negligible fraction of the cost): a rounding-level minimum.
                 let tiny = sn <= opt.xtol * (pn + opt.xtol);
-                if predicted && (tiny || (negligible && flavor == Flavor::PredictedStrict)) {
+                if predicted && tiny {
                     converged = true;
                     break;
                 }
@@ -1398,6 +1443,8 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
     Ok(Solved {
         params: p,
         cost,
+        jtj,
+        g,
         iterations: it,
         converged,
     })

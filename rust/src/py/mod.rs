@@ -44,7 +44,10 @@ mod _core {
     #[pymodule_export]
     use super::gradiometer::{demodulate_raw, startup_bias_raw, startup_predict_raw};
     #[pymodule_export]
-    use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
+    use super::static_fit::{
+        apply_triad_raw, static_design_rows, static_fit_batch, static_model_violation, PyBatchFit,
+        PyObservability, PyPrediction, PyStaticFit,
+    };
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
 }

@@ -2,10 +2,8 @@
 //! fixed-size types and one point buffer per worker thread (no allocation per fit, except
 //! to word an error).
 
-use super::{
-    check_solved, covariance_stage, solve, FitSettings, Model, Noise, NormProblem, Solved,
-    RUNAWAY,
-};
+use super::observe::per_dwell;
+use super::{check_solved, solve, FitSettings, Model, Noise, Solved};
 use crate::error::{invalid, CoreError, Result};
 use nalgebra::DMatrix;
 use rayon::prelude::*;
@@ -101,15 +99,9 @@ fn comparable_jacobian<const N: usize>(
     noise: &Noise<'_>,
     set: &FitSettings,
 ) -> Result<DMatrix<f64>> {
-    let prob = NormProblem {
-        pts,
-        g,
-        noise: noise.in_frame(s.f1.s),
-        model: set.model,
-        kmax: f64::INFINITY,
-    };
+    let prob = s.problem(pts, g, noise, set.model);
     let mut jc = DMatrix::<f64>::zeros(pts.len(), N);
-    covariance_stage::<N>(&prob, &s.ml.params, set, |k, _, row| {
+    per_dwell(&prob, &s.ml.params, |k, _, row| {
         for j in 0..N {
             jc[(k, j)] = row[j];
         }
@@ -126,14 +118,12 @@ fn fit_one<const N: usize>(
     pts: &mut Vec<[f64; 3]>,
 ) -> BatchRow {
     let n = means.len();
-    let mut ss = 0.0;
-    let solved = solve::<N>(means, g, noise, set, pts, |_, d, _| ss += d.r * d.r)
-        .and_then(|s| {
-            check_solved(&s, set, n, || {
-                comparable_jacobian::<N>(&s, pts, g, noise, set)
-            })?;
-            Ok(s)
-        });
+    let solved = solve::<N>(means, g, noise, set, pts).and_then(|s| {
+        check_solved(&s, set, n, || {
+            comparable_jacobian::<N>(&s, pts, g, noise, set)
+        })?;
+        Ok(s)
+    });
     let s = match solved {
         Ok(s) => s,
         Err(e) => return BatchRow::failed(n, i, &e),
@@ -144,6 +134,15 @@ fn fit_one<const N: usize>(
             set.max_iter
         ));
         return BatchRow::failed(n, i, &e);
+    }
+    // RMS of the norm residuals: one light pass (the frame leaves |a| unchanged).
+    let mut ss = 0.0;
+    let prob = s.problem(pts, g, noise, set.model);
+    if prob
+        .for_each(&s.ml.params, |_, _, d| ss += d.r * d.r)
+        .is_err()
+    {
+        ss = f64::NAN;
     }
     let known = noise.known();
     let s2 = s.f1.s * s.f1.s;
@@ -207,7 +206,6 @@ pub fn fit_batch(
         Some(s) => Noise::Uniform([s * s; 3]),
         None => Noise::Estimated,
     };
-    debug_assert!(RUNAWAY > 0.0);
     let rows = sessions
         .par_iter()
         .enumerate()
@@ -253,7 +251,11 @@ mod tests {
         assert!(rows[2].params.iter().all(|v| v.is_nan()));
         assert_eq!(rows[3].status, BatchStatus::Degenerate);
         assert_eq!(rows[4].status, BatchStatus::Degenerate);
-        assert!(rows[4].message.as_deref().unwrap().starts_with("session 4: 4 dwells"));
+        assert!(rows[4]
+            .message
+            .as_deref()
+            .unwrap()
+            .starts_with("session 4: 4 dwells"));
         assert_eq!(rows[5].status, BatchStatus::Weak);
         assert_eq!(rows[5].status.code(), 0);
         assert!(fit_batch(&sessions, &[G, G], None, &set).is_err());

@@ -104,7 +104,13 @@ pub fn inv_k(model: Model, p: &[f64]) -> Result<Matrix3<f64>> {
 
 /// Evaluate dwell mean `am` (variance `var` per axis) at `p` with `t = K^-1`.
 #[inline(always)]
-pub fn eval_dwell(t: &Matrix3<f64>, p: &[f64], am: &[f64; 3], var: [f64; 3], g: f64) -> Result<DwellEval> {
+pub fn eval_dwell(
+    t: &Matrix3<f64>,
+    p: &[f64],
+    am: &[f64; 3],
+    var: [f64; 3],
+    g: f64,
+) -> Result<DwellEval> {
     let a = t * Vector3::new(am[0] - p[3], am[1] - p[4], am[2] - p[5]);
     let norm = a.norm();
     if !(norm > 0.0) || !norm.is_finite() {
@@ -174,14 +180,21 @@ pub fn ml_row(model: Model, t: &Matrix3<f64>, d: &DwellEval, row: &mut [f64; 9])
     let zu = z.dot(a) * inv_n * inv_n;
     let y = (z - a * zu) * inv_n;
     let q = t.tr_mul(&y);
-    // de/dK_ij = -w_i a_j is + c (w_i z_j + q_i a_j)
-    let kij = |i: usize, j: usize| -w[i] * a[j] * is + c * (w[i] * z[j] + q[i] * a[j]);
+    // de/dK_ij = -w_i a_j is + c (w_i z_j + q_i a_j) = w_i al_j + be_i a_j with
+    // al = c z - is a, be = c q; de/db_i = -w_i is + be_i.
+    let al = [
+        c * z[0] - is * a[0],
+        c * z[1] - is * a[1],
+        c * z[2] - is * a[2],
+    ];
+    let be = [c * q[0], c * q[1], c * q[2]];
+    let kij = |i: usize, j: usize| w[i] * al[j] + be[i] * a[j];
     row[0] = kij(0, 0);
     row[1] = kij(1, 1);
     row[2] = kij(2, 2);
-    row[3] = -w[0] * is + c * q[0];
-    row[4] = -w[1] * is + c * q[1];
-    row[5] = -w[2] * is + c * q[2];
+    row[3] = be[0] - w[0] * is;
+    row[4] = be[1] - w[1] * is;
+    row[5] = be[2] - w[2] * is;
     match model {
         Model::Lower => {
             row[6] = kij(1, 0);
@@ -252,13 +265,12 @@ impl NormProblem<'_> {
         }
     }
 
-    /// Cost, `J^T e` and the upper triangle of `J^T J` for the first `np <= K` parameters
-    /// at `p` (the rank-1 updates unroll when `np` is a compile-time constant).
+    /// Cost, `J^T e` and the upper triangle of `J^T J` for the first `K` parameters at `p`
+    /// (`K` = the model's parameter count; the rank-1 updates unroll).
     #[inline(always)]
     pub fn accumulate<const K: usize>(
         &self,
         p: &[f64],
-        np: usize,
         h: &mut [[f64; K]; K],
         gr: &mut [f64; K],
     ) -> Result<f64> {
@@ -270,10 +282,11 @@ impl NormProblem<'_> {
             let e = d.e();
             c += e * e;
             ml_row(model, t, d, &mut row);
-            for i in 0..np {
-                gr[i] += row[i] * e;
-                for j in i..np {
-                    h[i][j] += row[i] * row[j];
+            for i in 0..K {
+                let ri = row[i];
+                gr[i] += ri * e;
+                for j in i..K {
+                    h[i][j] += ri * row[j];
                 }
             }
         })?;
@@ -292,18 +305,28 @@ impl NormalEquations for NormProblem<'_> {
         self.cost_at(p)
     }
     fn normal(&self, p: &[f64], jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) -> Result<f64> {
-        let np = self.model.n_params();
-        let mut h = [[0.0f64; 9]; 9];
-        let mut gr = [0.0f64; 9];
-        let c = self.accumulate(p, np, &mut h, &mut gr)?;
-        for i in 0..np {
-            jtr[i] = gr[i];
-            for j in i..np {
-                jtj[(i, j)] = h[i][j];
-                jtj[(j, i)] = h[i][j];
+        fn fill<const K: usize>(
+            prob: &NormProblem<'_>,
+            p: &[f64],
+            jtj: &mut DMatrix<f64>,
+            jtr: &mut DVector<f64>,
+        ) -> Result<f64> {
+            let mut h = [[0.0f64; K]; K];
+            let mut gr = [0.0f64; K];
+            let c = prob.accumulate::<K>(p, &mut h, &mut gr)?;
+            for i in 0..K {
+                jtr[i] = gr[i];
+                for j in i..K {
+                    jtj[(i, j)] = h[i][j];
+                    jtj[(j, i)] = h[i][j];
+                }
             }
+            Ok(c)
         }
-        Ok(c)
+        match self.model.n_params() {
+            6 => fill::<6>(self, p, jtj, jtr),
+            _ => fill::<9>(self, p, jtj, jtr),
+        }
     }
 }
 
@@ -319,7 +342,7 @@ impl<const N: usize> NormalEquationsFixed<N> for NormProblem<'_> {
     fn normal(&self, p: &[f64; N], jtj: &mut [[f64; N]; N], jtr: &mut [f64; N]) -> Result<f64> {
         let mut h = [[0.0f64; N]; N];
         let mut gr = [0.0f64; N];
-        let c = self.accumulate(p, N, &mut h, &mut gr)?;
+        let c = self.accumulate::<N>(p, &mut h, &mut gr)?;
         *jtr = gr;
         for i in 0..N {
             for j in i..N {

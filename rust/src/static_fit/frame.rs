@@ -141,7 +141,9 @@ mod tests {
 
     #[test]
     fn frame_round_trips_and_whitens_the_model() {
-        let p = [414.5, 412.0, 414.6, 33124.0, 33275.0, 32364.0, 1.2, -3.0, 8.0];
+        let p = [
+            414.5, 412.0, 414.6, 33124.0, 33275.0, 32364.0, 1.2, -3.0, 8.0,
+        ];
         let f = Frame::from_params(Model::Lower, &p, Frame::IDENTITY);
         let q = f.to_frame(&p);
         assert!((q[0] * q[1] * q[2] - 1.0).abs() < 1e-12 && q[3..6].iter().all(|v| *v == 0.0));
@@ -155,7 +157,10 @@ mod tests {
         assert!((pt[0] - (am[0] - p[3]) / f.s).abs() < 1e-12);
         // Singular parameters fall back.
         let z = [0.0; 9];
-        assert_eq!(Frame::from_params(Model::Lower, &z, Frame::IDENTITY), Frame::IDENTITY);
+        assert_eq!(
+            Frame::from_params(Model::Lower, &z, Frame::IDENTITY),
+            Frame::IDENTITY
+        );
     }
 
     #[test]

@@ -38,18 +38,17 @@ pub mod start;
 pub use batch::{fit_batch, BatchRow, BatchStatus};
 pub use cost::{eval_dwell, inv_k, jac_row, ml_row, DwellEval, DwellNoise, NormProblem};
 pub use observe::{
-    describe_combination, design_rows, obs_report, predict, Observability, ObsSummary,
-    Prediction,
+    describe_combination, design_rows, obs_report, predict, ObsSummary, Observability, Prediction,
 };
 pub use start::{Start, StartSource};
 
 use crate::dwell::Sample;
 use crate::error::{degenerate, invalid, CoreError, Result};
-use crate::lsq::{inverse3, solve_normal_fixed, NlsOptions};
+use crate::lsq::{inverse3, solve_normal_fixed, NlsOptions, NormalEquationsFixed};
 use frame::Frame;
 use nalgebra::{DMatrix, Matrix3, Vector3};
 use ndarray::ArrayView2;
-use observe::{covariance_stage, degenerate_message, CovStage};
+use observe::{covariance_stage, degenerate_message, per_dwell, CovStage};
 use rayon::prelude::*;
 
 /// Names of the parameters in vector order.
@@ -121,7 +120,17 @@ impl Model {
     /// Parameter vector from `K` (the entries outside the model's pattern are ignored) and
     /// `b`; unused slots (6..9 for [`Model::Diag`]) are zero.
     pub fn params_from(self, k: &Matrix3<f64>, b: &Vector3<f64>) -> [f64; 9] {
-        let mut p = [k[(0, 0)], k[(1, 1)], k[(2, 2)], b[0], b[1], b[2], 0.0, 0.0, 0.0];
+        let mut p = [
+            k[(0, 0)],
+            k[(1, 1)],
+            k[(2, 2)],
+            b[0],
+            b[1],
+            b[2],
+            0.0,
+            0.0,
+            0.0,
+        ];
         match self {
             Model::Lower => p[6..].copy_from_slice(&[k[(1, 0)], k[(2, 0)], k[(2, 1)]]),
             Model::Upper => p[6..].copy_from_slice(&[k[(0, 1)], k[(0, 2)], k[(1, 2)]]),
@@ -300,17 +309,39 @@ pub struct StaticFit {
     pub noise_known: bool,
     /// Quick observability summary (Cholesky covariance and power iteration).
     pub summary: ObsSummary,
-    /// Whitened Jacobian in comparable units (for [`StaticFit::observability`]).
-    pub jc: DMatrix<f64>,
+    /// Fitting frame and frame parameters (for [`StaticFit::observability`]).
+    frame: (Frame, [f64; 9]),
+    /// Frame points (for [`StaticFit::observability`]).
+    pts: Vec<[f64; 3]>,
     /// Covariance scale used to judge observability (1, or chi2/dof floored at (1e-7 g)^2,
     /// frame units).
     pub obs_scale: f64,
 }
 
 impl StaticFit {
-    /// Full observability report (SVD) with the given thresholds.
-    pub fn observability(&self, set: &FitSettings) -> Result<Observability> {
-        obs_report(&self.jc, self.obs_scale, set)
+    /// Full observability report (SVD of the comparable whitened Jacobian at the fitted
+    /// parameters) with the given thresholds. `noise` must be the fit's.
+    pub fn observability(
+        &self,
+        noise: &Noise<'_>,
+        g: f64,
+        set: &FitSettings,
+    ) -> Result<Observability> {
+        let np = self.params.len();
+        let prob = NormProblem {
+            pts: &self.pts,
+            g,
+            noise: noise.in_frame(self.frame.0.s),
+            model: self.model,
+            kmax: f64::INFINITY,
+        };
+        let mut jc = DMatrix::<f64>::zeros(self.pts.len(), np);
+        per_dwell(&prob, &self.frame.1, |k, _, row| {
+            for j in 0..np {
+                jc[(k, j)] = row[j];
+            }
+        })?;
+        obs_report(&jc, self.obs_scale, set)
     }
 }
 
@@ -376,6 +407,12 @@ pub fn validate(means: &[[f64; 3]], g: f64, noise: &Noise<'_>, model: Model) -> 
 pub struct MlOutcome {
     /// Final parameters.
     pub params: [f64; 9],
+    /// Cost `sum e_k^2` at `params`.
+    pub cost: f64,
+    /// `J^T J` of the whitened residuals at `params` (first `N x N`).
+    pub jtj: [[f64; 9]; 9],
+    /// `J^T e` at `params`.
+    pub jtr: [f64; 9],
     /// Iterations taken.
     pub iterations: usize,
     /// The solver met one of its tolerances.
@@ -383,7 +420,8 @@ pub struct MlOutcome {
 }
 
 /// The ML stage: Levenberg-Marquardt (or undamped Gauss-Newton) from `p0` on the
-/// maximum-likelihood cost `prob`, when `iterate`; otherwise `p0` unchanged.
+/// maximum-likelihood cost `prob`, when `iterate`; otherwise `p0` unchanged. Either way the
+/// outcome carries the cost and normal equations at the final point.
 pub fn ml_stage<const N: usize>(
     prob: &NormProblem<'_>,
     p0: &[f64; 9],
@@ -392,30 +430,40 @@ pub fn ml_stage<const N: usize>(
     gauss_newton: bool,
     lambda0: f64,
 ) -> Result<MlOutcome> {
-    if !iterate {
-        return Ok(MlOutcome {
-            params: *p0,
-            iterations: 0,
-            solver_converged: true,
-        });
-    }
-    let opt = NlsOptions {
-        max_iter: set.max_iter,
-        gauss_newton,
-        ftol: 1e-12,
-        xtol: 1e-12,
-        gtol: 1e-10,
-    };
     let mut p = [0.0f64; N];
     p.copy_from_slice(&p0[..N]);
-    let r = solve_normal_fixed::<N, _>(prob, &p, &opt, lambda0)?;
-    let mut params = [0.0f64; 9];
-    params[..N].copy_from_slice(&r.params);
-    Ok(MlOutcome {
-        params,
-        iterations: r.iterations,
-        solver_converged: r.converged,
-    })
+    let (params, cost, jtj, jtr, iterations, solver_converged) = if iterate {
+        // Stop when the next step could lower the cost by less than 1e-9 of it (the cost is
+        // then within 1e-9 of the minimum; for a correct noise model, cost ~ dof, a decrement
+        // ~ 2e-9 dof, well inside CONVERGED_DECREMENT).
+        let opt = NlsOptions {
+            max_iter: set.max_iter,
+            gauss_newton,
+            ftol: 1e-9,
+            xtol: 1e-10,
+            gtol: 1e-9,
+        };
+        let r = solve_normal_fixed::<N, _>(prob, &p, &opt, lambda0)?;
+        (r.params, r.cost, r.jtj, r.jtr, r.iterations, r.converged)
+    } else {
+        let (mut h, mut gr) = ([[0.0f64; N]; N], [0.0f64; N]);
+        let c = NormalEquationsFixed::<N>::normal(prob, &p, &mut h, &mut gr)?;
+        (p, c, h, gr, 0, true)
+    };
+    let mut out = MlOutcome {
+        params: *p0,
+        cost,
+        jtj: [[0.0; 9]; 9],
+        jtr: [0.0; 9],
+        iterations,
+        solver_converged,
+    };
+    out.params[..N].copy_from_slice(&params);
+    out.jtr[..N].copy_from_slice(&jtr);
+    for (dst, src) in out.jtj.iter_mut().zip(&jtj) {
+        dst[..N].copy_from_slice(src);
+    }
+    Ok(out)
 }
 
 /// The runaway guard: scale factors (frame `f1` parameters `p`) beyond [`RUNAWAY`] times the
@@ -451,15 +499,13 @@ pub struct Solved {
 }
 
 /// Run the stages on `means`: validate, start, frame change (points into `pts`), ML,
-/// runaway guard, covariance. `per_dwell` sees every dwell at the final parameters (see
-/// [`covariance_stage`]). A failure after a failed linear solution reports that failure.
+/// runaway guard, covariance. A failure after a failed linear solution reports that failure.
 pub fn solve<const N: usize>(
     means: &[[f64; 3]],
     g: f64,
     noise: &Noise<'_>,
     set: &FitSettings,
     pts: &mut Vec<[f64; 3]>,
-    per_dwell: impl FnMut(usize, &DwellEval, &[f64; 9]),
 ) -> Result<Solved> {
     let model = set.model;
     validate(means, g, noise, model)?;
@@ -490,7 +536,7 @@ pub fn solve<const N: usize>(
     if iterate {
         runaway_guard(&ml.params, f0, f1, means.len()).map_err(keep)?;
     }
-    let cov = covariance_stage::<N>(&prob, &ml.params, set, per_dwell).map_err(keep)?;
+    let cov = covariance_stage::<N>(&ml, means.len(), g, noise.known(), set);
     let converged = !iterate
         || cov.decrement <= CONVERGED_DECREMENT
         || (cov.cov_c.is_none() && ml.solver_converged);
@@ -502,6 +548,25 @@ pub fn solve<const N: usize>(
         cov,
         converged,
     })
+}
+
+impl Solved {
+    /// The fitting problem of this fit on its frame points `pts`.
+    pub fn problem<'a>(
+        &self,
+        pts: &'a [[f64; 3]],
+        g: f64,
+        noise: &'a Noise<'a>,
+        model: Model,
+    ) -> NormProblem<'a> {
+        NormProblem {
+            pts,
+            g,
+            noise: noise.in_frame(self.f1.s),
+            model,
+            kmax: f64::INFINITY,
+        }
+    }
 }
 
 fn start_stage_checked(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> Result<Start> {
@@ -568,17 +633,27 @@ fn fit_static_n<const N: usize>(
 ) -> Result<StaticFit> {
     let n = means.len();
     let mut pts = Vec::with_capacity(n);
+    let s = solve::<N>(means, g, noise, set, &mut pts)?;
     let mut residuals = vec![0.0; n];
     let mut sigma_r = vec![0.0; n];
-    let mut jc = DMatrix::<f64>::zeros(n, N);
-    let s = solve::<N>(means, g, noise, set, &mut pts, |k, d, row| {
+    let prob = s.problem(&pts, g, noise, set.model);
+    let pass = prob.for_each(&s.ml.params, |k, _, d| {
         residuals[k] = d.r;
         sigma_r[k] = d.sigma;
-        for j in 0..N {
-            jc[(k, j)] = row[j];
-        }
-    })?;
-    check_solved(&s, set, n, || Ok(jc.clone()))?;
+    });
+    if let Err(e) = pass {
+        return Err(s.start.error.clone().unwrap_or(e));
+    }
+    let jc = || -> Result<DMatrix<f64>> {
+        let mut jc = DMatrix::<f64>::zeros(n, N);
+        per_dwell(&prob, &s.ml.params, |k, _, row| {
+            for j in 0..N {
+                jc[(k, j)] = row[j];
+            }
+        })?;
+        Ok(jc)
+    };
+    check_solved(&s, set, n, jc)?;
     let known = noise.known();
     // With the noise estimated, costs are in frame units squared: report output units.
     let s2 = s.f1.s * s.f1.s;
@@ -612,7 +687,8 @@ fn fit_static_n<const N: usize>(
         decrement: s.cov.decrement,
         noise_known: known,
         summary: s.cov.summary,
-        jc,
+        frame: (s.f1, s.ml.params),
+        pts,
         obs_scale: s.cov.obs_scale,
     })
 }
@@ -683,7 +759,11 @@ pub(crate) mod tests_common {
     /// Gravity seen at tilts (tx, ty): `[-g sin ty, g sin tx cos ty, g cos tx cos ty]`.
     pub fn force(tx_deg: f64, ty_deg: f64) -> Vector3<f64> {
         let (tx, ty) = (tx_deg.to_radians(), ty_deg.to_radians());
-        Vector3::new(-G * ty.sin(), G * tx.sin() * ty.cos(), G * tx.cos() * ty.cos())
+        Vector3::new(
+            -G * ty.sin(),
+            G * tx.sin() * ty.cos(),
+            G * tx.cos() * ty.cos(),
+        )
     }
 
     /// Noise-free dwell means at `n` random tilts within +-`tilt_deg`.
@@ -738,7 +818,11 @@ mod tests {
         let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 1);
         for method in [Method::Quadric, Method::Lm, Method::GaussNewton] {
             let f = fit_static(&m, G, &Noise::Estimated, &settings(method)).unwrap();
-            assert!(maxerr(&f.params, &TRUTH) < 1e-9, "{method:?} {:?}", f.params);
+            assert!(
+                maxerr(&f.params, &TRUTH) < 1e-9,
+                "{method:?} {:?}",
+                f.params
+            );
             assert!(f.converged);
         }
     }
@@ -877,13 +961,32 @@ mod tests {
         let p0 = f1.to_frame(&st.params);
         let ml = ml_stage::<9>(&prob, &p0, &set, true, false, 1e-8).unwrap();
         assert!(ml.solver_converged && ml.iterations > 0);
-        let c = covariance_stage::<9>(&prob, &ml.params, &set, |_, _, _| {}).unwrap();
-        assert!(c.decrement < 1e-10, "{}", c.decrement);
-        let c0 = covariance_stage::<9>(&prob, &p0, &set, |_, _, _| {}).unwrap();
-        assert!(c0.decrement > 1e-4 && c0.cost > c.cost, "{} {}", c0.decrement, c0.cost);
-        // Not iterating returns the start unchanged.
+        let c = covariance_stage::<9>(&ml, 20, G, true, &set);
+        assert!(c.decrement < 1e-7, "{}", c.decrement);
+        // Not iterating returns the start unchanged, with its (non-stationary) normal
+        // equations: far from the minimum in parameter std.
         let same = ml_stage::<9>(&prob, &p0, &set, false, false, 1e-8).unwrap();
         assert_eq!(same.params, p0);
+        let c0 = covariance_stage::<9>(&same, 20, G, true, &set);
+        assert!(
+            c0.decrement > 1e-4 && c0.cost > c.cost,
+            "{} {}",
+            c0.decrement,
+            c0.cost
+        );
+        // The cost's gradient at the ML point vanishes: central differences of the cost.
+        let h = 1e-7;
+        for j in 0..9 {
+            let (mut a, mut b) = (ml.params, ml.params);
+            a[j] += h;
+            b[j] -= h;
+            let fd = (prob.cost_at(&a).unwrap() - prob.cost_at(&b).unwrap()) / (2.0 * h);
+            let gj = 2.0 * ml.jtr[j];
+            assert!(
+                (fd - gj).abs() < 1e-5 * ml.jtj[j][j].sqrt(),
+                "{j}: {fd} {gj}"
+            );
+        }
     }
 
     #[test]

@@ -8,7 +8,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use super::cost::{inv_k, jac_row, ml_row, DwellEval, NormProblem};
-use super::{FitSettings, Model, PARAM_NAMES, SINGULAR_RTOL};
+use super::{FitSettings, MlOutcome, Model, PARAM_NAMES, SINGULAR_RTOL};
 use crate::error::{invalid, Result};
 use crate::lsq::{covariance_normal_fixed, svd_report_qr, top_eigen_fixed};
 use nalgebra::{DMatrix, Vector3};
@@ -160,49 +160,32 @@ pub fn obs_summary<const N: usize>(
     }
 }
 
-/// The covariance stage at the final frame parameters `p`: one pass over the dwells gives
-/// the cost, chi2/dof, the comparable normal matrix and gradient, hence the covariance, the
-/// observability summary and the Newton decrement (the convergence check). `per_dwell(k,
-/// eval, row)` sees every dwell's evaluation and its comparable whitened Jacobian row.
+/// The covariance stage: from the cost, `J^T J` and `J^T e` at the final frame parameters
+/// (from the ML stage), chi2/dof, the comparable covariance, the observability summary and
+/// the Newton decrement (the convergence check). `n` dwells, reference gravity `g`.
 pub fn covariance_stage<const N: usize>(
-    prob: &NormProblem<'_>,
-    p: &[f64; 9],
+    ml: &MlOutcome,
+    n: usize,
+    g: f64,
+    noise_known: bool,
     set: &FitSettings,
-    mut per_dwell: impl FnMut(usize, &DwellEval, &[f64; 9]),
-) -> Result<CovStage> {
+) -> CovStage {
+    let d = |i: usize| if (3..6).contains(&i) { g } else { 1.0 };
     let mut h = [[0.0f64; N]; N];
     let mut gr = [0.0f64; N];
-    let mut cost = 0.0;
-    let mut row = [0.0f64; 9];
-    let g = prob.g;
-    let model = prob.model;
-    prob.for_each(p, |k, t, d| {
-        let e = d.e();
-        cost += e * e;
-        ml_row(model, t, d, &mut row);
-        for v in &mut row[3..6] {
-            *v *= g;
-        }
-        per_dwell(k, d, &row);
-        for i in 0..N {
-            gr[i] += row[i] * e;
-            for j in i..N {
-                h[i][j] += row[i] * row[j];
-            }
-        }
-    })?;
-    for i in 0..N {
-        for j in 0..i {
-            h[i][j] = h[j][i];
+    for (i, (hi, gi)) in h.iter_mut().zip(gr.iter_mut()).enumerate() {
+        *gi = ml.jtr[i] * d(i);
+        for (j, hij) in hi.iter_mut().enumerate() {
+            *hij = ml.jtj[i][j] * d(i) * d(j);
         }
     }
-    let n = prob.pts.len();
+    let cost = ml.cost;
     let chi2_dof = if n > N {
         cost / (n - N) as f64
     } else {
         f64::NAN
     };
-    let obs_scale = if prob.noise.known() {
+    let obs_scale = if noise_known {
         1.0
     } else {
         chi2_dof.max((1e-7 * g).powi(2))
@@ -224,13 +207,31 @@ pub fn covariance_stage<const N: usize>(
         }
         None => (None, f64::INFINITY),
     };
-    Ok(CovStage {
+    CovStage {
         cost,
         chi2_dof,
         obs_scale,
         summary,
         cov_c,
         decrement,
+    }
+}
+
+/// Every dwell at the frame parameters `p`: `f(k, eval, row)` with the whitened Jacobian row
+/// in comparable units (bias columns times `g`).
+pub fn per_dwell(
+    prob: &NormProblem<'_>,
+    p: &[f64; 9],
+    mut f: impl FnMut(usize, &DwellEval, &[f64; 9]),
+) -> Result<()> {
+    let mut row = [0.0f64; 9];
+    let (g, model) = (prob.g, prob.model);
+    prob.for_each(p, |k, t, d| {
+        ml_row(model, t, d, &mut row);
+        for v in &mut row[3..6] {
+            *v *= g;
+        }
+        f(k, d, &row);
     })
 }
 
@@ -291,7 +292,12 @@ pub fn degenerate_message(obs: &Observability, model: Model, n: usize, sum: &Obs
 /// Fisher-information rows of a pose design: for each true specific force `force[k]`
 /// (units of g) the Jacobian row of the whitened residual at parameters `params` (the truth),
 /// for dwell-mean noise `sigma` per axis (output units). Row-major `n x p`.
-pub fn design_rows(model: Model, params: &[f64], force: &[[f64; 3]], sigma: f64) -> Result<Vec<f64>> {
+pub fn design_rows(
+    model: Model,
+    params: &[f64],
+    force: &[[f64; 3]],
+    sigma: f64,
+) -> Result<Vec<f64>> {
     let np = model.n_params();
     if params.len() != np {
         return invalid(format!(
@@ -407,7 +413,10 @@ mod tests {
         let v = [0.23, 0.0, 0.0, 0.0, 0.0, -0.05, 0.94, -1.0, 0.01];
         assert_eq!(describe_combination(&v), "m2 - 0.94 m1 - 0.23 sx");
         assert_eq!(describe_combination(&[0.0; 9]), "(none)");
-        assert_eq!(describe_combination(&[0.0, 0.0, 0.0, 0.0, 0.0, 1.0]), "bz/g");
+        assert_eq!(
+            describe_combination(&[0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
+            "bz/g"
+        );
     }
 
     #[test]
@@ -415,7 +424,9 @@ mod tests {
         let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 3);
         let set = FitSettings::new(Model::Lower, Method::Lm);
         let f = fit_static(&m, G, &Noise::Uniform([1e-6; 3]), &set).unwrap();
-        let o = f.observability(&set).unwrap();
+        let o = f
+            .observability(&Noise::Uniform([1e-6; 3]), G, &set)
+            .unwrap();
         for (a, b) in f.summary.std().iter().zip(&o.std_comparable) {
             assert!((a / b - 1.0).abs() < 1e-6, "{a} {b}");
         }
@@ -438,7 +449,11 @@ mod tests {
         }
         assert!(!p.singular);
         // Too few poses, no poses, bad g.
-        assert!(predict(Model::Lower, &TRUTH, &force[..5], 1e-3, G, &set).unwrap().singular);
+        assert!(
+            predict(Model::Lower, &TRUTH, &force[..5], 1e-3, G, &set)
+                .unwrap()
+                .singular
+        );
         assert!(predict(Model::Lower, &TRUTH, &[], 1e-3, G, &set).is_err());
         assert!(predict(Model::Lower, &TRUTH, &force, 1e-3, f64::NAN, &set).is_err());
         assert!(predict(Model::Lower, &TRUTH, &force, -1.0, G, &set).is_err());

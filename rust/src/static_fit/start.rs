@@ -315,9 +315,15 @@ mod tests {
         let f0 = Frame::centroid(&m, G).unwrap();
         let mut set = FitSettings::new(Model::Lower, Method::Lm);
         set.start = Some(vec![1.0; 3]);
-        assert!(matches!(start_stage(&m, G, &set, f0), Err(CoreError::InvalidInput(_))));
+        assert!(matches!(
+            start_stage(&m, G, &set, f0),
+            Err(CoreError::InvalidInput(_))
+        ));
         set.start = Some(vec![1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(start_stage(&m, G, &set, f0).unwrap().source, StartSource::User);
+        assert_eq!(
+            start_stage(&m, G, &set, f0).unwrap().source,
+            StartSource::User
+        );
         set.method = Method::Quadric;
         assert!(start_stage(&m, G, &set, f0).is_err());
         // Points on a hyperboloid sheet: no ellipsoid, a bias + scale fallback.
