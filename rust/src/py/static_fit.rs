@@ -22,6 +22,19 @@ use crate::static_fit::{
 // ------------------------------------------------------------------------------------------
 // Argument checks: the name, the value received and the valid range in every message.
 
+/// An optional argument that tells "not given" (the default) from an explicit `None`, so that
+/// `max_iter=None` is refused with a clear message instead of meaning the default.
+pub struct Given<'py>(Option<Bound<'py, PyAny>>);
+
+impl<'a, 'py> FromPyObject<'a, 'py> for Given<'py> {
+    type Error = PyErr;
+    fn extract(obj: pyo3::Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        Ok(Given(Some(obj.to_owned())))
+    }
+}
+
+const NOT_GIVEN: Given<'static> = Given(None);
+
 fn describe(obj: &Bound<'_, PyAny>) -> String {
     obj.repr()
         .map(|r| r.to_string())
@@ -110,23 +123,22 @@ fn settings_from(
     model: &str,
     method: &str,
     start: Option<Vec<f64>>,
-    max_iter: Option<&Bound<'_, PyAny>>,
+    max_iter: &Given<'_>,
     raise_degenerate: bool,
-    degenerate_std: Option<&Bound<'_, PyAny>>,
-    weak_std: Option<&Bound<'_, PyAny>>,
+    degenerate_std: &Given<'_>,
+    weak_std: &Given<'_>,
 ) -> PyResult<FitSettings> {
-    let given = |x: Option<&Bound<'_, PyAny>>| x.filter(|o| !o.is_none()).is_some();
     let mut s = FitSettings::new(Model::parse(model)?, Method::parse(method)?);
     s.start = start;
     s.raise_degenerate = raise_degenerate;
-    if let Some(o) = max_iter.filter(|_| given(max_iter)) {
+    if let Some(o) = &max_iter.0 {
         s.max_iter = arg_int(o, "max_iter", 1, 100_000)?;
     }
-    if let Some(o) = degenerate_std.filter(|_| given(degenerate_std)) {
-        s.degenerate_std = positive(o, "degenerate_std", "relative std (e.g. 0.1)")?;
+    if let Some(o) = &degenerate_std.0 {
+        s.degenerate_std = positive(o, "degenerate_std", "relative std (default 3)")?;
     }
-    if let Some(o) = weak_std.filter(|_| given(weak_std)) {
-        s.weak_std = positive(o, "weak_std", "relative std (e.g. 1e-3)")?;
+    if let Some(o) = &weak_std.0 {
+        s.weak_std = positive(o, "weak_std", "relative std (default 1e-3)")?;
     }
     Ok(s)
 }
@@ -349,7 +361,7 @@ fn core_fit(
 #[pymethods]
 impl PyStaticFit {
     #[new]
-    #[pyo3(signature = (means, g, *, model="lower", method="lm", var=None, start=None, max_iter=None, raise_degenerate=true, degenerate_std=None, weak_std=None, check_g=true, noise_model=String::new(), input_units=String::new(), nominal=None))]
+    #[pyo3(signature = (means, g, *, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model="", input_units="", nominal=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -359,13 +371,13 @@ impl PyStaticFit {
         method: &str,
         var: Option<&Bound<'_, PyAny>>,
         start: Option<Vec<f64>>,
-        max_iter: Option<&Bound<'_, PyAny>>,
+        max_iter: Given<'_>,
         raise_degenerate: bool,
-        degenerate_std: Option<&Bound<'_, PyAny>>,
-        weak_std: Option<&Bound<'_, PyAny>>,
+        degenerate_std: Given<'_>,
+        weak_std: Given<'_>,
         check_g: bool,
-        noise_model: String,
-        input_units: String,
+        noise_model: &str,
+        input_units: &str,
         nominal: Option<Py<PyAny>>,
     ) -> PyResult<Self> {
         let gv = self::check_g(g, check_g)?;
@@ -377,10 +389,10 @@ impl PyStaticFit {
             model,
             method,
             start.clone(),
-            max_iter,
+            &max_iter,
             raise_degenerate,
-            degenerate_std,
-            weak_std,
+            &degenerate_std,
+            &weak_std,
         )?;
         let f = core_fit(&m, v.as_deref(), gv, &s, py)?;
         let np = f.params.len();
@@ -415,8 +427,8 @@ impl PyStaticFit {
             degenerate_std: s.degenerate_std,
             weak_std: s.weak_std,
             check_g,
-            noise_model,
-            input_units,
+            noise_model: noise_model.to_string(),
+            input_units: input_units.to_string(),
             nominal,
         })
     }
@@ -646,7 +658,7 @@ impl Gathered<'_> {
 /// Fit many sessions in parallel: `means` is a `(B, n, 3)` float64 array (with an optional
 /// `(B, n)` boolean `mask` of the dwells to use) or a list of `(n_i, 3)` float64 arrays.
 #[pyfunction]
-#[pyo3(signature = (means, g, *, model="lower", method="lm", sigma=None, start=None, max_iter=None, degenerate_std=None, weak_std=None, mask=None))]
+#[pyo3(signature = (means, g, *, model="lower", method="lm", sigma=None, start=None, max_iter=NOT_GIVEN, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, mask=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn static_fit_batch<'py>(
     py: Python<'py>,
@@ -656,19 +668,19 @@ pub fn static_fit_batch<'py>(
     method: &str,
     sigma: Option<&Bound<'py, PyAny>>,
     start: Option<Vec<f64>>,
-    max_iter: Option<&Bound<'py, PyAny>>,
-    degenerate_std: Option<&Bound<'py, PyAny>>,
-    weak_std: Option<&Bound<'py, PyAny>>,
+    max_iter: Given<'py>,
+    degenerate_std: Given<'py>,
+    weak_std: Given<'py>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<PyBatchFit> {
     let s = settings_from(
         model,
         method,
         start,
-        max_iter,
+        &max_iter,
         true,
-        degenerate_std,
-        weak_std,
+        &degenerate_std,
+        &weak_std,
     )?;
     let sig = match sigma {
         Some(o) if !o.is_none() => Some(positive(

@@ -89,7 +89,12 @@ impl Frame {
             let m = &means[k];
             ((m[0] - c[0]).powi(2) + (m[1] - c[1]).powi(2) + (m[2] - c[2]).powi(2)).sqrt()
         });
-        if !(d > 0.0) || !d.is_finite() {
+        // Relative to the size of the data: identical dwells differ by rounding only.
+        let size = means
+            .iter()
+            .map(|m| m[0].abs().max(m[1].abs()).max(m[2].abs()))
+            .fold(0.0f64, f64::max);
+        if !(d > 1e-9 * size) || !d.is_finite() {
             return degenerate(
                 "the dwell means are (almost) all identical: the sensor was not turned between \
                  dwells",
@@ -166,6 +171,8 @@ mod tests {
     #[test]
     fn centroid_frame_refuses_identical_dwells_and_median_is_exact() {
         assert!(Frame::centroid(&[[1.0, 2.0, 3.0]; 5], 9.8).is_err());
+        // Identical up to rounding of the centroid.
+        assert!(Frame::centroid(&[[0.1, 0.7, 9.3]; 20], 9.8).is_err());
         let f = Frame::centroid(&[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], 2.0).unwrap();
         assert_eq!(f.c, [0.0; 3]);
         assert!((f.s - 0.5).abs() < 1e-15);

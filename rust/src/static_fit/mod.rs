@@ -54,8 +54,10 @@ use rayon::prelude::*;
 /// Names of the parameters in vector order.
 pub const PARAM_NAMES: [&str; 9] = ["sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3"];
 
-/// Default predicted std (comparable units) above which a combination counts as undetermined.
-pub const DEGENERATE_STD: f64 = 0.1;
+/// Default predicted std (comparable units) above which a combination counts as undetermined:
+/// a combination known to no better than 300 % (of the scale, or of g for a bias) is not
+/// determined. Below it a large predicted std is reported as a weak design, with the fit.
+pub const DEGENERATE_STD: f64 = 3.0;
 /// Default predicted std (comparable units) above which a parameter counts as weakly determined.
 pub const WEAK_STD: f64 = 1e-3;
 /// Scale factors above this multiple of the data's spread scale (median distance of the
@@ -434,12 +436,13 @@ pub fn ml_stage<const N: usize>(
     p.copy_from_slice(&p0[..N]);
     let (params, cost, jtj, jtr, iterations, solver_converged) = if iterate {
         // Stop when the next step could lower the cost by less than 1e-9 of it (the cost is
-        // then within 1e-9 of the minimum; for a correct noise model, cost ~ dof, a decrement
-        // ~ 2e-9 dof, well inside CONVERGED_DECREMENT).
+        // then within 1e-9 of the minimum) and by less than 2.5e-7 of cost / dof (a decrement
+        // below 5e-7 in the realistic std: inside CONVERGED_DECREMENT).
+        let dof = prob.pts.len().saturating_sub(N).max(1) as f64;
         let opt = NlsOptions {
             max_iter: set.max_iter,
             gauss_newton,
-            ftol: 1e-9,
+            ftol: (2.5e-7 / dof).min(1e-9),
             xtol: 1e-10,
             gtol: 1e-9,
         };

@@ -71,8 +71,10 @@ pub struct CovStage {
     pub summary: ObsSummary,
     /// `(J^T J)^-1` in comparable units (noise-model weights, unscaled); `None` when singular.
     pub cov_c: Option<[[f64; 9]; 9]>,
-    /// `g^T (J^T J)^-1 g / obs_scale`: squared distance, in parameter std, from the current
-    /// point to the minimum of the local quadratic model (infinite when singular).
+    /// `g^T (J^T J)^-1 g`, in units of the realistic parameter variance (the noise model's,
+    /// times chi2/dof when that exceeds 1 or the noise is estimated): squared distance, in
+    /// parameter std, from the current point to the minimum of the local quadratic model
+    /// (infinite when singular).
     pub decrement: f64,
 }
 
@@ -191,6 +193,17 @@ pub fn covariance_stage<const N: usize>(
         chi2_dof.max((1e-7 * g).powi(2))
     };
     let (summary, cov) = obs_summary::<N>(&h, obs_scale, set);
+    // The convergence check is in the realistic std: the noise model's, inflated by
+    // chi2/dof when the residuals exceed it.
+    let conv_scale = if noise_known {
+        if chi2_dof > 1.0 {
+            chi2_dof
+        } else {
+            1.0
+        }
+    } else {
+        obs_scale
+    };
     let (cov_c, decrement) = match cov {
         Some(c) => {
             let mut dec = 0.0;
@@ -203,7 +216,7 @@ pub fn covariance_stage<const N: usize>(
             for i in 0..N {
                 out[i][..N].copy_from_slice(&c[i]);
             }
-            (Some(out), dec / obs_scale)
+            (Some(out), dec / conv_scale)
         }
         None => (None, f64::INFINITY),
     };
