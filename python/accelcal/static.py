@@ -36,6 +36,7 @@ from . import _core
 from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
 from ._triad_model import TriadModel
+from ._validate import real_array
 from .dwell import DwellSet
 
 __all__ = [
@@ -72,14 +73,8 @@ def units_of_g(g: float) -> str:
 
 # ------------------------------------------------------------------------------------------
 def _as_means(x: Any, name: str) -> NDArray[np.float64]:
-    """(k, 3) float64 view or copy of ``x`` (any layout; complex, text and object refused)."""
-    a = np.asarray(x)
-    if a.dtype.kind not in "fiu":
-        raise CalibrationError(
-            f"{name}: unsupported dtype {a.dtype}; give real (float or integer) dwell means"
-        )
-    if a.dtype != np.float64:
-        a = a.astype(np.float64)
+    """(k, 3) float64 (any layout; boolean, complex, text and object refused)."""
+    a = real_array(x, name, "output units")
     if a.ndim != 2 or a.shape[1] != 3:
         raise CalibrationError(f"{name} must have shape (k, 3); got {a.shape}")
     return a
@@ -565,10 +560,7 @@ def fit_static_batch(
     if isinstance(means, (list, tuple)):
         m: Any = [_as_means(x, f"session {i}") for i, x in enumerate(means)]
     else:
-        a = np.asarray(means)
-        if a.dtype.kind not in "fiu":
-            raise CalibrationError(f"means: unsupported dtype {a.dtype}; give real numbers")
-        m = a.astype(np.float64, copy=False)
+        m = real_array(means, "means", "output units")
         if m.ndim != 3 or m.shape[2] != 3:
             raise CalibrationError(f"means must have shape (B, n, 3); got {m.shape}")
     mk = None
