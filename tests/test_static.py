@@ -537,3 +537,31 @@ def test_local_gravity_wgs84():
     for bad in (95.0, np.nan, "north", None):
         with pytest.raises(CalibrationError, match="latitude"):
             ac.local_gravity(bad)
+
+
+def test_an_ignored_warning_is_not_built_but_a_shown_one_is():
+    s = static_dwell_means(20, rng=7)
+    calls = []
+    orig = ac.StaticFit.warning_text
+
+    def spy(self):
+        calls.append(1)
+        return orig(self)
+
+    ac.StaticFit.warning_text = spy
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", WeakDesignWarning)
+            ac.fit_static(s.means, s.g_measured)
+        assert calls == []
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            ac.fit_static(s.means, s.g_measured)
+        assert calls == [1] and "bz" in str(w[0].message)
+        with warnings.catch_warnings(record=True) as w:
+            warnings.filterwarnings("ignore", message="nothing like it")
+            warnings.simplefilter("always", WeakDesignWarning)
+            ac.fit_static(s.means, s.g_measured)
+        assert len(w) == 1
+    finally:
+        ac.StaticFit.warning_text = orig

@@ -397,10 +397,9 @@ class StaticFit:
         cls,
         means: NDArray[np.float64],
         g: float,
-        *,
         model: _StaticModel = "lower",
         method: _StaticMethod = "lm",
-        var: NDArray[np.float64] | None = None,
+        var: NDArray[np.float64] | float | None = None,
         start: list[float] | None = None,
         max_iter: int = ...,
         raise_degenerate: bool = True,
@@ -424,8 +423,8 @@ class StaticFit:
     def means(self) -> NDArray[np.float64]:
         """Dwell means (k, 3), output units."""
     @property
-    def var(self) -> NDArray[np.float64] | None:
-        """Per-axis variance of each dwell mean (k, 3), or None (estimated)."""
+    def var(self) -> NDArray[np.float64] | float | None:
+        """Variance of each dwell mean per axis: one number, (k, 3), or None (estimated)."""
     @property
     def vector(self) -> NDArray[np.float64]:
         """Parameters [sx, sy, sz, bx, by, bz, m1, m2, m3] (p = 6 for diag)."""

@@ -36,7 +36,7 @@ from . import _core
 from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
 from ._triad_model import TriadModel
-from ._validate import real_array
+from ._validate import number, real_array
 from .dwell import DwellSet
 
 __all__ = [
@@ -58,6 +58,17 @@ _OBSERVABILITY = ("raise", "warn", "ignore")
 
 class WeakDesignWarning(UserWarning):
     """The dwells determine the parameters only weakly (large predicted std)."""
+
+
+def _ignored(category: type[Warning]) -> bool:
+    """The active warning filters ignore ``category`` whatever its text and origin (then the
+    text need not be built). Any filter that looks at the text, module or line: False."""
+    for action, msg, cat, mod, lineno in warnings.filters:
+        if msg is not None or mod is not None or lineno:
+            return False
+        if issubclass(category, cat):
+            return bool(action == "ignore")
+    return bool(getattr(warnings, "defaultaction", "default") == "ignore")
 
 
 def units_of_g(g: float) -> str:
@@ -82,14 +93,18 @@ def _as_means(x: Any, name: str) -> NDArray[np.float64]:
 
 def _inputs(
     data: Any, sigma: Any
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, str, str]:
-    """Dwell means, the per-axis variance of each mean (None: estimated), how the noise
-    model was obtained, and the input units."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | float | None, str, str]:
+    """Dwell means, the per-axis variance of each mean (one number for all, (k, 3), or None:
+    estimated), how the noise model was obtained, and the input units."""
     if isinstance(data, DwellSet):
         means, units = data.mean, data.units
     else:
         means, units = _as_means(data, "dwell means"), ""
     k = means.shape[0]
+    if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
+        sv = number(sigma, "sigma", lo=0.0, lo_open=True,
+                    unit="(std of each dwell mean, output units)")
+        return means, sv * sv, "given sigma (std of each dwell mean)", units
     if sigma is not None:
         s = np.asarray(sigma)
         if s.dtype.kind not in "fiu":
@@ -194,7 +209,7 @@ class StaticFit(_core.StaticFit):
         return k_matrix(self.vector, self.model)
 
     # -- uncertainty --------------------------------------------------------------------
-    @property
+    @cached_property
     def covariance_scaled(self) -> NDArray[np.float64]:
         """``covariance_unscaled * chi2_dof``: the noise level that the residuals show."""
         return self.covariance_unscaled * self.chi2_dof  # type: ignore[no-any-return]
@@ -209,7 +224,7 @@ class StaticFit(_core.StaticFit):
         """Same as :attr:`covariance_noise_model`."""
         return self.covariance_noise_model
 
-    @property
+    @cached_property
     def std(self) -> NDArray[np.float64]:
         return np.sqrt(np.diag(self.covariance))
 
@@ -226,7 +241,7 @@ class StaticFit(_core.StaticFit):
             return self.covariance_scaled
         return self.covariance_noise_model
 
-    @property
+    @cached_property
     def std_realistic(self) -> NDArray[np.float64]:
         return np.sqrt(np.diag(self.covariance_realistic))
 
@@ -286,20 +301,21 @@ class StaticFit(_core.StaticFit):
     def weak_text(self) -> str:
         """The weakly determined parameters: predicted std (output units) and relative std of
         every parameter whose relative std exceeds ``weak_std``."""
-        std = self.std
-        if not np.all(np.isfinite(std)):
+        std = self.std.tolist()
+        if not all(map(math.isfinite, std)):
             return (
                 "no redundancy (as many dwells as parameters): the noise and the uncertainty "
                 "cannot be estimated"
             )
-        rel = self.predicted_std_relative
-        parts = []
-        for i, nm in enumerate(self.names):
-            if not rel[i] <= self.weak_std:
-                unit = "g" if 3 <= i < 6 else "of scale"
-                parts.append(f"{nm} +-{std[i]:.3g} ({100 * rel[i]:.2g} % {unit})")
+        rel = self.predicted_std_relative.tolist()
+        lim = self.weak_std
+        parts = [
+            f"{nm} +-{std[i]:.3g} ({100 * rel[i]:.2g} % {'g' if 3 <= i < 6 else 'of scale'})"
+            for i, nm in enumerate(self.names)
+            if not rel[i] <= lim
+        ]
         txt = f"predicted std {', '.join(parts)} (1 sigma)"
-        if self.model != "diag" and not np.all(rel[6:] <= self.weak_std):
+        if len(rel) == 9 and not all(r <= lim for r in rel[6:]):
             txt += '; model "diag" (bias + scale) needs fewer attitudes'
         return txt
 
@@ -506,21 +522,9 @@ def fit_static(
             f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
     st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
-    fit = StaticFit(
-        means,
-        g,
-        model=cast(Any, model),
-        method=cast(Any, method),
-        var=var,
-        start=st,
-        max_iter=max_iter,
-        raise_degenerate=observability == "raise",
-        degenerate_std=degenerate_std,
-        weak_std=weak_std,
-        check_g=check_g,
-        noise_model=noise_model,
-        input_units=units,
-        nominal=nominal,
+    fit = StaticFit(  # positional: the fastest call into the constructor
+        means, g, cast(Any, model), cast(Any, method), var, st, max_iter,
+        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
     )
     if not fit.converged and not fit.degenerate:
         raise CalibrationError(
@@ -529,7 +533,8 @@ def fit_static(
             "more iterations"
         )
     if observability != "ignore" and (fit.weak or fit.degenerate):
-        warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
+        if not _ignored(WeakDesignWarning):  # the text costs more than the fit
+            warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
 
 

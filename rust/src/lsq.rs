@@ -672,25 +672,25 @@ pub fn lstsq_fn<const C: usize>(
     for j in 0..C {
         let (head, tail) = a.split_at_mut(j + 1);
         let v = &mut head[j][j..m];
-        let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let norm = dot4(v, v).sqrt();
         if !(norm > 0.0) {
             rdiag[j] = 0.0;
             continue;
         }
         let alpha = if v[0] > 0.0 { -norm } else { norm };
         v[0] -= alpha;
-        let vv = v.iter().map(|x| x * x).sum::<f64>();
+        let vv = dot4(v, v);
         if vv > 0.0 {
             let f = 2.0 / vv;
             for col in tail.iter_mut() {
                 let c = &mut col[j..m];
-                let s = f * v.iter().zip(c.iter()).map(|(a, b)| a * b).sum::<f64>();
+                let s = f * dot4(v, c);
                 for (ci, vi) in c.iter_mut().zip(v.iter()) {
                     *ci -= s * vi;
                 }
             }
             let c = &mut y[j..m];
-            let s = f * v.iter().zip(c.iter()).map(|(a, b)| a * b).sum::<f64>();
+            let s = f * dot4(v, c);
             for (ci, vi) in c.iter_mut().zip(v.iter()) {
                 *ci -= s * vi;
             }
@@ -713,6 +713,77 @@ pub fn lstsq_fn<const C: usize>(
         x[j] /= scale[j];
     }
     Ok(x)
+}
+
+/// [`lstsq_fn`] by the normal equations of the column-scaled design (Cholesky): about a
+/// third of the work of the QR, for a start value that an iteration polishes. The accuracy is
+/// about `cond^2 * eps` relative; when the scaled normal matrix has a pivot below `1e-10`
+/// (condition number above 1e5) the QR of [`lstsq_fn`] is used instead. Same errors.
+#[inline(always)]
+pub fn lstsq_normal_fn<const C: usize>(
+    m: usize,
+    row: impl Fn(usize) -> ([f64; C], f64),
+) -> Result<[f64; C]> {
+    if m < C {
+        return lstsq_fn(m, row);
+    }
+    let mut a = [[0.0f64; C]; C];
+    let mut r = [0.0f64; C];
+    for i in 0..m {
+        let (x, y) = row(i);
+        for p in 0..C {
+            r[p] += x[p] * y;
+            for q in p..C {
+                a[p][q] += x[p] * x[q];
+            }
+        }
+    }
+    let mut d = [0.0f64; C];
+    for p in 0..C {
+        d[p] = a[p][p].sqrt();
+        if !(d[p] > 0.0) || !d[p].is_finite() {
+            return degenerate(format!("design column {p} is zero or not finite"));
+        }
+    }
+    for p in 0..C {
+        r[p] /= d[p];
+        for q in p..C {
+            a[p][q] /= d[p] * d[q];
+            a[q][p] = a[p][q];
+        }
+    }
+    if !cholesky_lower(&mut a, |_, s| s > 1e-10) {
+        return lstsq_fn(m, row);
+    }
+    cholesky_solve(&a, &mut r);
+    for p in 0..C {
+        r[p] /= d[p];
+    }
+    if r.iter().any(|v| !v.is_finite()) {
+        return lstsq_fn(m, row);
+    }
+    Ok(r)
+}
+
+/// Dot product with four partial sums (breaks the addition chain: about four times faster
+/// on short vectors; the rounding differs from a serial sum only in the last bits).
+#[inline(always)]
+fn dot4(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 4];
+    let mut ca = a.chunks_exact(4);
+    let mut cb = b.chunks_exact(4);
+    for (x, y) in (&mut ca).zip(&mut cb) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let mut tail = 0.0;
+    for (x, y) in ca.remainder().iter().zip(cb.remainder()) {
+        tail += x * y;
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
 /// Inverse of a 3 x 3 matrix (closed form); `None` when singular or not finite.
@@ -1372,9 +1443,14 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
                 lambda = lambda.max(1e-12) * 10.0;
                 continue;
             }
+            let gain = if predicted {
+                predicted_gain(&jtj, &g, &step)
+            } else {
+                f64::INFINITY
+            };
             if flavor == Flavor::Stationary
                 && (opt.gauss_newton || lambda <= 1e-6)
-                && predicted_gain(&jtj, &g, &step) <= opt.ftol * cost
+                && gain <= opt.ftol * cost
             {
                 // The current point is a minimum to the tolerance: stay (its normal
                 // equations are known).
@@ -1387,7 +1463,7 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
             // Predicted reduction of the local quadratic model: when even the full step can
             // only gain a negligible fraction of the cost, take it (if it does not hurt) and
             // stop without another normal-equation evaluation.
-            let negligible = predicted && predicted_gain(&jtj, &g, &step) <= opt.ftol * cost;
+            let negligible = predicted && gain <= opt.ftol * cost;
             if negligible && c_new <= cost && flavor != Flavor::Stationary {
                 std::mem::swap(&mut p, &mut p_new);
                 cost = c_new;
@@ -1498,6 +1574,37 @@ mod tests {
         );
         let mut s = [1.0, 2.0, 2.0, 4.0];
         assert!(!cholesky_small(&mut s, 2));
+    }
+
+    #[test]
+    fn normal_equation_lstsq_agrees_with_qr_and_falls_back_when_ill_conditioned() {
+        let xs: Vec<f64> = (0..30).map(|i| i as f64 * 0.1).collect();
+        let row = |i: usize| {
+            let x = xs[i];
+            (
+                [1.0, x, x * x, x.sin()],
+                2.0 - 3.0 * x + 0.5 * x * x + 0.1 * (7.0 * x).cos(),
+            )
+        };
+        let q = lstsq_fn::<4>(30, row).unwrap();
+        let n = lstsq_normal_fn::<4>(30, row).unwrap();
+        for (a, b) in q.iter().zip(&n) {
+            assert!((a - b).abs() < 1e-9 * a.abs().max(1.0), "{a} {b}");
+        }
+        // Columns equal to 1e-7: the normal matrix is too ill-conditioned; the QR answers.
+        let ill = |i: usize| {
+            let x = xs[i];
+            ([1.0, x, x + 1e-7 * x * x], 1.0 + x + 1e-7 * x * x)
+        };
+        let q = lstsq_fn::<3>(30, ill).unwrap();
+        let n = lstsq_normal_fn::<3>(30, ill).unwrap();
+        assert_eq!(q, n);
+        // A zero column is the same error.
+        let zero = |i: usize| ([1.0, 0.0], xs[i]);
+        assert!(matches!(
+            lstsq_normal_fn::<2>(30, zero),
+            Err(CoreError::Degenerate(_))
+        ));
     }
 
     #[test]

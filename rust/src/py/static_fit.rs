@@ -12,11 +12,11 @@ use numpy::{
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 
-use super::convert::{rows3, with_view, SampleArray};
+use super::convert::{frozen1, frozen2, rows3, with_view, SampleArray};
 use super::CalibrationError;
 use crate::static_fit::{
     apply_model, design_rows, fit_batch, fit_static, predict, BatchRow, FitSettings, Method, Model,
-    Noise, Observability as CoreObservability, StaticFit as CoreFit, PARAM_NAMES,
+    Noise, Observability as CoreObservability, PARAM_NAMES,
 };
 
 // ------------------------------------------------------------------------------------------
@@ -143,20 +143,28 @@ fn settings_from(
     Ok(s)
 }
 
+/// A read-only copy of `v`.
 fn arr1(py: Python<'_>, v: &[f64]) -> Py<PyArray1<f64>> {
-    PyArray1::from_slice(py, v).unbind()
+    frozen1(py, v.to_vec())
 }
 
+/// A read-only `(rows, cols)` array of `f(i, j)`.
 fn arr2(
     py: Python<'_>,
     rows: usize,
     cols: usize,
     f: impl Fn(usize, usize) -> f64,
 ) -> Py<PyArray2<f64>> {
-    let v: Vec<f64> = (0..rows * cols).map(|k| f(k / cols, k % cols)).collect();
-    ndarray::Array2::from_shape_vec((rows, cols), v)
-        .map(|a| a.into_pyarray(py).unbind())
-        .unwrap_or_else(|_| PyArray2::zeros(py, (rows, cols), false).unbind())
+    frozen2(
+        py,
+        (0..rows * cols).map(|k| f(k / cols, k % cols)).collect(),
+        rows,
+        cols,
+    )
+}
+
+fn flat(v: &[[f64; 3]]) -> Vec<f64> {
+    v.iter().flatten().copied().collect()
 }
 
 // ------------------------------------------------------------------------------------------
@@ -280,8 +288,9 @@ pub struct PyStaticFit {
     g: f64,
     /// Dwell means (k, 3), output units (a copy of the input).
     means: Py<PyArray2<f64>>,
-    /// Per-axis variance of each dwell mean (k, 3), output units squared (None: estimated).
-    var: Option<Py<PyArray2<f64>>>,
+    /// Variance of each dwell mean per axis, output units squared: one value for every dwell
+    /// and axis, or (k, 3); None when the noise is estimated.
+    var: Option<Py<PyAny>>,
     /// Parameters `[sx, sy, sz, bx, by, bz, m1, m2, m3]` (p = 6 for "diag").
     vector: Py<PyArray1<f64>>,
     /// Start of GN/LM (or the linear method's own solution).
@@ -342,26 +351,42 @@ pub struct PyStaticFit {
     nominal: Option<Py<PyAny>>,
 }
 
-fn core_fit(
-    m: &[[f64; 3]],
-    v: Option<&[[f64; 3]]>,
-    g: f64,
-    s: &FitSettings,
-    py: Python<'_>,
-) -> PyResult<CoreFit> {
-    let noise = match v {
-        Some(v) => Noise::Known(v),
-        None => Noise::Estimated,
-    };
-    // Tiny fits stay attached (releasing the interpreter costs more than the fit).
-    let _ = py;
-    Ok(fit_static(m, g, &noise, s)?)
+/// The noise argument: one variance for every dwell and axis, a `(k, 3)` array, or none.
+enum VarArg {
+    Estimated,
+    Uniform(f64),
+    PerDwell(Vec<[f64; 3]>),
+}
+
+impl VarArg {
+    fn from_py(var: Option<&Bound<'_, PyAny>>) -> PyResult<VarArg> {
+        let Some(v) = var.filter(|v| !v.is_none()) else {
+            return Ok(VarArg::Estimated);
+        };
+        if let Ok(a) = v.extract::<PyReadonlyArray2<'_, f64>>() {
+            return Ok(VarArg::PerDwell(rows3(&a, "var")?));
+        }
+        Ok(VarArg::Uniform(arg_f64(
+            v,
+            "var",
+            "a non-negative, finite variance of a dwell mean or a (k, 3) float64 array",
+            |x| x >= 0.0 && x.is_finite(),
+        )?))
+    }
+
+    fn noise(&self) -> Noise<'_> {
+        match self {
+            VarArg::Estimated => Noise::Estimated,
+            VarArg::Uniform(v) => Noise::Uniform([*v; 3]),
+            VarArg::PerDwell(v) => Noise::Known(v),
+        }
+    }
 }
 
 #[pymethods]
 impl PyStaticFit {
     #[new]
-    #[pyo3(signature = (means, g, *, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model="", input_units="", nominal=None))]
+    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model="", input_units="", nominal=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -383,8 +408,7 @@ impl PyStaticFit {
         let gv = self::check_g(g, check_g)?;
         let ma = means_arg(means, "means")?;
         let m = rows3(&ma, "means")?;
-        let va = var.map(|v| means_arg(v, "var")).transpose()?;
-        let v = va.as_ref().map(|v| rows3(v, "var")).transpose()?;
+        let va = VarArg::from_py(var)?;
         let s = settings_from(
             model,
             method,
@@ -394,7 +418,7 @@ impl PyStaticFit {
             &degenerate_std,
             &weak_std,
         )?;
-        let f = core_fit(&m, v.as_deref(), gv, &s, py)?;
+        let f = fit_static(&m, gv, &va.noise(), &s)?;
         let np = f.params.len();
         let k = m.len();
         Ok(PyStaticFit {
@@ -402,7 +426,11 @@ impl PyStaticFit {
             method: method_name(f.method),
             g: gv,
             means: arr2(py, k, 3, |i, j| m[i][j]),
-            var: v.as_ref().map(|v| arr2(py, k, 3, |i, j| v[i][j])),
+            var: match &va {
+                VarArg::Estimated => None,
+                VarArg::Uniform(x) => Some(x.into_pyobject(py)?.into_any().unbind()),
+                VarArg::PerDwell(v) => Some(frozen2(py, flat(v), k, 3).into_any()),
+            },
             vector: arr1(py, &f.params),
             start: arr1(py, &f.start),
             start_source: f.start_source.name(),
@@ -436,11 +464,8 @@ impl PyStaticFit {
     /// Full observability report: SVD of the whitened Jacobian in comparable units.
     fn observability(&self, py: Python<'_>) -> PyResult<PyObservability> {
         let (m, v, s) = self.inputs(py)?;
-        let f = core_fit(&m, v.as_deref(), self.g, &s, py)?;
-        let noise = match &v {
-            Some(v) => Noise::Known(v),
-            None => Noise::Estimated,
-        };
+        let noise = v.noise();
+        let f = fit_static(&m, self.g, &noise, &s)?;
         let o = f.observability(&noise, self.g, &s)?;
         Ok(PyObservability::from_core(py, &o))
     }
@@ -475,16 +500,9 @@ impl PyStaticFit {
 }
 
 impl PyStaticFit {
-    #[allow(clippy::type_complexity)]
-    fn inputs(
-        &self,
-        py: Python<'_>,
-    ) -> PyResult<(Vec<[f64; 3]>, Option<Vec<[f64; 3]>>, FitSettings)> {
+    fn inputs(&self, py: Python<'_>) -> PyResult<(Vec<[f64; 3]>, VarArg, FitSettings)> {
         let m = rows3(&self.means.bind(py).readonly(), "means")?;
-        let v = match &self.var {
-            Some(v) => Some(rows3(&v.bind(py).readonly(), "var")?),
-            None => None,
-        };
+        let v = VarArg::from_py(self.var.as_ref().map(|v| v.bind(py)))?;
         let mut s = FitSettings::new(Model::parse(self.model)?, Method::parse(self.method)?);
         s.start = self.user_start.clone();
         s.max_iter = self.max_iter;
@@ -794,42 +812,17 @@ pub fn static_fit_batch<'py>(
         model: s.model.name(),
         params: arr2(py, nb, np, |i, j| rows[i].params[j]),
         std: arr2(py, nb, np, |i, j| rows[i].std[j]),
-        chi2_dof: rows
-            .iter()
-            .map(|r| r.chi2_dof)
-            .collect::<Vec<_>>()
-            .into_pyarray(py)
-            .unbind(),
-        rms: rows
-            .iter()
-            .map(|r| r.rms)
-            .collect::<Vec<_>>()
-            .into_pyarray(py)
-            .unbind(),
-        iterations: rows
-            .iter()
-            .map(|r| r.iterations as i64)
-            .collect::<Vec<_>>()
-            .into_pyarray(py)
-            .unbind(),
-        n_dwells: rows
-            .iter()
-            .map(|r| r.n_dwells as i64)
-            .collect::<Vec<_>>()
-            .into_pyarray(py)
-            .unbind(),
-        status: rows
-            .iter()
-            .map(|r| r.status.code())
-            .collect::<Vec<_>>()
-            .into_pyarray(py)
-            .unbind(),
-        weak: rows
-            .iter()
-            .map(|r| r.status == crate::static_fit::BatchStatus::Weak)
-            .collect::<Vec<_>>()
-            .into_pyarray(py)
-            .unbind(),
+        chi2_dof: frozen1(py, rows.iter().map(|r| r.chi2_dof).collect()),
+        rms: frozen1(py, rows.iter().map(|r| r.rms).collect()),
+        iterations: frozen1(py, rows.iter().map(|r| r.iterations as i64).collect()),
+        n_dwells: frozen1(py, rows.iter().map(|r| r.n_dwells as i64).collect()),
+        status: frozen1(py, rows.iter().map(|r| r.status.code()).collect()),
+        weak: frozen1(
+            py,
+            rows.iter()
+                .map(|r| r.status == crate::static_fit::BatchStatus::Weak)
+                .collect(),
+        ),
         messages: messages.unbind(),
     })
 }

@@ -81,13 +81,17 @@ pub struct DwellEval {
     pub var: [f64; 3],
     /// `sigma = sqrt(w^T Sigma w)`: std of the norm residual.
     pub sigma: f64,
+    /// `1 / |a|`.
+    pub inv_norm: f64,
+    /// `1 / sigma`.
+    pub inv_sigma: f64,
 }
 
 impl DwellEval {
     /// Whitened residual `r / sigma`.
     #[inline(always)]
     pub fn e(&self) -> f64 {
-        self.r / self.sigma
+        self.r * self.inv_sigma
     }
 }
 
@@ -116,7 +120,8 @@ pub fn eval_dwell(
     if !(norm > 0.0) || !norm.is_finite() {
         return invalid("a calibrated dwell has zero or non-finite norm");
     }
-    let w = t.tr_mul(&a) / norm;
+    let inv_norm = 1.0 / norm;
+    let w = t.tr_mul(&a) * inv_norm;
     let s2 = w[0] * w[0] * var[0] + w[1] * w[1] * var[1] + w[2] * w[2] * var[2];
     if !(s2 > 0.0) || !s2.is_finite() {
         return invalid(
@@ -124,13 +129,16 @@ pub fn eval_dwell(
              dwell needs a positive variance)",
         );
     }
+    let sigma = s2.sqrt();
     Ok(DwellEval {
         a,
         norm,
         r: norm - g,
         w,
         var,
-        sigma: s2.sqrt(),
+        sigma,
+        inv_norm,
+        inv_sigma: 1.0 / sigma,
     })
 }
 
@@ -171,12 +179,12 @@ pub fn jac_row(model: Model, w: &Vector3<f64>, a: &Vector3<f64>, is: f64, row: &
 /// `de/db_i = -w_i / sigma + r q_i / sigma^3`.
 #[inline(always)]
 pub fn ml_row(model: Model, t: &Matrix3<f64>, d: &DwellEval, row: &mut [f64; 9]) {
-    let is = 1.0 / d.sigma;
+    let is = d.inv_sigma;
     let c = d.r * is * is * is;
     let (w, a) = (&d.w, &d.a);
     let v = Vector3::new(d.var[0] * w[0], d.var[1] * w[1], d.var[2] * w[2]);
     let z = t * v;
-    let inv_n = 1.0 / d.norm;
+    let inv_n = d.inv_norm;
     let zu = z.dot(a) * inv_n * inv_n;
     let y = (z - a * zu) * inv_n;
     let q = t.tr_mul(&y);

@@ -14,7 +14,7 @@
 use super::frame::Frame;
 use super::{FitSettings, Method, Model};
 use crate::error::{invalid, CoreError, Result};
-use crate::lsq::{cholesky3, inverse3, lstsq_fn};
+use crate::lsq::{cholesky3, inverse3, lstsq_fn, lstsq_normal_fn};
 use nalgebra::{Matrix3, Vector3};
 
 /// Where the start of the iteration (or the linear answer) came from.
@@ -61,19 +61,26 @@ fn not_ellipsoid(detail: &str) -> CoreError {
 }
 
 /// Quadric regression `z^2 = x . beta` on the points `f.point(means[k])` (9 columns, or 6
-/// for the diagonal model; the last entries of the result are zero then).
-pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool) -> Result<[f64; 9]> {
+/// for the diagonal model; the last entries of the result are zero then). `exact`: by QR
+/// (the linear method's answer); otherwise by the normal equations (a start value, with the
+/// QR when the design is ill-conditioned).
+pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Result<[f64; 9]> {
     let n = means.len();
     if diag {
-        let b = lstsq_fn::<6>(n, |k| {
+        let row = |k: usize| {
             let [x, y, z] = f.point(&means[k]);
             ([x * x, y * y, 2.0 * x, 2.0 * y, 2.0 * z, 1.0], z * z)
-        })?;
+        };
+        let b = if exact {
+            lstsq_fn::<6>(n, row)?
+        } else {
+            lstsq_normal_fn::<6>(n, row)?
+        };
         let mut out = [0.0; 9];
         out[..6].copy_from_slice(&b);
         Ok(out)
     } else {
-        lstsq_fn::<9>(n, |k| {
+        let row = |k: usize| {
             let [x, y, z] = f.point(&means[k]);
             (
                 [
@@ -89,7 +96,12 @@ pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool) -> Result<[f64; 9]
                 ],
                 z * z,
             )
-        })
+        };
+        if exact {
+            lstsq_fn::<9>(n, row)
+        } else {
+            lstsq_normal_fn::<9>(n, row)
+        }
     }
 }
 
@@ -100,9 +112,15 @@ pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool) -> Result<[f64; 9]
 /// 2. `b = Qt^-1 [beta6, beta7, beta8]`;
 /// 3. `Q33 = g^2 / (b^T Qt b + beta9)`, `Q = Q33 Qt`;
 /// 4. `K K^T = Q^-1` with `K` in the model's triangle (Cholesky).
-pub fn quadric_fit(means: &[[f64; 3]], f: Frame, g: f64, model: Model) -> Result<[f64; 9]> {
+pub fn quadric_fit(
+    means: &[[f64; 3]],
+    f: Frame,
+    g: f64,
+    model: Model,
+    exact: bool,
+) -> Result<[f64; 9]> {
     let diag = model == Model::Diag;
-    let beta = quadric_beta(means, f, diag)?;
+    let beta = quadric_beta(means, f, diag, exact)?;
     let (qt, lin, c0) = if diag {
         (
             Matrix3::new(-beta[0], 0.0, 0.0, 0.0, -beta[1], 0.0, 0.0, 0.0, 1.0),
@@ -162,7 +180,7 @@ pub fn paper_fit(means: &[[f64; 3]], f: Frame, g: f64, model: Model) -> Result<[
         );
     }
     let diag = model == Model::Diag;
-    let beta = quadric_beta(means, f, diag)?;
+    let beta = quadric_beta(means, f, diag, true)?;
     let (b1, b2) = (beta[0], beta[1]);
     if !(b1 < 0.0 && b2 < 0.0) {
         return Err(not_ellipsoid(
@@ -220,7 +238,7 @@ pub fn paper_fit(means: &[[f64; 3]], f: Frame, g: f64, model: Model) -> Result<[
 /// Bias + scale start (output units) used to diagnose designs where the linear solution
 /// fails: the diagonal quadric, else the centroid frame itself.
 pub fn fallback_start(means: &[[f64; 3]], g: f64, f0: Frame) -> [f64; 9] {
-    match quadric_fit(means, f0, g, Model::Diag) {
+    match quadric_fit(means, f0, g, Model::Diag, false) {
         Ok(p) => f0.unframe(&p),
         Err(_) => [f0.s, f0.s, f0.s, f0.c[0], f0.c[1], f0.c[2], 0.0, 0.0, 0.0],
     }
@@ -262,8 +280,11 @@ pub fn start_stage(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> 
             StartSource::Paper,
         )
     } else {
+        // The quadric method's answer is the exact regression (QR); as the start of the
+        // iteration the normal equations suffice.
+        let exact = set.method == Method::Quadric;
         (
-            quadric_fit(means, f0, g, model).map(|p| f0.unframe(&p)),
+            quadric_fit(means, f0, g, model, exact).map(|p| f0.unframe(&p)),
             StartSource::Quadric,
         )
     };
