@@ -6,6 +6,7 @@ mod dwell;
 mod gap;
 mod gradiometer;
 mod static_fit;
+mod text;
 
 use crate::error::CoreError;
 use pyo3::exceptions::PyValueError;
@@ -40,7 +41,7 @@ mod _core {
         centrifuge_correct_raw, centrifuge_fit_raw, centrifuge_unit_check_raw, PyCentrifugeFit,
     };
     #[pymodule_export]
-    use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
+    use super::dwell::{detect_dwells_raw, dwell_stats_raw, DwellTableRaw, RawDwellAccumulator};
     #[pymodule_export]
     use super::gap::{gap_chi2_sf, gap_diagnose_raw, gap_f_sf, gap_model_residuals_raw};
     #[pymodule_export]
@@ -53,6 +54,8 @@ mod _core {
         apply_triad_raw, static_design_rows, static_fit_batch, static_model_violation, PyBatchFit,
         PyObservability, PyPrediction, PyStaticFit,
     };
+    #[pymodule_export]
+    use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
 }
