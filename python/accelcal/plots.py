@@ -33,46 +33,84 @@ def _plt() -> Any:
 
 
 def static_norm_figure(fit: Any, dwells: Any = None) -> Any:
-    """The paper's Fig. 5: |a| per dwell before and after calibration, and the residuals."""
+    """The norm per dwell before and after calibration (in units of g: raw counts are taken
+    through the nominal model, or the fitted bias and one common scale), and the residuals
+    ``|a| - g`` with error bars from the noise model the fit reports; integer dwell ticks.
+    ``dwells`` is accepted for the caller's convenience (the fit carries its means)."""
+    from matplotlib.ticker import MaxNLocator
+
+    from .static import units_of_g
+
     plt = _plt()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    k = np.arange(len(fit.residuals))
-    ns = fit.norm_stats
+    k = np.arange(1, len(fit.residuals) + 1)
     g = fit.g
-    if ns["before"] is not None:
-        before = np.linalg.norm(fit._means, axis=1) if fit._nominal is None else np.linalg.norm(
-            fit._nominal.apply(fit._means), axis=1)
-        ax1.plot(k, before / g, "o-", label="before (nominal)")
+    u = units_of_g(g) or "units of g"
+    nb = fit.norms_before()
+    if nb is not None:
+        ax1.plot(k, nb[0] / g, "o-", label=f"before ({nb[1]})")
     ax1.plot(k, (g + fit.residuals) / g, "s-", label="after calibration")
     ax1.axhline(1.0, color="k", lw=0.8)
-    ax1.set_ylabel("|a| / g")
-    ax1.legend()
+    ax1.set_ylabel("|a| / g  [g]")
+    ax1.legend(fontsize=8)
     ax1.set_title(f"Norm per dwell ({fit.model} model, {len(k)} dwells)")
-    ax2.bar(k, 1e3 * fit.residuals, color="C1")
-    if np.all(np.isfinite(fit.sigma_residual)):
-        ax2.errorbar(k, 1e3 * fit.residuals, yerr=1e3 * fit.sigma_residual, fmt="none",
-                     ecolor="k", capsize=2)
-    ax2.set_ylabel("|a| - g  [mm/s^2]")
+    scale, unit = (1e3, f"m{u}") if u in ("m/s^2", "g") else (1.0, u)
+    ax2.bar(k, scale * fit.residuals, color="C1", label="|a| - g")
+    src = "noise model" if fit.noise_known else "noise estimated from the residuals"
+    ax2.errorbar(k, scale * fit.residuals, yerr=scale * fit.sigma_residual, fmt="none",
+                 ecolor="k", capsize=2, label=f"1 sigma ({src})")
+    ax2.axhline(0.0, color="k", lw=0.8)
+    ax2.set_ylabel(f"|a| - g  [{unit}]")
     ax2.set_xlabel("dwell")
-    ax2.set_title(f"residual RMS {fit.rms:.3g} m/s^2, chi2/dof {fit.chi2_dof:.3g}")
+    ax2.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax2.legend(fontsize=8)
+    chi = f"chi2/dof {fit.chi2_dof:.3g}" if fit.noise_known else "noise estimated"
+    ax2.set_title(f"residual RMS {fit.rms:.3g} {u} ({chi})")
     fig.tight_layout()
     return fig
 
 
+def _equal_area(d: Any, up: float) -> tuple[Any, Any]:
+    """Lambert azimuthal equal-area projection about the ``up`` (+1 or -1) z pole: the radius
+    is ``2 sin(theta / 2)`` for the angle theta from that pole (sqrt(2) at the equator)."""
+    d = np.asarray(d, dtype=np.float64)
+    theta = np.arccos(np.clip(up * d[:, 2], -1.0, 1.0))
+    r = 2.0 * np.sin(theta / 2.0)
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return r * np.cos(phi), r * np.sin(phi)
+
+
 def poses_figure(plan: Any) -> Any:
-    """Planned gravity directions on the unit sphere (sensor frame)."""
+    """The planned poses, numbered in the order of the checklist, as gravity directions in
+    the sensor frame (x nose, y left side, z top) on an equal-area projection: one disc for
+    the poses with the top up (and one for the top down when the plan uses them)."""
     plt = _plt()
-    fig = plt.figure(figsize=(6, 6))
-    ax = fig.add_subplot(111, projection="3d")
-    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
-    ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85",
-                      lw=0.5)
-    d = np.asarray(plan.directions)
-    ax.scatter(d[:, 0], d[:, 1], d[:, 2], color="C3", s=40)
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
-    ax.set_zlabel("z")
-    ax.set_title(f"{len(d)} planned attitudes (gravity direction)")
+    d = np.asarray(plan.directions, dtype=np.float64)
+    lower = d[:, 2] < -1e-9
+    panels = [(1.0, "top up (z > 0)")] + ([(-1.0, "top down (z < 0)")] if lower.any() else [])
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 5.5), squeeze=False)
+    ring = np.linspace(0, 2 * np.pi, 200)
+    for ax, (up, title) in zip(axes[0], panels, strict=True):
+        for deg in (30, 60, 90):
+            r = 2.0 * np.sin(np.radians(deg) / 2.0)
+            ax.plot(r * np.cos(ring), r * np.sin(ring), color="0.8", lw=0.7)
+            ax.annotate(f"{deg} deg", (r * 0.71, r * 0.71), color="0.5", fontsize=7)
+        sel = ~lower if up > 0 else lower
+        idx = np.nonzero(sel)[0]
+        x, y = _equal_area(d[idx], up)
+        ax.scatter(x, y, color="C3", s=30, zorder=3)
+        for i, xi, yi in zip(idx, x, y, strict=True):
+            ax.annotate(str(i + 1), (xi, yi), xytext=(4, 4), textcoords="offset points",
+                        fontsize=8)
+        ax.set_aspect("equal")
+        lim = 1.5
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_xlabel("x (nose) component of the gravity direction, equal-area")
+        ax.set_ylabel("y (left side) component, equal-area")
+        ax.set_title(f"{title}: tilt from the vertical")
+    fig.suptitle(f"{len(d)} planned poses, numbered as in the checklist")
+    fig.tight_layout()
     return fig
 
 

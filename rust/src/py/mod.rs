@@ -50,7 +50,10 @@ mod _core {
         PyStartupPrediction,
     };
     #[pymodule_export]
-    use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
+    use super::static_fit::{
+        apply_triad_raw, static_design_rows, static_fit_batch, static_model_violation, PyBatchFit,
+        PyObservability, PyPrediction, PyStaticFit,
+    };
     #[pymodule_export]
     use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};
     #[pymodule_export]
