@@ -46,6 +46,93 @@ def test_plan_poses_beats_random_designs():
     assert sphere.std.max() < plan.std.max() / 20
 
 
+def test_prediction_matches_a_numpy_fisher_information():
+    """The Rust Jacobian rows against finite differences of the reference ML residuals."""
+    from accelcal._reference import static_ml_residuals_reference
+    from accelcal._triad import attitudes_to_force, k_matrix
+
+    att = uniform_attitudes(20, 45, np.random.default_rng(3))
+    force = attitudes_to_force(att, 9.80665)
+    truth = SEED000_TRUTH
+    means = force @ k_matrix(truth).T + truth[3:6]
+    var = np.full((20, 3), 1e-6)
+    J = np.empty((20, 9))
+    for j in range(9):
+        h = np.zeros(9)
+        h[j] = 1e-7
+        J[:, j] = (static_ml_residuals_reference(truth + h, means, 9.80665, var)
+                   - static_ml_residuals_reference(truth - h, means, 9.80665, var)) / 2e-7
+    cov = np.linalg.inv(J.T @ J)
+    p = ac.predict_accuracy(att, 1e-3, truth=truth)
+    np.testing.assert_allclose(p.covariance, cov, rtol=1e-4, atol=1e-6 * np.abs(cov).max())
+    np.testing.assert_allclose(p.std, np.sqrt(np.diag(cov)), rtol=1e-5)
+
+
+@pytest.mark.parametrize("kwargs,words", [
+    ({"attitudes": np.zeros((0, 2))}, "attitudes"),
+    ({"g": float("nan")}, "g must be"),
+    ({"g": "9.8"}, "g must be"),
+    ({"g": -1.0}, "g must be"),
+    ({"sigma": 0.0}, "sigma must be"),
+    ({"sigma": None}, "sigma must be"),
+    ({"sigma": float("inf")}, "sigma must be"),
+    ({"model": "full"}, "model"),
+    ({"attitudes": [[0.0, float("nan")]] * 12}, "NaN"),
+])
+def test_predict_accuracy_bad_input_names_the_argument(kwargs, words):
+    args = {"attitudes": uniform_attitudes(20, 30, 1), "sigma": 1e-3}
+    args.update(kwargs)
+    with pytest.raises(CalibrationError, match=words):
+        ac.predict_accuracy(args.pop("attitudes"), args.pop("sigma"), **args)
+
+
+@pytest.mark.parametrize("kwargs,words", [
+    ({"n": None}, "n must be"),
+    ({"n": "20"}, "n must be"),
+    ({"n": float("inf")}, "n must be"),
+    ({"n": 2.5}, "n must be"),
+    ({"n": -3}, "n must be"),
+    ({"max_tilt_deg": 0.0}, "max_tilt_deg must be"),
+    ({"max_tilt_deg": 120.0}, "max_tilt_deg must be"),
+    ({"max_tilt_deg": float("nan")}, "max_tilt_deg must be"),
+    ({"max_tilt_deg": "30"}, "max_tilt_deg must be"),
+    ({"sigma": -1.0}, "sigma must be"),
+    ({"restarts": 0}, "restarts must be"),
+    ({"grid_step_deg": 0.0}, "grid_step_deg must be"),
+])
+def test_plan_poses_bad_options_name_argument_value_and_range(kwargs, words):
+    args = {"n": 12, "max_tilt_deg": 30.0}
+    args.update(kwargs)
+    with pytest.raises(CalibrationError, match=words) as e:
+        ac.plan_poses(args.pop("n"), args.pop("max_tilt_deg"), **args)
+    assert "[" in str(e.value) or "(" in str(e.value)  # the valid range
+    with pytest.raises(DegenerateDataError, match="n = 5"):
+        ac.plan_poses(5, 30)
+
+
+def test_poses_are_named_as_a_person_places_them():
+    from accelcal.design import pose_name
+
+    assert pose_name([0, 0, 1]) == "bottom down, level"
+    assert pose_name([0, 0, -1]) == "top down, level"
+    assert pose_name([0, 1, 0]) == "right side down, level"
+    assert pose_name([-1, 0, 0]) == "nose down, level"
+    s30 = np.sin(np.radians(30))
+    c30 = np.cos(np.radians(30))
+    assert pose_name([s30, 0, c30]) == "bottom down, nose up 30 deg"
+    assert pose_name([s30, -c30, 0]) == "left side down, nose up 30 deg"
+    plan = ac.plan_poses(12, 30, rng=1)
+    lines = plan.checklist().splitlines()
+    assert len(lines) == 13 and lines[1].startswith("[ ]  1. bottom down")
+    assert "platform tilt x" in lines[1]
+    # The named tilt is the platform's: nose up when ty < 0 (the force has -g sin ty on x).
+    for (tx, ty), nm in zip(plan.tilts_deg, plan.pose_names(), strict=True):
+        if abs(tx) < 0.5 and ty < -1:
+            assert f"nose up {abs(ty):.0f} deg" in nm
+    sphere = ac.plan_poses(12, None, rng=1)
+    assert "platform" not in sphere.checklist()
+
+
 def test_balanced_set_variances():
     for az, v in [([0, 90], 0.5), ([0, 60, 120], 1 / 3), ([0, 45, 90, 135], 0.25)]:
         p = accelcal.predict_startup_accuracy(az, sigma=1.0)

@@ -1,8 +1,10 @@
 # Type stub of the compiled module (checked by `python -m mypy.stubtest accelcal._core`).
+from collections.abc import Callable
 from typing import Any, Literal, final
 
 import numpy as np
 from numpy.typing import NDArray
+from typing_extensions import Self, disjoint_base
 
 class CalibrationError(ValueError): ...
 class DegenerateDataError(CalibrationError): ...
@@ -101,28 +103,162 @@ class RawDwellAccumulator:
 
     def __reduce__(self) -> tuple[Any, ...]: ...
 
+# --- gradiometer start-up bias and demodulation (rust/src/py/gradiometer.rs) ---
+@disjoint_base
+class StartupBiasCore:
+    """Start-up bias, gradient (and drift) with covariance; `accelcal.StartupBias` subclasses
+    it. Arrays are read-only; pickles."""
+
+    def __new__(
+        cls,
+        bias: NDArray[np.float64],
+        gradient: NDArray[np.float64],
+        drift: NDArray[np.float64] | None,
+        covariance: NDArray[np.float64],
+        std: NDArray[np.float64],
+        residuals: NDArray[np.float64],
+        unit_covariance: NDArray[np.float64],
+        sigma: NDArray[np.float64] | None,
+        sigma_estimated: bool,
+        dof: int,
+        condition: float,
+        azimuth_deg: NDArray[np.float64],
+        t: NDArray[np.float64] | None,
+        t_ref: float | None,
+        names: list[str],
+    ) -> Self: ...
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def bias(self) -> NDArray[np.float64]:
+        """Per-startup bias of the inline and cross channels, E."""
+    @property
+    def gradient(self) -> NDArray[np.float64]:
+        """Navigation-frame gradient (I, C), E."""
+    @property
+    def drift(self) -> NDArray[np.float64] | None:
+        """Linear bias drift, E/s (drift model only)."""
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def std(self) -> NDArray[np.float64]: ...
+    @property
+    def residuals(self) -> NDArray[np.float64]: ...
+    @property
+    def unit_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def sigma(self) -> NDArray[np.float64] | None: ...
+    @property
+    def sigma_estimated(self) -> bool: ...
+    @property
+    def dof(self) -> int: ...
+    @property
+    def condition(self) -> float: ...
+    @property
+    def azimuth_deg(self) -> NDArray[np.float64]: ...
+    @property
+    def t(self) -> NDArray[np.float64] | None: ...
+    @property
+    def t_ref(self) -> float | None: ...
+    @property
+    def names(self) -> list[str]: ...
+
 def startup_bias_raw(
-    theta_rad: NDArray[np.float64],
+    azimuth_deg: NDArray[np.float64],
     outputs: NDArray[np.float64],
-    dwell_std: NDArray[np.float64],
+    sigma: NDArray[np.float64] | None = None,
     t: NDArray[np.float64] | None = None,
-    t_ref: float = 0.0,
-) -> dict[str, Any]: ...
+    t_ref: float | None = None,
+) -> StartupBiasCore:
+    """Start-up least squares from azimuths in degrees; sigma None: estimated."""
+
+@disjoint_base
+class StartupPredictionCore:
+    """Predicted accuracy of a start-up sequence; `accelcal.StartupPrediction` subclasses it."""
+
+    def __new__(
+        cls,
+        covariance: NDArray[np.float64],
+        azimuth_covariance: NDArray[np.float64],
+        total_covariance: NDArray[np.float64],
+        std: NDArray[np.float64],
+        closed_form_variance: float,
+        condition: float,
+        names: list[str],
+    ) -> Self: ...
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def azimuth_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def total_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def std(self) -> NDArray[np.float64]: ...
+    @property
+    def closed_form_variance(self) -> float: ...
+    @property
+    def condition(self) -> float: ...
+    @property
+    def names(self) -> list[str]: ...
+
 def startup_predict_raw(
-    theta_rad: NDArray[np.float64],
+    azimuth_deg: NDArray[np.float64],
     dwell_std: NDArray[np.float64],
     t: NDArray[np.float64] | None = None,
-    t_ref: float = 0.0,
+    t_ref: float | None = None,
     gradient: list[float] | None = None,
     gradient_magnitude: float = 0.0,
-    sigma_theta_rad: float = 0.0,
-) -> dict[str, Any]: ...
+    sigma_theta_deg: float = 0.0,
+) -> StartupPredictionCore:
+    """Predicted covariances of an azimuth design (degrees)."""
+
+@disjoint_base
+class DemodulatedCore:
+    """Per-dwell inline and cross channels; `accelcal.Demodulated` subclasses it."""
+
+    def __new__(
+        cls,
+        inline_E: NDArray[np.float64],
+        cross_E: NDArray[np.float64],
+        std_inline_E: NDArray[np.float64],
+        std_cross_E: NDArray[np.float64],
+        start: NDArray[np.int64],
+        stop: NDArray[np.int64],
+        revolutions: NDArray[np.int64],
+        resid_rms: NDArray[np.float64],
+        nuisance: NDArray[np.float64],
+        t: NDArray[np.float64] | None,
+    ) -> Self: ...
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def inline_E(self) -> NDArray[np.float64]: ...
+    @property
+    def cross_E(self) -> NDArray[np.float64]: ...
+    @property
+    def std_inline_E(self) -> NDArray[np.float64]: ...
+    @property
+    def std_cross_E(self) -> NDArray[np.float64]: ...
+    @property
+    def start(self) -> NDArray[np.int64]: ...
+    @property
+    def stop(self) -> NDArray[np.int64]: ...
+    @property
+    def revolutions(self) -> NDArray[np.int64]: ...
+    @property
+    def resid_rms(self) -> NDArray[np.float64]: ...
+    @property
+    def nuisance(self) -> NDArray[np.float64]: ...
+    @property
+    def t(self) -> NDArray[np.float64] | None: ...
+
 def demodulate_raw(
     accel: NDArray[Any],
     phase: NDArray[np.float64],
     bounds: NDArray[np.int64],
     radius_m: float,
-) -> dict[str, Any]: ...
+    t: NDArray[np.float64] | None = None,
+) -> DemodulatedCore:
+    """2-omega demodulation of (N, 4) streams per dwell."""
 
 # --- gap diagnosis (rust/src/py/gap.rs) ---
 @final
@@ -462,15 +598,75 @@ def gap_diagnose_gradiometer(
 ) -> GapRaw:
     """Gradiometer gap diagnosis (azimuths deg, outputs (m, 2) in E)."""
 
+# --- centrifuge (rust/src/py/centrifuge.rs) ---
+@disjoint_base
+class CentrifugeFitCore:
+    """Result of one centrifuge fit; `accelcal.CentrifugeFit` subclasses it. Arrays are
+    read-only; pickles."""
+
+    def __new__(cls, *args: Any) -> Self:
+        """``(fit)``: the same result, arrays shared; ``(*fields)``: rebuilt (pickling)."""
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def params(self) -> NDArray[np.float64]: ...
+    @property
+    def names(self) -> list[str]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def std(self) -> NDArray[np.float64]: ...
+    @property
+    def residuals(self) -> NDArray[np.float64]: ...
+    @property
+    def outliers(self) -> NDArray[np.int64]: ...
+    @property
+    def residual_rms(self) -> float: ...
+    @property
+    def screen_sigma(self) -> float: ...
+    @property
+    def studentized(self) -> NDArray[np.float64]: ...
+    @property
+    def threshold(self) -> float: ...
+    @property
+    def residual_std(self) -> NDArray[np.float64]: ...
+    @property
+    def draws(self) -> int: ...
+    @property
+    def singular_values(self) -> NDArray[np.float64]: ...
+    @property
+    def condition_number(self) -> float: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def taylor_coefficients(self) -> NDArray[np.float64] | None: ...
+    @property
+    def method(self) -> str: ...
+    @property
+    def radius(self) -> float: ...
+    @property
+    def g(self) -> float: ...
+    @property
+    def fit_k3(self) -> bool: ...
+    @property
+    def fit_misalignment(self) -> bool: ...
+    @property
+    def lever_model(self) -> str | None: ...
+    @property
+    def noise_known(self) -> bool: ...
+    @property
+    def labels(self) -> list[str]: ...
+
 def centrifuge_fit_raw(
     outputs: NDArray[np.float64],
     omega: NDArray[np.float64],
     radius: float,
     g: float,
-    method: str = "nls",
+    method: Literal["nls", "taylor-paper"] = "nls",
     k3: bool = False,
     misalignment: bool = False,
-    lever_arm: str | None = None,
+    lever_arm: Literal["along", "full"] | None = None,
     spin_axis: NDArray[np.float64] | None = None,
     sigma: NDArray[np.float64] | None = None,
     robust: bool = True,
@@ -478,76 +674,418 @@ def centrifuge_fit_raw(
     sigma_floor: float = 1e-9,
     max_draws: int = 20000,
     seed: int = 0,
-) -> dict[str, Any]: ...
+    check_units: bool = True,
+    labels: list[str] | None = None,
+) -> CentrifugeFitCore:
+    """Centrifuge calibration; sigma: per-axis output noise (k, 3), g."""
+
+def centrifuge_unit_check_raw(
+    outputs: NDArray[np.float64],
+    omega: NDArray[np.float64],
+    radius: float,
+    g: float,
+    robust: bool = True,
+    max_draws: int = 20000,
+    seed: int = 0,
+) -> tuple[float, list[tuple[str, str, str, str, float, float]]] | None:
+    """None when the units look right; else the scale needed and the likely conversions."""
+
+def centrifuge_correct_raw(
+    params: NDArray[np.float64],
+    outputs: NDArray[np.float64],
+    k3: bool = False,
+    misalignment: bool = False,
+    lever_arm: Literal["along", "full"] | None = None,
+) -> NDArray[np.float64]:
+    """Specific force (k, 3), g, by exact inversion of fitted parameters."""
 
 # --- static field calibration (rust/src/py/static_fit.rs) ---
-@final
-class StaticFitRaw:
-    @property
-    def model(self) -> str: ...
-    @property
-    def params(self) -> NDArray[np.float64]: ...
-    @property
-    def start(self) -> NDArray[np.float64]: ...
-    @property
-    def covariance(self) -> NDArray[np.float64]: ...
-    @property
-    def residuals(self) -> NDArray[np.float64]: ...
-    @property
-    def sigma_r(self) -> NDArray[np.float64]: ...
-    @property
-    def cost(self) -> float: ...
-    @property
-    def dof(self) -> int: ...
-    @property
-    def chi2_dof(self) -> float: ...
-    @property
-    def iterations(self) -> int: ...
-    @property
-    def converged(self) -> bool: ...
-    @property
-    def noise_known(self) -> bool: ...
-    @property
-    def note(self) -> str: ...
-    @property
-    def weak(self) -> bool: ...
-    @property
-    def degenerate(self) -> bool: ...
-    @property
-    def std_comparable(self) -> NDArray[np.float64]: ...
-    @property
-    def weakest_std(self) -> float: ...
-    def observability(self) -> dict[str, Any]: ...
-    def weak_text(self, weak_std: float) -> str: ...
+_StaticModel = Literal["lower", "diag", "upper"]
+_StaticMethod = Literal["lm", "gauss-newton", "gn", "quadric", "linear-paper"]
 
-def static_fit_raw(
-    means: NDArray[np.float64],
-    g: float,
-    model: str = "lower",
-    method: str = "lm",
-    var: NDArray[np.float64] | None = None,
-    start: list[float] | None = None,
-    max_iter: int = 200,
-    raise_degenerate: bool = True,
-    degenerate_std: float = 0.1,
-    weak_std: float = 1e-3,
-) -> StaticFitRaw: ...
-def static_fit_batch_raw(
-    means: NDArray[np.float64],
-    g: NDArray[np.float64],
-    model: str = "lower",
-    method: str = "lm",
+@final
+class Observability:
+    """What the dwells can determine: SVD of the whitened Jacobian in comparable units
+    (scale factors and misalignments relative, biases in units of g)."""
+
+    def __new__(
+        cls,
+        singular_values: NDArray[np.float64],
+        condition: float,
+        std_comparable: NDArray[np.float64],
+        weakest: NDArray[np.float64],
+        weakest_std: float,
+        degenerate: bool,
+        weak: bool,
+        combination: str,
+    ) -> Observability: ...
+    @property
+    def singular_values(self) -> NDArray[np.float64]:
+        """Singular values, descending."""
+    @property
+    def condition(self) -> float:
+        """s_max / s_min."""
+    @property
+    def std_comparable(self) -> NDArray[np.float64]:
+        """Predicted std of each parameter (comparable units)."""
+    @property
+    def weakest(self) -> NDArray[np.float64]:
+        """Least determined combination (unit vector, comparable units)."""
+    @property
+    def weakest_std(self) -> float:
+        """Predicted std of that combination (comparable units)."""
+    @property
+    def degenerate(self) -> bool:
+        """Exactly or numerically undetermined."""
+    @property
+    def weak(self) -> bool:
+        """Some parameter is weakly determined."""
+    @property
+    def combination(self) -> str:
+        """The weakest combination in parameter names, e.g. "m2 + 0.94 m1"."""
+    def __getnewargs__(self) -> tuple[Any, ...]: ...
+
+@disjoint_base
+class StaticFit:
+    """One static fit; constructing it fits the (k, 3) dwell means to the reference gravity
+    (the Python ``accelcal.StaticFit`` subclasses it; pickles as its inputs)."""
+
+    def __new__(
+        cls,
+        means: NDArray[np.float64],
+        g: float,
+        model: _StaticModel = "lower",
+        method: _StaticMethod = "lm",
+        var: NDArray[np.float64] | float | None = None,
+        start: list[float] | None = None,
+        max_iter: int = ...,
+        raise_degenerate: bool = True,
+        degenerate_std: float = ...,
+        weak_std: float = ...,
+        check_g: bool = True,
+        noise_model: str = "",
+        input_units: str = "",
+        nominal: Any = None,
+    ) -> Self: ...
+    @property
+    def model(self) -> _StaticModel:
+        """Sensor model."""
+    @property
+    def method(self) -> _StaticMethod:
+        """Estimation method."""
+    @property
+    def g(self) -> float:
+        """Reference gravity (units of the calibrated output)."""
+    @property
+    def means(self) -> NDArray[np.float64]:
+        """Dwell means (k, 3), output units."""
+    @property
+    def var(self) -> NDArray[np.float64] | float | None:
+        """Variance of each dwell mean per axis: one number, (k, 3), or None (estimated)."""
+    @property
+    def vector(self) -> NDArray[np.float64]:
+        """Parameters [sx, sy, sz, bx, by, bz, m1, m2, m3] (p = 6 for diag)."""
+    @property
+    def start(self) -> NDArray[np.float64]:
+        """Start of GN/LM (or the linear method's own solution)."""
+    @property
+    def start_source(self) -> Literal["quadric", "linear-paper", "user", "fallback"]:
+        """Where the start came from."""
+    @property
+    def start_error(self) -> str | None:
+        """Why the linear solution failed (when the start is the fallback)."""
+    @property
+    def user_start(self) -> list[float] | None:
+        """The start given by the caller."""
+    @property
+    def covariance_unscaled(self) -> NDArray[np.float64]:
+        """(J^T W J)^-1 (p, p); per unit output variance when the noise is estimated."""
+    @property
+    def residuals(self) -> NDArray[np.float64]:
+        """|a_k| - g per dwell (units of g)."""
+    @property
+    def sigma_residual(self) -> NDArray[np.float64]:
+        """Predicted std of each residual (units of g)."""
+    @property
+    def cost(self) -> float:
+        """Minimised cost sum e_k^2."""
+    @property
+    def dof(self) -> int:
+        """Degrees of freedom k - p."""
+    @property
+    def chi2_dof(self) -> float:
+        """chi2/dof (known noise) or the estimated variance of a dwell mean per axis."""
+    @property
+    def iterations(self) -> int:
+        """GN/LM iterations."""
+    @property
+    def converged(self) -> bool:
+        """The minimum was reached (within 1e-3 parameter std)."""
+    @property
+    def decrement(self) -> float:
+        """Squared distance in parameter std to the minimum of the local quadratic model."""
+    @property
+    def noise_known(self) -> bool:
+        """The noise model was known (not estimated)."""
+    @property
+    def weak(self) -> bool:
+        """Some parameter is weakly determined."""
+    @property
+    def degenerate(self) -> bool:
+        """Some combination is undetermined."""
+    @property
+    def predicted_std_relative(self) -> NDArray[np.float64]:
+        """Predicted std of each parameter in comparable units."""
+    @property
+    def weakest_std(self) -> float:
+        """Predicted std of the least determined combination (comparable units)."""
+    @property
+    def max_iter(self) -> int:
+        """Iteration limit used."""
+    @property
+    def raise_degenerate(self) -> bool:
+        """A degenerate design raised."""
+    @property
+    def degenerate_std(self) -> float:
+        """Threshold of degenerate (comparable units)."""
+    @property
+    def weak_std(self) -> float:
+        """Threshold of weak (comparable units)."""
+    @property
+    def check_g(self) -> bool:
+        """g was checked for plausibility."""
+    @property
+    def noise_model(self) -> str:
+        """How the dwell weights were obtained."""
+    @property
+    def input_units(self) -> str:
+        """Units of the raw output."""
+    @property
+    def nominal(self) -> Any:
+        """Nominal model for the "before" norm statistics."""
+    def observability(self) -> Observability:
+        """Full observability report (SVD)."""
+    def __getnewargs_ex__(self) -> tuple[tuple[Any, ...], dict[str, Any]]: ...
+
+@final
+class BatchFit:
+    """Result of a batch of static fits, one row per session."""
+
+    def __new__(
+        cls,
+        model: _StaticModel,
+        params: NDArray[np.float64],
+        std: NDArray[np.float64],
+        chi2_dof: NDArray[np.float64],
+        rms: NDArray[np.float64],
+        iterations: NDArray[np.int64],
+        n_dwells: NDArray[np.int64],
+        status: NDArray[np.uint8],
+        weak: NDArray[np.bool_],
+        messages: list[str],
+    ) -> BatchFit: ...
+    @property
+    def model(self) -> _StaticModel:
+        """Sensor model."""
+    @property
+    def params(self) -> NDArray[np.float64]:
+        """Parameters (B, p); NaN where the fit failed."""
+    @property
+    def std(self) -> NDArray[np.float64]:
+        """Std of each parameter (B, p)."""
+    @property
+    def chi2_dof(self) -> NDArray[np.float64]:
+        """chi2/dof, or the estimated variance of a dwell mean (B,)."""
+    @property
+    def rms(self) -> NDArray[np.float64]:
+        """RMS of |a| - g (B,), units of g."""
+    @property
+    def iterations(self) -> NDArray[np.int64]:
+        """GN/LM iterations (B,)."""
+    @property
+    def n_dwells(self) -> NDArray[np.int64]:
+        """Dwells per session (B,)."""
+    @property
+    def status(self) -> NDArray[np.uint8]:
+        """0 ok (weak included), 1 degenerate, 2 not converged, 3 invalid input (B,)."""
+    @property
+    def weak(self) -> NDArray[np.bool_]:
+        """Some parameter weakly determined (B,)."""
+    @property
+    def messages(self) -> list[str]:
+        """What went wrong per session ("" for ok and weak)."""
+    @property
+    def ok(self) -> NDArray[np.bool_]:
+        """Sessions fitted (status 0)."""
+    @property
+    def state(self) -> list[Literal["ok", "weak", "degenerate", "error"]]:
+        """Outcome per session."""
+    @property
+    def names(self) -> list[str]:
+        """Parameter names of the columns."""
+    def __len__(self) -> int: ...
+    def __getnewargs__(self) -> tuple[Any, ...]: ...
+
+@disjoint_base
+class Prediction:
+    """Cramer-Rao bound of a pose design (the Python ``accelcal.Prediction`` subclasses it)."""
+
+    def __new__(
+        cls,
+        force: NDArray[np.float64],
+        sigma: float,
+        model: _StaticModel = "lower",
+        *,
+        g: float | None = None,
+        truth: list[float] | None = None,
+    ) -> Self: ...
+    @property
+    def model(self) -> _StaticModel:
+        """Sensor model."""
+    @property
+    def force(self) -> NDArray[np.float64]:
+        """Specific force at each pose (n, 3)."""
+    @property
+    def sigma(self) -> float:
+        """Dwell-mean noise per axis (output units)."""
+    @property
+    def g(self) -> float:
+        """Reference gravity."""
+    @property
+    def truth(self) -> NDArray[np.float64]:
+        """Parameters at which the bound is evaluated."""
+    @property
+    def std(self) -> NDArray[np.float64]:
+        """Std of each parameter (p,), output units."""
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        """Covariance (p, p), output units."""
+    @property
+    def singular(self) -> bool:
+        """Some combination is undetermined."""
+    @property
+    def condition(self) -> float:
+        """Condition number of the comparable Jacobian."""
+    @property
+    def weakest(self) -> NDArray[np.float64]:
+        """Least determined combination (comparable units)."""
+    @property
+    def combination(self) -> str:
+        """That combination in parameter names."""
+    def __getnewargs_ex__(self) -> tuple[tuple[Any, ...], dict[str, Any]]: ...
+
+def static_fit_batch(
+    means: NDArray[np.float64] | list[NDArray[np.float64]],
+    g: float | list[float],
+    *,
+    model: _StaticModel = "lower",
+    method: _StaticMethod = "lm",
     sigma: float | None = None,
     start: list[float] | None = None,
-    max_iter: int = 200,
-    degenerate_std: float = 0.1,
-) -> dict[str, Any]: ...
+    max_iter: int = ...,
+    degenerate_std: float = ...,
+    weak_std: float = ...,
+    mask: NDArray[np.bool_] | None = None,
+) -> BatchFit:
+    """Fit many sessions in parallel ((B, n, 3) with an optional mask, or a list)."""
+
+def static_design_rows(
+    force: NDArray[np.float64], truth: list[float], model: _StaticModel, sigma: float
+) -> NDArray[np.float64]:
+    """Fisher-information rows (n, p) of poses."""
+
+def static_model_violation(k: list[list[float]], model: _StaticModel) -> tuple[int, int] | None:
+    """K entries outside the model's pattern that are not zero."""
+
 def apply_triad_raw(
     samples: NDArray[Any], k: list[list[float]], b: list[float]
-) -> NDArray[np.float64]: ...
+) -> NDArray[np.float64]:
+    """Calibrated specific force K^-1 (am - b) of an (N, 3) array."""
+
+
+# ---- text reader ----------------------------------------------------------------------------
+#: One output group: (column index, scale, is ISO-8601 time) per column.
+_Groups = list[list[tuple[int, float, bool]]]
+
+@final
+class TextBlocks:
+    """Blocks of a text recording, read and parsed ahead on a background thread.
+
+    Iterating yields ``(arrays, rows, bytes, repeats)`` per block in file order, ``arrays``
+    holding one float64 array per column group ((m, k), or (m,) for one column).
+    """
+
+    def __new__(
+        cls,
+        path: str | None,
+        offset: int,
+        ncols: int,
+        groups: _Groups,
+        *,
+        delimiter: str | None = None,
+        decimal_comma: bool = False,
+        comment: str = "#",
+        names: list[str] | None = None,
+        first_line: int = 1,
+        t0: tuple[int, int] | None = None,
+        prefix: bytes | None = None,
+        stdin: bool = False,
+        block_bytes: int = 4194304,
+    ) -> TextBlocks: ...
+    def __iter__(self) -> TextBlocks: ...
+    def __next__(self) -> tuple[list[NDArray[np.float64]], int, int, int]: ...
+
+def text_read_all(
+    path: str | None,
+    offset: int,
+    ncols: int,
+    groups: _Groups,
+    *,
+    delimiter: str | None = None,
+    decimal_comma: bool = False,
+    comment: str = "#",
+    names: list[str] | None = None,
+    first_line: int = 1,
+    t0: tuple[int, int] | None = None,
+    prefix: bytes | None = None,
+    stdin: bool = False,
+    block_bytes: int = 4194304,
+    rows_hint: int = 0,
+    progress: Callable[[int, int], object] | None = None,
+) -> tuple[list[NDArray[np.float64]], int, int, int]:
+    """Read a whole text recording into one array per column group: (arrays, rows, bytes,
+    repeats)."""
+
+def text_parse_head(
+    data: bytes,
+    ncols: int,
+    groups: _Groups,
+    *,
+    delimiter: str | None = None,
+    decimal_comma: bool = False,
+    comment: str = "#",
+    names: list[str] | None = None,
+    first_line: int = 1,
+    t0: tuple[int, int] | None = None,
+    max_rows: int | None = None,
+) -> tuple[list[NDArray[np.float64]], int, int, int]:
+    """Parse at most ``max_rows`` data rows of ``data``: (arrays, rows, bytes, lines)."""
+
+def parse_iso8601(text: str) -> tuple[int, int] | None:
+    """(seconds, nanoseconds) since 1970-01-01T00:00:00Z of an ISO-8601 date and time."""
+
+def format_rows(
+    values: NDArray[np.float64],
+    lead: NDArray[np.float64] | None = None,
+    delimiter: str = ",",
+) -> bytes:
+    """Rows as delimited text, shortest round-trip float formatting."""
 
 __all__ = [
+    "CentrifugeFitCore",
+    "centrifuge_correct_raw",
     "centrifuge_fit_raw",
+    "centrifuge_unit_check_raw",
     "DwellTableRaw",
     "detect_dwells_raw",
     "dwell_stats_raw",
@@ -565,13 +1103,25 @@ __all__ = [
     "gap_diagnose_gradiometer",
     "gap_diagnose_static",
     "gap_dictionary",
+    "DemodulatedCore",
+    "StartupBiasCore",
+    "StartupPredictionCore",
     "demodulate_raw",
     "startup_bias_raw",
     "startup_predict_raw",
     "apply_triad_raw",
-    "static_fit_batch_raw",
-    "static_fit_raw",
-    "StaticFitRaw",
+    "static_design_rows",
+    "static_fit_batch",
+    "static_model_violation",
+    "BatchFit",
+    "Observability",
+    "Prediction",
+    "StaticFit",
+    "TextBlocks",
+    "format_rows",
+    "parse_iso8601",
+    "text_parse_head",
+    "text_read_all",
     "CalibrationError",
     "DegenerateDataError",
 ]

@@ -12,7 +12,6 @@ arrays are refused rather than cast (a cast would drop the imaginary part or rea
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Any
 
 import numpy as np
@@ -28,7 +27,7 @@ def _describe(x: Any) -> str:
     return r if len(r) <= 60 else r[:57] + "..."
 
 
-def real_array(x: Any, name: str) -> NDArray[Any]:
+def numeric_array(x: Any, name: str) -> NDArray[Any]:
     """``x`` as a NumPy array of a real numeric dtype in native byte order (no copy when it
     already is one); complex, boolean, object and text input is refused by name."""
     try:
@@ -61,7 +60,7 @@ def samples_array(x: Any, name: str = "samples") -> NDArray[Any]:
     Non-native byte order is converted; other integer types are widened exactly (uint16 raw
     counts to int32, int64 to float64 when exact); float16 and long double become float64.
     """
-    a = real_array(x, name)
+    a = numeric_array(x, name)
     if a.ndim != 2 or a.shape[1] != 3:
         raise CalibrationError(f"{name} must have shape (N, 3) (x, y, z per row); got {a.shape}")
     if a.shape[0] == 0:
@@ -82,7 +81,7 @@ def channel(x: Any, n: int, name: str) -> NDArray[np.float64] | None:
     """A per-sample channel (time, temperature) as contiguous float64 of length ``n``."""
     if x is None:
         return None
-    a = real_array(x, name)
+    a = numeric_array(x, name)
     if a.ndim != 1 or a.shape[0] != n:
         raise CalibrationError(f"{name} must have shape ({n},) to match the samples; got {a.shape}")
     return np.require(a, dtype=np.float64, requirements=["C", "A"])
@@ -113,40 +112,69 @@ def bounds_array(b: Any) -> NDArray[np.int64]:
     return np.ascontiguousarray(a.astype(np.int64))
 
 
-def number(
-    x: Any,
-    name: str,
-    *,
-    lo: float | None = None,
-    hi: float | None = None,
-    lo_open: bool = False,
-    unit: str = "",
-) -> float:
-    """A finite real number within ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), or a
-    CalibrationError naming the argument, the value received and the valid range."""
-    lo_s = "-inf" if lo is None else f"{lo:g}"
-    hi_s = "inf" if hi is None else f"{hi:g}"
-    rng = f"{'(' if lo_open or lo is None else '['}{lo_s}, {hi_s}{')' if hi is None else ']'}"
-    want = f"{name} must be a finite number in {rng}{(' ' + unit) if unit else ''}"
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (numbers.Real, np.number)):
-        if not (isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "fiu"):
-            raise CalibrationError(f"{want}; got {_describe(x)}")
-    if isinstance(x, (complex, np.complexfloating)):
-        raise CalibrationError(f"{want}; got {_describe(x)}")
+def _to_float(x: Any) -> float | None:
+    """``float(x)`` for a real scalar (or 0-d array); None for None, bool, text, complex or a
+    value too large for a float."""
+    if x is None or isinstance(x, (bool, np.bool_, str, bytes, complex, np.complexfloating)):
+        return None
+    if isinstance(x, np.ndarray) and (x.ndim != 0 or x.dtype.kind not in "fiu"):
+        return None
     try:
-        v = float(x)
+        return float(x)
     except (TypeError, ValueError, OverflowError):
-        raise CalibrationError(f"{want}; got {_describe(x)}") from None
-    ok = math.isfinite(v)
-    if ok and lo is not None:
-        ok = v > lo if lo_open else v >= lo
-    if ok and hi is not None:
-        ok = v <= hi
-    if not ok:
-        raise CalibrationError(f"{want}; got {_describe(x)}")
-    return v
+        return None
 
 
 def positive(x: Any, name: str, unit: str = "") -> float:
     """A positive finite float, or a CalibrationError naming it."""
-    return number(x, name, lo=0.0, lo_open=True, unit=unit.strip(" ()"))
+    v = _to_float(x)
+    if v is None or not math.isfinite(v) or v <= 0:
+        raise CalibrationError(
+            f"{name} must be positive and finite{unit}, a number in (0, inf); got {x!r}"
+        )
+    return v
+
+
+def number(
+    x: Any,
+    name: str,
+    *,
+    lo: float = -np.inf,
+    hi: float = np.inf,
+    lo_open: bool = False,
+    integer: bool = False,
+    unit: str = "",
+) -> Any:
+    """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), an int when ``integer``;
+    otherwise a CalibrationError naming the argument, the value received and the valid range."""
+    v = _to_float(x)
+    ok = (
+        v is not None
+        and math.isfinite(v)
+        and (v > lo if lo_open else v >= lo)
+        and v <= hi
+        and (not integer or v == int(v))
+    )
+    if not ok:
+        left = "(" if lo_open else "["
+        right = ")" if math.isinf(hi) else "]"
+        rng = f"{left}{lo:g}, {hi:g}{right}" + (f" {unit}" if unit else "")
+        kind = "an integer" if integer else "a number"
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {_describe(x)}")
+    assert v is not None
+    return int(v) if integer else v
+
+
+def real_array(x: Any, name: str, unit: str = "") -> NDArray[np.float64]:
+    """``x`` (array, list, DataFrame/Series, any layout, integer or float dtype, either byte
+    order) as aligned float64 in logical order; boolean, complex, text and object arrays are
+    refused."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        what = {"b": "boolean", "c": "complex", "O": "object", "U": "text", "S": "text"}.get(
+            a.dtype.kind, str(a.dtype))
+        raise CalibrationError(
+            f"{name} must be real numbers{f' ({unit})' if unit else ''}; got a {what} array"
+        )
+    a = np.asarray(a, dtype=np.float64)
+    return a if a.flags.aligned else a.copy()

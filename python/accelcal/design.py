@@ -13,17 +13,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
-from ._triad import PARAM_NAMES, attitudes_to_force, fibonacci_sphere, k_matrix, n_params
-from .centrifuge import SEED004_TRUTH, centrifuge_outputs, paper_design
+from ._triad import PARAM_NAMES, attitudes_to_force, fibonacci_sphere, n_params
+from ._validate import number, real_array
+from .centrifuge import SEED004_TRUTH, CentrifugeMethod, centrifuge_outputs, paper_design
 from .gradiometer import _F64, _azimuths, _dwell_std, _times
-from .gradiometer import PARAM_NAMES as STARTUP_PARAM_NAMES
 
 __all__ = [
     "CentrifugeSensitivity",
@@ -42,71 +42,34 @@ __all__ = [
 # ------------------------------------------------------------------------------------------
 # Static field calibration: pose design
 # ------------------------------------------------------------------------------------------
-def _design_rows(
-    force: NDArray[np.float64], v: NDArray[np.float64], model: str, sigma: float
-) -> NDArray[np.float64]:
-    """Whitened Jacobian rows d|a|/dtheta at true force ``force`` (n, 3), truth ``v``."""
-    K = k_matrix(v, model)
-    T = np.linalg.inv(K)
-    na = np.linalg.norm(force, axis=1, keepdims=True)
-    w = (force / na) @ T  # rows: (T^T u)^T
-    sr = sigma * np.linalg.norm(w, axis=1)
-    cols = [
-        -w[:, 0] * force[:, 0],
-        -w[:, 1] * force[:, 1],
-        -w[:, 2] * force[:, 2],
-        -w[:, 0],
-        -w[:, 1],
-        -w[:, 2],
-    ]
-    if model == "lower":
-        cols += [-w[:, 1] * force[:, 0], -w[:, 2] * force[:, 0], -w[:, 2] * force[:, 1]]
-    elif model == "upper":
-        cols += [-w[:, 0] * force[:, 1], -w[:, 0] * force[:, 2], -w[:, 1] * force[:, 2]]
-    return np.stack(cols, axis=1) / sr[:, None]
-
-
 def _default_truth(model: str, truth: ArrayLike | None) -> NDArray[np.float64]:
     p = n_params(model)
     if truth is None:
         return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])[:p]
     v = np.asarray(truth, dtype=np.float64).reshape(-1)
     if v.size < p:
-        raise CalibrationError(f"truth needs {p} values for model {model!r}")
+        raise CalibrationError(f"truth needs {p} values for model {model!r}; got {v.size}")
     return v[:p]
 
 
-@dataclass
-class Prediction:
-    """Cramer-Rao bound of a pose design: ``std`` (p,) and ``covariance`` (p, p) in output
-    units, ``singular`` when some combination is undetermined (``combination`` names it)."""
+class Prediction(_core.Prediction):
+    """Cramer-Rao bound of a pose design (computed in Rust): ``std`` (p,) and ``covariance``
+    (p, p) in output units, ``singular`` when some combination is undetermined (``combination``
+    names it), ``condition`` of the whitened Jacobian in comparable units, ``force`` (n, 3)
+    the specific force at each pose."""
 
-    names: tuple[str, ...]
-    std: NDArray[np.float64]
-    covariance: NDArray[np.float64]
-    singular: bool
-    combination: str
-    condition: float
+    @property
+    def names(self) -> tuple[str, ...]:
+        return PARAM_NAMES[: self.std.size]
 
     def table(self) -> str:
         return "\n".join(f"  {n:<4} +-{s:.3g}" for n, s in zip(self.names, self.std, strict=True))
 
-
-def _describe(v: NDArray[np.float64]) -> str:
-    vmax = np.max(np.abs(v))
-    i0 = int(np.argmax(np.abs(v)))
-    sgn = np.sign(v[i0])
-    order = np.argsort(-np.abs(v))
-    parts = []
-    for j, i in enumerate(order):
-        if abs(v[i]) < 0.1 * vmax:
-            break
-        c = sgn * v[i] / vmax
-        nm = PARAM_NAMES[i] + ("/g" if 3 <= i < 6 else "")
-        coef = "" if abs(abs(c) - 1) < 5e-3 else f"{abs(c):.2f} "
-        sign = ("-" if c < 0 else "") if j == 0 else (" - " if c < 0 else " + ")
-        parts.append(f"{sign}{coef}{nm}")
-    return "".join(parts)
+    def __repr__(self) -> str:
+        return (
+            f"Prediction(model={self.model!r}, poses={len(self.force)}, singular={self.singular}, "
+            f"std={np.array2string(self.std, precision=3)})"
+        )
 
 
 def predict_accuracy(
@@ -122,36 +85,27 @@ def predict_accuracy(
     Parameters
     ----------
     attitudes : (n, 2) platform tilts (tx, ty) in degrees, or (n, 3) gravity directions
-    sigma : std of each dwell mean per axis (output units)
-    model : "lower", "diag" or "upper";  g : gravity (units of the calibrated output)
+        (n >= 1; fewer poses than parameters give an infinite, singular bound)
+    sigma : std of each dwell mean per axis (output units), positive
+    model : "lower", "diag" or "upper";  g : gravity (units of the calibrated output), positive
     truth : parameter vector at which to evaluate (default K = I, b = 0)
     """
-    s = float(sigma)
-    if not (s > 0 and math.isfinite(s)):
-        raise CalibrationError("sigma must be positive and finite")
+    n_params(model)
+    gv = number(g, "g", lo=0.0, lo_open=True, unit="(reference gravity)")
+    sv = number(sigma, "sigma", lo=0.0, lo_open=True, unit="(std of a dwell mean, output units)")
     v = _default_truth(model, truth)
-    force = attitudes_to_force(attitudes, float(g))
-    J = _design_rows(force, v, model, s)
-    p = J.shape[1]
-    names = PARAM_NAMES[:p]
-    D = np.ones(p)
-    D[3:6] = float(g)
-    Jc = J * D
-    if J.shape[0] < p:
-        return Prediction(
-            names, np.full(p, np.inf), np.full((p, p), np.inf), True,
-            f"too few poses ({J.shape[0]} < {p})", np.inf,
-        )
-    _, sv, vt = np.linalg.svd(Jc, full_matrices=False)
-    cond = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
-    singular = not sv[-1] > 1e-9 * sv[0]
-    comb = _describe(vt[-1])
-    if singular:
-        cov = np.full((p, p), np.inf)
-    else:
-        cc = (vt.T / sv**2) @ vt
-        cov = cc * np.outer(D, D)
-    return Prediction(names, np.sqrt(np.diag(cov)), cov, singular, comb, float(cond))
+    force = attitudes_to_force(attitudes, gv)
+    return Prediction(force, sv, cast(Any, model), g=gv, truth=v.tolist())
+
+
+def design_rows(
+    force: NDArray[np.float64], truth: NDArray[np.float64], model: str, sigma: float
+) -> NDArray[np.float64]:
+    """Fisher-information rows (n, p) of poses with specific force ``force`` (n, 3) at the
+    parameters ``truth``, dwell-mean noise ``sigma`` per axis (computed in Rust)."""
+    return _core.static_design_rows(  # type: ignore[no-any-return]
+        np.asarray(force, dtype=np.float64), list(map(float, truth)), cast(Any, model), sigma
+    )
 
 
 @dataclass
@@ -159,8 +113,9 @@ class PosePlan:
     """D-optimal pose set from :func:`plan_poses`.
 
     tilts_deg : (n, 2) platform tilts (tx, ty), or None for the full sphere;
-    directions : (n, 3) unit gravity directions in the sensor frame;
-    prediction : Cramer-Rao bound of the plan; logdet : log det of the information matrix.
+    directions : (n, 3) unit gravity directions in the sensor frame (the specific force at
+    rest, pointing up); prediction : Cramer-Rao bound of the plan; logdet : log det of the
+    information matrix. :meth:`pose_names` says how to place the sensor for each pose.
     """
 
     tilts_deg: NDArray[np.float64] | None
@@ -177,6 +132,55 @@ class PosePlan:
     def attitudes(self) -> NDArray[np.float64]:
         return self.tilts_deg if self.tilts_deg is not None else self.directions
 
+    def pose_names(self) -> list[str]:
+        """How a person places the sensor for each pose, e.g. "bottom down, nose up 30 deg,
+        left side down 12 deg" (axes: x nose, y left side, z top)."""
+        return [pose_name(d) for d in self.directions]
+
+    def checklist(self) -> str:
+        """Numbered checklist of the poses in order, with the platform tilts when planned
+        for a two-axis platform."""
+        lines = [
+            "axes: x = nose (forward), y = left side, z = top; 'down' is the face towards the "
+            "ground"
+        ]
+        for i, nm in enumerate(self.pose_names(), start=1):
+            extra = ""
+            if self.tilts_deg is not None:
+                tx, ty = self.tilts_deg[i - 1]
+                extra = f"  (platform tilt x {tx:+.1f} deg, y {ty:+.1f} deg)"
+            lines.append(f"[ ] {i:>2}. {nm}{extra}")
+        return "\n".join(lines)
+
+
+_AXIS_END = {(0, 1): "nose", (0, -1): "tail", (1, 1): "left side", (1, -1): "right side",
+             (2, 1): "top", (2, -1): "bottom"}
+
+
+def pose_name(direction: ArrayLike, min_deg: float = 0.5) -> str:
+    """Name the pose whose specific force at rest (gravity direction, pointing up) is
+    ``direction`` in the sensor frame (x nose, y left side, z top): the face towards the
+    ground, then how far each other axis end is raised above (or lowered below) the
+    horizontal, as an inclinometer laid along that axis reads it, e.g. "bottom down, nose up
+    30 deg" or "left side down, level"."""
+    d = np.asarray(direction, dtype=np.float64).reshape(3)
+    nrm = float(np.linalg.norm(d))
+    if not (nrm > 0 and math.isfinite(nrm)):
+        raise CalibrationError(f"a pose direction must be a finite non-zero vector; got {d}")
+    d = d / nrm
+    k = int(np.argmax(np.abs(d)))
+    # The face towards the ground is the axis end opposite to the (upward) specific force.
+    face = _AXIS_END[(k, -1 if d[k] > 0 else 1)]
+    parts = [f"{face} down"]
+    for i in range(3):
+        if i == k:
+            continue
+        ang = math.degrees(math.asin(min(1.0, abs(d[i]))))
+        if ang >= min_deg:
+            parts.append(f"{_AXIS_END[(i, 1)]} {'up' if d[i] > 0 else 'down'} {ang:.0f} deg")
+    if len(parts) == 1:
+        parts.append("level")
+    return ", ".join(parts)
 
 
 def _fedorov(
@@ -217,43 +221,52 @@ def plan_poses(
 ) -> PosePlan:
     """Choose ``n`` attitudes minimising the predicted covariance (D-optimal).
 
-    ``max_tilt_deg`` bounds both tilts of a two-axis platform (candidates on a grid of
-    ``grid_step_deg``, default max_tilt/20; 90 therefore reaches only the upper hemisphere
-    with z up or level); ``None`` plans over the whole sphere (2000
-    near-uniform directions). Returns the plan with the Cramer-Rao std of every parameter
-    for dwell-mean noise ``sigma`` (output units). Attitudes may repeat (that is what a
-    D-optimal design does when n exceeds the number of distinct useful poses).
+    ``max_tilt_deg`` in (0, 90] bounds both tilts of a two-axis platform (candidates on a
+    grid of ``grid_step_deg``, default max_tilt/20; 90 therefore reaches only the upper
+    hemisphere with z up or level); ``None`` plans over the whole sphere (2000 near-uniform
+    directions). ``n`` is an integer in [p, 10000] (p = 9, or 6 for ``model="diag"``).
+    Returns the plan with the Cramer-Rao std of every parameter for dwell-mean noise
+    ``sigma`` (output units). Attitudes may repeat (that is what a D-optimal design does
+    when n exceeds the number of distinct useful poses).
     """
     p = n_params(model)
-    if int(n) < p:
-        raise DegenerateDataError(f"{n} poses cannot determine {p} parameters (need >= {p})")
+    ni = number(n, "n", lo=1, hi=10_000, integer=True, unit="poses")
+    if ni < p:
+        raise DegenerateDataError(
+            f"n = {ni} poses cannot determine the {p} parameters of model {model!r} "
+            f"(need n >= {p})"
+        )
+    sv = number(sigma, "sigma", lo=0.0, lo_open=True, unit="(std of a dwell mean, output units)")
+    gv = number(g, "g", lo=0.0, lo_open=True, unit="(reference gravity)")
+    rs = number(restarts, "restarts", lo=1, hi=1000, integer=True, unit="exchange restarts")
     v = _default_truth(model, truth)
     gen = np.random.default_rng(rng)
     if max_tilt_deg is None:
         cand_dirs = fibonacci_sphere(2000)
         tilts = None
-        force = g * cand_dirs
+        force = gv * cand_dirs
     else:
-        mt = float(max_tilt_deg)
-        if not (0 < mt <= 90):
-            raise CalibrationError("max_tilt_deg must be in (0, 90] (None for the full sphere)")
-        step = grid_step_deg or mt / 20.0
+        mt = number(max_tilt_deg, "max_tilt_deg", lo=0.0, hi=90.0, lo_open=True,
+                    unit="deg (None for the full sphere)")
+        step = mt / 20.0
+        if grid_step_deg is not None:
+            step = number(grid_step_deg, "grid_step_deg", lo=0.0, hi=mt, lo_open=True, unit="deg")
         ax = np.arange(-mt, mt + 1e-9, step)
         tx, ty = np.meshgrid(ax, ax, indexing="ij")
         tilts = np.stack([tx.ravel(), ty.ravel()], axis=1)
-        force = attitudes_to_force(tilts, g)
-        cand_dirs = force / g
-    F = _design_rows(force, v, model, float(sigma))
+        force = attitudes_to_force(tilts, gv)
+        cand_dirs = force / gv
+    F = design_rows(force, v, model, sv)
     best: tuple[NDArray[np.int64], float] | None = None
-    for _ in range(max(1, int(restarts))):
-        idx, ld = _fedorov(F, int(n), gen)
+    for _ in range(rs):
+        idx, ld = _fedorov(F, ni, gen)
         if best is None or ld > best[1]:
             best = (idx.copy(), ld)
     assert best is not None
     idx = best[0]
     dirs = cand_dirs[idx]
     tl = None if tilts is None else tilts[idx]
-    pred = predict_accuracy(dirs, sigma, model, g=g, truth=v)
+    pred = predict_accuracy(dirs, sv, model, g=gv, truth=v)
     return PosePlan(tl, dirs, pred, best[1], {"candidates": F.shape[0], "model": model})
 
 
@@ -270,9 +283,7 @@ def plan_azimuths(m: int, drift: bool = False) -> _F64:
     forwards then backwards (ABBA for ``m = 4``), for odd ``m >= 5`` the angles are chosen so the
     set is still balanced; ``m = 3`` gives 0/90/0 (bias variance 3/8).
     """
-    if isinstance(m, bool) or int(m) != m:
-        raise CalibrationError(f"m must be an integer number of dwells; got {m!r}")
-    m = int(m)
+    m = number(m, "m", lo=1, hi=100_000, integer=True, unit="dwells")
     if not drift:
         if m < 2:
             raise DegenerateDataError(
@@ -301,9 +312,9 @@ def plan_azimuths(m: int, drift: bool = False) -> _F64:
     return np.concatenate([pairs, [0.0], pairs[::-1]])
 
 
-@dataclass(frozen=True)
-class StartupPrediction:
-    """Predicted accuracy of a start-up sequence before it is run.
+class StartupPrediction(_core.StartupPredictionCore):
+    """Predicted accuracy of a start-up sequence before it is run (the data live in the Rust
+    result; arrays are read-only; pickles).
 
     Attributes
     ----------
@@ -316,18 +327,14 @@ class StartupPrediction:
     std : (p,)
         Square roots of the total covariance diagonal.
     closed_form_variance : float
-        SPEC 3 closed form ``sigma^2 m / (m^2 - |U|^2)`` (equal weights, no drift).
+        Closed form ``sigma^2 m / (m^2 - |U|^2)`` with ``U = sum exp(-2i theta_k)`` (equal
+        weights, no drift; ``sigma`` the mean noise std).
     condition : float
         Condition number of the design.
+    names : list of str
     """
 
-    covariance: _F64
-    azimuth_covariance: _F64
-    total_covariance: _F64
-    std: _F64
-    closed_form_variance: float
-    condition: float
-    names: tuple[str, ...]
+    __slots__ = ()
 
     @property
     def bias_std(self) -> _F64:
@@ -383,49 +390,26 @@ def predict_startup_accuracy(
     if use_drift and tt is None:
         raise CalibrationError("the drift model needs the planned dwell times")
     sd = _dwell_std(sigma, m)
-    st = float(sigma_theta)
-    if not np.isfinite(st) or st < 0:
-        raise CalibrationError("sigma_theta must be >= 0 (deg)")
+    st = number(sigma_theta, "sigma_theta", lo=0.0, unit="deg")
     gvec = None
     gmag = 0.0
     if gradient is not None:
-        g = np.asarray(gradient, dtype=np.float64).reshape(-1)
-        if g.size == 1:
+        g = real_array(gradient, "gradient", "E").reshape(-1)
+        if g.size == 1 and np.isfinite(g[0]):
             gmag = float(abs(g[0]))
-        elif g.size == 2:
+        elif g.size == 2 and np.all(np.isfinite(g)):
             gvec = [float(g[0]), float(g[1])]
         else:
-            raise CalibrationError("gradient must be a magnitude or (I, C) in E")
+            raise CalibrationError(
+                f"gradient must be a finite magnitude or (I, C) in E; got {gradient!r}"
+            )
     elif st > 0:
         raise CalibrationError(
             "sigma_theta > 0 needs the gradient (E): its effect on the bias scales with |gamma|"
         )
-    tref = 0.0
-    if use_drift:
-        assert tt is not None
-        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
-    raw = _core.startup_predict_raw(
-        np.radians(az),
-        sd,
-        tt if use_drift else None,
-        tref,
-        gvec,
-        gmag,
-        np.radians(st),
-    )
-    cov = np.asarray(raw["unit_cov"])
-    tcov = np.asarray(raw["theta_cov"])
-    tot = cov + tcov
-    p = cov.shape[0]
-    return StartupPrediction(
-        covariance=cov,
-        azimuth_covariance=tcov,
-        total_covariance=tot,
-        std=np.sqrt(np.diag(tot)),
-        closed_form_variance=float(np.mean(sd) ** 2 * raw["closed_form"]),
-        condition=float(raw["condition"]),
-        names=STARTUP_PARAM_NAMES[:p],
-    )
+    tref = None if t_ref is None or not use_drift else number(t_ref, "t_ref", unit="s")
+    raw = _core.startup_predict_raw(az, sd, tt if use_drift else None, tref, gvec, gmag, st)
+    return StartupPrediction(*raw.__reduce__()[1])
 
 
 # ------------------------------------------------------------------------------------------
@@ -503,7 +487,7 @@ def centrifuge_sensitivity(
     source: str = "lever_along_x",
     magnitudes: Any = (0.02,),
     *,
-    method: str = "taylor-paper",
+    method: CentrifugeMethod = "taylor-paper",
     g: float = 9.8,
 ) -> CentrifugeSensitivity:
     """Shift of the fitted S, b, K2 caused by an error source the fit does not model.
@@ -513,7 +497,7 @@ def centrifuge_sensitivity(
     design : CentrifugeDesign, optional
         Default: the paper's 20 positions x 3 speeds, R = 1 m.
     truth : dict, optional
-        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the seed-004 truth.
+        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the paper's truth.
     source : str
         ``misalignment`` (all six paper angles = magnitude, rad); ``lever_along_<axis>``
         (accelerometer <axis> displaced along its own axis, m); ``lever_<accel>_<dir>``
@@ -536,15 +520,16 @@ def centrifuge_sensitivity(
     if truth:
         tr.update({k: np.asarray(v, float) for k, v in truth.items()})
     kw: dict[str, Any] = {"scale": tr["scale"], "bias": tr["bias"], "k2": tr["k2"], "g": g}
-    mags = np.atleast_1d(np.asarray(magnitudes, dtype=np.float64))
+    mags = np.atleast_1d(real_array(magnitudes, "magnitudes")).reshape(-1)
+    if not np.all(np.isfinite(mags)):
+        raise CalibrationError(f"magnitudes must be finite; got {magnitudes!r}")
+    if method not in ("nls", "taylor-paper"):
+        raise CalibrationError(f"unknown method {method!r}; use 'taylor-paper' or 'nls'")
     _error_kwargs(source, 0.0)  # validate the name first
 
     def run(n: NDArray[np.float64]) -> NDArray[np.float64]:
-        d = _core.centrifuge_fit_raw(
-            np.ascontiguousarray(n), des.omega, des.radius, g, method, False, False, None,
-            None, None, False, 5.0, 1e-9, 0, 0,
-        )
-        return np.asarray(d["params"])
+        fit = _core.centrifuge_fit_raw(n, des.omega, des.radius, g, method, robust=False)
+        return np.asarray(fit.params)
 
     base = run(centrifuge_outputs(des, **kw))
     shifts = np.array([run(centrifuge_outputs(des, **kw, **_error_kwargs(source, m))) - base

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError
 from ._files import atomic_write
-from ._validate import bounds_array, channel, number, positive, real_array, samples_array
+from ._validate import bounds_array, channel, number, numeric_array, positive, samples_array
 
 __all__ = [
     "DetectorSettings",
@@ -42,7 +42,7 @@ _STATE_VERSION = 1
 
 def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> NDArray[np.float64]:
     """``a`` as float64 of exactly ``shape`` (no silent reshape), finite unless told."""
-    v = real_array(a, name).astype(np.float64, copy=True)
+    v = numeric_array(a, name).astype(np.float64, copy=True)
     if v.shape != shape:
         raise CalibrationError(f"{name} must have shape {shape}; got {v.shape}")
     if finite and not np.all(np.isfinite(v)):
@@ -52,7 +52,7 @@ def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> N
 
 def _ints(a: Any, name: str, k: int, lo: int) -> NDArray[np.int64]:
     """``a`` as (k,) int64 of whole numbers >= ``lo`` (NaN and fractions refused)."""
-    v = real_array(a, name)
+    v = numeric_array(a, name)
     if v.shape != (k,):
         raise CalibrationError(f"{name} must have shape ({k},); got {v.shape}")
     if v.dtype.kind == "f":
@@ -130,7 +130,7 @@ class DwellSet:
         lsb: ArrayLike | None = None,
         dropped: int = 0,
     ) -> None:
-        m = real_array(mean, "mean").astype(np.float64, copy=True)
+        m = numeric_array(mean, "mean").astype(np.float64, copy=True)
         if m.ndim == 1 and m.size == 3:
             m = m.reshape(1, 3)
         if m.ndim != 2 or m.shape[1] != 3:
@@ -157,7 +157,7 @@ class DwellSet:
         self.stop = None if stop is None else _ints(stop, "stop", k, 1)
         if self.start is not None and self.stop is not None and np.any(self.start >= self.stop):
             raise CalibrationError("start must be < stop for every dwell")
-        self.fs = None if fs is None else positive(fs, "fs", "Hz")
+        self.fs = None if fs is None else positive(fs, "fs", " (Hz)")
         self.threshold = None if threshold is None else _arr(threshold, "threshold", (3,))
         self.noise_std = None if noise_std is None else _arr(noise_std, "noise_std", (3,))
         self.half_mean = None if half_mean is None else _arr(half_mean, "half_mean", (k, 2, 3))
@@ -452,7 +452,7 @@ def dwell_stats(
     s = samples_array(samples)
     b = bounds_array(bounds)
     n = s.shape[0]
-    fsv = None if fs is None else positive(fs, "fs", "Hz")
+    fsv = None if fs is None else positive(fs, "fs", " (Hz)")
     d = _core.dwell_stats_raw(
         s, b, channel(t, n, "t"), channel(temperature, n, "temperature")
     )
@@ -500,12 +500,12 @@ class DetectorSettings:
             out[name] = number(getattr(self, name), name, lo=lo, hi=hi, lo_open=lo_open, unit=unit)
         if out["noise_quantile"] >= 1.0:
             raise CalibrationError(
-                f"noise_quantile must be a finite number in (0, 1); got {self.noise_quantile!r}"
+                f"noise_quantile must be a number in (0, 1); got {self.noise_quantile!r}"
             )
         nv = None
         if self.noise_std is not None:
             try:
-                ns = real_array(self.noise_std, "noise_std").astype(np.float64).reshape(-1)
+                ns = numeric_array(self.noise_std, "noise_std").astype(np.float64).reshape(-1)
             except CalibrationError:
                 ns = np.array([np.nan])
             if ns.shape != (3,) or not np.all(np.isfinite(ns)) or np.any(ns <= 0):
@@ -560,7 +560,7 @@ def detect_dwells(
         When no static dwell is found (the message gives the noise level and the settings).
     """
     s = samples_array(samples)
-    fsv = positive(fs, "fs", "Hz")
+    fsv = positive(fs, "fs", " (Hz)")
     st = DetectorSettings.merged(settings, kw)
     n = s.shape[0]
     d = _core.detect_dwells_raw(
@@ -598,7 +598,7 @@ class DwellAccumulator:
         units: str = "",
         **kw: Any,
     ) -> None:
-        self.fs = None if fs is None else positive(fs, "fs", "sample rate in Hz")
+        self.fs = None if fs is None else positive(fs, "fs", " (sample rate in Hz)")
         if not isinstance(units, str):
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
@@ -623,13 +623,23 @@ class DwellAccumulator:
         t: ArrayLike | None = None,
         temperature: ArrayLike | None = None,
     ) -> None:
-        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature)."""
-        a = real_array(chunk, "chunk")
-        if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
-            return
-        c = samples_array(a, "chunk")
-        m = c.shape[0]
-        self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature).
+
+        On error nothing of the chunk is kept: the accumulator holds what it held before the
+        call, stays usable, and the message says so.
+        """
+        try:
+            a = numeric_array(chunk, "chunk")
+            if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
+                return
+            c = samples_array(a, "chunk")
+            m = c.shape[0]
+            self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+        except CalibrationError as e:
+            raise type(e)(
+                f"{e} (nothing of this chunk was kept: the accumulator still holds the "
+                f"{self.position} samples pushed before and stays usable)"
+            ) from None
 
     def finish(self) -> DwellSet:
         """The dwell table of everything pushed so far (the accumulator stays usable)."""
@@ -666,7 +676,7 @@ class DwellAccumulator:
         if mode not in ("bounds", "detect") or not isinstance(units, str):
             raise CalibrationError("not a DwellAccumulator state (bad header)")
         self = cls.__new__(cls)
-        self.fs = None if fs is None else positive(fs, "fs", "Hz")
+        self.fs = None if fs is None else positive(fs, "fs", " (Hz)")
         self.units = units
         self.mode = mode
         self._raw = _core.RawDwellAccumulator.from_state(raw)

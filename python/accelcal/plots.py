@@ -33,46 +33,84 @@ def _plt() -> Any:
 
 
 def static_norm_figure(fit: Any, dwells: Any = None) -> Any:
-    """The paper's Fig. 5: |a| per dwell before and after calibration, and the residuals."""
+    """The norm per dwell before and after calibration (in units of g: raw counts are taken
+    through the nominal model, or the fitted bias and one common scale), and the residuals
+    ``|a| - g`` with error bars from the noise model the fit reports; integer dwell ticks.
+    ``dwells`` is accepted for the caller's convenience (the fit carries its means)."""
+    from matplotlib.ticker import MaxNLocator
+
+    from .static import units_of_g
+
     plt = _plt()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    k = np.arange(len(fit.residuals))
-    ns = fit.norm_stats
+    k = np.arange(1, len(fit.residuals) + 1)
     g = fit.g
-    if ns["before"] is not None:
-        before = np.linalg.norm(fit._means, axis=1) if fit._nominal is None else np.linalg.norm(
-            fit._nominal.apply(fit._means), axis=1)
-        ax1.plot(k, before / g, "o-", label="before (nominal)")
+    u = units_of_g(g) or "units of g"
+    nb = fit.norms_before()
+    if nb is not None:
+        ax1.plot(k, nb[0] / g, "o-", label=f"before ({nb[1]})")
     ax1.plot(k, (g + fit.residuals) / g, "s-", label="after calibration")
     ax1.axhline(1.0, color="k", lw=0.8)
-    ax1.set_ylabel("|a| / g")
-    ax1.legend()
+    ax1.set_ylabel("|a| / g  [g]")
+    ax1.legend(fontsize=8)
     ax1.set_title(f"Norm per dwell ({fit.model} model, {len(k)} dwells)")
-    ax2.bar(k, 1e3 * fit.residuals, color="C1")
-    if np.all(np.isfinite(fit.sigma_residual)):
-        ax2.errorbar(k, 1e3 * fit.residuals, yerr=1e3 * fit.sigma_residual, fmt="none",
-                     ecolor="k", capsize=2)
-    ax2.set_ylabel("|a| - g  [mm/s^2]")
+    scale, unit = (1e3, f"m{u}") if u in ("m/s^2", "g") else (1.0, u)
+    ax2.bar(k, scale * fit.residuals, color="C1", label="|a| - g")
+    src = "noise model" if fit.noise_known else "noise estimated from the residuals"
+    ax2.errorbar(k, scale * fit.residuals, yerr=scale * fit.sigma_residual, fmt="none",
+                 ecolor="k", capsize=2, label=f"1 sigma ({src})")
+    ax2.axhline(0.0, color="k", lw=0.8)
+    ax2.set_ylabel(f"|a| - g  [{unit}]")
     ax2.set_xlabel("dwell")
-    ax2.set_title(f"residual RMS {fit.rms:.3g} m/s^2, chi2/dof {fit.chi2_dof:.3g}")
+    ax2.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax2.legend(fontsize=8)
+    chi = f"chi2/dof {fit.chi2_dof:.3g}" if fit.noise_known else "noise estimated"
+    ax2.set_title(f"residual RMS {fit.rms:.3g} {u} ({chi})")
     fig.tight_layout()
     return fig
 
 
+def _equal_area(d: Any, up: float) -> tuple[Any, Any]:
+    """Lambert azimuthal equal-area projection about the ``up`` (+1 or -1) z pole: the radius
+    is ``2 sin(theta / 2)`` for the angle theta from that pole (sqrt(2) at the equator)."""
+    d = np.asarray(d, dtype=np.float64)
+    theta = np.arccos(np.clip(up * d[:, 2], -1.0, 1.0))
+    r = 2.0 * np.sin(theta / 2.0)
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return r * np.cos(phi), r * np.sin(phi)
+
+
 def poses_figure(plan: Any) -> Any:
-    """Planned gravity directions on the unit sphere (sensor frame)."""
+    """The planned poses, numbered in the order of the checklist, as gravity directions in
+    the sensor frame (x nose, y left side, z top) on an equal-area projection: one disc for
+    the poses with the top up (and one for the top down when the plan uses them)."""
     plt = _plt()
-    fig = plt.figure(figsize=(6, 6))
-    ax = fig.add_subplot(111, projection="3d")
-    u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
-    ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85",
-                      lw=0.5)
-    d = np.asarray(plan.directions)
-    ax.scatter(d[:, 0], d[:, 1], d[:, 2], color="C3", s=40)
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
-    ax.set_zlabel("z")
-    ax.set_title(f"{len(d)} planned attitudes (gravity direction)")
+    d = np.asarray(plan.directions, dtype=np.float64)
+    lower = d[:, 2] < -1e-9
+    panels = [(1.0, "top up (z > 0)")] + ([(-1.0, "top down (z < 0)")] if lower.any() else [])
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 5.5), squeeze=False)
+    ring = np.linspace(0, 2 * np.pi, 200)
+    for ax, (up, title) in zip(axes[0], panels, strict=True):
+        for deg in (30, 60, 90):
+            r = 2.0 * np.sin(np.radians(deg) / 2.0)
+            ax.plot(r * np.cos(ring), r * np.sin(ring), color="0.8", lw=0.7)
+            ax.annotate(f"{deg} deg", (r * 0.71, r * 0.71), color="0.5", fontsize=7)
+        sel = ~lower if up > 0 else lower
+        idx = np.nonzero(sel)[0]
+        x, y = _equal_area(d[idx], up)
+        ax.scatter(x, y, color="C3", s=30, zorder=3)
+        for i, xi, yi in zip(idx, x, y, strict=True):
+            ax.annotate(str(i + 1), (xi, yi), xytext=(4, 4), textcoords="offset points",
+                        fontsize=8)
+        ax.set_aspect("equal")
+        lim = 1.5
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_xlabel("x (nose) component of the gravity direction, equal-area")
+        ax.set_ylabel("y (left side) component, equal-area")
+        ax.set_title(f"{title}: tilt from the vertical")
+    fig.suptitle(f"{len(d)} planned poses, numbered as in the checklist")
+    fig.tight_layout()
     return fig
 
 
@@ -214,5 +252,119 @@ def gap_figure(rep: Any, fig: Any = None) -> Any:
     fig.suptitle(f"gap: chi2/dof {rep.chi2_per_dof:.2f}, held-out G {rep.held_out_gap:.2f} -> "
                  f"{rep.held_out_gap_after:.2f}; best = {rep.best}; structure: "
                  f"{rep.structure.verdict}")
+    fig.tight_layout()
+    return fig
+
+
+def centrifuge_residual_figure(fit: Any, speed_index: Any = None, position: Any = None) -> Any:
+    """Norm residual of every centrifuge row against position, one series per speed, the
+    excluded rows marked (and the screening threshold drawn as a band), in g."""
+    plt = _plt()
+    r = np.asarray(fit.residuals, dtype=np.float64)
+    k = r.size
+    pos = np.arange(1, k + 1) if position is None else np.asarray(position)
+    spd = np.ones(k, dtype=np.int64) if speed_index is None else np.asarray(speed_index)
+    out = np.zeros(k, dtype=bool)
+    out[np.asarray(fit.outliers, dtype=np.int64)] = True
+    big = np.abs(r[~out]).max() if np.any(~out) else 0.0
+    band_g = float(np.nanmax(fit.threshold * np.asarray(fit.residual_std, dtype=np.float64)))
+    ref = max(big, band_g if np.isfinite(band_g) else 0.0, 1e-15)
+    scale, unit = (1e6, "ug") if ref < 1e-5 else (1e3, "mg") if ref < 1e-2 else (1.0, "g")
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    # Excluded rows far beyond the others are drawn at the edge of the axis (clipped).
+    lim = 3.0 * scale * ref
+    clipped = False
+    speeds = np.unique(spd)
+    for j, s in enumerate(speeds):
+        m = spd == s
+        x = pos + 0.12 * (j - (len(speeds) - 1) / 2)  # side by side, one speed each
+        ax.plot(x[m & ~out], scale * r[m & ~out], "o", color=f"C{j}", label=f"speed {s}")
+        if np.any(m & out):
+            v = scale * r[m & out]
+            clipped |= bool(np.any(~(np.abs(v) <= lim)))
+            ax.plot(x[m & out], np.clip(np.nan_to_num(v, posinf=lim, neginf=-lim), -lim, lim),
+                    "x", color=f"C{j}", ms=9, mew=2)
+    band = scale * fit.threshold * np.asarray(fit.residual_std, dtype=np.float64)
+    if np.all(np.isfinite(band)) and band.size:
+        ax.axhspan(-band.max(), band.max(), color="0.9", zorder=0,
+                   label="screening threshold")
+    if np.any(out):
+        ax.plot([], [], "kx", ms=9, mew=2,
+                label=f"excluded ({int(out.sum())}{', clipped' if clipped else ''})")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel("position")
+    ax.set_ylabel(f"norm residual |f| - sqrt(A^2 + 1)  [{unit}]")
+    ax.set_title(f"Centrifuge fit ({fit.method}): {k} rows, {int(out.sum())} excluded, "
+                 f"rms {fit.residual_rms:.3g}{'' if fit.noise_known else ' g'}")
+    if np.issubdtype(pos.dtype, np.integer):
+        ax.set_xticks(np.unique(pos))
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    return fig
+
+
+def gradiometer_figure(sb: Any) -> Any:
+    """Inline and cross averages against azimuth (with their error bars) and the fitted
+    ``bias + R(2 theta) gamma`` (at ``t_ref`` when a drift was fitted), in E."""
+    plt = _plt()
+    az = np.asarray(sb.azimuth_deg, dtype=np.float64)
+    y = np.asarray(sb.residuals, dtype=np.float64)
+    th = np.radians(az)
+    c, s = np.cos(2 * th), np.sin(2 * th)
+    b, gm = np.asarray(sb.bias), np.asarray(sb.gradient)
+    model = np.column_stack([b[0] + c * gm[0] + s * gm[1], b[1] - s * gm[0] + c * gm[1]])
+    drift = np.zeros_like(model)
+    if sb.drift is not None and sb.t is not None:
+        drift = np.outer(np.asarray(sb.t) - float(sb.t_ref or 0.0), np.asarray(sb.drift))
+    data = model + drift + y  # the averages, drift removed to t_ref below
+    shown = data - drift
+    grid = np.linspace(0.0, 180.0, 361)
+    tg = np.radians(grid)
+    cg, sg = np.cos(2 * tg), np.sin(2 * tg)
+    curves = (b[0] + cg * gm[0] + sg * gm[1], b[1] - sg * gm[0] + cg * gm[1])
+    err = None if sb.sigma is None else np.asarray(sb.sigma, dtype=np.float64)
+    fig, axes = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for i, (ax, name) in enumerate(zip(axes, ("inline I", "cross C"), strict=True)):
+        ax.errorbar(np.mod(az, 180.0), shown[:, i], yerr=err, fmt="o", capsize=3,
+                    label="averages" + (" (drift removed)" if sb.drift is not None else ""))
+        ax.plot(grid, curves[i], "-", label="fit: bias + R(2 theta) gamma")
+        ax.axhline(b[i], color="k", ls=":", lw=1, label=f"bias {b[i]:.4g} E")
+        ax.set_ylabel(f"{name}  [E]")
+        ax.legend(fontsize=8)
+    axes[1].set_xlabel("platform azimuth  [deg]")
+    axes[1].set_xticks(np.arange(0, 181, 45))
+    axes[0].set_title(f"Start-up bias from {az.size} azimuths (dof {sb.dof})")
+    fig.tight_layout()
+    return fig
+
+
+def dwells_figure(
+    t_s: Any, mean: Any, lo: Any, hi: Any, dwells: Any, *, units: str = "", title: str = ""
+) -> Any:
+    """The stream (x, y, z against time) with the detected dwells shaded and numbered.
+
+    ``t_s`` (m,) bin times in s and ``mean``/``lo``/``hi`` (m, 3) the mean, minimum and
+    maximum of each axis over a bin of samples (a decimated picture of a long stream).
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
+    unit = units or "as recorded"
+    fs = dwells.fs
+    starts = None if dwells.start is None or fs is None else np.asarray(dwells.start) / fs
+    stops = None if dwells.stop is None or fs is None else np.asarray(dwells.stop) / fs
+    for a, ax in enumerate(axes):
+        ax.fill_between(t_s, lo[:, a], hi[:, a], color="0.75", lw=0, label="min-max")
+        ax.plot(t_s, mean[:, a], color="C0", lw=0.8, label="mean")
+        ax.set_ylabel(f"{'xyz'[a]} [{unit}]")
+        if starts is not None and stops is not None:
+            for k, (s0, s1) in enumerate(zip(starts, stops, strict=True)):
+                ax.axvspan(s0, s1, color="C2", alpha=0.25, lw=0,
+                           label="dwell" if k == 0 else None)
+                if a == 0:
+                    ax.text(0.5 * (s0 + s1), 1.0, str(k), transform=ax.get_xaxis_transform(),
+                            ha="center", va="bottom", fontsize=7)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(f"{title + ': ' if title else ''}{len(dwells)} static dwells (shaded)")
     fig.tight_layout()
     return fig

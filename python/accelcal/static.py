@@ -1,42 +1,42 @@
-"""Static field calibration by norm observation (seed 000; numerics in Rust).
+"""Static field calibration by norm observation (numerics in Rust).
 
 Sensor model: raw output ``am = K a + b``; calibrated specific force ``a = K^-1 (am - b)``.
 At rest ``|a| = g`` whatever the attitude, so dwell means at several attitudes plus a
 reference ``g`` determine ``K`` and ``b``.
 
-Parameter vector, always in the seed's order ``[sx, sy, sz, bx, by, bz, m1, m2, m3]``:
+Parameter vector, always in this order ``[sx, sy, sz, bx, by, bz, m1, m2, m3]``:
 
-- ``model="lower"`` (seed 000): ``K = [[sx, 0, 0], [m1, sy, 0], [m2, m3, sz]]``; ``m1`` is the
-  x-input seen by the y output, ``m2`` x seen by z, ``m3`` y seen by z.
-- ``model="upper"`` (imu_tk's triangle): ``K = [[sx, m1, m2], [0, sy, m3], [0, 0, sz]]``; ``m1``
-  is the y-input seen by the x output, ``m2`` z seen by x, ``m3`` z seen by y.
+- ``model="lower"`` (the norm-observation paper's): ``K = [[sx, 0, 0], [m1, sy, 0],
+  [m2, m3, sz]]``; ``m1`` is the x-input seen by the y output, ``m2`` x seen by z, ``m3`` y
+  seen by z.
+- ``model="upper"`` (imu_tk's triangle): ``K = [[sx, m1, m2], [0, sy, m3], [0, 0, sz]]``;
+  ``m1`` is the y-input seen by the x output, ``m2`` z seen by x, ``m3`` z seen by y.
 - ``model="diag"``: ``K = diag(sx, sy, sz)``, first 6 values only.
 
 ``K`` is in output units per (m/s^2) (counts per m/s^2 for raw counts), ``b`` in output units;
 residuals and calibrated values are in the units of ``g`` (m/s^2).
+
+The fit is maximum likelihood: the whitened residual of dwell ``k`` is
+``(|K^-1 (am_k - b)| - g) / sigma_k`` with ``sigma_k^2 = w_k^T Sigma_k w_k``,
+``w_k = K^-T a_k / |a_k|``, and ``sigma_k`` is re-evaluated with the parameters.
 """
 
 from __future__ import annotations
 
-import datetime as _dt
-import json
 import math
-import os
 import warnings
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import CalibrationError
-from ._files import atomic_write
-from ._triad import PARAM_NAMES
-from ._triad import k_matrix as _k_matrix
-from ._triad import n_params as _n_params
-from ._validate import samples_array
+from ._triad import PARAM_NAMES, k_matrix
+from ._triad_model import TriadModel
+from ._validate import number, real_array
 from .dwell import DwellSet
 
 __all__ = [
@@ -50,130 +50,143 @@ __all__ = [
     "local_gravity",
 ]
 
-_METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
+#: Result of :func:`fit_static_batch` (one row per session; see its fields).
+BatchFit = _core.BatchFit
+
+_OBSERVABILITY = ("raise", "warn", "ignore")
 
 
 class WeakDesignWarning(UserWarning):
     """The dwells determine the parameters only weakly (large predicted std)."""
 
 
+def _ignored(category: type[Warning]) -> bool:
+    """The active warning filters ignore ``category`` whatever its text and origin (then the
+    text need not be built). Any filter that looks at the text, module or line: False."""
+    for action, msg, cat, mod, lineno in warnings.filters:
+        if msg is not None or mod is not None or lineno:
+            return False
+        if issubclass(category, cat):
+            return bool(action == "ignore")
+    return bool(getattr(warnings, "defaultaction", "default") == "ignore")
 
 
-def _check_g(g: Any, check: bool) -> float:
-    try:
-        gv = float(g)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"g must be a number (reference gravity); got {g!r}") from None
-    if not math.isfinite(gv) or gv <= 0:
-        raise CalibrationError(
-            f"g must be a positive, finite reference gravity (e.g. 9.81 m/s^2); got {g!r}"
-        )
-    if check and not (9.7 <= gv <= 9.9 or 0.99 <= gv <= 1.01 or 970.0 <= gv <= 990.0):
-        raise CalibrationError(
-            f"g = {gv} is not a plausible local gravity: Earth's is 9.78-9.84 m/s^2 "
-            "(0.997-1.003 in units of g, 978-983 cm/s^2). Give g in the units the calibrated "
-            "output should have, or pass check_g=False for a deliberate other value."
-        )
-    return gv
+def units_of_g(g: float) -> str:
+    """The unit a reference gravity ``g`` is expressed in: m/s^2, g or cm/s^2 (else "")."""
+    if 9.0 <= g <= 10.5:
+        return "m/s^2"
+    if 0.9 <= g <= 1.1:
+        return "g"
+    if 900.0 <= g <= 1050.0:
+        return "cm/s^2"
+    return ""
 
 
-def _means_of(data: Any) -> tuple[NDArray[np.float64], DwellSet | None]:
+# ------------------------------------------------------------------------------------------
+def _as_means(x: Any, name: str) -> NDArray[np.float64]:
+    """(k, 3) float64 (any layout; boolean, complex, text and object refused)."""
+    a = real_array(x, name, "output units")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise CalibrationError(f"{name} must have shape (k, 3); got {a.shape}")
+    return a
+
+
+def _inputs(
+    data: Any, sigma: Any
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | float | None, str, str]:
+    """Dwell means, the per-axis variance of each mean (one number for all, (k, 3), or None:
+    estimated), how the noise model was obtained, and the input units."""
     if isinstance(data, DwellSet):
-        return data.mean, data
-    m = np.asarray(data, dtype=np.float64)
-    if m.ndim != 2 or m.shape[1] != 3:
-        raise CalibrationError(f"dwell means must have shape (k, 3); got {np.shape(data)}")
-    return m, None
-
-
-def _noise_var(
-    k: int, ds: DwellSet | None, sigma: Any
-) -> tuple[NDArray[np.float64] | None, str]:
+        means, units = data.mean, data.units
+    else:
+        means, units = _as_means(data, "dwell means"), ""
+    k = means.shape[0]
+    if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
+        sv = number(sigma, "sigma", lo=0.0, lo_open=True,
+                    unit="(std of each dwell mean, output units)")
+        return means, sv * sv, "given sigma (std of each dwell mean)", units
     if sigma is not None:
-        s = np.asarray(sigma, dtype=np.float64)
+        s = np.asarray(sigma)
+        if s.dtype.kind not in "fiu":
+            raise CalibrationError(f"sigma must be a real number or array; got {sigma!r}")
+        s = s.astype(np.float64)
         if s.ndim == 0:
             s = np.full((k, 3), float(s))
         elif s.shape == (k,):
             s = np.repeat(s[:, None], 3, axis=1)
         elif s.shape != (k, 3):
             raise CalibrationError(
-                f"sigma must be a scalar, ({k},) or ({k}, 3) (std of each dwell mean); "
-                f"got {s.shape}"
+                f"sigma must be a scalar, ({k},) or ({k}, 3) (std of each dwell mean, output "
+                f"units); got shape {s.shape}"
             )
         if not np.all(np.isfinite(s)) or np.any(s <= 0):
-            raise CalibrationError("sigma must be positive and finite")
-        return np.ascontiguousarray(s * s), "given sigma (std of each dwell mean)"
-    if ds is not None and ds.var is not None and ds.count is not None:
-        v = ds.var / ds.count[:, None]
+            raise CalibrationError(
+                "sigma must be positive and finite (std of each dwell mean, output units)"
+            )
+        return means, s * s, "given sigma (std of each dwell mean)", units
+    if isinstance(data, DwellSet) and data.var is not None and data.count is not None:
+        v = data.var / data.count[:, None]
         if np.all(np.isfinite(v)) and np.all(v.sum(axis=1) > 0):
-            return np.ascontiguousarray(v), "dwell variance / count (white noise)"
-        return None, "estimated from the residuals (dwell variances unusable)"
-    return None, "estimated from the residuals (unit weights)"
+            return means, v, "dwell variance / count (white noise)", units
+        return means, None, "estimated from the residuals (dwell variances unusable)", units
+    return means, None, "estimated from the residuals (isotropic output noise)", units
 
 
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NormStats:
-    """Norm statistics as the seed paper reports them (units of g)."""
+    """Norm statistics as the norm-observation paper reports them.
+
+    mean_norm_g : mean |a| / g;  residual_std_g : std(|a| - g) / g;  rms_g : RMS(|a| - g) / g
+    (all in units of g); rms : RMS(|a| - g) in the units of the reference ``g`` (``units``).
+    """
 
     mean_norm_g: float
     residual_std_g: float
+    rms_g: float
     rms: float
+    units: str = ""
 
     def line(self) -> str:
+        u = self.units or "units of the reference g"
+        rms = f"{self.rms_g:.3e} g" + ("" if u == "g" else f" = {self.rms:.3e} {u}")
         return (
-            f"mean |a|/g = {self.mean_norm_g:.6f}, std(|a| - g) = {self.residual_std_g:.3e} g, "
-            f"RMS = {self.rms:.3e}"
+            f"mean |a| = {self.mean_norm_g:.6f} g, std(|a| - g) = {self.residual_std_g:.3e} g, "
+            f"RMS(|a| - g) = {rms}"
         )
 
 
 def _norm_stats(norms: NDArray[np.float64], g: float) -> NormStats:
     r = norms - g
+    rms = float(np.sqrt(np.mean(r * r)))
     return NormStats(
-        float(np.mean(norms) / g), float(np.std(r) / g), float(np.sqrt(np.mean(r * r)))
+        float(np.mean(norms) / g), float(np.std(r) / g), rms / g, rms, units_of_g(g)
     )
 
 
-class StaticFit:
+class StaticFit(_core.StaticFit):
     """Result of :func:`fit_static` (everything in the caller's units; residuals in g's).
 
-    Attributes
-    ----------
-    vector : (p,) [sx, sy, sz, bx, by, bz, m1, m2, m3] (p = 6 for ``model="diag"``)
-    scale, bias, nonorth : (3,) parts of ``vector`` (nonorth = (m1, m2, m3), zeros for diag)
-    K : (3, 3) output units per (m/s^2) (per unit of g's units);
-    covariance, std, correlation of ``vector``
-    residuals : (k,) ``|a_k| - g`` per dwell;  rms, chi2_dof, dof
-    noise_model : how the dwell weights were obtained
-    iterations, converged : of GN/LM (0 / True for the linear methods)
+    Fields computed in Rust (see ``accelcal._core.StaticFit``): ``vector`` (p,)
+    ``[sx, sy, sz, bx, by, bz, m1, m2, m3]`` (p = 6 for ``model="diag"``), ``start``,
+    ``covariance_unscaled`` ``(J^T W J)^-1``, ``residuals`` ``|a_k| - g`` per dwell,
+    ``sigma_residual`` (predicted std of each residual), ``chi2_dof``, ``dof``, ``cost``,
+    ``iterations``, ``converged``, ``noise_known``, ``weak``, ``degenerate``,
+    ``predicted_std_relative``, ``means``, ``var``, ``g``, ``model``, ``method``,
+    ``noise_model``, ``input_units``, ``nominal``.
+
+    Uncertainty (the rule of the field guide):
+
+    - ``covariance`` / ``std``: from the noise model when it is known; with the noise
+      estimated, from the noise level the residuals show (``covariance_scaled``).
+    - ``covariance_scaled``: ``covariance_unscaled * chi2_dof``.
+    - ``realistic`` names the one to quote: ``"scaled"`` when the noise is estimated or when
+      the residuals exceed the noise model (``chi2_dof > 1``: the Birge-ratio inflation), else
+      ``"noise_model"``; ``covariance_realistic`` / ``std_realistic`` are that one. The
+      summary prints it and :meth:`to_model` stores it (with both labelled).
     """
 
-    def __init__(
-        self,
-        raw: Any,
-        *,
-        means: NDArray[np.float64],
-        g: float,
-        method: str,
-        noise_model: str,
-        nominal: Any = None,
-    ) -> None:
-        self._raw = raw
-        self._means = means
-        self.g = g
-        self.model: str = raw.model
-        self.method = method
-        self.noise_model = noise_model
-        self.noise_known: bool = raw.noise_known
-        self._nominal = nominal
-        self._weak_std = 1e-3
-        self.input_units: str = ""
-
     # -- parameters ---------------------------------------------------------------------
-    @cached_property
-    def vector(self) -> NDArray[np.float64]:
-        return self._raw.params  # type: ignore[no-any-return]
-
     @property
     def names(self) -> tuple[str, ...]:
         return PARAM_NAMES[: self.vector.size]
@@ -190,144 +203,169 @@ class StaticFit:
     def nonorth(self) -> NDArray[np.float64]:
         return self.vector[6:9].copy() if self.vector.size == 9 else np.zeros(3)
 
-    @property
+    @cached_property
     def K(self) -> NDArray[np.float64]:
-        return _k_matrix(self.vector, self.model)
-
-    @property
-    def start(self) -> NDArray[np.float64]:
-        """Start of GN/LM (the quadric solution unless ``start=`` was given)."""
-        return self._raw.start  # type: ignore[no-any-return]
+        """(3, 3) output units per (m/s^2)."""
+        return k_matrix(self.vector, self.model)
 
     # -- uncertainty --------------------------------------------------------------------
     @cached_property
-    def covariance_unscaled(self) -> NDArray[np.float64]:
-        """``(J^T W J)^-1`` with the noise model's weights (unit weights when estimated)."""
-        return self._raw.covariance  # type: ignore[no-any-return]
-
-    @property
     def covariance_scaled(self) -> NDArray[np.float64]:
-        """``covariance_unscaled * chi2_dof``: uses the noise level the residuals show."""
-        return self.covariance_unscaled * self.chi2_dof
+        """``covariance_unscaled * chi2_dof``: the noise level that the residuals show."""
+        return self.covariance_unscaled * self.chi2_dof  # type: ignore[no-any-return]
 
     @property
-    def covariance(self) -> NDArray[np.float64]:
-        """Parameter covariance: unscaled for a known noise model, scaled when estimated."""
+    def covariance_noise_model(self) -> NDArray[np.float64]:
+        """From the noise model: unscaled when it is known, scaled when it was estimated."""
         return self.covariance_unscaled if self.noise_known else self.covariance_scaled
 
     @property
+    def covariance(self) -> NDArray[np.float64]:
+        """Same as :attr:`covariance_noise_model`."""
+        return self.covariance_noise_model
+
+    @cached_property
     def std(self) -> NDArray[np.float64]:
         return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def realistic(self) -> str:
+        """``"scaled"`` or ``"noise_model"``: the covariance to quote (see the class doc)."""
+        if not self.noise_known or (math.isfinite(self.chi2_dof) and self.chi2_dof > 1.0):
+            return "scaled"
+        return "noise_model"
+
+    @property
+    def covariance_realistic(self) -> NDArray[np.float64]:
+        if self.realistic == "scaled" and math.isfinite(self.chi2_dof):
+            return self.covariance_scaled
+        return self.covariance_noise_model
+
+    @cached_property
+    def std_realistic(self) -> NDArray[np.float64]:
+        return np.sqrt(np.diag(self.covariance_realistic))
 
     @property
     def correlation(self) -> NDArray[np.float64]:
         s = self.std
         with np.errstate(invalid="ignore", divide="ignore"):
-            return self.covariance / np.outer(s, s)
+            return self.covariance / np.outer(s, s)  # type: ignore[no-any-return]
 
     # -- residuals ----------------------------------------------------------------------
-    @cached_property
-    def residuals(self) -> NDArray[np.float64]:
-        return self._raw.residuals  # type: ignore[no-any-return]
-
-    @property
-    def sigma_residual(self) -> NDArray[np.float64]:
-        """Predicted std of each residual from the noise model (NaN when estimated)."""
-        s = self._raw.sigma_r
-        return s if self.noise_known else np.full_like(s, np.nan)
-
     @property
     def rms(self) -> float:
         return float(np.sqrt(np.mean(self.residuals**2)))
 
-    @property
-    def chi2_dof(self) -> float:
-        """Whitened cost per degree of freedom (sigma^2 estimate when the noise is estimated)."""
-        return float(self._raw.chi2_dof)
-
-    @property
-    def dof(self) -> int:
-        return int(self._raw.dof)
-
-    @property
-    def iterations(self) -> int:
-        return int(self._raw.iterations)
-
-    @property
-    def converged(self) -> bool:
-        return bool(self._raw.converged)
-
-    # -- observability ------------------------------------------------------------------
-    @property
-    def predicted_std_relative(self) -> NDArray[np.float64]:
-        """Predicted std in comparable units (scale/misalignment relative, biases in g)."""
-        return self._raw.std_comparable  # type: ignore[no-any-return]
-
-    @property
-    def weak(self) -> bool:
-        return bool(self._raw.weak)
-
-    @property
-    def degenerate(self) -> bool:
-        return bool(self._raw.degenerate)
-
-    def observability(self) -> dict[str, Any]:
-        """SVD of the whitened Jacobian in comparable units: singular values, condition,
-        predicted std of each parameter and of the least determined combination (named)."""
-        return dict(self._raw.observability())
-
     # -- norm statistics ----------------------------------------------------------------
     def calibrated_means(self) -> NDArray[np.float64]:
         """Calibrated dwell means (k, 3), units of g."""
-        return np.asarray(np.linalg.solve(self.K, (self._means - self.bias).T).T, dtype=np.float64)
+        return np.asarray(np.linalg.solve(self.K, (self.means - self.bias).T).T, dtype=np.float64)
+
+    def norms_before(self) -> tuple[NDArray[np.float64], str] | None:
+        """Norm of every dwell mean before calibration, in the units of ``g``, and how it was
+        obtained: through ``nominal`` when given; the raw norm when the data already look
+        like units of g; else (raw counts) the fitted bias removed and one common scale (the
+        fit's mean scale factor) applied, so that only the per-axis scale and the
+        misalignment are left uncorrected."""
+        if self.nominal is not None:
+            return np.linalg.norm(self.nominal.apply(self.means), axis=1), "nominal model"
+        nrm = np.linalg.norm(self.means, axis=1)
+        if 0.5 < np.median(nrm) / self.g < 2.0:
+            return nrm, "raw output"
+        s = abs(float(np.linalg.det(self.K))) ** (1.0 / 3.0)
+        if not (s > 0 and math.isfinite(s)):
+            return None
+        return (
+            np.linalg.norm(self.means - self.bias, axis=1) / s,
+            "fitted bias removed, one common scale",
+        )
 
     @cached_property
     def norm_stats(self) -> dict[str, Any]:
-        """Norm statistics before/after as the paper reports them.
-
-        ``before`` uses the nominal model (``nominal=`` of :func:`fit_static`; identity when
-        the data already look like units of g), ``None`` when there is no sensible nominal.
-        """
+        """Norm statistics before/after as the paper reports them (``before`` None when no
+        sensible "before" exists); ``before_source`` says how "before" was computed."""
         after = _norm_stats(self.g + self.residuals, self.g)
-        before: NormStats | None = None
-        nom = self._nominal
-        if nom is None:
-            nrm = np.linalg.norm(self._means, axis=1)
-            if 0.5 < np.median(nrm) / self.g < 2.0:
-                before = _norm_stats(nrm, self.g)
-        else:
-            before = _norm_stats(np.linalg.norm(nom.apply(self._means), axis=1), self.g)
+        nb = self.norms_before()
+        before = None if nb is None else _norm_stats(nb[0], self.g)
         red = None
         if before is not None and before.residual_std_g > 0:
             red = 100.0 * (1.0 - after.residual_std_g / before.residual_std_g)
-        return {"before": before, "after": after, "std_reduction_percent": red}
+        return {
+            "before": before,
+            "before_source": None if nb is None else nb[1],
+            "after": after,
+            "std_reduction_percent": red,
+        }
+
+    # -- warnings text ------------------------------------------------------------------
+    def weak_text(self) -> str:
+        """The weakly determined parameters: predicted std (output units) and relative std of
+        every parameter whose relative std exceeds ``weak_std``."""
+        std = self.std.tolist()
+        if not all(map(math.isfinite, std)):
+            return (
+                "no redundancy (as many dwells as parameters): the noise and the uncertainty "
+                "cannot be estimated"
+            )
+        rel = self.predicted_std_relative.tolist()
+        lim = self.weak_std
+        parts = [
+            f"{nm} +-{std[i]:.3g} ({100 * rel[i]:.2g} % {'g' if 3 <= i < 6 else 'of scale'})"
+            for i, nm in enumerate(self.names)
+            if not rel[i] <= lim
+        ]
+        txt = f"predicted std {', '.join(parts)} (1 sigma)"
+        if len(rel) == 9 and not all(r <= lim for r in rel[6:]):
+            txt += '; model "diag" (bias + scale) needs fewer attitudes'
+        return txt
+
+    def warning_text(self) -> str | None:
+        """The weak-design warning of this fit (None when the design is determined). When
+        some combination is barely determined (predicted std above 10 % relative) the warning
+        names it: along it the numbers are set by the noise, not by the poses."""
+        if self.degenerate:
+            o = self.observability()
+            return (
+                f"the dwells cannot determine {o.combination} (predicted std "
+                f"{o.weakest_std:.3g} relative); results are not meaningful"
+            )
+        if not self.weak:
+            return None
+        txt = f"weakly determined calibration ({len(self.residuals)} dwells): "
+        if self.weakest_std > 0.1:
+            o = self.observability()
+            txt += (
+                f"the dwells barely determine {o.combination} (predicted std "
+                f"{o.weakest_std:.2g} relative: along it the result is set by the noise); "
+            )
+        return txt + self.weak_text()
 
     # -- export -------------------------------------------------------------------------
     def to_model(self, **meta: Any) -> TriadModel:
         """The fitted :class:`TriadModel` (``meta``: sensor_id, date, temperature, ...).
 
-        The stored ``covariance`` is the more realistic of the two: scaled by chi2/dof when
-        the residuals exceed the noise model (chi2/dof > 1), else the noise-model one. The
-        metadata records chi2/dof, the noise model and both covariances' choice.
+        It stores both covariances, labelled, and which one is realistic (the one
+        :meth:`summary` prints; ``TriadModel.covariance``); the metadata records chi2/dof,
+        the degrees of freedom, the noise model, the residual RMS and the dwell count.
         """
         md = dict(meta.pop("metadata", None) or {})
-        scaled = bool(self.dof > 0 and np.isfinite(self.chi2_dof) and self.chi2_dof > 1.0)
-        cov = self.covariance_scaled if scaled else self.covariance
         md.update(
-            chi2_dof=None if not np.isfinite(self.chi2_dof) else float(self.chi2_dof),
+            chi2_dof=None if not math.isfinite(self.chi2_dof) else float(self.chi2_dof),
             dof=int(self.dof),
             noise_model=self.noise_model,
-            covariance="scaled by chi2/dof" if scaled else "from the noise model",
             residual_rms=float(self.rms),
             n_dwells=int(len(self.residuals)),
         )
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units
+        scaled = self.covariance_scaled
         return TriadModel(
             self.K,
             self.bias,
             model=self.model,
-            covariance=cov,
+            covariance_noise_model=self.covariance_noise_model,
+            covariance_scaled=scaled if np.all(np.isfinite(scaled)) else None,
+            realistic=self.realistic,
             g=self.g,
             metadata=md,
             **meta,
@@ -340,10 +378,13 @@ class StaticFit:
             "method": self.method,
             "names": list(self.names),
             "vector": self.vector.tolist(),
-            "std": self.std.tolist(),
-            "covariance": self.covariance.tolist(),
+            "std": self.std_realistic.tolist(),
+            "std_source": self.realistic,
+            "std_noise_model": self.std.tolist(),
+            "covariance": self.covariance_realistic.tolist(),
             "residuals": self.residuals.tolist(),
             "rms": self.rms,
+            "units": units_of_g(self.g),
             "chi2_dof": self.chi2_dof,
             "dof": self.dof,
             "noise_model": self.noise_model,
@@ -353,47 +394,61 @@ class StaticFit:
             "weak": self.weak,
             "predicted_std_relative": self.predicted_std_relative.tolist(),
             "norm_before": None if ns["before"] is None else ns["before"].__dict__,
+            "norm_before_source": ns["before_source"],
             "norm_after": ns["after"].__dict__,
             "std_reduction_percent": ns["std_reduction_percent"],
         }
 
     def summary(self, truth: ArrayLike | None = None) -> str:
-        """Readable table of parameters with std (and truth), plus norm statistics."""
+        """Readable table of parameters with their realistic std (and truth), plus norm
+        statistics with units."""
         tv = None if truth is None else np.asarray(truth, dtype=np.float64).reshape(-1)
+        u = units_of_g(self.g) or "units of g"
+        chi = (
+            f"chi2/dof = {self.chi2_dof:.3g}"
+            if self.noise_known
+            else f"estimated noise of a dwell mean {math.sqrt(self.chi2_dof):.3g} "
+            f"{self.input_units or 'output units'} per axis"
+            if math.isfinite(self.chi2_dof)
+            else "no redundancy"
+        )
         lines = [
             f"static fit: model {self.model!r}, method {self.method!r}, {len(self.residuals)} "
-            f"dwells, g = {self.g}",
-            f"  noise model: {self.noise_model}; chi2/dof = {self.chi2_dof:.3g}; "
-            f"iterations {self.iterations}{'' if self.converged else ' (NOT converged)'}",
+            f"dwells, g = {self.g} {u}",
+            f"  noise model: {self.noise_model}; {chi}; iterations {self.iterations}"
+            f"{'' if self.converged else ' (NOT converged)'}",
         ]
-        if self.noise_known and self.chi2_dof > 3:
+        if self.realistic == "scaled" and self.noise_known:
             lines.append(
-                f"  note: residuals exceed the noise model (chi2/dof {self.chi2_dof:.3g}); "
-                "covariance_scaled is the more realistic uncertainty"
+                f"  note: residuals exceed the noise model (chi2/dof {self.chi2_dof:.3g}); std "
+                "below is scaled by chi2/dof (covariance_scaled, the realistic one)"
             )
+        src = "scaled by chi2/dof" if self.realistic == "scaled" else "from the noise model"
+        lines.append(f"  std: {src}; K in {self.input_units or 'output units'} per {u}")
         hdr = f"  {'param':<6} {'value':>14} {'std':>11}"
         if tv is not None:
             hdr += f" {'truth':>14} {'error/std':>10}"
         lines.append(hdr)
+        std = self.std_realistic
         for i, nm in enumerate(self.names):
-            ln = f"  {nm:<6} {self.vector[i]:>14.7g} {self.std[i]:>11.3g}"
+            ln = f"  {nm:<6} {self.vector[i]:>14.7g} {std[i]:>11.3g}"
             if tv is not None and i < tv.size:
-                e = (self.vector[i] - tv[i]) / self.std[i] if self.std[i] > 0 else np.nan
+                e = (self.vector[i] - tv[i]) / std[i] if std[i] > 0 else np.nan
                 ln += f" {tv[i]:>14.7g} {e:>10.2f}"
             lines.append(ln)
         ns = self.norm_stats
         if ns["before"] is not None:
-            lines.append("  norm before: " + ns["before"].line())
+            lines.append(f"  norm before ({ns['before_source']}): " + ns["before"].line())
         lines.append("  norm after:  " + ns["after"].line())
         if ns["std_reduction_percent"] is not None:
-            lines.append(f"  residual std reduced by {ns['std_reduction_percent']:.1f} %")
+            lines.append(f"  std(|a| - g) reduced by {ns['std_reduction_percent']:.1f} %")
         if self.dof <= 0:
             lines.append(
                 "  no redundancy (as many dwells as parameters): the residuals cannot test the "
                 "model; the std above comes from the noise model alone"
             )
         if self.weak:
-            lines.append("  WEAK design: " + _weak_text(self))
+            lines.append("  WEAK design: " + self.weak_text())
         return "\n".join(lines)
 
     def __repr__(self) -> str:
@@ -401,11 +456,6 @@ class StaticFit:
             f"StaticFit(model={self.model!r}, method={self.method!r}, "
             f"rms={self.rms:.3g}, chi2_dof={self.chi2_dof:.3g})"
         )
-
-
-def _weak_text(fit: StaticFit) -> str:
-    # Formatted in Rust (Python's .3g/.2g): formatting a dozen floats here cost more than the fit.
-    return fit._raw.weak_text(fit._weak_std)  # type: ignore[no-any-return]
 
 
 def fit_static(
@@ -419,7 +469,7 @@ def fit_static(
     nominal: TriadModel | None = None,
     observability: str = "raise",
     weak_std: float = 1e-3,
-    degenerate_std: float = 0.1,
+    degenerate_std: float = 3.0,
     max_iter: int = 200,
     check_g: bool = True,
 ) -> StaticFit:
@@ -429,18 +479,19 @@ def fit_static(
     ----------
     data : DwellSet or (k, 3) array
         Dwell means in output units (raw counts or m/s^2). A DwellSet's ``var``/``count``
-        give each dwell's weight (white-noise standard error).
+        give each dwell's noise (white-noise standard error).
     g : float
         Reference gravity (e.g. from an atomic gravimeter, or :func:`local_gravity`), in the
         units the calibrated output should have (m/s^2).
-    model : "lower" (seed 000, 9), "diag" (bias + scale, 6) or "upper" (imu_tk, 9)
-    method : "lm" (default: exact quadric start, then Levenberg-Marquardt on the whitened
-        ``|a_k| - g``, maximum likelihood), "gauss-newton", "quadric" (exact linear solution,
-        SPEC 1) or "linear-paper" (the paper's small-M back-substitution, for reproduction).
+    model : "lower" (the paper's, 9), "diag" (bias + scale, 6) or "upper" (imu_tk, 9)
+    method : "lm" (default: exact quadric start, then Levenberg-Marquardt on the maximum-
+        likelihood cost), "gauss-newton", "quadric" (exact linear solution of the quadric
+        regression) or "linear-paper" (the paper's small-M back-substitution, for
+        reproduction).
     sigma : scalar, (k,) or (k, 3), optional
         Std of each dwell mean per axis, output units (overrides the DwellSet's variances).
-        Without it and without variances, unit weights and the noise is estimated from the
-        residuals (``noise_model`` says which).
+        Without it and without variances the output noise is taken as isotropic and its level
+        estimated from the residuals (``noise_model`` says which).
     start : (p,), optional
         Start of GN/LM (default the quadric solution), e.g. the paper's e0.
     nominal : TriadModel, optional
@@ -450,84 +501,46 @@ def fit_static(
         naming the undetermined combination). Weakly determined parameters (predicted std
         above ``weak_std`` relative / g) always give a :class:`WeakDesignWarning` unless
         ``observability="ignore"``.
+    weak_std, degenerate_std : float
+        Thresholds of the predicted std in relative units (scale relative, biases in g).
+    max_iter : int
+        Iteration limit of GN/LM, in [1, 100000].
+    check_g : bool
+        Refuse a ``g`` that is not a plausible local gravity in m/s^2, g or cm/s^2.
 
     Raises
     ------
     DegenerateDataError
         Too few dwells, singular or numerically singular pose set, not an ellipsoid.
     CalibrationError
-        NaN, bad shapes, implausible g, non-convergence.
+        NaN, bad shapes or options (the message names the argument, value and valid range),
+        implausible g, non-convergence.
     """
-    means, ds = _means_of(data)
-    gv = _check_g(g, check_g)
-    if method not in _METHODS:
+    means, var, noise_model, units = _inputs(data, sigma)
+    if observability not in _OBSERVABILITY:
         raise CalibrationError(
-            f"unknown method {method!r}; use 'lm', 'gauss-newton', 'quadric' or 'linear-paper'"
+            f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
-    if observability not in ("raise", "warn", "ignore"):
-        raise CalibrationError("observability must be 'raise', 'warn' or 'ignore'")
-    var, noise_model = _noise_var(means.shape[0], ds, sigma)
-    st = None
-    if start is not None:
-        st = [float(v) for v in np.asarray(start, dtype=np.float64).reshape(-1)]
-    raw = _core.static_fit_raw(
-        means,
-        gv,
-        model,
-        method,
-        var,
-        st,
-        int(max_iter),
-        observability == "raise",
-        float(degenerate_std),
-        float(weak_std),
+    st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+    fit = StaticFit(  # positional: the fastest call into the constructor
+        means, g, cast(Any, model), cast(Any, method), var, st, max_iter,
+        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
     )
-    if not raw.converged and not raw.degenerate:
+    if not fit.converged and not fit.degenerate:
         raise CalibrationError(
-            f"{method} did not converge in {max_iter} iterations (start {raw.start.tolist()}); "
-            "use the default start (the exact quadric solution) or more iterations"
+            f"{method} did not reach the minimum in {fit.max_iter} iterations (start "
+            f"{fit.start.tolist()}); use the default start (the exact quadric solution) or "
+            "more iterations"
         )
-    fit = StaticFit(
-        raw, means=means, g=gv, method=method, noise_model=noise_model, nominal=nominal
-    )
-    fit._weak_std = float(weak_std)
-    if isinstance(data, DwellSet):
-        fit.input_units = data.units
-    if observability != "ignore" and (raw.weak or raw.degenerate):
-        if raw.degenerate:
-            o = fit.observability()
-            msg = (
-                f"the dwells cannot determine {o['combination']} (predicted std "
-                f"{o['weakest_std']:.3g} relative); results are not meaningful"
-            )
-        else:
-            msg = f"weakly determined calibration ({len(means)} dwells): " + _weak_text(fit)
-        warnings.warn(msg, WeakDesignWarning, stacklevel=2)
+    if observability != "ignore" and (fit.weak or fit.degenerate):
+        if not _ignored(WeakDesignWarning):  # the text costs more than the fit
+            warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
 
 
 # ------------------------------------------------------------------------------------------
-@dataclass
-class BatchFit:
-    """Result of :func:`fit_static_batch` (B sessions).
-
-    params, std : (B, p); rms : (B,); iterations : (B,);
-    status : (B,) 0 ok, 1 degenerate data, 2 not converged / diverged, 3 invalid input.
-    """
-
-    params: NDArray[np.float64]
-    std: NDArray[np.float64]
-    rms: NDArray[np.float64]
-    iterations: NDArray[np.int64]
-    status: NDArray[np.uint8]
-
-    @property
-    def ok(self) -> NDArray[np.bool_]:
-        return self.status == 0  # type: ignore[no-any-return]
-
-
 def fit_static_batch(
-    means: ArrayLike,
+    means: ArrayLike | list[ArrayLike],
     g: float | ArrayLike,
     *,
     model: str = "lower",
@@ -535,174 +548,47 @@ def fit_static_batch(
     sigma: float | None = None,
     start: ArrayLike | None = None,
     max_iter: int = 200,
-    degenerate_std: float = 0.1,
+    degenerate_std: float = 3.0,
+    weak_std: float = 1e-3,
+    mask: ArrayLike | None = None,
 ) -> BatchFit:
-    """Fit B independent sessions of n dwell means each, ``means`` (B, n, 3), on all cores.
+    """Fit B independent sessions of dwell means on all cores.
 
-    ``g`` is a scalar or (B,); ``sigma`` (scalar std of each dwell mean per axis) gives known
-    weights, None estimates the noise per session. No exceptions per session: see ``status``.
-    The interpreter is released during the work.
+    ``means`` is a (B, n, 3) array, with an optional (B, n) boolean ``mask`` of the dwells to
+    use (padding), or a list of (n_i, 3) arrays (sessions of different dwell counts). ``g`` is
+    a scalar or (B,); ``sigma`` (scalar std of each dwell mean per axis, output units) gives
+    the noise, None estimates it per session. Never raises per session: each row has a
+    ``status`` (0 ok, 1 degenerate, 2 not converged, 3 invalid input), ``state`` ("ok",
+    "weak", "degenerate", "error") and ``messages`` ("session 17: dwell 3 has a NaN mean").
+    The interpreter is released during the work; results do not depend on the thread count.
     """
-    m = np.ascontiguousarray(np.asarray(means, dtype=np.float64))
-    if m.ndim != 3 or m.shape[2] != 3:
-        raise CalibrationError(f"means must have shape (B, n, 3); got {m.shape}")
-    gv = np.ascontiguousarray(np.atleast_1d(np.asarray(g, dtype=np.float64)))
-    if gv.ndim != 1 or gv.size not in (1, m.shape[0]):
-        raise CalibrationError(f"g must be a scalar or have shape ({m.shape[0]},)")
-    st = None if start is None else [float(v) for v in np.asarray(start, float).reshape(-1)]
-    d = _core.static_fit_batch_raw(
+    if isinstance(means, (list, tuple)):
+        m: Any = [_as_means(x, f"session {i}") for i, x in enumerate(means)]
+    else:
+        m = real_array(means, "means", "output units")
+        if m.ndim != 3 or m.shape[2] != 3:
+            raise CalibrationError(f"means must have shape (B, n, 3); got {m.shape}")
+    mk = None
+    if mask is not None:
+        mk = np.asarray(mask)
+        if mk.dtype != np.bool_:
+            raise CalibrationError(
+                f"mask must be boolean (True for the dwells to use); got {mk.dtype}"
+            )
+    gv: Any = g if np.ndim(g) == 0 else np.asarray(g, dtype=np.float64).reshape(-1).tolist()
+    st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+    return _core.static_fit_batch(
         m,
         gv,
-        model,
-        method,
-        None if sigma is None else float(sigma),
-        st,
-        int(max_iter),
-        float(degenerate_std),
+        model=cast(Any, model),
+        method=cast(Any, method),
+        sigma=sigma,
+        start=st,
+        max_iter=max_iter,
+        degenerate_std=degenerate_std,
+        weak_std=weak_std,
+        mask=mk,
     )
-    return BatchFit(d["params"], d["std"], d["rms"], d["iterations"], d["status"])
-
-
-# ------------------------------------------------------------------------------------------
-class TriadModel:
-    """A calibrated accelerometer triad: ``a = K^-1 (am - b)``.
-
-    K : (3, 3) output units per (m/s^2);  bias : (3,) output units.
-    Saved as versioned JSON (format ``accelcal.TriadModel``, version 1) with units,
-    covariance of the parameter vector and metadata (sensor id, date, g, temperature).
-    """
-
-    FORMAT = "accelcal.TriadModel"
-    VERSION = 1
-
-    def __init__(
-        self,
-        K: ArrayLike,
-        bias: ArrayLike,
-        *,
-        model: str = "lower",
-        covariance: ArrayLike | None = None,
-        g: float | None = None,
-        units: str = "m/s^2",
-        input_units: str = "",
-        sensor_id: str = "",
-        date: str | None = None,
-        temperature: float | None = None,
-        metadata: dict[str, Any] | None = None,
-    ) -> None:
-        k = np.array(K, dtype=np.float64)
-        b = np.array(bias, dtype=np.float64).reshape(-1)
-        if k.shape != (3, 3) or b.shape != (3,):
-            raise CalibrationError("K must be (3, 3) and bias (3,)")
-        if not (np.all(np.isfinite(k)) and np.all(np.isfinite(b))):
-            raise CalibrationError("K and bias must be finite")
-        if abs(np.linalg.det(k)) == 0.0:
-            raise CalibrationError("K is singular")
-        _n_params(model)
-        self.K = k
-        self.bias = b
-        self.model = model
-        self.covariance = None if covariance is None else np.array(covariance, dtype=np.float64)
-        self.g = None if g is None else float(g)
-        self.units = units
-        self.input_units = input_units
-        self.sensor_id = sensor_id
-        self.date = date or _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-        self.temperature = None if temperature is None else float(temperature)
-        self.metadata = dict(metadata or {})
-
-    @property
-    def vector(self) -> NDArray[np.float64]:
-        k = self.K
-        v = [k[0, 0], k[1, 1], k[2, 2], *self.bias]
-        if self.model == "lower":
-            v += [k[1, 0], k[2, 0], k[2, 1]]
-        elif self.model == "upper":
-            v += [k[0, 1], k[0, 2], k[1, 2]]
-        return np.array(v)
-
-    @classmethod
-    def from_vector(cls, vector: ArrayLike, model: str = "lower", **kw: Any) -> TriadModel:
-        v = np.asarray(vector, dtype=np.float64).reshape(-1)
-        if v.size != _n_params(model):
-            raise CalibrationError(f"model {model!r} needs {_n_params(model)} values")
-        return cls(_k_matrix(v, model), v[3:6], model=model, **kw)
-
-    def apply(self, raw: ArrayLike) -> NDArray[np.float64]:
-        """Calibrated specific force (N, 3) float64 of raw output (N, 3) (float64, float32,
-        int16, int32 read in place; other integer types widened). Stateless per sample, so
-        chunks of a stream can be applied one at a time."""
-        a = np.asarray(raw)
-        if a.ndim == 1 and a.size == 3:
-            return self.apply(a.reshape(1, 3))[0]  # type: ignore[no-any-return]
-        s = samples_array(a, "raw")
-        return _core.apply_triad_raw(  # type: ignore[no-any-return]
-            s, self.K.tolist(), self.bias.tolist()
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "format": self.FORMAT,
-            "version": self.VERSION,
-            "model": self.model,
-            "parameter_names": list(PARAM_NAMES[: 6 if self.model == "diag" else 9]),
-            "vector": self.vector.tolist(),
-            "K": self.K.tolist(),
-            "bias": self.bias.tolist(),
-            "units": {
-                "output": self.units,
-                "input": self.input_units,
-                "K": f"input units per {self.units}",
-                "bias": "input units",
-            },
-            "covariance": None if self.covariance is None else self.covariance.tolist(),
-            "g": self.g,
-            "sensor_id": self.sensor_id,
-            "date": self.date,
-            "temperature": self.temperature,
-            "metadata": self.metadata,
-        }
-
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model as JSON, atomically."""
-        atomic_write(path, json.dumps(self.to_dict(), indent=2) + "\n")
-
-    @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> TriadModel:
-        """Read a model written by :meth:`save`."""
-        try:
-            with open(path, encoding="utf-8") as fh:
-                d = json.load(fh)
-        except OSError as e:
-            raise CalibrationError(f"cannot read model {str(path)!r}: {e.strerror}") from None
-        except json.JSONDecodeError as e:
-            raise CalibrationError(f"{str(path)!r} is not JSON: {e}") from None
-        if not isinstance(d, dict) or d.get("format") != cls.FORMAT:
-            raise CalibrationError(f"{str(path)!r} is not an accelcal TriadModel file")
-        ver = d.get("version")
-        if not isinstance(ver, int) or ver > cls.VERSION:
-            raise CalibrationError(
-                f"TriadModel file version {ver!r} is newer than this accelcal supports "
-                f"({cls.VERSION})"
-            )
-        units = d.get("units") or {}
-        return cls(
-            d["K"],
-            d["bias"],
-            model=d.get("model", "lower"),
-            covariance=d.get("covariance"),
-            g=d.get("g"),
-            units=units.get("output", "m/s^2"),
-            input_units=units.get("input", ""),
-            sensor_id=d.get("sensor_id", ""),
-            date=d.get("date"),
-            temperature=d.get("temperature"),
-            metadata=d.get("metadata"),
-        )
-
-    def __repr__(self) -> str:
-        v = np.array2string(self.vector, precision=6)
-        return f"TriadModel(model={self.model!r}, vector={v})"
 
 
 # ------------------------------------------------------------------------------------------
@@ -711,8 +597,13 @@ def local_gravity(lat_deg: float, height_m: float = 0.0) -> float:
     height ``height_m``, with the second-order free-air correction (about -3.086e-6 m/s^2 per
     m). Accuracy against a gravimeter: typically 1e-3 m/s^2 (local anomalies). Returns m/s^2.
     """
-    lat = float(lat_deg)
-    h = float(height_m)
+    try:
+        lat = float(lat_deg)
+        h = float(height_m)
+    except (TypeError, ValueError):
+        raise CalibrationError(
+            f"latitude and height must be numbers; got {lat_deg!r}, {height_m!r}"
+        ) from None
     if not (math.isfinite(lat) and -90.0 <= lat <= 90.0):
         raise CalibrationError(f"latitude must be in [-90, 90] degrees; got {lat_deg!r}")
     if not (math.isfinite(h) and -11000.0 <= h <= 50000.0):
@@ -722,6 +613,3 @@ def local_gravity(lat_deg: float, height_m: float = 0.0) -> float:
     s2 = math.sin(math.radians(lat)) ** 2
     g0 = ge * (1.0 + k * s2) / math.sqrt(1.0 - e2 * s2)
     return g0 * (1.0 - 2.0 / a * (1.0 + f + m - 2.0 * f * s2) * h + 3.0 * h * h / (a * a))
-
-
-# ------------------------------------------------------------------------------------------

@@ -376,16 +376,29 @@ impl SegmentAcc {
         }
     }
 
-    /// Add rows `[a, b)` of a `(N, 3)` view of any strides (fast path when C-contiguous).
+    /// Add rows `[a, b)` of a `(N, 3)` view of any strides: in place when C-contiguous, else
+    /// through a small row-major buffer (the same sums in the same order: bit-identical).
     pub fn push_view<T: Sample>(&mut self, v: &ArrayView2<'_, T>, a: usize, b: usize) {
+        const ROWS: usize = 256;
         let sub = v.slice(ndarray::s![a..b, ..]);
         if let Some(s) = sub.as_slice() {
             self.push_slice(s);
-        } else {
-            for r in sub.rows() {
-                self.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
+            return;
+        }
+        let Some(&fill) = sub.iter().next() else {
+            return;
+        };
+        let mut buf = [fill; 3 * ROWS];
+        let mut k = 0;
+        for r in sub.rows() {
+            buf[3 * k..3 * k + 3].copy_from_slice(&[r[0], r[1], r[2]]);
+            k += 1;
+            if k == ROWS {
+                self.push_slice(&buf);
+                k = 0;
             }
         }
+        self.push_slice(&buf[..3 * k]);
     }
 
     /// True when no sum has become NaN or inf (cheaper than `moments().is_finite()`).

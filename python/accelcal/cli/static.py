@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import click
@@ -9,21 +10,39 @@ import numpy as np
 
 from .._core import CalibrationError
 from ._common import (
-    _load_stream,
     _need_plot,
     _resolve_g,
     _save_fig,
     calibrate,
+    echo_notes,
     emit_json,
     friendly,
     gravity_options,
     main,
     recording_options,
+    source_line,
+    stream_dwells,
+)
+
+#: Python keywords in the library's messages, as the command line spells them.
+_CLI_WORDS = (
+    ("check_g=False", "--no-check-g"),
+    ('model "diag"', "--model diag"),
+    ("model='diag'", "--model diag"),
+    ('model="diag"', "--model diag"),
+    ("max_tilt_deg", "--max-tilt"),
 )
 
 
+def cli_words(msg: str) -> str:
+    """A library message in the terms of the command line (options, not keywords)."""
+    for py, cli in _CLI_WORDS:
+        msg = msg.replace(py, cli)
+    return msg
+
+
 @calibrate.command("static")
-@click.argument("file", type=click.Path())
+@click.argument("file", type=click.Path(allow_dash=True))
 @gravity_options
 @recording_options
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
@@ -36,6 +55,10 @@ from ._common import (
               help="Dwell detector threshold factor (x noise variance).")
 @click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
               help="Shortest dwell kept, s.")
+@click.option("--no-check-g", "no_check_g", is_flag=True,
+              help="Accept a --g that is not a plausible local gravity (m/s^2, g or cm/s^2).")
+@click.option("--nominal", "nominal_path", type=click.Path(dir_okay=False), default=None,
+              help="Calibration file of the nominal model, for the 'before' norm statistics.")
 @click.option("--sensor-id", default="", help="Stored in the calibration file.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the calibration (versioned JSON).")
@@ -47,85 +70,108 @@ from ._common import (
 @friendly
 def calibrate_static(
     file: str, g: float | None, lat: float | None, height: float, fs: float | None,
-    columns: str | None, model: str, method: str, window_s: float, k_thr: float,
-    min_dwell_s: float, sensor_id: str, output: str | None,
-    dwells_out: str | None, plot_path: str | None, as_json: bool,
+    columns: str | None, time_column: str | None, quiet: bool, model: str, method: str,
+    window_s: float, k_thr: float, min_dwell_s: float, no_check_g: bool,
+    nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
+    plot_path: str | None, as_json: bool,
 ) -> None:
-    """Static field calibration: detect dwells, fit scale, bias and non-orthogonality."""
-    import datetime
+    """Static field calibration: detect dwells, fit scale, bias and non-orthogonality.
+
+    FILE is a recording (read in one streaming pass) or a dwell table written by
+    ``accelcal dwells -o`` / ``--dwells-out``."""
     import warnings
 
     from .._core import DegenerateDataError
-    from ..dwell import detect_dwells
-    from ..static import fit_static
+    from ..static import TriadModel, WeakDesignWarning, fit_static
 
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height)
-    st = _load_stream(file, fs, columns)
-    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, window_s=window_s,
-                      k=k_thr, min_dwell_s=min_dwell_s)
+    nominal = TriadModel.load(nominal_path) if nominal_path else None
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate",
+                           window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
+    read_notes = [] if rec is None else rec.notes()
+    if len(d) == 0:
+        raise CalibrationError(
+            f"{file}: no static dwells detected; check --fs, or loosen the detector with "
+            "--k, --window and --min-dwell")
     if dwells_out:
         d.to_csv(dwells_out)
     notes: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            fit = fit_static(d, gv, model=model, method=method)
+            fit = fit_static(d, gv, model=model, method=method, check_g=not no_check_g,
+                             nominal=nominal)
         except DegenerateDataError as e:
             hint = ""
             if model != "diag" and "diag" not in str(e):
                 hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
-            raise CalibrationError(
+            raise CalibrationError(cli_words(
                 f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
                 f"model: {e}.{hint}"
-            ) from None
+            )) from None
+        except CalibrationError as e:
+            raise CalibrationError(cli_words(str(e))) from None
     for w in caught:
-        notes.append(str(w.message))
+        # The summary already lists weakly determined parameters: say it once.
+        if issubclass(w.category, WeakDesignWarning) and fit.weak and not fit.degenerate:
+            continue
+        notes.append(cli_words(str(w.message)))
     if output:
         temp = None if d.temperature is None else float(np.mean(d.temperature))
         meta = {"source": str(file), "n_dwells": len(d)}
-        fit.to_model(sensor_id=sensor_id, date=datetime.date.today().isoformat(),
-                     temperature=temp, metadata=meta).save(output)
+        fit.to_model(sensor_id=sensor_id, temperature=temp, metadata=meta).save(output)
     if plot_path:
         from ..plots import static_norm_figure
 
         _save_fig(static_norm_figure(fit, d), plot_path)
     if as_json:
         out = fit.to_dict()
-        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file))
+        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file),
+                   samples=None if rec is None else rec.rows, notes=read_notes)
         emit_json(out)
         return
-    click.echo(f"{file}: {len(st.samples)} samples at {st.fs:g} Hz -> {len(d)} dwells")
+    echo_notes(read_notes)
+    click.echo(source_line(file, rec, d))
     click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
-    click.echo(fit.summary())
+    click.echo(cli_words(fit.summary()))
     for n in notes:
         click.echo(f"warning: {n}")
     if output:
-        click.echo(f"wrote {output}")
+        click.echo(f"wrote {output} (std stored and printed: {fit.realistic.replace('_', ' ')})")
     if plot_path:
         click.echo(f"wrote {plot_path}")
 
 
 @main.command()
-@click.option("--n", "n", type=int, required=True, help="Number of attitudes.")
+@click.option("--n", "n", type=int, required=True, help="Number of poses.")
 @click.option("--max-tilt", type=float, default=30.0, show_default=True,
-              help="Two-axis platform tilt limit, deg (use 180 for the full sphere).")
+              help="Two-axis platform tilt limit, deg, in (0, 90]; 180 for the full sphere.")
 @click.option("--sigma", type=float, default=1e-3, show_default=True,
               help="Noise std of one dwell mean, m/s^2.")
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
               show_default=True)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
-              help="Planned attitudes on the sphere.")
+              help="The numbered poses on an equal-area projection of the sphere.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | None,
          as_json: bool) -> None:
-    """Plan n attitudes (D-optimal) and print the accuracy they predict."""
+    """Plan n poses (D-optimal): a numbered checklist and the accuracy they predict."""
     from ..design import plan_poses
 
     _need_plot(plot_path)
-    mt = None if max_tilt >= 180 else max_tilt
-    p = plan_poses(n, mt, sigma=sigma, model=model)
+    if not (0 < max_tilt <= 90 or max_tilt == 180):
+        raise CalibrationError(
+            f"--max-tilt must be in (0, 90] degrees, or 180 for the full sphere; got {max_tilt:g}"
+        )
+    mt = None if max_tilt == 180 else max_tilt
+    try:
+        p = plan_poses(n, mt, sigma=sigma, model=model)
+    except CalibrationError as e:
+        msg = re.sub(r"^n = (\d+) poses", r"--n \1: \1 poses", str(e))
+        msg = re.sub(r"^n must", "--n must", msg).replace("sigma must", "--sigma must")
+        raise CalibrationError(cli_words(msg)) from None
     if plot_path:
         from ..plots import poses_figure
 
@@ -146,6 +192,7 @@ def _plan_dict(p: Any, sigma: float, model: str) -> dict[str, Any]:
         "sigma_mps2": sigma,
         "tilts_deg": None if p.tilts_deg is None else p.tilts_deg,
         "directions": p.directions,
+        "poses": p.pose_names(),
         "predicted_std": dict(zip(pred.names, pred.std, strict=True)),
         "singular": bool(pred.singular),
         "condition": pred.condition,
@@ -154,16 +201,11 @@ def _plan_dict(p: Any, sigma: float, model: str) -> dict[str, Any]:
 
 def _plan_text(p: Any, sigma: float, model: str) -> str:
     pred = p.prediction
-    lines = [f"{len(p.directions)} attitudes (D-optimal), model {model!r}, "
-             f"dwell-mean noise {sigma:g} m/s^2"]
-    if p.tilts_deg is not None:
-        lines.append(f"{'#':>3} {'tilt_x_deg':>11} {'tilt_y_deg':>11}")
-        lines += [f"{i:>3} {a:>11.2f} {b:>11.2f}" for i, (a, b) in enumerate(p.tilts_deg)]
-    else:
-        lines.append(f"{'#':>3} {'gx':>8} {'gy':>8} {'gz':>8}  (unit gravity direction)")
-        lines += [f"{i:>3} {a:>8.4f} {b:>8.4f} {c:>8.4f}" for i, (a, b, c) in
-                  enumerate(p.directions)]
-    lines.append("predicted std (Cramer-Rao bound, 1 sigma):")
+    lines = [f"{len(p.directions)} poses (D-optimal), model {model!r}, dwell-mean noise "
+             f"{sigma:g} m/s^2; place the sensor in each pose, in order:"]
+    lines.append(p.checklist())
+    lines.append("predicted std (Cramer-Rao bound, 1 sigma; scale factors and misalignments "
+                 "relative, biases in m/s^2):")
     lines.append(pred.table())
     if pred.singular:
         lines.append(f"SINGULAR design: {pred.combination}")

@@ -6,6 +6,7 @@ mod dwell;
 mod gap;
 mod gradiometer;
 mod static_fit;
+mod text;
 
 use crate::error::CoreError;
 use pyo3::exceptions::PyValueError;
@@ -36,7 +37,9 @@ impl From<CoreError> for PyErr {
 #[pyo3::pymodule]
 mod _core {
     #[pymodule_export]
-    use super::centrifuge::centrifuge_fit_raw;
+    use super::centrifuge::{
+        centrifuge_correct_raw, centrifuge_fit_raw, centrifuge_unit_check_raw, PyCentrifugeFit,
+    };
     #[pymodule_export]
     use super::dwell::{detect_dwells_raw, dwell_stats_raw, DwellTableRaw, RawDwellAccumulator};
     #[pymodule_export]
@@ -46,9 +49,17 @@ mod _core {
         GapStructure, GapStructureTest,
     };
     #[pymodule_export]
-    use super::gradiometer::{demodulate_raw, startup_bias_raw, startup_predict_raw};
+    use super::gradiometer::{
+        demodulate_raw, startup_bias_raw, startup_predict_raw, PyDemodulated, PyStartupBias,
+        PyStartupPrediction,
+    };
     #[pymodule_export]
-    use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
+    use super::static_fit::{
+        apply_triad_raw, static_design_rows, static_fit_batch, static_model_violation, PyBatchFit,
+        PyObservability, PyPrediction, PyStaticFit,
+    };
+    #[pymodule_export]
+    use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
 }

@@ -1,239 +1,965 @@
-//! Bindings of the static-field calibration core.
+//! Bindings of the static-field calibration core: typed, frozen result classes.
+//!
+//! A result class's constructor is its computation (`StaticFit(means, g, ...)` fits,
+//! `Prediction(force, sigma, ...)` predicts), so that the Python classes subclass them, and
+//! they pickle as their inputs (`__getnewargs_ex__`): unpickling recomputes, which is
+//! deterministic and bit-identical.
 
 use numpy::{
-    IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3,
+    IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3,
     PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyList, PyTuple};
 
-use super::convert::{rows3, with_view, SampleArray};
+use super::convert::{frozen1, frozen2, rows3, with_view, SampleArray};
 use super::CalibrationError;
 use crate::static_fit::{
-    apply_model, fit_batch, fit_static, FitSettings, Method, Model, Noise, StaticFit,
+    apply_model, design_rows, fit_batch, fit_static, predict, BatchRow, FitSettings, Method, Model,
+    Noise, Observability as CoreObservability, PARAM_NAMES,
 };
 
-fn mat_to_py<'py>(py: Python<'py>, m: &nalgebra::DMatrix<f64>) -> Bound<'py, PyArray2<f64>> {
-    let (r, c) = (m.nrows(), m.ncols());
-    let v: Vec<f64> = (0..r)
-        .flat_map(|i| (0..c).map(move |j| m[(i, j)]))
-        .collect();
-    ndarray::Array2::from_shape_vec((r, c), v)
-        .expect("shape matches length")
-        .into_pyarray(py)
+// ------------------------------------------------------------------------------------------
+// Argument checks: the name, the value received and the valid range in every message.
+
+/// An optional argument that tells "not given" (the default) from an explicit `None`, so that
+/// `max_iter=None` is refused with a clear message instead of meaning the default.
+pub struct Given<'py>(Option<Bound<'py, PyAny>>);
+
+impl<'a, 'py> FromPyObject<'a, 'py> for Given<'py> {
+    type Error = PyErr;
+    fn extract(obj: pyo3::Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        Ok(Given(Some(obj.to_owned())))
+    }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn settings(
+const NOT_GIVEN: Given<'static> = Given(None);
+
+fn describe(obj: &Bound<'_, PyAny>) -> String {
+    obj.repr()
+        .map(|r| r.to_string())
+        .unwrap_or_else(|_| "?".into())
+}
+
+/// A float argument within `ok`, or a `CalibrationError` naming it and its range.
+fn arg_f64(
+    obj: &Bound<'_, PyAny>,
+    name: &str,
+    range: &str,
+    ok: impl Fn(f64) -> bool,
+) -> PyResult<f64> {
+    let v = if obj.is_instance_of::<pyo3::types::PyBool>() {
+        None
+    } else {
+        obj.extract::<f64>().ok()
+    };
+    match v {
+        Some(x) if ok(x) => Ok(x),
+        _ => Err(CalibrationError::new_err(format!(
+            "{name} must be {range}; got {}",
+            describe(obj)
+        ))),
+    }
+}
+
+/// An integer argument in `[lo, hi]` (integral floats accepted), or a `CalibrationError`.
+fn arg_int(obj: &Bound<'_, PyAny>, name: &str, lo: i64, hi: i64) -> PyResult<usize> {
+    let v = if obj.is_instance_of::<pyo3::types::PyBool>() {
+        None
+    } else if let Ok(i) = obj.extract::<i64>() {
+        Some(i)
+    } else {
+        obj.extract::<f64>()
+            .ok()
+            .filter(|x| x.is_finite() && x.fract() == 0.0 && x.abs() < 9e15)
+            .map(|x| x as i64)
+    };
+    match v {
+        Some(i) if (lo..=hi).contains(&i) => Ok(i as usize),
+        _ => Err(CalibrationError::new_err(format!(
+            "{name} must be an integer in [{lo}, {hi}]; got {}",
+            describe(obj)
+        ))),
+    }
+}
+
+fn positive(obj: &Bound<'_, PyAny>, name: &str, what: &str) -> PyResult<f64> {
+    arg_f64(obj, name, &format!("a positive, finite {what}"), |x| {
+        x > 0.0 && x.is_finite()
+    })
+}
+
+/// Local gravity in any of the units the calibrated output may have.
+fn plausible_g(g: f64) -> bool {
+    (9.7..=9.9).contains(&g) || (0.99..=1.01).contains(&g) || (970.0..=990.0).contains(&g)
+}
+
+fn check_g(obj: &Bound<'_, PyAny>, check: bool) -> PyResult<f64> {
+    let g = positive(obj, "g", "reference gravity (e.g. 9.81 m/s^2)")?;
+    if check && !plausible_g(g) {
+        return Err(CalibrationError::new_err(format!(
+            "g = {g} is not a plausible local gravity: Earth's is 9.78-9.84 m/s^2 (0.997-1.003 \
+             in units of g, 978-983 cm/s^2). Give g in the units the calibrated output should \
+             have, or turn this check off (check_g=False) for a deliberate other value"
+        )));
+    }
+    Ok(g)
+}
+
+/// `(k, 3)` float64 array argument (any strides).
+fn means_arg<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArray2<'py, f64>> {
+    obj.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
+        CalibrationError::new_err(format!(
+            "{name} must be a (k, 3) float64 array; got {}",
+            obj.get_type()
+                .name()
+                .map(|n| n.to_string())
+                .unwrap_or_default()
+        ))
+    })
+}
+
+fn settings_from(
     model: &str,
     method: &str,
     start: Option<Vec<f64>>,
-    max_iter: usize,
+    max_iter: &Given<'_>,
     raise_degenerate: bool,
-    degenerate_std: f64,
-    weak_std: f64,
+    degenerate_std: &Given<'_>,
+    weak_std: &Given<'_>,
 ) -> PyResult<FitSettings> {
     let mut s = FitSettings::new(Model::parse(model)?, Method::parse(method)?);
     s.start = start;
-    s.max_iter = max_iter;
     s.raise_degenerate = raise_degenerate;
-    s.degenerate_std = degenerate_std;
-    s.weak_std = weak_std;
+    if let Some(o) = &max_iter.0 {
+        s.max_iter = arg_int(o, "max_iter", 1, 100_000)?;
+    }
+    if let Some(o) = &degenerate_std.0 {
+        s.degenerate_std = positive(o, "degenerate_std", "relative std (default 3)")?;
+    }
+    if let Some(o) = &weak_std.0 {
+        s.weak_std = positive(o, "weak_std", "relative std (default 1e-3)")?;
+    }
     Ok(s)
 }
 
-/// Result of one static fit (the Python `StaticFit` wraps it).
-#[pyclass(name = "StaticFitRaw", module = "accelcal._core", frozen)]
-pub struct StaticFitRaw {
-    inner: StaticFit,
-    settings: FitSettings,
+/// A read-only copy of `v`.
+fn arr1(py: Python<'_>, v: &[f64]) -> Py<PyArray1<f64>> {
+    frozen1(py, v.to_vec())
+}
+
+/// A read-only `(rows, cols)` array of `f(i, j)`.
+fn arr2(
+    py: Python<'_>,
+    rows: usize,
+    cols: usize,
+    f: impl Fn(usize, usize) -> f64,
+) -> Py<PyArray2<f64>> {
+    frozen2(
+        py,
+        (0..rows * cols).map(|k| f(k / cols, k % cols)).collect(),
+        rows,
+        cols,
+    )
+}
+
+fn flat(v: &[[f64; 3]]) -> Vec<f64> {
+    v.iter().flatten().copied().collect()
+}
+
+// ------------------------------------------------------------------------------------------
+// Observability
+
+/// What the dwells can determine: the SVD of the whitened Jacobian in comparable units
+/// (scale factors and misalignments relative, biases in units of g).
+#[pyclass(name = "Observability", module = "accelcal._core", frozen, get_all)]
+pub struct PyObservability {
+    /// Singular values, descending.
+    singular_values: Py<PyArray1<f64>>,
+    /// `s_max / s_min`.
+    condition: f64,
+    /// Predicted std of each parameter (comparable units).
+    std_comparable: Py<PyArray1<f64>>,
+    /// Least determined combination (unit vector, comparable units).
+    weakest: Py<PyArray1<f64>>,
+    /// Predicted std of that combination (comparable units).
+    weakest_std: f64,
+    /// Exactly or numerically undetermined.
+    degenerate: bool,
+    /// Some parameter is weakly determined.
+    weak: bool,
+    /// The weakest combination in parameter names.
+    combination: String,
+}
+
+impl PyObservability {
+    fn from_core(py: Python<'_>, o: &CoreObservability) -> Self {
+        PyObservability {
+            singular_values: arr1(py, &o.singular_values),
+            condition: o.condition,
+            std_comparable: arr1(py, &o.std_comparable),
+            weakest: arr1(py, &o.weakest),
+            weakest_std: o.weakest_std,
+            degenerate: o.degenerate,
+            weak: o.weak,
+            combination: o.combination.clone(),
+        }
+    }
 }
 
 #[pymethods]
-impl StaticFitRaw {
-    #[getter]
-    fn model(&self) -> &'static str {
-        self.inner.model.name()
+impl PyObservability {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        singular_values: Py<PyArray1<f64>>,
+        condition: f64,
+        std_comparable: Py<PyArray1<f64>>,
+        weakest: Py<PyArray1<f64>>,
+        weakest_std: f64,
+        degenerate: bool,
+        weak: bool,
+        combination: String,
+    ) -> Self {
+        PyObservability {
+            singular_values,
+            condition,
+            std_comparable,
+            weakest,
+            weakest_std,
+            degenerate,
+            weak,
+            combination,
+        }
     }
-    #[getter]
-    fn params<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        self.inner.params.clone().into_pyarray(py)
+
+    fn __getnewargs__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        PyTuple::new(
+            py,
+            [
+                self.singular_values.clone_ref(py).into_any(),
+                self.condition.into_pyobject(py)?.into_any().unbind(),
+                self.std_comparable.clone_ref(py).into_any(),
+                self.weakest.clone_ref(py).into_any(),
+                self.weakest_std.into_pyobject(py)?.into_any().unbind(),
+                pyo3::types::PyBool::new(py, self.degenerate)
+                    .to_owned()
+                    .into_any()
+                    .unbind(),
+                pyo3::types::PyBool::new(py, self.weak)
+                    .to_owned()
+                    .into_any()
+                    .unbind(),
+                self.combination
+                    .clone()
+                    .into_pyobject(py)?
+                    .into_any()
+                    .unbind(),
+            ],
+        )
     }
-    #[getter]
-    fn start<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        self.inner.start.clone().into_pyarray(py)
-    }
-    #[getter]
-    fn covariance<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        mat_to_py(py, &self.inner.covariance)
-    }
-    #[getter]
-    fn residuals<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        self.inner.residuals.clone().into_pyarray(py)
-    }
-    #[getter]
-    fn sigma_r<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        self.inner.sigma_r.clone().into_pyarray(py)
-    }
-    #[getter]
-    fn cost(&self) -> f64 {
-        self.inner.cost
-    }
-    #[getter]
-    fn dof(&self) -> usize {
-        self.inner.dof
-    }
-    #[getter]
-    fn chi2_dof(&self) -> f64 {
-        self.inner.chi2_dof
-    }
-    #[getter]
-    fn iterations(&self) -> usize {
-        self.inner.iterations
-    }
-    #[getter]
-    fn converged(&self) -> bool {
-        self.inner.converged
-    }
-    #[getter]
-    fn noise_known(&self) -> bool {
-        self.inner.noise_known
-    }
-    #[getter]
-    fn note(&self) -> String {
-        self.inner.note.clone()
-    }
-    #[getter]
-    fn weak(&self) -> bool {
-        self.inner.summary.weak
-    }
-    #[getter]
-    fn degenerate(&self) -> bool {
-        self.inner.summary.degenerate
-    }
-    #[getter]
-    fn std_comparable<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        self.inner.summary.std_comparable.clone().into_pyarray(py)
-    }
-    #[getter]
-    fn weakest_std(&self) -> f64 {
-        self.inner.summary.weakest_std
-    }
-    /// Text naming the weakly determined parameters (predicted std above `weak_std`).
-    fn weak_text(&self, weak_std: f64) -> String {
-        self.inner.weak_text(weak_std)
-    }
-    /// Observability report as a dict (singular values, condition, predicted std in
-    /// comparable units, weakest combination), from the SVD of the whitened Jacobian.
-    fn observability<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let o = self.inner.observability(&self.settings)?;
-        let d = PyDict::new(py);
-        d.set_item(
-            "singular_values",
-            o.singular_values.clone().into_pyarray(py),
-        )?;
-        d.set_item("condition", o.condition)?;
-        d.set_item("std_comparable", o.std_comparable.clone().into_pyarray(py))?;
-        d.set_item("weakest", o.weakest.clone().into_pyarray(py))?;
-        d.set_item("weakest_std", o.weakest_std)?;
-        d.set_item("degenerate", o.degenerate)?;
-        d.set_item("weak", o.weak)?;
-        d.set_item("combination", o.combination.clone())?;
-        Ok(d)
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Observability(condition={:.3e}, weakest_std={:.3e}, combination={:?}, degenerate={})",
+            self.condition, self.weakest_std, self.combination, self.degenerate
+        )
     }
 }
 
-/// Fit the static norm model to `(k, 3)` dwell means; `var` is the `(k, 3)` variance of
-/// each mean (None: estimated from the residuals).
-#[pyfunction]
-#[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=200, raise_degenerate=true, degenerate_std=0.1, weak_std=1e-3))]
-#[allow(clippy::too_many_arguments)]
-pub fn static_fit_raw(
-    means: PyReadonlyArray2<'_, f64>,
+// ------------------------------------------------------------------------------------------
+// StaticFit
+
+/// One static fit (the Python `accelcal.StaticFit` subclasses it). Constructing it fits
+/// `means` (k, 3) to the reference gravity `g`; every field is in the caller's units.
+#[pyclass(
+    name = "StaticFit",
+    module = "accelcal._core",
+    frozen,
+    get_all,
+    subclass
+)]
+pub struct PyStaticFit {
+    /// Sensor model: "lower", "diag" or "upper".
+    model: &'static str,
+    /// Estimation method.
+    method: &'static str,
+    /// Reference gravity (units of the calibrated output).
     g: f64,
+    /// Dwell means (k, 3), output units (a copy of the input).
+    means: Py<PyArray2<f64>>,
+    /// Variance of each dwell mean per axis, output units squared: one value for every dwell
+    /// and axis, or (k, 3); None when the noise is estimated.
+    var: Option<Py<PyAny>>,
+    /// Parameters `[sx, sy, sz, bx, by, bz, m1, m2, m3]` (p = 6 for "diag").
+    vector: Py<PyArray1<f64>>,
+    /// Start of GN/LM (or the linear method's own solution).
+    start: Py<PyArray1<f64>>,
+    /// Where the start came from: "quadric", "linear-paper", "user" or "fallback".
+    start_source: &'static str,
+    /// Why the linear solution failed (when the start is the fallback).
+    start_error: Option<String>,
+    /// The start given by the caller, if any.
+    user_start: Option<Vec<f64>>,
+    /// `(J^T W J)^-1` (p, p) with the noise model's weights; per unit output variance when
+    /// the noise is estimated. NaN when singular.
+    covariance_unscaled: Py<PyArray2<f64>>,
+    /// `|a_k| - g` per dwell (units of g).
+    residuals: Py<PyArray1<f64>>,
+    /// Predicted std of each residual (units of g): from the noise model, or from the noise
+    /// level estimated from the residuals.
+    sigma_residual: Py<PyArray1<f64>>,
+    /// Minimised cost `sum e_k^2`.
+    cost: f64,
+    /// Degrees of freedom `k - p`.
+    dof: usize,
+    /// chi2/dof of a known noise model, or the estimated per-axis variance of a dwell mean
+    /// (output units squared) when the noise is estimated. NaN when `dof == 0`.
+    chi2_dof: f64,
+    /// GN/LM iterations.
+    iterations: usize,
+    /// The minimum was reached (within 1e-3 parameter std).
+    converged: bool,
+    /// Squared distance, in parameter std, to the minimum of the local quadratic model.
+    decrement: f64,
+    /// The noise model was known (not estimated from the residuals).
+    noise_known: bool,
+    /// Some parameter is weakly determined (predicted std above `weak_std`).
+    weak: bool,
+    /// The dwells cannot determine some combination (predicted std above `degenerate_std`).
+    degenerate: bool,
+    /// Predicted std of each parameter in comparable units (scale and misalignment relative,
+    /// biases in g).
+    predicted_std_relative: Py<PyArray1<f64>>,
+    /// Predicted std of the least determined combination (comparable units).
+    weakest_std: f64,
+    /// Iteration limit used.
+    max_iter: usize,
+    /// A degenerate design raised (True) or was returned with `degenerate` set (False).
+    raise_degenerate: bool,
+    /// Threshold of `degenerate` (comparable units).
+    degenerate_std: f64,
+    /// Threshold of `weak` (comparable units).
+    weak_std: f64,
+    /// `g` was checked for plausibility.
+    check_g: bool,
+    /// How the dwell weights were obtained (text from the caller).
+    noise_model: String,
+    /// Units of the raw output (text from the caller).
+    input_units: String,
+    /// Nominal model for the "before" norm statistics (any object; None).
+    nominal: Option<Py<PyAny>>,
+}
+
+/// The noise argument: one variance for every dwell and axis, a `(k, 3)` array, or none.
+enum VarArg {
+    Estimated,
+    Uniform(f64),
+    PerDwell(Vec<[f64; 3]>),
+}
+
+impl VarArg {
+    fn from_py(var: Option<&Bound<'_, PyAny>>) -> PyResult<VarArg> {
+        let Some(v) = var.filter(|v| !v.is_none()) else {
+            return Ok(VarArg::Estimated);
+        };
+        if let Ok(a) = v.extract::<PyReadonlyArray2<'_, f64>>() {
+            return Ok(VarArg::PerDwell(rows3(&a, "var")?));
+        }
+        Ok(VarArg::Uniform(arg_f64(
+            v,
+            "var",
+            "a non-negative, finite variance of a dwell mean or a (k, 3) float64 array",
+            |x| x >= 0.0 && x.is_finite(),
+        )?))
+    }
+
+    fn noise(&self) -> Noise<'_> {
+        match self {
+            VarArg::Estimated => Noise::Estimated,
+            VarArg::Uniform(v) => Noise::Uniform([*v; 3]),
+            VarArg::PerDwell(v) => Noise::Known(v),
+        }
+    }
+}
+
+#[pymethods]
+impl PyStaticFit {
+    #[new]
+    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model="", input_units="", nominal=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        py: Python<'_>,
+        means: &Bound<'_, PyAny>,
+        g: &Bound<'_, PyAny>,
+        model: &str,
+        method: &str,
+        var: Option<&Bound<'_, PyAny>>,
+        start: Option<Vec<f64>>,
+        max_iter: Given<'_>,
+        raise_degenerate: bool,
+        degenerate_std: Given<'_>,
+        weak_std: Given<'_>,
+        check_g: bool,
+        noise_model: &str,
+        input_units: &str,
+        nominal: Option<Py<PyAny>>,
+    ) -> PyResult<Self> {
+        let gv = self::check_g(g, check_g)?;
+        let ma = means_arg(means, "means")?;
+        let m = rows3(&ma, "means")?;
+        let va = VarArg::from_py(var)?;
+        let s = settings_from(
+            model,
+            method,
+            start.clone(),
+            &max_iter,
+            raise_degenerate,
+            &degenerate_std,
+            &weak_std,
+        )?;
+        let f = fit_static(&m, gv, &va.noise(), &s)?;
+        let np = f.params.len();
+        let k = m.len();
+        Ok(PyStaticFit {
+            model: f.model.name(),
+            method: method_name(f.method),
+            g: gv,
+            means: arr2(py, k, 3, |i, j| m[i][j]),
+            var: match &va {
+                VarArg::Estimated => None,
+                VarArg::Uniform(x) => Some(x.into_pyobject(py)?.into_any().unbind()),
+                VarArg::PerDwell(v) => Some(frozen2(py, flat(v), k, 3).into_any()),
+            },
+            vector: arr1(py, &f.params),
+            start: arr1(py, &f.start),
+            start_source: f.start_source.name(),
+            start_error: f.start_error.clone(),
+            user_start: start,
+            covariance_unscaled: arr2(py, np, np, |i, j| f.covariance[(i, j)]),
+            residuals: arr1(py, &f.residuals),
+            sigma_residual: arr1(py, &f.sigma_r),
+            cost: f.cost,
+            dof: f.dof,
+            chi2_dof: f.chi2_dof,
+            iterations: f.iterations,
+            converged: f.converged,
+            decrement: f.decrement,
+            noise_known: f.noise_known,
+            weak: f.summary.weak,
+            degenerate: f.summary.degenerate,
+            predicted_std_relative: arr1(py, f.summary.std()),
+            weakest_std: f.summary.weakest_std,
+            max_iter: s.max_iter,
+            raise_degenerate,
+            degenerate_std: s.degenerate_std,
+            weak_std: s.weak_std,
+            check_g,
+            noise_model: noise_model.to_string(),
+            input_units: input_units.to_string(),
+            nominal,
+        })
+    }
+
+    /// Full observability report: SVD of the whitened Jacobian in comparable units.
+    fn observability(&self, py: Python<'_>) -> PyResult<PyObservability> {
+        let (m, v, s) = self.inputs(py)?;
+        let noise = v.noise();
+        let f = fit_static(&m, self.g, &noise, &s)?;
+        let o = f.observability(&noise, self.g, &s)?;
+        Ok(PyObservability::from_core(py, &o))
+    }
+
+    /// The constructor's arguments (pickling recomputes the fit: deterministic).
+    fn __getnewargs_ex__<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Bound<'py, PyTuple>, Bound<'py, PyDict>)> {
+        let args = PyTuple::new(
+            py,
+            [
+                self.means.clone_ref(py).into_any(),
+                self.g.into_pyobject(py)?.into_any().unbind(),
+            ],
+        )?;
+        let kw = PyDict::new(py);
+        kw.set_item("model", self.model)?;
+        kw.set_item("method", self.method)?;
+        kw.set_item("var", self.var.as_ref().map(|v| v.clone_ref(py)))?;
+        kw.set_item("start", self.user_start.clone())?;
+        kw.set_item("max_iter", self.max_iter)?;
+        kw.set_item("raise_degenerate", self.raise_degenerate)?;
+        kw.set_item("degenerate_std", self.degenerate_std)?;
+        kw.set_item("weak_std", self.weak_std)?;
+        kw.set_item("check_g", self.check_g)?;
+        kw.set_item("noise_model", self.noise_model.clone())?;
+        kw.set_item("input_units", self.input_units.clone())?;
+        kw.set_item("nominal", self.nominal.as_ref().map(|n| n.clone_ref(py)))?;
+        Ok((args, kw))
+    }
+}
+
+impl PyStaticFit {
+    fn inputs(&self, py: Python<'_>) -> PyResult<(Vec<[f64; 3]>, VarArg, FitSettings)> {
+        let m = rows3(&self.means.bind(py).readonly(), "means")?;
+        let v = VarArg::from_py(self.var.as_ref().map(|v| v.bind(py)))?;
+        let mut s = FitSettings::new(Model::parse(self.model)?, Method::parse(self.method)?);
+        s.start = self.user_start.clone();
+        s.max_iter = self.max_iter;
+        s.raise_degenerate = false;
+        s.degenerate_std = self.degenerate_std;
+        s.weak_std = self.weak_std;
+        Ok((m, v, s))
+    }
+}
+
+fn method_name(m: Method) -> &'static str {
+    match m {
+        Method::LinearPaper => "linear-paper",
+        Method::Quadric => "quadric",
+        Method::GaussNewton => "gauss-newton",
+        Method::Lm => "lm",
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// Batch
+
+/// Result of a batch of static fits, one row per session.
+#[pyclass(name = "BatchFit", module = "accelcal._core", frozen, get_all)]
+pub struct PyBatchFit {
+    /// Sensor model.
+    model: &'static str,
+    /// Parameters (B, p); NaN where the fit failed.
+    params: Py<PyArray2<f64>>,
+    /// Std of each parameter (B, p): noise model when known, scaled by chi2/dof when the
+    /// noise is estimated.
+    std: Py<PyArray2<f64>>,
+    /// chi2/dof, or the estimated per-axis variance of a dwell mean when the noise is
+    /// estimated (B,).
+    chi2_dof: Py<PyArray1<f64>>,
+    /// RMS of `|a| - g` (B,), units of g.
+    rms: Py<PyArray1<f64>>,
+    /// GN/LM iterations (B,).
+    iterations: Py<PyArray1<i64>>,
+    /// Dwells per session (B,).
+    n_dwells: Py<PyArray1<i64>>,
+    /// 0 ok (weak included), 1 degenerate, 2 not converged / ran away, 3 invalid input (B,).
+    status: Py<PyArray1<u8>>,
+    /// Some parameter weakly determined (B,).
+    weak: Py<PyArray1<bool>>,
+    /// What went wrong per session ("" for ok and weak), e.g. "session 17: dwell 3 has a
+    /// NaN mean".
+    messages: Py<PyList>,
+}
+
+#[pymethods]
+impl PyBatchFit {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        model: &str,
+        params: Py<PyArray2<f64>>,
+        std: Py<PyArray2<f64>>,
+        chi2_dof: Py<PyArray1<f64>>,
+        rms: Py<PyArray1<f64>>,
+        iterations: Py<PyArray1<i64>>,
+        n_dwells: Py<PyArray1<i64>>,
+        status: Py<PyArray1<u8>>,
+        weak: Py<PyArray1<bool>>,
+        messages: Py<PyList>,
+    ) -> PyResult<Self> {
+        Ok(PyBatchFit {
+            model: Model::parse(model)?.name(),
+            params,
+            std,
+            chi2_dof,
+            rms,
+            iterations,
+            n_dwells,
+            status,
+            weak,
+            messages,
+        })
+    }
+
+    /// Sessions fitted (status 0, weak included) (B,).
+    #[getter]
+    fn ok<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
+        let st = self.status.bind(py).readonly();
+        st.as_array()
+            .iter()
+            .map(|s| *s == 0)
+            .collect::<Vec<_>>()
+            .into_pyarray(py)
+    }
+
+    /// Outcome per session: "ok", "weak", "degenerate" or "error".
+    #[getter]
+    fn state(&self, py: Python<'_>) -> Vec<&'static str> {
+        let st = self.status.bind(py).readonly();
+        let wk = self.weak.bind(py).readonly();
+        st.as_array()
+            .iter()
+            .zip(wk.as_array().iter())
+            .map(|(s, w)| match (s, w) {
+                (0, false) => "ok",
+                (0, true) => "weak",
+                (1, _) => "degenerate",
+                _ => "error",
+            })
+            .collect()
+    }
+
+    /// Parameter names of the columns of `params` and `std`.
+    #[getter]
+    fn names(&self) -> Vec<&'static str> {
+        let np = Model::parse(self.model).map(|m| m.n_params()).unwrap_or(9);
+        PARAM_NAMES[..np].to_vec()
+    }
+
+    fn __len__(&self, py: Python<'_>) -> usize {
+        self.status.bind(py).len()
+    }
+
+    fn __getnewargs__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        PyTuple::new(
+            py,
+            [
+                self.model.into_pyobject(py)?.into_any().unbind(),
+                self.params.clone_ref(py).into_any(),
+                self.std.clone_ref(py).into_any(),
+                self.chi2_dof.clone_ref(py).into_any(),
+                self.rms.clone_ref(py).into_any(),
+                self.iterations.clone_ref(py).into_any(),
+                self.n_dwells.clone_ref(py).into_any(),
+                self.status.clone_ref(py).into_any(),
+                self.weak.clone_ref(py).into_any(),
+                self.messages.clone_ref(py).into_any(),
+            ],
+        )
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let st = self.status.bind(py).readonly();
+        let ok = st.as_array().iter().filter(|s| **s == 0).count();
+        format!(
+            "BatchFit(model={:?}, sessions={}, fitted={ok})",
+            self.model,
+            st.len()
+        )
+    }
+}
+
+/// The sessions of a batch as slices of one buffer: the `(B, n, 3)` array itself when it is
+/// C-contiguous and unmasked (zero copy), else gathered once.
+enum Gathered<'a> {
+    Borrowed(&'a [[f64; 3]], usize),
+    Owned(Vec<[f64; 3]>, Vec<usize>),
+}
+
+impl Gathered<'_> {
+    fn sessions(&self) -> Vec<&[[f64; 3]]> {
+        match self {
+            Gathered::Borrowed(all, n) => {
+                if *n == 0 {
+                    Vec::new()
+                } else {
+                    all.chunks(*n).collect()
+                }
+            }
+            Gathered::Owned(all, off) => off.windows(2).map(|w| &all[w[0]..w[1]]).collect(),
+        }
+    }
+}
+
+/// Fit many sessions in parallel: `means` is a `(B, n, 3)` float64 array (with an optional
+/// `(B, n)` boolean `mask` of the dwells to use) or a list of `(n_i, 3)` float64 arrays.
+#[pyfunction]
+#[pyo3(signature = (means, g, *, model="lower", method="lm", sigma=None, start=None, max_iter=NOT_GIVEN, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, mask=None))]
+#[allow(clippy::too_many_arguments)]
+pub fn static_fit_batch<'py>(
+    py: Python<'py>,
+    means: &Bound<'py, PyAny>,
+    g: &Bound<'py, PyAny>,
     model: &str,
     method: &str,
-    var: Option<PyReadonlyArray2<'_, f64>>,
+    sigma: Option<&Bound<'py, PyAny>>,
     start: Option<Vec<f64>>,
-    max_iter: usize,
-    raise_degenerate: bool,
-    degenerate_std: f64,
-    weak_std: f64,
-) -> PyResult<StaticFitRaw> {
-    let m = rows3(&means, "means")?;
-    let noise = match var {
-        Some(v) => Noise::Known(rows3(&v, "var")?),
-        None => Noise::Estimated,
-    };
-    let s = settings(
+    max_iter: Given<'py>,
+    degenerate_std: Given<'py>,
+    weak_std: Given<'py>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
+) -> PyResult<PyBatchFit> {
+    let s = settings_from(
         model,
         method,
         start,
-        max_iter,
-        raise_degenerate,
-        degenerate_std,
-        weak_std,
+        &max_iter,
+        true,
+        &degenerate_std,
+        &weak_std,
     )?;
-    let inner = fit_static(&m, g, &noise, &s)?;
-    Ok(StaticFitRaw { inner, settings: s })
-}
-
-/// Fit `(B, n, 3)` sessions in parallel; returns a dict of arrays (params, std, rms,
-/// iterations, status: 0 ok, 1 degenerate, 2 not converged, 3 invalid).
-#[pyfunction]
-#[pyo3(signature = (means, g, model="lower", method="lm", sigma=None, start=None, max_iter=200, degenerate_std=0.1))]
-#[allow(clippy::too_many_arguments)]
-pub fn static_fit_batch_raw<'py>(
-    py: Python<'py>,
-    means: PyReadonlyArray3<'py, f64>,
-    g: PyReadonlyArray1<'py, f64>,
-    model: &str,
-    method: &str,
-    sigma: Option<f64>,
-    start: Option<Vec<f64>>,
-    max_iter: usize,
-    degenerate_std: f64,
-) -> PyResult<Bound<'py, PyDict>> {
-    let sh = means.shape().to_vec();
-    if sh[2] != 3 {
+    let sig = match sigma {
+        Some(o) if !o.is_none() => Some(positive(
+            o,
+            "sigma",
+            "std of a dwell mean per axis (output units)",
+        )?),
+        _ => None,
+    };
+    // Sessions: a 3-D array (optionally masked) or a list of 2-D arrays.
+    let arr3 = means.extract::<PyReadonlyArray3<'py, f64>>().ok();
+    let gathered;
+    let b;
+    if let Some(a) = &arr3 {
+        let sh = a.shape().to_vec();
+        if sh[2] != 3 {
+            return Err(CalibrationError::new_err(format!(
+                "means must have shape (B, n, 3); got {sh:?}"
+            )));
+        }
+        b = sh[0];
+        let n = sh[1];
+        match &mask {
+            None => match (a.is_c_contiguous(), a.as_slice()) {
+                (true, Ok(flat)) => {
+                    let (rows, _) = flat.as_chunks::<3>();
+                    gathered = Gathered::Borrowed(rows, n);
+                }
+                _ => {
+                    let v = a.as_array();
+                    let rows: Vec<[f64; 3]> = (0..b)
+                        .flat_map(|i| (0..n).map(move |k| (i, k)))
+                        .map(|(i, k)| [v[[i, k, 0]], v[[i, k, 1]], v[[i, k, 2]]])
+                        .collect();
+                    let off = (0..=b).map(|i| i * n).collect();
+                    gathered = Gathered::Owned(rows, off);
+                }
+            },
+            Some(mk) => {
+                if mk.shape() != [b, n] {
+                    return Err(CalibrationError::new_err(format!(
+                        "mask must have shape ({b}, {n}) (True for the dwells to use); got {:?}",
+                        mk.shape()
+                    )));
+                }
+                let v = a.as_array();
+                let m = mk.as_array();
+                let mut rows = Vec::with_capacity(b * n);
+                let mut off = Vec::with_capacity(b + 1);
+                off.push(0);
+                for i in 0..b {
+                    for k in 0..n {
+                        if m[[i, k]] {
+                            rows.push([v[[i, k, 0]], v[[i, k, 1]], v[[i, k, 2]]]);
+                        }
+                    }
+                    off.push(rows.len());
+                }
+                gathered = Gathered::Owned(rows, off);
+            }
+        }
+    } else if let Ok(list) = means.cast::<PyList>() {
+        if mask.is_some() {
+            return Err(CalibrationError::new_err(
+                "mask is for a padded (B, n, 3) array; a list of sessions needs none",
+            ));
+        }
+        b = list.len();
+        let mut rows = Vec::new();
+        let mut off = Vec::with_capacity(b + 1);
+        off.push(0);
+        for (i, item) in list.iter().enumerate() {
+            let a = means_arg(&item, &format!("session {i}"))?;
+            rows.extend(rows3(&a, &format!("session {i}"))?);
+            off.push(rows.len());
+        }
+        gathered = Gathered::Owned(rows, off);
+    } else {
+        return Err(CalibrationError::new_err(
+            "means must be a (B, n, 3) float64 array or a list of (n_i, 3) float64 arrays",
+        ));
+    };
+    let gv: Vec<f64> = if let Ok(x) = g.extract::<f64>() {
+        vec![x]
+    } else {
+        g.extract::<Vec<f64>>().map_err(|_| {
+            CalibrationError::new_err(format!(
+                "g must be a number or one value per session ({b}); got {}",
+                describe(g)
+            ))
+        })?
+    };
+    if let Some((i, x)) = gv
+        .iter()
+        .enumerate()
+        .find(|(_, x)| !(**x > 0.0 && x.is_finite()))
+    {
         return Err(CalibrationError::new_err(format!(
-            "means must have shape (B, n, 3); got {sh:?}"
+            "g must be positive and finite (reference gravity); g[{i}] = {x}"
         )));
     }
-    let (b, n) = (sh[0], sh[1]);
-    let s = settings(model, method, start, max_iter, true, degenerate_std, 1e-3)?;
-    // `as_array().iter()` walks in logical (C) order whatever the memory layout.
-    let data: Vec<f64> = match (means.is_c_contiguous(), means.as_slice()) {
-        (true, Ok(x)) => x.to_vec(),
-        _ => means.as_array().iter().copied().collect(),
-    };
-    let gv = g.as_array().to_vec();
-    let rows = py.detach(|| fit_batch(&data, b, n, &gv, sigma, &s))?;
+    let sessions = gathered.sessions();
+    let rows: Vec<BatchRow> = py.detach(|| fit_batch(&sessions, &gv, sig, &s))?;
     let np = s.model.n_params();
-    let mut params = Vec::with_capacity(b * np);
-    let mut std = Vec::with_capacity(b * np);
-    let mut rms = Vec::with_capacity(b);
-    let mut its = Vec::with_capacity(b);
-    let mut status = Vec::with_capacity(b);
-    for r in rows {
-        params.extend_from_slice(&r.params);
-        std.extend_from_slice(&r.std);
-        rms.push(r.rms);
-        its.push(r.iterations as i64);
-        status.push(r.status);
+    let nb = rows.len();
+    let messages = PyList::new(
+        py,
+        rows.iter().map(|r| r.message.clone().unwrap_or_default()),
+    )?;
+    Ok(PyBatchFit {
+        model: s.model.name(),
+        params: arr2(py, nb, np, |i, j| rows[i].params[j]),
+        std: arr2(py, nb, np, |i, j| rows[i].std[j]),
+        chi2_dof: frozen1(py, rows.iter().map(|r| r.chi2_dof).collect()),
+        rms: frozen1(py, rows.iter().map(|r| r.rms).collect()),
+        iterations: frozen1(py, rows.iter().map(|r| r.iterations as i64).collect()),
+        n_dwells: frozen1(py, rows.iter().map(|r| r.n_dwells as i64).collect()),
+        status: frozen1(py, rows.iter().map(|r| r.status.code()).collect()),
+        weak: frozen1(
+            py,
+            rows.iter()
+                .map(|r| r.status == crate::static_fit::BatchStatus::Weak)
+                .collect(),
+        ),
+        messages: messages.unbind(),
+    })
+}
+
+// ------------------------------------------------------------------------------------------
+// Pose design
+
+/// Cramer-Rao bound of a pose design (the Python `accelcal.Prediction` subclasses it).
+/// Constructing it computes the bound for true specific forces `force` (n, 3) (units of the
+/// calibrated output, `|force| = g`) at the parameters `truth`, for dwell-mean noise `sigma`
+/// per axis (output units).
+#[pyclass(
+    name = "Prediction",
+    module = "accelcal._core",
+    frozen,
+    get_all,
+    subclass
+)]
+pub struct PyPrediction {
+    /// Sensor model.
+    model: &'static str,
+    /// Specific force at each pose (n, 3).
+    force: Py<PyArray2<f64>>,
+    /// Dwell-mean noise per axis (output units).
+    sigma: f64,
+    /// Reference gravity.
+    g: f64,
+    /// Parameters at which the bound is evaluated.
+    truth: Py<PyArray1<f64>>,
+    /// Std of each parameter (p,), output units (inf when singular).
+    std: Py<PyArray1<f64>>,
+    /// Covariance (p, p), output units (inf when singular).
+    covariance: Py<PyArray2<f64>>,
+    /// Some combination is undetermined (or fewer poses than parameters).
+    singular: bool,
+    /// `s_max / s_min` of the comparable Jacobian (inf when singular or too few poses).
+    condition: f64,
+    /// Least determined combination (comparable units; empty with too few poses).
+    weakest: Py<PyArray1<f64>>,
+    /// That combination in parameter names ("" with too few poses).
+    combination: String,
+}
+
+#[pymethods]
+impl PyPrediction {
+    #[new]
+    #[pyo3(signature = (force, sigma, model="lower", *, g=None, truth=None))]
+    fn new(
+        py: Python<'_>,
+        force: &Bound<'_, PyAny>,
+        sigma: &Bound<'_, PyAny>,
+        model: &str,
+        g: Option<&Bound<'_, PyAny>>,
+        truth: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        let md = Model::parse(model)?;
+        let gv = match g {
+            Some(o) if !o.is_none() => positive(o, "g", "reference gravity")?,
+            _ => 9.80665,
+        };
+        let sg = positive(
+            sigma,
+            "sigma",
+            "std of a dwell mean per axis (output units)",
+        )?;
+        let fa = means_arg(force, "force")?;
+        let f = rows3(&fa, "force")?;
+        let np = md.n_params();
+        let t = match truth {
+            Some(t) => t,
+            None => [1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][..np].to_vec(),
+        };
+        let set = FitSettings::new(md, Method::Lm);
+        let p = predict(md, &t, &f, sg, gv, &set)?;
+        let (cond, weakest, comb) = match &p.observability {
+            Some(o) => (o.condition, o.weakest.clone(), o.combination.clone()),
+            None => (f64::INFINITY, Vec::new(), String::new()),
+        };
+        let n = f.len();
+        Ok(PyPrediction {
+            model: md.name(),
+            force: arr2(py, n, 3, |i, j| f[i][j]),
+            sigma: sg,
+            g: gv,
+            truth: arr1(py, &t),
+            std: arr1(py, &p.std),
+            covariance: arr2(py, np, np, |i, j| p.covariance[i * np + j]),
+            singular: p.singular,
+            condition: cond,
+            weakest: arr1(py, &weakest),
+            combination: comb,
+        })
     }
-    let to2 = |v: Vec<f64>| -> PyResult<Bound<'py, PyArray2<f64>>> {
-        ndarray::Array2::from_shape_vec((b, np), v)
-            .map(|a| a.into_pyarray(py))
-            .map_err(|e| CalibrationError::new_err(e.to_string()))
-    };
-    let d = PyDict::new(py);
-    d.set_item("params", to2(params)?)?;
-    d.set_item("std", to2(std)?)?;
-    d.set_item("rms", rms.into_pyarray(py))?;
-    d.set_item("iterations", its.into_pyarray(py))?;
-    d.set_item("status", status.into_pyarray(py))?;
-    Ok(d)
+
+    fn __getnewargs_ex__<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Bound<'py, PyTuple>, Bound<'py, PyDict>)> {
+        let args = PyTuple::new(
+            py,
+            [
+                self.force.clone_ref(py).into_any(),
+                self.sigma.into_pyobject(py)?.into_any().unbind(),
+                self.model.into_pyobject(py)?.into_any().unbind(),
+            ],
+        )?;
+        let kw = PyDict::new(py);
+        kw.set_item("g", self.g)?;
+        kw.set_item("truth", self.truth.bind(py).to_vec()?)?;
+        Ok((args, kw))
+    }
+}
+
+/// Fisher-information rows (n, p) of poses with true specific forces `force` (n, 3) at the
+/// parameters `truth`, for dwell-mean noise `sigma` per axis: the candidate matrix of
+/// D-optimal pose planning.
+#[pyfunction]
+#[pyo3(signature = (force, truth, model, sigma))]
+pub fn static_design_rows<'py>(
+    py: Python<'py>,
+    force: PyReadonlyArray2<'py, f64>,
+    truth: Vec<f64>,
+    model: &str,
+    sigma: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let md = Model::parse(model)?;
+    let sg = positive(
+        sigma,
+        "sigma",
+        "std of a dwell mean per axis (output units)",
+    )?;
+    let f = rows3(&force, "force")?;
+    let rows = py.detach(|| design_rows(md, &truth, &f, sg))?;
+    let np = md.n_params();
+    ndarray::Array2::from_shape_vec((f.len(), np), rows)
+        .map(|a| a.into_pyarray(py))
+        .map_err(|e| CalibrationError::new_err(e.to_string()))
 }
 
 /// Calibrated specific force `K^-1 (am - b)` of an `(N, 3)` array (float64, float32, int16,
@@ -253,4 +979,10 @@ pub fn apply_triad_raw<'py>(
     ndarray::Array2::from_shape_vec((n, 3), out)
         .map(|a| a.into_pyarray(py))
         .map_err(|e| CalibrationError::new_err(e.to_string()))
+}
+
+/// `K` entries outside the pattern of `model` that are not zero: `(row, column)` or None.
+#[pyfunction]
+pub fn static_model_violation(k: [[f64; 3]; 3], model: &str) -> PyResult<Option<(usize, usize)>> {
+    Ok(Model::parse(model)?.violations(&k))
 }

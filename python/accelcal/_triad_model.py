@@ -1,0 +1,448 @@
+"""The calibration a static fit exports: :class:`TriadModel`, its versioned JSON file and a
+look-up of the calibration valid at a time."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+from functools import cache
+from importlib import resources
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import _core
+from ._core import CalibrationError
+from ._files import atomic_write
+from ._triad import PARAM_NAMES, k_matrix, n_params, vector_from_k
+from ._validate import samples_array
+
+__all__ = ["TriadModel", "iso_utc"]
+
+#: Largest condition number of a triad's K (a triad's scale factors differ by a few per cent
+#: and its misalignments are small: cond(K) is close to 1).
+MAX_CONDITION = 1e6
+
+
+def iso_utc(when: str | _dt.datetime | _dt.date | None = None) -> str:
+    """ISO 8601 UTC timestamp ``YYYY-MM-DDTHH:MM:SSZ`` of ``when`` (now when None; naive
+    datetimes and date-only strings are taken as UTC)."""
+    return _to_datetime(when).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _to_datetime(when: str | _dt.datetime | _dt.date | None) -> _dt.datetime:
+    if when is None:
+        d = _dt.datetime.now(_dt.timezone.utc)
+    elif isinstance(when, _dt.datetime):
+        d = when
+    elif isinstance(when, _dt.date):
+        d = _dt.datetime(when.year, when.month, when.day)
+    elif isinstance(when, str):
+        s = when.strip()
+        if s.endswith("Z"):
+            s = s[:-1] + "+00:00"
+        try:
+            d = _dt.datetime.fromisoformat(s)
+        except ValueError:
+            raise CalibrationError(
+                f"date must be an ISO 8601 timestamp such as 2026-11-23T10:15:00Z; got {when!r}"
+            ) from None
+    else:
+        raise CalibrationError(
+            f"date must be an ISO 8601 string or a datetime; got {type(when).__name__}"
+        )
+    if d.tzinfo is None:
+        d = d.replace(tzinfo=_dt.timezone.utc)
+    return d.astimezone(_dt.timezone.utc).replace(microsecond=0)
+
+
+@cache
+def _schema() -> dict[str, Any]:
+    text = (resources.files("accelcal") / "schemas" / "triad-model.schema.json").read_text(
+        encoding="utf-8"
+    )
+    return json.loads(text)  # type: ignore[no-any-return]
+
+
+def schema() -> dict[str, Any]:
+    """The published JSON schema of a TriadModel file (a copy)."""
+    return json.loads(json.dumps(_schema()))  # type: ignore[no-any-return]
+
+
+def _field(path: Any) -> str:
+    parts = [str(p) for p in path]
+    return "/".join(parts) if parts else "(top level)"
+
+
+def _finite_array(x: Any, name: str, shape: tuple[int, ...] | None = None) -> NDArray[np.float64]:
+    """``x`` as a finite float64 array of ``shape``; booleans, text and ragged lists refused."""
+    try:
+        a = np.asarray(x)
+    except ValueError:
+        raise CalibrationError(f"{name} must be a rectangular array of numbers") from None
+    if a.dtype == np.bool_ or a.dtype.kind not in "fiu":
+        raise CalibrationError(f"{name} must hold numbers; got {a.dtype} values")
+    a = a.astype(np.float64)
+    if shape is not None and a.shape != shape:
+        raise CalibrationError(f"{name} must have shape {shape}; got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{name} contains NaN or infinite values")
+    return a
+
+
+def _covariance(x: Any, name: str, p: int) -> NDArray[np.float64] | None:
+    if x is None:
+        return None
+    c = _finite_array(x, name)
+    if c.shape != (p, p):
+        raise CalibrationError(
+            f"{name} must be ({p}, {p}) (the model's {p} parameters); got shape {c.shape}"
+        )
+    scale = max(float(np.max(np.abs(c))), 1e-300)
+    if np.max(np.abs(c - c.T)) > 1e-8 * scale:
+        raise CalibrationError(f"{name} is not symmetric")
+    if np.any(np.diag(c) < 0):
+        raise CalibrationError(f"{name} has a negative variance on its diagonal")
+    return c
+
+
+class TriadModel:
+    """A calibrated accelerometer triad: ``a = K^-1 (am - b)``.
+
+    K : (3, 3) output units per (m/s^2);  bias : (3,) output units.
+    Saved as versioned JSON (format ``accelcal.TriadModel``, version 2, validated against
+    the published schema ``accelcal/schemas/triad-model.schema.json`` plus numeric checks)
+    with units, both covariances of the parameter vector (labelled; ``covariance`` is the
+    realistic one) and metadata (sensor id, ISO 8601 UTC date, g, temperature).
+    """
+
+    FORMAT = "accelcal.TriadModel"
+    VERSION = 2
+
+    def __init__(
+        self,
+        K: ArrayLike,
+        bias: ArrayLike,
+        *,
+        model: str = "lower",
+        covariance: ArrayLike | None = None,
+        covariance_noise_model: ArrayLike | None = None,
+        covariance_scaled: ArrayLike | None = None,
+        realistic: str | None = None,
+        g: float | None = None,
+        units: str = "m/s^2",
+        input_units: str = "",
+        sensor_id: str = "",
+        date: str | _dt.datetime | _dt.date | None = None,
+        temperature: float | None = None,
+        metadata: dict[str, Any] | None = None,
+    ) -> None:
+        p = n_params(model)
+        k = _finite_array(K, "K", (3, 3))
+        b = _finite_array(np.reshape(np.asarray(bias), -1), "bias", (3,))
+        cond = float(np.linalg.cond(k))
+        if not cond <= MAX_CONDITION:
+            raise CalibrationError(
+                f"K is singular or ill-conditioned (condition number {cond:.3g}; a triad's K is "
+                f"close to a multiple of the identity, at most {MAX_CONDITION:g})"
+            )
+        bad = _core.static_model_violation(k.tolist(), cast(Any, model))
+        if bad is not None:
+            i, j = bad
+            raise CalibrationError(
+                f"K[{i}][{j}] = {k[i, j]:.6g} is outside the {model!r} model's pattern "
+                f"({_pattern(model)}); wrong triangle or wrong model"
+            )
+        self.K = k
+        self.bias = b
+        self.model = model
+        if covariance is not None and covariance_noise_model is None:
+            covariance_noise_model = covariance
+        self.covariance_noise_model = _covariance(
+            covariance_noise_model, "covariance_noise_model", p
+        )
+        self.covariance_scaled = _covariance(covariance_scaled, "covariance_scaled", p)
+        if realistic is None:
+            realistic = "noise_model" if self.covariance_noise_model is not None else None
+        if realistic not in ("noise_model", "scaled", None):
+            raise CalibrationError(
+                f"realistic must be 'noise_model' or 'scaled'; got {realistic!r}"
+            )
+        if realistic == "scaled" and self.covariance_scaled is None:
+            raise CalibrationError("realistic='scaled' needs covariance_scaled")
+        self.realistic = realistic
+        if g is not None:
+            if isinstance(g, bool) or not isinstance(g, (int, float, np.floating, np.integer)):
+                raise CalibrationError(f"g must be a number (reference gravity); got {g!r}")
+            if not (math.isfinite(float(g)) and float(g) > 0):
+                raise CalibrationError(f"g must be positive and finite; got {g!r}")
+        self.g = None if g is None else float(g)
+        for name, v in (("units", units), ("input_units", input_units), ("sensor_id", sensor_id)):
+            if not isinstance(v, str):
+                raise CalibrationError(f"{name} must be a string; got {type(v).__name__}")
+        self.units = units
+        self.input_units = input_units
+        self.sensor_id = sensor_id
+        self.date = iso_utc(date)
+        if temperature is not None and (
+            isinstance(temperature, bool) or not math.isfinite(float(temperature))
+        ):
+            raise CalibrationError(f"temperature must be a finite number; got {temperature!r}")
+        self.temperature = None if temperature is None else float(temperature)
+        if metadata is not None and not isinstance(metadata, dict):
+            raise CalibrationError(f"metadata must be a dict; got {type(metadata).__name__}")
+        self.metadata = dict(metadata or {})
+
+    # -- parameters and uncertainty ------------------------------------------------------
+    @property
+    def vector(self) -> NDArray[np.float64]:
+        return vector_from_k(self.K, self.bias, self.model)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return PARAM_NAMES[: n_params(self.model)]
+
+    @property
+    def covariance(self) -> NDArray[np.float64] | None:
+        """The realistic covariance of ``vector`` (see ``realistic``), or None."""
+        if self.realistic == "scaled":
+            return self.covariance_scaled
+        return self.covariance_noise_model
+
+    @property
+    def std(self) -> NDArray[np.float64] | None:
+        c = self.covariance
+        return None if c is None else np.sqrt(np.diag(c))
+
+    @property
+    def datetime(self) -> _dt.datetime:
+        """The calibration date as an aware UTC datetime."""
+        return _to_datetime(self.date)
+
+    @classmethod
+    def from_vector(cls, vector: ArrayLike, model: str = "lower", **kw: Any) -> TriadModel:
+        v = np.asarray(vector, dtype=np.float64).reshape(-1)
+        if v.size != n_params(model):
+            raise CalibrationError(f"model {model!r} needs {n_params(model)} values; got {v.size}")
+        return cls(k_matrix(v, model), v[3:6], model=model, **kw)
+
+    # -- use -----------------------------------------------------------------------------
+    def apply(self, raw: ArrayLike) -> NDArray[np.float64]:
+        """Calibrated specific force (N, 3) float64 of raw output (N, 3) (float64, float32,
+        int16, int32 read in place; other integer types widened). Stateless per sample, so
+        chunks of a stream can be applied one at a time."""
+        a = np.asarray(raw)
+        if a.ndim == 1 and a.size == 3:
+            return self.apply(a.reshape(1, 3))[0]  # type: ignore[no-any-return]
+        s = samples_array(a, "raw")
+        return _core.apply_triad_raw(  # type: ignore[no-any-return]
+            s, self.K.tolist(), self.bias.tolist()
+        )
+
+    # -- files ---------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        def cov(c: NDArray[np.float64] | None) -> Any:
+            return None if c is None else c.tolist()
+
+        return {
+            "format": self.FORMAT,
+            "version": self.VERSION,
+            "model": self.model,
+            "parameter_names": list(self.names),
+            "vector": self.vector.tolist(),
+            "K": self.K.tolist(),
+            "bias": self.bias.tolist(),
+            "units": {
+                "output": self.units,
+                "input": self.input_units,
+                "K": f"input units per {self.units}",
+                "bias": "input units",
+            },
+            "covariance": cov(self.covariance),
+            "covariance_noise_model": cov(self.covariance_noise_model),
+            "covariance_scaled": cov(self.covariance_scaled),
+            "covariance_realistic": self.realistic,
+            "g": self.g,
+            "sensor_id": self.sensor_id,
+            "date": self.date,
+            "temperature": self.temperature,
+            "metadata": self.metadata,
+        }
+
+    def default_filename(self) -> str:
+        """``<sensor_id>_<YYYYmmddTHHMMSSZ>.json``: a name under which :meth:`find` and a
+        person both see the sensor and the date."""
+        sid = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.sensor_id) or "triad"
+        return f"{sid}_{self.datetime.strftime('%Y%m%dT%H%M%SZ')}.json"
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the model as JSON, atomically."""
+        atomic_write(path, json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "model") -> TriadModel:
+        """A model from the dict of a file, validated: the published JSON schema, then what
+        the schema cannot express (finite numbers, K's conditioning and triangle, vector
+        against K and bias, covariance shapes). Each problem is one CalibrationError naming
+        the field."""
+        import jsonschema
+
+        if not isinstance(d, dict) or d.get("format") != cls.FORMAT:
+            raise CalibrationError(f"{source} is not an accelcal TriadModel file (format field)")
+        ver = d.get("version")
+        if isinstance(ver, int) and not isinstance(ver, bool) and ver > cls.VERSION:
+            raise CalibrationError(
+                f"{source}: TriadModel file version {ver} is newer than this accelcal reads "
+                f"(1-{cls.VERSION}); upgrade accelcal"
+            )
+        validator = jsonschema.Draft202012Validator(_schema())
+        err = jsonschema.exceptions.best_match(validator.iter_errors(d))
+        if err is not None:
+            where = _field(err.absolute_path)
+            if err.validator == "required":
+                missing = str(err.message).split("'")[1] if "'" in err.message else err.message
+                raise CalibrationError(f"{source}: missing field {missing!r}")
+            raise CalibrationError(f"{source}: field {where!r}: {_short(err)}")
+        try:
+            m = cls(
+                d["K"],
+                d["bias"],
+                model=d["model"],
+                covariance_noise_model=d.get("covariance_noise_model", d.get("covariance")),
+                covariance_scaled=d.get("covariance_scaled"),
+                realistic=d.get("covariance_realistic"),
+                g=d.get("g"),
+                units=(d.get("units") or {}).get("output", "m/s^2"),
+                input_units=(d.get("units") or {}).get("input", ""),
+                sensor_id=d.get("sensor_id", ""),
+                date=d.get("date"),
+                temperature=d.get("temperature"),
+                metadata=d.get("metadata"),
+            )
+        except CalibrationError as e:
+            raise CalibrationError(f"{source}: {e}") from None
+        if "vector" in d:
+            v = _finite_array(d["vector"], f"{source}: vector")
+            want = m.vector
+            if v.shape != want.shape or not np.allclose(v, want, rtol=1e-9, atol=1e-12):
+                raise CalibrationError(
+                    f"{source}: field 'vector' disagrees with K and bias ({v.tolist()} against "
+                    f"{want.tolist()})"
+                )
+        if d.get("version") == 2 and d.get("covariance") is not None:
+            c = _finite_array(d["covariance"], f"{source}: covariance")
+            if m.covariance is None or c.shape != m.covariance.shape or not np.allclose(
+                c, m.covariance, rtol=1e-9, atol=0
+            ):
+                raise CalibrationError(
+                    f"{source}: field 'covariance' is not the covariance that "
+                    "'covariance_realistic' names"
+                )
+        return m
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> TriadModel:
+        """Read and validate a model written by :meth:`save` (versions 1 and 2)."""
+        src = repr(str(path))
+        try:
+            with open(path, encoding="utf-8") as fh:
+                d = json.load(fh)
+        except OSError as e:
+            raise CalibrationError(f"cannot read model {src}: {e.strerror}") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise CalibrationError(f"{src} is not JSON: {e}") from None
+        return cls.from_dict(d, src)
+
+    @classmethod
+    def find(
+        cls,
+        folder: str | os.PathLike[str],
+        sensor_id: str,
+        at: str | _dt.datetime | _dt.date | None = None,
+        *,
+        recursive: bool = True,
+    ) -> TriadModel:
+        """The calibration of ``sensor_id`` valid at time ``at`` (default now): the newest
+        TriadModel file in ``folder`` for that sensor whose date is not after ``at``.
+
+        JSON files that are not TriadModel files are skipped; a TriadModel file of this
+        sensor that fails validation raises (a corrupt calibration is never passed over
+        silently). A CalibrationError says what was found when no file qualifies.
+        """
+        root = Path(folder)
+        if not root.is_dir():
+            raise CalibrationError(f"calibration folder {str(folder)!r} does not exist")
+        when = _to_datetime(at)
+        files = sorted(root.rglob("*.json") if recursive else root.glob("*.json"))
+        best: tuple[_dt.datetime, Path] | None = None
+        later: list[_dt.datetime] = []
+        for f in files:
+            try:
+                d = json.loads(f.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                continue
+            if not isinstance(d, dict) or d.get("format") != cls.FORMAT:
+                continue
+            if d.get("sensor_id") != sensor_id:
+                continue
+            try:
+                t = _to_datetime(d.get("date"))
+            except CalibrationError as e:
+                raise CalibrationError(f"{str(f)!r}: {e}") from None
+            if t > when:
+                later.append(t)
+                continue
+            if best is None or t > best[0]:
+                best = (t, f)
+        if best is None:
+            extra = (
+                f"; the earliest is dated {iso_utc(min(later))}" if later else ""
+            )
+            raise CalibrationError(
+                f"no calibration of sensor {sensor_id!r} dated at or before {iso_utc(when)} in "
+                f"{str(folder)!r} ({len(later)} later{extra})"
+            )
+        return cls.load(best[1])
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, TriadModel):
+            return NotImplemented
+        return json.dumps(self.to_dict(), sort_keys=True) == json.dumps(
+            other.to_dict(), sort_keys=True
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        v = np.array2string(self.vector, precision=6)
+        sid = f", sensor_id={self.sensor_id!r}" if self.sensor_id else ""
+        return f"TriadModel(model={self.model!r}, vector={v}{sid}, date={self.date!r})"
+
+
+def _pattern(model: str) -> str:
+    return {
+        "lower": "diagonal and below",
+        "upper": "diagonal and above",
+        "diag": "diagonal only",
+    }[model]
+
+
+def _short(err: Any) -> str:
+    """A schema error in a line: the offending value and what was expected."""
+    v = err.instance
+    txt = json.dumps(v) if not isinstance(v, (dict, list)) or len(json.dumps(v)) < 60 else "..."
+    kind = err.validator
+    desc = err.schema.get("description") if isinstance(err.schema, dict) else None
+    if desc and kind in ("oneOf", "anyOf", "pattern"):
+        return f"{txt} is not {desc}"
+    if kind == "type":
+        return f"{txt} is not of type {err.validator_value!r}"
+    if kind in ("minimum", "exclusiveMinimum"):
+        return f"{txt} must be {'>' if kind == 'exclusiveMinimum' else '>='} {err.validator_value}"
+    if kind in ("minItems", "maxItems"):
+        return f"has the wrong number of entries ({err.message})"
+    return str(err.message)

@@ -1,0 +1,425 @@
+//! The maximum-likelihood cost of a static fit: whitened norm residuals.
+//!
+//! Dwell `k` has mean `am_k` (output units) with per-axis noise variance `Sigma_k` (diagonal).
+//! At parameters `p` the calibrated force is `a_k = T (am_k - b)` with `T = K^-1`, its norm
+//! residual `r_k = |a_k| - g`, and to first order `d r_k = w_k^T d am_k` with
+//! `w_k = T^T a_k / |a_k|` (`K^-T u_k`). The residual's variance is therefore
+//! `sigma_k^2 = w_k^T Sigma_k w_k`, and the whitened residual is
+//!
+//! ```text
+//! e_k(p) = (|K^-1 (am_k - b)| - g) / sigma_k(p)
+//! ```
+//!
+//! Minimising `sum e_k^2` with `sigma_k` re-evaluated at every `p` is maximum likelihood for
+//! noisy dwell means on an ellipsoid to first order in the noise (the gradient-weighted, or
+//! Sampson, form of the orthogonal-distance fit). The Jacobian of `e_k` includes the
+//! derivative of `sigma_k` (see [`ml_row`]). When the noise level is unknown, `Sigma_k = I`
+//! (isotropic output noise of unknown level): the same cost, whose minimum per degree of
+//! freedom estimates the per-axis noise variance of a dwell mean.
+//!
+//! These pieces are public so that other fits and diagnostics (for example the gap
+//! diagnosis) use the same weighting: [`eval_dwell`] (residual, `w`, `sigma`), [`jac_row`]
+//! (`d r / d p`) and [`ml_row`] (`d e / d p`).
+
+// `!(x > t)` is deliberate throughout: it is true for NaN, so bad values fail the test.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use super::Model;
+use crate::error::{invalid, CoreError, Result};
+use crate::lsq::{inverse3, NormalEquations, NormalEquationsFixed};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+
+/// Noise of the dwell means in the frame of the points being fitted.
+#[derive(Debug, Clone, Copy)]
+pub enum DwellNoise<'a> {
+    /// `Sigma_k = I`: isotropic output noise of unknown level (estimated as chi2/dof).
+    Isotropic,
+    /// The same per-axis variance for every dwell.
+    Uniform([f64; 3]),
+    /// `Sigma_k = diag(var[k]) * scale` (per-axis variance of each dwell mean; `scale`
+    /// converts output units squared into the fitting frame's).
+    PerDwell {
+        /// Per-axis variance of each dwell mean.
+        var: &'a [[f64; 3]],
+        /// Factor applied to every variance.
+        scale: f64,
+    },
+}
+
+impl DwellNoise<'_> {
+    /// Per-axis variance of dwell `k`.
+    #[inline(always)]
+    pub fn var(&self, k: usize) -> [f64; 3] {
+        match self {
+            DwellNoise::Isotropic => [1.0; 3],
+            DwellNoise::Uniform(v) => *v,
+            DwellNoise::PerDwell { var, scale } => {
+                let v = var[k];
+                [v[0] * scale, v[1] * scale, v[2] * scale]
+            }
+        }
+    }
+
+    /// The noise level is known (not estimated from the residuals).
+    pub fn known(&self) -> bool {
+        !matches!(self, DwellNoise::Isotropic)
+    }
+}
+
+/// One dwell evaluated at a parameter vector.
+#[derive(Debug, Clone, Copy)]
+pub struct DwellEval {
+    /// Calibrated force `a = K^-1 (am - b)`.
+    pub a: Vector3<f64>,
+    /// `|a|`.
+    pub norm: f64,
+    /// Norm residual `|a| - g`.
+    pub r: f64,
+    /// `w = K^-T a / |a|`: the gradient of `|a|` with respect to the raw output `am`.
+    pub w: Vector3<f64>,
+    /// Per-axis variance of the dwell mean used (`Sigma_k` diagonal).
+    pub var: [f64; 3],
+    /// `sigma = sqrt(w^T Sigma w)`: std of the norm residual.
+    pub sigma: f64,
+    /// `1 / |a|`.
+    pub inv_norm: f64,
+    /// `1 / sigma`.
+    pub inv_sigma: f64,
+}
+
+impl DwellEval {
+    /// Whitened residual `r / sigma`.
+    #[inline(always)]
+    pub fn e(&self) -> f64 {
+        self.r * self.inv_sigma
+    }
+}
+
+/// `K^-1` of a parameter vector; an error when `K` is singular or not finite.
+#[inline]
+pub fn inv_k(model: Model, p: &[f64]) -> Result<Matrix3<f64>> {
+    let k = model.k_matrix(p);
+    let d = k[(0, 0)] * k[(1, 1)] * k[(2, 2)];
+    if !(d.abs() > 0.0) || !d.is_finite() {
+        return invalid("singular scale-factor matrix");
+    }
+    inverse3(&k).ok_or_else(|| CoreError::InvalidInput("singular scale-factor matrix".into()))
+}
+
+/// Evaluate dwell mean `am` (variance `var` per axis) at `p` with `t = K^-1`.
+#[inline(always)]
+pub fn eval_dwell(
+    t: &Matrix3<f64>,
+    p: &[f64],
+    am: &[f64; 3],
+    var: [f64; 3],
+    g: f64,
+) -> Result<DwellEval> {
+    let a = t * Vector3::new(am[0] - p[3], am[1] - p[4], am[2] - p[5]);
+    let norm = a.norm();
+    if !(norm > 0.0) || !norm.is_finite() {
+        return invalid("a calibrated dwell has zero or non-finite norm");
+    }
+    let inv_norm = 1.0 / norm;
+    let w = t.tr_mul(&a) * inv_norm;
+    let s2 = w[0] * w[0] * var[0] + w[1] * w[1] * var[1] + w[2] * w[2] * var[2];
+    if !(s2 > 0.0) || !s2.is_finite() {
+        return invalid(
+            "the noise model gives a zero or non-finite residual variance for a dwell (every \
+             dwell needs a positive variance)",
+        );
+    }
+    let sigma = s2.sqrt();
+    Ok(DwellEval {
+        a,
+        norm,
+        r: norm - g,
+        w,
+        var,
+        sigma,
+        inv_norm,
+        inv_sigma: 1.0 / sigma,
+    })
+}
+
+/// Jacobian row of `(|a| - g) * is` with respect to the parameters at fixed weight `is`:
+/// `d|a|/dK_ij = -w_i a_j`, `d|a|/db_i = -w_i`. At the true parameters (where `r = 0`) this
+/// times `1 / sigma` is also the maximum-likelihood row [`ml_row`], so it is the row of the
+/// Fisher information used for pose planning.
+#[inline(always)]
+pub fn jac_row(model: Model, w: &Vector3<f64>, a: &Vector3<f64>, is: f64, row: &mut [f64; 9]) {
+    let (w0, w1, w2) = (-w[0] * is, -w[1] * is, -w[2] * is);
+    row[0] = w0 * a[0];
+    row[1] = w1 * a[1];
+    row[2] = w2 * a[2];
+    row[3] = w0;
+    row[4] = w1;
+    row[5] = w2;
+    match model {
+        Model::Lower => {
+            row[6] = w1 * a[0];
+            row[7] = w2 * a[0];
+            row[8] = w2 * a[1];
+        }
+        Model::Upper => {
+            row[6] = w0 * a[1];
+            row[7] = w0 * a[2];
+            row[8] = w1 * a[2];
+        }
+        Model::Diag => {}
+    }
+}
+
+/// Gradient of the whitened residual `e = r / sigma` with respect to the parameters,
+/// including the derivative of `sigma` (`t = K^-1`, `d` from [`eval_dwell`] at the same `p`).
+///
+/// With `v = Sigma w`, `z = T v`, `u = a / |a|`, `y = (z - (z.u) u) / |a|` and `q = T^T y`:
+/// `d sigma^2 / dK_ij = -2 (w_i z_j + q_i a_j)` and `d sigma^2 / db_i = -2 q_i`, so
+/// `de/dK_ij = -w_i a_j / sigma + r (w_i z_j + q_i a_j) / sigma^3` and
+/// `de/db_i = -w_i / sigma + r q_i / sigma^3`.
+#[inline(always)]
+pub fn ml_row(model: Model, t: &Matrix3<f64>, d: &DwellEval, row: &mut [f64; 9]) {
+    let is = d.inv_sigma;
+    let c = d.r * is * is * is;
+    let (w, a) = (&d.w, &d.a);
+    let v = Vector3::new(d.var[0] * w[0], d.var[1] * w[1], d.var[2] * w[2]);
+    let z = t * v;
+    let inv_n = d.inv_norm;
+    let zu = z.dot(a) * inv_n * inv_n;
+    let y = (z - a * zu) * inv_n;
+    let q = t.tr_mul(&y);
+    // de/dK_ij = -w_i a_j is + c (w_i z_j + q_i a_j) = w_i al_j + be_i a_j with
+    // al = c z - is a, be = c q; de/db_i = -w_i is + be_i.
+    let al = [
+        c * z[0] - is * a[0],
+        c * z[1] - is * a[1],
+        c * z[2] - is * a[2],
+    ];
+    let be = [c * q[0], c * q[1], c * q[2]];
+    let kij = |i: usize, j: usize| w[i] * al[j] + be[i] * a[j];
+    row[0] = kij(0, 0);
+    row[1] = kij(1, 1);
+    row[2] = kij(2, 2);
+    row[3] = be[0] - w[0] * is;
+    row[4] = be[1] - w[1] * is;
+    row[5] = be[2] - w[2] * is;
+    match model {
+        Model::Lower => {
+            row[6] = kij(1, 0);
+            row[7] = kij(2, 0);
+            row[8] = kij(2, 1);
+        }
+        Model::Upper => {
+            row[6] = kij(0, 1);
+            row[7] = kij(0, 2);
+            row[8] = kij(1, 2);
+        }
+        Model::Diag => {}
+    }
+}
+
+/// The maximum-likelihood norm problem: residuals `e_k(p)` of the module documentation.
+#[derive(Debug, Clone, Copy)]
+pub struct NormProblem<'a> {
+    /// Dwell means (in the fitting frame).
+    pub pts: &'a [[f64; 3]],
+    /// Reference gravity.
+    pub g: f64,
+    /// Noise of the dwell means (in the fitting frame).
+    pub noise: DwellNoise<'a>,
+    /// Sensor model.
+    pub model: Model,
+    /// Largest admissible `|K_ii|` during the search (guards the runaway to infinite scale).
+    pub kmax: f64,
+}
+
+impl NormProblem<'_> {
+    fn in_range(&self, p: &[f64]) -> Result<()> {
+        if p[..3].iter().all(|v| v.abs() <= self.kmax) {
+            Ok(())
+        } else {
+            invalid("scale factors out of range")
+        }
+    }
+
+    /// Evaluate every dwell at `p`, calling `f(k, t, eval)`.
+    #[inline(always)]
+    pub fn for_each(
+        &self,
+        p: &[f64],
+        mut f: impl FnMut(usize, &Matrix3<f64>, &DwellEval),
+    ) -> Result<()> {
+        let t = inv_k(self.model, p)?;
+        for (k, am) in self.pts.iter().enumerate() {
+            let d = eval_dwell(&t, p, am, self.noise.var(k), self.g)?;
+            f(k, &t, &d);
+        }
+        Ok(())
+    }
+
+    /// `sum e_k^2` at `p`.
+    #[inline(always)]
+    pub fn cost_at(&self, p: &[f64]) -> Result<f64> {
+        self.in_range(p)?;
+        let mut c = 0.0;
+        self.for_each(p, |_, _, d| {
+            let e = d.e();
+            c += e * e;
+        })?;
+        if c.is_finite() {
+            Ok(c)
+        } else {
+            invalid("non-finite cost")
+        }
+    }
+
+    /// Cost, `J^T e` and the upper triangle of `J^T J` for the first `K` parameters at `p`
+    /// (`K` = the model's parameter count; the rank-1 updates unroll).
+    #[inline(always)]
+    pub fn accumulate<const K: usize>(
+        &self,
+        p: &[f64],
+        h: &mut [[f64; K]; K],
+        gr: &mut [f64; K],
+    ) -> Result<f64> {
+        self.in_range(p)?;
+        let mut c = 0.0;
+        let mut row = [0.0f64; 9];
+        let model = self.model;
+        self.for_each(p, |_, t, d| {
+            let e = d.e();
+            c += e * e;
+            ml_row(model, t, d, &mut row);
+            for i in 0..K {
+                let ri = row[i];
+                gr[i] += ri * e;
+                for j in i..K {
+                    h[i][j] += ri * row[j];
+                }
+            }
+        })?;
+        Ok(c)
+    }
+}
+
+impl NormalEquations for NormProblem<'_> {
+    fn n_params(&self) -> usize {
+        self.model.n_params()
+    }
+    fn n_residuals(&self) -> usize {
+        self.pts.len()
+    }
+    fn cost(&self, p: &[f64]) -> Result<f64> {
+        self.cost_at(p)
+    }
+    fn normal(&self, p: &[f64], jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) -> Result<f64> {
+        fn fill<const K: usize>(
+            prob: &NormProblem<'_>,
+            p: &[f64],
+            jtj: &mut DMatrix<f64>,
+            jtr: &mut DVector<f64>,
+        ) -> Result<f64> {
+            let mut h = [[0.0f64; K]; K];
+            let mut gr = [0.0f64; K];
+            let c = prob.accumulate::<K>(p, &mut h, &mut gr)?;
+            for i in 0..K {
+                jtr[i] = gr[i];
+                for j in i..K {
+                    jtj[(i, j)] = h[i][j];
+                    jtj[(j, i)] = h[i][j];
+                }
+            }
+            Ok(c)
+        }
+        match self.model.n_params() {
+            6 => fill::<6>(self, p, jtj, jtr),
+            _ => fill::<9>(self, p, jtj, jtr),
+        }
+    }
+}
+
+impl<const N: usize> NormalEquationsFixed<N> for NormProblem<'_> {
+    fn n_residuals(&self) -> usize {
+        self.pts.len()
+    }
+    #[inline(always)]
+    fn cost(&self, p: &[f64; N]) -> Result<f64> {
+        self.cost_at(p)
+    }
+    #[inline(always)]
+    fn normal(&self, p: &[f64; N], jtj: &mut [[f64; N]; N], jtr: &mut [f64; N]) -> Result<f64> {
+        let mut h = [[0.0f64; N]; N];
+        let mut gr = [0.0f64; N];
+        let c = self.accumulate::<N>(p, &mut h, &mut gr)?;
+        *jtr = gr;
+        for i in 0..N {
+            for j in i..N {
+                jtj[i][j] = h[i][j];
+                jtj[j][i] = h[i][j];
+            }
+        }
+        Ok(c)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The analytic row of `e = r / sigma` equals central differences of `e`, for every
+    /// model and for isotropic and per-axis noise, away from the minimum (r != 0).
+    #[test]
+    fn ml_row_matches_finite_differences() {
+        let am = [1.3, -0.4, 9.1];
+        for model in [Model::Lower, Model::Upper, Model::Diag] {
+            let p = [1.05, 0.97, 1.1, 0.02, -0.03, 0.05, 0.011, -0.02, 0.017];
+            for var in [[1.0, 1.0, 1.0], [2e-6, 0.5e-6, 4e-6]] {
+                let t = inv_k(model, &p).unwrap();
+                let d = eval_dwell(&t, &p, &am, var, 9.5).unwrap();
+                assert!(d.r.abs() > 0.1);
+                let mut row = [0.0; 9];
+                ml_row(model, &t, &d, &mut row);
+                let e = |q: &[f64; 9]| {
+                    let t = inv_k(model, q).unwrap();
+                    eval_dwell(&t, q, &am, var, 9.5).unwrap().e()
+                };
+                for (j, rj) in row.iter().enumerate().take(model.n_params()) {
+                    let h = 1e-6;
+                    let (mut a, mut b) = (p, p);
+                    a[j] += h;
+                    b[j] -= h;
+                    let fd = (e(&a) - e(&b)) / (2.0 * h);
+                    assert!(
+                        (fd - rj).abs() <= 1e-6 * fd.abs().max(1.0),
+                        "{model:?} {j}: {fd} vs {rj}"
+                    );
+                }
+                // jac_row is d r / dp times is: central differences of r.
+                let mut jr = [0.0; 9];
+                jac_row(model, &d.w, &d.a, 1.0, &mut jr);
+                let r = |q: &[f64; 9]| {
+                    let t = inv_k(model, q).unwrap();
+                    eval_dwell(&t, q, &am, var, 9.5).unwrap().r
+                };
+                for (j, rj) in jr.iter().enumerate().take(model.n_params()) {
+                    let h = 1e-6;
+                    let (mut a, mut b) = (p, p);
+                    a[j] += h;
+                    b[j] -= h;
+                    let fd = (r(&a) - r(&b)) / (2.0 * h);
+                    assert!((fd - rj).abs() <= 1e-6 * fd.abs().max(1.0), "{j}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn isotropic_sigma_is_the_length_of_w() {
+        let p = [2.0, 2.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let t = inv_k(Model::Lower, &p).unwrap();
+        let d = eval_dwell(&t, &p, &[0.0, 0.0, 20.0], [1.0; 3], 9.8).unwrap();
+        assert!((d.sigma - 0.5).abs() < 1e-15 && (d.r - 0.2).abs() < 1e-12);
+        assert!((d.e() - 0.4).abs() < 1e-12);
+        assert!(eval_dwell(&t, &p, &[0.0, 0.0, 20.0], [0.0; 3], 9.8).is_err());
+    }
+}

@@ -1,0 +1,363 @@
+//! The start stage: the linear solutions of the norm-observation paper, a user's start, or a
+//! bias + scale fallback when the 9-term quadric fails.
+//!
+//! The paper's regression writes the constraint `|K^-1 (am - b)| = g` as the quadric
+//! `am^T Q am - 2 (Q b)^T am + b^T Q b - g^2 = 0` (`Q = K^-T K^-1`) and, dividing by `-Q33`,
+//! regresses `amz^2` on `[amx^2, amy^2, 2 amx amy, 2 amx amz, 2 amy amz, 2 amx, 2 amy, 2 amz,
+//! 1]`. That regression is exact; the exact recovery of `K` and `b` from its coefficients is
+//! [`quadric_fit`], the paper's own back-substitution (which drops terms of order `M^2`) is
+//! [`paper_fit`].
+
+// `!(x > t)` is deliberate throughout: it is true for NaN, so bad values fail the test.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use super::frame::Frame;
+use super::{FitSettings, Method, Model};
+use crate::error::{invalid, CoreError, Result};
+use crate::lsq::{cholesky3, inverse3, lstsq_fn, lstsq_normal_fn};
+use nalgebra::{Matrix3, Vector3};
+
+/// Where the start of the iteration (or the linear answer) came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StartSource {
+    /// Given by the caller.
+    User,
+    /// The exact recovery from the quadric regression.
+    Quadric,
+    /// The paper's small-M back-substitution.
+    Paper,
+    /// The linear solution failed; a bias + scale start, used to diagnose the design.
+    Fallback,
+}
+
+impl StartSource {
+    /// Name: `"user" | "quadric" | "linear-paper" | "fallback"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            StartSource::User => "user",
+            StartSource::Quadric => "quadric",
+            StartSource::Paper => "linear-paper",
+            StartSource::Fallback => "fallback",
+        }
+    }
+}
+
+/// Outcome of the start stage (parameters in output units; unused slots are zero).
+#[derive(Debug, Clone)]
+pub struct Start {
+    /// Start parameters.
+    pub params: [f64; 9],
+    /// Where they came from.
+    pub source: StartSource,
+    /// Why the linear solution failed ([`StartSource::Fallback`] only).
+    pub error: Option<CoreError>,
+}
+
+fn not_ellipsoid(detail: &str) -> CoreError {
+    CoreError::Degenerate(format!(
+        "the dwell means do not lie on an ellipsoid ({detail}): check that the data are static \
+         dwell means of one sensor and that g is in the data's units"
+    ))
+}
+
+/// Quadric regression `z^2 = x . beta` on the points `f.point(means[k])` (9 columns, or 6
+/// for the diagonal model; the last entries of the result are zero then). `exact`: by QR
+/// (the linear method's answer); otherwise by the normal equations (a start value, with the
+/// QR when the design is ill-conditioned).
+pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Result<[f64; 9]> {
+    let n = means.len();
+    if diag {
+        let row = |k: usize| {
+            let [x, y, z] = f.point(&means[k]);
+            ([x * x, y * y, 2.0 * x, 2.0 * y, 2.0 * z, 1.0], z * z)
+        };
+        let b = if exact {
+            lstsq_fn::<6>(n, row)?
+        } else {
+            lstsq_normal_fn::<6>(n, row)?
+        };
+        let mut out = [0.0; 9];
+        out[..6].copy_from_slice(&b);
+        Ok(out)
+    } else {
+        let row = |k: usize| {
+            let [x, y, z] = f.point(&means[k]);
+            (
+                [
+                    x * x,
+                    y * y,
+                    2.0 * x * y,
+                    2.0 * x * z,
+                    2.0 * y * z,
+                    2.0 * x,
+                    2.0 * y,
+                    2.0 * z,
+                    1.0,
+                ],
+                z * z,
+            )
+        };
+        if exact {
+            lstsq_fn::<9>(n, row)
+        } else {
+            lstsq_normal_fn::<9>(n, row)
+        }
+    }
+}
+
+/// Exact recovery of `K` and `b` from the quadric regression (no small-M assumption), in the
+/// frame `f`; returns frame parameters.
+///
+/// 1. `Qt = [[-b1, -b3, -b4], [-b3, -b2, -b5], [-b4, -b5, 1]]` (`b_i = beta_i`);
+/// 2. `b = Qt^-1 [beta6, beta7, beta8]`;
+/// 3. `Q33 = g^2 / (b^T Qt b + beta9)`, `Q = Q33 Qt`;
+/// 4. `K K^T = Q^-1` with `K` in the model's triangle (Cholesky).
+pub fn quadric_fit(
+    means: &[[f64; 3]],
+    f: Frame,
+    g: f64,
+    model: Model,
+    exact: bool,
+) -> Result<[f64; 9]> {
+    let diag = model == Model::Diag;
+    let beta = quadric_beta(means, f, diag, exact)?;
+    let (qt, lin, c0) = if diag {
+        (
+            Matrix3::new(-beta[0], 0.0, 0.0, 0.0, -beta[1], 0.0, 0.0, 0.0, 1.0),
+            Vector3::new(beta[2], beta[3], beta[4]),
+            beta[5],
+        )
+    } else {
+        (
+            Matrix3::new(
+                -beta[0], -beta[2], -beta[3], -beta[2], -beta[1], -beta[4], -beta[3], -beta[4], 1.0,
+            ),
+            Vector3::new(beta[5], beta[6], beta[7]),
+            beta[8],
+        )
+    };
+    if cholesky3(&qt).is_none() {
+        return Err(not_ellipsoid("the fitted quadric is not positive definite"));
+    }
+    let qt_inv = inverse3(&qt).ok_or_else(|| not_ellipsoid("the fitted quadric is singular"))?;
+    let b = qt_inv * lin;
+    let den = b.dot(&(qt * b)) + c0;
+    if !(den > 0.0) || !den.is_finite() {
+        return Err(not_ellipsoid("the fitted quadric has no real points"));
+    }
+    // Q^-1 = Qt^-1 den / g^2.
+    let q_inv = qt_inv * (den / (g * g));
+    let k = match model {
+        Model::Diag => Matrix3::from_diagonal(&Vector3::new(
+            q_inv[(0, 0)].sqrt(),
+            q_inv[(1, 1)].sqrt(),
+            q_inv[(2, 2)].sqrt(),
+        )),
+        Model::Lower => {
+            cholesky3(&q_inv).ok_or_else(|| not_ellipsoid("Q^-1 is not positive definite"))?
+        }
+        Model::Upper => {
+            // K K^T = Q^-1 with K upper: reverse the axes, take Cholesky, reverse back.
+            let p = Matrix3::new(0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0);
+            let l = cholesky3(&(p * q_inv * p))
+                .ok_or_else(|| not_ellipsoid("Q^-1 is not positive definite"))?;
+            p * l * p
+        }
+    };
+    let out = model.params_from(&k, &b);
+    if out.iter().any(|v| !v.is_finite()) {
+        return Err(not_ellipsoid("non-finite recovery"));
+    }
+    Ok(out)
+}
+
+/// The paper's back-substitution (its eqs. 7-10, dropping terms of order `M^2`), in the frame
+/// `f` (which must be origin-centred: the paper's regression is about the raw origin).
+pub fn paper_fit(means: &[[f64; 3]], f: Frame, g: f64, model: Model) -> Result<[f64; 9]> {
+    if model == Model::Upper {
+        return invalid(
+            "method \"linear-paper\" is defined for model \"lower\" (and \"diag\") only",
+        );
+    }
+    let diag = model == Model::Diag;
+    let beta = quadric_beta(means, f, diag, true)?;
+    let (b1, b2) = (beta[0], beta[1]);
+    if !(b1 < 0.0 && b2 < 0.0) {
+        return Err(not_ellipsoid(
+            "negative squared scale in the paper's back-substitution",
+        ));
+    }
+    let (t11, t22, t33) = ((-b1).sqrt(), (-b2).sqrt(), 1.0);
+    let (k21, k31, k32, lin, c0) = if diag {
+        (0.0, 0.0, 0.0, [beta[2], beta[3], beta[4]], beta[5])
+    } else {
+        (
+            beta[2] / (t11 * t22),
+            beta[3] / (t11 * t33),
+            beta[4] / (t22 * t33),
+            [beta[5], beta[6], beta[7]],
+            beta[8],
+        )
+    };
+    let a = Matrix3::new(
+        -t11,
+        t11 * k21,
+        t11 * k31,
+        t22 * k21,
+        -t22,
+        t22 * k32,
+        t33 * k31,
+        t33 * k32,
+        -t33,
+    );
+    let rhs = Vector3::new(-lin[0], -lin[1], -lin[2]);
+    let bt = inverse3(&a)
+        .map(|ai| ai * rhs)
+        .ok_or_else(|| not_ellipsoid("singular back-substitution"))?;
+    let ct = bt.norm_squared()
+        - 2.0 * bt[0] * bt[1] * k21
+        - 2.0 * bt[0] * bt[2] * k31
+        - 2.0 * bt[1] * bt[2] * k32;
+    let q = g * g / (ct + c0);
+    if !(q > 0.0) || !q.is_finite() {
+        return Err(not_ellipsoid(
+            "the paper's back-substitution gives no real scale",
+        ));
+    }
+    let r = q.sqrt();
+    let (k11, k22, k33) = (r * t11, r * t22, r * t33);
+    let (sx, sy, sz) = (1.0 / k11, 1.0 / k22, 1.0 / k33);
+    let b = bt * r;
+    let mut p = [sx, sy, sz, b[0] * sx, b[1] * sy, b[2] * sz, 0.0, 0.0, 0.0];
+    if !diag {
+        p[6..].copy_from_slice(&[k21 * sy, k31 * sz, k32 * sz]);
+    }
+    Ok(p)
+}
+
+/// Bias + scale start (output units) used to diagnose designs where the linear solution
+/// fails: the diagonal quadric, else the centroid frame itself.
+pub fn fallback_start(means: &[[f64; 3]], g: f64, f0: Frame) -> [f64; 9] {
+    match quadric_fit(means, f0, g, Model::Diag, false) {
+        Ok(p) => f0.unframe(&p),
+        Err(_) => [f0.s, f0.s, f0.s, f0.c[0], f0.c[1], f0.c[2], 0.0, 0.0, 0.0],
+    }
+}
+
+/// The start stage: the user's start (validated), or the method's linear solution (the
+/// paper's for `LinearPaper`, the exact quadric otherwise), or, when that fails with
+/// degenerate data, the bias + scale fallback with the failure recorded. `f0` is the
+/// centroid frame of the data.
+pub fn start_stage(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> Result<Start> {
+    let model = set.model;
+    let np = model.n_params();
+    if let Some(s) = &set.start {
+        if !matches!(set.method, Method::GaussNewton | Method::Lm) {
+            return invalid("start= is only used by method \"gauss-newton\" or \"lm\"");
+        }
+        if s.len() != np {
+            return invalid(format!(
+                "start has {} values; model {:?} has {np} parameters",
+                s.len(),
+                model.name()
+            ));
+        }
+        if s.iter().any(|v| !v.is_finite()) {
+            return invalid("start values must be finite");
+        }
+        let mut p = [0.0; 9];
+        p[..np].copy_from_slice(s);
+        return Ok(Start {
+            params: p,
+            source: StartSource::User,
+            error: None,
+        });
+    }
+    let (linear, source) = if set.method == Method::LinearPaper {
+        let fs = Frame::origin(means, g);
+        (
+            paper_fit(means, fs, g, model).map(|p| fs.unframe(&p)),
+            StartSource::Paper,
+        )
+    } else {
+        // The quadric method's answer is the exact regression (QR); as the start of the
+        // iteration the normal equations suffice.
+        let exact = set.method == Method::Quadric;
+        (
+            quadric_fit(means, f0, g, model, exact).map(|p| f0.unframe(&p)),
+            StartSource::Quadric,
+        )
+    };
+    match linear {
+        Ok(params) => Ok(Start {
+            params,
+            source,
+            error: None,
+        }),
+        Err(e @ CoreError::InvalidInput(_)) => Err(e),
+        Err(e) => Ok(Start {
+            params: fallback_start(means, g, f0),
+            source: StartSource::Fallback,
+            error: Some(e),
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::tests_common::{simulate, G, TRUTH};
+    use super::*;
+
+    #[test]
+    fn quadric_start_is_exact_and_paper_start_is_biased() {
+        let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 1);
+        let f0 = Frame::centroid(&m, G).unwrap();
+        let set = FitSettings::new(Model::Lower, Method::Lm);
+        let s = start_stage(&m, G, &set, f0).unwrap();
+        assert_eq!(s.source, StartSource::Quadric);
+        for (a, b) in s.params.iter().zip(&TRUTH) {
+            assert!((a - b).abs() < 1e-10);
+        }
+        let set = FitSettings::new(Model::Lower, Method::LinearPaper);
+        let s = start_stage(&m, G, &set, f0).unwrap();
+        assert_eq!(s.source, StartSource::Paper);
+        let e = s
+            .params
+            .iter()
+            .zip(&TRUTH)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(e > 1e-5 && e < 1e-2, "{e}");
+    }
+
+    #[test]
+    fn user_start_is_validated_and_a_failed_quadric_falls_back() {
+        let m = simulate(Model::Lower, &TRUTH, 20, 60.0, 2);
+        let f0 = Frame::centroid(&m, G).unwrap();
+        let mut set = FitSettings::new(Model::Lower, Method::Lm);
+        set.start = Some(vec![1.0; 3]);
+        assert!(matches!(
+            start_stage(&m, G, &set, f0),
+            Err(CoreError::InvalidInput(_))
+        ));
+        set.start = Some(vec![1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        assert_eq!(
+            start_stage(&m, G, &set, f0).unwrap().source,
+            StartSource::User
+        );
+        set.method = Method::Quadric;
+        assert!(start_stage(&m, G, &set, f0).is_err());
+        // Points on a hyperboloid sheet: no ellipsoid, a bias + scale fallback.
+        let h: Vec<[f64; 3]> = (0..20)
+            .map(|i| {
+                let (x, y) = ((i % 5) as f64 - 2.0, (i / 5) as f64 - 1.5);
+                [x, y, (x * x - y * y + 30.0).sqrt()]
+            })
+            .collect();
+        let f0 = Frame::centroid(&h, G).unwrap();
+        let s = start_stage(&h, G, &FitSettings::new(Model::Lower, Method::Lm), f0).unwrap();
+        assert_eq!(s.source, StartSource::Fallback);
+        assert!(matches!(s.error, Some(CoreError::Degenerate(_))));
+        assert!(s.params[6..].iter().all(|v| *v == 0.0));
+    }
+}

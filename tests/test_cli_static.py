@@ -1,0 +1,129 @@
+"""``accelcal calibrate static`` and ``accelcal plan``: messages in the terms of the command
+line, one warning, units in every summary line, the stored uncertainty is the printed one, and
+their figures (rendered with Agg, axes checked)."""
+
+from __future__ import annotations
+
+import json
+import re
+from functools import partial
+from pathlib import Path
+
+import accelcal as ac
+import matplotlib
+import numpy as np
+import pytest
+from accelcal import plots
+from accelcal.cli import main
+from click.testing import CliRunner
+from conftest import shared_data
+
+matplotlib.use("Agg")
+
+XSENS = partial(shared_data, "xsens-mti", "xsens_acc.txt")
+MPU = partial(shared_data, "mpu6050-10poses", "example_data_calibration.csv")
+IMUCAL = partial(shared_data, "imucal", "example_ferraris_session.csv")
+
+
+def run(*args: str) -> tuple[int, str]:
+    r = CliRunner().invoke(main, list(args))
+    assert "Traceback" not in r.output
+    return r.exit_code, r.output
+
+
+def test_saved_calibration_holds_the_printed_uncertainty(tmp_path: Path) -> None:
+    cal = tmp_path / "cal.json"
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "-o", str(cal))
+    assert code == 0, out
+    printed = {m.group(1): float(m.group(3)) for m in
+               re.finditer(r"^\s+(s[xyz]|b[xyz]|m[123])\s+(\S+)\s+(\S+)\s*$", out, re.M)}
+    d = json.loads(cal.read_text())
+    assert d["covariance_realistic"] == "scaled" and "std stored and printed: scaled" in out
+    std = np.sqrt(np.diag(d["covariance"]))
+    for i, name in enumerate(d["parameter_names"]):
+        assert printed[name] == pytest.approx(std[i], rel=5e-3)  # printed to 3 digits
+    np.testing.assert_allclose(d["covariance"], d["covariance_scaled"])
+    assert not np.allclose(d["covariance_noise_model"], d["covariance_scaled"])
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", d["date"])
+    # The same date format from Python.
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ",
+                        ac.TriadModel(np.eye(3), [0, 0, 0]).date)
+
+
+def test_summary_says_units_on_every_norm_line() -> None:
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "9.81744")
+    assert code == 0, out
+    lines = [ln for ln in out.splitlines() if ln.strip().startswith("norm")]
+    assert len(lines) == 2
+    for ln in lines:
+        # mean, std and RMS in g, RMS also in m/s^2: every number has its unit.
+        assert re.search(r"mean \|a\| = [\d.]+ g, std\(\|a\| - g\) = \S+ g, "
+                         r"RMS\(\|a\| - g\) = \S+ g = \S+ m/s\^2$", ln), ln
+
+
+def test_messages_name_cli_options() -> None:
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "5")
+    assert code == 2 and "--no-check-g" in out and "check_g" not in out
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "5", "--no-check-g")
+    assert code == 0, out
+    code, out = run("calibrate", "static", str(IMUCAL()), "--fs", "102.4", "--g", "9.81")
+    assert code == 2 and "--model diag" in out and 'model="diag"' not in out
+    assert 'model "diag"' not in out
+    code, out = run("plan", "--n", "5")
+    assert code == 2 and out.startswith("accelcal: error: --n 5")
+    code, out = run("plan", "--n", "12", "--max-tilt", "120")
+    assert code == 2 and "--max-tilt" in out and "180" in out
+
+
+def test_weak_design_warning_is_printed_once() -> None:
+    code, out = run("calibrate", "static", str(MPU()), "--g", "9.81")
+    assert code == 0, out
+    assert out.count("m1 +-") == 1 and "--model diag" in out
+    assert "warning:" not in out  # the summary's WEAK line says it
+
+
+def test_plan_numbers_the_poses_and_prints_a_checklist(tmp_path: Path) -> None:
+    png = tmp_path / "plan.png"
+    code, out = run("plan", "--n", "12", "--max-tilt", "30", "--plot", str(png))
+    assert code == 0, out
+    steps = re.findall(r"^\[ \]\s+(\d+)\. (bottom down.*?)\s+\(platform tilt", out, re.M)
+    assert [int(s[0]) for s in steps] == list(range(1, 13))
+    assert all("deg" in s[1] or "level" in s[1] for s in steps)
+    assert png.stat().st_size > 10_000
+    code, out = run("plan", "--n", "12", "--max-tilt", "30", "--json")
+    p = json.loads(out)
+    assert len(p["poses"]) == 12 and p["poses"][0].startswith("bottom down")
+
+
+def test_static_norm_figure_axes() -> None:
+    raw = np.loadtxt(XSENS())[:, 1:4]
+    fit = ac.fit_static(ac.detect_dwells(raw, fs=100), 9.81744)
+    fig = plots.static_norm_figure(fit)
+    top, bottom = fig.axes
+    assert top.get_ylabel() == "|a| / g  [g]"
+    assert bottom.get_ylabel() == "|a| - g  [mm/s^2]" and bottom.get_xlabel() == "dwell"
+    assert "before (fitted bias removed, one common scale)" in [
+        t.get_text() for t in top.get_legend().get_texts()]
+    # Counts are shown in g: the 'before' norms are near 1 g, not near 57000 counts.
+    before = top.get_lines()[0].get_ydata()
+    assert np.all(np.abs(before - 1) < 0.05)
+    ticks = bottom.get_xticks()
+    assert np.allclose(ticks, np.round(ticks))
+    # Error bars are the noise model's std of each residual.
+    bars = [c for c in bottom.collections if c.__class__.__name__ == "LineCollection"]
+    seg = bars[0].get_segments()
+    half = np.array([abs(s[1][1] - s[0][1]) / 2 for s in seg])
+    np.testing.assert_allclose(half, 1e3 * fit.sigma_residual, rtol=1e-9)
+
+
+def test_poses_figure_axes() -> None:
+    plan = ac.plan_poses(14, None, rng=1)
+    fig = plots.poses_figure(plan)
+    assert len(fig.axes) == 2  # top up and top down: the full sphere
+    labels = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert sorted(int(t) for t in labels if t.isdigit()) == list(range(1, 15))
+    for ax in fig.axes:
+        assert "equal-area" in ax.get_xlabel() and "nose" in ax.get_xlabel()
+        assert "left side" in ax.get_ylabel()
+    one = plots.poses_figure(ac.plan_poses(12, 30, rng=1))
+    assert len(one.axes) == 1

@@ -1,0 +1,196 @@
+"""TriadModel: apply, the versioned JSON file validated against its published schema (every
+corruption one clear error naming the field), dates, look-up by sensor and time, pickling."""
+
+from __future__ import annotations
+
+import copy
+import datetime as dt
+import json
+import pickle
+
+import accelcal as ac
+import jsonschema
+import numpy as np
+import pytest
+from accelcal import CalibrationError
+from accelcal._triad_model import schema
+from accelcal.sim.static import static_dwell_means
+
+
+@pytest.fixture(scope="module")
+def fitted() -> ac.StaticFit:
+    s = static_dwell_means(20, max_tilt_deg=None, rng=14)
+    return ac.fit_static(s.means, s.g_measured, sigma=1e-3)
+
+
+@pytest.fixture()
+def good(fitted, tmp_path) -> dict:
+    path = tmp_path / "good.json"
+    fitted.to_model(sensor_id="unit-7", temperature=21.5).save(path)
+    return json.loads(path.read_text())
+
+
+def test_apply_save_load_round_trip(fitted, tmp_path):
+    tm = fitted.to_model(sensor_id="unit-7", temperature=21.5)
+    means = fitted.means
+    a = tm.apply(means)
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1) - fitted.g, fitted.residuals, atol=1e-12)
+    np.testing.assert_allclose(a, fitted.calibrated_means(), atol=1e-12)
+    # Streaming: chunks give the same as the whole; integer dtypes are read in place.
+    np.testing.assert_allclose(np.vstack([tm.apply(means[:7]), tm.apply(means[7:])]), a)
+    raw = np.array([[100, -200, 3000]], dtype=np.int16)
+    ref = np.linalg.solve(tm.K, raw[0].astype(float) - tm.bias)
+    np.testing.assert_allclose(tm.apply(raw)[0], ref, rtol=1e-13)
+    path = tmp_path / "m.json"
+    tm.save(path)
+    back = ac.TriadModel.load(path)
+    assert back == tm
+    np.testing.assert_array_equal(back.K, tm.K)
+    np.testing.assert_array_equal(back.covariance, tm.covariance)
+    assert back.sensor_id == "unit-7" and back.g == fitted.g and back.temperature == 21.5
+    d = json.loads(path.read_text())
+    assert d["format"] == "accelcal.TriadModel" and d["version"] == 2
+    jsonschema.validate(d, schema())  # the file the package writes meets its own schema
+    assert pickle.loads(pickle.dumps(tm)) == tm
+    with pytest.raises(CalibrationError, match="singular"):
+        ac.TriadModel(np.zeros((3, 3)), [0, 0, 0])
+
+
+def test_version_1_files_still_load(good, tmp_path):
+    v1 = {k: v for k, v in good.items()
+          if k not in ("covariance_noise_model", "covariance_scaled", "covariance_realistic")}
+    v1["version"] = 1
+    v1["date"] = "2026-11-23"
+    v1["covariance"] = good["covariance_noise_model"]
+    p = tmp_path / "v1.json"
+    p.write_text(json.dumps(v1))
+    m = ac.TriadModel.load(p)
+    assert m.date == "2026-11-23T00:00:00Z" and m.realistic == "noise_model"
+    np.testing.assert_array_equal(m.covariance, good["covariance_noise_model"])
+
+
+def _set(path):
+    def f(d, value):
+        obj = d
+        for k in path[:-1]:
+            obj = obj[k]
+        obj[path[-1]] = value
+    return f
+
+
+def _drop(key):
+    def f(d, _):
+        del d[key]
+    return f
+
+
+NAN = float("nan")
+
+# (name, change, value, words the message must contain)
+CORRUPTIONS = [
+    ("covariance NaN", _set(["covariance_noise_model", 0, 0]), NAN, "covariance_noise_model"),
+    ("covariance 8x8", lambda d, _: d.update(
+        covariance_noise_model=[r[:8] for r in d["covariance_noise_model"][:8]]),
+     None, "covariance_noise_model"),
+    ("covariance ragged", lambda d, _: d["covariance_scaled"][2].pop(), None, "covariance"),
+    ("covariance not symmetric", _set(["covariance_noise_model", 0, 1]), 1.0, "symmetric"),
+    ("covariance negative variance", _set(["covariance_scaled", 4, 4]), -1.0, "negative"),
+    ("realistic cov disagrees", _set(["covariance", 0, 0]), 123.0, "covariance"),
+    ("g NaN", _set(["g"]), NAN, "g"),
+    ("g negative", _set(["g"]), -9.8, "g"),
+    ("g text", _set(["g"]), "9.8", "g"),
+    ("version 0", _set(["version"]), 0, "version"),
+    ("version -7", _set(["version"]), -7, "version"),
+    ("version true", _set(["version"]), True, "version"),
+    ("version text", _set(["version"]), "1.0", "version"),
+    ("version newer", _set(["version"]), 99, "newer"),
+    ("K near singular", _set(["K", 2, 2]), 1e-12, "ill-conditioned"),
+    ("K ill-conditioned", lambda d, _: d.update(K=[[1.0, 0, 0], [0.999999999, 1e-7, 0],
+                                                   [0, 0, 1.0]]), None, "ill-conditioned"),
+    ("K transposed", lambda d, _: d.update(K=np.array(d["K"]).T.tolist()), None, "K["),
+    ("K boolean", lambda d, _: d.update(K=[[True, False, False], [False, True, False],
+                                           [False, False, True]]), None, "K"),
+    ("K NaN", _set(["K", 1, 1]), NAN, "K"),
+    ("K 2x3", lambda d, _: d["K"].pop(), None, "K"),
+    ("K disagrees with vector", _set(["vector", 0]), 2.0, "vector"),
+    ("diag model, lower K", _set(["model"]), "diag", "K["),
+    ("unknown model", _set(["model"]), "full", "model"),
+    ("missing K", _drop("K"), None, "'K'"),
+    ("missing bias", _drop("bias"), None, "'bias'"),
+    ("bias of 2", lambda d, _: d["bias"].pop(), None, "bias"),
+    ("bias infinite", _set(["bias", 0]), float("inf"), "bias"),
+    ("units a string", _set(["units"]), "m/s^2", "units"),
+    ("units output a number", _set(["units", "output"]), 9.8, "units"),
+    ("metadata a list", _set(["metadata"]), [1, 2], "metadata"),
+    ("sensor_id a number", _set(["sensor_id"]), 7, "sensor_id"),
+    ("date not a date", _set(["date"]), "yesterday", "date"),
+    ("temperature text", _set(["temperature"]), "hot", "temperature"),
+    ("format wrong", _set(["format"]), "other", "format"),
+]
+
+
+@pytest.mark.parametrize("name,change,value,words", CORRUPTIONS, ids=[c[0] for c in CORRUPTIONS])
+def test_each_corruption_is_one_clear_error_naming_the_field(good, tmp_path, name, change,
+                                                              value, words):
+    d = copy.deepcopy(good)
+    change(d, value)
+    p = tmp_path / "bad.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(CalibrationError) as e:
+        ac.TriadModel.load(p)
+    msg = str(e.value)
+    assert words in msg, msg
+    assert "bad.json" in msg and "\n" not in msg
+
+
+def test_not_json_and_missing_file(tmp_path):
+    p = tmp_path / "x.json"
+    p.write_text("{not json")
+    with pytest.raises(CalibrationError, match="not JSON"):
+        ac.TriadModel.load(p)
+    with pytest.raises(CalibrationError, match="cannot read"):
+        ac.TriadModel.load(tmp_path / "none.json")
+
+
+def test_one_date_format():
+    m = ac.TriadModel(np.eye(3), [0, 0, 0], date="2026-11-23T11:15:00+01:00")
+    assert m.date == "2026-11-23T10:15:00Z"
+    assert ac.TriadModel(np.eye(3), [0, 0, 0], date=dt.date(2026, 11, 23)).date == \
+        "2026-11-23T00:00:00Z"
+    now = ac.TriadModel(np.eye(3), [0, 0, 0]).datetime
+    assert abs((now - dt.datetime.now(dt.timezone.utc)).total_seconds()) < 60
+    with pytest.raises(CalibrationError, match="ISO 8601"):
+        ac.TriadModel(np.eye(3), [0, 0, 0], date="23/11/2026")
+
+
+def test_find_returns_the_calibration_valid_at_a_time(tmp_path):
+    K = np.diag([1.01, 0.99, 1.0])
+    for sid, day, b in [("A", 1, 0.1), ("A", 10, 0.2), ("A", 20, 0.3), ("B", 5, 0.9)]:
+        m = ac.TriadModel(K, [b, 0, 0], sensor_id=sid, date=dt.datetime(2026, 3, day, 12))
+        sub = tmp_path / ("2026" if day > 5 else "")
+        sub.mkdir(exist_ok=True)
+        m.save(sub / m.default_filename())
+    (tmp_path / "notes.json").write_text('{"hello": 1}')  # not a calibration: skipped
+    pick = ac.TriadModel.find(tmp_path, "A", at=dt.datetime(2026, 3, 15))
+    assert pick.bias[0] == 0.2
+    assert ac.TriadModel.find(tmp_path, "A", at="2026-03-20T12:00:00Z").bias[0] == 0.3
+    assert ac.TriadModel.find(tmp_path, "A").bias[0] == 0.3  # now: the newest
+    assert ac.TriadModel.find(tmp_path, "B", at=dt.date(2026, 3, 6)).bias[0] == 0.9
+    with pytest.raises(CalibrationError, match="no calibration of sensor 'A'.*earliest"):
+        ac.TriadModel.find(tmp_path, "A", at=dt.datetime(2026, 2, 1))
+    with pytest.raises(CalibrationError, match="no calibration of sensor 'C'"):
+        ac.TriadModel.find(tmp_path, "C")
+    with pytest.raises(CalibrationError, match="does not exist"):
+        ac.TriadModel.find(tmp_path / "nope", "A")
+    # A corrupt calibration of the sensor is reported, not passed over.
+    bad = json.loads((tmp_path / "2026" / "A_20260320T120000Z.json").read_text())
+    bad["g"] = -1.0
+    (tmp_path / "2026" / "A_20260320T120000Z.json").write_text(json.dumps(bad))
+    with pytest.raises(CalibrationError, match="g"):
+        ac.TriadModel.find(tmp_path, "A")
+
+
+def test_schema_is_shipped_and_published():
+    s = schema()
+    assert s["properties"]["format"]["const"] == "accelcal.TriadModel"
+    jsonschema.Draft202012Validator.check_schema(s)
