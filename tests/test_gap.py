@@ -88,7 +88,7 @@ def test_bad_inputs() -> None:
         diagnose(s.dwells[:8], g=s.g)
     with pytest.raises(CalibrationError, match="unknown effect"):
         diagnose(s.dwells, g=s.g, effects=["magic"])
-    with pytest.raises(CalibrationError, match="positive gravity"):
+    with pytest.raises(CalibrationError, match=r"g must be a number in \(0, inf\)"):
         diagnose(s.dwells, g=-1.0)
     # Few dwells: a gap figure but no effect test.
     r = diagnose(s.dwells[:11], g=s.g)
@@ -510,7 +510,7 @@ def test_bad_option_values_name_the_argument(name: str, bad: Any) -> None:
 
 def test_bad_arrays_are_clear_errors() -> None:
     az, y, t, _ = _grad(1)
-    with pytest.raises(CalibrationError, match="azimuth_deg: unsupported dtype bool"):
+    with pytest.raises(CalibrationError, match="azimuth_deg must be real numbers; got a boolean"):
         accelcal.diagnose_gradiometer(az > 90, y, t=t, sigma=0.5)
     with pytest.raises(CalibrationError, match="outputs contains NaN"):
         accelcal.diagnose_gradiometer(az, np.where(y > 40, np.nan, y), t=t, sigma=0.5)

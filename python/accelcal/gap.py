@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
-from ._validate import samples_array
+from ._validate import number, real_array, samples_array
 from .dwell import DwellSet, detect_dwells, dwell_stats
 
 __all__ = [
@@ -192,7 +192,7 @@ def allan_deviation(
     if a.dtype.kind not in "fiu":
         raise CalibrationError(f"x: unsupported dtype {a.dtype}; give real numbers")
     a = a.astype(np.float64)
-    fs_v = _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
+    fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     one = a.ndim == 1
     a2 = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
     n = a2.shape[0]
@@ -237,7 +237,7 @@ def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[
     points (the dwell pass's ``DwellSet.inflation``). Per axis, the median over dwells is used
     for every dwell (a single dwell's ratio is noisy), at least 1. Returns (k, 3).
     """
-    _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
+    number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     if dwells.start is None or dwells.stop is None:
         raise CalibrationError("noise_inflation needs dwell start/stop indices")
     per = dwell_stats(samples, np.column_stack([dwells.start, dwells.stop])).inflation
@@ -248,20 +248,6 @@ def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[
 
 # ----------------------------------------------------------------------------------------------
 # Argument checks (CalibrationError naming the argument, the value and the valid range).
-
-
-def _number(name: str, value: Any, lo: float, hi: float, *, integer: bool = False,
-            lo_open: bool = False, hi_open: bool = False, kind: str = "") -> Any:
-    rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-    kind = kind or ("an integer" if integer else "a number")
-    ok_type = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-        value, (bool, np.bool_))
-    v = float(value) if ok_type else math.nan
-    bad = (not ok_type or not math.isfinite(v) or (integer and v != round(v)) or v < lo or v > hi
-           or (lo_open and v == lo) or (hi_open and v == hi))
-    if bad:
-        raise CalibrationError(f"{name} must be {kind} in {rng}; got {value!r}")
-    return int(v) if integer else v
 
 
 def _choice(name: str, value: Any, options: Sequence[str]) -> Any:
@@ -277,17 +263,17 @@ def _settings(*, alpha: Any, max_effects: Any, loo: Any, test: Any, gate: Any,
     """Validated engine settings; the preset fills ``trust_level`` / ``gate_margin``."""
     pr = PRESETS[_choice("preset", preset, list(PRESETS))]
     return _core.GapSettings(
-        alpha=_number("alpha", alpha, 0.0, 1.0, lo_open=True, hi_open=True),
-        max_effects=_number("max_effects", max_effects, 0, 16, integer=True),
+        alpha=number(alpha, "alpha", lo=0.0, hi=1.0, lo_open=True),
+        max_effects=number(max_effects, "max_effects", lo=0, hi=16, integer=True),
         loo=bool(loo),
         test=_choice("test", test, ("auto", "chi2", "f")),
         gate=_choice("gate", gate, ("auto", "strict", "off")),
-        trust_level=_number("trust_level", pr["trust_level"] if trust_level is None
-                            else trust_level, 0.0, 1.0, hi_open=True),
+        trust_level=number(pr["trust_level"] if trust_level is None
+                            else trust_level, "trust_level", lo=0.0, hi=1.0),
         correction=_choice("correction", correction, ("minp", "bonferroni")),
-        n_draws=_number("n_draws", n_draws, 0, 1_000_000, integer=True),
-        gate_margin=_number("gate_margin", pr["gate_margin"] if gate_margin is None
-                            else gate_margin, 0.0, 1e6),
+        n_draws=number(n_draws, "n_draws", lo=0, hi=1_000_000, integer=True),
+        gate_margin=number(pr["gate_margin"] if gate_margin is None
+                            else gate_margin, "gate_margin", lo=0.0, hi=1e6),
     )
 
 
@@ -309,11 +295,9 @@ def _names(effects: Any, known: Sequence[str]) -> list[str]:
 
 
 def _real(x: Any, name: str, shape: tuple[int, ...] | None = None) -> _F64:
-    """A real float64 array (bool, complex, object and text refused), optionally of a shape."""
-    a = np.asarray(x)
-    if a.dtype.kind not in "fiu":
-        raise CalibrationError(f"{name}: unsupported dtype {a.dtype}; give real numbers")
-    a = np.ascontiguousarray(a, dtype=np.float64)
+    """A finite, contiguous float64 array (``real_array`` refuses bool, complex and text),
+    optionally of a given shape."""
+    a = np.ascontiguousarray(real_array(x, name))
     if shape is not None and a.shape != shape:
         raise CalibrationError(f"{name} must have shape {shape}; got {a.shape}")
     if not np.all(np.isfinite(a)):
@@ -934,7 +918,7 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
         return data, None, data.fs
     if fs is None:
         raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
-    fs_v = _number("fs", fs, 0.0, math.inf, lo_open=True, hi_open=True)
+    fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     samples = samples_array(data, "samples")
     try:
         d = detect_dwells(samples, fs_v, t=t, temperature=temperature)
@@ -1106,8 +1090,7 @@ def diagnose(
     settings = _settings(alpha=alpha, max_effects=max_effects, loo=loo, test=test, gate=gate,
                          trust_level=trust_level, correction=correction, n_draws=n_draws,
                          gate_margin=gate_margin, preset=preset)
-    g_v = _number("g", g, 0.0, math.inf, lo_open=True, hi_open=True,
-                  kind="a positive gravity value in m/s^2")
+    g_v = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
     eff = _names(effects, list(EFFECTS))
     cal = _calibration(fit, g_v)
     nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))
@@ -1207,8 +1190,8 @@ def diagnose_centrifuge(
     om = _real(omega, "omega").reshape(-1)
     if om.shape != (k,):
         raise CalibrationError(f"omega must have {k} values (rad/s); got {om.shape}")
-    radius_v = _number("radius", radius, 0.0, math.inf, lo_open=True, hi_open=True)
-    g_v = _number("g", g, 0.0, math.inf, lo_open=True, hi_open=True)
+    radius_v = number(radius, "radius", lo=0.0, lo_open=True, unit="m")
+    g_v = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
     c3 = None if spin_axis is None else _real(spin_axis, "spin_axis", (k, 3))
     names = _names(effects, list(CENTRIFUGE_EFFECTS))
     s_norm = s_axis = None
@@ -1289,7 +1272,7 @@ def diagnose_gradiometer(
     tt = None if t is None else _real(t, "t").reshape(-1)
     if tt is not None and tt.shape != (m,):
         raise CalibrationError(f"t must have {m} finite values (s); got {tt.shape}")
-    tau = _number("warmup_tau_s", warmup_tau_s, 0.0, math.inf, lo_open=True, hi_open=True)
+    tau = number(warmup_tau_s, "warmup_tau_s", lo=0.0, lo_open=True, unit="s")
     names = _names(effects, list(GRADIOMETER_EFFECTS))
     if sigma is None:
         sig = None

@@ -6,7 +6,8 @@
 //! with `w = K^-T a/|a|` and `Sigma_k` the per-axis variance of the dwell mean, re-evaluated at
 //! every parameter vector (maximum likelihood to first order in the noise, the
 //! gradient-weighted form of the orthogonal-distance fit; the Jacobian includes the
-//! derivative of `sigma_k`). Without a noise model `Sigma_k = I` and the engine scales.
+//! derivative of `sigma_k`): the static fit's own cost ([`crate::static_fit::cost`]) applied to
+//! the effect-corrected output. Without a noise model `Sigma_k = I` and the engine scales.
 //!
 //! Effect dictionary (terms subtracted from the raw output; `c_i = s_i g` raw units per g,
 //! `z = am - b`, `dT` temperature minus its mean, `th` hours from the mean time); every effect
@@ -32,6 +33,7 @@ use super::structure::{self, SmoothTest, StructureInput};
 use super::{locate, GapOptions, GapResult, RowInfo, Status, System};
 use crate::error::{degenerate, invalid, CoreError, Result};
 use crate::lsq::lstsq_qr;
+use crate::static_fit::{eval_dwell, inv_k, ml_row, Model};
 use nalgebra::{DMatrix, Matrix3, Vector3};
 
 const MICRO: f64 = 1e-6;
@@ -455,35 +457,17 @@ impl StaticModel {
                 dydz[i] -= pe * hp;
             }
         }
-        let kmat = Matrix3::new(bp[0], 0.0, 0.0, bp[6], bp[1], 0.0, bp[7], bp[8], bp[2]);
-        let t = kmat.try_inverse()?;
-        let a = t * Vector3::new(y[0], y[1], y[2]);
-        let norm = a.norm();
-        if !(norm > 0.0) || !norm.is_finite() {
-            return None;
-        }
-        let u = a / norm;
-        let w = t.tr_mul(&u);
-        let s2 = (0..3).map(|i| w[i] * w[i] * var[i]).sum::<f64>();
-        if !(s2 > 0.0) || !s2.is_finite() {
-            return None;
-        }
-        let sigma = s2.sqrt();
-        let r = norm - self.g;
-        // d sigma^2 / dy = 2 q with q = T^T (zz - (zz.u) u) / |a|, zz = T Sigma w.
-        let zz = t * Vector3::new(var[0] * w[0], var[1] * w[1], var[2] * w[2]);
-        let q = t.tr_mul(&((zz - u * zz.dot(&u)) / norm));
-        let c3 = r / (sigma * sigma * sigma);
-        let gy = w / sigma - q * c3;
-        let kij = |i: usize, j: usize| -w[i] * a[j] / sigma + c3 * (w[i] * zz[j] + q[i] * a[j]);
-        let gk = [
-            kij(0, 0),
-            kij(1, 1),
-            kij(2, 2),
-            kij(1, 0),
-            kij(2, 0),
-            kij(2, 1),
-        ];
+        // The static fit's maximum-likelihood pieces on the effect-corrected output
+        // `y + b`: residual, w, sigma and d e / d p (with the derivative of sigma).
+        let t = inv_k(Model::Lower, bp).ok()?;
+        let out = [y[0] + bp[3], y[1] + bp[4], y[2] + bp[5]];
+        let d = eval_dwell(&t, bp, &out, *var, self.g).ok()?;
+        let mut row = [0.0; N_BASE];
+        ml_row(Model::Lower, &t, &d, &mut row);
+        // d e / d b_i = -d e / d y_i (at fixed effects): the gradient in the corrected output.
+        let gy = Vector3::new(-row[3], -row[4], -row[5]);
+        let gk = [row[0], row[1], row[2], row[6], row[7], row[8]];
+        let (r, sigma, a, w) = (d.r, d.sigma, d.a, d.w);
         Some(RowEval {
             r,
             sigma,
