@@ -1,11 +1,15 @@
 """Withheld-effect session generator for checking the gap diagnosis (dwell-mean level).
 
-A session has a random nuisance calibration (scale, bias, non-orthogonality), a pose set and
-order, a temperature profile, dwell-mean noise, and 0, 1 or 2 hidden effects of random
+:func:`gap_session`: a random nuisance calibration (scale, bias, non-orthogonality), a pose
+set and order, a temperature profile, dwell-mean noise, and 0, 1 or 2 hidden effects of random
 magnitude, plus optional effects outside the dictionary (bias random walk) and blind-spot
-effects (wrong g, upper-triangular coupling). The diagnoser is given only ``dwells`` and ``g``.
-Effect terms follow exactly the definitions of the diagnosis (rust/src/gap.rs), so the hidden
-parameters are in the same physical units (ug/K, ppm/K, ug/h, ug/g^2, ug/g^3, ppm of step).
+effects (wrong g, upper-triangular coupling). Effect terms follow exactly the definitions of
+the static dictionary, so the hidden parameters are in the same physical units (ug/K, ppm/K,
+ug/h, ug/g^2, ug/g^3, ppm of step).
+
+:func:`structure_session`: sessions whose gap has a known structure (per-dwell offsets,
+correlated noise, attitude pattern, hysteresis, quantisation, time and temperature trends),
+with half-dwell means. The diagnoser is given only ``dwells`` and ``g``.
 """
 
 from __future__ import annotations
@@ -83,7 +87,7 @@ def _random_rotation(gen: np.random.Generator) -> NDArray[np.float64]:
 def _terms(name: str, p: NDArray[np.float64], z: NDArray[np.float64], c: NDArray[np.float64],
            dT: NDArray[np.float64], th: NDArray[np.float64],
            step: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Output term (k, 3) of a dictionary effect, raw units (same definitions as gap.rs)."""
+    """Output term (k, 3) of a dictionary effect, raw units (the definitions of the static dictionary)."""
     u = 1e-6 * p[None, :]
     if name == "temperature_bias":
         return u * c[None, :] * dT[:, None]
