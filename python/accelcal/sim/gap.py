@@ -87,7 +87,7 @@ def _random_rotation(gen: np.random.Generator) -> NDArray[np.float64]:
 def _terms(name: str, p: NDArray[np.float64], z: NDArray[np.float64], c: NDArray[np.float64],
            dT: NDArray[np.float64], th: NDArray[np.float64],
            step: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Output term (k, 3) of a dictionary effect, raw units (the definitions of the static dictionary)."""
+    """Output term (k, 3) of a dictionary effect, raw units (the static dictionary's terms)."""
     u = 1e-6 * p[None, :]
     if name == "temperature_bias":
         return u * c[None, :] * dT[:, None]
