@@ -317,7 +317,8 @@ class StructureTest:
         or "per_dwell".
     status : "testable", "too_few_dwells" (not testable: too few degrees of freedom), "blind"
         (every column absorbed by the model), "no_time", "no_temperature",
-        "constant_temperature".
+        "constant_temperature", "no_half_dwell_means" (persistence), "no_lsb" (quantisation:
+        no output resolution or within-dwell variance), "no_noise_model".
     n_columns, d : columns offered and directions tested (outside the model's range).
     statistic : F for the smooth and persistence tests, chi2/dof with the quantisation bias in
         the noise model for "quantization", chi2/dof for "per_dwell".

@@ -53,6 +53,12 @@ pub enum Status {
     NoSpinAxis,
     /// Too few rows left for a test.
     TooFewRows,
+    /// Needs the first- and second-half means of every dwell; none were given.
+    NoHalfMeans,
+    /// Needs the output resolution and the within-dwell variances; not given.
+    NoLsb,
+    /// Needs a noise model (per-dwell variance); none was given.
+    NoNoiseModel,
 }
 
 impl Status {
@@ -66,6 +72,9 @@ impl Status {
             Status::NoTime => "no_time",
             Status::NoSpinAxis => "no_spin_axis",
             Status::TooFewRows => "too_few_dwells",
+            Status::NoHalfMeans => "no_half_dwell_means",
+            Status::NoLsb => "no_lsb",
+            Status::NoNoiseModel => "no_noise_model",
         }
     }
 }

@@ -358,10 +358,11 @@ fn persistence(
     sin: &StructureInput,
     eng: &EngineResult,
 ) -> (StructureTest, f64, Option<NoiseEmpirical>) {
-    let mut t = StructureTest::new("persistence", Status::TooFewRows);
+    let mut t = StructureTest::new("persistence", Status::NoHalfMeans);
     let Some((r1, r2)) = &sin.halves else {
         return (t, f64::NAN, None);
     };
+    t.status = Status::TooFewRows;
     let sig = &eng.sigma_after;
     let ok: Vec<usize> = (0..r1.len())
         .filter(|&k| r1[k].is_finite() && r2[k].is_finite() && sig[k] > 0.0)
@@ -456,12 +457,17 @@ pub fn per_dwell_offset(r: &[f64], sigma: &[f64], dof: usize) -> f64 {
 /// The quantisation test: how much of the excess chi2 the predicted quantisation bias of the
 /// dwell means explains, and the p-value of what remains with it in the noise model.
 fn quantization(sin: &StructureInput, eng: &EngineResult) -> (StructureTest, f64) {
-    let mut t = StructureTest::new("quantization", Status::TooFewRows);
+    let mut t = StructureTest::new("quantization", Status::NoLsb);
     let Some(q) = &sin.quant_var else {
         return (t, f64::NAN);
     };
     let qrms = (q.iter().sum::<f64>() / q.len().max(1) as f64).sqrt();
     if !eng.noise_known || eng.dof_after == 0 {
+        t.status = if eng.noise_known {
+            Status::TooFewRows
+        } else {
+            Status::NoNoiseModel
+        };
         return (t, qrms);
     }
     let (r, s) = (&eng.resid_after, &eng.sigma_after);
@@ -483,7 +489,12 @@ fn quantization(sin: &StructureInput, eng: &EngineResult) -> (StructureTest, f64
 
 /// The per-dwell offset as a test: its share of the residual variance and the remaining gap.
 fn per_dwell(eng: &EngineResult) -> (StructureTest, f64) {
-    let mut t = StructureTest::new("per_dwell", Status::TooFewRows);
+    let st = if eng.noise_known {
+        Status::TooFewRows
+    } else {
+        Status::NoNoiseModel
+    };
+    let mut t = StructureTest::new("per_dwell", st);
     if !eng.noise_known || eng.dof_after == 0 {
         return (t, f64::NAN);
     }
