@@ -40,6 +40,22 @@ def test_demo_quick_finds_all_dwells_and_writes_figures(tmp_path: Path) -> None:
     assert pngs == ["field_norm.png", "gap.png", "planned_poses.png"]
 
 
+def test_demo_json_reports_the_field_fit_against_the_truth() -> None:
+    from accelcal.sim import SEED000_TRUTH
+
+    code, out = run("demo", "--quick", "--no-figures", "--json")
+    assert code == 0, out
+    res = json.loads(out)
+    assert set(res["sections"]) == {"field", "gap", "centrifuge", "gradiometer"}
+    assert res["field"]["n_dwells"] == 20 and res["figures"] is None
+    fit = res["field"]["fit"]
+    v = np.array(fit["vector"])
+    std = np.array(fit["std"])
+    # The demo's field session is simulated with the seed-000 truth: within 5 reported std.
+    assert np.all(np.abs(v - SEED000_TRUTH) < 5 * std), (v, std)
+    assert res["gap"]["best"] in res["sections"]["gap"]
+
+
 def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
     cal = tmp_path / "cal.json"
     code, out = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "-o", str(cal),

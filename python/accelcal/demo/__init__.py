@@ -7,6 +7,7 @@ gradiometer sections. Each section is a function returning printable text.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -58,19 +59,54 @@ def _field(*, quick: bool, seed: int) -> tuple[str, Any, Any]:
     return "\n".join(lines), d, fit
 
 
+@dataclass
+class DemoResult:
+    """What ``accelcal demo`` found: the printable text of each section, the field
+    calibration and the gap report behind them, and the figures written."""
+
+    sections: dict[str, str]
+    fit: Any
+    n_dwells: int
+    gap: Any
+    figures: str | None = None
+
+    @property
+    def text(self) -> str:
+        parts = list(self.sections.values())
+        if self.figures is not None:
+            parts.append(self.figures)
+        return "\n\n".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (``accelcal demo --json``)."""
+        return {
+            "sections": dict(self.sections),
+            "field": {
+                "n_dwells": self.n_dwells,
+                "fit": None if self.fit is None else self.fit.to_dict(),
+            },
+            "gap": self.gap.to_dict(),
+            "figures": self.figures,
+        }
+
+
+def demo_result(*, quick: bool = False, out: str | None = None, seed: int = 0) -> DemoResult:
+    """Run every demo section; figures go to ``out`` when it is given."""
+    text, dwells, fit = _field(quick=quick, seed=seed)
+    gap_text, gap_rep = gap_demo_report(rng_seed=seed)
+    sections = {
+        "field": text,
+        "gap": gap_text,
+        "centrifuge": centrifuge_demo(rng_seed=seed),
+        "gradiometer": gradiometer_demo(rng_seed=seed),
+    }
+    figures = None if out is None else _figures(out, dwells, fit, gap_rep)
+    return DemoResult(sections, fit, len(dwells), gap_rep, figures)
+
+
 def run_demo(*, quick: bool = False, out: str | None = None, seed: int = 0) -> str:
     """All demo sections as one text."""
-    text, dwells, fit = _field(quick=quick, seed=seed)
-    parts = [text, ""]
-    gap_text, gap_rep = gap_demo_report(rng_seed=seed)
-    parts.append(gap_text)
-    for section in (centrifuge_demo, gradiometer_demo):
-        parts.append("")
-        parts.append(section(rng_seed=seed))
-    if out is not None:
-        parts.append("")
-        parts.append(_figures(out, dwells, fit, gap_rep))
-    return "\n".join(parts)
+    return demo_result(quick=quick, out=out, seed=seed).text
 
 
 def _figures(out: str, dwells: Any, fit: Any, gap_rep: Any) -> str:
