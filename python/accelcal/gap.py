@@ -191,7 +191,8 @@ def allan_deviation(
     a = np.asarray(x)
     if a.dtype.kind not in "fiu":
         raise CalibrationError(f"x: unsupported dtype {a.dtype}; give real numbers")
-    a = a.astype(np.float64)
+    # C order: NumPy's pairwise sums depend on the memory layout, the result must not.
+    a = np.ascontiguousarray(a, dtype=np.float64)
     fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     one = a.ndim == 1
     a2 = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
