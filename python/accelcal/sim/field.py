@@ -1,4 +1,6 @@
-"""Simulator of a static field-calibration session (seed 000): raw high-rate streams with truth."""
+"""Simulator of a static field-calibration session: raw high-rate streams with known truth
+(the setting of Huang et al.'s field calibration of an atomic gravimeter's accelerometer by
+norm observation: a triad on a two-axis stabilised platform, tilts within +-30 deg)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ from .._triad import gravity_from_tilts, k_matrix
 
 __all__ = ["SEED000_TRUTH", "FieldSession", "field_session", "gravity_from_tilts"]
 
-#: The seed's truth [sx, sy, sz, bx, by, bz, m1, m2, m3] (SPEC 1; b in m/s^2).
+#: The norm-observation paper's simulation truth [sx, sy, sz, bx, by, bz, m1, m2, m3]
+#: (b in m/s^2).
 SEED000_TRUTH: NDArray[np.float64] = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
 
 
@@ -57,7 +60,7 @@ def field_session(
     sigma: float = 1e-3,
     rng: int | np.random.Generator | None = 0,
 ) -> FieldSession:
-    """Simulate a seed-000-like field session as a raw stream.
+    """Simulate a field session on a two-axis platform as a raw stream.
 
     The platform holds ``n_dwells`` attitudes for ``dwell_s`` seconds each, tilts uniform in
     +-``max_tilt_deg`` (or the given ``tilts_deg`` (n, 2)), and moves between them over

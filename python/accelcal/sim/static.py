@@ -1,4 +1,5 @@
-"""The seed-000 paper's dwell-mean simulation (SPEC 1, sec. 3), with known truth.
+"""Dwell means of a static session with known truth, as simulated by the norm-observation
+paper (Huang et al., field calibration of an atomic gravimeter's accelerometer; its sec. 3).
 
 Attitudes are platform tilts ``(tx, ty)`` in degrees, giving the specific force
 ``a = [-g sin ty, g sin tx cos ty, g cos tx cos ty]``, or unit gravity directions (n, 3) for
@@ -89,7 +90,7 @@ def static_dwell_means(
     *,
     model: str = "lower",
 ) -> StaticSession:
-    """Simulate dwell means as in the seed paper (SPEC 1 settings).
+    """Simulate dwell means with the norm-observation paper's settings.
 
     Parameters
     ----------
