@@ -12,7 +12,8 @@ $(VENV)/.deps: pyproject.toml
 	python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q "maturin>=1.9.4,<2" "numpy>=1.24" "click>=8.1" "tqdm>=4.60" \
-	  "pytest>=8" "hypothesis>=6.90" "scipy>=1.11" "pytest-benchmark>=4" "mypy>=1.10" "matplotlib>=3.7" "h5py>=3.8" ruff
+	  "pytest>=8" "hypothesis>=6.90" "scipy>=1.11" "pytest-benchmark>=4" "mypy>=1.10" "matplotlib>=3.7" "h5py>=3.8" ruff \
+	  "pandas>=1.5" "pyarrow>=12" "dask[distributed]>=2023.1"
 	touch $@
 
 venv: $(VENV)/.deps

@@ -27,6 +27,7 @@ from .design import (
     predict_accuracy,
     predict_startup_accuracy,
 )
+from .fleet import FleetReport, calibrate_many, fleet_report
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from .gap import GapReport, allan_deviation, diagnose
 from .gap_systems import diagnose_centrifuge, diagnose_gradiometer
@@ -79,6 +80,9 @@ __all__ = [
     "diagnose_gradiometer",
     "detect_dwells",
     "dwell_stats",
+    "FleetReport",
+    "calibrate_many",
+    "fleet_report",
     "BatchFit",
     "PosePlan",
     "Prediction",
