@@ -879,7 +879,8 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
         raise CalibrationError(f"z must be a positive number (robust z limit); got {z!r}")
     counts = {s: int((df["status"] == s).sum()) for s in STATUSES}
     ok = df[df["status"] == "ok"]
-    dists, outliers = [], []
+    dists: list[dict[str, Any]] = []
+    outliers: list[dict[str, Any]] = []
     params = [p for p in PARAM_NAMES if p in df.columns]
     for p in params:
         x = ok[p].to_numpy(dtype=float)
