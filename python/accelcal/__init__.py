@@ -27,8 +27,8 @@ from .design import (
     predict_accuracy,
     predict_startup_accuracy,
 )
-from .fleet import FleetReport, calibrate_many, fleet_report
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
+from .fleet import FleetReport, calibrate_many, fleet_report
 from .gap import GapReport, allan_deviation, diagnose
 from .gap_systems import diagnose_centrifuge, diagnose_gradiometer
 from .gradiometer import (

@@ -848,6 +848,7 @@ class FleetReport:
                             ha="right", fontsize=7, color="tab:red")
             ax.set_xlabel(f"{p} ({d['unit']})")
             ax.set_ylabel("recordings")
+            ax.locator_params(axis="x", nbins=5)
         for ax in axs[len(dists):]:
             ax.set_axis_off()
         n_out = len({o["sensor_id"] for o in self.outliers})
