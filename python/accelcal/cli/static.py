@@ -20,10 +20,11 @@ from ._common import (
     main,
     recording_options,
 )
+from .fleet import fleet_options, is_fleet_run, run_static_fleet
 
 
 @calibrate.command("static")
-@click.argument("file", type=click.Path())
+@click.argument("files", metavar="FILE...", nargs=-1, type=click.Path())
 @gravity_options
 @recording_options
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
@@ -44,14 +45,27 @@ from ._common import (
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="Norm before/after and per-dwell residuals (PNG/PDF/SVG).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@fleet_options
 @friendly
 def calibrate_static(
-    file: str, g: float | None, lat: float | None, height: float, fs: float | None,
+    files: tuple[str, ...], g: float | None, lat: float | None, height: float, fs: float | None,
     columns: str | None, model: str, method: str, window_s: float, k_thr: float,
     min_dwell_s: float, sensor_id: str, output: str | None,
-    dwells_out: str | None, plot_path: str | None, as_json: bool,
+    dwells_out: str | None, plot_path: str | None, as_json: bool, **fleet: Any,
 ) -> None:
-    """Static field calibration: detect dwells, fit scale, bias and non-orthogonality."""
+    """Static field calibration: detect dwells, fit scale, bias and non-orthogonality.
+
+    Several recordings (or --summary, --out, --scheduler, --manifest) make a fleet run: one
+    row per recording in a summary table, one calibration file per sensor, on all local
+    cores or a Dask cluster; see `accelcal fleet report`.
+    """
+    if is_fleet_run(files, fleet):
+        return run_static_fleet(
+            files, g=g, lat=lat, height=height, fs=fs, columns=columns, model=model,
+            method=method, window_s=window_s, k_thr=k_thr, min_dwell_s=min_dwell_s,
+            sensor_id=sensor_id, output=output, dwells_out=dwells_out, plot_path=plot_path,
+            as_json=as_json, **fleet)
+    file = files[0]
     import datetime
     import warnings
 
