@@ -485,13 +485,17 @@ def _need_distributed() -> Any:
     return distributed
 
 
+#: How long to keep trying to reach a scheduler given by address, s.
+_CONNECT_TIMEOUT_S = 20.0
+
+
 def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -> list[Result]:
     distributed = _need_distributed()
     names = _names(cli)
     own = False
     if isinstance(client, str):
         try:
-            client = distributed.Client(client, timeout="20s")
+            client = distributed.Client(client, timeout=f"{_CONNECT_TIMEOUT_S:g}s")
         except (OSError, TimeoutError, ValueError) as e:
             raise CalibrationError(
                 f"cannot reach the Dask scheduler at {client!r} ({names['client']}): {e}"
