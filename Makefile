@@ -2,23 +2,29 @@
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 PIP    := $(VENV)/bin/pip
+WHEELS := target/wheels
 export CARGO_TERM_COLOR := never
 
-.PHONY: test venv build cargo-test pytest stubtest bench lint clean
+# Development and test dependencies (the package's own come from pyproject.toml).
+DEV_DEPS := "maturin>=1.9.4,<2" "numpy>=1.24" "click>=8.1" "tqdm>=4.60" "jsonschema>=4.18" \
+  "pytest>=8" "hypothesis>=6.90" "scipy>=1.11" "pytest-benchmark>=4" "mypy>=1.10" \
+  "matplotlib>=3.7" "h5py>=3.8" "pandas>=2.0" "pyarrow>=14" "dask[distributed]>=2024.1" ruff
 
-test: build cargo-test pytest stubtest
+.PHONY: test venv build cargo-test pytest stubtest lint wheel wheel-check bench clean
 
-$(VENV)/.deps: pyproject.toml
+# One release build of the extension serves pytest, stubtest and the wheel (same features,
+# same profile: maturin reuses every compiled artefact); `cargo test --release` reuses the
+# compiled dependencies.
+test: build lint cargo-test pytest stubtest wheel-check
+
+$(VENV)/.deps: pyproject.toml Makefile
 	python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
-	$(PIP) install -q "maturin>=1.9.4,<2" "numpy>=1.24" "click>=8.1" "tqdm>=4.60" \
-	  "pytest>=8" "hypothesis>=6.90" "scipy>=1.11" "pytest-benchmark>=4" "mypy>=1.10" "matplotlib>=3.7" "h5py>=3.8" ruff \
-	  "pandas>=1.5" "pyarrow>=12" "dask[distributed]>=2023.1"
+	$(PIP) install -q $(DEV_DEPS)
 	touch $@
 
 venv: $(VENV)/.deps
 
-# One release build of the extension; `cargo test --release` then reuses every compiled dependency.
 build: venv
 	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH $(VENV)/bin/maturin develop --release -q
 
@@ -31,15 +37,29 @@ pytest: build
 stubtest: build
 	$(PY) -m mypy.stubtest accelcal._core --allowlist stubtest-allowlist.txt
 
-bench: build
-	cargo bench --bench core
-	$(PY) -m pytest benches -o addopts="" -o python_files="bench_*.py" -p no:cacheprovider -q -s --benchmark-only --benchmark-columns=median,ops
-
-lint:
+lint: venv
 	cargo fmt --check
 	cargo clippy --all-targets --all-features -- -D warnings
 	$(VENV)/bin/ruff check python tests benches examples
 	$(PY) -m mypy python/accelcal
+
+# An abi3 wheel (CPython >= 3.10) in target/wheels.
+wheel: venv
+	rm -f $(WHEELS)/accelcal-*.whl
+	$(VENV)/bin/maturin build --release -q -o $(WHEELS)
+
+# The wheel installs into a clean virtual environment and runs the main job.
+wheel-check: wheel
+	rm -rf target/wheel-venv
+	python3 -m venv target/wheel-venv
+	target/wheel-venv/bin/pip install -q $(WHEELS)/accelcal-*.whl
+	cd target && wheel-venv/bin/accelcal demo --quick --no-figures > wheel-demo.txt
+	grep -q "Static field calibration" target/wheel-demo.txt
+	@echo "wheel-check: $$(ls $(WHEELS)/accelcal-*.whl) installs into a clean venv and runs 'accelcal demo --quick'"
+
+bench: build
+	cargo bench --bench core
+	$(PY) -m pytest benches -o addopts="" -o python_files="bench_*.py" -p no:cacheprovider -q -s --benchmark-only --benchmark-columns=median,ops
 
 clean:
 	rm -rf $(VENV) target
