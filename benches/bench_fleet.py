@@ -82,7 +82,7 @@ def _cluster(n_workers: int) -> Any:
     import distributed
 
     cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1,
-                                       processes=True, dashboard_address=None)
+                                       processes=True, dashboard_address=":0")
     client = distributed.Client(cluster)
     client.run(lambda: __import__("accelcal.fleet"))  # workers' first import, not timed
     return cluster, client

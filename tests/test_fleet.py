@@ -164,6 +164,8 @@ def test_unreachable_scheduler_is_a_clear_error(quick_timeout: None) -> None:
         ac.calibrate_many(["x.csv"], g=G0, client="tcp://127.0.0.1:1", progress=False)
     with pytest.raises(ac.CalibrationError, match="dask.distributed.Client"):
         ac.calibrate_many(["x.csv"], g=G0, client=42, progress=False)
+    with pytest.raises(ac.CalibrationError, match="workers= sets local processes"):
+        ac.calibrate_many(["x.csv"], g=G0, client="tcp://127.0.0.1:1", workers=2)
 
 
 def _rayon_threads_started() -> int:

@@ -452,8 +452,8 @@ def _run_local(jobs: list[_Job], workers: int, progress: bool | None) -> list[Re
         # spawn: fresh interpreters, so rayon's pool starts in each worker after the
         # initializer has set its size (a forked rayon pool would not survive the fork).
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                 initializer=_init_worker) as ex:
+        ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
+        try:
             futs = {ex.submit(_calibrate_one, j): j for j in jobs}
             for f in as_completed(futs):
                 j = futs[f]
@@ -465,7 +465,18 @@ def _run_local(jobs: list[_Job], workers: int, progress: bool | None) -> list[Re
                 except Exception as e:  # noqa: BLE001 - e.g. a result that cannot be sent back
                     out[j.index] = _failed(j, f"worker failed: {type(e).__name__}: {e}")
                 bar.update(1)
+        except BaseException:  # Ctrl-C: drop what has not started, do not wait for it
+            ex.shutdown(wait=False, cancel_futures=True)
+            raise
+        ex.shutdown(wait=True)
     return [r for r in out if r is not None]
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
 
 
 def _failed(job: _Job, msg: str) -> Result:
@@ -510,15 +521,20 @@ def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -
     try:
         futs = client.map(_calibrate_one_dask, jobs, pure=False)
         by_key = {f.key: j for f, j in zip(futs, jobs, strict=True)}
-        with _bar(len(jobs), progress) as bar:
-            for f in distributed.as_completed(futs):
-                j = by_key[f.key]
-                try:
-                    out[j.index] = f.result()
-                except Exception as e:  # noqa: BLE001 - a lost worker stays in its row
-                    out[j.index] = _failed(j, f"the Dask task failed: {type(e).__name__}: {e}")
-                f.release()
-                bar.update(1)
+        try:
+            with _bar(len(jobs), progress) as bar:
+                for f in distributed.as_completed(futs):
+                    j = by_key[f.key]
+                    try:
+                        out[j.index] = f.result()
+                    except Exception as e:  # noqa: BLE001 - a lost worker stays in its row
+                        out[j.index] = _failed(
+                            j, f"the Dask task failed: {type(e).__name__}: {e}")
+                    f.release()
+                    bar.update(1)
+        except BaseException:  # Ctrl-C: cancel what is still queued on the cluster
+            client.cancel(futs)
+            raise
     finally:
         if own:
             client.close()
@@ -714,6 +730,9 @@ def calibrate_many(
                                 or workers < 1):
         raise CalibrationError(f"{names['workers']} must be a positive integer (processes); "
                                f"got {workers!r}")
+    if workers is not None and client is not None:
+        raise CalibrationError(f"{names['workers']} sets local processes; with "
+                               f"{names['client']} the cluster's workers do the work")
     if g is not None:
         gv = _num(g, "g (m/s^2)", names["g"])
         if gv is None or gv <= 0:
@@ -742,7 +761,7 @@ def calibrate_many(
     if client is not None:
         results = _run_dask(jobs, client, progress, _cli)
     else:
-        n = workers if workers is not None else (os.cpu_count() or 1)
+        n = workers if workers is not None else _cores()
         results = _run_local(jobs, max(1, min(n, len(jobs))), progress)
 
     if out is not None:
