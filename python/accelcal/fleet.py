@@ -162,8 +162,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
         row["message"] = (
-            f"{int(bad.sum())} of {n} data rows hold NaN or inf samples (first at data row "
-            f"{first}); the recording is damaged"
+            f"{int(bad.sum())} of {n} data rows hold NaN or inf samples (the first is data row "
+            f"{first}, counting from 0); the recording is damaged"
         )
         return None
     settings = DetectorSettings(**job.detector)

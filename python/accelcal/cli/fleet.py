@@ -109,6 +109,8 @@ def run_static_fleet(
                + ", ".join(f"{counts[s]} {s}" for s in STATUSES))
     if not summary and not out_dir:
         cols = ["sensor_id", "status", "n_dwells", "rms_mps2", "chi2_dof"]
+        if diagnose_gap:
+            cols += ["gap_best", "gap_structure", "gap_chi2_dof"]
         click.echo(df[cols].to_string(index=False, na_rep="-"))
     bad = df[df["status"] != "ok"]
     for r in bad.itertuples():
