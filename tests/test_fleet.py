@@ -423,3 +423,22 @@ def test_cli_runs_as_a_program_with_a_progress_bar_off_a_terminal(fleet: dict[st
     assert p.returncode == 0, p.stderr
     assert "calibrating" not in p.stderr  # stderr is a pipe: no bar
     assert pd.read_parquet(tmp_path / "s.parquet")["status"].tolist() == ["ok"] * 3
+
+
+def test_missing_optional_dependencies_are_named(fleet: dict[str, Any], tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    r = next(r for r in fleet["recs"] if not r.corruption)
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "distributed", None)  # import fails as if not installed
+        with pytest.raises(ac.CalibrationError, match=r"pip install 'accelcal\[fleet\]'"):
+            ac.calibrate_many([r.path], g=G0, client="tcp://127.0.0.1:1")
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "pyarrow", None)
+        with pytest.raises(ac.CalibrationError, match=r"Parquet needs pyarrow"):
+            ac.calibrate_many([r.path], g=G0, workers=1, summary=tmp_path / "s.parquet",
+                              progress=False)
+    assert not (tmp_path / "s.parquet").exists() and not (tmp_path / "s.csv").exists()
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "pandas", None)
+        with pytest.raises(ac.CalibrationError, match=r"needs pandas"):
+            ac.calibrate_many([r.path], g=G0)
