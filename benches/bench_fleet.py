@@ -15,16 +15,19 @@ Four ways over the same files, in one process:
   ``LocalCluster(processes=True, threads_per_worker=1)`` with 1 and 2 worker processes
   (cluster start-up and the workers' first import excluded).
 
-Each run must report every corrupted file (status not ok) and lose none (one row per path);
-the script prints recordings/s, the 1 -> 2 worker scaling of the pool and of Dask (target
->= 1.8x) and the machine load before and after. ``python benches/bench_fleet.py --n 2000``
-for the full run, ``--n 200`` for a quick check.
+Each run must report every corrupted file (status not ok) and lose none (one row per path).
+The script prints recordings/s, CPU time per recording, the cores used (CPU time of this
+process, the pool's workers and the Dask workers over the wall time: about 1 or 2 on an idle
+machine, less when other jobs take the cores), the 1 -> 2 worker scaling of the pool and of
+Dask (target >= 1.8x) and the machine load before and after.
+``python benches/bench_fleet.py --n 2000`` for the full run, ``--n 200`` for a quick check.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import tempfile
 import time
@@ -40,7 +43,7 @@ from accelcal.sim.fleet import FleetRecording, fleet_recordings
 from accelcal.sim.static import G0
 
 N_BENCH = int(os.environ.get("ACCELCAL_BENCH_FLEET_N", "200"))
-_RESULTS: dict[str, float] = {}
+_RESULTS: dict[str, tuple[float, float]] = {}
 
 
 def make_fleet(folder: Path, n: int, seed: int = 0) -> list[FleetRecording]:
@@ -72,10 +75,27 @@ def check(recs: list[FleetRecording], df: Any) -> None:
     assert (df.loc[df["status"] != "ok", "message"] != "").all()
 
 
-def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
-    t0 = time.perf_counter()
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its reaped children (the pool's workers)."""
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+
+def _worker_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _timed(fn: Callable[[], Any], client: Any = None) -> tuple[float, float, Any]:
+    """Wall time, CPU time (here, the pool's workers and the Dask workers) and the result."""
+    w0 = sum(client.run(_worker_cpu_s).values()) if client is not None else 0.0
+    c0, t0 = _cpu_s(), time.perf_counter()
     out = fn()
-    return time.perf_counter() - t0, out
+    wall = time.perf_counter() - t0
+    cpu = _cpu_s() - c0
+    if client is not None:
+        cpu += sum(client.run(_worker_cpu_s).values()) - w0
+    return wall, cpu, out
 
 
 def _cluster(n_workers: int) -> Any:
@@ -88,41 +108,42 @@ def _cluster(n_workers: int) -> Any:
     return cluster, client
 
 
-def run_all(recs: list[FleetRecording], *, loop: bool = True) -> dict[str, float]:
+def run_all(recs: list[FleetRecording], *, loop: bool = True) -> dict[str, tuple[float, float]]:
+    """recordings/s and CPU seconds per recording of each method."""
     paths = [r.path for r in recs]
     n = len(paths)
-    out: dict[str, float] = {}
+    out: dict[str, tuple[float, float]] = {}
     if loop:
-        dt, st = _timed(lambda: plain_loop(paths))
+        dt, cpu, st = _timed(lambda: plain_loop(paths))
         assert sum(s != "ok" for s in st) == sum(bool(r.corruption) for r in recs)
-        out["loop"] = n / dt
-    dt, df = _timed(lambda: ac.calibrate_many(paths, g=G0, workers=1, progress=False))
+        out["loop"] = (n / dt, cpu / n)
+    dt, cpu, df = _timed(lambda: ac.calibrate_many(paths, g=G0, workers=1, progress=False))
     check(recs, df)
-    out["pool-1"] = n / dt
-    dt, df = _timed(lambda: ac.calibrate_many(paths, g=G0, progress=False))
+    out["pool-1"] = (n / dt, cpu / n)
+    dt, cpu, df = _timed(lambda: ac.calibrate_many(paths, g=G0, progress=False))
     check(recs, df)
-    out["pool"] = n / dt
+    out["pool"] = (n / dt, cpu / n)
     for w in (1, 2):
         cluster, client = _cluster(w)
         try:
-            dt, df = _timed(lambda c=client: ac.calibrate_many(paths, g=G0, client=c,
-                                                               progress=False))
+            dt, cpu, df = _timed(lambda c=client: ac.calibrate_many(paths, g=G0, client=c,
+                                                                    progress=False), client)
         finally:
             client.close()
             cluster.close()
         check(recs, df)
         assert df["worker"].nunique() == w
-        out[f"dask-{w}"] = n / dt
+        out[f"dask-{w}"] = (n / dt, cpu / n)
     return out
 
 
-def table(res: dict[str, float], n: int, loads: tuple[Any, Any]) -> str:
+def table(res: dict[str, tuple[float, float]], n: int, loads: tuple[Any, Any]) -> str:
     lines = [
         f"fleet of {n} recordings, {os.cpu_count()} cores; load average before "
         f"{loads[0][0]:.2f} {loads[0][1]:.2f} {loads[0][2]:.2f}, after {loads[1][0]:.2f} "
         f"{loads[1][1]:.2f} {loads[1][2]:.2f}",
-        "| method | recordings/s |",
-        "|---|---:|",
+        "| method | recordings/s | CPU ms per recording | cores used (CPU / wall) |",
+        "|---|---:|---:|---:|",
     ]
     names = {
         "loop": "plain loop (read_stream, detect_dwells, fit_static)",
@@ -131,16 +152,19 @@ def table(res: dict[str, float], n: int, loads: tuple[Any, Any]) -> str:
         "dask-1": "calibrate_many on Dask, 1 worker",
         "dask-2": "calibrate_many on Dask, 2 workers",
     }
-    for k, v in res.items():
-        lines.append(f"| {names[k]} | {v:.1f} |")
-    if {"dask-1", "dask-2"} <= res.keys():
-        lines.append(f"Dask scaling 1 -> 2 workers: {res['dask-2'] / res['dask-1']:.2f}x "
+    for k, (rate, cpu) in res.items():
+        cpu_txt = f"{cpu * 1e3:.1f}" if cpu > 0 else "-"
+        used = f"{rate * cpu:.2f}" if cpu > 0 else "-"
+        lines.append(f"| {names[k]} | {rate:.1f} | {cpu_txt} | {used} |")
+    r = {k: v[0] for k, v in res.items()}
+    if {"dask-1", "dask-2"} <= r.keys():
+        lines.append(f"Dask scaling 1 -> 2 workers: {r['dask-2'] / r['dask-1']:.2f}x "
                      "(target >= 1.8x)")
-    if {"pool-1", "pool"} <= res.keys():
+    if {"pool-1", "pool"} <= r.keys():
         lines.append(f"local scaling 1 -> {os.cpu_count()} processes: "
-                     f"{res['pool'] / res['pool-1']:.2f}x")
-    if {"loop", "pool"} <= res.keys():
-        lines.append(f"local pool vs plain loop: {res['pool'] / res['loop']:.2f}x")
+                     f"{r['pool'] / r['pool-1']:.2f}x")
+    if {"loop", "pool"} <= r.keys():
+        lines.append(f"local pool vs plain loop: {r['pool'] / r['loop']:.2f}x")
     return "\n".join(lines)
 
 
@@ -166,7 +190,7 @@ def test_plain_loop(benchmark: Any, fleet: list[FleetRecording]) -> None:
     paths = [r.path for r in fleet]
     st = benchmark.pedantic(plain_loop, args=(paths,), rounds=1, iterations=1)
     assert sum(s != "ok" for s in st) == sum(bool(r.corruption) for r in fleet)
-    _RESULTS["loop"] = len(paths) / benchmark.stats.stats.median
+    _RESULTS["loop"] = (len(paths) / benchmark.stats.stats.median, 0.0)
 
 
 @pytest.mark.parametrize("workers", [1, None])
@@ -176,7 +200,8 @@ def test_local_pool(benchmark: Any, fleet: list[FleetRecording], workers: int | 
                             kwargs={"g": G0, "workers": workers, "progress": False},
                             rounds=1, iterations=1)
     check(fleet, df)
-    _RESULTS["pool-1" if workers == 1 else "pool"] = len(paths) / benchmark.stats.stats.median
+    _RESULTS["pool-1" if workers == 1 else "pool"] = (
+        len(paths) / benchmark.stats.stats.median, 0.0)
 
 
 @pytest.mark.parametrize("n_workers", [1, 2])
@@ -191,7 +216,7 @@ def test_dask_cluster(benchmark: Any, fleet: list[FleetRecording], n_workers: in
         client.close()
         cluster.close()
     check(fleet, df)
-    _RESULTS[f"dask-{n_workers}"] = len(paths) / benchmark.stats.stats.median
+    _RESULTS[f"dask-{n_workers}"] = (len(paths) / benchmark.stats.stats.median, 0.0)
 
 
 def main() -> None:
