@@ -168,6 +168,15 @@ def test_unreachable_scheduler_is_a_clear_error(quick_timeout: None) -> None:
         ac.calibrate_many(["x.csv"], g=G0, client="tcp://127.0.0.1:1", workers=2)
 
 
+def test_a_cluster_without_workers_is_an_error_not_a_hang(quick_timeout: None) -> None:
+    import distributed
+
+    with distributed.LocalCluster(n_workers=0, processes=True, dashboard_address=":0") as cl:
+        with distributed.Client(cl) as client:
+            with pytest.raises(ac.CalibrationError, match=r"has no workers \(waited 1 s\)"):
+                ac.calibrate_many(["x.csv"], g=G0, client=client, progress=False)
+
+
 def _rayon_threads_started() -> int:
     """Threads the extension's rayon pool adds to a fresh process on first use."""
     from accelcal.sim import static_dwell_means

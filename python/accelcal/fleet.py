@@ -519,6 +519,15 @@ def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -
         )
     out: list[Result | None] = [None] * len(jobs)
     try:
+        if not client.scheduler_info().get("workers"):
+            try:  # a scheduler without workers would queue the recordings for ever
+                client.wait_for_workers(1, timeout=_CONNECT_TIMEOUT_S)
+            except Exception:  # noqa: BLE001 - dask raises its own TimeoutError types
+                raise CalibrationError(
+                    f"the Dask cluster at {client.scheduler.address} ({names['client']}) has "
+                    f"no workers (waited {_CONNECT_TIMEOUT_S:g} s); start some with "
+                    "`dask worker ADDRESS`"
+                ) from None
         futs = client.map(_calibrate_one_dask, jobs, pure=False)
         by_key = {f.key: j for f, j in zip(futs, jobs, strict=True)}
         try:
