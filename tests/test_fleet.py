@@ -249,6 +249,19 @@ def test_manifest_rows_override_the_defaults(fleet: dict[str, Any], tmp_path: Pa
     assert "fs= (Hz)" in df2.loc[3, "message"]
 
 
+def test_missing_files_folders_and_fifos_are_error_rows(fleet: dict[str, Any],
+                                                        tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo.csv"
+    os.mkfifo(fifo)  # reading it would block for ever
+    good = next(r for r in fleet["recs"] if not r.corruption).path
+    paths = [str(tmp_path / "gone.csv"), str(tmp_path), str(fifo), good]
+    df = ac.calibrate_many(paths, g=G0, workers=1, progress=False)
+    assert df["status"].tolist() == ["error", "error", "error", "ok"]
+    assert "file not found" in df.loc[0, "message"]
+    assert "is a folder" in df.loc[1, "message"]
+    assert "not a regular file" in df.loc[2, "message"]
+
+
 def test_latitude_gives_wgs84_gravity(fleet: dict[str, Any]) -> None:
     r = next(r for r in fleet["recs"] if not r.corruption)
     df = ac.calibrate_many([r.path], lat=48.0, height=300.0, workers=1, progress=False)

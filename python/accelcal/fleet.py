@@ -20,6 +20,7 @@ import math
 import os
 import re
 import socket
+import stat
 import time
 import warnings
 from collections.abc import Iterable, Sequence
@@ -146,6 +147,11 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
             f"no reference gravity for this recording: give {names['g']} or "
             f"{names['latlon']}, or a g or lat column in the manifest"
         )
+        return None
+    mode = os.stat(job.read_path).st_mode
+    if not stat.S_ISREG(mode):  # a FIFO or a device would block the worker for ever
+        kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
+        row["message"] = f"{job.path} is {kind}, not a recording"
         return None
     st = _aio.read_stream(job.read_path, columns=job.columns, fs=job.fs)
     n = len(st)
