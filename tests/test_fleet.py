@@ -114,8 +114,9 @@ def test_one_calibration_file_per_calibrated_sensor(fleet: dict[str, Any]) -> No
     cals = fleet["root"] / "cals"
     ok = df[df["status"].isin(["ok", "weak"])]
     assert sorted(p.name for p in cals.glob("*.json")) == sorted(
-        f"{s}.json" for s in ok["sensor_id"])
+        Path(p).name for p in ok["cal_file"])
     for r in ok.itertuples():
+        assert re.fullmatch(rf"{r.sensor_id}_\d{{8}}T\d{{6}}Z\.json", Path(r.cal_file).name)
         m = ac.TriadModel.load(r.cal_file)
         assert m.sensor_id == r.sensor_id
         np.testing.assert_allclose(m.vector, [getattr(r, p) for p in PARAMS], rtol=1e-14)
@@ -270,13 +271,19 @@ def test_latitude_gives_wgs84_gravity(fleet: dict[str, Any]) -> None:
 
 
 def test_repeated_sensor_ids_get_distinct_files(fleet: dict[str, Any], tmp_path: Path) -> None:
-    recs = [r for r in fleet["recs"] if not r.corruption][:3]
-    man = pd.DataFrame({"path": [r.path for r in recs], "sensor_id": ["X", "X", "Y"]})
+    recs = [r for r in fleet["recs"] if not r.corruption][:4]
+    man = pd.DataFrame({"path": [r.path for r in recs], "sensor_id": ["X", "X", "X", "Y"],
+                        "date": ["2026-05-01T08:00:00Z", "2026-06-01T08:00:00+02:00",
+                                 "2026-05-01T08:00:00Z", None]})
     df = ac.calibrate_many(man, g=G0, out=tmp_path / "c", workers=1, progress=False)
     names = [Path(p).name for p in df["cal_file"]]
-    assert names == [f"X__{Path(recs[0].path).stem}.json", f"X__{Path(recs[1].path).stem}.json",
-                     "Y.json"]
-    assert ac.TriadModel.load(df.loc[1, "cal_file"]).vector[0] == df.loc[1, "sx"]
+    assert names[:3] == ["X_20260501T080000Z.json", "X_20260601T060000Z.json",
+                         "X_20260501T080000Z-2.json"]
+    assert re.fullmatch(r"Y_\d{8}T\d{6}Z\.json", names[3])
+    for i in range(4):
+        m = ac.TriadModel.load(df.loc[i, "cal_file"])
+        assert m.sensor_id == df.loc[i, "sensor_id"] and m.vector[0] == df.loc[i, "sx"]
+    assert ac.TriadModel.load(df.loc[1, "cal_file"]).date.startswith("2026-06-01T")
 
 
 def test_diagnose_adds_the_gap_verdict(fleet: dict[str, Any]) -> None:

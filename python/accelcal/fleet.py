@@ -587,20 +587,44 @@ def _frame(results: list[Result], jobs: list[_Job], diagnose: bool) -> Any:
     return df
 
 
-def _cal_names(rows: list[dict[str, Any]]) -> list[str]:
-    sids = [_safe_name(r["sensor_id"]) for r in rows]
-    counts: dict[str, int] = {}
-    for s in sids:
-        counts[s] = counts.get(s, 0) + 1
+def _stamp(date: Any) -> str:
+    """``YYYYmmddTHHMMSSZ`` (UTC) of an ISO 8601 date; naive dates are taken as UTC."""
+    import datetime as dt
+
+    try:
+        d = dt.datetime.fromisoformat(str(date).strip().replace("Z", "+00:00"))
+    except ValueError:
+        return "undated"
+    if d.tzinfo is not None:
+        d = d.astimezone(dt.timezone.utc)
+    return d.strftime("%Y%m%dT%H%M%SZ")
+
+
+def _cal_name(model: Any) -> str:
+    """``<sensor_id>_<UTC date>.json``, the name TriadModel gives its own files: later
+    calibrations of a sensor sit beside earlier ones, and the file of a time is found by
+    sensor id and date."""
+    own = getattr(model, "default_filename", None)
+    if callable(own):
+        return str(own())
+    return f"{_safe_name(model.sensor_id)}_{_stamp(model.date)}.json"
+
+
+def _cal_names(models: list[Any]) -> list[str | None]:
+    """One distinct file name per model (``-2``, ``-3`` ... when a sensor repeats within the
+    same second)."""
     used: set[str] = set()
-    names = []
-    for r, s in zip(rows, sids, strict=True):
-        base = s if counts[s] == 1 else f"{s}__{_safe_name(Path(r['path']).stem)}"
+    names: list[str | None] = []
+    for m in models:
+        if m is None:
+            names.append(None)
+            continue
+        base = _cal_name(m)
         name, k = base, 2
         while name in used:
-            name, k = f"{base}-{k}", k + 1
+            name, k = f"{base[:-5]}-{k}.json", k + 1
         used.add(name)
-        names.append(f"{name}.json")
+        names.append(name)
     return names
 
 
@@ -704,10 +728,12 @@ def calibrate_many(
         processes it (the paths must be readable there). Default: a local process pool.
     workers : local processes (default: all cores; 1 runs in this process). Each process
         runs rayon with one thread, so N processes use N cores.
-    out : folder for the calibration files, one ``<sensor_id>.json`` TriadModel per
-        calibrated recording (``<sensor_id>__<file stem>.json`` when a sensor id repeats),
-        written atomically; the table is also written there as ``fleet.parquet`` and
-        ``fleet.csv`` unless ``summary`` says otherwise.
+    out : folder for the calibration files: one TriadModel per calibrated recording, named
+        ``<sensor_id>_<UTC date>.json`` (``YYYYmmddTHHMMSSZ``; the date is the manifest's
+        ``date`` or the time of the fit), written atomically, so later calibrations of a
+        sensor sit beside earlier ones and ``TriadModel.find`` picks the one valid at a time.
+        The table is also written there as ``fleet.parquet`` and ``fleet.csv`` unless
+        ``summary`` says otherwise.
     summary : path of the table (Parquet; the CSV is written beside it with a ``.csv``
         suffix), written atomically.
     progress : progress bar over recordings on stderr: True, False, or None (only when stderr
@@ -765,13 +791,8 @@ def calibrate_many(
                       model=model, method=method, detector=det, diagnose=diagnose, cli=_cli)
     if summary is None and out is not None:
         summary = Path(out) / "fleet.parquet"
-    cal_names = _cal_names([{"sensor_id": j.sensor_id, "path": j.path} for j in jobs])
-    planned: list[Path] = []
     if summary is not None:
-        planned += list(_summary_paths(summary))
-    if out is not None:
-        planned += [Path(out) / n for n in cal_names]
-    _check_outputs(planned, jobs, sources, names)
+        _check_outputs(list(_summary_paths(summary)), jobs, sources, names)
 
     if client is not None:
         results = _run_dask(jobs, client, progress, _cli)
@@ -781,9 +802,11 @@ def calibrate_many(
 
     if out is not None:
         folder = Path(out)
+        cal_names = _cal_names([m for _, m in results])
+        _check_outputs([folder / n for n in cal_names if n], jobs, sources, names)
         folder.mkdir(parents=True, exist_ok=True)
         for (row, model_obj), name in zip(results, cal_names, strict=True):
-            if model_obj is not None:
+            if model_obj is not None and name:
                 model_obj.save(folder / name)
                 row["cal_file"] = str(folder / name)
     df = _frame(results, jobs, diagnose)
