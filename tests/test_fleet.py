@@ -471,3 +471,13 @@ def test_missing_optional_dependencies_are_named(fleet: dict[str, Any], tmp_path
         m.setitem(sys.modules, "pandas", None)
         with pytest.raises(ac.CalibrationError, match=r"needs pandas"):
             ac.calibrate_many([r.path], g=G0)
+
+
+def test_progress_bar_counts_recordings_when_asked(fleet: dict[str, Any],
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    paths = [r.path for r in fleet["recs"][:3]]
+    ac.calibrate_many(paths, g=G0, workers=1, progress=True)
+    err = capsys.readouterr().err
+    assert "calibrating" in err and "3/3" in err
+    ac.calibrate_many(paths, g=G0, workers=1, progress=False)
+    assert capsys.readouterr().err == ""
