@@ -1,8 +1,9 @@
-"""Centrifuge calibration (seed 004): reproduction on the paper's table, robust screening,
+"""Centrifuge calibration: reproduction on the paper's table, robust screening,
 simulator round trips, error-source sensitivity, bad input."""
 
 from __future__ import annotations
 
+import warnings
 from functools import partial
 
 import accelcal
@@ -163,7 +164,7 @@ def test_bad_inputs():
         fit_centrifuge(o, np.zeros_like(w), 1.0)
     with pytest.raises(DegenerateDataError, match="K2 cannot be separated"):
         fit_centrifuge(o, np.full_like(w, w[0]), 1.0)
-    with pytest.raises(CalibrationError, match="radius must be positive"):
+    with pytest.raises(CalibrationError, match=r"radius must be a number in \(0, inf\) m; got -1"):
         fit_centrifuge(o, w, -1.0)
     with pytest.raises(CalibrationError, match="omega has 59 values"):
         fit_centrifuge(o, w[:-1], 1.0)
@@ -189,3 +190,154 @@ def test_summary_and_to_dict_and_exports():
     assert d["scale"] == pytest.approx(S.tolist(), rel=1e-6)
     assert d["observability"]["condition_number"] > 1
     assert accelcal.sim.centrifuge_session is centrifuge_session
+
+
+def _centripetal_g(design, latitude_deg):
+    """A (g) of every row from the forward model with a unit sensor: |f|^2 = A^2 + 1."""
+    from accelcal.centrifuge import centrifuge_outputs
+
+    f = centrifuge_outputs(design, scale=[1, 1, 1], bias=[0, 0, 0], k2=[0, 0, 0],
+                           latitude_deg=latitude_deg, g=9.8)
+    return np.sqrt(np.sum(f**2, axis=1) - 1.0)
+
+
+def test_earth_rate_adds_to_the_signed_spin_rate_and_cancels_in_forward_reverse_pairs():
+    from accelcal.centrifuge import EARTH_RATE, paper_design
+
+    w = 2 * np.pi  # 1 rev/s
+    des = paper_design(omegas=[w, -w])
+    a0 = _centripetal_g(des, None)
+    a = _centripetal_g(des, 39.0)
+    fwd, rev = a[:20] / a0[:20] - 1, a[20:] / a0[20:] - 1
+    # dA/A = 2 Omega sin(lat) / omega: 1.46e-5 at 1 rev/s and 39 deg, + forward, - reverse.
+    size = 2 * EARTH_RATE * np.sin(np.radians(39.0)) / w
+    assert size == pytest.approx(1.46e-5, rel=0.01)
+    np.testing.assert_allclose(fwd, size, rtol=1e-4)
+    np.testing.assert_allclose(rev, -size, rtol=1e-4)
+    # The pair cancels to first order: what is left is (Omega sin(lat) / omega)^2 ~ 5e-11.
+    assert np.max(np.abs(0.5 * (fwd + rev))) < 1e-9
+
+
+def test_sigma_is_per_axis_output_noise_and_the_std_matches_monte_carlo():
+    # 400 seeded sessions with white noise of 1e-5 g on every output; sigma= is that noise.
+    noise = 1e-5
+    est, std_known, std_est, rms = [], [], [], []
+    for seed in range(400):
+        s = centrifuge_session(noise_g=noise, rng=seed, g=9.8)
+        fk = fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8, sigma=noise)
+        fu = fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+        est.append(fk.params)
+        std_known.append(fk.std)
+        std_est.append(fu.std)
+        rms.append(fk.residual_rms)
+        assert fk.noise_known and not fu.noise_known
+    scatter = np.std(est, axis=0, ddof=1)
+    # The empirical std of 400 estimates is good to ~3.5 % (1 sigma): tolerance 12 %. The old
+    # reading of sigma as the norm std made the reported std 1.28x too large.
+    ratio = scatter / np.mean(std_known, axis=0)
+    assert np.all(np.abs(ratio - 1) < 0.12), ratio
+    ratio_est = scatter / np.sqrt(np.mean(np.square(std_est), axis=0))
+    assert np.all(np.abs(ratio_est - 1) < 0.12), ratio_est
+    # Whitened residual RMS ~ sqrt((k - p) / k) when the noise is right.
+    assert np.mean(rms) == pytest.approx(np.sqrt(51 / 60), rel=0.03)
+    # The truth lies within the reported error bars as often as it should.
+    z = (np.array(est) - np.r_[S, B, D]) / np.array(std_known)
+    assert 0.9 < np.std(z) < 1.1
+
+
+@pytest.mark.parametrize("what, change, word", [
+    ("omega", lambda o, w, r: (o, w * 60 / (2 * np.pi), r), "rev/min"),
+    ("omega", lambda o, w, r: (o, np.degrees(w), r), "deg/s"),
+    ("omega", lambda o, w, r: (o, w / (2 * np.pi), r), "rev/s"),
+    ("radius", lambda o, w, r: (o, w, r * 1000), "mm"),
+    ("radius", lambda o, w, r: (o, w, r * 100), "cm"),
+    ("outputs", lambda o, w, r: (o * 9.8, w, r), "m/s\\^2"),
+])
+def test_wrong_units_are_refused_naming_the_likely_unit(what, change, word):
+    s = centrifuge_session(noise_g=1e-6, rng=0, g=9.8)
+    o, w, r = change(s.outputs, s.omega, s.radius)
+    with pytest.raises(CalibrationError, match=f"^{what} looks? like {word}"):
+        fit_centrifuge(o, w, r, g=9.8)
+    # Turning the check off fits as given (the scale factor then absorbs the units).
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CentrifugeOutlierWarning)
+        f = fit_centrifuge(o, w, r, g=9.8, check_units=False)
+    assert np.all(np.isfinite(f.params))
+
+
+def test_unit_check_does_not_fire_on_plausible_sensors():
+    # Scale factors from 0.3 to 3 (outputs in g) and a small arm at high speed pass.
+    for sc in (0.3, 1.0, 3.0):
+        s = centrifuge_session(scale=[sc, sc * 1.1, sc * 0.9], noise_g=1e-6, rng=1, g=9.8)
+        fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+    from accelcal.centrifuge import paper_design
+    s = centrifuge_session(paper_design(omegas=[20.0, 40.0, 60.0], radius=0.1), noise_g=1e-6,
+                           rng=1, g=9.8)
+    fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+
+
+def test_cli_names_rows_by_speed_and_position_once_and_plots(tmp_path):
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    png = tmp_path / "resid.png"
+    r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(PRINTED()), "--radius", "1",
+                                  "--g", "9.8", "--plot", str(png)])
+    assert r.exit_code == 0, r.output
+    # The excluded rows are listed once, each by index and by speed and position.
+    assert r.output.count("excluded 23 of 60 rows") == 1
+    assert "row 0 (speed 1, position 1)" in r.output
+    assert "row 56 (speed 3, position 17)" in r.output
+    assert png.stat().st_size > 10_000
+    r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(PRINTED()), "--radius", "1",
+                                  "--g", "9.8", "--json"])
+    out = __import__("json").loads(r.output)
+    assert out["row_labels"][20] == "speed 2, position 1" and len(out["warnings"]) == 1
+    assert out["rows"][20] == {"index": 20, "speed_index": 2, "position": 1,
+                               "omega_rad_s": pytest.approx(4 * np.pi)}
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--radius", "-1"], "--radius must be a number in (0, inf) m; got -1"),
+    (["--radius", "100"], "use --no-unit-check"),
+    (["--radius", "1", "--outlier-k", "0"], "--outlier-k must be"),
+    (["--radius", "1", "--sigma", "-1"], "--sigma (per-axis output noise, g) must be"),
+])
+def test_cli_errors_name_cli_options(args, needle):
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(CORRECTED()), "--g", "9.8",
+                                  *args])
+    assert r.exit_code == 2
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], lines
+    assert "check_units" not in lines[0] and "outlier_k" not in lines[0]
+    # ... and the unit check can be turned off from the command line.
+    if "--no-unit-check" in needle:
+        r = CliRunner().invoke(main, ["calibrate", "centrifuge", str(CORRECTED()), "--g", "9.8",
+                                      *args, "--no-unit-check"])
+        assert r.exit_code == 0, r.output
+
+
+def test_residual_figure_marks_excluded_rows():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from accelcal.plots import centrifuge_residual_figure
+
+    t = read_centrifuge_table(PRINTED())
+    with pytest.warns(CentrifugeOutlierWarning):
+        fit = fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, labels=t.labels())
+    fig = centrifuge_residual_figure(fit, t.speed_index, t.position)
+    ax = fig.axes[0]
+    assert ax.get_ylabel().endswith("[ug]") and ax.get_xlabel() == "position"
+    # 3 speeds of good rows, 3 of excluded ones (x markers): 23 excluded points in all.
+    xs = [ln for ln in ax.lines if ln.get_marker() == "x" and len(ln.get_xdata())]
+    assert sum(len(ln.get_xdata()) for ln in xs) == 23
+    good = [ln for ln in ax.lines if ln.get_marker() == "o"]
+    assert sum(len(ln.get_xdata()) for ln in good) == 37
+    fig.canvas.draw()
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)

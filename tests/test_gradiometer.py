@@ -1,4 +1,4 @@
-"""Gradiometer per-startup bias (SPEC 3): estimator, design, demodulation, simulator, workflow."""
+"""Gradiometer per-startup bias: estimator, design, demodulation, simulator, workflow."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from accelcal.sim import gradiometer_session
 
 
 def model(az_deg, bias, gamma, t=None, drift=None, t_ref=0.0):
-    """SPEC 3 measurement model y_k = b + R(2 theta_k) gamma (+ drift (t - t_ref))."""
+    """Measurement model y_k = b + R(2 theta_k) gamma (+ drift (t - t_ref))."""
     th = np.radians(np.asarray(az_deg, dtype=float))
     c, s = np.cos(2 * th), np.sin(2 * th)
     y = np.column_stack(
@@ -174,7 +174,7 @@ def test_demodulation_recovers_gradient_and_rate_terms(frame):
     )
     d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m, t=s.t)
     tr = s.truth
-    # SPEC 3: residual rates add -(Wx^2 - Wy^2)/2 to I and -Wx Wy to C (platform-frame rates).
+    # Residual rates add -(Wx^2 - Wy^2)/2 to I and -Wx Wy to C (platform-frame rates).
     pw = tr.platform_rates_rad_s
     formula = np.column_stack([-(pw[:, 0] ** 2 - pw[:, 1] ** 2) / 2, -pw[:, 0] * pw[:, 1]]) / 1e-9
     assert np.abs(formula).max() > 3.0
@@ -347,7 +347,7 @@ def test_azimuth_error_prediction():
     emp = np.var(np.array(est), axis=0)
     p = accelcal.predict_startup_accuracy(az, sigma=1e-12, sigma_theta=st, gradient=g)
     assert np.allclose(emp, np.diag(p.azimuth_covariance)[:2], rtol=0.15)
-    # Magnitude only: SPEC 3 sigma_bias ~ sqrt(2) sigma_theta |gamma| / sqrt(m).
+    # Magnitude only: sigma_bias ~ sqrt(2) sigma_theta |gamma| / sqrt(m).
     pm = accelcal.predict_startup_accuracy(
         az, sigma=1e-12, sigma_theta=st, gradient=np.linalg.norm(g)
     )
@@ -355,3 +355,41 @@ def test_azimuth_error_prediction():
     assert pm.bias_std == pytest.approx([want, want], rel=1e-6)
     with pytest.raises(CalibrationError, match="gradient"):
         accelcal.predict_startup_accuracy(az, sigma_theta=0.1)
+
+
+def test_cli_gradiometer_plot_and_option_words(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from accelcal.cli import main
+    from accelcal.plots import gradiometer_figure
+    from click.testing import CliRunner
+
+    az = [0.0, 45.0, 90.0, 135.0, 0.0]
+    t = [0.0, 60.0, 120.0, 180.0, 240.0]
+    y = model(az, [3.0, -2.0], [10.0, 5.0], t, [0.01, -0.02], t_ref=120.0)
+    y += np.array([[0.1, -0.05], [0.0, 0.08], [-0.07, 0.0], [0.02, 0.03], [-0.04, -0.06]])
+    tab = tmp_path / "startup.csv"
+    tab.write_text("azimuth_deg,inline_E,cross_E,t_s\n" + "\n".join(
+        f"{a},{u},{v},{s}" for a, (u, v), s in zip(az, y, t, strict=True)) + "\n")
+    png = tmp_path / "g.png"
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab), "--plot", str(png)])
+    assert r.exit_code == 0, r.output
+    assert png.stat().st_size > 10_000
+    # The summary's caution names the CLI option, not the Python keyword.
+    assert "sigma=" not in r.output and "--sigma" in r.output
+    sb = accelcal.startup_bias(az, y, t=t, drift=True)
+    fig = gradiometer_figure(sb)
+    a0, a1 = fig.axes
+    assert a0.get_ylabel() == "inline I  [E]" and a1.get_xlabel() == "platform azimuth  [deg]"
+    # The drawn averages, drift removed, lie on the fitted curve up to the residuals.
+    pts = a0.lines[0].get_ydata() if a0.lines[0].get_marker() == "o" else None
+    curve = [ln for ln in a0.lines if ln.get_label().startswith("fit")][0]
+    grid, cv = curve.get_xdata(), curve.get_ydata()
+    assert pts is None or np.allclose(
+        np.asarray(pts) - np.interp(np.mod(az, 180), grid, cv), sb.residuals[:, 0], atol=1e-3)
+    plt.close(fig)
+    # Errors name CLI options.
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab), "--sigma", "-1"])
+    assert r.exit_code == 2 and "--sigma must" in r.output, r.output

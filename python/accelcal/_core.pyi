@@ -1,8 +1,9 @@
 # Type stub of the compiled module (checked by `python -m mypy.stubtest accelcal._core`).
-from typing import Any, final
+from typing import Any, Literal, final
 
 import numpy as np
 from numpy.typing import NDArray
+from typing_extensions import Self, disjoint_base
 
 class CalibrationError(ValueError): ...
 class DegenerateDataError(CalibrationError): ...
@@ -51,28 +52,162 @@ class RawDwellAccumulator:
     def position(self) -> int: ...
     def finish(self) -> dict[str, Any]: ...
 
+# --- gradiometer start-up bias and demodulation (rust/src/py/gradiometer.rs) ---
+@disjoint_base
+class StartupBiasCore:
+    """Start-up bias, gradient (and drift) with covariance; `accelcal.StartupBias` subclasses
+    it. Arrays are read-only; pickles."""
+
+    def __new__(
+        cls,
+        bias: NDArray[np.float64],
+        gradient: NDArray[np.float64],
+        drift: NDArray[np.float64] | None,
+        covariance: NDArray[np.float64],
+        std: NDArray[np.float64],
+        residuals: NDArray[np.float64],
+        unit_covariance: NDArray[np.float64],
+        sigma: NDArray[np.float64] | None,
+        sigma_estimated: bool,
+        dof: int,
+        condition: float,
+        azimuth_deg: NDArray[np.float64],
+        t: NDArray[np.float64] | None,
+        t_ref: float | None,
+        names: list[str],
+    ) -> Self: ...
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def bias(self) -> NDArray[np.float64]:
+        """Per-startup bias of the inline and cross channels, E."""
+    @property
+    def gradient(self) -> NDArray[np.float64]:
+        """Navigation-frame gradient (I, C), E."""
+    @property
+    def drift(self) -> NDArray[np.float64] | None:
+        """Linear bias drift, E/s (drift model only)."""
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def std(self) -> NDArray[np.float64]: ...
+    @property
+    def residuals(self) -> NDArray[np.float64]: ...
+    @property
+    def unit_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def sigma(self) -> NDArray[np.float64] | None: ...
+    @property
+    def sigma_estimated(self) -> bool: ...
+    @property
+    def dof(self) -> int: ...
+    @property
+    def condition(self) -> float: ...
+    @property
+    def azimuth_deg(self) -> NDArray[np.float64]: ...
+    @property
+    def t(self) -> NDArray[np.float64] | None: ...
+    @property
+    def t_ref(self) -> float | None: ...
+    @property
+    def names(self) -> list[str]: ...
+
 def startup_bias_raw(
-    theta_rad: NDArray[np.float64],
+    azimuth_deg: NDArray[np.float64],
     outputs: NDArray[np.float64],
-    dwell_std: NDArray[np.float64],
+    sigma: NDArray[np.float64] | None = None,
     t: NDArray[np.float64] | None = None,
-    t_ref: float = 0.0,
-) -> dict[str, Any]: ...
+    t_ref: float | None = None,
+) -> StartupBiasCore:
+    """Start-up least squares from azimuths in degrees; sigma None: estimated."""
+
+@disjoint_base
+class StartupPredictionCore:
+    """Predicted accuracy of a start-up sequence; `accelcal.StartupPrediction` subclasses it."""
+
+    def __new__(
+        cls,
+        covariance: NDArray[np.float64],
+        azimuth_covariance: NDArray[np.float64],
+        total_covariance: NDArray[np.float64],
+        std: NDArray[np.float64],
+        closed_form_variance: float,
+        condition: float,
+        names: list[str],
+    ) -> Self: ...
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def azimuth_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def total_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def std(self) -> NDArray[np.float64]: ...
+    @property
+    def closed_form_variance(self) -> float: ...
+    @property
+    def condition(self) -> float: ...
+    @property
+    def names(self) -> list[str]: ...
+
 def startup_predict_raw(
-    theta_rad: NDArray[np.float64],
+    azimuth_deg: NDArray[np.float64],
     dwell_std: NDArray[np.float64],
     t: NDArray[np.float64] | None = None,
-    t_ref: float = 0.0,
+    t_ref: float | None = None,
     gradient: list[float] | None = None,
     gradient_magnitude: float = 0.0,
-    sigma_theta_rad: float = 0.0,
-) -> dict[str, Any]: ...
+    sigma_theta_deg: float = 0.0,
+) -> StartupPredictionCore:
+    """Predicted covariances of an azimuth design (degrees)."""
+
+@disjoint_base
+class DemodulatedCore:
+    """Per-dwell inline and cross channels; `accelcal.Demodulated` subclasses it."""
+
+    def __new__(
+        cls,
+        inline_E: NDArray[np.float64],
+        cross_E: NDArray[np.float64],
+        std_inline_E: NDArray[np.float64],
+        std_cross_E: NDArray[np.float64],
+        start: NDArray[np.int64],
+        stop: NDArray[np.int64],
+        revolutions: NDArray[np.int64],
+        resid_rms: NDArray[np.float64],
+        nuisance: NDArray[np.float64],
+        t: NDArray[np.float64] | None,
+    ) -> Self: ...
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def inline_E(self) -> NDArray[np.float64]: ...
+    @property
+    def cross_E(self) -> NDArray[np.float64]: ...
+    @property
+    def std_inline_E(self) -> NDArray[np.float64]: ...
+    @property
+    def std_cross_E(self) -> NDArray[np.float64]: ...
+    @property
+    def start(self) -> NDArray[np.int64]: ...
+    @property
+    def stop(self) -> NDArray[np.int64]: ...
+    @property
+    def revolutions(self) -> NDArray[np.int64]: ...
+    @property
+    def resid_rms(self) -> NDArray[np.float64]: ...
+    @property
+    def nuisance(self) -> NDArray[np.float64]: ...
+    @property
+    def t(self) -> NDArray[np.float64] | None: ...
+
 def demodulate_raw(
     accel: NDArray[Any],
     phase: NDArray[np.float64],
     bounds: NDArray[np.int64],
     radius_m: float,
-) -> dict[str, Any]: ...
+    t: NDArray[np.float64] | None = None,
+) -> DemodulatedCore:
+    """2-omega demodulation of (N, 4) streams per dwell."""
 
 def gap_diagnose_raw(
     mean: NDArray[np.float64],
@@ -106,15 +241,75 @@ def gap_model_residuals_raw(
     effects: list[str],
 ) -> NDArray[np.float64]: ...
 
+# --- centrifuge (rust/src/py/centrifuge.rs) ---
+@disjoint_base
+class CentrifugeFitCore:
+    """Result of one centrifuge fit; `accelcal.CentrifugeFit` subclasses it. Arrays are
+    read-only; pickles."""
+
+    def __new__(cls, *args: Any) -> Self:
+        """``(fit)``: the same result, arrays shared; ``(*fields)``: rebuilt (pickling)."""
+    def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
+    @property
+    def params(self) -> NDArray[np.float64]: ...
+    @property
+    def names(self) -> list[str]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def std(self) -> NDArray[np.float64]: ...
+    @property
+    def residuals(self) -> NDArray[np.float64]: ...
+    @property
+    def outliers(self) -> NDArray[np.int64]: ...
+    @property
+    def residual_rms(self) -> float: ...
+    @property
+    def screen_sigma(self) -> float: ...
+    @property
+    def studentized(self) -> NDArray[np.float64]: ...
+    @property
+    def threshold(self) -> float: ...
+    @property
+    def residual_std(self) -> NDArray[np.float64]: ...
+    @property
+    def draws(self) -> int: ...
+    @property
+    def singular_values(self) -> NDArray[np.float64]: ...
+    @property
+    def condition_number(self) -> float: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def taylor_coefficients(self) -> NDArray[np.float64] | None: ...
+    @property
+    def method(self) -> str: ...
+    @property
+    def radius(self) -> float: ...
+    @property
+    def g(self) -> float: ...
+    @property
+    def fit_k3(self) -> bool: ...
+    @property
+    def fit_misalignment(self) -> bool: ...
+    @property
+    def lever_model(self) -> str | None: ...
+    @property
+    def noise_known(self) -> bool: ...
+    @property
+    def labels(self) -> list[str]: ...
+
 def centrifuge_fit_raw(
     outputs: NDArray[np.float64],
     omega: NDArray[np.float64],
     radius: float,
     g: float,
-    method: str = "nls",
+    method: Literal["nls", "taylor-paper"] = "nls",
     k3: bool = False,
     misalignment: bool = False,
-    lever_arm: str | None = None,
+    lever_arm: Literal["along", "full"] | None = None,
     spin_axis: NDArray[np.float64] | None = None,
     sigma: NDArray[np.float64] | None = None,
     robust: bool = True,
@@ -122,7 +317,30 @@ def centrifuge_fit_raw(
     sigma_floor: float = 1e-9,
     max_draws: int = 20000,
     seed: int = 0,
-) -> dict[str, Any]: ...
+    check_units: bool = True,
+    labels: list[str] | None = None,
+) -> CentrifugeFitCore:
+    """Centrifuge calibration; sigma: per-axis output noise (k, 3), g."""
+
+def centrifuge_unit_check_raw(
+    outputs: NDArray[np.float64],
+    omega: NDArray[np.float64],
+    radius: float,
+    g: float,
+    robust: bool = True,
+    max_draws: int = 20000,
+    seed: int = 0,
+) -> tuple[float, list[tuple[str, str, str, str, float, float]]] | None:
+    """None when the units look right; else the scale needed and the likely conversions."""
+
+def centrifuge_correct_raw(
+    params: NDArray[np.float64],
+    outputs: NDArray[np.float64],
+    k3: bool = False,
+    misalignment: bool = False,
+    lever_arm: Literal["along", "full"] | None = None,
+) -> NDArray[np.float64]:
+    """Specific force (k, 3), g, by exact inversion of fitted parameters."""
 
 # --- static field calibration (rust/src/py/static_fit.rs) ---
 @final
@@ -191,7 +409,10 @@ def apply_triad_raw(
 ) -> NDArray[np.float64]: ...
 
 __all__ = [
+    "CentrifugeFitCore",
+    "centrifuge_correct_raw",
     "centrifuge_fit_raw",
+    "centrifuge_unit_check_raw",
     "detect_dwells_raw",
     "dwell_stats_raw",
     "RawDwellAccumulator",
@@ -199,6 +420,9 @@ __all__ = [
     "gap_diagnose_raw",
     "gap_f_sf",
     "gap_model_residuals_raw",
+    "DemodulatedCore",
+    "StartupBiasCore",
+    "StartupPredictionCore",
     "demodulate_raw",
     "startup_bias_raw",
     "startup_predict_raw",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -71,10 +72,64 @@ def bounds_array(b: Any) -> NDArray[np.int64]:
 
 def positive(x: Any, name: str, unit: str = "") -> float:
     """A positive finite float, or a CalibrationError naming it."""
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{name} must be a number; got {x!r}") from None
-    if not np.isfinite(v) or v <= 0:
-        raise CalibrationError(f"{name} must be positive and finite{unit}; got {x!r}")
+    v = None
+    if not isinstance(x, (bool, str, bytes)) and x is not None:
+        try:
+            v = float(x)
+        except (TypeError, ValueError):
+            v = None
+    if v is None or not math.isfinite(v) or v <= 0:
+        raise CalibrationError(
+            f"{name} must be positive and finite{unit}, a number in (0, inf); got {x!r}"
+        )
     return v
+
+
+def number(
+    x: Any,
+    name: str,
+    *,
+    lo: float = -np.inf,
+    hi: float = np.inf,
+    lo_open: bool = False,
+    integer: bool = False,
+    unit: str = "",
+) -> Any:
+    """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), an int when ``integer``;
+    otherwise a CalibrationError naming the argument, the value received and the valid range."""
+    v = None
+    if not isinstance(x, (bool, str, bytes)) and x is not None:
+        try:
+            v = float(x)
+        except (TypeError, ValueError):
+            v = None
+    ok = (
+        v is not None
+        and math.isfinite(v)
+        and (v > lo if lo_open else v >= lo)
+        and v <= hi
+        and (not integer or v == int(v))
+    )
+    if not ok:
+        left = "(" if lo_open else "["
+        right = ")" if math.isinf(hi) else "]"
+        rng = f"{left}{lo:g}, {hi:g}{right}" + (f" {unit}" if unit else "")
+        kind = "an integer" if integer else "a number"
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}")
+    assert v is not None
+    return int(v) if integer else v
+
+
+def real_array(x: Any, name: str, unit: str = "") -> NDArray[np.float64]:
+    """``x`` (array, list, DataFrame/Series, any layout, integer or float dtype, either byte
+    order) as float64 in logical order; boolean, complex, text and object arrays are refused."""
+    a = np.asarray(x)
+    if a.dtype == np.float64:
+        return a
+    if a.dtype.kind not in "fiu":
+        what = {"b": "boolean", "c": "complex", "O": "object", "U": "text", "S": "text"}.get(
+            a.dtype.kind, str(a.dtype))
+        raise CalibrationError(
+            f"{name} must be real numbers{f' ({unit})' if unit else ''}; got a {what} array"
+        )
+    return np.asarray(a, dtype=np.float64)

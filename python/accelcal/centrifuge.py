@@ -1,7 +1,8 @@
-"""Centrifuge calibration with quadratic (K2) coefficients by norm observation (seed 004).
+"""Centrifuge calibration with quadratic (K2) coefficients by norm observation.
 
 Model (g units): ``N = S Phi (f + K2 f^2 [+ K3 f^3]) + b``, constraint ``|f|^2 = A^2 + 1`` with
-``A = omega^2 R / g``. See SPEC section 2 and ``docs/centrifuge-reproduction.md``.
+``A = omega^2 R / g``: the method of Wang and Li (2021), doi:10.19306/j.cnki.2095-8110.2021.06.019,
+with its printed equations corrected (``docs/centrifuge-reproduction.md``).
 
 Sign convention: the norm cannot tell ``S_i`` from ``-S_i`` (exactly so when K2 = 0); results
 always have ``S_i > 0`` (with K2, misalignment and lever arm signs folded accordingly).
@@ -10,17 +11,17 @@ always have ``S_i > 0`` (with K2, misalignment and lever arm signs folded accord
 from __future__ import annotations
 
 import csv
-import math
 import os
 import warnings
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from . import _core
 from ._core import CalibrationError
+from ._validate import number, real_array
 
 __all__ = [
     "EARTH_RATE",
@@ -43,7 +44,7 @@ __all__ = [
 #: Earth rotation rate (rad/s).
 EARTH_RATE = 7.2921150e-5
 
-#: Truth of the seed-004 simulation (SPEC 2).
+#: Truth of the paper's simulation (its Table 1 reproduces from it).
 SEED004_TRUTH: dict[str, NDArray[np.float64]] = {
     "scale": np.array([1.29, 1.21, 1.26]),
     "bias": np.array([0.213, 0.256, 0.516]),
@@ -154,7 +155,11 @@ def centrifuge_outputs(
         )
     w = design.omega * (1.0 + rate_error)
     if latitude_deg is not None:
-        w = w + np.sign(w) * EARTH_RATE * np.sin(np.radians(latitude_deg))
+        # The platform's inertial rate about the local vertical is the commanded (signed) rate
+        # plus the Earth rate's vertical part, whichever way the arm turns: a forward run
+        # (w > 0, counter-clockwise seen from above) sees w + Omega sin(lat), a reverse run
+        # -(|w| - Omega sin(lat)), so a forward/reverse pair cancels it to first order.
+        w = w + EARTH_RATE * np.sin(np.radians(latitude_deg))
     r_true = design.radius + radius_error
     a = w**2 * r_true / g
     c1, c3 = design.radial, design.spin_axis
@@ -170,6 +175,11 @@ def centrifuge_outputs(
 
 
 
+#: Estimation methods of :func:`fit_centrifuge`.
+CentrifugeMethod = Literal["nls", "taylor-paper"]
+#: Lever-arm models of :func:`fit_centrifuge`.
+LeverModel = Literal["along", "full"]
+
 _PAPER_TABLE2 = {
     "k2": np.array([5.700684e-5, 3.100221e-5, 4.500459e-5]),
     "scale": np.array([1.28999, 1.21001, 1.25996]),
@@ -181,9 +191,8 @@ class CentrifugeOutlierWarning(UserWarning):
     """Rows inconsistent with the centrifuge model were excluded from the fit."""
 
 
-@dataclass(frozen=True)
-class CentrifugeFit:
-    """Result of :func:`fit_centrifuge`.
+class CentrifugeFit(_core.CentrifugeFitCore):
+    """Result of :func:`fit_centrifuge` (the data live in the Rust result; arrays are read-only).
 
     Attributes
     ----------
@@ -202,16 +211,28 @@ class CentrifugeFit:
     params, names : ndarray (p,), list of str
         All parameters in order.
     covariance : ndarray (p, p)
-        Parameter covariance (scaled by the residual variance unless ``sigma`` was given).
+        Parameter covariance: absolute when the output noise ``sigma`` was given
+        (``noise_known``), else scaled by the residual variance.
     std : ndarray (p,)
         Standard deviations, ``sqrt(diag(covariance))``.
     residuals : ndarray (k,)
         Norm residual per row, ``(|f|^2 - A^2 - 1) / (2 sqrt(A^2 + 1))`` ~ ``|f| - |f_true|``
         in g, outliers included (inf where a row cannot be inverted).
+    residual_std : ndarray (k,)
+        Standard deviation of each row's norm residual, g: propagated from ``sigma`` when
+        given, else the residual scale of the rows used.
+    studentized : ndarray (k,)
+        The screening statistic of each row: its residual in standard deviations of what a
+        good row's residual would be (externally studentised for the rows used, a prediction
+        residual for the excluded ones).
+    threshold : float
+        Rows with ``|studentized| > threshold`` are excluded (the Student-t equivalent of
+        ``outlier_k`` normal standard deviations).
     outliers : ndarray int
-        Rows excluded by the robust screen.
+        Rows excluded by the robust screen (0-based; :meth:`row_name` names them).
     residual_rms : float
-        RMS of the (weighted) residuals of the rows used.
+        RMS of the weighted residuals of the rows used (g; whitened, ~1, when ``sigma`` was
+        given).
     observability : dict
         ``singular_values`` (column-normalised Jacobian), ``condition_number``, and
         ``unobservable`` (always empty: a singular design raises DegenerateDataError naming it).
@@ -219,75 +240,119 @@ class CentrifugeFit:
     taylor_coefficients : ndarray (13,) or None
         The regression coefficients ``[C0, C11..C13, C21..C23, C31..C33, C41..C43]``
         (taylor-paper only).
+    labels : list of str
+        Name of each row (e.g. ``"speed 1, position 5"``), empty when none was given.
     extra : dict
-        ``screen_sigma``: robust residual scale of the outlier screen (g; 0 when the plain fit
-        was clean and no screen ran).
+        ``screen_sigma``: residual scale of the rows used (g; 1 when ``sigma`` was given).
     """
 
-    scale: NDArray[np.float64]
-    bias: NDArray[np.float64]
-    k2: NDArray[np.float64]
-    k3: NDArray[np.float64] | None
-    misalignment: NDArray[np.float64] | None
-    lever_arm: NDArray[np.float64] | None
-    params: NDArray[np.float64]
-    names: list[str]
-    covariance: NDArray[np.float64]
-    std: NDArray[np.float64]
-    residuals: NDArray[np.float64]
-    outliers: NDArray[np.int64]
-    residual_rms: float
-    observability: dict[str, Any]
-    method: str
-    iterations: int
-    converged: bool
-    draws: int
-    taylor_coefficients: NDArray[np.float64] | None = None
-    radius: float = 1.0
-    g: float = 9.80665
-    extra: dict[str, Any] = field(default_factory=dict)
+    __slots__ = ()
+
+    @property
+    def scale(self) -> NDArray[np.float64]:
+        """Scale factors S (3,), output g per input g."""
+        return self.params[0:3]
+
+    @property
+    def bias(self) -> NDArray[np.float64]:
+        """Biases b (3,), g."""
+        return self.params[3:6]
+
+    @property
+    def k2(self) -> NDArray[np.float64]:
+        """Quadratic coefficients K2 (3,), g/g^2."""
+        return self.params[6:9]
+
+    @property
+    def k3(self) -> NDArray[np.float64] | None:
+        """Cubic coefficients (3,), g/g^3, when fitted."""
+        return self.params[9:12] if self.fit_k3 else None
+
+    @property
+    def misalignment(self) -> NDArray[np.float64] | None:
+        """Small angles (m_yx, m_zx, m_zy), rad, when fitted."""
+        if not self.fit_misalignment:
+            return None
+        at = 12 if self.fit_k3 else 9
+        return self.params[at : at + 3]
+
+    @property
+    def lever_arm(self) -> NDArray[np.float64] | None:
+        """Lever arms, m: (3,) along each axis, or (3, 3) (row = accelerometer)."""
+        if self.lever_model is None:
+            return None
+        at = 9 + 3 * self.fit_k3 + 3 * self.fit_misalignment
+        if self.lever_model == "along":
+            return self.params[at : at + 3]
+        return self.params[at : at + 9].reshape(3, 3)
+
+    @property
+    def observability(self) -> dict[str, Any]:
+        """Singular values and condition number of the column-normalised Jacobian."""
+        return {
+            "singular_values": self.singular_values,
+            "condition_number": self.condition_number,
+            "unobservable": [],
+        }
+
+    @property
+    def extra(self) -> dict[str, Any]:
+        """``screen_sigma`` (g): the residual scale of the rows used."""
+        return {"screen_sigma": self.screen_sigma}
 
     @property
     def outlier_residuals(self) -> NDArray[np.float64]:
         """Residuals (g) of the excluded rows, in the order of :attr:`outliers`."""
         return np.asarray(self.residuals[self.outliers], dtype=np.float64)
 
+    def row_name(self, k: int) -> str:
+        """``"row k"`` with its label (e.g. ``"row 4 (speed 1, position 5)"``)."""
+        k = int(k)
+        return f"row {k} ({self.labels[k]})" if self.labels else f"row {k}"
+
+    def excluded_text(self) -> str:
+        """The excluded rows with their residuals, one line (empty when none)."""
+        if not len(self.outliers):
+            return ""
+        return (
+            f"excluded {len(self.outliers)} of {len(self.residuals)} rows inconsistent with "
+            "|f|^2 = A^2 + 1: "
+            + "; ".join(
+                f"{self.row_name(k)} {r:+.3g} g"
+                for k, r in zip(self.outliers, self.outlier_residuals, strict=True)
+            )
+        )
+
     def correct(self, outputs: Any) -> NDArray[np.float64]:
-        """Specific force (k, 3) in g from outputs (k, 3) in g by exact inversion of the model."""
-        n = np.atleast_2d(np.asarray(outputs, dtype=np.float64))
-        u = (n - self.bias) / self.scale
-        if self.misalignment is not None:
-            m1, m2, m3 = self.misalignment
-            u = u.copy()
-            u[:, 1] -= m1 * u[:, 0]
-            u[:, 2] -= m2 * u[:, 0] + m3 * u[:, 1]
-        disc = 1.0 + 4.0 * self.k2 * u
-        if np.any(disc < 0):
-            raise CalibrationError("outputs outside the invertible range of the fitted K2")
-        f = 2.0 * u / (1.0 + np.sqrt(disc))
-        if self.k3 is not None:
-            for _ in range(30):
-                hp = 1.0 + 2.0 * self.k2 * f + 3.0 * self.k3 * f**2
-                f = f - (f + self.k2 * f**2 + self.k3 * f**3 - u) / hp
-        return np.asarray(f, dtype=np.float64)
+        """Specific force (k, 3) in g from outputs (k, 3) in g by exact inversion of the model
+        (at the accelerometers: lever arms are not applied)."""
+        n = np.atleast_2d(real_array(outputs, "outputs", "g"))
+        if n.ndim != 2 or n.shape[1] != 3:
+            raise CalibrationError(f"outputs must have shape (k, 3) in g; got {n.shape}")
+        return np.asarray(_core.centrifuge_correct_raw(
+            self.params, n, self.fit_k3, self.fit_misalignment,
+            cast("LeverModel | None", self.lever_model)))
 
     def summary(self) -> str:
-        """Human-readable table of parameters with standard deviations."""
+        """Human-readable table of parameters with standard deviations; the excluded rows are
+        named once, by index and label."""
+        noise = "the given noise" if self.noise_known else "the residual scatter"
+        unit = "(whitened)" if self.noise_known else "g"
         lines = [
             f"centrifuge fit ({self.method}): {len(self.residuals)} rows, "
-            f"{len(self.outliers)} excluded, residual rms {self.residual_rms:.3g} g, "
-            f"condition {self.observability['condition_number']:.3g}"
+            f"{len(self.outliers)} excluded, residual rms {self.residual_rms:.3g} {unit}, "
+            f"condition {self.condition_number:.3g}, std from {noise}"
         ]
+        units = {"s": "g/g", "b": "g", "k2": "g/g^2", "k3": "g/g^3", "m": "rad", "lever": "m"}
         for n, v, s in zip(self.names, self.params, self.std, strict=True):
-            lines.append(f"  {n:<10} {v: .9g}  +- {s:.2g}")
+            u = units.get(n.split("_")[0].rstrip("xyz") or n[0], "")
+            lines.append(f"  {n:<10} {v: .9g}  +- {s:.2g} {u}")
         if len(self.outliers):
-            lines.append(
-                "  excluded rows: "
-                + ", ".join(
-                    f"{k} ({r:+.3g} g)"
-                    for k, r in zip(self.outliers, self.outlier_residuals, strict=True)
-                )
-            )
+            lines.append(f"  excluded {len(self.outliers)} of {len(self.residuals)} rows "
+                         "inconsistent with |f|^2 = A^2 + 1 (residual, studentised):")
+            for k, r in zip(self.outliers, self.outlier_residuals, strict=True):
+                t = self.studentized[k]
+                lines.append(f"    {self.row_name(k):<32} {r:+11.4g} g  {t:+9.3g}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
@@ -314,8 +379,12 @@ class CentrifugeFit:
             "params": conv(self.params),
             "std": conv(self.std),
             "covariance": conv(self.covariance),
+            "noise_known": self.noise_known,
             "residuals_g": [float(v) if np.isfinite(v) else None for v in self.residuals],
+            "studentized": [float(v) if np.isfinite(v) else None for v in self.studentized],
+            "threshold": self.threshold,
             "outliers": conv(self.outliers),
+            "row_labels": list(self.labels),
             "residual_rms_g": self.residual_rms,
             "observability": conv(self.observability),
             "iterations": self.iterations,
@@ -326,39 +395,65 @@ class CentrifugeFit:
         }
 
 
+def _unit_message(found: tuple[float, list[Any]], off: str) -> str:
+    """Words for the unit check's finding (``off`` says how to turn the check off)."""
+    scale, findings = found
+    need = (
+        f"as given, the outputs would need scale factors of about {scale:.3g} (output g per "
+        "input g) to meet |f|^2 = A^2 + 1 (A = omega^2 R / g), where a triad reporting in g has "
+        "0.2..5"
+    )
+    if not findings:
+        return (f"implausible units: {need}. Give the outputs in g, omega in rad/s and the "
+                f"radius in m, or {off} if this scale factor is right")
+    what, unit, want, fix, s, rms = findings[0]
+    verb = "look" if what == "outputs" else "looks"
+    msg = (f"{what} {verb} like {unit}, not {want}: {need}; with {what} converted ({fix}) they "
+           f"need {s:.3g}")
+    if np.isfinite(rms):
+        msg += f" and the fit leaves {rms:.2g} g rms"
+    for w2, u2, _, _, s2, r2 in findings[1:]:
+        msg += f" (less likely: {w2} in {u2}, scale {s2:.3g}, {r2:.2g} g rms)"
+    return msg + f". Give {what} in {want}, or {off} if the units are right"
+
+
 def fit_centrifuge(
     outputs: Any,
     omega: Any,
     radius: float,
     *,
     g: float = 9.80665,
-    method: str = "nls",
+    method: CentrifugeMethod = "nls",
     k3: bool = False,
     misalignment: bool = False,
-    lever_arm: str | None = None,
+    lever_arm: LeverModel | None = None,
     spin_axis: Any = None,
     sigma: Any = None,
     robust: bool = True,
     outlier_k: float = 5.0,
     max_draws: int = 20000,
     seed: int = 0,
+    check_units: bool = True,
+    labels: Any = None,
 ) -> CentrifugeFit:
     """Calibrate an accelerometer triad from centrifuge per-position mean outputs.
 
     Parameters
     ----------
     outputs : array_like (k, 3)
-        Mean outputs per position and speed (g).
+        Mean outputs per position and speed (g). Any layout (C or Fortran order, strided,
+        a DataFrame), float or integer dtype, either byte order.
     omega : array_like (k,)
-        Spin rate of each row (rad/s); at least two distinct non-zero speeds.
+        Signed spin rate of each row (rad/s); at least two distinct non-zero speeds.
     radius : float
         Nominal radius (m).
     g : float
         Gravity (m/s^2) used to express ``A = omega^2 R / g`` in g.
     method : {"nls", "taylor-paper"}
         ``"nls"``: exact per-axis inversion and least squares on the norm (default).
-        ``"taylor-paper"``: the paper's 13-coefficient regression with the corrected closed form
-        of SPEC 2 (scale + bias + K2 only; D is biased by the truncated series).
+        ``"taylor-paper"``: the paper's 13-coefficient regression with its closed form, as
+        corrected in ``docs/centrifuge-reproduction.md`` (scale + bias + K2 only; D is biased
+        by the truncated series).
     k3, misalignment : bool
         Add the cubic coefficient / the three observable small misalignment angles (nls only).
     lever_arm : {None, "along", "full"}
@@ -367,107 +462,89 @@ def fit_centrifuge(
         DegenerateDataError naming it.
     spin_axis : array_like (k, 3), optional
         Spin-axis (up) unit vector in the body frame per row (lever-arm models).
-    sigma : array_like (k,), optional
-        Standard deviation of each row's norm (g); then the covariance is absolute.
+    sigma : float, array_like (k,) or (k, 3), optional
+        Noise standard deviation of each **output** per axis (g), the same on every row and
+        axis (scalar), per row, or per row and axis: for mean outputs, the per-sample noise
+        over sqrt(samples averaged). It is propagated to each row's norm residual at the
+        fitted parameters (``residual_std``), which weights the rows; the covariance is then
+        absolute and ``residual_rms`` is whitened (about 1 when the noise is right). Without
+        it the rows weigh equally and the covariance is scaled by the residual variance.
     robust : bool
-        Screen rows inconsistent with the model (least median of squares over random minimal
-        subsets, seeded) when the plain fit shows outliers; excluded rows raise a
-        :class:`CentrifugeOutlierWarning` naming them.
+        Screen rows inconsistent with the model; excluded rows raise a
+        :class:`CentrifugeOutlierWarning` naming them. See ``outlier_k``.
     outlier_k : float
-        Threshold in robust standard deviations.
+        Screening threshold as a normal tail: a good row is excluded with the probability of a
+        ``outlier_k``-sigma normal deviation, ``2 Phi(-k)`` per row (5.7e-7 at the default 5,
+        so 3.4e-5 for a 60-row session). The statistic is the studentised residual (the
+        residual over what a good row's residual would be, with the noise estimated without
+        that row), compared with the Student-t quantile of the same tail probability
+        (``threshold``); with ``sigma`` given, with ``outlier_k`` itself. When any row
+        exceeds it, a least-median-of-squares fit over random minimal subsets (seeded) gives
+        an outlier-free start and the rows are reclassified until they settle.
     max_draws : int
-        Maximum random subsets of the screen.
+        Maximum random subsets of the screen, 1..10_000_000.
     seed : int
         Seed of the subset generator (the result is deterministic).
+    check_units : bool
+        Refuse (CalibrationError naming the likely unit) a session whose norm constraint
+        ``|f|^2 = A^2 + 1`` needs scale factors no triad reporting in g has (outside
+        0.2..5): omega in rpm, deg/s or Hz, radius in mm or cm, outputs in m/s^2.
+    labels : sequence of str (k,), optional
+        Names of the rows for messages (e.g. ``"speed 1, position 5"``);
+        :func:`calibrate_centrifuge_table` gives speed and position.
 
     Returns
     -------
     CentrifugeFit
     """
-    # Cheap checks here (clear messages); values (finite, speeds, design) are checked in Rust.
-    # The core reads any strides, so no contiguous copies are made.
-    out = np.asarray(outputs, dtype=np.float64)
+    out = real_array(outputs, "outputs", "g")
     if out.ndim != 2 or out.shape[1] != 3:
         raise CalibrationError(f"outputs must have shape (k, 3) in g; got {out.shape}")
-    om = np.asarray(omega, dtype=np.float64)
-    if om.ndim != 1:
-        om = om.ravel()
+    om = real_array(omega, "omega", "rad/s").reshape(-1)
     if om.shape[0] != out.shape[0]:
         raise CalibrationError(
             f"omega has {om.shape[0]} values but outputs have {out.shape[0]} rows"
         )
-    try:
-        r = float(radius)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"radius must be a number (m); got {radius!r}") from None
-    if not (0.0 < r < math.inf):
-        raise CalibrationError(f"radius must be positive and finite (m); got {radius!r}")
-    try:
-        gg = float(g)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"g must be a number; got {g!r}") from None
-    if not (0.0 < gg < math.inf):
-        raise CalibrationError(f"g must be positive and finite (m/s^2); got {g!r}")
+    r = number(radius, "radius", lo=0.0, lo_open=True, unit="m")
+    gg = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
+    k_out = number(outlier_k, "outlier_k", lo=0.0, lo_open=True, unit="standard deviations")
+    draws = number(max_draws, "max_draws", lo=1, hi=10_000_000, integer=True)
+    sd = number(seed, "seed", lo=0, hi=2.0**53, integer=True)
+    if method not in ("nls", "taylor-paper"):
+        raise CalibrationError(f"unknown method {method!r}; use 'nls' or 'taylor-paper'")
     sa = None
     if spin_axis is not None:
-        sa = np.ascontiguousarray(spin_axis, dtype=np.float64)
+        sa = real_array(spin_axis, "spin_axis")
         if sa.shape != out.shape:
             raise CalibrationError(f"spin_axis must have shape {out.shape}; got {sa.shape}")
     sg = None
     if sigma is not None:
-        sg = np.ascontiguousarray(np.broadcast_to(np.asarray(sigma, np.float64), om.shape))
-    d = _core.centrifuge_fit_raw(
-        out, om, r, gg, method, k3, misalignment, lever_arm, sa, sg,
-        robust, float(outlier_k), 1e-9, int(max_draws), int(seed),
+        s_ = real_array(sigma, "sigma", "g")
+        k = out.shape[0]
+        if s_.ndim == 1 and s_.shape == (k,):
+            s_ = s_[:, None]
+        try:
+            sg = np.broadcast_to(s_, out.shape)
+        except ValueError:
+            raise CalibrationError(
+                f"sigma (per-axis output noise, g) must be a number, ({k},) or ({k}, 3); "
+                f"got shape {s_.shape}"
+            ) from None
+    lab = None
+    if labels is not None:
+        lab = [str(x) for x in labels]
+    if check_units:
+        found = _core.centrifuge_unit_check_raw(out, om, r, gg, bool(robust), draws, sd)
+        if found is not None:
+            raise CalibrationError(_unit_message(found, "pass check_units=False"))
+    fit = _core.centrifuge_fit_raw(
+        out, om, r, gg, method, bool(k3), bool(misalignment), lever_arm, sa, sg,
+        bool(robust), k_out, 1e-9, draws, sd, False, lab,
     )
-    return _build(d, method, r, gg, k3, misalignment, lever_arm, warn=True)
-
-
-def _build(
-    d: dict[str, Any], method: str, radius: float, g: float, k3: bool, mis: bool,
-    lever: str | None, warn: bool,
-) -> CentrifugeFit:
-    # The core returns every array in its final dtype and shape (params, covariance (p, p),
-    # std, residuals, int64 outliers, singular values): only views are taken here.
-    p = d["params"]
-    outliers = d["outliers"]
-    res = d["residuals"]
-    if warn and len(outliers):
-        warnings.warn(
-            f"excluded {len(outliers)} of {len(res)} rows inconsistent with |f|^2 = A^2 + 1 "
-            f"(rows {outliers.tolist()}; residuals "
-            + ", ".join(f"{v:+.3g}" for v in res[outliers])
-            + " g)",
-            CentrifugeOutlierWarning,
-            stacklevel=3,
-        )
-    # Parameter order (ModelOptions::names): S, b, K2 [, K3] [, m_yx m_zx m_zy] [, lever].
-    at = 12 if k3 else 9
-    misv = None
-    if mis:
-        misv = p[at : at + 3]
-        at += 3
-    lev: NDArray[np.float64] | None = None
-    if lever == "along":
-        lev = p[at : at + 3]
-    elif lever == "full":
-        lev = p[at : at + 9].reshape(3, 3)
-    # The core's dict keys are CentrifugeFit field names (params, names, covariance, std,
-    # residuals, outliers, residual_rms, observability, iterations, converged, draws,
-    # taylor_coefficients, extra): copy them and add the views and the settings.
-    obj: CentrifugeFit = object.__new__(CentrifugeFit)
-    f = obj.__dict__
-    f.update(d)
-    f["scale"] = p[0:3]
-    f["bias"] = p[3:6]
-    f["k2"] = p[6:9]
-    f["k3"] = p[9:12] if k3 else None
-    f["misalignment"] = misv
-    f["lever_arm"] = lev
-    f["method"] = method
-    f["radius"] = radius
-    f["g"] = g
-    return obj
+    res = CentrifugeFit(fit)  # the same result as the Python type (arrays shared)
+    if len(res.outliers):
+        warnings.warn(res.excluded_text(), CentrifugeOutlierWarning, stacklevel=2)
+    return res
 
 
 # --------------------------------------------------------------------------- seed table I/O
@@ -475,7 +552,8 @@ def _build(
 
 @dataclass(frozen=True)
 class CentrifugeTable:
-    """A centrifuge table in the seed-004 CSV format (per-position mean outputs in g)."""
+    """A centrifuge table: columns speed_index, omega_rad_s, position, N_ax_g, N_ay_g, N_az_g
+    (per-position mean outputs in g; the format of the paper's Table 1)."""
 
     speed_index: NDArray[np.int64]
     omega: NDArray[np.float64]
@@ -485,6 +563,11 @@ class CentrifugeTable:
 
     def __len__(self) -> int:
         return int(self.omega.shape[0])
+
+    def labels(self) -> list[str]:
+        """Name of each row by speed and position, e.g. ``"speed 1, position 5"``."""
+        return [f"speed {s}, position {p}"
+                for s, p in zip(self.speed_index, self.position, strict=True)]
 
 
 _COLUMNS = ("speed_index", "omega_rad_s", "position", "N_ax_g", "N_ay_g", "N_az_g")
@@ -523,8 +606,10 @@ def read_centrifuge_table(path: str | os.PathLike[str]) -> CentrifugeTable:
 def calibrate_centrifuge_table(
     path: str | os.PathLike[str], radius: float, g: float = 9.80665, **kwargs: Any
 ) -> CentrifugeFit:
-    """Read a seed-004-format table and run :func:`fit_centrifuge` on it (CLI entry point)."""
+    """Read a centrifuge table (:func:`read_centrifuge_table`) and run :func:`fit_centrifuge` on
+    it, naming the rows by speed and position."""
     t = read_centrifuge_table(path)
+    kwargs.setdefault("labels", t.labels())
     return fit_centrifuge(t.outputs, t.omega, radius, g=g, **kwargs)
 
 

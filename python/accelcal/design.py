@@ -21,9 +21,9 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
 from ._triad import PARAM_NAMES, attitudes_to_force, fibonacci_sphere, k_matrix, n_params
-from .centrifuge import SEED004_TRUTH, centrifuge_outputs, paper_design
+from ._validate import number, real_array
+from .centrifuge import SEED004_TRUTH, CentrifugeMethod, centrifuge_outputs, paper_design
 from .gradiometer import _F64, _azimuths, _dwell_std, _times
-from .gradiometer import PARAM_NAMES as STARTUP_PARAM_NAMES
 
 __all__ = [
     "CentrifugeSensitivity",
@@ -270,9 +270,7 @@ def plan_azimuths(m: int, drift: bool = False) -> _F64:
     forwards then backwards (ABBA for ``m = 4``), for odd ``m >= 5`` the angles are chosen so the
     set is still balanced; ``m = 3`` gives 0/90/0 (bias variance 3/8).
     """
-    if isinstance(m, bool) or int(m) != m:
-        raise CalibrationError(f"m must be an integer number of dwells; got {m!r}")
-    m = int(m)
+    m = number(m, "m", lo=1, hi=100_000, integer=True, unit="dwells")
     if not drift:
         if m < 2:
             raise DegenerateDataError(
@@ -301,9 +299,9 @@ def plan_azimuths(m: int, drift: bool = False) -> _F64:
     return np.concatenate([pairs, [0.0], pairs[::-1]])
 
 
-@dataclass(frozen=True)
-class StartupPrediction:
-    """Predicted accuracy of a start-up sequence before it is run.
+class StartupPrediction(_core.StartupPredictionCore):
+    """Predicted accuracy of a start-up sequence before it is run (the data live in the Rust
+    result; arrays are read-only; pickles).
 
     Attributes
     ----------
@@ -316,18 +314,14 @@ class StartupPrediction:
     std : (p,)
         Square roots of the total covariance diagonal.
     closed_form_variance : float
-        SPEC 3 closed form ``sigma^2 m / (m^2 - |U|^2)`` (equal weights, no drift).
+        Closed form ``sigma^2 m / (m^2 - |U|^2)`` with ``U = sum exp(-2i theta_k)`` (equal
+        weights, no drift; ``sigma`` the mean noise std).
     condition : float
         Condition number of the design.
+    names : list of str
     """
 
-    covariance: _F64
-    azimuth_covariance: _F64
-    total_covariance: _F64
-    std: _F64
-    closed_form_variance: float
-    condition: float
-    names: tuple[str, ...]
+    __slots__ = ()
 
     @property
     def bias_std(self) -> _F64:
@@ -383,49 +377,26 @@ def predict_startup_accuracy(
     if use_drift and tt is None:
         raise CalibrationError("the drift model needs the planned dwell times")
     sd = _dwell_std(sigma, m)
-    st = float(sigma_theta)
-    if not np.isfinite(st) or st < 0:
-        raise CalibrationError("sigma_theta must be >= 0 (deg)")
+    st = number(sigma_theta, "sigma_theta", lo=0.0, unit="deg")
     gvec = None
     gmag = 0.0
     if gradient is not None:
-        g = np.asarray(gradient, dtype=np.float64).reshape(-1)
-        if g.size == 1:
+        g = real_array(gradient, "gradient", "E").reshape(-1)
+        if g.size == 1 and np.isfinite(g[0]):
             gmag = float(abs(g[0]))
-        elif g.size == 2:
+        elif g.size == 2 and np.all(np.isfinite(g)):
             gvec = [float(g[0]), float(g[1])]
         else:
-            raise CalibrationError("gradient must be a magnitude or (I, C) in E")
+            raise CalibrationError(
+                f"gradient must be a finite magnitude or (I, C) in E; got {gradient!r}"
+            )
     elif st > 0:
         raise CalibrationError(
             "sigma_theta > 0 needs the gradient (E): its effect on the bias scales with |gamma|"
         )
-    tref = 0.0
-    if use_drift:
-        assert tt is not None
-        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
-    raw = _core.startup_predict_raw(
-        np.radians(az),
-        sd,
-        tt if use_drift else None,
-        tref,
-        gvec,
-        gmag,
-        np.radians(st),
-    )
-    cov = np.asarray(raw["unit_cov"])
-    tcov = np.asarray(raw["theta_cov"])
-    tot = cov + tcov
-    p = cov.shape[0]
-    return StartupPrediction(
-        covariance=cov,
-        azimuth_covariance=tcov,
-        total_covariance=tot,
-        std=np.sqrt(np.diag(tot)),
-        closed_form_variance=float(np.mean(sd) ** 2 * raw["closed_form"]),
-        condition=float(raw["condition"]),
-        names=STARTUP_PARAM_NAMES[:p],
-    )
+    tref = None if t_ref is None or not use_drift else number(t_ref, "t_ref", unit="s")
+    raw = _core.startup_predict_raw(az, sd, tt if use_drift else None, tref, gvec, gmag, st)
+    return StartupPrediction(*raw.__reduce__()[1])
 
 
 # ------------------------------------------------------------------------------------------
@@ -503,7 +474,7 @@ def centrifuge_sensitivity(
     source: str = "lever_along_x",
     magnitudes: Any = (0.02,),
     *,
-    method: str = "taylor-paper",
+    method: CentrifugeMethod = "taylor-paper",
     g: float = 9.8,
 ) -> CentrifugeSensitivity:
     """Shift of the fitted S, b, K2 caused by an error source the fit does not model.
@@ -513,7 +484,7 @@ def centrifuge_sensitivity(
     design : CentrifugeDesign, optional
         Default: the paper's 20 positions x 3 speeds, R = 1 m.
     truth : dict, optional
-        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the seed-004 truth.
+        ``scale``, ``bias`` (g), ``k2`` (g/g^2); default the paper's truth.
     source : str
         ``misalignment`` (all six paper angles = magnitude, rad); ``lever_along_<axis>``
         (accelerometer <axis> displaced along its own axis, m); ``lever_<accel>_<dir>``
@@ -536,15 +507,16 @@ def centrifuge_sensitivity(
     if truth:
         tr.update({k: np.asarray(v, float) for k, v in truth.items()})
     kw: dict[str, Any] = {"scale": tr["scale"], "bias": tr["bias"], "k2": tr["k2"], "g": g}
-    mags = np.atleast_1d(np.asarray(magnitudes, dtype=np.float64))
+    mags = np.atleast_1d(real_array(magnitudes, "magnitudes")).reshape(-1)
+    if not np.all(np.isfinite(mags)):
+        raise CalibrationError(f"magnitudes must be finite; got {magnitudes!r}")
+    if method not in ("nls", "taylor-paper"):
+        raise CalibrationError(f"unknown method {method!r}; use 'taylor-paper' or 'nls'")
     _error_kwargs(source, 0.0)  # validate the name first
 
     def run(n: NDArray[np.float64]) -> NDArray[np.float64]:
-        d = _core.centrifuge_fit_raw(
-            np.ascontiguousarray(n), des.omega, des.radius, g, method, False, False, None,
-            None, None, False, 5.0, 1e-9, 0, 0,
-        )
-        return np.asarray(d["params"])
+        fit = _core.centrifuge_fit_raw(n, des.omega, des.radius, g, method, robust=False)
+        return np.asarray(fit.params)
 
     base = run(centrifuge_outputs(des, **kw))
     shifts = np.array([run(centrifuge_outputs(des, **kw, **_error_kwargs(source, m))) - base

@@ -1,4 +1,6 @@
-"""Gravity gradiometer per-startup bias by platform azimuth rotation (SPEC section 3).
+"""Gravity gradiometer per-startup bias by platform azimuth rotation (the procedure of the patent
+on system-level calibration of the per-startup zero of a rotating-accelerometer gravity
+gradiometer, generalised to any azimuth set).
 
 A rotating-accelerometer gravity gradiometer on a stabilised, level platform has two outputs,
 inline ``I = (Gxx - Gyy) / 2`` and cross ``C = Gxy`` (Eotvos, 1 E = 1e-9 s^-2), each with a
@@ -17,7 +19,6 @@ from __future__ import annotations
 
 import io
 import os
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
-from ._validate import bounds_array, positive
+from ._validate import bounds_array, number, positive, real_array
 
 __all__ = [
     "Demodulated",
@@ -43,17 +44,19 @@ _F64 = NDArray[np.float64]
 # ------------------------------------------------------------------------------------------
 # Input coercion
 # ------------------------------------------------------------------------------------------
-def _azimuths(x: ArrayLike) -> _F64:
-    a = np.asarray(x, dtype=np.float64).reshape(-1)
+def _azimuths(x: ArrayLike, name: str = "azimuths") -> _F64:
+    a = real_array(x, name, "deg").reshape(-1)
     if a.size == 0:
-        raise CalibrationError("no azimuths given")
+        raise CalibrationError(f"no {name} given")
     if not np.all(np.isfinite(a)):
-        raise CalibrationError(f"azimuths contain NaN or inf at {np.where(~np.isfinite(a))[0]}")
-    return np.ascontiguousarray(a)
+        raise CalibrationError(
+            f"{name} contain NaN or inf at {np.where(~np.isfinite(a))[0].tolist()}"
+        )
+    return a
 
 
 def _outputs(x: ArrayLike, m: int) -> _F64:
-    y = np.asarray(x, dtype=np.float64)
+    y = real_array(x, "outputs", "E")
     if y.ndim == 1 and y.size == 2 and m == 1:
         y = y.reshape(1, 2)
     if y.shape != (m, 2):
@@ -63,13 +66,13 @@ def _outputs(x: ArrayLike, m: int) -> _F64:
     if not np.all(np.isfinite(y)):
         bad = np.where(~np.all(np.isfinite(y), axis=1))[0]
         raise CalibrationError(f"outputs contain NaN or inf at dwell(s) {bad.tolist()}")
-    return np.ascontiguousarray(y)
+    return y
 
 
 def _times(t: ArrayLike | None, m: int, name: str = "t") -> _F64 | None:
     if t is None:
         return None
-    a = np.ascontiguousarray(np.asarray(t, dtype=np.float64).reshape(-1))
+    a = real_array(t, name, "s").reshape(-1)
     if a.shape != (m,):
         raise CalibrationError(f"{name} must have shape ({m},) (one time per azimuth, s)")
     if not np.all(np.isfinite(a)):
@@ -78,23 +81,30 @@ def _times(t: ArrayLike | None, m: int, name: str = "t") -> _F64 | None:
 
 
 def _dwell_std(sigma: Any, m: int) -> _F64:
-    s = np.asarray(sigma, dtype=np.float64)
+    if sigma is None or isinstance(sigma, (str, bytes, bool)):
+        raise CalibrationError(
+            f"sigma must be a positive number or ({m},) numbers (E, noise std of an average); "
+            f"got {sigma!r}"
+        )
+    s = real_array(sigma, "sigma", "E")
     if s.ndim == 0:
         s = np.full(m, float(s))
-    s = np.ascontiguousarray(s.reshape(-1))
+    s = s.reshape(-1)
     if s.shape != (m,):
         raise CalibrationError(f"sigma must be a number or have shape ({m},); got {s.shape}")
     if not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise CalibrationError("sigma must be positive and finite (E, noise std of an average)")
+        raise CalibrationError(
+            f"sigma must be positive and finite (E, noise std of an average); got {sigma!r}"
+        )
     return s
 
 
 # ------------------------------------------------------------------------------------------
 # Estimator
 # ------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class StartupBias:
-    """Per-startup bias, navigation-frame gradient (and drift) with covariance.
+class StartupBias(_core.StartupBiasCore):
+    """Per-startup bias, navigation-frame gradient (and drift) with covariance (the data live
+    in the Rust result; arrays are read-only; pickles).
 
     Attributes
     ----------
@@ -124,23 +134,11 @@ class StartupBias:
         Condition number of the column-scaled design.
     azimuth_deg, t : (m,) float
         The design (``t`` None without drift); ``t_ref`` the drift reference time, s.
+    names : list of str
+        Parameter names in covariance order.
     """
 
-    bias: _F64
-    gradient: _F64
-    drift: _F64 | None
-    covariance: _F64
-    std: _F64
-    residuals: _F64
-    unit_covariance: _F64
-    sigma: _F64 | None
-    sigma_estimated: bool
-    dof: int
-    condition: float
-    azimuth_deg: _F64
-    t: _F64 | None = None
-    t_ref: float | None = None
-    names: tuple[str, ...] = field(default=PARAM_NAMES[:4])
+    __slots__ = ()
 
     @property
     def params(self) -> _F64:
@@ -213,7 +211,7 @@ def startup_bias(
     sigma: float | ArrayLike | None = None,
     t_ref: float | None = None,
 ) -> StartupBias:
-    """Per-startup bias of the inline and cross channels by least squares (SPEC 3).
+    """Per-startup bias of the inline and cross channels by least squares.
 
     Parameters
     ----------
@@ -241,53 +239,18 @@ def startup_bias(
     DegenerateDataError
         When the azimuth set cannot separate bias and gradient (e.g. 0/180 deg), with why.
     """
-    az = _azimuths(azimuth_deg)
+    az = _azimuths(azimuth_deg, "azimuth_deg")
     m = az.size
     y = _outputs(outputs, m)
     tt = _times(t, m)
     if drift and tt is None:
         raise CalibrationError("drift=True needs the dwell times t (s)")
     tref = None
-    if drift:
-        assert tt is not None
-        tref = float(np.mean(tt)) if t_ref is None else float(t_ref)
-    sd = _dwell_std(1.0 if sigma is None else sigma, m)
-    raw = _core.startup_bias_raw(
-        np.radians(az), y, sd, tt if drift else None, 0.0 if tref is None else tref
-    )
-    p = raw["params"]
-    ucov = np.asarray(raw["unit_cov"])
-    dof = int(raw["dof"])
-    est = sigma is None
-    used: _F64 | None
-    if est:
-        if dof > 0:
-            s2 = float(raw["rss"]) / dof
-            cov = ucov * s2
-            used = np.full(m, np.sqrt(s2))
-        else:
-            cov = np.full_like(ucov, np.nan)
-            used = None
-    else:
-        cov = ucov.copy()
-        used = sd
-    return StartupBias(
-        bias=p[:2].copy(),
-        gradient=p[2:4].copy(),
-        drift=p[4:6].copy() if drift else None,
-        covariance=cov,
-        std=np.sqrt(np.diag(cov)),
-        residuals=np.asarray(raw["residuals"]),
-        unit_covariance=ucov,
-        sigma=used,
-        sigma_estimated=est and used is not None,
-        dof=dof,
-        condition=float(raw["condition"]),
-        azimuth_deg=az,
-        t=tt,
-        t_ref=tref,
-        names=PARAM_NAMES[: p.size],
-    )
+    if drift and t_ref is not None:
+        tref = number(t_ref, "t_ref", unit="s")
+    sd = None if sigma is None else _dwell_std(sigma, m)
+    raw = _core.startup_bias_raw(az, y, sd, tt if drift else None, tref)
+    return StartupBias(*raw.__reduce__()[1])
 
 
 # ------------------------------------------------------------------------------------------
@@ -296,9 +259,9 @@ def startup_bias(
 # ------------------------------------------------------------------------------------------
 # 2-omega demodulation
 # ------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Demodulated:
-    """Per-dwell inline and cross channels from raw rotating-accelerometer streams.
+class Demodulated(_core.DemodulatedCore):
+    """Per-dwell inline and cross channels from raw rotating-accelerometer streams (the data
+    live in the Rust result; arrays are read-only; pickles).
 
     Attributes
     ----------
@@ -318,16 +281,7 @@ class Demodulated:
         Mid time of the samples used, s.
     """
 
-    inline_E: _F64
-    cross_E: _F64
-    std_inline_E: _F64
-    std_cross_E: _F64
-    start: NDArray[np.int64]
-    stop: NDArray[np.int64]
-    revolutions: NDArray[np.int64]
-    resid_rms: _F64
-    nuisance: _F64
-    t: _F64 | None
+    __slots__ = ()
 
     @property
     def outputs(self) -> _F64:
@@ -343,7 +297,9 @@ class Demodulated:
 def _accel(x: ArrayLike) -> NDArray[Any]:
     a = np.asarray(x)
     if a.dtype.kind not in "fiu":
-        raise CalibrationError(f"accel: unsupported dtype {a.dtype}")
+        raise CalibrationError(
+            f"accel must be real numbers (m/s^2); got dtype {a.dtype}"
+        )
     if a.ndim != 2 or a.shape[1] != 4:
         raise CalibrationError(f"accel must have shape (N, 4) (a1..a4 per row); got {a.shape}")
     if a.shape[0] == 0:
@@ -385,30 +341,20 @@ def demodulate(
     """
     a = _accel(accel)
     n = a.shape[0]
-    ph = np.ascontiguousarray(np.asarray(phase, dtype=np.float64))
-    if ph.shape != (n,):
-        raise CalibrationError(f"phase must have shape ({n},) to match accel; got {ph.shape}")
+    ph = real_array(phase, "phase", "rad").reshape(-1) if np.ndim(phase) == 1 else None
+    if ph is None or ph.shape != (n,):
+        raise CalibrationError(
+            f"phase must have shape ({n},) to match accel (rad); got {np.shape(phase)}"
+        )
     b = bounds_array([[0, n]] if bounds is None else bounds)
     r = positive(radius_m, "radius_m", " (m)")
-    d = _core.demodulate_raw(a, ph, b, r)
-    tm = None
+    tv = None
     if t is not None:
-        tv = np.asarray(t, dtype=np.float64).reshape(-1)
+        tv = real_array(t, "t", "s").reshape(-1)
         if tv.shape != (n,):
             raise CalibrationError(f"t must have shape ({n},) to match accel")
-        tm = 0.5 * (tv[d["start"]] + tv[d["stop"] - 1])
-    return Demodulated(
-        inline_E=d["inline_e"],
-        cross_E=d["cross_e"],
-        std_inline_E=d["std_inline_e"],
-        std_cross_E=d["std_cross_e"],
-        start=d["start"],
-        stop=d["stop"],
-        revolutions=d["revolutions"],
-        resid_rms=d["resid_rms"],
-        nuisance=d["nuisance"],
-        t=tm,
-    )
+    raw = _core.demodulate_raw(a, ph, b, r, tv)
+    return Demodulated(*raw.__reduce__()[1])
 
 
 # ------------------------------------------------------------------------------------------
@@ -449,6 +395,10 @@ class StartupCalibration:
         radius_m: float | None = None,
     ) -> None:
         self.drift = bool(drift)
+        if isinstance(sigma, str) and sigma != "stream":
+            raise CalibrationError(
+                f"sigma must be a number, an array, 'stream' or None; got {sigma!r}"
+            )
         self.sigma = sigma
         self.radius_m = None if radius_m is None else positive(radius_m, "radius_m", " (m)")
         self._az: list[float] = []
@@ -465,14 +415,12 @@ class StartupCalibration:
 
     def _add(self, az: float, y: tuple[float, float], t: float | None, sem: float | None,
              n: int) -> None:
-        a = float(az)
-        if not np.isfinite(a):
-            raise CalibrationError("azimuth must be finite (deg)")
+        a = number(az, "azimuth_deg", unit="deg")
         if not (np.isfinite(y[0]) and np.isfinite(y[1])):
             raise CalibrationError(f"azimuth {a:g} deg: channel average is NaN or inf")
         self._az.append(a)
         self._y.append((float(y[0]), float(y[1])))
-        self._t.append(None if t is None else float(t))
+        self._t.append(None if t is None else number(t, "t", unit="s"))
         self._sem.append(sem)
         self._n.append(n)
 
@@ -529,7 +477,9 @@ class StartupCalibration:
         std: float | None = None,
     ) -> None:
         """Record averages computed elsewhere (E; ``t`` the dwell mid time in s)."""
-        self._add(azimuth_deg, (float(inline_E), float(cross_E)), t, std, 0)
+        sd = None if std is None else number(std, "std", lo=0.0, lo_open=True, unit="E")
+        self._add(azimuth_deg, (number(inline_E, "inline_E", unit="E"),
+                                number(cross_E, "cross_E", unit="E")), t, sd, 0)
 
     @property
     def azimuth_deg(self) -> _F64:

@@ -90,3 +90,85 @@ def allan_figure(taus: Any, adev: Any, labels: tuple[str, ...] = ("x", "y", "z")
     ax.legend()
     fig.tight_layout()
     return fig
+
+
+def centrifuge_residual_figure(fit: Any, speed_index: Any = None, position: Any = None) -> Any:
+    """Norm residual of every centrifuge row against position, one series per speed, the
+    excluded rows marked (and the screening threshold drawn as a band), in g."""
+    plt = _plt()
+    r = np.asarray(fit.residuals, dtype=np.float64)
+    k = r.size
+    pos = np.arange(1, k + 1) if position is None else np.asarray(position)
+    spd = np.ones(k, dtype=np.int64) if speed_index is None else np.asarray(speed_index)
+    out = np.zeros(k, dtype=bool)
+    out[np.asarray(fit.outliers, dtype=np.int64)] = True
+    big = np.abs(r[~out]).max() if np.any(~out) else 0.0
+    band_g = float(np.nanmax(fit.threshold * np.asarray(fit.residual_std, dtype=np.float64)))
+    ref = max(big, band_g if np.isfinite(band_g) else 0.0, 1e-15)
+    scale, unit = (1e6, "ug") if ref < 1e-5 else (1e3, "mg") if ref < 1e-2 else (1.0, "g")
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    # Excluded rows far beyond the others are drawn at the edge of the axis (clipped).
+    lim = 3.0 * scale * ref
+    clipped = False
+    speeds = np.unique(spd)
+    for j, s in enumerate(speeds):
+        m = spd == s
+        x = pos + 0.12 * (j - (len(speeds) - 1) / 2)  # side by side, one speed each
+        ax.plot(x[m & ~out], scale * r[m & ~out], "o", color=f"C{j}", label=f"speed {s}")
+        if np.any(m & out):
+            v = scale * r[m & out]
+            clipped |= bool(np.any(~(np.abs(v) <= lim)))
+            ax.plot(x[m & out], np.clip(np.nan_to_num(v, posinf=lim, neginf=-lim), -lim, lim),
+                    "x", color=f"C{j}", ms=9, mew=2)
+    band = scale * fit.threshold * np.asarray(fit.residual_std, dtype=np.float64)
+    if np.all(np.isfinite(band)) and band.size:
+        ax.axhspan(-band.max(), band.max(), color="0.9", zorder=0,
+                   label="screening threshold")
+    if np.any(out):
+        ax.plot([], [], "kx", ms=9, mew=2,
+                label=f"excluded ({int(out.sum())}{', clipped' if clipped else ''})")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel("position")
+    ax.set_ylabel(f"norm residual |f| - sqrt(A^2 + 1)  [{unit}]")
+    ax.set_title(f"Centrifuge fit ({fit.method}): {k} rows, {int(out.sum())} excluded, "
+                 f"rms {fit.residual_rms:.3g}{'' if fit.noise_known else ' g'}")
+    if np.issubdtype(pos.dtype, np.integer):
+        ax.set_xticks(np.unique(pos))
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    return fig
+
+
+def gradiometer_figure(sb: Any) -> Any:
+    """Inline and cross averages against azimuth (with their error bars) and the fitted
+    ``bias + R(2 theta) gamma`` (at ``t_ref`` when a drift was fitted), in E."""
+    plt = _plt()
+    az = np.asarray(sb.azimuth_deg, dtype=np.float64)
+    y = np.asarray(sb.residuals, dtype=np.float64)
+    th = np.radians(az)
+    c, s = np.cos(2 * th), np.sin(2 * th)
+    b, gm = np.asarray(sb.bias), np.asarray(sb.gradient)
+    model = np.column_stack([b[0] + c * gm[0] + s * gm[1], b[1] - s * gm[0] + c * gm[1]])
+    drift = np.zeros_like(model)
+    if sb.drift is not None and sb.t is not None:
+        drift = np.outer(np.asarray(sb.t) - float(sb.t_ref or 0.0), np.asarray(sb.drift))
+    data = model + drift + y  # the averages, drift removed to t_ref below
+    shown = data - drift
+    grid = np.linspace(0.0, 180.0, 361)
+    tg = np.radians(grid)
+    cg, sg = np.cos(2 * tg), np.sin(2 * tg)
+    curves = (b[0] + cg * gm[0] + sg * gm[1], b[1] - sg * gm[0] + cg * gm[1])
+    err = None if sb.sigma is None else np.asarray(sb.sigma, dtype=np.float64)
+    fig, axes = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for i, (ax, name) in enumerate(zip(axes, ("inline I", "cross C"), strict=True)):
+        ax.errorbar(np.mod(az, 180.0), shown[:, i], yerr=err, fmt="o", capsize=3,
+                    label="averages" + (" (drift removed)" if sb.drift is not None else ""))
+        ax.plot(grid, curves[i], "-", label="fit: bias + R(2 theta) gamma")
+        ax.axhline(b[i], color="k", ls=":", lw=1, label=f"bias {b[i]:.4g} E")
+        ax.set_ylabel(f"{name}  [E]")
+        ax.legend(fontsize=8)
+    axes[1].set_xlabel("platform azimuth  [deg]")
+    axes[1].set_xticks(np.arange(0, 181, 45))
+    axes[0].set_title(f"Start-up bias from {az.size} azimuths (dof {sb.dof})")
+    fig.tight_layout()
+    return fig

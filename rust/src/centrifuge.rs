@@ -1,4 +1,5 @@
-//! Centrifuge norm-observation calibration with quadratic (K2) coefficients (SPEC section 2).
+//! Centrifuge norm-observation calibration with quadratic (K2) coefficients (Wang and Li 2021,
+//! doi:10.19306/j.cnki.2095-8110.2021.06.019, with its printed equations corrected).
 //!
 //! Model per accelerometer triad, in g units:
 //! `N = S Phi (h) + b`, `h_i = f_i + D_i f_i^2 [+ E_i f_i^3]`, `Phi = I + M` (small-angle,
@@ -8,7 +9,7 @@
 //! - [`fit`] with [`Method::Nls`]: exact inversion of every row (`f_i` from `h_i` by the root
 //!   continuous with `D -> 0`) and weighted least squares on the norm, via [`crate::lsq`].
 //! - [`Method::TaylorPaper`]: the paper's 13-column regression of `A^2 + 1` on
-//!   `[1, N, N^2, N^3, N^4]` with the corrected closed-form recovery (SPEC 2 errata).
+//!   `[1, N, N^2, N^3, N^4]` with the corrected closed-form recovery (eqs. 19, 21, 22 corrected).
 //! - Robust screening: least median of squares over random minimal subsets (seeded, so
 //!   deterministic), then iterated refit / reclassification at `k` robust sigmas.
 //!
@@ -18,9 +19,11 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(x > 0.0)` deliberately rejects NaN too.
 
 use crate::error::{degenerate, invalid, CoreError, Result};
+use crate::gap::{chi2_sf, f_sf};
 use crate::lsq::{
-    cholesky_inverse_small, cholesky_small, lstsq_small, solve_nls, solve_normal_gn, svd_report_qr,
-    symmetric_eigenvalues_small, NlsOptions, NormalEquations, Residuals,
+    cholesky_inverse_small, cholesky_small, cholesky_solve_small, lstsq_rows, lstsq_small,
+    solve_nls, solve_normal_gn, svd_report_qr, symmetric_eigenvalues_small, NlsOptions,
+    NormalEquations, Residuals,
 };
 use nalgebra::{DMatrix, DVector};
 use std::cell::{OnceCell, RefCell};
@@ -144,8 +147,10 @@ pub struct CentrifugeData<'a> {
     pub radius: f64,
     /// Gravity used to express A in g (m/s^2).
     pub g: f64,
-    /// Optional per-row standard deviation of the norm (g).
-    pub sigma: Option<&'a [f64]>,
+    /// Optional noise standard deviation of each output, per row and axis (g): the weight of
+    /// a row is the inverse of its norm residual's standard deviation, propagated from these
+    /// at the current parameters.
+    pub sigma: Option<&'a [[f64; 3]]>,
     /// Optional spin-axis (up) direction per row in the body frame (for lever arms).
     pub spin_axis: Option<&'a [[f64; 3]]>,
 }
@@ -159,10 +164,13 @@ pub struct FitOptions {
     pub method: Method,
     /// Screen rows with a robust fit when the plain fit shows outliers.
     pub robust: bool,
-    /// Outlier threshold in robust standard deviations.
+    /// Outlier threshold: a row is excluded when its studentised residual is as unlikely as a
+    /// `outlier_k`-sigma normal deviation (two-sided; see [`screen`]).
     pub outlier_k: f64,
     /// Smallest residual scale (g) used for the threshold (guards exact data).
     pub sigma_floor: f64,
+    /// Refuse sessions whose units look wrong (see [`check_units`]).
+    pub check_units: bool,
     /// Maximum number of random minimal subsets.
     pub max_draws: usize,
     /// Seed of the subset generator.
@@ -177,6 +185,7 @@ impl Default for FitOptions {
             robust: true,
             outlier_k: 5.0,
             sigma_floor: 1e-9,
+            check_units: true,
             max_draws: 20_000,
             seed: 0,
         }
@@ -198,8 +207,15 @@ pub struct CentrifugeFit {
     pub outliers: Vec<usize>,
     /// RMS of the weighted residuals of the rows used.
     pub residual_rms: f64,
-    /// Robust residual scale used for screening (g); 0 when no screening ran.
+    /// Residual scale of the rows used, the screen's `s` (g; 1 when sigma was given: whitened).
     pub screen_sigma: f64,
+    /// Studentised residual of every row, the screening statistic (see [`screen`]).
+    pub studentized: Vec<f64>,
+    /// Threshold on `|studentized|` above which a row is excluded.
+    pub threshold: f64,
+    /// Standard deviation of each row's norm residual (g): propagated from sigma when given,
+    /// else the residual scale.
+    pub residual_std: Vec<f64>,
     /// Minimal subsets drawn by the screen (0 when the fast path was enough).
     pub draws: usize,
     /// Singular values of the column-scaled Jacobian.
@@ -258,7 +274,7 @@ struct RowConst {
     half_inv_st: f64,
     /// `omega^2 / g`.
     w2g: f64,
-    /// Residual weight `1 / sigma` (1 without sigma).
+    /// Residual weight: 1 / (std of the norm residual) with sigma (see [`noise_weights`]), else 1.
     w: f64,
     /// Spin-axis direction in the body frame (zero when not given).
     c3: [f64; 3],
@@ -274,7 +290,7 @@ fn row_consts(data: &CentrifugeData<'_>) -> Vec<RowConst> {
                 inv_st,
                 half_inv_st: 0.5 * inv_st,
                 w2g: data.omega[k] * data.omega[k] / data.g,
-                w: data.sigma.map(|s| 1.0 / s[k]).unwrap_or(1.0),
+                w: 1.0,
                 c3: data.spin_axis.map(|sa| sa[k]).unwrap_or([0.0; 3]),
             }
         })
@@ -321,17 +337,21 @@ fn param_pre<'p>(model: &ModelOptions, p: &'p [f64]) -> Option<ParamPre<'p>> {
     })
 }
 
-/// Norm residual `(|f|^2 - T) / (2 sqrt T)` (g, unweighted) of one row; with `grad`, also
-/// `d r / d p` (external units, first `n_params` entries). `None`: outside the invertible
-/// range.
+/// One row of outputs inverted through the sensor model.
+struct Inverted {
+    /// `(N - b) / S`.
+    u: [f64; 3],
+    /// `h = Phi^-1 u`.
+    h: [f64; 3],
+    /// Specific force at each accelerometer (g): `f + D f^2 [+ E f^3] = h`.
+    f: [f64; 3],
+    /// `dh/df` per axis.
+    hp: [f64; 3],
+}
+
+/// Invert one row of outputs; `None` outside the invertible range.
 #[inline(always)]
-fn row_eval(
-    n: &[f64; 3],
-    rc: &RowConst,
-    pp: &ParamPre<'_>,
-    model: &ModelOptions,
-    grad: Option<&mut [f64; MAX_PARAMS]>,
-) -> Option<f64> {
+fn invert_row(n: &[f64; 3], pp: &ParamPre<'_>) -> Option<Inverted> {
     let [m1, m2, m3] = pp.m;
     let u = [
         (n[0] - pp.b[0]) * pp.inv_s[0],
@@ -351,6 +371,51 @@ fn row_eval(
         f[i] = fi;
         hp[i] = hpi;
     }
+    Some(Inverted { u, h, f, hp })
+}
+
+/// Specific force (k, 3) in g at the accelerometers from outputs in g, by exact inversion of
+/// the fitted sensor model `p` (lever arms relate the accelerometers to the arm's centre and
+/// are not applied). Errors name the first row outside the invertible range.
+pub fn correct(model: &ModelOptions, p: &[f64], outputs: &[[f64; 3]]) -> Result<Vec<[f64; 3]>> {
+    if p.len() != model.n_params() {
+        return invalid(format!(
+            "{} parameters given, the model has {}",
+            p.len(),
+            model.n_params()
+        ));
+    }
+    let pp = param_pre(model, p)
+        .ok_or_else(|| CoreError::InvalidInput("a scale factor is zero".into()))?;
+    outputs
+        .iter()
+        .enumerate()
+        .map(|(k, n)| {
+            if !n.iter().all(|v| v.is_finite()) {
+                return invalid(format!("outputs row {k} is not finite"));
+            }
+            invert_row(n, &pp).map(|x| x.f).ok_or_else(|| {
+                CoreError::InvalidInput(format!(
+                    "outputs row {k} lies outside the invertible range of the fitted K2/K3"
+                ))
+            })
+        })
+        .collect()
+}
+
+/// Norm residual `(|f|^2 - T) / (2 sqrt T)` (g, unweighted) of one row; with `grad`, also
+/// `d r / d p` (external units, first `n_params` entries). `None`: outside the invertible
+/// range.
+#[inline(always)]
+fn row_eval(
+    n: &[f64; 3],
+    rc: &RowConst,
+    pp: &ParamPre<'_>,
+    model: &ModelOptions,
+    grad: Option<&mut [f64; MAX_PARAMS]>,
+) -> Option<f64> {
+    let [m1, m2, m3] = pp.m;
+    let Inverted { u, h, f, hp } = invert_row(n, pp)?;
     let w2g = rc.w2g;
     let c3 = rc.c3;
     let la = pp.lever_at;
@@ -932,12 +997,18 @@ pub fn validate(data: &CentrifugeData<'_>, model: &ModelOptions) -> Result<usize
     if let Some(s) = data.sigma {
         if s.len() != k {
             return invalid(format!(
-                "sigma has {} values but outputs have {k} rows",
+                "sigma has {} rows but outputs have {k} rows",
                 s.len()
             ));
         }
-        if s.iter().any(|v| !(*v > 0.0) || !v.is_finite()) {
-            return invalid("sigma must be positive and finite (g)");
+        if let Some(r) = s
+            .iter()
+            .position(|v| v.iter().any(|x| !(*x > 0.0) || !x.is_finite()))
+        {
+            return invalid(format!(
+                "sigma (per-axis output noise, g) must be positive and finite; row {r} is {:?}",
+                s[r]
+            ));
         }
     }
     match (model.lever, data.spin_axis) {
@@ -1013,7 +1084,6 @@ fn linear_start_n<const C: usize>(
     rows: &[usize],
     model: &ModelOptions,
 ) -> Option<Vec<f64>> {
-    use nalgebra::{SMatrix, SVector};
     let regs = |n: [f64; 3]| -> [f64; C] {
         let all = [
             n[0] * n[0],
@@ -1043,26 +1113,32 @@ fn linear_start_n<const C: usize>(
         }
     }
     let ics: [f64; C] = std::array::from_fn(|j| 1.0 / cs[j]);
-    let mut ata = SMatrix::<f64, C, C>::zeros();
-    let mut aty = SVector::<f64, C>::zeros();
+    // Column-scaled normal equations (row-major), solved by Cholesky through `lsq`.
+    let mut ata = [[0.0f64; C]; C];
+    let mut c = [0.0f64; C];
     for &k in rows {
         let raw = regs(data.outputs[k]);
         let row: [f64; C] = std::array::from_fn(|j| raw[j] * ics[j]);
         let t = target(data, k);
         for a in 0..C {
-            aty[a] += row[a] * t;
+            c[a] += row[a] * t;
             for b in a..C {
-                ata[(a, b)] += row[a] * row[b];
+                ata[a][b] += row[a] * row[b];
             }
         }
     }
     // Symmetric: the lower triangle is the mirror (same products, same order).
-    for a in 0..C {
-        for b in 0..a {
-            ata[(a, b)] = ata[(b, a)];
+    for a in 1..C {
+        let (upper, lower) = ata.split_at_mut(a);
+        for (b, row) in upper.iter().enumerate() {
+            lower[0][b] = row[a];
         }
     }
-    let c = ata.cholesky()?.solve(&aty);
+    let l = ata.as_flattened_mut();
+    if !cholesky_small(l, C) {
+        return None;
+    }
+    cholesky_solve_small(l, C, &mut c);
     let mut p = vec![0.0; model.n_params()];
     for i in 0..3 {
         let q = c[i] / cs[i];
@@ -1130,7 +1206,7 @@ fn nls_on_rows(
     Ok((p, rep, prob.last.into_inner()))
 }
 
-/// Corrected closed-form recovery from the 13 Taylor coefficients (SPEC 2): returns
+/// Corrected closed-form recovery from the 13 Taylor coefficients: returns
 /// `(S, b, D)` per axis.
 pub fn taylor_recover(c: &[f64]) -> Result<[[f64; 3]; 3]> {
     if c.len() != 13 {
@@ -1240,24 +1316,24 @@ fn weighted_abs(rc: &[RowConst], r: &[f64]) -> Vec<f64> {
 /// Exact fit of the base model (S, b, K2) to a minimal subset of 9 rows: linear start, then
 /// Newton on the square system. `None` when the subset does not determine a solution.
 fn subset_fit(data: &CentrifugeData<'_>, rc: &[RowConst], subset: &[usize]) -> Option<[f64; 9]> {
-    use nalgebra::{SMatrix, SVector};
     let base = ModelOptions::default();
     let st = linear_start(data, subset, &base).ok()?;
     let mut p = [0.0f64; 9];
     p.copy_from_slice(&st[..9]);
     let sc = base.scales();
     for _ in 0..20 {
-        let mut jm = SMatrix::<f64, 9, 9>::zeros();
-        let mut r = SVector::<f64, 9>::zeros();
+        let mut jm = [[0.0f64; 9]; 9];
+        let mut r = [0.0f64; 9];
         let pp = param_pre(&base, &p)?;
         let mut grad = [0.0; MAX_PARAMS];
         for (a, &k) in subset.iter().enumerate() {
-            r[a] = row_eval(&data.outputs[k], &rc[k], &pp, &base, Some(&mut grad))?;
+            r[a] = -row_eval(&data.outputs[k], &rc[k], &pp, &base, Some(&mut grad))?;
             for j in 0..9 {
-                jm[(a, j)] = grad[j] * sc[j];
+                jm[a][j] = grad[j] * sc[j];
             }
         }
-        let step = jm.lu().solve(&(-r))?;
+        // Newton step of the square system (QR with the rank test of `lsq`).
+        let step = lstsq_rows::<9>(&jm, &r).ok()?;
         let mut big = 0.0f64;
         for j in 0..9 {
             let d = step[j] * sc[j];
@@ -1346,16 +1422,35 @@ fn lmeds(
     }
 }
 
-/// (parameters, iterations, converged, Taylor coefficients, last normal equations (nls)).
-type FitOutcome = (Vec<f64>, usize, bool, Option<Vec<f64>>, Option<LastNormal>);
+// ------------------------------------------------------------------------------------------
+// The fit, stage by stage. [`fit`] runs: input and option checks, the unit check, start values
+// (with the noise weights at them), the plain fit on every row, screening, sign folding, and
+// covariance / observability.
 
+/// What one fit on a set of rows produced.
+#[derive(Debug, Clone)]
+struct Outcome {
+    /// Parameters in external units.
+    params: Vec<f64>,
+    /// Solver iterations (0 for the closed form).
+    iterations: usize,
+    /// Solver convergence flag.
+    converged: bool,
+    /// The 13 regression coefficients (TaylorPaper only).
+    taylor: Option<Vec<f64>>,
+    /// The solver's last normal-equation evaluation (nls), reused by the covariance stage.
+    last: Option<LastNormal>,
+}
+
+/// Stage (final fit) on `rows`: nls from `start` (the linear start when `None`) or the
+/// paper's closed form.
 fn final_fit(
     data: &CentrifugeData<'_>,
     rc: &[RowConst],
     rows: &[usize],
     opt: &FitOptions,
     start: Option<&[f64]>,
-) -> Result<FitOutcome> {
+) -> Result<Outcome> {
     match opt.method {
         Method::Nls => {
             let st = match start {
@@ -1368,7 +1463,13 @@ fn final_fit(
                 None => linear_start(data, rows, &opt.model)?,
             };
             let (p, rep, last) = nls_on_rows(data, rc, rows, &opt.model, &st, 200)?;
-            Ok((p, rep.iterations, rep.converged, None, Some(last)))
+            Ok(Outcome {
+                params: p,
+                iterations: rep.iterations,
+                converged: rep.converged,
+                taylor: None,
+                last: Some(last),
+            })
         }
         Method::TaylorPaper => {
             if opt.model != ModelOptions::default() {
@@ -1378,18 +1479,425 @@ fn final_fit(
             }
             let c = taylor_coefficients(data, rows)?;
             let sbd = taylor_recover(&c)?;
-            let p: Vec<f64> = sbd.iter().flatten().copied().collect();
-            Ok((p, 0, true, Some(c), None))
+            Ok(Outcome {
+                params: sbd.iter().flatten().copied().collect(),
+                iterations: 0,
+                converged: true,
+                taylor: Some(c),
+                last: None,
+            })
         }
     }
 }
 
-fn fold_sign(params: &mut [f64], model: &ModelOptions) {
+/// Stage (noise weights): with per-axis output noise `sigma_kj` (g) the standard deviation of
+/// row k's norm residual is, to first order, `|sigma_k * dr/dN_k|` (`dr/dN = -dr/db`); its
+/// inverse is the row's weight. Rows the parameters cannot invert keep their weight. Without
+/// `sigma` every weight stays 1.
+fn noise_weights(data: &CentrifugeData<'_>, rc: &mut [RowConst], model: &ModelOptions, p: &[f64]) {
+    let Some(sig) = data.sigma else {
+        return;
+    };
+    let Some(pp) = param_pre(model, p) else {
+        return;
+    };
+    let mut grad = [0.0; MAX_PARAMS];
+    for (k, c) in rc.iter_mut().enumerate() {
+        if row_eval(&data.outputs[k], c, &pp, model, Some(&mut grad)).is_none() {
+            continue;
+        }
+        let s = sig[k];
+        let v = (s[0] * grad[3]).powi(2) + (s[1] * grad[4]).powi(2) + (s[2] * grad[5]).powi(2);
+        let sd = v.sqrt();
+        if sd > 0.0 && sd.is_finite() {
+            c.w = 1.0 / sd;
+        }
+    }
+}
+
+/// Standard deviation (g) of each row's norm residual from the per-axis output noise
+/// `data.sigma`, propagated at the parameters `p` (first order, as the fit weighs the rows);
+/// for callers that test residuals against the noise (e.g. the gap diagnosis). Errors when
+/// `sigma` is missing or a row cannot be inverted at `p`.
+pub fn residual_std(
+    data: &CentrifugeData<'_>,
+    model: &ModelOptions,
+    p: &[f64],
+) -> Result<Vec<f64>> {
+    validate(data, model)?;
+    if data.sigma.is_none() {
+        return invalid("residual_std needs the per-axis output noise (sigma, g)");
+    }
+    if p.len() != model.n_params() {
+        return invalid(format!(
+            "{} parameters given, the model has {}",
+            p.len(),
+            model.n_params()
+        ));
+    }
+    let mut rc = row_consts(data);
+    for c in rc.iter_mut() {
+        c.w = f64::NAN;
+    }
+    noise_weights(data, &mut rc, model, p);
+    rc.iter()
+        .enumerate()
+        .map(|(k, c)| {
+            if c.w.is_finite() {
+                Ok(1.0 / c.w)
+            } else {
+                invalid(format!(
+                    "row {k} lies outside the invertible range at these parameters"
+                ))
+            }
+        })
+        .collect()
+}
+
+/// Parameters at which the noise weights are first evaluated when no start exists: a unit
+/// triad (only the direction of `dr/dN` matters much, and it is close to that of `N`).
+fn nominal_params(model: &ModelOptions) -> Vec<f64> {
+    let mut p = vec![0.0; model.n_params()];
+    p[..3].fill(1.0);
+    p
+}
+
+/// Stage (start): linear start on every row, and the noise weights there. `None` when the
+/// rows do not describe an ellipsoid (gross outliers; the screen then starts on its own).
+fn start_values(
+    data: &CentrifugeData<'_>,
+    rc: &mut [RowConst],
+    rows: &[usize],
+    model: &ModelOptions,
+) -> Option<Vec<f64>> {
+    let start = linear_start(data, rows, model).ok();
+    let at = start.clone().unwrap_or_else(|| nominal_params(model));
+    noise_weights(data, rc, model, &at);
+    start
+}
+
+/// [`final_fit`] with the noise weights refreshed at the result and one refit from there when
+/// the noise is given per axis (the weights depend on the parameters only through the slope of
+/// the norm, so one refit makes them consistent with the estimate).
+fn fit_rows(
+    data: &CentrifugeData<'_>,
+    rc: &mut [RowConst],
+    rows: &[usize],
+    opt: &FitOptions,
+    start: Option<&[f64]>,
+) -> Result<Outcome> {
+    let out = final_fit(data, rc, rows, opt, start)?;
+    if data.sigma.is_none() {
+        return Ok(out);
+    }
+    noise_weights(data, rc, &opt.model, &out.params);
+    if opt.method != Method::Nls {
+        // The paper's regression is unweighted: the weights serve the covariance only.
+        return Ok(out);
+    }
+    final_fit(data, rc, rows, opt, Some(&out.params))
+}
+
+/// The screening statistic of every row at parameters fitted on `rows`.
+#[derive(Debug, Clone)]
+struct Studentized {
+    /// Externally studentised residual of each row used (`r_k / (s_(k) sqrt(1 - h_k))`, with
+    /// `s_(k)` the residual scale without row k and `h_k` its leverage), prediction residual of
+    /// the others (`r / (s sqrt(1 + h))`); `inf` where the row cannot be inverted, 0 where the
+    /// row alone determines a parameter (`h = 1`, untestable).
+    t: Vec<f64>,
+    /// Residual scale `s` of the rows used: g without `sigma`, 1 (whitened) with it.
+    scale: f64,
+    /// Unweighted norm residual of every row (g; `inf` where not invertible).
+    r: Vec<f64>,
+    /// Residual degrees of freedom `m - p` of the rows used.
+    dof: usize,
+}
+
+/// Stage (screening statistic): [`Studentized`] at `p` fitted on `rows`. The leverages come
+/// from the Jacobian at `p` and the inverse of its column-normalised normal matrix (through
+/// [`crate::lsq`]); a singular normal matrix gives zero leverages.
+fn studentize(
+    data: &CentrifugeData<'_>,
+    rc: &[RowConst],
+    opt: &FitOptions,
+    p: &[f64],
+    rows: &[usize],
+) -> Studentized {
+    let model = &opt.model;
+    let np = model.n_params();
+    let n = data.outputs.len();
+    let scales = model.scales();
+    let mut r = vec![f64::INFINITY; n];
+    let mut jr = vec![[0.0f64; MAX_PARAMS]; n];
+    let mut ok = vec![false; n];
+    if let Some(pp) = param_pre(model, p) {
+        let mut grad = [0.0; MAX_PARAMS];
+        for k in 0..n {
+            if let Some(v) = row_eval(&data.outputs[k], &rc[k], &pp, model, Some(&mut grad)) {
+                r[k] = v;
+                ok[k] = true;
+                for j in 0..np {
+                    jr[k][j] = rc[k].w * grad[j] * scales[j];
+                }
+            }
+        }
+    }
+    // Normal matrix of the rows used, column-normalised, and its inverse.
+    let mut a = vec![0.0; np * np];
+    let mut rss = 0.0;
+    for &k in rows.iter().filter(|&&k| ok[k]) {
+        let wr = rc[k].w * r[k];
+        rss += wr * wr;
+        for i in 0..np {
+            for j in i..np {
+                a[i * np + j] += jr[k][i] * jr[k][j];
+            }
+        }
+    }
+    let cn: Vec<f64> = (0..np).map(|j| a[j * np + j].sqrt()).collect();
+    let mut an = vec![0.0; np * np];
+    for i in 0..np {
+        for j in i..np {
+            let v = a[i * np + j] / (cn[i] * cn[j]);
+            an[i * np + j] = v;
+            an[j * np + i] = v;
+        }
+    }
+    let c = (cn.iter().all(|v| *v > 0.0 && v.is_finite()) && cholesky_small(&mut an, np))
+        .then(|| cholesky_inverse_small(&an, np));
+    let mut icn = [0.0f64; MAX_PARAMS];
+    for j in 0..np {
+        icn[j] = 1.0 / cn[j];
+    }
+    let leverage = |k: usize| -> f64 {
+        let Some(c) = &c else { return 0.0 };
+        let mut x = [0.0f64; MAX_PARAMS];
+        for j in 0..np {
+            x[j] = jr[k][j] * icn[j];
+        }
+        let mut h = 0.0;
+        for i in 0..np {
+            let ci = &c[i * np..(i + 1) * np];
+            let mut v = 0.0;
+            for j in 0..np {
+                v += ci[j] * x[j];
+            }
+            h += x[i] * v;
+        }
+        h
+    };
+    let m = rows.iter().filter(|&&k| ok[k]).count();
+    let dof = m.saturating_sub(np);
+    let known = data.sigma.is_some();
+    let floor2 = opt.sigma_floor * opt.sigma_floor;
+    let s2 = if known {
+        1.0
+    } else {
+        (rss / dof.max(1) as f64).max(floor2)
+    };
+    let mut used = vec![false; n];
+    for &k in rows {
+        used[k] = true;
+    }
+    let t = (0..n)
+        .map(|k| {
+            if !ok[k] {
+                return f64::INFINITY;
+            }
+            let wr = rc[k].w * r[k];
+            let h = leverage(k);
+            if !used[k] {
+                return wr / (s2 * (1.0 + h)).sqrt();
+            }
+            let q = 1.0 - h;
+            if !(q > 1e-12) {
+                return 0.0;
+            }
+            let sk2 = if known {
+                1.0
+            } else if dof >= 2 {
+                ((rss - wr * wr / q) / (dof - 1) as f64).max(floor2)
+            } else {
+                // No residual degree of freedom left without row k: untestable.
+                return 0.0;
+            };
+            wr / (sk2 * q).sqrt()
+        })
+        .collect();
+    Studentized {
+        t,
+        scale: s2.sqrt(),
+        r,
+        dof,
+    }
+}
+
+/// Threshold on the studentised residual with the two-sided tail probability of `k` standard
+/// normal deviations: `k` itself when the noise is known, else the Student t quantile with
+/// `dof` degrees of freedom (so `outlier_k` means the same false-exclusion rate whatever the
+/// number of rows).
+fn t_threshold(k: f64, dof: usize, known: bool) -> f64 {
+    if known || dof == 0 || dof > 100_000 {
+        return k;
+    }
+    thread_local! {
+        /// The last threshold computed: (k, dof, threshold). A fit asks for the same one again.
+        static LAST: std::cell::Cell<(f64, usize, f64)> = const { std::cell::Cell::new((f64::NAN, 0, 0.0)) };
+    }
+    let (k0, d0, t0) = LAST.with(|c| c.get());
+    if k0 == k && d0 == dof {
+        return t0;
+    }
+    let t = student_quantile(chi2_sf(k * k, 1.0), dof as f64, k);
+    LAST.with(|c| c.set((k, dof, t)));
+    t
+}
+
+/// `t > 0` with two-sided Student tail `P(|T_nu| > t) = p`: secant steps on `ln P` from the
+/// Cornish-Fisher expansion around the normal quantile `z`, then bisection if they stall.
+fn student_quantile(p: f64, nu: f64, z: f64) -> f64 {
+    let ln_tail = |t: f64| f_sf(t * t, 1.0, nu).ln() - p.ln();
+    let (z3, z5, z7) = (z.powi(3), z.powi(5), z.powi(7));
+    let cf = z
+        + (z3 + z) / (4.0 * nu)
+        + (5.0 * z5 + 16.0 * z3 + 3.0 * z) / (96.0 * nu * nu)
+        + (3.0 * z7 + 19.0 * z5 + 17.0 * z3 - 15.0 * z) / (384.0 * nu.powi(3));
+    let (mut a, mut b) = (cf.max(z), cf.max(z) * 1.001);
+    let (mut fa, mut fb) = (ln_tail(a), ln_tail(b));
+    for _ in 0..30 {
+        if !(fa.is_finite() && fb.is_finite()) || fb == fa {
+            break;
+        }
+        let c = b - fb * (b - a) / (fb - fa);
+        if !(c > 0.0) || !c.is_finite() {
+            break;
+        }
+        (a, fa) = (b, fb);
+        b = c;
+        fb = ln_tail(b);
+        if (b - a).abs() <= 1e-12 * b {
+            return b;
+        }
+    }
+    // Bisection (the tail falls with t).
+    let (mut lo, mut hi) = (z, 2.0 * z.max(1.0));
+    while ln_tail(hi) > 0.0 && hi < 1e12 {
+        lo = hi;
+        hi *= 2.0;
+    }
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if ln_tail(mid) > 0.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= 1e-12 * hi {
+            break;
+        }
+    }
+    hi
+}
+
+/// Rows kept by the screen, the fit on them and the screening statistics.
+#[derive(Debug, Clone)]
+struct Screened {
+    rows: Vec<usize>,
+    out: Outcome,
+    draws: usize,
+    st: Studentized,
+    threshold: f64,
+}
+
+/// Most reclassification rounds of the screen (it stops earlier when the rows settle).
+const SCREEN_ROUNDS: usize = 10;
+
+/// Stage (screening). A good row is excluded when its studentised residual exceeds the
+/// threshold of [`t_threshold`], i.e. with the probability of a `outlier_k`-sigma normal event
+/// (`2 Phi(-k)` per row). The plain fit on every row is kept when no row exceeds it (or the
+/// screen is off); otherwise the least median of squares over random minimal subsets gives
+/// an outlier-free start, and the rows are reclassified with the same statistic until they
+/// settle.
+fn screen(
+    data: &CentrifugeData<'_>,
+    rc: &mut [RowConst],
+    opt: &FitOptions,
+    plain: Result<Outcome>,
+) -> Result<Screened> {
+    let n = data.outputs.len();
+    let p = opt.model.n_params();
+    let known = data.sigma.is_some();
+    let all: Vec<usize> = (0..n).collect();
+    match plain {
+        Ok(out) => {
+            let st = studentize(data, rc, opt, &out.params, &all);
+            let threshold = t_threshold(opt.outlier_k, st.dof.saturating_sub(1), known);
+            if !opt.robust || st.t.iter().all(|v| v.abs() <= threshold) {
+                return Ok(Screened {
+                    rows: all,
+                    out,
+                    draws: 0,
+                    st,
+                    threshold,
+                });
+            }
+        }
+        Err(e) if !opt.robust => return Err(e),
+        // The plain fit can fail outright on gross outliers: go straight to the screen.
+        Err(_) => {}
+    }
+    let (base_p, draws) = lmeds(data, rc, opt)?;
+    // First classification from the least-median fit (a robust scale from the median).
+    let rb = residuals_pre(data, rc, &ModelOptions::default(), &base_p);
+    let ab = weighted_abs(rc, &rb);
+    let h = (n + 9).div_ceil(2);
+    let crit = kth_smallest(&ab, h - 1);
+    let sig_l = (1.4826 * (1.0 + 5.0 / (n - 9) as f64) * crit).max(opt.sigma_floor);
+    let mut rows: Vec<usize> = (0..n).filter(|&k| ab[k] <= opt.outlier_k * sig_l).collect();
+    let mut start = base_p;
+    let mut last: Option<Screened> = None;
+    for _ in 0..SCREEN_ROUNDS {
+        if rows.len() < p + 2 {
+            return degenerate(format!(
+                "only {} rows are consistent with the model; {} parameters need at least {}",
+                rows.len(),
+                p,
+                p + 2
+            ));
+        }
+        let st_opt = (opt.method == Method::Nls).then_some(&start[..]);
+        let out = fit_rows(data, rc, &rows, opt, st_opt)?;
+        let st = studentize(data, rc, opt, &out.params, &rows);
+        let threshold = t_threshold(opt.outlier_k, st.dof.saturating_sub(1), known);
+        let next: Vec<usize> = (0..n).filter(|&k| st.t[k].abs() <= threshold).collect();
+        start.clone_from(&out.params);
+        let settled = next == rows;
+        last = Some(Screened {
+            rows: std::mem::replace(&mut rows, next),
+            out,
+            draws,
+            st,
+            threshold,
+        });
+        if settled {
+            break;
+        }
+    }
+    last.ok_or_else(|| CoreError::NotConverged("the robust screen ran no round".into()))
+}
+
+/// Stage (sign folding): `S > 0` (a norm observation cannot fix it when D = 0). Flipping `S_i`
+/// flips `f_i`, so `D_i`, the misalignment terms touching axis i and its lever arm flip too.
+/// Returns whether anything changed.
+fn fold_sign(params: &mut [f64], model: &ModelOptions) -> bool {
     let at = if model.k3 { 12 } else { 9 };
+    let mut folded = false;
     for i in 0..3 {
         if params[i] >= 0.0 {
             continue;
         }
+        folded = true;
         params[i] = -params[i];
         params[6 + i] = -params[6 + i];
         if model.misalignment {
@@ -1416,130 +1924,35 @@ fn fold_sign(params: &mut [f64], model: &ModelOptions) {
             }
         }
     }
+    folded
 }
 
-fn robust_scale(a: &[f64], rows: &[usize], p: usize) -> f64 {
-    let med = kth_smallest(
-        &rows.iter().map(|&k| a[k]).collect::<Vec<_>>(),
-        rows.len() / 2,
-    );
-    let mad = 1.4826 * (1.0 + 5.0 / (rows.len().saturating_sub(p).max(1)) as f64) * med;
-    let rms = (rows.iter().map(|&k| a[k] * a[k]).sum::<f64>()
-        / (rows.len().saturating_sub(p).max(1)) as f64)
-        .sqrt();
-    // RMS of the kept rows, but never below the median-based scale (guards a clean fit).
-    rms.max(mad)
+/// Covariance, singular values and condition number of a fit.
+struct Uncertainty {
+    covariance: Vec<f64>,
+    singular_values: Vec<f64>,
+    condition: f64,
+    /// RMS of the weighted residuals of the rows used.
+    rms: f64,
 }
 
-/// Calibrate from one session.
-pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit> {
-    validate(data, &opt.model)?;
-    if !(opt.outlier_k > 0.0) {
-        return invalid("outlier threshold k must be positive");
-    }
-    let n = data.outputs.len();
-    let p = opt.model.n_params();
-    let rc = row_consts(data);
-    let all: Vec<usize> = (0..n).collect();
-    let mut rows = all.clone();
-    let mut draws = 0;
-    let mut screen_sigma = 0.0;
-    let (mut params, mut iterations, mut converged, mut taylor, mut last) =
-        match final_fit(data, &rc, &rows, opt, None) {
-            Ok(v) => v,
-            Err(e) if opt.robust => {
-                // The plain fit can fail outright on gross outliers: go straight to the screen.
-                let _ = e;
-                (vec![f64::NAN; p], 0, false, None, None)
-            }
-            Err(e) => return Err(e),
-        };
-    // Residuals of every row at `params` when already computed (the robust pre-check).
-    let mut r_known: Option<Vec<f64>> = None;
-    if opt.robust {
-        let r0 = if let Some(ln) = last.as_ref().filter(|l| l.p == params && l.r.len() == n) {
-            // The solver's last evaluation on all rows is at `params`: same residuals.
-            ln.r.clone()
-        } else if params.iter().all(|v| v.is_finite()) {
-            residuals_pre(data, &rc, &opt.model, &params)
-        } else {
-            vec![f64::INFINITY; n]
-        };
-        let a0 = weighted_abs(&rc, &r0);
-        let sig0 = robust_scale(&a0, &all, p).max(opt.sigma_floor);
-        let med0 = kth_smallest(&a0, n / 2);
-        let mad0 = (1.4826 * med0).max(opt.sigma_floor);
-        let clean = a0.iter().all(|v| *v <= opt.outlier_k * mad0) && sig0.is_finite();
-        if clean {
-            r_known = Some(r0);
-        } else {
-            r_known = None;
-            let (base_p, d) = lmeds(data, &rc, opt)?;
-            draws = d;
-            let mut start = base_p;
-            let mut sig = f64::INFINITY;
-            let rb = residuals_pre(data, &rc, &ModelOptions::default(), &start);
-            let ab = weighted_abs(&rc, &rb);
-            let h = (n + 9).div_ceil(2);
-            let crit = kth_smallest(&ab, h - 1);
-            let sig_l = (1.4826 * (1.0 + 5.0 / (n - 9) as f64) * crit).max(opt.sigma_floor);
-            rows = (0..n).filter(|&k| ab[k] <= opt.outlier_k * sig_l).collect();
-            for _ in 0..5 {
-                if rows.len() < p + 1 {
-                    return degenerate(format!(
-                        "only {} rows are consistent with the model; {} parameters need more",
-                        rows.len(),
-                        p
-                    ));
-                }
-                let st = if opt.method == Method::Nls {
-                    Some(&start[..])
-                } else {
-                    None
-                };
-                let (pp, it, cv, tc, ln) = final_fit(data, &rc, &rows, opt, st)?;
-                let r = residuals_pre(data, &rc, &opt.model, &pp);
-                let a = weighted_abs(&rc, &r);
-                sig = robust_scale(&a, &rows, p).max(opt.sigma_floor);
-                let new_rows: Vec<usize> =
-                    (0..n).filter(|&k| a[k] <= opt.outlier_k * sig).collect();
-                params = pp;
-                iterations = it;
-                converged = cv;
-                taylor = tc;
-                last = ln;
-                start = params.clone();
-                if new_rows == rows {
-                    break;
-                }
-                rows = new_rows;
-                // Not refitted on these rows: the stored normal equations do not apply.
-                last = None;
-            }
-            screen_sigma = sig;
-        }
-    }
-    if !params.iter().all(|v| v.is_finite()) {
-        return Err(CoreError::NotConverged(
-            "the centrifuge fit did not produce finite parameters".into(),
-        ));
-    }
-    // Sign convention: S > 0 (a norm observation cannot fix it when D = 0). Flipping S_i
-    // flips f_i, so D_i, the misalignment terms touching axis i and its lever arm flip too.
-    let before = params.clone();
-    fold_sign(&mut params, &opt.model);
-    let folded = params != before;
-    let r_all = match r_known {
-        Some(r) if !folded => r,
-        _ => residuals_pre(data, &rc, &opt.model, &params),
-    };
-    // Observability and covariance at the final parameters on the rows used (the solver's
-    // last evaluation is exactly there unless the sign was folded or LM took over).
-    let prob = Problem::new(data, &rc, &rows, opt.model);
+/// Stage (covariance and observability) at the final parameters on the rows used: from the
+/// solver's last normal equations when they were evaluated exactly there, else afresh. Scaled
+/// by the residual variance unless the noise was given.
+fn uncertainty(
+    data: &CentrifugeData<'_>,
+    rc: &[RowConst],
+    rows: &[usize],
+    opt: &FitOptions,
+    params: &[f64],
+    last: Option<&LastNormal>,
+) -> Result<Uncertainty> {
+    let p = params.len();
+    let prob = Problem::new(data, rc, rows, opt.model);
     let scales = &prob.scales[..p];
     let q: Vec<f64> = params.iter().zip(scales).map(|(a, s)| a / s).collect();
     let (jtj, cost) = match last {
-        Some(ln) if !folded && ln.p == params => (DMatrix::from_row_slice(p, p, &ln.jtj), ln.cost),
+        Some(ln) if ln.p == params => (DMatrix::from_row_slice(p, p, &ln.jtj), ln.cost),
         _ => {
             let mut jtj = DMatrix::<f64>::zeros(p, p);
             let mut jtr = DVector::<f64>::zeros(p);
@@ -1572,27 +1985,302 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
         cost / dof
     };
     // (J^T J)^-1 = diag(1/cn) Cn diag(1/cn) with Cn the inverse of the normalised normal matrix.
-    let mut cov = vec![0.0; p * p];
+    let mut covariance = vec![0.0; p * p];
     for a in 0..p {
         for b in 0..p {
-            cov[a * p + b] = cov_n[(a, b)] / (cn[a] * cn[b]) * scales[a] * scales[b] * var;
+            covariance[a * p + b] = cov_n[(a, b)] / (cn[a] * cn[b]) * scales[a] * scales[b] * var;
         }
     }
-    let outliers: Vec<usize> = (0..n).filter(|k| !rows.contains(k)).collect();
+    Ok(Uncertainty {
+        covariance,
+        singular_values,
+        condition,
+        rms,
+    })
+}
+
+/// Check the settings of [`fit`].
+fn check_options(opt: &FitOptions) -> Result<()> {
+    if !(opt.outlier_k > 0.0 && opt.outlier_k.is_finite()) {
+        return invalid(format!(
+            "outlier_k must be a positive, finite number of standard deviations; got {}",
+            opt.outlier_k
+        ));
+    }
+    if !(opt.sigma_floor >= 0.0 && opt.sigma_floor.is_finite()) {
+        return invalid(format!(
+            "sigma_floor must be finite and >= 0 (g); got {}",
+            opt.sigma_floor
+        ));
+    }
+    if opt.robust && opt.max_draws == 0 {
+        return invalid("max_draws must be at least 1 when the robust screen is on");
+    }
+    Ok(())
+}
+
+// ------------------------------------------------------------------------------------------
+// Units.
+
+/// Scale factors (output g per input g) an accelerometer triad reporting in g can have.
+pub const SCALE_PLAUSIBLE: (f64, f64) = (0.2, 5.0);
+/// Scale factors close enough to 1 that a unit conversion bringing them there explains them.
+const SCALE_EXPLAINED: (f64, f64) = (0.5, 2.0);
+
+/// Scale factor the outputs need to meet `|f|^2 = A^2 + 1` at the fastest speed: the median
+/// over its rows of `|N| / sqrt(A^2 + 1)`, with `A` multiplied by `a_factor` and the outputs
+/// by `n_factor` (the bias is small next to `A` there).
+fn implied_scale(data: &CentrifugeData<'_>, a_factor: f64, n_factor: f64) -> f64 {
+    let wmax = data.omega.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+    let ratios: Vec<f64> = data
+        .outputs
+        .iter()
+        .zip(data.omega)
+        .filter(|(_, w)| (w.abs() - wmax).abs() <= 1e-9 * wmax)
+        .map(|(n, w)| {
+            let a = a_factor * w * w * data.radius / data.g;
+            let nn = n_factor * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            nn / (a * a + 1.0).sqrt()
+        })
+        .collect();
+    if ratios.is_empty() {
+        return f64::NAN;
+    }
+    kth_smallest(&ratios, ratios.len() / 2)
+}
+
+/// A unit mistake the unit check can name.
+struct UnitCandidate {
+    /// Which input.
+    what: &'static str,
+    /// The unit it looks like.
+    unit: &'static str,
+    /// The unit it should be in.
+    want: &'static str,
+    /// Factor on `A` after conversion.
+    a_factor: f64,
+    /// Factor on the outputs after conversion (1 unless the outputs are meant).
+    n_factor: f64,
+    /// The conversion, in words.
+    fix: &'static str,
+}
+
+fn unit_candidates(g: f64) -> [UnitCandidate; 6] {
+    use std::f64::consts::PI;
+    let c = |what, unit, want, a_factor, n_factor, fix| UnitCandidate {
+        what,
+        unit,
+        want,
+        a_factor,
+        n_factor,
+        fix,
+    };
+    [
+        c(
+            "omega",
+            "rev/min (rpm)",
+            "rad/s",
+            (2.0 * PI / 60.0).powi(2),
+            1.0,
+            "omega * 2 pi / 60",
+        ),
+        c(
+            "omega",
+            "deg/s",
+            "rad/s",
+            (PI / 180.0).powi(2),
+            1.0,
+            "omega * pi / 180",
+        ),
+        c(
+            "omega",
+            "rev/s (Hz)",
+            "rad/s",
+            (2.0 * PI).powi(2),
+            1.0,
+            "omega * 2 pi",
+        ),
+        c("radius", "mm", "m", 1e-3, 1.0, "radius / 1000"),
+        c("radius", "cm", "m", 1e-2, 1.0, "radius / 100"),
+        c("outputs", "m/s^2", "g", 1.0, 1.0 / g, "outputs / g"),
+    ]
+}
+
+/// A unit mistake that explains a session's implausible scale factors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UnitFinding {
+    /// Which input: `"omega"`, `"radius"` or `"outputs"`.
+    pub what: &'static str,
+    /// The unit it looks like.
+    pub unit: &'static str,
+    /// The unit it should be in.
+    pub want: &'static str,
+    /// The conversion, as an expression.
+    pub fix: &'static str,
+    /// Scale factor the constraint needs after the conversion (output g per input g).
+    pub scale: f64,
+    /// RMS of the weighted residuals of the fit after the conversion (`inf` if it fails).
+    pub rms: f64,
+}
+
+/// What the unit check found: the scale factor the session needs as given, and the
+/// conversions that explain it, best first.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UnitSuspect {
+    /// Scale factor `|N| / sqrt(A^2 + 1)` at the fastest speed, as given.
+    pub scale: f64,
+    /// Conversions bringing it near 1, best fit first (may be empty).
+    pub findings: Vec<UnitFinding>,
+}
+
+/// Stage (units): a session whose norm constraint `|f|^2 = A^2 + 1` can only be met with scale
+/// factors no triad reporting in g has ([`SCALE_PLAUSIBLE`]) is suspect. Every conversion that
+/// brings the implied scale factors near 1 (omega in rpm, deg/s or Hz; radius in mm or cm;
+/// outputs in m/s^2) is fitted, and the findings are sorted by how well the converted session
+/// meets the constraint. `None` when the units look right.
+pub fn check_units(data: &CentrifugeData<'_>, opt: &FitOptions) -> Option<UnitSuspect> {
+    let s0 = implied_scale(data, 1.0, 1.0);
+    if !s0.is_finite() || (s0 >= SCALE_PLAUSIBLE.0 && s0 <= SCALE_PLAUSIBLE.1) {
+        return None;
+    }
+    let given = FitOptions {
+        check_units: false,
+        ..*opt
+    };
+    let mut findings = Vec::new();
+    for c in unit_candidates(data.g) {
+        let s = implied_scale(data, c.a_factor, c.n_factor);
+        if !(s >= SCALE_EXPLAINED.0 && s <= SCALE_EXPLAINED.1) {
+            continue;
+        }
+        let (om, out, radius): (Vec<f64>, Vec<[f64; 3]>, f64) = match c.what {
+            "omega" => (
+                data.omega.iter().map(|w| w * c.a_factor.sqrt()).collect(),
+                data.outputs.to_vec(),
+                data.radius,
+            ),
+            "radius" => (
+                data.omega.to_vec(),
+                data.outputs.to_vec(),
+                data.radius * c.a_factor,
+            ),
+            _ => (
+                data.omega.to_vec(),
+                data.outputs
+                    .iter()
+                    .map(|n| n.map(|v| v * c.n_factor))
+                    .collect(),
+                data.radius,
+            ),
+        };
+        let d = CentrifugeData {
+            outputs: &out,
+            omega: &om,
+            radius,
+            sigma: None,
+            ..*data
+        };
+        let rms = fit_staged(&d, &given)
+            .map(|f| f.residual_rms)
+            .unwrap_or(f64::INFINITY);
+        findings.push(UnitFinding {
+            what: c.what,
+            unit: c.unit,
+            want: c.want,
+            fix: c.fix,
+            scale: s,
+            rms,
+        });
+    }
+    findings.sort_by(|a, b| a.rms.total_cmp(&b.rms));
+    Some(UnitSuspect {
+        scale: s0,
+        findings,
+    })
+}
+
+/// Calibrate from one session (see the stages above).
+pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit> {
+    validate(data, &opt.model)?;
+    check_options(opt)?;
+    if opt.check_units {
+        if let Some(u) = check_units(data, opt) {
+            let likely = match u.findings.first() {
+                Some(f) => format!(
+                    "; {} looks like {} (want {}: {})",
+                    f.what, f.unit, f.want, f.fix
+                ),
+                None => String::new(),
+            };
+            return invalid(format!(
+                "implausible units: the outputs would need scale factors of {:.3e} (output g per \
+                 input g; a triad reporting in g has {}..{}) to meet |f|^2 = A^2 + 1{likely}",
+                u.scale, SCALE_PLAUSIBLE.0, SCALE_PLAUSIBLE.1
+            ));
+        }
+    }
+    fit_staged(data, opt)
+}
+
+/// [`fit`] after the checks: start, plain fit, screen, sign folding, covariance.
+fn fit_staged(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit> {
+    let n = data.outputs.len();
+    let all: Vec<usize> = (0..n).collect();
+    let mut rc = row_consts(data);
+    let start = start_values(data, &mut rc, &all, &opt.model);
+    let plain = match (&start, opt.method) {
+        (None, Method::Nls) => degenerate(
+            "the outputs cannot determine scale and bias: some axis takes too few distinct \
+             values or the outputs do not describe an ellipsoid",
+        ),
+        _ => fit_rows(data, &mut rc, &all, opt, start.as_deref()),
+    };
+    let sc = screen(data, &mut rc, opt, plain)?;
+    let mut params = sc.out.params.clone();
+    if !params.iter().all(|v| v.is_finite()) {
+        return Err(CoreError::NotConverged(
+            "the centrifuge fit did not produce finite parameters".into(),
+        ));
+    }
+    let folded = fold_sign(&mut params, &opt.model);
+    let residuals = if folded {
+        residuals_pre(data, &rc, &opt.model, &params)
+    } else {
+        sc.st.r.clone()
+    };
+    let last = sc.out.last.as_ref().filter(|_| !folded);
+    let u = uncertainty(data, &rc, &sc.rows, opt, &params, last)?;
+    let mut used = vec![false; n];
+    for &k in &sc.rows {
+        used[k] = true;
+    }
+    let residual_std = rc
+        .iter()
+        .map(|c| {
+            if data.sigma.is_some() {
+                1.0 / c.w
+            } else {
+                sc.st.scale
+            }
+        })
+        .collect();
     Ok(CentrifugeFit {
         params,
         names: opt.model.names(),
-        covariance: cov,
-        residuals: r_all,
-        outliers,
-        residual_rms: rms,
-        screen_sigma,
-        draws,
-        condition,
-        singular_values,
-        iterations,
-        converged,
-        taylor_coefficients: taylor,
+        covariance: u.covariance,
+        residuals,
+        outliers: (0..n).filter(|&k| !used[k]).collect(),
+        residual_rms: u.rms,
+        screen_sigma: sc.st.scale,
+        studentized: sc.st.t,
+        threshold: sc.threshold,
+        residual_std,
+        draws: sc.draws,
+        condition: u.condition,
+        singular_values: u.singular_values,
+        iterations: sc.out.iterations,
+        converged: sc.out.converged,
+        taylor_coefficients: sc.out.taylor,
     })
 }
 
@@ -1677,6 +2365,7 @@ fn observability_svd(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::f64::consts::TAU;
 
     /// The paper's 20-position design: (radial-inward, up) unit vectors in the body frame.
     fn design() -> Vec<([f64; 3], [f64; 3])> {
@@ -1862,6 +2551,212 @@ mod tests {
             assert!((x - y).abs() <= 1e-15, "{x} {y}");
         }
         assert!((f.condition - k2).abs() <= 1e-8 * k2);
+    }
+
+    /// A session with small deterministic pseudo-noise on every output (g).
+    fn noisy(level: f64) -> (Vec<[f64; 3]>, Vec<f64>) {
+        let (mut o, w, _) = session();
+        let mut rng = Rng(7);
+        for row in o.iter_mut() {
+            for v in row.iter_mut() {
+                // Sum of uniforms: roughly normal, std `level`.
+                let u: f64 = (0..12)
+                    .map(|_| (rng.next() >> 11) as f64 / (1u64 << 53) as f64)
+                    .sum();
+                *v += level * (u - 6.0);
+            }
+        }
+        (o, w)
+    }
+
+    #[test]
+    fn stage_start_is_close_and_noise_weights_match_numeric_propagation() {
+        let (o, w) = noisy(1e-6);
+        let sig = vec![[1e-6, 2e-6, 3e-6]; o.len()];
+        let mut d = data(&o, &w);
+        d.sigma = Some(&sig);
+        let model = ModelOptions::default();
+        let all: Vec<usize> = (0..o.len()).collect();
+        let mut rc = row_consts(&d);
+        let st = start_values(&d, &mut rc, &all, &model).unwrap();
+        for i in 0..3 {
+            assert!((st[i] - S[i]).abs() < 1e-3 * S[i], "{st:?}");
+        }
+        // 1 / w = |sigma * dr/dN| by central differences on the outputs.
+        let p: Vec<f64> = [S, B, D].concat();
+        noise_weights(&d, &mut rc, &model, &p);
+        let pp = param_pre(&model, &p).unwrap();
+        for k in [0usize, 17, 45] {
+            let mut v = 0.0;
+            for j in 0..3 {
+                let h = 1e-6;
+                let (mut up, mut dn) = (o[k], o[k]);
+                up[j] += h;
+                dn[j] -= h;
+                let ru = row_eval(&up, &rc[k], &pp, &model, None).unwrap();
+                let rd = row_eval(&dn, &rc[k], &pp, &model, None).unwrap();
+                v += (sig[k][j] * (ru - rd) / (2.0 * h)).powi(2);
+            }
+            assert!((1.0 / rc[k].w - v.sqrt()).abs() < 1e-6 * v.sqrt());
+        }
+    }
+
+    #[test]
+    fn residual_std_is_the_inverse_noise_weight() {
+        let (o, w) = noisy(1e-6);
+        let sig = vec![[2e-6; 3]; o.len()];
+        let mut d = data(&o, &w);
+        assert!(residual_std(&d, &ModelOptions::default(), &[S, B, D].concat()).is_err());
+        d.sigma = Some(&sig);
+        let p: Vec<f64> = [S, B, D].concat();
+        let sd = residual_std(&d, &ModelOptions::default(), &p).unwrap();
+        let mut rc = row_consts(&d);
+        noise_weights(&d, &mut rc, &ModelOptions::default(), &p);
+        for (s, c) in sd.iter().zip(&rc) {
+            assert_eq!(*s, 1.0 / c.w);
+            // |dr/dN| = |f / S| / sqrt(T) ~ 1/S for these scale factors.
+            assert!(*s > 2e-6 / 1.3 * 0.9 && *s < 2e-6 / 1.2 * 1.1, "{s}");
+        }
+    }
+
+    #[test]
+    fn stage_threshold_is_the_student_quantile_of_the_normal_tail() {
+        // scipy: t.isf(norm.sf(2), 10) and t.isf(norm.sf(5), 50).
+        assert!((t_threshold(2.0, 10, false) - 2.28367820247793).abs() < 1e-9);
+        assert!((t_threshold(5.0, 50, false) - 5.730061794672849).abs() < 1e-8);
+        assert_eq!(t_threshold(5.0, 50, true), 5.0);
+    }
+
+    #[test]
+    fn stage_studentize_matches_a_leave_one_out_refit() {
+        let (mut o, w) = noisy(1e-5);
+        o[7][2] += 3e-5; // make row 7 stand out a little
+        let d = data(&o, &w);
+        let opt = FitOptions::default();
+        let all: Vec<usize> = (0..o.len()).collect();
+        let mut rc = row_consts(&d);
+        let out = fit_rows(&d, &mut rc, &all, &opt, None).unwrap();
+        let st = studentize(&d, &rc, &opt, &out.params, &all);
+        assert_eq!(st.dof, 51);
+        // Without row 7: its prediction residual over its prediction std.
+        let rest: Vec<usize> = all.iter().copied().filter(|&k| k != 7).collect();
+        let o2 = fit_rows(&d, &mut rc, &rest, &opt, Some(&out.params)).unwrap();
+        let st2 = studentize(&d, &rc, &opt, &o2.params, &rest);
+        assert!(st.t[7].abs() > 0.1);
+        assert!(
+            (st.t[7] - st2.t[7]).abs() < 1e-3 * st.t[7].abs(),
+            "{} {}",
+            st.t[7],
+            st2.t[7]
+        );
+    }
+
+    #[test]
+    fn stage_screen_keeps_a_clean_session_whole() {
+        let (o, w) = noisy(1e-5);
+        let f = fit(&data(&o, &w), &FitOptions::default()).unwrap();
+        assert!(f.outliers.is_empty() && f.draws == 0);
+        assert!(f.studentized.iter().all(|t| t.abs() <= f.threshold));
+        assert!((f.screen_sigma - 1e-5).abs() < 0.3e-5, "{}", f.screen_sigma);
+    }
+
+    #[test]
+    fn stage_fold_sign_keeps_the_residuals() {
+        let (_, w, up) = session();
+        let model = ModelOptions {
+            k3: true,
+            misalignment: true,
+            lever: LeverArm::Along,
+        };
+        let mut p = vec![
+            -1.29, 1.21, -1.26, 0.2, 0.3, 0.5, 5e-5, 3e-5, 4e-5, 1e-7, -2e-7, 3e-7, 1e-3, -2e-3,
+            5e-4, 0.01, -0.02, 0.005,
+        ];
+        let (o, _, _) = session();
+        let mut d = data(&o, &w);
+        d.spin_axis = Some(&up);
+        let r0 = residuals(&d, &model, &p).unwrap();
+        assert!(fold_sign(&mut p, &model));
+        assert!(p[0] > 0.0 && p[2] > 0.0);
+        let r1 = residuals(&d, &model, &p).unwrap();
+        for (a, b) in r0.iter().zip(&r1) {
+            assert!((a - b).abs() <= 1e-12 * (1.0 + a.abs()), "{a} {b}");
+        }
+        assert!(!fold_sign(&mut p, &model));
+    }
+
+    #[test]
+    fn stage_units_name_the_likely_mistake() {
+        let (o, w, _) = session();
+        assert!(check_units(&data(&o, &w), &FitOptions::default()).is_none());
+        let rpm: Vec<f64> = w.iter().map(|v| v * 60.0 / TAU).collect();
+        let u = check_units(&data(&o, &rpm), &FitOptions::default()).unwrap();
+        assert!((u.scale - 0.0137).abs() < 2e-3, "{u:?}");
+        assert_eq!(
+            (u.findings[0].what, u.findings[0].unit),
+            ("omega", "rev/min (rpm)")
+        );
+        assert!(u.findings[0].rms < 1e-9);
+        let e = fit(&data(&o, &rpm), &FitOptions::default()).unwrap_err();
+        assert!(matches!(e, CoreError::InvalidInput(m) if m.contains("rev/min")));
+        let mut d = data(&o, &w);
+        d.radius = 100.0;
+        let u = check_units(&d, &FitOptions::default()).unwrap();
+        assert_eq!((u.findings[0].what, u.findings[0].unit), ("radius", "cm"));
+    }
+
+    #[test]
+    fn stage_uncertainty_is_the_inverse_normal_matrix() {
+        // With the noise given, the covariance is (J^T W J)^-1 of the weighted Jacobian at the
+        // fit, whichever path (the solver's last normal equations or afresh) computes it.
+        let (o, w) = noisy(1e-6);
+        let sig = vec![[1e-6; 3]; o.len()];
+        let mut d = data(&o, &w);
+        d.sigma = Some(&sig);
+        let opt = FitOptions::default();
+        let all: Vec<usize> = (0..o.len()).collect();
+        let mut rc = row_consts(&d);
+        let out = fit_rows(&d, &mut rc, &all, &opt, None).unwrap();
+        let u1 = uncertainty(&d, &rc, &all, &opt, &out.params, out.last.as_ref()).unwrap();
+        let u2 = uncertainty(&d, &rc, &all, &opt, &out.params, None).unwrap();
+        let prob = Problem::new(&d, &rc, &all, opt.model);
+        let q: Vec<f64> = out
+            .params
+            .iter()
+            .zip(&prob.scales)
+            .map(|(a, s)| a / s)
+            .collect();
+        let mut r = vec![0.0; all.len()];
+        let mut jac = DMatrix::zeros(all.len(), 9);
+        prob.eval(&q, &mut r, &mut jac).unwrap();
+        let cq = (jac.transpose() * &jac).try_inverse().unwrap();
+        for a in 0..9 {
+            for b in 0..9 {
+                let want = cq[(a, b)] * prob.scales[a] * prob.scales[b];
+                let tol = 1e-6
+                    * (want.abs()
+                        + 1e-3
+                            * (cq[(a, a)] * cq[(b, b)]).sqrt()
+                            * prob.scales[a]
+                            * prob.scales[b]);
+                assert!((u1.covariance[a * 9 + b] - want).abs() <= tol, "{a} {b}");
+                assert!((u2.covariance[a * 9 + b] - want).abs() <= tol, "{a} {b}");
+            }
+        }
+        assert!((u1.rms - u2.rms).abs() < 1e-12 && u1.condition > 1.0);
+    }
+
+    #[test]
+    fn correct_inverts_the_sensor_model() {
+        let (o, w, _) = session();
+        let p: Vec<f64> = [S, B, D].concat();
+        let f = correct(&ModelOptions::default(), &p, &o).unwrap();
+        let d = data(&o, &w);
+        for (k, fk) in f.iter().enumerate() {
+            let n2: f64 = fk.iter().map(|v| v * v).sum();
+            assert!((n2 - target(&d, k)).abs() < 1e-9 * target(&d, k));
+        }
+        assert!(correct(&ModelOptions::default(), &p, &[[f64::NAN; 3]]).is_err());
     }
 
     #[test]

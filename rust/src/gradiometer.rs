@@ -1,4 +1,4 @@
-//! Gravity gradiometer per-startup bias by platform azimuth rotation (SPEC section 3).
+//! Gravity gradiometer per-startup bias by platform azimuth rotation.
 //!
 //! Two parts, both pure:
 //!
@@ -20,8 +20,8 @@
 
 use crate::dwell::Sample;
 use crate::error::{degenerate, invalid, CoreError, Result};
-use crate::lsq::{lstsq_qr, svd_report};
-use nalgebra::{DMatrix, SMatrix, SVector};
+use crate::lsq::{cholesky_inverse_small, cholesky_small, lstsq_qr, svd_report};
+use nalgebra::DMatrix;
 use ndarray::ArrayView2;
 use rayon::prelude::*;
 use std::f64::consts::TAU;
@@ -295,6 +295,115 @@ pub fn fit_startup_bias(
     })
 }
 
+/// The start-up estimate in channel units: [`fit_startup_bias`] with the covariance scaled to
+/// the noise (given, or estimated from the residuals).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StartupBias {
+    /// `[bias_I, bias_C, I, C, (drift_I, drift_C)]` (E; drift E/s).
+    pub params: Vec<f64>,
+    /// Covariance (row-major `p x p`); NaN when the noise was not given and the design has no
+    /// redundancy (`dof = 0`) to estimate it.
+    pub covariance: Vec<f64>,
+    /// Square roots of the covariance diagonal.
+    pub std: Vec<f64>,
+    /// Residuals `y_k - model_k`, `(m, 2)`.
+    pub residuals: Vec<[f64; 2]>,
+    /// `(A^T W A)^-1` (row-major `p x p`).
+    pub unit_cov: Vec<f64>,
+    /// Noise std of each average used for the covariance (given or estimated); `None` when
+    /// it could not be estimated.
+    pub sigma: Option<Vec<f64>>,
+    /// True when `sigma` was estimated from the residuals.
+    pub sigma_estimated: bool,
+    /// Degrees of freedom `2m - p`.
+    pub dof: usize,
+    /// Condition number of the column-scaled, weighted design.
+    pub condition: f64,
+}
+
+/// [`fit_startup_bias`] with the noise std of each average `sigma` (E) when known; otherwise
+/// unit weights and the noise estimated from the residuals (`rss / dof`).
+pub fn startup_bias(
+    theta: &[f64],
+    y: &[[f64; 2]],
+    t: Option<&[f64]>,
+    t_ref: f64,
+    sigma: Option<&[f64]>,
+) -> Result<StartupBias> {
+    let m = theta.len();
+    let ones = vec![1.0; m];
+    let f = fit_startup_bias(theta, y, t, t_ref, sigma.unwrap_or(&ones))?;
+    let p = f.params.len();
+    let (covariance, used, estimated) = match sigma {
+        Some(s) => (f.unit_cov.clone(), Some(s.to_vec()), false),
+        None if f.dof > 0 => {
+            let s2 = f.rss / f.dof as f64;
+            let cov = f.unit_cov.iter().map(|v| v * s2).collect();
+            (cov, Some(vec![s2.sqrt(); m]), true)
+        }
+        None => (vec![f64::NAN; p * p], None, false),
+    };
+    let std = (0..p).map(|j| covariance[j * p + j].sqrt()).collect();
+    Ok(StartupBias {
+        params: f.params,
+        covariance,
+        std,
+        residuals: f.residuals,
+        unit_cov: f.unit_cov,
+        sigma: used,
+        sigma_estimated: estimated,
+        dof: f.dof,
+        condition: f.condition,
+    })
+}
+
+/// Predicted accuracy of a start-up sequence before it is run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StartupPrediction {
+    /// From the noise alone (row-major `p x p`).
+    pub covariance: Vec<f64>,
+    /// From independent azimuth errors (first order).
+    pub azimuth_covariance: Vec<f64>,
+    /// Their sum.
+    pub total_covariance: Vec<f64>,
+    /// Square roots of the total covariance diagonal.
+    pub std: Vec<f64>,
+    /// Closed form `sigma^2 m / (m^2 - |U|^2)` with the mean noise std (no drift).
+    pub closed_form_variance: f64,
+    /// Condition number of the design.
+    pub condition: f64,
+}
+
+/// Covariance of the start-up estimate for a planned sequence: noise `dwell_std` per average,
+/// independent azimuth errors of std `sigma_theta` (rad) with what is known of the gradient.
+pub fn predict_startup(
+    theta: &[f64],
+    t: Option<&[f64]>,
+    t_ref: f64,
+    dwell_std: &[f64],
+    gradient: GradientPrior,
+    sigma_theta: f64,
+) -> Result<StartupPrediction> {
+    let (covariance, p, condition) = startup_unit_cov(theta, t, t_ref, dwell_std)?;
+    let azimuth_covariance =
+        azimuth_error_covariance(theta, t, t_ref, dwell_std, gradient, sigma_theta)?;
+    let total_covariance: Vec<f64> = covariance
+        .iter()
+        .zip(&azimuth_covariance)
+        .map(|(a, b)| a + b)
+        .collect();
+    let std = (0..p).map(|j| total_covariance[j * p + j].sqrt()).collect();
+    let mean_sd = dwell_std.iter().sum::<f64>() / dwell_std.len() as f64;
+    Ok(StartupPrediction {
+        covariance,
+        azimuth_covariance,
+        total_covariance,
+        std,
+        closed_form_variance: mean_sd * mean_sd * balanced_variance(theta),
+        condition,
+    })
+}
+
 /// Least-squares gain `L = (A^T W A)^-1 A^T W` (row-major `p x 2m`): parameter change per unit
 /// change of each channel average (rows ordered dwell-major: `y_0I, y_0C, y_1I, ...`).
 pub fn startup_gain(
@@ -382,7 +491,7 @@ pub fn azimuth_error_covariance(
     Ok(cov)
 }
 
-/// SPEC 3 closed form for equal weights, no drift: `Var(bias_j) = Var(gamma_j) =
+/// Closed form for equal weights, no drift: `Var(bias_j) = Var(gamma_j) =
 /// m / (m^2 - |U|^2)` per unit variance, `U = sum exp(-2i theta_k)`. Infinite when singular.
 pub fn balanced_variance(theta: &[f64]) -> f64 {
     let m = theta.len() as f64;
@@ -780,42 +889,44 @@ pub fn demodulate<T: Sample>(
     let gain = 1.0 / (4.0 * radius_m * EOTVOS);
     let mut out = Vec::with_capacity(cuts.len());
     for (k, (&(a, c, revs), acc)) in cuts.iter().zip(&accs).enumerate() {
-        let mut nm = SMatrix::<f64, 5, 5>::zeros();
+        let mut nm = [0.0f64; 25];
         let mut idx = 0;
         for i in 0..5 {
             for j in i..5 {
-                nm[(i, j)] = acc.xx[idx];
-                nm[(j, i)] = acc.xx[idx];
+                nm[i * 5 + j] = acc.xx[idx];
+                nm[j * 5 + i] = acc.xx[idx];
                 idx += 1;
             }
         }
-        let rhs = SVector::<f64, 5>::from_column_slice(&acc.xy);
+        let rhs = acc.xy;
         if !(rhs.iter().all(|v| v.is_finite()) && acc.yy.is_finite()) {
             return invalid(format!(
                 "samples contain NaN or inf (or values too large to square) in dwell {k} [{a}, {c})"
             ));
         }
-        let inv = nm.try_inverse().filter(|m| m.iter().all(|v| v.is_finite()));
-        let inv = match inv {
-            Some(i) if acc.n > 5 => i,
-            _ => {
-                return degenerate(format!(
-                    "dwell {k} [{a}, {c}): the phase does not sample the revolution densely \
-                     enough to separate the 2-omega terms (need well over 4 samples per \
-                     revolution, {} samples used)",
-                    acc.n
-                ))
-            }
+        // Inverse of the normal matrix by Cholesky (through `lsq`).
+        let inv = (acc.n > 5 && cholesky_small(&mut nm, 5))
+            .then(|| cholesky_inverse_small(&nm, 5))
+            .filter(|m| m.iter().all(|v| v.is_finite()));
+        let Some(inv) = inv else {
+            return degenerate(format!(
+                "dwell {k} [{a}, {c}): the phase does not sample the revolution densely \
+                 enough to separate the 2-omega terms (need well over 4 samples per \
+                 revolution, {} samples used)",
+                acc.n
+            ));
         };
-        let beta = inv * rhs;
-        let rss = (acc.yy - beta.dot(&rhs)).max(0.0);
+        let beta: [f64; 5] =
+            std::array::from_fn(|i| (0..5).map(|j| inv[i * 5 + j] * rhs[j]).sum::<f64>());
+        let bdot: f64 = beta.iter().zip(&rhs).map(|(x, y)| x * y).sum();
+        let rss = (acc.yy - bdot).max(0.0);
         let var = rss / (acc.n - 5) as f64;
         out.push(DemodDwell {
             inline_e: beta[4] * gain,
             cross_e: -beta[3] * gain,
             std_e: [
-                (var * inv[(4, 4)]).max(0.0).sqrt() * gain,
-                (var * inv[(3, 3)]).max(0.0).sqrt() * gain,
+                (var * inv[4 * 5 + 4]).max(0.0).sqrt() * gain,
+                (var * inv[3 * 5 + 3]).max(0.0).sqrt() * gain,
             ],
             resid_rms: (rss / acc.n as f64).sqrt(),
             nuisance: [beta[0] + d0[k], beta[1], beta[2]],
@@ -825,6 +936,24 @@ pub fn demodulate<T: Sample>(
         });
     }
     Ok(out)
+}
+
+/// Mid time of the samples each demodulated dwell used: `(t[start] + t[stop - 1]) / 2` (s).
+pub fn mid_times(t: &[f64], dwells: &[DemodDwell]) -> Result<Vec<f64>> {
+    dwells
+        .iter()
+        .enumerate()
+        .map(|(k, d)| {
+            let (a, b) = (t.get(d.start), t.get(d.stop.wrapping_sub(1)));
+            match (a, b) {
+                (Some(a), Some(b)) if a.is_finite() && b.is_finite() => Ok(0.5 * (a + b)),
+                _ => invalid(format!(
+                    "sample times of dwell {k} [{}, {}) are missing or not finite",
+                    d.start, d.stop
+                )),
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -920,6 +1049,64 @@ mod tests {
     }
 
     #[test]
+    fn startup_bias_scales_the_covariance_to_the_noise() {
+        let th = deg(&[0.0, 45.0, 90.0, 135.0, 10.0]);
+        let mut y = synth(&th, [1.0, 2.0], [30.0, -10.0], None);
+        y[1][0] += 0.3;
+        y[3][1] -= 0.2;
+        let f = fit_startup_bias(&th, &y, None, 0.0, &[1.0; 5]).unwrap();
+        let est = startup_bias(&th, &y, None, 0.0, None).unwrap();
+        let s2 = f.rss / f.dof as f64;
+        assert!(est.sigma_estimated && est.dof == 6);
+        for (a, b) in est.covariance.iter().zip(&f.unit_cov) {
+            assert!((a - b * s2).abs() <= 1e-15 * (b * s2).abs().max(1e-300));
+        }
+        assert!((est.std[0] - (f.unit_cov[0] * s2).sqrt()).abs() < 1e-15);
+        let given = startup_bias(&th, &y, None, 0.0, Some(&[0.5; 5])).unwrap();
+        assert!(!given.sigma_estimated && given.sigma == Some(vec![0.5; 5]));
+        // No redundancy and no noise given: the covariance cannot be known.
+        let two = startup_bias(&th[..2], &y[..2], None, 0.0, None).unwrap();
+        assert!(two.dof == 0 && two.sigma.is_none() && two.covariance.iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn prediction_adds_azimuth_errors_and_gives_the_closed_form() {
+        let th = deg(&[0.0, 45.0, 90.0, 135.0]);
+        let p = predict_startup(
+            &th,
+            None,
+            0.0,
+            &[0.5; 4],
+            GradientPrior::Magnitude(50.0),
+            0.01,
+        )
+        .unwrap();
+        assert!((p.closed_form_variance - 0.25 * 0.25).abs() < 1e-15);
+        assert!((p.covariance[0] - 0.0625).abs() < 1e-12);
+        let want = 0.0625 + 2.0 * 1e-4 * 2500.0 / 4.0;
+        assert!(
+            (p.total_covariance[0] - want).abs() < 1e-12 && (p.std[0] - want.sqrt()).abs() < 1e-12
+        );
+    }
+
+    #[test]
+    fn mid_times_of_demodulated_dwells() {
+        let d = DemodDwell {
+            inline_e: 0.0,
+            cross_e: 0.0,
+            std_e: [0.0; 2],
+            resid_rms: 0.0,
+            nuisance: [0.0; 3],
+            start: 2,
+            stop: 6,
+            revolutions: 1,
+        };
+        let t = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        assert_eq!(mid_times(&t, &[d]).unwrap(), vec![3.5]);
+        assert!(mid_times(&t[..4], &[d]).is_err());
+    }
+
+    #[test]
     fn fast_sincos_matches_libm() {
         let mut worst: f64 = 0.0;
         for i in 0..200_000 {
@@ -979,7 +1166,7 @@ mod tests {
             "{o:?}"
         );
         assert_eq!(o.revolutions, 21); // 70 s at 0.3 Hz
-                                       // SPEC 3: balanced set, sigma_bias^2 = 2 sigma_theta^2 |gamma|^2 / m.
+                                       // Balanced set, sigma_bias^2 = 2 sigma_theta^2 |gamma|^2 / m.
         let th = deg(&[0.0, 45.0, 90.0, 135.0]);
         let c = azimuth_error_covariance(
             &th,

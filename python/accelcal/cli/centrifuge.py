@@ -2,42 +2,96 @@
 
 from __future__ import annotations
 
+import re
+
 import click
 
-from ._common import calibrate, emit_json, friendly, write_json_file
+from .._core import CalibrationError
+from ._common import _need_plot, _save_fig, calibrate, emit_json, friendly, write_json_file
+
+#: Python keywords in messages of the fit and the option that sets each on the command line.
+_OPTION_OF = {
+    "check_units=False": "--no-unit-check",
+    "outlier_k": "--outlier-k",
+    "max_draws": "--max-draws",
+    "radius": "--radius",
+    "sigma": "--sigma",
+    "g": "--g",
+}
+
+
+def cli_words(msg: str) -> str:
+    """A message of the Python API in the command line's terms (``outlier_k`` ->
+    ``--outlier-k``, ``pass check_units=False`` -> ``use --no-unit-check``)."""
+    msg = msg.replace("pass check_units=False", "use --no-unit-check")
+    for kw, opt in _OPTION_OF.items():
+        # Only the keyword where it names the argument: at the start or before " must".
+        msg = re.sub(rf"(^|\s){re.escape(kw)}(?= must| \(| looks)", rf"\g<1>{opt}", msg)
+    return msg
 
 
 @calibrate.command("centrifuge")
 @click.argument("table", type=click.Path())
 @click.option("--radius", type=float, required=True, help="Arm radius, m.")
-@click.option("--g", "g", type=float, default=9.80665, show_default=True, help="m/s^2")
+@click.option("--g", "g", type=float, default=9.80665, show_default=True,
+              help="Gravity used to express the centripetal acceleration in g, m/s^2.")
 @click.option("--method", type=click.Choice(["nls", "taylor-paper"]), default="nls",
               show_default=True)
 @click.option("--k3", is_flag=True, help="Also fit cubic (K3) coefficients.")
 @click.option("--misalignment", is_flag=True, help="Also fit small-angle misalignment.")
+@click.option("--sigma", type=float, default=None,
+              help="Noise std of each mean output per axis, g (absolute uncertainties).")
 @click.option("--no-screen", is_flag=True, help="Skip the robust screening of bad rows.")
+@click.option("--outlier-k", type=float, default=5.0, show_default=True,
+              help="Screening threshold as a normal tail, in standard deviations.")
+@click.option("--no-unit-check", is_flag=True,
+              help="Fit even when the outputs need scale factors outside 0.2..5 g/g.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the fit as JSON.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Residuals against speed and position, excluded rows marked (PNG/PDF/SVG).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: bool,
-                         misalignment: bool, no_screen: bool, output: str | None,
-                         as_json: bool) -> None:
-    """Centrifuge calibration with K2 terms from a per-position table (outputs in g)."""
+                         misalignment: bool, sigma: float | None, no_screen: bool,
+                         outlier_k: float, no_unit_check: bool, output: str | None,
+                         plot_path: str | None, as_json: bool) -> None:
+    """Centrifuge calibration with K2 terms from a per-position table (outputs in g).
+
+    Rows are named by speed and position (speed_index, position columns) as well as by their
+    0-based index."""
     import warnings
 
-    from ..centrifuge import calibrate_centrifuge_table
+    from ..centrifuge import CentrifugeOutlierWarning, fit_centrifuge, read_centrifuge_table
 
+    _need_plot(plot_path)
+    t = read_centrifuge_table(table)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        fit = calibrate_centrifuge_table(table, radius, g=g, method=method, k3=k3,
-                                         misalignment=misalignment, robust=not no_screen)
-    notes = [str(w.message) for w in caught]
+        try:
+            fit = fit_centrifuge(
+                t.outputs, t.omega, radius, g=g, method=method,  # type: ignore[arg-type]
+                k3=k3, misalignment=misalignment, sigma=sigma, robust=not no_screen,
+                outlier_k=outlier_k, check_units=not no_unit_check, labels=t.labels(),
+            )
+        except CalibrationError as e:
+            raise type(e)(cli_words(str(e))) from None
+    # The summary names the excluded rows once; other warnings are printed as they come.
+    notes = [str(w.message) for w in caught
+             if not issubclass(w.category, CentrifugeOutlierWarning)]
     if output:
         write_json_file(output, fit.to_dict())
+    if plot_path:
+        from ..plots import centrifuge_residual_figure
+
+        _save_fig(centrifuge_residual_figure(fit, t.speed_index, t.position), plot_path)
     if as_json:
         out = fit.to_dict()
-        out["warnings"] = notes
+        out["warnings"] = notes + ([fit.excluded_text()] if len(fit.outliers) else [])
+        out["rows"] = [{"index": k, "speed_index": int(s), "position": int(p),
+                        "omega_rad_s": float(w)}
+                       for k, (s, p, w) in enumerate(zip(t.speed_index, t.position, t.omega,
+                                                         strict=True))]
         emit_json(out)
         return
     click.echo(fit.summary())
@@ -45,3 +99,5 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
         click.echo(f"warning: {n}")
     if output:
         click.echo(f"wrote {output}")
+    if plot_path:
+        click.echo(f"wrote {plot_path}")

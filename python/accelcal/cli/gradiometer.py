@@ -4,7 +4,23 @@ from __future__ import annotations
 
 import click
 
-from ._common import calibrate, emit_json, friendly, write_json_file
+from .._core import CalibrationError
+from ._common import _need_plot, _save_fig, calibrate, emit_json, friendly, write_json_file
+
+#: Python keywords in messages of the estimator and the option that sets each.
+_OPTION_OF = {
+    "drift=True": "--drift",
+    "give sigma=": "give --sigma",
+    "sigma must": "--sigma must",
+    "sigma=": "--sigma",
+}
+
+
+def cli_words(msg: str) -> str:
+    """A message of the Python API in the command line's terms."""
+    for kw, opt in _OPTION_OF.items():
+        msg = msg.replace(kw, opt)
+    return msg.replace("dwell times t (s)", "dwell times (a t_s column, s)")
 
 
 @calibrate.command("gradiometer")
@@ -13,19 +29,31 @@ from ._common import calibrate, emit_json, friendly, write_json_file
 @click.option("--sigma", type=float, default=None, help="Noise std of one average, E.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the result as JSON.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Inline and cross channels against azimuth with the fit (PNG/PDF/SVG).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
-                          output: str | None, as_json: bool) -> None:
+                          output: str | None, plot_path: str | None, as_json: bool) -> None:
     """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows."""
     from ..gradiometer import calibrate_gradiometer_table
 
-    sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma)
+    _need_plot(plot_path)
+    try:
+        sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma)
+    except CalibrationError as e:
+        raise type(e)(cli_words(str(e))) from None
     if output:
         write_json_file(output, sb.to_dict())
+    if plot_path:
+        from ..plots import gradiometer_figure
+
+        _save_fig(gradiometer_figure(sb), plot_path)
     if as_json:
         emit_json(sb.to_dict())
         return
-    click.echo(sb.summary())
+    click.echo(cli_words(sb.summary()))
     if output:
         click.echo(f"wrote {output}")
+    if plot_path:
+        click.echo(f"wrote {plot_path}")

@@ -48,7 +48,7 @@ def demo_section(rng_seed: int = 0) -> str:
     pred = predict_startup_accuracy(az, d.t, d.std.mean())
     mb = s.accel.nbytes / 1e6
     lines = [
-        "Gradiometer per-startup bias (SPEC 3): simulated RAGG start-up",
+        "Gradiometer per-startup bias: simulated RAGG start-up",
         f"  {s.accel.shape[0]} raw samples of a1..a4 at {s.fs:g} Hz, R = {s.radius_m:g} m, "
         f"spin {s.omega_rad_s / 2 / np.pi:g} Hz; azimuths {', '.join(f'{a:g}' for a in az)} deg",
         f"  2-omega demodulation: {mb:.1f} MB in {dt * 1e3:.1f} ms; channel noise per dwell "

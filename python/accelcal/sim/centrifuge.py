@@ -1,4 +1,4 @@
-"""Centrifuge session simulator (seed 004) with known truth and unmodelled error sources.
+"""Centrifuge session simulator (the paper's design) with known truth and unmodelled error sources.
 
 Geometry. Every row is one static position of the triad on the centrifuge arm at one speed.
 In the body frame, the specific force at the triad centre is ``f = A c1 + c3`` (g units) with
@@ -10,7 +10,8 @@ run at 2pi, 4pi and 6pi rad/s.
 
 Error sources: misalignment ``Phi = I + M`` (small angles, any off-diagonal pattern), lever
 arms (one body-frame offset vector per accelerometer, m), radius and rate errors, Earth rate
-at a latitude (adds ``Omega_ie sin(lat)`` to the spin rate), output noise.
+at a latitude (the platform's inertial rate about the vertical is ``omega + Omega_ie sin(lat)``
+for a signed spin rate ``omega``, positive counter-clockwise seen from above), output noise.
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ def centrifuge_session(
     design : CentrifugeDesign, optional
         Default: the paper's 20 positions x (2pi, 4pi, 6pi) rad/s at ``radius``.
     scale, bias, k2, k3 : array_like (3,), optional
-        Truth per axis; bias in g, k2 in g/g^2, k3 in g/g^3. Default: the seed-004 truth
+        Truth per axis; bias in g, k2 in g/g^2, k3 in g/g^3. Default: the paper's truth
         (S = 1.29, 1.21, 1.26; b = 0.213, 0.256, 0.516 g; K2 = 0.57, 0.31, 0.45 x 1e-4) and
         no K3.
     misalignment : array_like (3, 3), optional
@@ -100,7 +101,11 @@ def centrifuge_session(
     rate_error : float
         Relative spin-rate error (true = commanded x (1 + rate_error)).
     latitude_deg : float, optional
-        Adds the vertical Earth rate ``Omega_ie sin(lat)`` to the spin rate.
+        Adds the vertical Earth rate ``Omega_ie sin(lat)`` to the signed spin rate (rad/s,
+        positive counter-clockwise seen from above): a forward run spins ``Omega_ie sin(lat)``
+        faster in inertial space, a reverse run (negative omega) as much slower, so
+        ``dA/A = +-2 Omega_ie sin(lat) / |omega|`` (1.5e-5 at 1 rev/s and 39 deg) and a
+        forward/reverse pair cancels it to first order.
     noise_g : float
         Standard deviation of white noise on every output (g).
     g : float

@@ -1,4 +1,4 @@
-"""Rotating-accelerometer gravity gradiometer start-up simulator (SPEC 3), with known truth.
+"""Rotating-accelerometer gravity gradiometer start-up simulator, with known truth.
 
 Four accelerometers on a disc of radius R spinning at omega about the platform z axis, sensing
 axes tangential. Accelerometer i (0..3) sits at phase ``phi_i = phi + i pi / 2`` at
@@ -10,7 +10,7 @@ platform frame. Its specific force is computed physically::
 where ``Gamma_p`` is the gravity-gradient tensor in the platform frame and ``Omega^2 = W W^T -
 |W|^2 I`` the centripetal term of the disc's total angular rate ``W = (Wx, Wy, omega)``. Hence
 ``f_i = R [I' sin 2phi_i - C' cos 2phi_i] + R omega_dot + t_i . f0`` with the effective gradient
-``I' = I_p - (Wx^2 - Wy^2)/2``, ``C' = C_p - Wx Wy`` (SPEC 3). The per-startup bias (and drift)
+``I' = I_p - (Wx^2 - Wy^2)/2``, ``C' = C_p - Wx Wy``. The per-startup bias (and drift)
 enters as an instrument-fixed 2-omega signal ``R [b_I sin 2phi_i - b_C cos 2phi_i]``. Each
 accelerometer then has a scale error ``(1 + k_i)`` and white noise.
 
@@ -49,7 +49,7 @@ class GradiometerTruth:
 
     ``gradient_E`` is the navigation-frame ``(I, C)`` of ``tensor_E``; ``sensor_gradient_E``
     (m, 2) the platform-frame ``(I, C)`` at each true azimuth; ``rate_terms_E`` (m, 2) the
-    SPEC 3 formula ``(-(Wx^2 - Wy^2)/2, -Wx Wy)`` with the platform-frame rates of each dwell;
+    formula ``(-(Wx^2 - Wy^2)/2, -Wx Wy)`` with the platform-frame rates of each dwell;
     ``channels_E`` (m, 2) what a perfect demodulator returns: ``gain * (sensor + rates + bias at
     the dwell's mid time)`` with ``gain`` the mean accelerometer scale. The effective start-up
     unknowns are ``effective_bias_E`` (bias plus rate terms fixed in the platform frame) and

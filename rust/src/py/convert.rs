@@ -117,3 +117,82 @@ pub fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]
         .map(|r| [r[0], r[1], r[2]])
         .collect())
 }
+
+/// A read-only 1-D array holding `v`.
+pub fn frozen1<T: numpy::Element>(py: Python<'_>, v: Vec<T>) -> Py<numpy::PyArray1<T>> {
+    use numpy::IntoPyArray;
+    let a = v.into_pyarray(py);
+    clear_writeable(&a);
+    a.unbind()
+}
+
+/// Clear the WRITEABLE flag of an array this module has just made (what numpy's
+/// `PyReadwriteArray::make_nonwriteable` does, without its borrow bookkeeping: nothing else
+/// can hold a borrow of a fresh array).
+fn clear_writeable<T: numpy::Element, D: ndarray::Dimension>(a: &Bound<'_, numpy::PyArray<T, D>>) {
+    use numpy::PyUntypedArrayMethods;
+    // SAFETY: `a` is a live array created by the caller and not yet shared with anyone.
+    unsafe {
+        (*numpy::npyffi::_PyArray_GET_ITEM_DATA(a.as_array_ptr())).flags &=
+            !numpy::npyffi::NPY_ARRAY_WRITEABLE;
+    }
+}
+
+/// A read-only `(rows, cols)` array from row-major values (`v.len()` must be `rows * cols`;
+/// otherwise an empty `(0, cols)` array, which callers never produce).
+pub fn frozen2(py: Python<'_>, v: Vec<f64>, rows: usize, cols: usize) -> Py<numpy::PyArray2<f64>> {
+    use numpy::IntoPyArray;
+    let arr = ndarray::Array2::from_shape_vec((rows, cols), v)
+        .unwrap_or_else(|_| ndarray::Array2::zeros((0, cols)));
+    let a = arr.into_pyarray(py);
+    clear_writeable(&a);
+    a.unbind()
+}
+
+fn writeable<T: numpy::Element, D: ndarray::Dimension>(
+    a: &Bound<'_, numpy::PyArray<T, D>>,
+) -> bool {
+    use numpy::PyUntypedArrayMethods;
+    // SAFETY: reads the flags word of a live array object (no write, no borrow).
+    let flags = unsafe { (*numpy::npyffi::_PyArray_GET_ITEM_DATA(a.as_array_ptr())).flags };
+    flags & numpy::npyffi::NPY_ARRAY_WRITEABLE != 0
+}
+
+/// A 1-D array argument of a result's constructor: shared when already read-only (another
+/// result's field: no copy), else a read-only copy (unpickling).
+pub fn frozen_copy1<T: numpy::Element + Copy>(
+    a: &PyReadonlyArray1<'_, T>,
+) -> Py<numpy::PyArray1<T>> {
+    let b: &Bound<'_, numpy::PyArray1<T>> = a;
+    if !writeable(b) {
+        return b.clone().unbind();
+    }
+    frozen1(a.py(), a.as_array().to_vec())
+}
+
+/// [`frozen_copy1`] for a 2-D float64 argument.
+pub fn frozen_copy2(a: &PyReadonlyArray2<'_, f64>) -> Py<numpy::PyArray2<f64>> {
+    let b: &Bound<'_, numpy::PyArray2<f64>> = a;
+    if !writeable(b) {
+        return b.clone().unbind();
+    }
+    let (r, c) = (a.shape()[0], a.shape()[1]);
+    frozen2(a.py(), a.as_array().iter().copied().collect(), r, c)
+}
+
+/// A contiguous copy of a 1-D float64 argument in logical order (any strides or layout).
+pub fn vec1(a: &PyReadonlyArray1<'_, f64>) -> Vec<f64> {
+    match a.as_slice() {
+        Ok(s) => s.to_vec(),
+        Err(_) => a.as_array().to_vec(),
+    }
+}
+
+/// A 1-D float64 argument as a slice: borrowed when contiguous (zero copy), else a copy in
+/// logical order.
+pub fn cow1<'a>(a: &'a PyReadonlyArray1<'_, f64>) -> std::borrow::Cow<'a, [f64]> {
+    match a.as_slice() {
+        Ok(s) => std::borrow::Cow::Borrowed(s),
+        Err(_) => std::borrow::Cow::Owned(a.as_array().to_vec()),
+    }
+}

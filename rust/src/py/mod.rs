@@ -36,13 +36,18 @@ impl From<CoreError> for PyErr {
 #[pyo3::pymodule]
 mod _core {
     #[pymodule_export]
-    use super::centrifuge::centrifuge_fit_raw;
+    use super::centrifuge::{
+        centrifuge_correct_raw, centrifuge_fit_raw, centrifuge_unit_check_raw, PyCentrifugeFit,
+    };
     #[pymodule_export]
     use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
     #[pymodule_export]
     use super::gap::{gap_chi2_sf, gap_diagnose_raw, gap_f_sf, gap_model_residuals_raw};
     #[pymodule_export]
-    use super::gradiometer::{demodulate_raw, startup_bias_raw, startup_predict_raw};
+    use super::gradiometer::{
+        demodulate_raw, startup_bias_raw, startup_predict_raw, PyDemodulated, PyStartupBias,
+        PyStartupPrediction,
+    };
     #[pymodule_export]
     use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
     #[pymodule_export]
