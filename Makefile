@@ -10,7 +10,7 @@ DEV_DEPS := "maturin>=1.9.4,<2" "numpy>=1.24" "click>=8.1" "tqdm>=4.60" "jsonsch
   "pytest>=8" "hypothesis>=6.90" "scipy>=1.11" "pytest-benchmark>=4" "mypy>=1.10" \
   "matplotlib>=3.7" "h5py>=3.8" "pandas>=2.0" "pyarrow>=14" "dask[distributed]>=2024.1" ruff
 
-.PHONY: test venv build cargo-test pytest stubtest lint wheel wheel-check bench clean
+.PHONY: test venv build cargo-test pytest stubtest lint wheel wheel-check bench bench-bigfile clean
 
 # One release build of the extension serves pytest, stubtest and the wheel (same features,
 # same profile: maturin reuses every compiled artefact); `cargo test --release` reuses the
@@ -25,7 +25,10 @@ $(VENV)/.deps: pyproject.toml Makefile
 
 venv: $(VENV)/.deps
 
+# A stale per-version extension (e.g. _core.cpython-311-*.so from a non-abi3 build) would
+# shadow the abi3 one that maturin installs: remove any before installing.
 build: venv
+	rm -f python/accelcal/_core.*.so
 	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH $(VENV)/bin/maturin develop --release -q
 
 cargo-test:
@@ -63,3 +66,9 @@ bench: build
 
 clean:
 	rm -rf $(VENV) target
+
+# Big recordings (about 0.75 GB of text at 2e7 rows): reader and streaming commands against
+# pandas.read_csv, time and peak memory; ROWS=1e6 for a quick look.
+ROWS ?= 2e7
+bench-bigfile: build
+	$(PY) benches/bench_bigfile.py --rows $(ROWS)

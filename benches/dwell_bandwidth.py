@@ -1,10 +1,11 @@
 """Bandwidth of accelcal.dwell_stats against NumPy, in one process (plain script).
 
-Workload (seed 000 field test): 20 dwells x 20 s x 5 kHz x 3 axes = 2 000 000 rows, as float64
+Workload (a 5 kHz field session): 20 dwells x 20 s x 5 kHz x 3 axes = 2 000 000 rows, as float64
 (48 MB) and as int16 raw counts (12 MB). For each dtype the table gives, as GB/s of input bytes
 (median of ``--repeats`` runs timed with time.perf_counter):
 
-* ``accelcal``  - accelcal.dwell_stats(samples, bounds): count, mean, variance per dwell;
+* ``accelcal``  - accelcal.dwell_stats(samples, bounds): count, mean, variance, half-dwell
+  means, Allan inflation and LSB per dwell (one pass);
 * ``reduceat``  - the NumPy baseline: np.add.reduceat of the values and of their squares
   (int16 first converted to float64, as the squares overflow int16);
 * ``np.sum``    - np.sum over the whole array: NumPy's streaming read bandwidth of those bytes,

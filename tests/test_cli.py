@@ -54,16 +54,21 @@ def test_calibrate_apply_round_trip_on_xsens(tmp_path: Path) -> None:
     calibrated = tmp_path / "cal.npy"
     code, out = run("apply", str(cal), str(XSENS()), "-o", str(calibrated), "--quiet")
     assert code == 0, out
-    a = np.load(calibrated)
-    assert a.shape == (51175, 3)
+    ta = np.load(calibrated)
+    assert ta.shape == (51175, 4)  # t_s, ax, ay, az: the time column is kept
+    np.testing.assert_array_equal(ta[:, 0], np.loadtxt(XSENS())[:, 0])
+    a = ta[:, 1:]
     norm = np.linalg.norm(a[:4000], axis=1)  # the initial 40 s of rest
     assert abs(np.mean(norm) - 9.81744) < 5e-3
-    # CSV output carries time and the same numbers.
+    # CSV output carries time and the same numbers (shortest round-trip text: identical).
     csv = tmp_path / "cal.csv"
     code, _ = run("apply", str(cal), str(XSENS()), "-o", str(csv), "--quiet")
     assert code == 0
-    tab = np.loadtxt(csv, delimiter=",", skiprows=2)
-    np.testing.assert_allclose(tab[:, 1:], a, rtol=1e-8, atol=1e-8)
+    lines = csv.read_text().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    assert lines[len(head)] == "t_s,ax,ay,az" and "# units: m/s^2" in head
+    tab = np.loadtxt(csv, delimiter=",", skiprows=len(head) + 1)
+    np.testing.assert_array_equal(tab, ta)
 
 
 def test_calibrate_static_plot_and_readable_output(tmp_path: Path) -> None:
@@ -150,3 +155,196 @@ def test_unreadable_file_is_a_clear_error(tmp_path: Path) -> None:
     code, out = run("dwells", str(bad), "--fs", "100")
     assert code == 2
     assert str(bad) in out
+
+
+# ---- streaming commands: dwells, apply, reading options ----------------------------------------
+def _calibration(tmp_path: Path) -> Path:
+    cal = tmp_path / "cal.json"
+    code, out = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "-o", str(cal),
+                    "--quiet")
+    assert code == 0, out
+    return cal
+
+
+def test_apply_writes_every_format_with_time_and_json(tmp_path: Path) -> None:
+    import h5py
+    from accelcal import TriadModel
+    from accelcal.io import read_stream
+
+    cal = _calibration(tmp_path)
+    st = read_stream(XSENS())
+    want = TriadModel.load(cal).apply(st.samples)
+    got: dict[str, Any] = {}
+    for ext in ("csv", "npy", "npz", "h5"):
+        out = tmp_path / f"out.{ext}"
+        code, text = run("apply", str(cal), str(XSENS()), "-o", str(out), "--chunk-rows",
+                         "7000", "--json")
+        assert code == 0, text
+        res = json.loads(text)
+        assert res["rows"] == 51175 and res["format"] == ext and res["time_column"] is True
+        assert res["units"] == "m/s^2"
+        if ext == "csv":
+            r = read_stream(out)
+            got[ext] = (r.t, r.samples)
+        elif ext == "npy":
+            a = np.load(out)
+            got[ext] = (a[:, 0], a[:, 1:])
+        elif ext == "npz":
+            with np.load(out) as z:
+                got[ext] = (z["t"], z["samples"])
+        else:
+            with h5py.File(out, "r") as f:
+                got[ext] = (f["t"][()], f["samples"][()])
+                assert f.attrs["units"] == "m/s^2"
+    for ext, (t, a) in got.items():
+        np.testing.assert_array_equal(t, st.t, err_msg=ext)
+        np.testing.assert_array_equal(a, want, err_msg=ext)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "cal.json", "out.csv", "out.h5", "out.npy", "out.npz"]  # no temporary files left
+
+
+def test_interrupted_apply_leaves_the_old_output(tmp_path: Path) -> None:
+    cal = _calibration(tmp_path)
+    good = tmp_path / "rec.csv"
+    rows = "".join(f"{i / 100},{33000 + i % 7},{33200 - i % 5},{36400 + i % 3}\n"
+                   for i in range(200_000))
+    good.write_text("t,ax,ay,az\n" + rows)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,ax,ay,az\n" + rows + "2000,1,2,three\n")
+    for ext in ("csv", "npy", "npz", "h5"):
+        out = tmp_path / f"out.{ext}"
+        code, text = run("apply", str(cal), str(good), "-o", str(out), "--quiet")
+        assert code == 0, text
+        before = out.read_bytes()
+        code, text = run("apply", str(cal), str(bad), "-o", str(out), "--quiet")
+        assert code == 2 and "line 200002" in text and "three" in text, text
+        assert out.read_bytes() == before, ext
+    left = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert left == []
+
+
+def test_calibration_file_without_k_is_one_line(tmp_path: Path) -> None:
+    cal = _calibration(tmp_path)
+    d = json.loads(cal.read_text())
+    del d["K"]
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps(d))
+    code, out = run("apply", str(broken), str(XSENS()), "-o", str(tmp_path / "x.csv"))
+    assert code == 2, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and "'K'" in lines[0] and "internal error" not in out
+
+
+def test_dwell_table_feeds_calibrate_static(tmp_path: Path) -> None:
+    table = tmp_path / "dwells.csv"
+    code, out = run("dwells", str(XSENS()), "-o", str(table), "--quiet")
+    assert code == 0, out
+    code, a = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "--json", "--quiet")
+    assert code == 0, a
+    code, b = run("calibrate", "static", str(table), "--g", "9.81744", "--json")
+    assert code == 0, b
+    ra, rb = json.loads(a), json.loads(b)
+    assert ra["n_dwells"] == rb["n_dwells"] >= 38
+    np.testing.assert_array_equal(ra["vector"], rb["vector"])
+    assert rb["samples"] is None and ra["samples"] == 51175
+
+
+def test_stdin_and_column_options(tmp_path: Path) -> None:
+    r = CliRunner().invoke(main, ["dwells", "-", "--json"], input=XSENS().read_bytes())
+    assert r.exit_code == 0, r.output
+    piped = json.loads(r.stdout)
+    code, out = run("dwells", str(XSENS()), "--json", "--columns", "1,2,3")
+    assert code == 0, out
+    by_index = json.loads(out)
+    assert piped["mean"] == by_index["mean"] and piped["samples"] == 51175
+    # --columns by index keeps the time column: dwell mid times are times, not indices/fs.
+    assert by_index["t"] == piped["t"] and by_index["fs_hz"] == pytest.approx(100.0, rel=1e-3)
+
+
+def test_messages_name_command_line_options(tmp_path: Path) -> None:
+    code, out = run("dwells", str(IMUCAL()))
+    assert code == 2 and "--fs" in out and "fs=" not in out, out
+    code, out = run("dwells", str(XSENS()), "--columns", "ax,ay")
+    assert code == 2 and "--columns" not in out or "columns" in out, out
+    wide = tmp_path / "wide.txt"
+    wide.write_text("".join(f"{i % 3} {i % 5} 1 2 3\n" for i in range(300)))
+    code, out = run("dwells", str(wide), "--fs", "100")
+    assert code == 2 and "--columns" in out and "--time-column" in out, out
+    assert "columns=" not in out and "time_column=" not in out
+    # A time column that disagrees with --fs is said (on stderr, with the table on stdout).
+    r = CliRunner().invoke(main, ["dwells", str(XSENS()), "--fs", "200"])
+    assert r.exit_code == 0
+    assert "note:" in r.stderr and "200 Hz is used" in r.stderr and "--fs" in r.stderr
+    assert "note:" not in r.stdout
+
+
+def test_dwells_plot_shows_the_stream_with_dwells(tmp_path: Path) -> None:
+    png = tmp_path / "dwells.png"
+    code, out = run("dwells", str(XSENS()), "--plot", str(png), "--quiet")
+    assert code == 0, out
+    assert png.stat().st_size > 20_000
+    # The figure itself: three axes in the file's units against time, one span per dwell.
+    import matplotlib.pyplot as plt
+    from accelcal.io import read_stream, stream_dwells
+    from accelcal.plots import dwells_figure
+
+    st = read_stream(XSENS())
+    d = stream_dwells(XSENS())
+    t = st.t - st.t[0]
+    fig = dwells_figure(t, st.samples, st.samples, st.samples, d, units="counts")
+    axes = fig.axes
+    assert [a.get_ylabel() for a in axes] == ["x [counts]", "y [counts]", "z [counts]"]
+    assert axes[-1].get_xlabel() == "time [s]"
+    spans = [p for p in axes[0].patches]
+    assert len(spans) == len(d) >= 38
+    x0 = sorted(p.get_x() for p in spans)
+    np.testing.assert_allclose(x0, np.sort(d.start / d.fs))
+    plt.close(fig)
+
+
+def test_diagnose_reads_a_dwell_table(tmp_path: Path) -> None:
+    table = tmp_path / "dwells.csv"
+    code, out = run("dwells", str(XSENS()), "-o", str(table), "--quiet")
+    assert code == 0, out
+    code, a = run("diagnose", str(XSENS()), "--g", "9.81744", "--noise", "white", "--json",
+                  "--quiet")
+    assert code == 0, a
+    code, b = run("diagnose", str(table), "--g", "9.81744", "--noise", "white", "--json")
+    assert code == 0, b
+    ra, rb = json.loads(a), json.loads(b)
+    assert ra["chi2_per_dof"] == pytest.approx(rb["chi2_per_dof"], rel=1e-12)
+    assert ra["chi2_per_dof"] > 3
+
+
+def test_ctrl_c_during_apply_leaves_the_old_output(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from accelcal import _core
+
+    cal = _calibration(tmp_path)
+    rec = tmp_path / "long.csv"
+    n = 3_000_000
+    with open(rec, "wb") as f:
+        f.write(b"t,ax,ay,az\n")
+        for a in range(0, n, 500_000):
+            i = np.arange(a, a + 500_000, dtype=np.float64)
+            x = np.column_stack([33000 + i % 7, 33200 - i % 5, 36400 + i % 3])
+            f.write(_core.format_rows(x, i / 100.0))
+    out = tmp_path / "out.npy"
+    np.save(out, np.zeros((2, 4)))
+    before = out.read_bytes()
+    code = "import sys; from accelcal.cli import main; main(sys.argv[1:])"
+    p = subprocess.Popen([sys.executable, "-c", code, "apply", str(cal), str(rec), "-o",
+                          str(out), "--chunk-rows", "20000"], stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while not any(q.name.startswith(".out.npy") for q in tmp_path.iterdir()):
+        assert p.poll() is None and time.monotonic() < deadline, "apply ended too soon"
+        time.sleep(0.01)
+    time.sleep(0.2)
+    p.send_signal(signal.SIGINT)
+    assert p.wait(timeout=60) != 0
+    assert out.read_bytes() == before
+    assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []

@@ -133,8 +133,8 @@ def test_three_columns_no_header_is_xyz(tmp_path: Path) -> None:
         ("", ["empty"]),
         ("\n\n", ["no numeric data"]),
         ("a,b,c\n", ["no numeric data"]),
-        ("ax,ay,az\n1,2,3\n4,x,6\n", ["non-numeric"]),
-        ("ax,ay,az\n1,2,3\n4,5\n", ["ragged"]),
+        ("ax,ay,az\n1,2,3\n4,x,6\n", ["line 3", 'column "ay"', "not a number"]),
+        ("ax,ay,az\n1,2,3\n4,5\n", ["line 3", "2 fields where the data rows have 3"]),
         ("3,1,2,3,4\n4,5,6,7,8\n", ["columns="]),
         ("5,1,2,3\n4,5,6,7\n", ["columns="]),  # 4 columns, first not increasing
         ("gx,gy,gz\n1,2,3\n", ["no accelerometer columns"]),
@@ -269,3 +269,278 @@ def test_hdf5_reader_finds_samples_time_and_temperature(tmp_path: Path) -> None:
     bad.write_text("not hdf5")
     with pytest.raises(CalibrationError, match="HDF5"):
         read_stream(bad)
+
+
+# ---- the Rust text reader against numpy.loadtxt / pandas.read_csv ------------------------------
+def _table(n: int, seed: int) -> np.ndarray:
+    """(n, 5) rows t, ax, ay, az, temp with values that stress float parsing."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / 250.0
+    a = rng.normal(0.0, 1.0, (n, 3)) * [1e-3, 3.0, 9.81] + [0.0, -1.5e-7, 1e4]
+    temp = 20.0 + rng.random(n)
+    return np.column_stack([t, a, temp])
+
+
+def _fmt(x: np.ndarray) -> list[list[str]]:
+    return [[repr(float(v)) for v in row] for row in x]
+
+
+@pytest.mark.parametrize("delim", [",", ";", "\t", " ", ", "])
+@pytest.mark.parametrize("eol", ["\n", "\r\n"])
+@pytest.mark.parametrize("trailing_newline", [True, False])
+def test_text_parity_with_loadtxt(
+    tmp_path: Path, delim: str, eol: str, trailing_newline: bool
+) -> None:
+    x = _table(3000, 1)
+    lines = ["# exported by a logger", "Fs, 250", "# a comment before the header",
+             delim.join(["t", "ax", "ay", "az", "temp_C"])]
+    rows = [delim.join(r) for r in _fmt(x)]
+    rows.insert(1000, "# a comment among the data")
+    rows.insert(2000, "")
+    text = eol.join(lines + rows) + (eol if trailing_newline else "")
+    p = tmp_path / "rec.csv"
+    p.write_bytes(text.encode())
+    s = read_stream(p)
+    ref = np.loadtxt(p, delimiter=None if delim.strip() in ("", "\t") else delim.strip(),
+                     skiprows=4,
+                     comments="#")
+    np.testing.assert_array_equal(ref, x)  # the reference itself reads what was written
+    np.testing.assert_array_equal(s.samples, ref[:, 1:4])
+    np.testing.assert_array_equal(s.t, ref[:, 0])
+    np.testing.assert_array_equal(s.temperature, ref[:, 4])
+    assert s.fs == 250.0 and s.fs_source == "metadata" and s.names == ("ax", "ay", "az")
+    chunks = list(iter_stream(p, chunk_rows=701))
+    assert [c.shape[0] for c, _ in chunks] == [701] * 4 + [3000 - 4 * 701]
+    np.testing.assert_array_equal(np.concatenate([c for c, _ in chunks]), ref[:, 1:4])
+
+
+def test_text_parity_with_pandas_on_a_file_larger_than_the_head(tmp_path: Path) -> None:
+    import pandas as pd
+
+    x = _table(120_000, 2)  # about 8 MB: read in several blocks, past the sniffed head
+    p = tmp_path / "big.csv"
+    pd.DataFrame(x, columns=["time_ms", "acc_x", "acc_y", "acc_z", "temperature"]).to_csv(
+        p, index=False, float_format="%.17g")
+    assert p.stat().st_size > 3 * (1 << 21)
+    ref = pd.read_csv(p, engine="c")
+    s = read_stream(p)
+    np.testing.assert_array_equal(s.samples, ref[["acc_x", "acc_y", "acc_z"]].to_numpy())
+    np.testing.assert_array_equal(s.t, ref["time_ms"].to_numpy() * 1e-3)
+    np.testing.assert_array_equal(s.temperature, ref["temperature"].to_numpy())
+    assert s.fs == pytest.approx(250_000.0)  # time in ms: 1/250 ms apart
+    got = np.concatenate([c for c, _ in iter_stream(p, chunk_rows=50_000)])
+    np.testing.assert_array_equal(got, s.samples)
+
+
+def test_iso_timestamps_match_pandas(tmp_path: Path) -> None:
+    import pandas as pd
+
+    n = 2500
+    base = pd.Timestamp("2024-02-29T23:59:58.5", tz="UTC")
+    ts = base + pd.to_timedelta(np.arange(n) * 2_500_000, unit="ns")  # 400 Hz
+    x = _table(n, 3)[:, 1:4]
+    p = tmp_path / "iso.csv"
+    with open(p, "w") as f:
+        f.write("timestamp,ax,ay,az\n")
+        for i in range(n):
+            stamp = ts[i].strftime("%Y-%m-%dT%H:%M:%S.%f") + ("Z" if i % 2 else "+00:00")
+            f.write(stamp + "," + ",".join(repr(float(v)) for v in x[i]) + "\n")
+    s = read_stream(p)
+    ref = pd.read_csv(p, parse_dates=["timestamp"])
+    want = (ref["timestamp"] - ref["timestamp"][0]).dt.total_seconds().to_numpy()
+    np.testing.assert_allclose(s.t, want, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(s.samples, ref[["ax", "ay", "az"]].to_numpy())
+    assert s.t0 == "2024-02-29T23:59:58.500000+00:00"
+    assert s.fs == pytest.approx(400.0)
+    # With an offset, the instant is what counts.
+    q = write(tmp_path, "t;x;y;z\n2024-03-01 01:00:00+01:00;1;2;3\n2024-03-01T00:00:01Z;1;2;3\n")
+    np.testing.assert_array_equal(read_stream(q).t, [0.0, 1.0])
+
+
+def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
+    import pandas as pd
+
+    x = _table(1500, 4)
+    p = tmp_path / "dc.csv"
+    body = "\n".join(";".join(v.replace(".", ",") for v in r) for r in _fmt(x))
+    p.write_text("Abtastrate: 250\nt;ax;ay;az;temp\n" + body + "\n")
+    ref = pd.read_csv(p, sep=";", decimal=",", skiprows=1)
+    s = read_stream(p)
+    np.testing.assert_array_equal(s.samples, ref[["ax", "ay", "az"]].to_numpy())
+    np.testing.assert_array_equal(s.samples, x[:, 1:4])
+    np.testing.assert_array_equal(s.t, x[:, 0])
+    # Tab-separated, no header.
+    q = tmp_path / "dc.tsv"
+    q.write_text("\n".join("\t".join(v.replace(".", ",") for v in r[1:4]) for r in _fmt(x)))
+    np.testing.assert_array_equal(read_stream(q, fs=250).samples, x[:, 1:4])
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ("ax,ay,az\n1,2,3\n4,5,6\n7,8\n", ["line 4", "2 fields where the data rows have 3"]),
+        ("Fs,100\nax;ay;az\n" + "1;2;3\n" * 400_000 + "4;5;6,5\n",
+         ["line 400003", '"6,5"', "decimal comma"]),
+        ("t,ax,ay,az\n2024-01-01T00:00:00,1,2,3\n2024-01-01T00:00:01,1,2,3\nyesterday,1,2,3\n",
+         ["line 4", '"yesterday"', "ISO-8601"]),
+        ("2024-01-01 00:00:00 1 2 3\n2024-01-01 00:00:01 1 2 3\n",
+         ["line 1", "date and a time separated by a space"]),
+        ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n", ["line 5002", '"oops"']),
+    ],
+)
+def test_bad_rows_are_named_by_line(tmp_path: Path, text: str, words: list[str]) -> None:
+    p = write(tmp_path, text)
+    with pytest.raises(CalibrationError) as ei:
+        read_stream(p)
+    msg = str(ei.value)
+    assert msg.startswith(str(p))
+    for w in words:
+        assert w in msg, msg
+
+
+def test_many_preamble_lines_do_not_hide_the_data(tmp_path: Path) -> None:
+    # 1200 metadata lines, then 3000 ISO-time rows: found, not "no numeric data row".
+    meta = "".join(f"# note {i}: value\n" for i in range(1200))
+    rows = "".join(f"2024-01-01T00:00:{i // 100:02d}.{i % 100:02d},{i},2,3\n" for i in range(3000))
+    s = read_stream(write(tmp_path, meta + "t,ax,ay,az\n" + rows))
+    assert len(s) == 3000 and s.fs == pytest.approx(100.0)
+
+
+def test_columns_by_index_keep_time_detection() -> None:
+    s = read_stream(XSENS(), columns="1,2,3")
+    assert s.t is not None and s.fs == pytest.approx(100.0, rel=1e-3)
+    np.testing.assert_array_equal(s.t, read_stream(XSENS()).t)
+
+
+def test_sample_counter_is_not_time(tmp_path: Path) -> None:
+    rows = "".join(f"{i},{i % 5},{i % 3},9.8\n" for i in range(200))
+    s = read_stream(write(tmp_path, rows), columns=[1, 2, 3])
+    assert s.t is None and s.fs is None
+    assert any("counts samples" in n for n in s.notes)
+    assert any("sample rate is not in the file" in n for n in s.notes)
+
+
+def test_repeated_samples_give_the_output_rate(tmp_path: Path) -> None:
+    # A 100 Hz sensor polled at 400 Hz: every value 4 times.
+    rng = np.random.default_rng(5)
+    v = rng.normal(size=(1000, 3))
+    x = np.repeat(v, 4, axis=0)
+    p = tmp_path / "polled.csv"
+    np.savetxt(p, x, delimiter=",", header="ax,ay,az", comments="")
+    s = read_stream(p, fs=400.0)
+    assert s.repeats == 3000
+    assert s.output_rate_hz == pytest.approx(100.0)
+    assert any("100 Hz" in n and "400 Hz" in n for n in s.notes)
+    d, rec = _stream(p, fs=400.0)
+    assert rec.repeats == 3000 and rec.output_rate() == pytest.approx(100.0)
+    # Real recordings do not trigger it.
+    for f in (XSENS, MPU):
+        assert read_stream(f()).output_rate_hz is None
+
+
+def _stream(p: Path, **kw: Any) -> Any:
+    from accelcal.io import _stream_dwells
+
+    return _stream_dwells(p, bounds=[[0, 100]], chunk_rows=777, **kw)
+
+
+def test_time_column_disagreeing_with_fs_is_reported() -> None:
+    s = read_stream(XSENS(), fs=200.0)
+    assert s.fs == 200.0 and s.fs_source == "given"
+    assert any("200 Hz is used" in n and "100" in n for n in s.notes)
+    assert not any("Hz" in n for n in read_stream(XSENS()).notes)
+
+
+def test_stdin_is_read(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    data = MPU().read_bytes()
+    code = ("import sys, numpy as np; from accelcal.io import read_stream; "
+            "s = read_stream('-'); np.save(sys.argv[1], s.samples); print(s.fs)")
+    out = tmp_path / "x.npy"
+    r = subprocess.run([sys.executable, "-c", code, str(out)], input=data, capture_output=True,
+                       check=True)
+    assert r.stdout.decode().strip() == "100.0"
+    np.testing.assert_array_equal(np.load(out), read_stream(MPU()).samples)
+    # Larger than the sniffed head: the Rust reader continues from the same descriptor.
+    x = _table(60_000, 6)
+    big = ("t,ax,ay,az,temp\n" + "\n".join(",".join(r) for r in _fmt(x)) + "\n").encode()
+    assert len(big) > (1 << 21)
+    r = subprocess.run([sys.executable, "-c", code, str(out)], input=big, capture_output=True,
+                       check=True)
+    np.testing.assert_array_equal(np.load(out), x[:, 1:4])
+
+
+def test_dataframes_and_arrays_are_read_like_files() -> None:
+    import pandas as pd
+
+    s = read_stream(MPU())
+    df = pd.DataFrame({"time_s": s.t, "acc_x": s.samples[:, 0], "acc_y": s.samples[:, 1],
+                       "acc_z": s.samples[:, 2], "label": "static"})
+    r = read_stream(df)
+    np.testing.assert_array_equal(r.samples, s.samples)
+    np.testing.assert_array_equal(r.t, s.t)
+    assert r.fs == pytest.approx(100.0) and r.names == ("acc_x", "acc_y", "acc_z")
+    d1 = stream_dwells(df, chunk_rows=999)
+    d2 = stream_dwells(MPU())
+    assert np.array_equal(d1.mean, d2.mean) and np.array_equal(d1.count, d2.count)
+    # Fortran-ordered DataFrame.to_numpy(), a plain list, and the interchange protocol.
+    arr = df[["acc_x", "acc_y", "acc_z"]].to_numpy()
+    assert arr.flags.f_contiguous and not arr.flags.c_contiguous
+    np.testing.assert_array_equal(read_stream(arr, fs=100.0).samples, s.samples)
+    np.testing.assert_array_equal(read_stream(arr[:3].tolist()).samples, s.samples[:3])
+    import warnings
+
+    class Interchange:  # only the DataFrame interchange protocol
+        def __dataframe__(self, nan_as_null: bool = False, allow_copy: bool = True) -> Any:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return df.__dataframe__(nan_as_null, allow_copy)
+
+    ic = Interchange()
+    np.testing.assert_array_equal(read_stream(ic).samples, s.samples)
+    with pytest.raises(CalibrationError, match="DataFrame"):
+        read_stream(object())
+
+
+def test_hdf5_separate_axis_datasets(tmp_path: Path) -> None:
+    import h5py
+
+    rng = np.random.default_rng(7)
+    x = (rng.normal(size=(5000, 3)) * 1000).astype(np.int16)
+    path = tmp_path / "axes.h5"
+    with h5py.File(path, "w") as f:
+        g = f.create_group("sensors/imu")
+        g["ax"], g["ay"], g["az"] = x[:, 0], x[:, 1], x[:, 2]
+        g["gx"] = np.zeros(5000)
+        g["time_s"] = np.arange(5000) / 500.0
+    s = read_stream(path)
+    np.testing.assert_array_equal(s.samples, x)
+    assert s.samples.dtype == np.int16 and s.fs == pytest.approx(500.0)
+    got = np.concatenate([c for c, _ in iter_stream(path, chunk_rows=1234)])
+    np.testing.assert_array_equal(got, x)
+
+
+def test_progress_bar_has_total_percentage_and_eta(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    x = _table(200_000, 8)
+    p = tmp_path / "bar.csv"
+    p.write_text("t,ax,ay,az,temp\n" + "\n".join(",".join(r) for r in _fmt(x)) + "\n")
+    from accelcal.io import _progress_bar, _Recording
+
+    rec = _Recording(p, None, None, None)
+    est = rec.rows_estimate()
+    assert est is not None and abs(est - 200_000) < 0.05 * 200_000  # from the file size
+    bar = _progress_bar(rec, "dwells", True)
+    with bar as cb:
+        assert cb is not None
+        for _ in rec.chunks(None, cb):
+            pass
+    assert bar.bar.total == bar.bar.n == 200_000
+    err = capsys.readouterr().err
+    assert "100%" in err and "200k/200k" in err and "rows" in err and "<" in err  # ETA
+    # Off a terminal with progress=None, and with progress=False: nothing.
+    read_stream(p, progress=None)
+    read_stream(p, progress=False)
+    assert capsys.readouterr().err == ""

@@ -1,4 +1,5 @@
 # Type stub of the compiled module (checked by `python -m mypy.stubtest accelcal._core`).
+from collections.abc import Callable
 from typing import Any, Literal, final
 
 import numpy as np
@@ -8,12 +9,45 @@ from typing_extensions import Self, disjoint_base
 class CalibrationError(ValueError): ...
 class DegenerateDataError(CalibrationError): ...
 
+@final
+class DwellTableRaw:
+    """A finished dwell table (see ``accelcal.DwellSet`` for each field)."""
+
+    @property
+    def start(self) -> NDArray[np.int64]: ...
+    @property
+    def stop(self) -> NDArray[np.int64]: ...
+    @property
+    def count(self) -> NDArray[np.int64]: ...
+    @property
+    def mean(self) -> NDArray[np.float64]: ...
+    @property
+    def var(self) -> NDArray[np.float64]: ...
+    @property
+    def half_mean(self) -> NDArray[np.float64]: ...
+    @property
+    def inflation(self) -> NDArray[np.float64]: ...
+    @property
+    def lsb(self) -> NDArray[np.float64] | None: ...
+    @property
+    def dropped(self) -> int: ...
+    @property
+    def t(self) -> NDArray[np.float64] | None: ...
+    @property
+    def temperature(self) -> NDArray[np.float64] | None: ...
+    @property
+    def noise_var(self) -> NDArray[np.float64] | None: ...
+    @property
+    def threshold(self) -> NDArray[np.float64] | None: ...
+
 def dwell_stats_raw(
     samples: NDArray[Any],
     bounds: NDArray[np.int64],
     t: NDArray[np.float64] | None = None,
     temperature: NDArray[np.float64] | None = None,
-) -> dict[str, Any]: ...
+) -> DwellTableRaw:
+    """Per-dwell statistics over explicit ``[start, stop)`` bounds."""
+
 def detect_dwells_raw(
     samples: NDArray[Any],
     fs: float,
@@ -26,10 +60,13 @@ def detect_dwells_raw(
     noise_var: list[float] | None = None,
     t: NDArray[np.float64] | None = None,
     temperature: NDArray[np.float64] | None = None,
-) -> dict[str, Any]: ...
+) -> DwellTableRaw:
+    """Automatic static-interval detection plus per-dwell statistics."""
 
 @final
 class RawDwellAccumulator:
+    """Streaming accumulator (bounds or detector mode); safe to share between threads."""
+
     def __new__(
         cls,
         bounds: NDArray[np.int64] | None = None,
@@ -47,10 +84,24 @@ class RawDwellAccumulator:
         chunk: NDArray[Any],
         t: NDArray[np.float64] | None = None,
         temperature: NDArray[np.float64] | None = None,
-    ) -> None: ...
+    ) -> None:
+        """Push a chunk; on error nothing of it is kept."""
+
     @property
-    def position(self) -> int: ...
-    def finish(self) -> dict[str, Any]: ...
+    def position(self) -> int:
+        """Samples pushed so far."""
+
+    def finish(self) -> DwellTableRaw:
+        """The dwell table of everything pushed so far."""
+
+    def to_state(self) -> bytes:
+        """The state as versioned bytes."""
+
+    @staticmethod
+    def from_state(state: bytes) -> RawDwellAccumulator:
+        """Rebuild an accumulator from ``to_state`` bytes."""
+
+    def __reduce__(self) -> tuple[Any, ...]: ...
 
 # --- gradiometer start-up bias and demodulation (rust/src/py/gradiometer.rs) ---
 @disjoint_base
@@ -408,11 +459,91 @@ def apply_triad_raw(
     samples: NDArray[Any], k: list[list[float]], b: list[float]
 ) -> NDArray[np.float64]: ...
 
+
+# ---- text reader ----------------------------------------------------------------------------
+#: One output group: (column index, scale, is ISO-8601 time) per column.
+_Groups = list[list[tuple[int, float, bool]]]
+
+@final
+class TextBlocks:
+    """Blocks of a text recording, read and parsed ahead on a background thread.
+
+    Iterating yields ``(arrays, rows, bytes, repeats)`` per block in file order, ``arrays``
+    holding one float64 array per column group ((m, k), or (m,) for one column).
+    """
+
+    def __new__(
+        cls,
+        path: str | None,
+        offset: int,
+        ncols: int,
+        groups: _Groups,
+        *,
+        delimiter: str | None = None,
+        decimal_comma: bool = False,
+        comment: str = "#",
+        names: list[str] | None = None,
+        first_line: int = 1,
+        t0: tuple[int, int] | None = None,
+        prefix: bytes | None = None,
+        stdin: bool = False,
+        block_bytes: int = 4194304,
+    ) -> TextBlocks: ...
+    def __iter__(self) -> TextBlocks: ...
+    def __next__(self) -> tuple[list[NDArray[np.float64]], int, int, int]: ...
+
+def text_read_all(
+    path: str | None,
+    offset: int,
+    ncols: int,
+    groups: _Groups,
+    *,
+    delimiter: str | None = None,
+    decimal_comma: bool = False,
+    comment: str = "#",
+    names: list[str] | None = None,
+    first_line: int = 1,
+    t0: tuple[int, int] | None = None,
+    prefix: bytes | None = None,
+    stdin: bool = False,
+    block_bytes: int = 4194304,
+    rows_hint: int = 0,
+    progress: Callable[[int, int], object] | None = None,
+) -> tuple[list[NDArray[np.float64]], int, int, int]:
+    """Read a whole text recording into one array per column group: (arrays, rows, bytes,
+    repeats)."""
+
+def text_parse_head(
+    data: bytes,
+    ncols: int,
+    groups: _Groups,
+    *,
+    delimiter: str | None = None,
+    decimal_comma: bool = False,
+    comment: str = "#",
+    names: list[str] | None = None,
+    first_line: int = 1,
+    t0: tuple[int, int] | None = None,
+    max_rows: int | None = None,
+) -> tuple[list[NDArray[np.float64]], int, int, int]:
+    """Parse at most ``max_rows`` data rows of ``data``: (arrays, rows, bytes, lines)."""
+
+def parse_iso8601(text: str) -> tuple[int, int] | None:
+    """(seconds, nanoseconds) since 1970-01-01T00:00:00Z of an ISO-8601 date and time."""
+
+def format_rows(
+    values: NDArray[np.float64],
+    lead: NDArray[np.float64] | None = None,
+    delimiter: str = ",",
+) -> bytes:
+    """Rows as delimited text, shortest round-trip float formatting."""
+
 __all__ = [
     "CentrifugeFitCore",
     "centrifuge_correct_raw",
     "centrifuge_fit_raw",
     "centrifuge_unit_check_raw",
+    "DwellTableRaw",
     "detect_dwells_raw",
     "dwell_stats_raw",
     "RawDwellAccumulator",
@@ -430,6 +561,11 @@ __all__ = [
     "static_fit_batch_raw",
     "static_fit_raw",
     "StaticFitRaw",
+    "TextBlocks",
+    "format_rows",
+    "parse_iso8601",
+    "text_parse_head",
+    "text_read_all",
     "CalibrationError",
     "DegenerateDataError",
 ]

@@ -1,13 +1,38 @@
-"""Atomic file writing: a file the user asked for is either complete or untouched."""
+"""Atomic file writing: a file the user asked for is either complete or untouched.
+
+- A regular file (or a new path) is written to a temporary file beside it, flushed to disk and
+  renamed over it, so readers never see half a file.
+- A path that exists and is not a regular file (``/dev/null``, ``/dev/stdout``, a FIFO, a
+  character device) is written through directly: renaming over it would replace the device or
+  the pipe with a regular file.
+- A path whose last component is a symbolic link is refused (the message names the link and
+  its target): replacing the link would silently cut it, writing through it would change a file
+  the user did not name. Give the target path instead.
+- Temporary files are named ``.accelcal-tmp-<name>-<pid>-<random>`` in the target's folder.
+  They are removed on any error, on Ctrl-C and on SIGTERM or SIGHUP (the process then exits
+  with status 128 + the signal number); one left by a process that was killed outright
+  (SIGKILL, power loss) is removed by the next write to the same path once its process is gone.
+"""
 
 from __future__ import annotations
 
 import os
+import signal
+import stat
+import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import IO, Any
+
+from ._core import CalibrationError
+
+TMP_PREFIX = ".accelcal-tmp-"
+_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
+_live: set[str] = set()  # temporary files of this process not yet renamed
 
 
 def _umask() -> int:
@@ -16,42 +41,166 @@ def _umask() -> int:
     return um
 
 
-@contextmanager
-def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[Any]]:
-    """Open a temporary file beside ``path``; on success it replaces ``path`` atomically.
-
-    If the block raises, the temporary file is removed and ``path`` is left as it was.
-    The new file gets the mode an ordinary ``open()`` would give it (or keeps the mode of
-    the file it replaces), not ``mkstemp``'s 0600.
-    """
-    p = Path(path)
-    folder = p.parent if str(p.parent) else Path(".")
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, mode) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        try:
-            perm = os.stat(p).st_mode & 0o7777
-        except FileNotFoundError:
-            perm = 0o666 & ~_umask()
-        os.chmod(tmp, perm)
-        os.replace(tmp, p)
-    except BaseException:
+def _remove_live() -> None:
+    for tmp in list(_live):
         try:
             os.unlink(tmp)
         except OSError:
             pass
-        raise
+        _live.discard(tmp)
+
+
+_previous: dict[int, Any] = {}  # the handler each cleanup handler replaced
+
+
+def _on_signal(signum: int, frame: FrameType | None) -> None:
+    """SIGTERM / SIGHUP while a temporary file is open: remove it, then do what the previous
+    handler would have done (by default: exit with status 128 + signum)."""
+    _remove_live()
+    prev = _previous.get(signum)
+    if callable(prev) and prev is not _on_signal:
+        prev(signum, frame)
+        return
+    sys.exit(128 + signum)
+
+
+@contextmanager
+def _signals_cleanup() -> Iterator[None]:
+    """Install the cleanup handlers for the duration of a write. Only in the main thread (where
+    Python runs signal handlers); an ignored signal (``nohup``) stays ignored; a handler the
+    application installed still runs, after the cleanup."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.getsignal(s) for s in _SIGNALS}
+    for s, h in old.items():
+        if h is signal.SIG_IGN or h is None or h is _on_signal:
+            continue
+        _previous[s] = h
+        signal.signal(s, _on_signal)
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            if h is not None and h is not signal.SIG_IGN and h is not _on_signal:
+                signal.signal(s, h)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def clean_stale_temps(path: str | os.PathLike[str]) -> list[Path]:
+    """Remove temporary files left beside ``path`` by accelcal processes that no longer run;
+    return what was removed."""
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    removed: list[Path] = []
+    prefix = f"{TMP_PREFIX}{p.name}-"
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return removed
+    for n in names:
+        if not n.startswith(prefix):
+            continue
+        pid_s = n[len(prefix):].split("-", 1)[0]
+        if not pid_s.isdigit() or int(pid_s) == os.getpid() or _pid_alive(int(pid_s)):
+            continue
+        try:
+            os.unlink(folder / n)
+            removed.append(folder / n)
+        except OSError:
+            pass
+    return removed
+
+
+def _kind(p: Path) -> str:
+    """'missing', 'symlink', 'regular' or 'special' (device, FIFO, socket, ...)."""
+    try:
+        st = os.lstat(p)
+    except FileNotFoundError:
+        return "missing"
+    if stat.S_ISLNK(st.st_mode):
+        return "symlink"
+    if stat.S_ISREG(st.st_mode):
+        return "regular"
+    if stat.S_ISDIR(st.st_mode):
+        raise IsADirectoryError(21, "is a directory, not a file", str(p))
+    return "special"
+
+
+@contextmanager
+def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[Any]]:
+    """Open ``path`` for writing so that it ends up complete or untouched (see the module doc).
+
+    A regular file is written through a temporary file that replaces it once complete (the new
+    file gets the mode an ordinary ``open()`` would give it, or keeps the mode of the file it
+    replaces); a device or FIFO is written directly; a symbolic link is refused.
+    """
+    p = Path(path)
+    kind = _kind(p)
+    if kind == "symlink":
+        raise CalibrationError(
+            f"refusing to write to {str(p)!r}: it is a symbolic link to "
+            f"{os.readlink(p)!r}; give the target path itself"
+        )
+    if kind == "special":
+        with open(p, mode) as fh:
+            yield fh
+            fh.flush()
+        return
+    folder = p.parent if str(p.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
+    clean_stale_temps(p)
+    with _signals_cleanup():
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{p.name}-{os.getpid()}-", dir=folder)
+        _live.add(tmp)
+        try:
+            with os.fdopen(fd, mode) as fh:
+                yield fh
+                fh.flush()
+                os.fsync(fh.fileno())
+            try:
+                perm = os.stat(p).st_mode & 0o7777
+            except FileNotFoundError:
+                perm = 0o666 & ~_umask()
+            os.chmod(tmp, perm)
+            os.replace(tmp, p)
+            _live.discard(tmp)
+            _fsync_dir(folder)
+        except BaseException:
+            _live.discard(tmp)
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make the rename durable (best effort: not every platform can open a folder)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename).
-
-    An existing file is replaced only once the new content is fully on disk.
-    """
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename);
+    devices and FIFOs are written directly, symbolic links refused (see :func:`atomic_open`)."""
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as fh:
         fh.write(data)
     return Path(path)

@@ -1,4 +1,13 @@
-"""Input coercion shared by the public API: clear errors in Python, strict types for Rust."""
+"""Input coercion shared by the public API: clear errors in Python, strict types for Rust.
+
+Every array argument may come in any memory layout (C- or Fortran-ordered, strided, sliced,
+negative strides), any byte order, as a NumPy array of a real numeric dtype or as anything with
+``__array__`` (a pandas DataFrame or Series). The helpers here turn it into what the Rust glue
+reads (native byte order, one of the dtypes it accepts) or raise a :class:`CalibrationError`
+naming the argument, what was received and what is valid. Complex, boolean, object and text
+arrays are refused rather than cast (a cast would drop the imaginary part or read ``True`` as
+1 without saying so).
+"""
 
 from __future__ import annotations
 
@@ -13,31 +22,56 @@ from ._core import CalibrationError
 _NATIVE = (np.dtype(np.float64), np.dtype(np.float32), np.dtype(np.int16), np.dtype(np.int32))
 
 
+def _describe(x: Any) -> str:
+    r = repr(x)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def numeric_array(x: Any, name: str) -> NDArray[Any]:
+    """``x`` as a NumPy array of a real numeric dtype in native byte order (no copy when it
+    already is one); complex, boolean, object and text input is refused by name."""
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError) as e:
+        raise CalibrationError(f"{name} cannot be read as an array: {e}") from None
+    kind = a.dtype.kind
+    if kind == "c":
+        raise CalibrationError(
+            f"{name} has complex dtype {a.dtype}; give real values (e.g. x.real) explicitly"
+        )
+    if kind == "b":
+        raise CalibrationError(f"{name} has boolean dtype {a.dtype}; give numeric values")
+    if kind not in "fiu":
+        raise CalibrationError(
+            f"{name}: unsupported dtype {a.dtype}; give a real numeric array "
+            "(float64, float32, int16 or int32)"
+        )
+    if not a.dtype.isnative:
+        a = a.astype(a.dtype.newbyteorder("="))
+    if not a.flags.aligned:  # e.g. a view into a packed record array: Rust reads aligned data
+        a = a.copy()
+    return a
+
+
 def samples_array(x: Any, name: str = "samples") -> NDArray[Any]:
     """Return ``x`` as an (N, 3) array of a dtype the Rust kernels read without copying.
 
-    float64/float32/int16/int32 pass through untouched (any strides). Other integer types are
-    widened exactly (uint16 raw counts to int32, int64 to float64 when exact); bool, complex,
-    object and text arrays are refused.
+    float64/float32/int16/int32 pass through in any layout (the kernels read any strides).
+    Non-native byte order is converted; other integer types are widened exactly (uint16 raw
+    counts to int32, int64 to float64 when exact); float16 and long double become float64.
     """
-    a = np.asarray(x)
-    if a.dtype.kind not in "fiu":
-        raise CalibrationError(
-            f"{name}: unsupported dtype {a.dtype}; give float64, float32, int16 or int32 samples"
-        )
+    a = numeric_array(x, name)
     if a.ndim != 2 or a.shape[1] != 3:
         raise CalibrationError(f"{name} must have shape (N, 3) (x, y, z per row); got {a.shape}")
     if a.shape[0] == 0:
         raise CalibrationError(f"{name} are empty (0 rows)")
-    if not a.dtype.isnative:
-        a = a.astype(a.dtype.newbyteorder("="))
     if a.dtype in _NATIVE:
         return a
     if a.dtype.kind == "f":  # float16, longdouble
         return a.astype(np.float64)
-    if a.dtype.itemsize <= 2 or a.dtype == np.dtype(np.uint16):
+    if a.dtype.itemsize <= 2:
         return a.astype(np.int32)
-    big = np.abs(a.astype(np.float64)).max()
+    big = float(np.abs(a.astype(np.float64)).max())
     if big >= 2.0**53:
         raise CalibrationError(f"{name}: integer values up to {big:.3g} cannot be held exactly")
     return a.astype(np.float64)
@@ -47,15 +81,18 @@ def channel(x: Any, n: int, name: str) -> NDArray[np.float64] | None:
     """A per-sample channel (time, temperature) as contiguous float64 of length ``n``."""
     if x is None:
         return None
-    a = np.ascontiguousarray(np.asarray(x, dtype=np.float64))
+    a = numeric_array(x, name)
     if a.ndim != 1 or a.shape[0] != n:
         raise CalibrationError(f"{name} must have shape ({n},) to match the samples; got {a.shape}")
-    return a
+    return np.require(a, dtype=np.float64, requirements=["C", "A"])
 
 
 def bounds_array(b: Any) -> NDArray[np.int64]:
     """Dwell bounds as (k, 2) int64 [start, stop) sample indices."""
-    a = np.asarray(b)
+    try:
+        a = np.asarray(b)
+    except (TypeError, ValueError) as e:
+        raise CalibrationError(f"bounds cannot be read as an array: {e}") from None
     if a.ndim == 1 and a.size == 2:
         a = a.reshape(1, 2)
     if a.ndim != 2 or a.shape[1] != 2:
@@ -65,19 +102,32 @@ def bounds_array(b: Any) -> NDArray[np.int64]:
     if a.dtype.kind == "f":
         if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
             raise CalibrationError("bounds must be integer sample indices")
-    elif a.dtype.kind not in "iu":
+        if np.any(np.abs(a) >= 2.0**62):
+            raise CalibrationError("bounds must be integer sample indices below 2**62")
+    elif a.dtype.kind == "u":
+        if np.any(a >= 2**62):
+            raise CalibrationError("bounds must be integer sample indices below 2**62")
+    elif a.dtype.kind != "i":
         raise CalibrationError(f"bounds must be integer sample indices; got dtype {a.dtype}")
     return np.ascontiguousarray(a.astype(np.int64))
 
 
+def _to_float(x: Any) -> float | None:
+    """``float(x)`` for a real scalar (or 0-d array); None for None, bool, text, complex or a
+    value too large for a float."""
+    if x is None or isinstance(x, (bool, np.bool_, str, bytes, complex, np.complexfloating)):
+        return None
+    if isinstance(x, np.ndarray) and (x.ndim != 0 or x.dtype.kind not in "fiu"):
+        return None
+    try:
+        return float(x)
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
 def positive(x: Any, name: str, unit: str = "") -> float:
     """A positive finite float, or a CalibrationError naming it."""
-    v = None
-    if not isinstance(x, (bool, str, bytes)) and x is not None:
-        try:
-            v = float(x)
-        except (TypeError, ValueError):
-            v = None
+    v = _to_float(x)
     if v is None or not math.isfinite(v) or v <= 0:
         raise CalibrationError(
             f"{name} must be positive and finite{unit}, a number in (0, inf); got {x!r}"
@@ -97,12 +147,7 @@ def number(
 ) -> Any:
     """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), an int when ``integer``;
     otherwise a CalibrationError naming the argument, the value received and the valid range."""
-    v = None
-    if not isinstance(x, (bool, str, bytes)) and x is not None:
-        try:
-            v = float(x)
-        except (TypeError, ValueError):
-            v = None
+    v = _to_float(x)
     ok = (
         v is not None
         and math.isfinite(v)
@@ -115,21 +160,21 @@ def number(
         right = ")" if math.isinf(hi) else "]"
         rng = f"{left}{lo:g}, {hi:g}{right}" + (f" {unit}" if unit else "")
         kind = "an integer" if integer else "a number"
-        raise CalibrationError(f"{name} must be {kind} in {rng}; got {x!r}")
+        raise CalibrationError(f"{name} must be {kind} in {rng}; got {_describe(x)}")
     assert v is not None
     return int(v) if integer else v
 
 
 def real_array(x: Any, name: str, unit: str = "") -> NDArray[np.float64]:
     """``x`` (array, list, DataFrame/Series, any layout, integer or float dtype, either byte
-    order) as float64 in logical order; boolean, complex, text and object arrays are refused."""
+    order) as aligned float64 in logical order; boolean, complex, text and object arrays are
+    refused."""
     a = np.asarray(x)
-    if a.dtype == np.float64:
-        return a
     if a.dtype.kind not in "fiu":
         what = {"b": "boolean", "c": "complex", "O": "object", "U": "text", "S": "text"}.get(
             a.dtype.kind, str(a.dtype))
         raise CalibrationError(
             f"{name} must be real numbers{f' ({unit})' if unit else ''}; got a {what} array"
         )
-    return np.asarray(a, dtype=np.float64)
+    a = np.asarray(a, dtype=np.float64)
+    return a if a.flags.aligned else a.copy()

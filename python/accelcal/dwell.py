@@ -1,10 +1,21 @@
-"""Per-dwell statistics of high-rate accelerometer streams (numerics in Rust)."""
+"""Per-dwell statistics of high-rate accelerometer streams (numerics in Rust).
+
+Non-finite samples (NaN or inf)
+    With explicit bounds (:func:`dwell_stats`, ``DwellAccumulator(bounds)``) a dwell that
+    contains one is refused: the error names the dwell, how many rows are bad and the first
+    one. Automatic detection (:func:`detect_dwells`, ``DwellAccumulator(fs=...)``) treats them
+    as dropouts: the detector blocks that hold them are never static, so no dwell contains
+    them, and ``DwellSet.dropped`` counts the rows left out. Time and temperature channels must
+    be finite everywhere.
+"""
 
 from __future__ import annotations
 
 import io
+import json
+import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -13,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError
 from ._files import atomic_write
-from ._validate import bounds_array, channel, positive, samples_array
+from ._validate import bounds_array, channel, number, numeric_array, positive, samples_array
 
 __all__ = [
     "DetectorSettings",
@@ -25,15 +36,32 @@ __all__ = [
 
 _CSV_MAGIC = "# accelcal dwell table v1"
 _AXES = ("x", "y", "z")
+_STATE_MAGIC = b"ACCELCAL-DWELL-ACCUMULATOR\n"
+_STATE_VERSION = 1
 
 
-def _opt(a: Any, k: int, name: str) -> NDArray[np.float64] | None:
-    if a is None:
-        return None
-    v = np.asarray(a, dtype=np.float64).reshape(-1)
-    if v.shape != (k,):
-        raise CalibrationError(f"{name} must have shape ({k},); got {np.shape(a)}")
+def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> NDArray[np.float64]:
+    """``a`` as float64 of exactly ``shape`` (no silent reshape), finite unless told."""
+    v = numeric_array(a, name).astype(np.float64, copy=True)
+    if v.shape != shape:
+        raise CalibrationError(f"{name} must have shape {shape}; got {v.shape}")
+    if finite and not np.all(np.isfinite(v)):
+        raise CalibrationError(f"{name} contains NaN or inf")
     return v
+
+
+def _ints(a: Any, name: str, k: int, lo: int) -> NDArray[np.int64]:
+    """``a`` as (k,) int64 of whole numbers >= ``lo`` (NaN and fractions refused)."""
+    v = numeric_array(a, name)
+    if v.shape != (k,):
+        raise CalibrationError(f"{name} must have shape ({k},); got {v.shape}")
+    if v.dtype.kind == "f":
+        if not np.all(np.isfinite(v)) or np.any(v != np.round(v)) or np.any(np.abs(v) >= 2.0**62):
+            raise CalibrationError(f"{name} must hold whole numbers; got {v[:5].tolist()}...")
+    out = v.astype(np.int64)
+    if np.any(out < lo):
+        raise CalibrationError(f"{name} must be >= {lo} for every dwell")
+    return out
 
 
 class DwellSet:
@@ -53,6 +81,29 @@ class DwellSet:
         Mid time of each dwell, s.
     temperature : (k,) float64 or None
         Mean temperature per dwell (the recording's unit, usually deg C).
+    half_mean : (k, 2, 3) float64 or None
+        Mean of the first and of the second half of each dwell's samples (input units). With
+        bounds the halves split at ``start + count // 2``; detected dwells split at the
+        detector block nearest the middle (within ``block_s``).
+    inflation : (k, 3) float64 or None
+        Allan noise inflation: the factor by which the noise of each dwell mean exceeds white
+        noise of the same sample-to-sample deviation (1 for white noise, larger for flicker or
+        random-walk noise). Per dwell and axis, from the overlapping Allan deviation at cluster
+        sizes of about L/16 and L/4 samples (L = dwell length) referred to the one-sample Allan
+        deviation, extrapolated to tau = L along the log-log slope between them (clipped to
+        [0, 1]). Clusters start at sub-block boundaries (64 per dwell with bounds, the detector
+        blocks for detected dwells) rather than at every sample: the same expectation as the
+        sample-stride estimator, a slightly larger scatter. Not pooled over dwells and not
+        floored at 1. NaN where it cannot be estimated: dwells under 64 samples, or an axis
+        without sample-to-sample variation.
+    lsb : (3,) float64 or None
+        Output resolution per axis, input units: for integer samples the common divisor of the
+        spacings between distinct values (1 count for ordinary data); for float samples the
+        spacing of which every gap between distinct values is a whole multiple, or None when
+        the values are not quantised. Estimated from a bounded subsample (at most 4096 rows at
+        a power-of-two stride) of the whole stream.
+    dropped : int
+        Rows with NaN or inf that no dwell contains (automatic detection; 0 otherwise).
     threshold, noise_std : (3,) float64 or None
         For detected dwells: the per-axis variance threshold and the noise std the detector
         estimated from the data (input units).
@@ -74,56 +125,68 @@ class DwellSet:
         threshold: ArrayLike | None = None,
         noise_std: ArrayLike | None = None,
         units: str = "",
+        half_mean: ArrayLike | None = None,
+        inflation: ArrayLike | None = None,
+        lsb: ArrayLike | None = None,
+        dropped: int = 0,
     ) -> None:
-        m = np.array(mean, dtype=np.float64, copy=True)
+        m = numeric_array(mean, "mean").astype(np.float64, copy=True)
         if m.ndim == 1 and m.size == 3:
             m = m.reshape(1, 3)
         if m.ndim != 2 or m.shape[1] != 3:
-            raise CalibrationError(f"mean must have shape (k, 3); got {np.shape(mean)}")
+            raise CalibrationError(f"mean must have shape (k, 3); got {m.shape}")
+        k = m.shape[0]
+        if k == 0:
+            raise CalibrationError("a DwellSet needs at least one dwell; got 0")
         if not np.all(np.isfinite(m)):
             bad = np.where(~np.all(np.isfinite(m), axis=1))[0]
             raise CalibrationError(f"mean contains NaN or inf in dwell(s) {bad.tolist()}")
-        k = m.shape[0]
         self.mean: NDArray[np.float64] = m
         self.var: NDArray[np.float64] | None = None
         if var is not None:
-            v = np.array(var, dtype=np.float64, copy=True).reshape(-1, 3) if np.size(var) else None
-            if v is None or v.shape != (k, 3):
-                raise CalibrationError(f"var must have shape ({k}, 3); got {np.shape(var)}")
+            v = _arr(var, "var", (k, 3))
             if np.any(v < 0):
                 raise CalibrationError("var must be non-negative")
             self.var = v
-        self.count: NDArray[np.int64] | None = None
-        if count is not None:
-            c = np.asarray(count).reshape(-1)
-            if c.shape != (k,):
-                raise CalibrationError(f"count must have shape ({k},); got {np.shape(count)}")
-            if np.any(c < 1):
-                raise CalibrationError("count must be >= 1 for every dwell")
-            self.count = c.astype(np.int64)
-        self.t = _opt(t, k, "t")
-        self.temperature = _opt(temperature, k, "temperature")
-        self.start = None if start is None else np.asarray(start, dtype=np.int64).reshape(-1)
-        self.stop = None if stop is None else np.asarray(stop, dtype=np.int64).reshape(-1)
-        for nm, arr in (("start", self.start), ("stop", self.stop)):
-            if arr is not None and arr.shape != (k,):
-                raise CalibrationError(f"{nm} must have shape ({k},)")
-        self.fs = None if fs is None else float(fs)
-        self.threshold = None if threshold is None else np.asarray(threshold, dtype=np.float64)
-        self.noise_std = None if noise_std is None else np.asarray(noise_std, dtype=np.float64)
+        self.count: NDArray[np.int64] | None = (
+            None if count is None else _ints(count, "count", k, 1)
+        )
+        self.t = None if t is None else _arr(t, "t", (k,))
+        self.temperature = None if temperature is None else _arr(temperature, "temperature", (k,))
+        self.start = None if start is None else _ints(start, "start", k, 0)
+        self.stop = None if stop is None else _ints(stop, "stop", k, 1)
+        if self.start is not None and self.stop is not None and np.any(self.start >= self.stop):
+            raise CalibrationError("start must be < stop for every dwell")
+        self.fs = None if fs is None else positive(fs, "fs", " (Hz)")
+        self.threshold = None if threshold is None else _arr(threshold, "threshold", (3,))
+        self.noise_std = None if noise_std is None else _arr(noise_std, "noise_std", (3,))
+        self.half_mean = None if half_mean is None else _arr(half_mean, "half_mean", (k, 2, 3))
+        self.inflation = None
+        if inflation is not None:
+            f = _arr(inflation, "inflation", (k, 3), finite=False)
+            if np.any(np.isinf(f)) or np.any(f < 0):
+                raise CalibrationError("inflation must be >= 0 and finite (NaN: not estimable)")
+            self.inflation = f
+        self.lsb = None
+        if lsb is not None:
+            q = _arr(lsb, "lsb", (3,))
+            if np.any(q <= 0):
+                raise CalibrationError(f"lsb must be positive; got {q.tolist()}")
+            self.lsb = q
+        self.dropped = int(number(dropped, "dropped", lo=0))
+        if not isinstance(units, str):
+            raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
 
     def __len__(self) -> int:
         return int(self.mean.shape[0])
 
     def __repr__(self) -> str:
-        extra = []
-        if self.var is not None:
-            extra.append("var")
-        if self.t is not None:
-            extra.append("t")
-        if self.temperature is not None:
-            extra.append("temperature")
+        extra = [
+            n
+            for n in ("var", "t", "temperature", "half_mean", "inflation", "lsb")
+            if getattr(self, n) is not None
+        ]
         return f"DwellSet({len(self)} dwells; {', '.join(['mean', *extra])})"
 
     def __getitem__(self, idx: Any) -> DwellSet:
@@ -146,6 +209,10 @@ class DwellSet:
             threshold=self.threshold,
             noise_std=self.noise_std,
             units=self.units,
+            half_mean=take(self.half_mean),
+            inflation=take(self.inflation),
+            lsb=self.lsb,
+            dropped=self.dropped,
         )
 
     @property
@@ -181,16 +248,23 @@ class DwellSet:
         cols += [(f"mean_{a}", self.mean[:, i]) for i, a in enumerate(_AXES)]
         if self.var is not None:
             cols += [(f"var_{a}", self.var[:, i]) for i, a in enumerate(_AXES)]
+        if self.half_mean is not None:
+            for h in (0, 1):
+                cols += [(f"half{h + 1}_{a}", self.half_mean[:, h, i]) for i, a in enumerate(_AXES)]
+        if self.inflation is not None:
+            cols += [(f"inflation_{a}", self.inflation[:, i]) for i, a in enumerate(_AXES)]
         buf = io.StringIO()
         buf.write(_CSV_MAGIC + "\n")
         if self.units:
             buf.write(f"# units: {self.units}\n")
         if self.fs is not None:
             buf.write(f"# fs_hz: {self.fs!r}\n")
-        if self.threshold is not None:
-            buf.write("# threshold: " + " ".join(repr(float(v)) for v in self.threshold) + "\n")
-        if self.noise_std is not None:
-            buf.write("# noise_std: " + " ".join(repr(float(v)) for v in self.noise_std) + "\n")
+        for key in ("threshold", "noise_std", "lsb"):
+            v = getattr(self, key)
+            if v is not None:
+                buf.write(f"# {key}: " + " ".join(repr(float(x)) for x in v) + "\n")
+        if self.dropped:
+            buf.write(f"# dropped: {self.dropped}\n")
         buf.write(",".join(n for n, _ in cols) + "\n")
         for r in range(k):
             cells = []
@@ -215,6 +289,8 @@ class DwellSet:
                     text = fh.read()
             except OSError as e:
                 raise CalibrationError(f"cannot read dwell table {s!r}: {e.strerror}") from None
+            except UnicodeDecodeError:
+                raise CalibrationError(f"dwell table {s!r} is not UTF-8 text") from None
         lines = [ln for ln in text.splitlines() if ln.strip()]
         meta: dict[str, str] = {}
         body = []
@@ -235,26 +311,30 @@ class DwellSet:
             raise CalibrationError("dwell table rows do not all have the header's column count")
         data = {n: [r[i] for r in rows] for i, n in enumerate(names)}
 
+        def num(vals: list[str], n: str, dtype: Any) -> NDArray[Any]:
+            try:
+                return np.array(vals, dtype=dtype)
+            except ValueError:
+                raise CalibrationError(f"dwell table column {n!r} is not numeric") from None
+
         def f(n: str) -> NDArray[np.float64] | None:
-            return np.array(data[n], dtype=np.float64) if n in data else None
+            return num(data[n], n, np.float64) if n in data else None
 
         def i(n: str) -> NDArray[np.int64] | None:
-            return np.array(data[n], dtype=np.int64) if n in data else None
+            return num(data[n], n, np.int64) if n in data else None
 
-        def cols(prefix: str) -> NDArray[np.float64]:
-            return np.column_stack(
-                [np.array(data[f"{prefix}_{a}"], dtype=np.float64) for a in _AXES]
-            )
-
-        mean = cols("mean")
-        var = cols("var") if all(f"var_{a}" in data for a in _AXES) else None
+        def cols(prefix: str) -> NDArray[np.float64] | None:
+            if not all(f"{prefix}_{a}" in data for a in _AXES):
+                return None
+            return np.column_stack([num(data[f"{prefix}_{a}"], prefix, np.float64) for a in _AXES])
 
         def vec(key: str) -> NDArray[np.float64] | None:
-            return np.array(meta[key].split(), dtype=np.float64) if key in meta else None
+            return num(meta[key].split(), key, np.float64) if key in meta else None
 
+        h1, h2 = cols("half1"), cols("half2")
         return cls(
-            mean,
-            var,
+            cols("mean"),  # type: ignore[arg-type]
+            cols("var"),
             i("count"),
             f("t_s"),
             f("temperature"),
@@ -264,16 +344,27 @@ class DwellSet:
             threshold=vec("threshold"),
             noise_std=vec("noise_std"),
             units=meta.get("units", ""),
+            half_mean=None if h1 is None or h2 is None else np.stack([h1, h2], axis=1),
+            inflation=cols("inflation"),
+            lsb=vec("lsb"),
+            dropped=int(meta.get("dropped", "0")),
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict of lists."""
+        """JSON-ready dict of lists (a NaN inflation becomes None)."""
         out: dict[str, Any] = {"n_dwells": len(self), "units": self.units, "fs_hz": self.fs}
-        for name in ("start", "stop", "count", "t", "temperature", "mean", "var"):
+        for name in (
+            "start", "stop", "count", "t", "temperature", "mean", "var", "half_mean",
+            "threshold", "noise_std", "lsb",
+        ):
             v = getattr(self, name)
             out[name] = None if v is None else v.tolist()
-        out["threshold"] = None if self.threshold is None else self.threshold.tolist()
-        out["noise_std"] = None if self.noise_std is None else self.noise_std.tolist()
+        out["inflation"] = (
+            None
+            if self.inflation is None
+            else [[None if math.isnan(x) else x for x in r] for r in self.inflation.tolist()]
+        )
+        out["dropped"] = self.dropped
         return out
 
     def table(self, max_rows: int | None = None) -> str:
@@ -301,26 +392,32 @@ class DwellSet:
             lines.append(ln)
         if max_rows is not None and k > max_rows:
             lines.append(f"... {k - max_rows} more")
+        if self.dropped:
+            lines.append(f"{self.dropped} row(s) with NaN or inf left out of every dwell")
         return "\n".join(lines)
 
 
-def _from_raw(d: dict[str, Any], fs: float | None, units: str) -> DwellSet:
-    t = d["t"]
+def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str) -> DwellSet:
+    t: NDArray[Any] | None = d.t
     if t is None and fs is not None:
-        t = 0.5 * (d["start"] + d["stop"] - 1) / fs
-    nv = d.get("noise_var")
+        t = 0.5 * (d.start + d.stop - 1) / fs
+    nv = d.noise_var
     return DwellSet(
-        d["mean"],
-        d["var"],
-        d["count"],
+        d.mean,
+        d.var,
+        d.count,
         t,
-        d["temperature"],
-        start=d["start"],
-        stop=d["stop"],
+        d.temperature,
+        start=d.start,
+        stop=d.stop,
         fs=fs,
-        threshold=d.get("threshold"),
+        threshold=d.threshold,
         noise_std=None if nv is None else np.sqrt(nv),
         units=units,
+        half_mean=d.half_mean,
+        inflation=d.inflation,
+        lsb=d.lsb,
+        dropped=d.dropped,
     )
 
 
@@ -333,20 +430,24 @@ def dwell_stats(
     fs: float | None = None,
     units: str = "",
 ) -> DwellSet:
-    """Per-dwell mean, variance (ddof = 1) and count over ``[start, stop)`` bounds.
+    """Per-dwell mean, variance (ddof = 1), count, half-dwell means and Allan noise inflation
+    over ``[start, stop)`` bounds, in one pass.
 
     Parameters
     ----------
-    samples : (N, 3) array of float64, float32, int16 or int32
-        Raw counts or physical units; read in place whatever the strides.
+    samples : (N, 3) array
+        Raw counts or physical units, any real dtype, memory layout or byte order (float64,
+        float32, int16 and int32 are read in place; a DataFrame works too).
     bounds : (k, 2) int
-        ``[start, stop)`` sample indices, non-overlapping.
+        ``[start, stop)`` sample indices, non-overlapping, at least 2 samples each.
     t : (N,) float, optional
         Sample times in s; each dwell's ``t`` is the mid time ``(t[start] + t[stop-1]) / 2``.
     temperature : (N,) float, optional
         Temperature per sample; each dwell gets its mean.
     fs : float, optional
         Sample rate in Hz (gives dwell times when ``t`` is absent).
+
+    A dwell containing NaN or inf samples is refused (see the module notes).
     """
     s = samples_array(samples)
     b = bounds_array(bounds)
@@ -358,16 +459,29 @@ def dwell_stats(
     return _from_raw(d, fsv, units)
 
 
+_SETTING_RANGES: dict[str, tuple[float, float, bool, str]] = {
+    # name: (lo, hi, lo_open, unit)
+    "window_s": (0.0, 1e6, True, "s"),
+    "k": (0.0, 1e6, True, "(threshold factor)"),
+    "min_dwell_s": (0.0, 1e6, False, "s"),
+    "trim_s": (0.0, 1e6, False, "s"),
+    "noise_quantile": (0.0, 1.0, True, ""),
+    "block_s": (0.0, 1e6, True, "s"),
+}
+
+
 @dataclass(frozen=True)
 class DetectorSettings:
     """Static-interval detector settings (defaults need no tuning on the real sessions).
 
-    window_s : moving-window length, s.
-    k : a window is static when every axis's variance is below ``k`` x its noise variance.
-    min_dwell_s : shortest dwell kept after trimming, s.
-    trim_s : settling removed at both ends of each static run, s.
-    noise_quantile : quantile of the window variances taken as the noise level.
-    block_s : granularity of the compressed statistics, s.
+    window_s : moving-window length, s, in (0, 1e6] (and at least 8 samples).
+    k : a window is static when every axis's variance is below ``k`` x its noise variance;
+        in (0, 1e6].
+    min_dwell_s : shortest dwell kept after trimming, s, in [0, 1e6] (dwells always have at
+        least 2 samples).
+    trim_s : settling removed at both ends of each static run, s, in [0, 1e6].
+    noise_quantile : quantile of the window variances taken as the noise level, in (0, 1).
+    block_s : granularity of the compressed statistics, s, in (0, window_s].
     noise_std : per-axis noise std (input units) to use instead of the data's own estimate.
     """
 
@@ -380,21 +494,42 @@ class DetectorSettings:
     noise_std: tuple[float, float, float] | None = field(default=None)
 
     def raw_kwargs(self) -> dict[str, Any]:
+        """The settings for the Rust core, each checked (name, value and valid range)."""
+        out: dict[str, Any] = {}
+        for name, (lo, hi, lo_open, unit) in _SETTING_RANGES.items():
+            out[name] = number(getattr(self, name), name, lo=lo, hi=hi, lo_open=lo_open, unit=unit)
+        if out["noise_quantile"] >= 1.0:
+            raise CalibrationError(
+                f"noise_quantile must be a number in (0, 1); got {self.noise_quantile!r}"
+            )
         nv = None
         if self.noise_std is not None:
-            ns = np.asarray(self.noise_std, dtype=np.float64).reshape(-1)
+            try:
+                ns = numeric_array(self.noise_std, "noise_std").astype(np.float64).reshape(-1)
+            except CalibrationError:
+                ns = np.array([np.nan])
             if ns.shape != (3,) or not np.all(np.isfinite(ns)) or np.any(ns <= 0):
-                raise CalibrationError("noise_std must be three positive numbers (x, y, z)")
+                raise CalibrationError(
+                    f"noise_std must be three positive finite numbers (x, y, z); "
+                    f"got {self.noise_std!r}"
+                )
             nv = [float(v) ** 2 for v in ns]
-        return dict(
-            window_s=float(self.window_s),
-            k=float(self.k),
-            min_dwell_s=float(self.min_dwell_s),
-            trim_s=float(self.trim_s),
-            noise_quantile=float(self.noise_quantile),
-            block_s=float(self.block_s),
-            noise_var=nv,
-        )
+        out["noise_var"] = nv
+        return out
+
+    @classmethod
+    def merged(cls, base: DetectorSettings | None, kw: dict[str, Any]) -> DetectorSettings:
+        """``base`` (or the defaults) with the fields in ``kw`` replaced (names checked)."""
+        st = base if base is not None else cls()
+        if not isinstance(st, DetectorSettings):
+            raise CalibrationError(f"settings must be a DetectorSettings; got {st!r}")
+        names = {f.name for f in fields(cls)}
+        bad = sorted(set(kw) - names)
+        if bad:
+            raise CalibrationError(
+                f"unknown detector setting(s) {bad}; valid: {sorted(names)}"
+            )
+        return cls(**{**st.__dict__, **kw}) if kw else st
 
 
 def detect_dwells(
@@ -414,15 +549,19 @@ def detect_dwells(
     itself (a low quantile of all window variances, i.e. the quiet parts of the recording).
     Static runs are trimmed by ``trim_s`` at both ends (settling) and kept when at least
     ``min_dwell_s`` long. The threshold used is returned as ``DwellSet.threshold`` (variance,
-    squared input units) with the noise estimate ``DwellSet.noise_std``.
+    squared input units) with the noise estimate ``DwellSet.noise_std``. NaN or inf samples are
+    dropouts that no dwell contains (counted in ``DwellSet.dropped``).
 
     Keyword arguments override :class:`DetectorSettings` fields (``window_s=0.5`` ...).
+
+    Raises
+    ------
+    DegenerateDataError
+        When no static dwell is found (the message gives the noise level and the settings).
     """
     s = samples_array(samples)
-    fsv = positive(fs, "fs", " (sample rate in Hz)")
-    st = settings or DetectorSettings()
-    if kw:
-        st = DetectorSettings(**{**st.__dict__, **kw})
+    fsv = positive(fs, "fs", " (Hz)")
+    st = DetectorSettings.merged(settings, kw)
     n = s.shape[0]
     d = _core.detect_dwells_raw(
         s,
@@ -441,7 +580,13 @@ class DwellAccumulator:
     ``DwellAccumulator(fs=...)`` (optionally with detector settings) keeps compressed block
     statistics and detects dwells at :meth:`finish`. Push chunks of any size; dwells may span
     chunks. :meth:`finish` returns exactly what :func:`dwell_stats` / :func:`detect_dwells`
-    return on the concatenated stream.
+    return on the concatenated stream (bit for bit, whatever the chunking).
+
+    Safe to share between threads (e.g. a GUI thread reading :attr:`position` while another
+    pushes). A push that fails (bad shape, NaN time, ...) keeps nothing of its chunk: the
+    accumulator stays usable with what it held before. It pickles, and :meth:`to_state` /
+    :meth:`from_state` checkpoint a stream mid-dwell so that another process resumes it with
+    bit-identical results.
     """
 
     def __init__(
@@ -454,15 +599,14 @@ class DwellAccumulator:
         **kw: Any,
     ) -> None:
         self.fs = None if fs is None else positive(fs, "fs", " (sample rate in Hz)")
+        if not isinstance(units, str):
+            raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
-        self._dtype: np.dtype[Any] | None = None
         if bounds is not None:
             self._raw = _core.RawDwellAccumulator(bounds=bounds_array(bounds))
             self.mode = "bounds"
         elif self.fs is not None:
-            st = settings or DetectorSettings()
-            if kw:
-                st = DetectorSettings(**{**st.__dict__, **kw})
+            st = DetectorSettings.merged(settings, kw)
             self._raw = _core.RawDwellAccumulator(fs=self.fs, **st.raw_kwargs())
             self.mode = "detect"
         else:
@@ -479,18 +623,65 @@ class DwellAccumulator:
         t: ArrayLike | None = None,
         temperature: ArrayLike | None = None,
     ) -> None:
-        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature)."""
-        a = np.asarray(chunk)
-        if a.ndim == 2 and a.shape[0] == 0:
-            return
-        c = samples_array(a, "chunk")
-        if self._dtype is None:
-            self._dtype = c.dtype
-        elif c.dtype != self._dtype:
-            c = c.astype(np.float64) if self._dtype == np.float64 else c
-        m = c.shape[0]
-        self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature).
+
+        On error nothing of the chunk is kept: the accumulator holds what it held before the
+        call, stays usable, and the message says so.
+        """
+        try:
+            a = numeric_array(chunk, "chunk")
+            if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
+                return
+            c = samples_array(a, "chunk")
+            m = c.shape[0]
+            self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+        except CalibrationError as e:
+            raise type(e)(
+                f"{e} (nothing of this chunk was kept: the accumulator still holds the "
+                f"{self.position} samples pushed before and stays usable)"
+            ) from None
 
     def finish(self) -> DwellSet:
-        """The dwell table of everything pushed so far."""
+        """The dwell table of everything pushed so far (the accumulator stays usable)."""
         return _from_raw(self._raw.finish(), self.fs, self.units)
+
+    # ---- checkpoints ----------------------------------------------------------------------
+    def to_state(self) -> bytes:
+        """The complete state as bytes (versioned; the core's state plus ``fs`` and units)."""
+        head = json.dumps(
+            {"version": _STATE_VERSION, "fs": self.fs, "units": self.units, "mode": self.mode}
+        ).encode()
+        return _STATE_MAGIC + head + b"\n" + self._raw.to_state()
+
+    @classmethod
+    def from_state(cls, state: bytes) -> DwellAccumulator:
+        """Rebuild an accumulator from :meth:`to_state` bytes (checked: corrupted or
+        truncated bytes give a CalibrationError)."""
+        if not isinstance(state, (bytes, bytearray, memoryview)):
+            raise CalibrationError(f"state must be bytes; got {type(state).__name__}")
+        b = bytes(state)
+        if not b.startswith(_STATE_MAGIC) or b"\n" not in b[len(_STATE_MAGIC):]:
+            raise CalibrationError("not a DwellAccumulator state (bad header)")
+        head, raw = b[len(_STATE_MAGIC):].split(b"\n", 1)
+        try:
+            meta = json.loads(head)
+            version, fs, units, mode = meta["version"], meta["fs"], meta["units"], meta["mode"]
+        except (ValueError, KeyError, TypeError):
+            raise CalibrationError("not a DwellAccumulator state (bad header)") from None
+        if version != _STATE_VERSION:
+            raise CalibrationError(
+                f"DwellAccumulator state version {version!r} is not supported "
+                f"(this version reads {_STATE_VERSION})"
+            )
+        if mode not in ("bounds", "detect") or not isinstance(units, str):
+            raise CalibrationError("not a DwellAccumulator state (bad header)")
+        self = cls.__new__(cls)
+        self.fs = None if fs is None else positive(fs, "fs", " (Hz)")
+        self.units = units
+        self.mode = mode
+        self._raw = _core.RawDwellAccumulator.from_state(raw)
+        return self
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (DwellAccumulator.from_state, (self.to_state(),))
+

@@ -46,7 +46,8 @@ __all__ = [
 STATUSES = ("ok", "weak", "degenerate", "error")
 
 _METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
-_MANIFEST_COLUMNS = ("path", "sensor_id", "g", "lat", "height", "fs", "columns", "date")
+_MANIFEST_COLUMNS = ("path", "sensor_id", "g", "lat", "height", "fs", "columns", "time_column",
+                     "date")
 
 #: Units of the table's columns (the parameters are in the recording's own output units).
 COLUMN_UNITS: dict[str, str] = {
@@ -92,6 +93,7 @@ class _Job:
     g_source: str
     fs: float | None
     columns: Any
+    time_column: Any
     model: str
     method: str
     detector: dict[str, Any]
@@ -153,7 +155,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
         row["message"] = f"{job.path} is {kind}, not a recording"
         return None
-    st = _aio.read_stream(job.read_path, columns=job.columns, fs=job.fs)
+    st = _aio.read_stream(job.read_path, columns=job.columns, fs=job.fs,
+                          time_column=job.time_column)
     n = len(st)
     row["n_samples"] = n
     if st.fs is None:
@@ -388,8 +391,8 @@ def _safe_name(s: str) -> str:
 
 def _make_jobs(
     rows: list[dict[str, Any]], base: Path, *, g: float | None, lat: float | None,
-    height: float | None, fs: float | None, columns: Any, model: str, method: str,
-    detector: dict[str, Any], diagnose: bool, cli: bool,
+    height: float | None, fs: float | None, columns: Any, time_column: Any, model: str,
+    method: str, detector: dict[str, Any], diagnose: bool, cli: bool,
 ) -> list[_Job]:
     from .static import local_gravity
 
@@ -428,7 +431,9 @@ def _make_jobs(
         jobs.append(_Job(
             index=i, path=path, read_path=os.path.abspath(read_path), sensor_id=sensor_id,
             g=gv, g_source=src, fs=rfs if rfs is not None else fs,
-            columns=columns if _missing(cols) else cols, model=model, method=method,
+            columns=columns if _missing(cols) else cols,
+            time_column=time_column if _missing(r.get("time_column")) else r.get("time_column"),
+            model=model, method=method,
             detector=detector, diagnose=diagnose,
             date=None if _missing(date) else str(date), cli=cli, extra=extra,
         ))
@@ -705,6 +710,7 @@ def calibrate_many(
     height: float | None = None,
     fs: float | None = None,
     columns: Any = None,
+    time_column: Any = None,
     model: str = "lower",
     method: str = "lm",
     detector: Any = None,
@@ -727,11 +733,13 @@ def calibrate_many(
     sources : list of paths, a glob (``"rec/*.csv"``), or a manifest
         A manifest is a DataFrame or a CSV/Parquet file with a ``path`` column and optional
         ``sensor_id``, ``g`` (m/s^2) or ``lat`` (deg) / ``height`` (m), ``fs`` (Hz),
-        ``columns`` ("ax,ay,az") and ``date`` columns; a value in a row overrides the keyword
-        default, an empty cell uses it. Relative paths in a manifest file are relative to the
-        manifest's folder. Other manifest columns are carried into the result.
+        ``columns`` ("ax,ay,az"), ``time_column`` and ``date`` columns; a value in a row
+        overrides the keyword default, an empty cell uses it. Relative paths in a manifest
+        file are relative to the manifest's folder. Other manifest columns are carried into
+        the result.
     g : reference gravity, m/s^2 (or ``lat``, deg, and ``height``, m: WGS84 normal gravity).
-    fs : sample rate, Hz, when the files do not give it.  columns : accelerometer columns.
+    fs : sample rate, Hz, when the files do not give it.  columns, time_column : the
+        accelerometer columns and the time column, as for :func:`accelcal.io.read_stream`.
     model, method : as for :func:`~accelcal.fit_static`.
     detector : :class:`~accelcal.DetectorSettings` for the dwell detector (default settings
         otherwise).
@@ -803,7 +811,8 @@ def calibrate_many(
     det = dict(detector.__dict__)
     rows, base = _sources_table(sources, names)
     jobs = _make_jobs(rows, base, g=g, lat=lat, height=height, fs=fs, columns=columns,
-                      model=model, method=method, detector=det, diagnose=diagnose, cli=_cli)
+                      time_column=time_column, model=model, method=method, detector=det,
+                      diagnose=diagnose, cli=_cli)
     if summary is None and out is not None:
         summary = Path(out) / "fleet.parquet"
     if summary is not None:

@@ -1,38 +1,50 @@
 """Readers for accelerometer recordings: delimited text (with or without header and metadata
-lines), ``.npy`` and ``.npz``; plus chunked reading that streams large files into
-:class:`~accelcal.DwellAccumulator`.
+lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, and tables already
+in memory (a pandas or polars DataFrame, anything with ``__array__``); plus chunked reading
+that streams large files into :class:`~accelcal.DwellAccumulator` in one pass.
+
+Text is parsed by the Rust core in blocks of whole lines, in parallel and with the
+interpreter released: reading is faster than ``pandas.read_csv`` and streaming keeps memory
+bounded whatever the file's length.
 
 Layout rules for text files
 ---------------------------
-* Fields are separated by commas, semicolons, tabs or runs of whitespace (decided from the
-  first data row).
+* Fields are separated by tabs, semicolons, commas or runs of spaces (the first of these
+  that splits the first data row into numbers). Fields may be quoted (CSV). Lines may end
+  in ``\\n`` or ``\\r\\n``; the last line needs no line end.
+* Numbers may use a decimal comma (``9,81``) when the delimiter is not a comma.
+* A time column may hold ISO-8601 dates and times (``2024-03-01T12:00:00.125Z``, a space
+  instead of ``T``, an optional UTC offset; no offset means UTC); it is read as seconds since
+  the first row's time, which is kept in :attr:`Stream.t0`.
 * Lines before the data may be metadata: ``key,value``, ``key: value``, ``key = value``, each
   optionally commented with ``#``. A numeric ``Fs`` / ``fs`` / ``sample_rate`` / ``rate``
-  (any case) gives the sample rate.
+  (any case) gives the sample rate. Lines starting with ``#`` are comments anywhere.
 * The last non-numeric line with at least three fields right before the data is the header.
 * Accelerometer columns are chosen by name (``ax``/``ay``/``az``, ``acc_x``..., ``accx``...,
   ``accel_x``..., and only when none of those exist ``x``/``y``/``z``; unit suffixes such as
   ``acc_x [m/s^2]`` are ignored). A time column is recognised by name (``t``, ``time``,
   ``timestamp``, ``t[s]``, ``time_s``, ``time_ms`` ...; ``ms``/``us``/``ns`` units are converted
   to s) and a temperature column by a name starting with ``temp``.
-* Without a header, three columns are ``x, y, z`` and four columns whose first column is
-  strictly increasing (over the first 10 000 rows) are ``t, x, y, z``; anything else needs
-  ``columns=``.
+* Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
+  a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
+  unless it counts 0, 1, 2, ... (a sample counter); anything else needs ``columns``.
 """
 
 from __future__ import annotations
 
-import itertools
+import math
 import os
 import re
+import sys
 import zipfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from . import _core
 from ._core import CalibrationError
 from ._validate import positive
 
@@ -40,8 +52,12 @@ __all__ = ["Stream", "iter_stream", "read_stream", "stream_dwells"]
 
 #: Rows sniffed at the start of a text file (layout, time-column check, fs estimate).
 _SNIFF_ROWS = 10_000
-#: Most lines accepted before the first data row.
-_MAX_PREAMBLE = 1_000
+#: Most lines accepted before the first data row (the sniffed head ends before that anyway).
+_MAX_PREAMBLE = 100_000
+#: Bytes read to decide the layout of a text file.
+_HEAD_BYTES = 1 << 21
+#: Fraction of repeated rows above which the sensor is taken to be read faster than it updates.
+_REPEAT_FRACTION = 0.25
 
 _FS_KEYS = {
     "fs",
@@ -73,22 +89,23 @@ _ACC_NAME = re.compile(
     r"^(?:a|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw)([xyz])$"
 )
 _SAMPLE_KEYS = ("samples", "acc", "accel", "acceleration", "a", "data", "x")
-_T_KEYS = ("t", "time", "timestamp", "timestamps")
+_T_KEYS = ("t", "time", "timestamp", "timestamps", "t_s")
 _FS_NPZ_KEYS = ("fs", "fs_hz", "sample_rate", "sampling_rate", "rate")
 _TEMP_KEYS = ("temperature", "temp", "temperature_c", "temp_c")
 
 
 @dataclass
 class Stream:
-    """A recording read from a file.
+    """A recording read from a file (or a table in memory).
 
     Attributes
     ----------
     samples : (N, 3) array
         Accelerometer output x, y, z in the file's units (float64 for text files; the stored
-        dtype for ``.npy``/``.npz``).
+        dtype for ``.npy``/``.npz``/HDF5).
     t : (N,) float64 or None
         Sample times in s (from the time column, else ``arange(N) / fs``; None when neither).
+        An ISO-8601 time column is given as seconds since its first row (see ``t0``).
     fs : float or None
         Sample rate in Hz: given > file metadata > median interval of the time column.
     metadata : dict
@@ -96,9 +113,21 @@ class Stream:
     names : tuple of str
         Names of the three chosen columns (``"0"``, ``"1"`` ... when the file has no header).
     path : str
-        The file read.
+        The file read (``"-"`` for standard input, ``"<table>"`` for a table in memory).
     temperature : (N,) float64 or None
         Temperature per sample when a temperature column was recognised.
+    t0 : str or None
+        The first row's ISO-8601 time when the time column holds dates and times.
+    fs_source : str or None
+        Where ``fs`` came from: ``"given"``, ``"metadata"``, ``"time column"`` or None.
+    notes : list of str
+        What a person should know about how the file was read (sample rate missing or in
+        disagreement with the time column, repeated samples, a sample counter column ...).
+    repeats : int
+        Rows that repeat the previous row's x, y, z exactly.
+    output_rate_hz : float or None
+        The sensor's own output rate estimated from repeated rows when it is read faster
+        than it updates (``fs * distinct rows / rows``); None when the rows rarely repeat.
     """
 
     samples: NDArray[Any]
@@ -108,6 +137,11 @@ class Stream:
     names: tuple[str, ...] = ()
     path: str = ""
     temperature: NDArray[np.float64] | None = None
+    t0: str | None = None
+    fs_source: str | None = None
+    notes: list[str] = field(default_factory=list)
+    repeats: int = 0
+    output_rate_hz: float | None = None
 
     def __len__(self) -> int:
         return int(self.samples.shape[0])
@@ -208,6 +242,8 @@ def _resolve_one(c: Any, names: Sequence[str] | None, ncols: int, path: str, wha
 
 # ---- text layout ------------------------------------------------------------------------------
 def _is_number(s: str) -> bool:
+    if "_" in s:  # Python's float() takes 1_000; the file reader does not
+        return False
     try:
         float(s)
     except ValueError:
@@ -218,13 +254,58 @@ def _is_number(s: str) -> bool:
 def _split(line: str, delim: str | None) -> list[str]:
     if delim is None:
         return line.split()
-    return [f.strip() for f in line.split(delim)]
+    return [f.strip().strip('"').strip() for f in line.split(delim)]
 
 
 def _guess_delim(line: str) -> str | None:
-    for d in (",", ";", "\t"):
+    for d in ("\t", ";", ","):
         if d in line:
             return d
+    return None
+
+
+def _field_kind(f: str, delim: str | None) -> str | None:
+    """"num", "dc" (decimal-comma number), "iso", "empty" or None (not data)."""
+    if not f:
+        return "empty"
+    if _is_number(f):
+        return "num"
+    if delim != "," and "," in f and "." not in f and _is_number(f.replace(",", ".", 1)):
+        return "dc"
+    if len(f) >= 16 and f[4:5] == "-" and _core.parse_iso8601(f) is not None:
+        return "iso"
+    return None
+
+
+@dataclass
+class _RowFormat:
+    delim: str | None
+    fields: list[str]
+    kinds: list[str]
+
+
+def _data_row(s: str) -> _RowFormat | None:
+    """How a line splits into a data row (numbers, decimal-comma numbers, ISO times), or None."""
+    cands: list[str | None] = [d for d in ("\t", ";", ",") if d in s]
+    cands.append(None)
+    for d in cands:
+        fields = _split(s, d)
+        kinds = [_field_kind(f, d) for f in fields]
+        if all(k is not None for k in kinds) and any(k in ("num", "dc") for k in kinds):
+            return _RowFormat(d, fields, [str(k) for k in kinds])
+    return None
+
+
+def _split_datetime_hint(s: str) -> str | None:
+    """A message when a line looks like data whose date and time were split by a space."""
+    f = s.split()
+    if len(f) >= 3 and re.match(r"^\d{4}-\d{2}-\d{2}$", f[0]) and re.match(r"^\d{2}:\d{2}", f[1]):
+        if all(_is_number(x) for x in f[2:]):
+            return (
+                "the data rows start with a date and a time separated by a space in a "
+                "space-separated file, which makes them two fields; join them with 'T' "
+                "(2024-03-01T12:00:00) or use a comma, semicolon or tab delimiter"
+            )
     return None
 
 
@@ -247,7 +328,7 @@ def _meta_pair(line: str) -> tuple[str, str] | None:
 def _fs_from_meta(meta: dict[str, str]) -> float | None:
     for k, v in meta.items():
         if re.sub(r"[^0-9a-z]", "", k.lower()) in _FS_KEYS:
-            tok = v.split()
+            tok = v.replace(",", ".").split()
             if tok and _is_number(tok[0]):
                 f = float(tok[0])
                 if np.isfinite(f) and f > 0:
@@ -258,8 +339,6 @@ def _fs_from_meta(meta: dict[str, str]) -> float | None:
 @dataclass
 class _Layout:
     path: str
-    delim: str | None
-    skip: int  # lines before the first data row
     ncols: int
     names: tuple[str, ...] | None  # header names, None without header
     acc: list[int]
@@ -268,12 +347,35 @@ class _Layout:
     temp: int | None
     metadata: dict[str, str]
     fs: float | None
+    fs_source: str | None = None
+    notes: list[str] = field(default_factory=list)
     head: NDArray[np.float64] = field(repr=False, default_factory=lambda: np.empty((0, 0)))
+    # text only
+    delim: str | None = None
+    offset: int = 0  # byte offset of the first data row
+    first_line: int = 1  # its line number
+    decimal_comma: bool = False
+    iso: set[int] = field(default_factory=set)  # columns holding ISO-8601 times
+    t0: tuple[int, int] | None = None
+    t0_text: str | None = None
+    bytes_per_row: float = 40.0
 
 
-def _open_text(path: str) -> TextIO:
+@dataclass
+class _TextSource:
+    path: str  # "-" for standard input
+    head: bytes
+    eof: bool  # head holds everything
+    size: int | None  # bytes, None for a pipe
+
+    @property
+    def stdin(self) -> bool:
+        return self.path == "-"
+
+
+def _open_bytes(path: str) -> Any:
     try:
-        return open(path, encoding="utf-8", errors="strict", newline=None)
+        return open(path, "rb")
     except FileNotFoundError:
         raise CalibrationError(f"{path}: file not found") from None
     except IsADirectoryError:
@@ -282,82 +384,173 @@ def _open_text(path: str) -> TextIO:
         raise CalibrationError(f"{path}: cannot read file ({e.strerror})") from None
 
 
-def _load_rows(
-    lines: list[str], delim: str | None, ncols: int, path: str, first_line: int
-) -> NDArray[np.float64]:
-    """Parse data lines into a float64 (m, ncols) array with a clear error on bad rows."""
-    if not lines:
-        return np.empty((0, ncols))
-    try:
-        a = np.loadtxt(lines, delimiter=delim, dtype=np.float64, ndmin=2, comments="#")
-    except ValueError as e:
-        msg = str(e).splitlines()[0] if str(e) else "unparseable value"
-        m = re.search(r"row (\d+)", msg)
-        where = ""
-        if m:
-            where = f" (near line {first_line + int(m.group(1))})"
-        raise CalibrationError(f"{path}: non-numeric or ragged data{where}: {msg}") from None
-    if a.shape[0] and a.shape[1] != ncols:
-        raise CalibrationError(
-            f"{path}: data rows have {a.shape[1]} columns but the first data row has {ncols}"
-        )
-    return a
-
-
-def _sniff(path: str, columns: Any, fs: float | None, time_column: Any) -> _Layout:
-    meta: dict[str, str] = {}
-    header: list[str] | None = None
-    skip = 0
-    first: str | None = None
-    with _open_text(path) as fh:
+def _read_head(path: str) -> _TextSource:
+    if path == "-":
         try:
-            for line in fh:
-                s = line.strip()
-                if not s:
-                    skip += 1
-                    continue
-                delim = _guess_delim(s)
-                fields = _split(s, delim)
-                if (
-                    not s.startswith(("#", "%", "//"))
-                    and all(_is_number(f) for f in fields if f)
-                    and len(fields) >= 1
-                ):
-                    first = s
-                    break
-                skip += 1
-                if skip > _MAX_PREAMBLE:
-                    raise CalibrationError(
-                        f"{path}: no numeric data row in the first {_MAX_PREAMBLE} lines"
-                    )
-                body = s.lstrip("#%/").strip()
-                bf = _split(body, _guess_delim(body))
-                if len(bf) >= 3 and not any(_is_number(f) for f in bf if f) and "=" not in body:
-                    header = bf
-                    continue
-                header = None
-                kv = _meta_pair(s)
-                if kv:
-                    meta[kv[0]] = kv[1]
-            if first is None:
-                if skip == 0:
-                    raise CalibrationError(f"{path}: file is empty")
-                raise CalibrationError(f"{path}: no numeric data rows found")
-            delim = _guess_delim(first)
-            ncols = len(_split(first, delim))
-            head_lines = [first, *itertools.islice(fh, _SNIFF_ROWS - 1)]
+            real = sys.stdin.fileno() == 0
+        except (AttributeError, ValueError, OSError):
+            real = False
+        if not real:  # a replaced sys.stdin (an embedding program, a test runner)
+            data = sys.stdin.buffer.read() if hasattr(sys.stdin, "buffer") else b""
+            return _TextSource(path, data, True, None)
+        parts: list[bytes] = []
+        n = 0
+        eof = False
+        while n < _HEAD_BYTES:
+            # os.read, not sys.stdin: nothing may sit in Python's buffer that the Rust reader,
+            # which continues from file descriptor 0, would miss.
+            b = os.read(0, _HEAD_BYTES - n)
+            if not b:
+                eof = True
+                break
+            parts.append(b)
+            n += len(b)
+        return _TextSource(path, b"".join(parts), eof, None)
+    with _open_bytes(path) as fh:
+        try:
+            head = fh.read(_HEAD_BYTES)
+            size = os.fstat(fh.fileno()).st_size
+        except OSError as e:
+            raise CalibrationError(f"{path}: cannot read file ({e.strerror})") from None
+    return _TextSource(path, head, len(head) < _HEAD_BYTES or len(head) >= size, size)
+
+
+def _head_lines(src: _TextSource) -> Iterator[tuple[int, str]]:
+    """(byte offset, text) of each complete line of the head (a partial last line dropped)."""
+    data = src.head
+    if b"\x00" in data[:65536]:
+        raise CalibrationError(f"{src.path}: not a text file (it contains NUL bytes)")
+    start = 3 if data.startswith(b"\xef\xbb\xbf") else 0
+    pos = start
+    while pos < len(data):
+        nl = data.find(b"\n", pos)
+        if nl < 0:
+            if not src.eof:
+                break
+            nl = len(data)
+        raw = data[pos:nl]
+        try:
+            text = raw.decode("utf-8")
         except UnicodeDecodeError:
-            raise CalibrationError(f"{path}: not a text file (cannot decode as UTF-8)") from None
-    head = _load_rows(head_lines, delim, ncols, path, skip + 1)
+            text = raw.decode("latin-1")  # a header in a legacy encoding; data rows are ASCII
+        yield pos, text.rstrip("\r")
+        pos = nl + 1
+
+
+def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -> _Layout:
+    path = src.path
+    lines: list[tuple[int, str]] = []  # the lines up to the first data row
+    meta: dict[str, str] = {}
+    header: str | None = None
+    first: int | None = None
+    fmt: _RowFormat | None = None
+    for i, (pos, line) in enumerate(_head_lines(src)):
+        lines.append((pos, line))
+        s = line.strip()
+        if not s:
+            continue
+        if not s.startswith(("#", "%", "//")):
+            fmt = _data_row(s)
+            if fmt is not None:
+                first = i
+                break
+            hint = _split_datetime_hint(s)
+            if hint:
+                raise CalibrationError(f"{path}: line {i + 1}: {hint}")
+        if i >= _MAX_PREAMBLE:
+            raise CalibrationError(
+                f"{path}: no numeric data row in the first {_MAX_PREAMBLE} lines (line "
+                f"{i + 1} is {s[:60]!r}); numbers, decimal-comma numbers and ISO-8601 times "
+                "are read"
+            )
+        body = s.lstrip("#%/").strip()
+        bf = _split(body, _guess_delim(body))
+        if len(bf) >= 3 and not any(_is_number(f) for f in bf if f) and "=" not in body:
+            header = body
+            continue
+        header = None
+        kv = _meta_pair(s)
+        if kv:
+            meta[kv[0]] = kv[1]
+    if first is None or fmt is None:
+        if not src.head.strip(b"\xef\xbb\xbf"):
+            raise CalibrationError(f"{path}: file is empty")
+        if all(not ln.strip() for _, ln in lines):
+            raise CalibrationError(f"{path}: no numeric data rows (only blank lines)")
+        if not src.eof and len(lines) <= _MAX_PREAMBLE:
+            raise CalibrationError(
+                f"{path}: no numeric data row in the first {len(src.head)} bytes"
+            )
+        last = next(ln.strip() for _, ln in reversed(lines) if ln.strip())
+        raise CalibrationError(
+            f"{path}: no numeric data rows found (the last line is {last[:60]!r}); numbers, "
+            "decimal-comma numbers and ISO-8601 times are read"
+        )
+    delim, ncols = fmt.delim, len(fmt.fields)
+    offset, first_line = lines[first][0], first + 1
+    decimal_comma = delim != "," and b"," in src.head[offset:]
+    iso = {j for j, k in enumerate(fmt.kinds) if k == "iso"}
+    t0 = t0_text = None
+    if iso:
+        j = min(iso)
+        t0_text = fmt.fields[j]
+        t0 = _core.parse_iso8601(t0_text)
     names: tuple[str, ...] | None = None
     if header is not None:
-        if len(header) == ncols:
-            names = tuple(h.strip().strip("\"'") for h in header)
+        hf = _split(header, delim)
+        if len(hf) == ncols:
+            names = tuple(h.strip().strip("\"'") for h in hf)
         else:
             raise CalibrationError(
-                f"{path}: header has {len(header)} names but data rows have {ncols} columns"
+                f"{path}: header has {len(hf)} names but data rows have {ncols} columns"
             )
-    return _decide(path, names, ncols, head, meta, delim, skip, columns, fs, time_column)
+    # Parse the head rows with the reader itself (every column that holds a value in the
+    # first data row): the layout decisions see exactly what the full read will see.
+    cols = [j for j, k in enumerate(fmt.kinds) if k != "empty"]
+    head_bytes = src.head[offset:]
+    if not src.eof:
+        head_bytes = head_bytes[: head_bytes.rfind(b"\n") + 1]
+    arrays, rows, nbytes, _ = _located(
+        path,
+        None,
+        _core.text_parse_head,
+        head_bytes,
+        ncols,
+        [[(j, 1.0, j in iso) for j in cols]],
+        delimiter=delim,
+        decimal_comma=decimal_comma,
+        names=list(names) if names is not None else None,
+        first_line=first_line,
+        t0=t0,
+        max_rows=_SNIFF_ROWS,
+    )
+    head = np.full((rows, ncols), np.nan)
+    if cols:
+        head[:, cols] = arrays[0].reshape(rows, len(cols))
+    lay = _decide(path, names, ncols, head, meta, columns, fs, time_column)
+    lay.delim, lay.offset, lay.first_line = delim, offset, first_line
+    lay.decimal_comma, lay.iso, lay.t0, lay.t0_text = decimal_comma, iso, t0, t0_text
+    if rows:
+        lay.bytes_per_row = max(nbytes / rows, 1.0)
+    if lay.time is not None and lay.time in iso:
+        lay.time_scale = 1.0
+    elif iso and lay.time is None:
+        lay.t0 = lay.t0_text = None
+    for j in (lay.acc + ([lay.temp] if lay.temp is not None else [])):
+        if j in iso:
+            raise CalibrationError(
+                f"{path}: column {_label(lay, j)} holds dates and times, not numbers"
+            )
+    return lay
+
+
+def _label(lay: _Layout, j: int) -> str:
+    return repr(lay.names[j]) if lay.names is not None else f"{j} (0-based)"
+
+
+def _is_counter(x: NDArray[Any]) -> bool:
+    """0, 1, 2, ... (or any start, step 1): a sample counter, not a time in s."""
+    return bool(x.shape[0] >= 2 and np.all(np.diff(x) == 1.0) and np.all(x == np.round(x)))
 
 
 def _decide(
@@ -366,13 +559,12 @@ def _decide(
     ncols: int,
     head: NDArray[Any],
     meta: dict[str, str],
-    delim: str | None,
-    skip: int,
     columns: Any,
     fs: float | None,
     time_column: Any,
 ) -> _Layout:
     """Choose accelerometer, time and temperature columns and the sample rate."""
+    notes: list[str] = []
     tcol: int | None = None
     tscale = 1.0
     if time_column is not None:
@@ -409,19 +601,50 @@ def _decide(
             )
     if tcol is not None and tcol in acc:
         tcol = None
+    if tcol is None and names is None and time_column is None:
+        # Without a header, a remaining strictly increasing column is the time in s.
+        for i in range(ncols):
+            if i not in acc and _increasing(head[:, i]):
+                if _is_counter(head[:, i]):
+                    notes.append(
+                        f"column {i} (0-based) counts samples (0, 1, 2, ...): not used as time"
+                    )
+                else:
+                    tcol = i
+                break
     temp = None
     if names is not None:
         for i, n in enumerate(names):
             if i not in acc and i != tcol and _is_temperature(n):
                 temp = i
                 break
-    fsv = positive(fs, "fs", " (sample rate in Hz)") if fs is not None else _fs_from_meta(meta)
-    if fsv is None and tcol is not None:
-        fsv = _fs_from_time(head[:, tcol] * tscale, path)
+    fs_meta = _fs_from_meta(meta)
+    fs_time = None
+    if tcol is not None and head.shape[0] >= 2:
+        fs_time = _fs_from_time(head[:, tcol] * tscale, path)
+    fsv: float | None
+    if fs is not None:
+        fsv, src = positive(fs, "fs", " (sample rate in Hz)"), "given"
+    elif fs_meta is not None:
+        fsv, src = fs_meta, "metadata"
+    elif fs_time is not None:
+        fsv, src = fs_time, "time column"
+    else:
+        fsv, src = None, None
+    if fsv is not None and src != "time column" and fs_time is not None:
+        if abs(fs_time / fsv - 1.0) > 0.01:
+            said = "fs= " if src == "given" else "the file's metadata says "
+            notes.append(
+                f"the time column's median interval gives {fs_time:.6g} Hz but {said}"
+                f"{fsv:.6g} Hz; {fsv:.6g} Hz is used (the detected dwells depend on it)"
+            )
+    if fsv is None:
+        notes.append(
+            "the sample rate is not in the file (no rate metadata or time column); give fs= "
+            "(Hz): dwell detection and sample times need it"
+        )
     return _Layout(
         path=path,
-        delim=delim,
-        skip=skip,
         ncols=ncols,
         names=names,
         acc=acc,
@@ -430,6 +653,8 @@ def _decide(
         temp=temp,
         metadata=meta,
         fs=fsv,
+        fs_source=src,
+        notes=notes,
         head=head,
     )
 
@@ -461,27 +686,43 @@ def _names_of(lay: _Layout) -> tuple[str, ...]:
     return tuple(lay.names[i] for i in lay.acc)
 
 
-def _text_chunks(lay: _Layout, chunk_rows: int) -> Iterator[NDArray[np.float64]]:
-    with _open_text(lay.path) as fh:
-        try:
-            for _ in range(lay.skip):
-                next(fh)
-            line_no = lay.skip + 1
-            while True:
-                lines = list(itertools.islice(fh, chunk_rows))
-                if not lines:
-                    return
-                a = _load_rows(lines, lay.delim, lay.ncols, lay.path, line_no)
-                line_no += len(lines)
-                if a.shape[0]:
-                    yield a
-        except UnicodeDecodeError:
-            raise CalibrationError(
-                f"{lay.path}: not a text file (cannot decode as UTF-8)"
-            ) from None
+def _text_groups(lay: _Layout) -> list[list[tuple[int, float, bool]]]:
+    groups = [[(j, 1.0, False) for j in lay.acc]]
+    if lay.time is not None:
+        groups.append([(lay.time, lay.time_scale, lay.time in lay.iso)])
+    if lay.temp is not None:
+        groups.append([(lay.temp, 1.0, False)])
+    return groups
 
 
-# ---- numpy files ------------------------------------------------------------------------------
+def _text_kwargs(lay: _Layout, src: _TextSource) -> dict[str, Any]:
+    kw: dict[str, Any] = {
+        "delimiter": lay.delim,
+        "decimal_comma": lay.decimal_comma,
+        "names": list(lay.names) if lay.names is not None else None,
+        "first_line": lay.first_line,
+        "t0": lay.t0,
+    }
+    if src.stdin or src.eof:
+        kw.update(prefix=src.head, stdin=src.stdin and not src.eof)
+    return kw
+
+
+def _split_groups(
+    lay: _Layout, arrays: list[NDArray[np.float64]]
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64] | None]:
+    samples = arrays[0]
+    i = 1
+    t = temp = None
+    if lay.time is not None:
+        t = arrays[i]
+        i += 1
+    if lay.temp is not None:
+        temp = arrays[i]
+    return samples, t, temp
+
+
+# ---- numpy and HDF5 files ---------------------------------------------------------------------
 def _npy_layout(
     path: str,
     arr: NDArray[Any],
@@ -489,6 +730,7 @@ def _npy_layout(
     fs: float | None,
     time_column: Any,
     meta: dict[str, str],
+    names: tuple[str, ...] | None = None,
 ) -> _Layout:
     if arr.dtype.names:
         raise CalibrationError(
@@ -501,7 +743,7 @@ def _npy_layout(
     if arr.dtype.kind not in "fiu":
         raise CalibrationError(f"{path}: unsupported dtype {arr.dtype} (need numbers)")
     head = np.asarray(arr[:_SNIFF_ROWS], dtype=np.float64)
-    return _decide(path, None, arr.shape[1], head, meta, None, 0, columns, fs, time_column)
+    return _decide(path, names, arr.shape[1], head, meta, columns, fs, time_column)
 
 
 def _np_load(path: str, mmap: bool = False) -> Any:
@@ -515,7 +757,7 @@ def _np_load(path: str, mmap: bool = False) -> Any:
         raise CalibrationError(f"{path}: cannot read as a NumPy file ({e})") from None
 
 
-def _read_npz(path: str, columns: Any, fs: float | None, time_column: Any) -> Stream:
+def _npz_arrays(path: str) -> dict[str, Any]:
     try:
         # Open the file here: np.load leaks its handle when the zip is corrupt.
         with open(path, "rb") as fh:
@@ -523,99 +765,249 @@ def _read_npz(path: str, columns: Any, fs: float | None, time_column: Any) -> St
             if not hasattr(z, "files"):
                 raise CalibrationError(f"{path}: not a .npz archive (rename it .npy?)")
             with z:
-                files = list(z.files)
-                data = {k: z[k] for k in files}
+                return {k: z[k] for k in z.files}
     except FileNotFoundError:
         raise CalibrationError(f"{path}: file not found") from None
     except IsADirectoryError:
         raise CalibrationError(f"{path}: is a directory, not a recording file") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise CalibrationError(f"{path}: cannot read as a .npz archive ({e})") from None
-    return _from_arrays(path, data, columns, fs, time_column)
 
 
-def _read_h5(path: str, columns: Any, fs: float | None, time_column: Any) -> Stream:
-    """HDF5 (optional extra ``hdf5``): datasets by name as in ``.npz``; attributes as metadata."""
+class _Columns:
+    """A table held as named 1-D columns (HDF5 datasets read lazily, ``.npz`` arrays, a
+    DataFrame's columns) presented as one (N, c) array sliced by rows."""
+
+    def __init__(self, path: str, cols: dict[str, Any]) -> None:
+        self.path = path
+        self.names = tuple(cols)
+        self.cols = list(cols.values())
+        lens = {int(c.shape[0]) for c in self.cols}
+        if len(lens) != 1:
+            sizes = {n: int(c.shape[0]) for n, c in cols.items()}
+            raise CalibrationError(f"{path}: columns have different lengths {sizes}")
+        self.n = lens.pop()
+        kinds = {np.dtype(c.dtype).kind for c in self.cols}
+        self.dtype = (
+            np.result_type(*[c.dtype for c in self.cols]) if kinds <= set("iu") or kinds <= {"f"}
+            else np.dtype(np.float64)
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.n, len(self.cols))
+
+    def rows(self, a: int, b: int, which: Sequence[int]) -> NDArray[Any]:
+        return np.column_stack([np.asarray(self.cols[j][a:b]) for j in which])
+
+
+def _table_from_dict(path: str, data: dict[str, Any]) -> tuple[Any, tuple[str, ...] | None]:
+    """The sample table of a ``.npz``/HDF5 mapping: a 2-D array by key, or 1-D columns."""
+    key = next((k for k in _SAMPLE_KEYS if k in data and np.ndim(data[k]) == 2), None)
+    if key is None:
+        two = [k for k in data if np.ndim(data[k]) == 2]
+        if len(two) == 1:
+            key = two[0]
+    if key is not None:
+        return data[key], None
+    ones = {k: v for k, v in data.items() if np.ndim(v) == 1}
+    leaf = {k.split("/")[-1]: k for k in ones}
+    if ones and _auto_acc(list(leaf), path) is not None:
+        return _Columns(path, {k: ones[v] for k, v in leaf.items()}), tuple(leaf)
+    raise CalibrationError(
+        f"{path}: cannot tell which array holds the samples (keys {list(data)}); name it one "
+        f"of {list(_SAMPLE_KEYS)}, or give separate 1-D ax, ay, az arrays"
+    )
+
+
+def _h5_tree(path: str) -> tuple[Any, dict[str, Any], dict[str, Any]]:
+    """An open HDF5 file, its datasets by leaf name (not read) and its scalar attributes."""
     try:
         import h5py
     except ImportError:
         raise CalibrationError(
             f"{path}: reading HDF5 needs h5py: pip install 'accelcal[hdf5]'"
         ) from None
-    data: dict[str, Any] = {}
     try:
-        with h5py.File(path, "r") as f:
-
-            def visit(name: str, obj: Any) -> None:
-                if isinstance(obj, h5py.Dataset):
-                    leaf = name.split("/")[-1]
-                    data[leaf if leaf not in data else name] = obj[()]
-
-            f.visititems(visit)
-            for k, v in f.attrs.items():
-                if np.ndim(v) == 0 and k not in data:
-                    data[k] = np.asarray(v)
+        f = h5py.File(path, "r")
     except FileNotFoundError:
         raise CalibrationError(f"{path}: file not found") from None
     except (OSError, ValueError) as e:
         raise CalibrationError(f"{path}: cannot read as an HDF5 file ({e})") from None
-    return _from_arrays(path, data, columns, fs, time_column)
+    data: dict[str, Any] = {}
+
+    def visit(name: str, obj: Any) -> None:
+        if isinstance(obj, h5py.Dataset):
+            leaf = name.split("/")[-1]
+            data[leaf if leaf not in data else name] = obj[()] if obj.ndim == 0 else obj
+
+    f.visititems(visit)
+    attrs = {k: np.asarray(v) for k, v in f.attrs.items() if np.ndim(v) == 0}
+    return f, data, attrs
 
 
-def _from_arrays(
-    path: str, data: dict[str, Any], columns: Any, fs: float | None, time_column: Any
-) -> Stream:
-    files = list(data)
-    key = next((k for k in _SAMPLE_KEYS if k in data and np.ndim(data[k]) == 2), None)
-    if key is None:
-        two = [k for k in files if np.ndim(data[k]) == 2]
-        if len(two) != 1:
-            raise CalibrationError(
-                f"{path}: cannot tell which array holds the samples (keys {files}); "
-                f"name it one of {list(_SAMPLE_KEYS)}"
+@dataclass
+class _ArraySource:
+    """A numeric table (memory-mapped ``.npy``, ``.npz`` arrays, HDF5 datasets, a DataFrame)."""
+
+    path: str
+    table: Any  # (N, c) array-like supporting row slices, or _Columns
+    lay: _Layout
+    t: Any = None  # separate (N,) time array, s
+    temp: Any = None
+    closer: Callable[[], None] | None = None
+
+    def chunk(self, a: int, b: int) -> tuple[NDArray[Any], Any, Any]:
+        lay = self.lay
+        if isinstance(self.table, _Columns):
+            cols = self.table.cols
+            samples = np.ascontiguousarray(self.table.rows(a, b, lay.acc))
+            t = temp = None
+            if lay.time is not None:
+                t = np.asarray(cols[lay.time][a:b], dtype=np.float64) * lay.time_scale
+            if lay.temp is not None:
+                temp = np.asarray(cols[lay.temp][a:b], dtype=np.float64)
+        else:
+            raw = np.asarray(self.table[a:b])
+            samples = raw if lay.acc == [0, 1, 2] and raw.shape[1] == 3 else raw[:, lay.acc]
+            t = None if lay.time is None else np.asarray(raw[:, lay.time], np.float64) * (
+                lay.time_scale
             )
-        key = two[0]
-    arr = data[key]
-    meta = {k: str(v.item()) for k, v in data.items() if np.ndim(v) == 0}
+            temp = None if lay.temp is None else np.asarray(raw[:, lay.temp], np.float64)
+        if t is None and self.t is not None:
+            t = np.asarray(self.t[a:b], dtype=np.float64)
+        if temp is None and self.temp is not None:
+            temp = np.asarray(self.temp[a:b], dtype=np.float64)
+        return samples, t, temp
+
+
+def _scalar_meta(data: dict[str, Any]) -> dict[str, str]:
+    out = {}
+    for k, v in data.items():
+        if np.ndim(v) == 0:
+            x = np.asarray(v).item()
+            out[k] = x.decode() if isinstance(x, bytes) else str(x)
+    return out
+
+
+def _array_source(
+    path: str,
+    data: dict[str, Any],
+    columns: Any,
+    fs: float | None,
+    time_column: Any,
+    extra_meta: dict[str, Any] | None = None,
+    closer: Callable[[], None] | None = None,
+) -> _ArraySource:
+    table, names = _table_from_dict(path, data)
+    scalars = {**(extra_meta or {}), **{k: v for k, v in data.items() if np.ndim(v) == 0}}
+    meta = _scalar_meta(scalars)
     fsv: float | None = fs
-    if fsv is None:
-        fk = next((k for k in _FS_NPZ_KEYS if k in data and np.ndim(data[k]) == 0), None)
-        if fk is not None:
-            fsv = positive(data[fk].item(), f"{path}: {fk}", " (Hz)")
-    lay = _npy_layout(path, arr, columns, fsv, time_column, meta)
-    n = arr.shape[0]
-    t = None
-    tk = next((k for k in _T_KEYS if k in data), None)
-    if tk is not None and lay.time is None:
-        t = np.asarray(data[tk], dtype=np.float64).reshape(-1)
-        if t.shape != (n,):
-            raise CalibrationError(
-                f"{path}: {tk!r} has {t.shape[0]} values but samples have {n} rows"
-            )
-        if lay.fs is None:
-            lay.fs = _fs_from_time(t[:_SNIFF_ROWS], path)
-    elif lay.time is not None:
-        t = np.asarray(arr[:, lay.time], dtype=np.float64) * lay.time_scale
-    temp = None
-    mk = next((k for k in _TEMP_KEYS if k in data), None)
-    if mk is not None:
-        temp = np.asarray(data[mk], dtype=np.float64).reshape(-1)
-        if temp.shape != (n,):
-            raise CalibrationError(
-                f"{path}: {mk!r} has {temp.shape[0]} values but samples have {n} rows"
-            )
-    if t is None and lay.fs is not None:
-        t = np.arange(n, dtype=np.float64) / lay.fs
-    samples = arr if lay.acc == [0, 1, 2] and arr.shape[1] == 3 else arr[:, lay.acc]
-    return Stream(samples, t, lay.fs, meta, _names_of(lay), path, temp)
+    meta_fs = None
+    fk = next((k for k in _FS_NPZ_KEYS if k in scalars), None)
+    if fk is not None:
+        meta_fs = positive(np.asarray(scalars[fk]).item(), f"{path}: {fk}", " (Hz)")
+    if isinstance(table, _Columns):
+        n = table.n
+        head = table.rows(0, min(n, _SNIFF_ROWS), range(len(table.names))).astype(np.float64)
+        if n == 0:
+            raise CalibrationError(f"{path}: the sample arrays are empty (0 rows)")
+        lay = _decide(path, names, len(table.names), head, {}, columns, fsv, time_column)
+    else:
+        lay = _npy_layout(path, table, columns, fsv, time_column, {})
+    lay.metadata = meta
+    n = table.shape[0]
+    src = _ArraySource(path, table, lay, closer=closer)
+    if lay.time is None:
+        tk = next((k for k in _T_KEYS if k in data and np.ndim(data[k]) == 1
+                   and (names is None or k not in names)), None)
+        if tk is not None:
+            if data[tk].shape[0] != n:
+                raise CalibrationError(
+                    f"{path}: {tk!r} has {data[tk].shape[0]} values but samples have {n} rows"
+                )
+            src.t = data[tk]
+            tt = np.asarray(data[tk][:_SNIFF_ROWS], dtype=np.float64)
+            lay.notes = [x for x in lay.notes if "not in the file" not in x]
+            fs_t = _fs_from_time(tt, path)
+            if fsv is None and meta_fs is None and fs_t is not None:
+                lay.fs, lay.fs_source = fs_t, "time column"
+    if fsv is None and meta_fs is not None:
+        lay.fs, lay.fs_source = meta_fs, "metadata"
+        lay.notes = [x for x in lay.notes if "not in the file" not in x]
+    if lay.temp is None:
+        mk = next((k for k in _TEMP_KEYS if k in data and np.ndim(data[k]) == 1
+                   and (names is None or k not in names)), None)
+        if mk is not None:
+            if data[mk].shape[0] != n:
+                raise CalibrationError(
+                    f"{path}: {mk!r} has {data[mk].shape[0]} values but samples have {n} rows"
+                )
+            src.temp = data[mk]
+    return src
 
 
-# ---- public API -------------------------------------------------------------------------------
-def _path(path: str | os.PathLike[str]) -> str:
+def _table_like(obj: Any) -> bool:
+    return hasattr(obj, "__dataframe__") or (
+        hasattr(obj, "columns") and hasattr(obj, "__getitem__") and hasattr(obj, "__array__")
+    )
+
+
+def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+    """A DataFrame (pandas, polars, or anything with the interchange protocol): columns by
+    name, as with a text header."""
+    df = obj
+    if not (hasattr(df, "columns") and hasattr(df, "__getitem__")):
+        try:
+            import pandas as pd
+        except ImportError:
+            raise CalibrationError(
+                "reading a DataFrame-interchange object needs pandas: pip install pandas"
+            ) from None
+        import warnings
+
+        with warnings.catch_warnings():
+            # pandas 3 deprecates the protocol but still reads it.
+            warnings.simplefilter("ignore")
+            df = pd.api.interchange.from_dataframe(obj)
+    cols: dict[str, Any] = {}
+    for name in df.columns:
+        c = df[name]
+        a = c.to_numpy() if hasattr(c, "to_numpy") else np.asarray(c)
+        if a.dtype.kind == "M":  # datetimes: seconds since the first row
+            a = (a - a[0]).astype("timedelta64[ns]").astype(np.int64) * 1e-9
+        elif a.dtype.kind not in "fiub":
+            continue  # text, categories: not a sample column
+        cols[str(name)] = a
+    if not cols:
+        raise CalibrationError("the table has no numeric columns")
+    table = _Columns("<table>", cols)
+    head = table.rows(0, min(table.n, _SNIFF_ROWS), range(len(table.names))).astype(np.float64)
+    if table.n == 0:
+        raise CalibrationError("the table is empty (0 rows)")
+    lay = _decide("<table>", table.names, len(table.names), head, {}, columns, fs, time_column)
+    return _ArraySource("<table>", table, lay)
+
+
+def _plain_array_source(
+    obj: Any, columns: Any, fs: float | None, time_column: Any
+) -> _ArraySource:
+    a = np.asarray(obj)
+    if a.dtype.kind == "c":
+        raise CalibrationError("samples are complex numbers; give real x, y, z values")
+    lay = _npy_layout("<array>", a, columns, fs, time_column, {})
+    return _ArraySource("<array>", a, lay)
+
+
+# ---- opening any recording --------------------------------------------------------------------
+def _path(path: Any) -> str:
     try:
         return os.fspath(path)
     except TypeError:
-        raise CalibrationError(f"path must be a file path; got {path!r}") from None
+        raise CalibrationError(
+            f"path must be a file path, '-' (standard input), a DataFrame or an array; "
+            f"got {type(path).__name__}"
+        ) from None
 
 
 def _kind(p: str) -> str:
@@ -629,140 +1021,336 @@ def _kind(p: str) -> str:
     return "text"
 
 
+def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
+             **kw: Any) -> Any:
+    """Prefix the reader's errors (which name the line) with the file: either call
+    ``fn(*a, **kw)`` or wrap the iterator ``it``."""
+    if fn is not None:
+        try:
+            return fn(*a, **kw)
+        except CalibrationError as e:
+            raise CalibrationError(f"{path}: {e}") from None
+
+    def gen() -> Iterator[Any]:
+        try:
+            yield from it
+        except CalibrationError as e:
+            raise CalibrationError(f"{path}: {e}") from None
+
+    return gen()
+
+
+_Chunk = tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]
+
+
+def _take(
+    pending: list[_Chunk], n: int, have: int
+) -> tuple[_Chunk, list[_Chunk], int]:
+    """The first ``n`` rows of the pending pieces, and what remains."""
+    parts: list[_Chunk] = []
+    need = n
+    while need > 0:
+        s, t, temp = pending[0]
+        m = s.shape[0]
+        if m <= need:
+            parts.append(pending.pop(0))
+            need -= m
+        else:
+            parts.append((s[:need], None if t is None else t[:need],
+                          None if temp is None else temp[:need]))
+            pending[0] = (s[need:], None if t is None else t[need:],
+                          None if temp is None else temp[need:])
+            need = 0
+    if len(parts) == 1:
+        out = parts[0]
+    else:
+        out = (
+            np.concatenate([p[0] for p in parts]),
+            None if parts[0][1] is None else np.concatenate([p[1] for p in parts]),
+            None if parts[0][2] is None else np.concatenate([p[2] for p in parts]),
+        )
+    return out, pending, have - n
+
+
+class _Recording:
+    """An opened recording: its layout, and its rows as chunks (one pass)."""
+
+    def __init__(self, path: Any, columns: Any, fs: float | None, time_column: Any) -> None:
+        self.text: _TextSource | None = None
+        self.arrays: _ArraySource | None = None
+        if isinstance(path, (str, os.PathLike)):
+            p = _path(path)
+            kind = _kind(p)
+            if kind == "text":
+                self.text = _read_head(p)
+                self.lay = _sniff(self.text, columns, fs, time_column)
+            elif kind == "npy":
+                arr = _np_load(p, mmap=True)
+                if not isinstance(arr, np.ndarray):
+                    raise CalibrationError(f"{p}: not a .npy array file")
+                self.arrays = _ArraySource(p, arr, _npy_layout(p, arr, columns, fs, time_column,
+                                                               {}))
+            elif kind == "npz":
+                self.arrays = _array_source(p, _npz_arrays(p), columns, fs, time_column)
+            else:
+                f, data, attrs = _h5_tree(p)
+                try:
+                    self.arrays = _array_source(p, data, columns, fs, time_column, attrs, f.close)
+                except BaseException:
+                    f.close()
+                    raise
+        elif _table_like(path):
+            self.arrays = _dataframe_source(path, columns, fs, time_column)
+        elif hasattr(path, "__array__") or isinstance(path, (list, tuple)):
+            self.arrays = _plain_array_source(path, columns, fs, time_column)
+        else:
+            raise CalibrationError(
+                "a recording must be a file path, '-' (standard input), a DataFrame or an "
+                f"array; got {type(path).__name__}"
+            )
+        if self.arrays is not None:
+            self.lay = self.arrays.lay
+        self.path = self.lay.path
+        self.rows = 0
+        self.repeats = 0
+        self.bytes = 0
+        self._last: NDArray[Any] | None = None
+
+    # -- what is known before reading
+    @property
+    def fs(self) -> float | None:
+        return self.lay.fs
+
+    @property
+    def size_bytes(self) -> int | None:
+        return None if self.text is None else self.text.size
+
+    def rows_estimate(self) -> int | None:
+        """Rows expected (exact for arrays; from the file size and the head rows for text)."""
+        if self.arrays is not None:
+            return int(self.arrays.table.shape[0])
+        assert self.text is not None
+        if self.text.size is None:
+            return None
+        return max(int((self.text.size - self.lay.offset) / self.lay.bytes_per_row), 1)
+
+    # -- reading
+    def _count_repeats(self, samples: NDArray[Any]) -> None:
+        if samples.shape[0] == 0:
+            return
+        eq = np.all(samples[1:] == samples[:-1], axis=1)
+        self.repeats += int(np.count_nonzero(eq))
+        if self._last is not None and np.array_equal(self._last, samples[0]):
+            self.repeats += 1
+        self._last = np.array(samples[-1])
+
+    def chunks(
+        self, chunk_rows: int | None = None, progress: Callable[[int, int], None] | None = None
+    ) -> Iterator[tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]]:
+        """(samples, t, temperature) chunks of at most ``chunk_rows`` rows, in order.
+
+        ``progress(rows, bytes)`` is called after every chunk (bytes are 0 for arrays).
+        """
+        lay = self.lay
+        if self.arrays is not None:
+            src = self.arrays
+            n = int(src.table.shape[0])
+            step = chunk_rows or 262_144
+            try:
+                for a in range(0, n, step):
+                    b = min(a + step, n)
+                    s, t, temp = src.chunk(a, b)
+                    if t is None and lay.fs is not None:
+                        t = np.arange(a, b, dtype=np.float64) / lay.fs
+                    self._count_repeats(s)
+                    self.rows = b
+                    if progress is not None:
+                        progress(b, 0)
+                    yield s, t, temp
+            finally:
+                if src.closer is not None:
+                    src.closer()
+            return
+        assert self.text is not None
+        src_t = self.text
+        bpr = lay.bytes_per_row
+        block = int(min(max((chunk_rows or 10**9) * bpr, 1 << 16), 4 << 20))
+        blocks = _located(src_t.path, _core.TextBlocks(
+            None if (src_t.stdin or src_t.eof) else src_t.path,
+            lay.offset,
+            lay.ncols,
+            _text_groups(lay),
+            block_bytes=block,
+            **_text_kwargs(lay, src_t),
+        ))
+        pending: list[tuple[Any, Any, Any]] = []
+        have = 0
+        parsed = 0
+        for arrays, rows, nbytes, repeats in blocks:
+            if rows == 0:
+                self.bytes += nbytes
+                continue
+            s, t, temp = _split_groups(lay, arrays)
+            if t is None and lay.fs is not None:
+                t = np.arange(parsed, parsed + rows, dtype=np.float64) / lay.fs
+            parsed += rows
+            if self._last is not None and np.array_equal(self._last, s[0]):
+                repeats += 1
+            self._last = s[-1].copy()
+            self.repeats += repeats
+            self.bytes += nbytes
+            if chunk_rows is None:
+                self.rows += rows
+                yield s, t, temp
+            else:
+                # Exactly chunk_rows rows per chunk (the last may be shorter).
+                pending.append((s, t, temp))
+                have += rows
+                while have >= chunk_rows:
+                    out, pending, have = _take(pending, chunk_rows, have)
+                    self.rows += chunk_rows
+                    yield out
+            if progress is not None:
+                progress(self.rows, self.bytes)
+        if pending:
+            out, pending, have = _take(pending, have, have)
+            self.rows += out[0].shape[0]
+            yield out
+            if progress is not None:
+                progress(self.rows, self.bytes)
+
+    def read_all(
+        self, progress: Callable[[int, int], None] | None = None
+    ) -> tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]:
+        """All rows at once (one parallel pass for text)."""
+        lay = self.lay
+        if self.arrays is not None:
+            src = self.arrays
+            n = int(src.table.shape[0])
+            try:
+                s, t, temp = src.chunk(0, n)
+            finally:
+                if src.closer is not None:
+                    src.closer()
+            if isinstance(src.table, np.memmap):
+                s = np.array(s)
+            self._count_repeats(s)
+            self.rows = n
+            if t is None and lay.fs is not None:
+                t = np.arange(n, dtype=np.float64) / lay.fs
+            return s, t, temp
+        assert self.text is not None
+        src_t = self.text
+        try:
+            arrays, rows, nbytes, repeats = _core.text_read_all(
+                None if (src_t.stdin or src_t.eof) else src_t.path,
+                lay.offset,
+                lay.ncols,
+                _text_groups(lay),
+                rows_hint=int(1.05 * (self.rows_estimate() or 0)),
+                progress=progress,
+                **_text_kwargs(lay, src_t),
+            )
+        except CalibrationError as e:
+            raise CalibrationError(f"{src_t.path}: {e}") from None
+        self.rows, self.bytes, self.repeats = rows, nbytes, repeats
+        s, t, temp = _split_groups(lay, arrays)
+        if t is None and lay.fs is not None:
+            t = np.arange(rows, dtype=np.float64) / lay.fs
+        return s, t, temp
+
+    # -- what is known after reading
+    def output_rate(self) -> float | None:
+        """The sensor's own update rate, Hz, when many rows repeat the previous one."""
+        if self.rows < 100 or self.repeats < _REPEAT_FRACTION * self.rows:
+            return None
+        if self.lay.fs is None:
+            return math.nan
+        return self.lay.fs * (self.rows - self.repeats) / self.rows
+
+    def notes(self) -> list[str]:
+        out = list(self.lay.notes)
+        if self.rows >= 100 and self.repeats >= _REPEAT_FRACTION * self.rows:
+            frac = self.repeats / self.rows
+            rate = self.output_rate()
+            per = self.rows / max(self.rows - self.repeats, 1)
+            if self.lay.time is None and rate is not None and math.isfinite(rate):
+                out.append(
+                    f"{frac:.0%} of the rows repeat the previous sample exactly: the sensor "
+                    f"updates at about {rate:.4g} Hz and was read at {self.lay.fs:g} Hz "
+                    f"(each value about {per:.2g} times); dwell statistics count every row, "
+                    "so the noise of a dwell mean looks smaller than it is"
+                )
+            else:
+                out.append(
+                    f"{frac:.0%} of the rows repeat the previous sample exactly (each value "
+                    f"about {per:.2g} times): the sensor was read faster than it updates"
+                )
+        return out
+
+    def stream(
+        self, s: NDArray[Any], t: NDArray[np.float64] | None, temp: NDArray[np.float64] | None
+    ) -> Stream:
+        lay = self.lay
+        return Stream(
+            s, t, lay.fs, dict(lay.metadata), _names_of(lay), self.path, temp,
+            t0=lay.t0_text, fs_source=lay.fs_source, notes=self.notes(),
+            repeats=self.repeats, output_rate_hz=self.output_rate(),
+        )
+
+
+# ---- public API -------------------------------------------------------------------------------
 def read_stream(
-    path: str | os.PathLike[str],
+    path: Any,
     *,
     columns: Any = None,
     fs: float | None = None,
     time_column: Any = None,
+    progress: bool | None = False,
 ) -> Stream:
-    """Read a recording as it is (text, ``.npy`` or ``.npz``).
+    """Read a recording as it is.
 
     Parameters
     ----------
-    path : str or path-like
-        The file. ``.npy`` holds an (N, 3) or (N, >=3) array; ``.npz`` holds ``samples`` (or
-        ``acc``, ``a``, ``data``) and optionally ``t``, ``fs``, ``temperature``; anything else
-        is read as delimited text (see the module docstring for the layout rules).
+    path : str, path-like, ``"-"``, DataFrame or array
+        The file: ``.npy`` holds an (N, 3) or (N, >=3) array; ``.npz`` and HDF5 hold
+        ``samples`` (or ``acc``, ``a``, ``data``), or separate 1-D ``ax``, ``ay``, ``az``
+        arrays, and optionally ``t``, ``fs``, ``temperature``; anything else is read as
+        delimited text (see the module docstring for the layout rules); ``"-"`` reads text
+        from standard input. A pandas/polars DataFrame (or any object with the DataFrame
+        interchange protocol) has its columns chosen by name as a text header would; an
+        array (anything with ``__array__``) is an (N, 3) or (N, >=3) table.
     columns : 3 names or 0-based indices, or "ax,ay,az", optional
         The accelerometer x, y, z columns; chosen by name when omitted.
     fs : float, optional
         Sample rate in Hz; overrides the file's metadata and time column.
     time_column : name or 0-based index, optional
         The time column (s, or ms/us/ns when the name says so); recognised by name when omitted.
+    progress : bool or None
+        Show a progress bar (True), only when stderr is a terminal (None), or never (False).
 
     Returns
     -------
     Stream
         ``samples`` (N, 3), ``t`` (N,) s or None, ``fs`` Hz or None, ``metadata``, ``names``,
-        ``path``, ``temperature`` (N,) or None.
+        ``path``, ``temperature`` (N,) or None, ``t0``, ``fs_source``, ``notes``.
 
     Raises
     ------
     CalibrationError
-        Missing, unreadable, empty or non-numeric file, or columns that cannot be chosen.
+        Missing, unreadable, empty or non-numeric file (bad rows are named by line), or
+        columns that cannot be chosen.
     """
-    p = _path(path)
-    kind = _kind(p)
-    if kind == "npz":
-        return _read_npz(p, columns, fs, time_column)
-    if kind == "h5":
-        return _read_h5(p, columns, fs, time_column)
-    if kind == "npy":
-        arr = _np_load(p)
-        if not isinstance(arr, np.ndarray):
-            raise CalibrationError(f"{p}: not a .npy array file")
-        lay = _npy_layout(p, arr, columns, fs, time_column, {})
-        data = arr
-    else:
-        lay = _sniff(p, columns, fs, time_column)
-        chunks = list(_text_chunks(lay, 1_000_000))
-        data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
-    n = data.shape[0]
-    if kind == "npy" and lay.acc == [0, 1, 2] and data.shape[1] == 3:
-        samples = data
-    else:
-        samples = np.ascontiguousarray(data[:, lay.acc])
-    t = None
-    if lay.time is not None:
-        t = np.asarray(data[:, lay.time], dtype=np.float64) * lay.time_scale
-    elif lay.fs is not None:
-        t = np.arange(n, dtype=np.float64) / lay.fs
-    temp = None if lay.temp is None else np.asarray(data[:, lay.temp], dtype=np.float64)
-    return Stream(samples, t, lay.fs, dict(lay.metadata), _names_of(lay), p, temp)
-
-
-def _layout_for(p: str, columns: Any, fs: float | None, time_column: Any) -> tuple[_Layout, Any]:
-    kind = _kind(p)
-    if kind == "npy":
-        arr = _np_load(p, mmap=True)
-        if not isinstance(arr, np.ndarray):
-            raise CalibrationError(f"{p}: not a .npy array file")
-        return _npy_layout(p, arr, columns, fs, time_column, {}), arr
-    if kind in ("npz", "h5"):
-        return _Layout(p, None, 0, 3, None, [0, 1, 2], None, 1.0, None, {}, None), None
-    return _sniff(p, columns, fs, time_column), None
-
-
-def _chunks(
-    p: str, columns: Any, fs: float | None, time_column: Any, chunk_rows: int
-) -> tuple[
-    float | None,
-    Iterator[tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]],
-]:
-    """Sample rate and an iterator of (samples, t, temperature) chunks."""
-    if (
-        not isinstance(chunk_rows, (int, np.integer))
-        or isinstance(chunk_rows, bool)
-        or chunk_rows < 1
-    ):
-        raise CalibrationError(f"chunk_rows must be a positive integer; got {chunk_rows!r}")
-    chunk_rows = int(chunk_rows)
-    kind = _kind(p)
-    if kind in ("npz", "h5"):
-        s = (_read_npz if kind == "npz" else _read_h5)(p, columns, fs, time_column)
-
-        def gen_npz() -> Iterator[Any]:
-            for i in range(0, len(s), chunk_rows):
-                sl = slice(i, i + chunk_rows)
-                yield (
-                    s.samples[sl],
-                    None if s.t is None else s.t[sl],
-                    None if s.temperature is None else s.temperature[sl],
-                )
-
-        return s.fs, gen_npz()
-    lay, arr = _layout_for(p, columns, fs, time_column)
-
-    def gen() -> Iterator[Any]:
-        pos = 0
-        source = (
-            (np.asarray(arr[i : i + chunk_rows]) for i in range(0, arr.shape[0], chunk_rows))
-            if arr is not None
-            else _text_chunks(lay, chunk_rows)
-        )
-        for a in source:
-            m = a.shape[0]
-            samples = (
-                a
-                if (arr is not None and lay.acc == [0, 1, 2] and a.shape[1] == 3)
-                else a[:, lay.acc]
-            )
-            if lay.time is not None:
-                t = np.asarray(a[:, lay.time], dtype=np.float64) * lay.time_scale
-            elif lay.fs is not None:
-                t = np.arange(pos, pos + m, dtype=np.float64) / lay.fs
-            else:
-                t = None
-            temp = None if lay.temp is None else np.asarray(a[:, lay.temp], dtype=np.float64)
-            pos += m
-            yield samples, t, temp
-
-    return lay.fs, gen()
+    rec = _Recording(path, columns, fs, time_column)
+    with _progress_bar(rec, "read", progress) as cb:
+        s, t, temp = rec.read_all(cb)
+    if rec.rows == 0:
+        raise CalibrationError(f"{rec.path}: no data rows")
+    return rec.stream(s, t, temp)
 
 
 def iter_stream(
-    path: str | os.PathLike[str],
+    path: Any,
     *,
     chunk_rows: int = 500_000,
     columns: Any = None,
@@ -771,7 +1359,8 @@ def iter_stream(
 ) -> Iterator[tuple[NDArray[Any], NDArray[np.float64] | None]]:
     """Read a recording chunk by chunk without loading it whole.
 
-    Same layout rules and arguments as :func:`read_stream`. ``.npy`` files are memory-mapped;
+    Same layout rules and arguments as :func:`read_stream`. Text is parsed ahead on a
+    background thread; ``.npy`` files are memory-mapped and HDF5 datasets read by slices;
     ``.npz`` files are loaded whole (the format cannot be streamed).
 
     Yields
@@ -781,13 +1370,64 @@ def iter_stream(
     t : (m,) float64 or None
         Sample times in s (time column, else from ``fs``; None when neither is known).
     """
-    _, it = _chunks(_path(path), columns, fs, time_column, chunk_rows)
-    for s, t, _temp in it:
+    cr = _chunk_rows(chunk_rows)
+    rec = _Recording(path, columns, fs, time_column)
+    for s, t, _temp in rec.chunks(cr):
         yield s, t
 
 
+def _chunk_rows(chunk_rows: Any) -> int:
+    if (
+        not isinstance(chunk_rows, (int, np.integer))
+        or isinstance(chunk_rows, bool)
+        or chunk_rows < 1
+    ):
+        raise CalibrationError(f"chunk_rows must be a positive integer; got {chunk_rows!r}")
+    return int(chunk_rows)
+
+
+class _progress_bar:  # noqa: N801 (a context manager used like a function)
+    """A tqdm bar over rows with total, percentage and ETA (the total estimated from the
+    file size and refined as bytes are read); ``callback(rows, bytes)`` updates it."""
+
+    def __init__(self, rec: _Recording, desc: str, progress: bool | None) -> None:
+        self.rec = rec
+        self.desc = desc
+        self.disable: bool | None = True if progress is False else (
+            None if progress is None else False)
+        self.bar: Any = None
+
+    def __enter__(self) -> Callable[[int, int], None] | None:
+        if self.disable is True:
+            return None
+        from tqdm import tqdm
+
+        self.bar = tqdm(
+            total=self.rec.rows_estimate(), unit=" rows", unit_scale=True,
+            desc=f"{self.desc} {os.path.basename(self.rec.path)}", disable=self.disable,
+            leave=False, dynamic_ncols=True,
+        )
+        return self.update
+
+    def update(self, rows: int, nbytes: int) -> None:
+        bar = self.bar
+        size = self.rec.size_bytes
+        if size and nbytes:
+            est = int(rows * (size - self.rec.lay.offset) / nbytes)
+            if bar.total != est:
+                bar.total = max(est, rows)
+        bar.update(rows - bar.n)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.bar is not None:
+            if exc[0] is None:
+                self.bar.total = self.bar.n
+                self.bar.refresh()
+            self.bar.close()
+
+
 def stream_dwells(
-    path: str | os.PathLike[str],
+    path: Any,
     *,
     fs: float | None = None,
     bounds: Any = None,
@@ -798,7 +1438,7 @@ def stream_dwells(
     progress: bool | None = False,
     **detector_kw: Any,
 ) -> Any:
-    """Dwell statistics of a (large) recording, streamed chunk by chunk.
+    """Dwell statistics of a (large) recording, streamed chunk by chunk in one pass.
 
     ``progress``: show a progress bar of rows read (True), only when stderr is a terminal
     (None), or never (False, the default for library use).
@@ -806,35 +1446,61 @@ def stream_dwells(
     With ``bounds`` (k, 2) the given ``[start, stop)`` dwells are accumulated; otherwise the
     static intervals are detected (needs ``fs`` from the argument, the file's metadata or its
     time column; ``detector_kw`` are :class:`~accelcal.DetectorSettings` fields). Memory use is
-    one chunk plus compressed block statistics. The result equals :func:`~accelcal.dwell_stats`
-    / :func:`~accelcal.detect_dwells` on ``read_stream(path)`` with the same ``t`` and
-    ``temperature`` channels.
+    a few blocks of text plus compressed block statistics. The result equals
+    :func:`~accelcal.dwell_stats` / :func:`~accelcal.detect_dwells` on ``read_stream(path)``
+    with the same ``t`` and ``temperature`` channels.
 
     Returns
     -------
     DwellSet
     """
+    d, _rec = _stream_dwells(path, fs=fs, bounds=bounds, columns=columns,
+                             time_column=time_column, chunk_rows=chunk_rows, units=units,
+                             progress=progress, **detector_kw)
+    return d
+
+
+def _stream_dwells(
+    path: Any,
+    *,
+    fs: float | None = None,
+    bounds: Any = None,
+    columns: Any = None,
+    time_column: Any = None,
+    chunk_rows: int | None = None,
+    units: str = "",
+    progress: bool | None = False,
+    desc: str = "dwells",
+    **detector_kw: Any,
+) -> tuple[Any, _Recording]:
+    """:func:`stream_dwells` that also returns the opened recording (rows, notes)."""
     from .dwell import DwellAccumulator
 
-    p = _path(path)
-    fsv, it = _chunks(p, columns, fs, time_column, chunk_rows)
-    if bounds is None and fsv is None:
+    cr = None if chunk_rows is None else _chunk_rows(chunk_rows)
+    rec = _Recording(path, columns, fs, time_column)
+    if bounds is None and rec.fs is None:
         raise CalibrationError(
-            f"{p}: the sample rate is unknown (no fs metadata or time column); give fs= (Hz)"
+            f"{rec.path}: the sample rate is unknown (no rate metadata or time column); "
+            "give fs= (Hz)"
         )
     acc = DwellAccumulator(
-        bounds, fs=fsv, units=units, **({} if bounds is not None else detector_kw)
+        bounds, fs=rec.fs, units=units, **({} if bounds is not None else detector_kw)
     )
-    pushed = 0
-    from tqdm import tqdm
-
-    disable = True if progress is False else (None if progress is None else False)
-    with tqdm(unit=" rows", unit_scale=True, desc=os.path.basename(p), disable=disable,
-              leave=False) as bar:
-        for s, t, temp in it:
+    with _progress_bar(rec, desc, progress) as cb:
+        for s, t, temp in rec.chunks(cr, cb):
             acc.push(s, t, temp)
-            pushed += s.shape[0]
-            bar.update(s.shape[0])
-    if pushed == 0:
-        raise CalibrationError(f"{p}: no data rows")
-    return acc.finish()
+    if rec.rows == 0:
+        raise CalibrationError(f"{rec.path}: no data rows")
+    return acc.finish(), rec
+
+
+def open_recording(
+    path: Any, *, columns: Any = None, fs: float | None = None, time_column: Any = None
+) -> Any:
+    """Open a recording for one streaming pass (internal: used by the command line).
+
+    Returns an object with ``fs``, ``path``, ``chunks(chunk_rows, progress)``, ``read_all``,
+    ``rows``, ``notes()`` and ``rows_estimate()``.
+    """
+    return _Recording(path, columns, fs, time_column)
+

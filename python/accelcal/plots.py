@@ -172,3 +172,35 @@ def gradiometer_figure(sb: Any) -> Any:
     axes[0].set_title(f"Start-up bias from {az.size} azimuths (dof {sb.dof})")
     fig.tight_layout()
     return fig
+
+
+def dwells_figure(
+    t_s: Any, mean: Any, lo: Any, hi: Any, dwells: Any, *, units: str = "", title: str = ""
+) -> Any:
+    """The stream (x, y, z against time) with the detected dwells shaded and numbered.
+
+    ``t_s`` (m,) bin times in s and ``mean``/``lo``/``hi`` (m, 3) the mean, minimum and
+    maximum of each axis over a bin of samples (a decimated picture of a long stream).
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
+    unit = units or "as recorded"
+    fs = dwells.fs
+    starts = None if dwells.start is None or fs is None else np.asarray(dwells.start) / fs
+    stops = None if dwells.stop is None or fs is None else np.asarray(dwells.stop) / fs
+    for a, ax in enumerate(axes):
+        ax.fill_between(t_s, lo[:, a], hi[:, a], color="0.75", lw=0, label="min-max")
+        ax.plot(t_s, mean[:, a], color="C0", lw=0.8, label="mean")
+        ax.set_ylabel(f"{'xyz'[a]} [{unit}]")
+        if starts is not None and stops is not None:
+            for k, (s0, s1) in enumerate(zip(starts, stops, strict=True)):
+                ax.axvspan(s0, s1, color="C2", alpha=0.25, lw=0,
+                           label="dwell" if k == 0 else None)
+                if a == 0:
+                    ax.text(0.5 * (s0 + s1), 1.0, str(k), transform=ax.get_xaxis_transform(),
+                            ha="center", va="bottom", fontsize=7)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(f"{title + ': ' if title else ''}{len(dwells)} static dwells (shaded)")
+    fig.tight_layout()
+    return fig

@@ -6,10 +6,23 @@
 //! lanes for instruction-level parallelism, and blocks are merged with Chan's formula.
 //! Sample `j` of a segment always lands in the same lane and block whatever the chunking,
 //! so the streaming accumulator reproduces the one-shot result bit for bit.
+//!
+//! The same pass also sums the squared first differences `(x[i] - x[i-1])^2` (the overlapping
+//! Allan variance at one sample) and keeps each segment's first and last sample, so that
+//! consecutive segments merge into the statistics of their concatenation. From these a dwell
+//! gets, at no extra memory traffic:
+//! - its half-dwell means (the first and the second half of its samples);
+//! - an Allan noise inflation factor: by how much the noise of the dwell mean exceeds white
+//!   noise of the same sample-to-sample deviation (see [`allan_inflation`]);
+//! - and the stream gets an estimate of the output resolution (LSB) per axis from a bounded,
+//!   chunking-independent subsample ([`LsbSampler`]).
 
-use crate::error::{invalid, CoreError, Result};
+use crate::error::{degenerate, invalid, Result};
 use ndarray::ArrayView2;
 use rayon::prelude::*;
+
+mod state;
+pub use state::STATE_VERSION;
 
 /// Independent accumulation lanes.
 pub const LANES: usize = 4;
@@ -17,18 +30,36 @@ pub const LANES: usize = 4;
 pub const BLOCK: usize = 4096;
 /// Values per group of [`LANES`] rows.
 const W: usize = 3 * LANES;
+/// Sub-blocks per dwell (dwells given by bounds): the Allan clusters are 4 and 16 sub-blocks.
+pub const SUBS: usize = 64;
+/// Fewest samples in a dwell for the Allan inflation factor (NaN below).
+pub const MIN_ALLAN_SAMPLES: u64 = 64;
+/// Fewest samples in a dwell (its variance needs two).
+pub const MIN_DWELL_SAMPLES: usize = 2;
+/// Fewest samples in the detector's moving window.
+pub const MIN_WINDOW_SAMPLES: f64 = 8.0;
+/// Rows kept by the LSB subsample (a power of two).
+pub const LSB_CAP: usize = 1 << 12;
+/// Largest sample rate accepted, Hz.
+pub const MAX_FS: f64 = 1e9;
+/// Largest duration setting accepted, s (fs * duration stays below 2^50 samples).
+pub const MAX_DURATION_S: f64 = 1e6;
 
 /// A sample type accepted by the kernels: converted exactly (integers) or widened to f64.
 pub trait Sample: Copy + Send + Sync + 'static {
+    /// True for integer types (their output resolution is a whole number of counts).
+    const INTEGER: bool = false;
+
     /// The value as f64.
     fn to_f64(self) -> f64;
 
     /// Accumulate whole groups of `3 * LANES` values (at most one block) into the per-lane
-    /// shifted sums (`s1 += x - shift`, `s2 += (x - shift)^2`, element `j` of a group in lane
-    /// `j / 3`, axis `j % 3`). Overridden where an exact faster path exists.
+    /// shifted sums (`s1 += x - shift`, `s2 += (x - shift)^2`) and squared first differences
+    /// (`d2 += (x - previous row)^2`); element `j` of a group is lane `j / 3`, axis `j % 3`, and
+    /// `prev` is the row before the first one. Overridden where an exact faster path exists.
     #[inline(always)]
-    fn accumulate(body: &[Self], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
-        accumulate_dispatch(body, sh, s1, s2);
+    fn accumulate(body: &[Self], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
+        accumulate_dispatch(body, prev, sh, l);
     }
 }
 impl Sample for f64 {
@@ -44,24 +75,45 @@ impl Sample for f32 {
     }
 }
 impl Sample for i16 {
+    const INTEGER: bool = true;
+
     #[inline(always)]
     fn to_f64(self) -> f64 {
         f64::from(self)
     }
 
     #[inline(always)]
-    fn accumulate(body: &[Self], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
-        accumulate_i16_dispatch(body, sh, s1, s2);
+    fn accumulate(body: &[Self], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
+        accumulate_i16_dispatch(body, prev, sh, l);
     }
 }
 impl Sample for i32 {
+    const INTEGER: bool = true;
+
     #[inline(always)]
     fn to_f64(self) -> f64 {
         f64::from(self)
     }
 }
 
-/// Count, mean and sum of squared deviations of one segment, per axis.
+/// Per-lane sums, flattened: index `3 * lane + axis`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lanes {
+    s1: [f64; W],
+    s2: [f64; W],
+    d2: [f64; W],
+}
+
+impl Lanes {
+    const ZERO: Lanes = Lanes {
+        s1: [0.0; W],
+        s2: [0.0; W],
+        d2: [0.0; W],
+    };
+}
+
+/// Count, mean, sum of squared deviations and of squared first differences of one segment,
+/// per axis, with its first and last sample (so consecutive segments can be merged).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Moments {
     /// Number of samples.
@@ -70,6 +122,12 @@ pub struct Moments {
     pub mean: [f64; 3],
     /// Sum of squared deviations from the mean per axis.
     pub m2: [f64; 3],
+    /// Sum of `(x[i] - x[i-1])^2` over consecutive samples of the segment, per axis.
+    pub d2: [f64; 3],
+    /// First sample.
+    pub first: [f64; 3],
+    /// Last sample.
+    pub last: [f64; 3],
 }
 
 impl Default for Moments {
@@ -84,9 +142,37 @@ impl Moments {
         n: 0,
         mean: [0.0; 3],
         m2: [0.0; 3],
+        d2: [0.0; 3],
+        first: [0.0; 3],
+        last: [0.0; 3],
     };
 
-    /// Combine two disjoint segments (Chan, Golub and LeVeque).
+    /// Count, mean and m2 of two disjoint segments (Chan, Golub and LeVeque); the other
+    /// fields are those of `self`.
+    fn merge_stats(&self, o: &Moments) -> Moments {
+        if o.n == 0 {
+            return *self;
+        }
+        if self.n == 0 {
+            return Moments {
+                d2: self.d2,
+                first: self.first,
+                last: self.last,
+                ..*o
+            };
+        }
+        let n = self.n + o.n;
+        let (na, nb, nn) = (self.n as f64, o.n as f64, n as f64);
+        let mut out = Moments { n, ..*self };
+        for a in 0..3 {
+            let d = o.mean[a] - self.mean[a];
+            out.mean[a] = self.mean[a] + d * (nb / nn);
+            out.m2[a] = self.m2[a] + o.m2[a] + d * d * (na * nb / nn);
+        }
+        out
+    }
+
+    /// The statistics of `self` followed immediately by `o` in the stream.
     #[must_use]
     pub fn merge(&self, o: &Moments) -> Moments {
         if o.n == 0 {
@@ -95,17 +181,12 @@ impl Moments {
         if self.n == 0 {
             return *o;
         }
-        let n = self.n + o.n;
-        let (na, nb, nn) = (self.n as f64, o.n as f64, n as f64);
-        let mut out = Moments {
-            n,
-            ..Moments::EMPTY
-        };
+        let mut out = self.merge_stats(o);
         for a in 0..3 {
-            let d = o.mean[a] - self.mean[a];
-            out.mean[a] = self.mean[a] + d * (nb / nn);
-            out.m2[a] = self.m2[a] + o.m2[a] + d * d * (na * nb / nn);
+            let e = o.first[a] - self.last[a];
+            out.d2[a] = self.d2[a] + o.d2[a] + e * e;
         }
+        out.last = o.last;
         out
     }
 
@@ -118,23 +199,40 @@ impl Moments {
         [self.m2[0] / d, self.m2[1] / d, self.m2[2] / d]
     }
 
-    /// True when every mean and m2 is finite.
+    /// Overlapping Allan variance at one sample, `sum (x[i] - x[i-1])^2 / (2 (n - 1))`, per
+    /// axis; NaN when fewer than two samples.
+    pub fn avar1(&self) -> [f64; 3] {
+        if self.n < 2 {
+            return [f64::NAN; 3];
+        }
+        let d = 2.0 * (self.n - 1) as f64;
+        [self.d2[0] / d, self.d2[1] / d, self.d2[2] / d]
+    }
+
+    /// True when every mean, m2 and d2 is finite.
     pub fn is_finite(&self) -> bool {
         self.mean
             .iter()
             .chain(self.m2.iter())
+            .chain(self.d2.iter())
             .all(|v| v.is_finite())
     }
 }
 
+fn fold(segs: &[Moments]) -> Moments {
+    segs.iter().fold(Moments::EMPTY, |acc, x| acc.merge(x))
+}
+
 /// Streaming accumulator for one segment.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SegmentAcc {
     done: Moments,
+    d2_done: [f64; 3],
     shift: [f64; 3],
     nb: usize,
-    s1: [[f64; 3]; LANES],
-    s2: [[f64; 3]; LANES],
+    lanes: Lanes,
+    first: [f64; 3],
+    last: [f64; 3],
 }
 
 impl Default for SegmentAcc {
@@ -148,10 +246,12 @@ impl SegmentAcc {
     pub fn new() -> Self {
         SegmentAcc {
             done: Moments::EMPTY,
+            d2_done: [0.0; 3],
             shift: [0.0; 3],
             nb: 0,
-            s1: [[0.0; 3]; LANES],
-            s2: [[0.0; 3]; LANES],
+            lanes: Lanes::ZERO,
+            first: [0.0; 3],
+            last: [0.0; 3],
         }
     }
 
@@ -160,22 +260,27 @@ impl SegmentAcc {
         self.done.n + self.nb as u64
     }
 
-    #[inline(always)]
-    fn add(&mut self, lane: usize, r: [f64; 3]) {
-        for (a, &v) in r.iter().enumerate() {
-            let d = v - self.shift[a];
-            self.s1[lane][a] += d;
-            self.s2[lane][a] += d * d;
-        }
-    }
-
     /// Add one sample.
     #[inline]
     pub fn push_row(&mut self, r: [f64; 3]) {
+        let started = self.count() > 0;
         if self.nb == 0 {
             self.shift = r;
         }
-        self.add(self.nb % LANES, r);
+        if !started {
+            self.first = r;
+        }
+        let base = 3 * (self.nb % LANES);
+        for (a, &v) in r.iter().enumerate() {
+            let d = v - self.shift[a];
+            self.lanes.s1[base + a] += d;
+            self.lanes.s2[base + a] += d * d;
+            if started {
+                let e = v - self.last[a];
+                self.lanes.d2[base + a] += e * e;
+            }
+        }
+        self.last = r;
         self.nb += 1;
         if self.nb == BLOCK {
             self.flush();
@@ -195,8 +300,8 @@ impl SegmentAcc {
             let mut s1 = 0.0;
             let mut s2 = 0.0;
             for l in 0..LANES {
-                s1 += self.s1[l][a];
-                s2 += self.s2[l][a];
+                s1 += self.lanes.s1[3 * l + a];
+                s2 += self.lanes.s2[3 * l + a];
             }
             let md = s1 / n;
             m.mean[a] = self.shift[a] + md;
@@ -208,20 +313,32 @@ impl SegmentAcc {
         m
     }
 
+    fn lane_d2(&self) -> [f64; 3] {
+        let mut out = [0.0; 3];
+        for (a, o) in out.iter_mut().enumerate() {
+            let mut s = 0.0;
+            for l in 0..LANES {
+                s += self.lanes.d2[3 * l + a];
+            }
+            *o = self.d2_done[a] + s;
+        }
+        out
+    }
+
     fn flush(&mut self) {
         let b = self.block_moments();
-        self.done = self.done.merge(&b);
+        self.d2_done = self.lane_d2();
+        self.done = self.done.merge_stats(&b);
         self.nb = 0;
-        self.s1 = [[0.0; 3]; LANES];
-        self.s2 = [[0.0; 3]; LANES];
+        self.lanes = Lanes::ZERO;
     }
 
     /// Add the rows of a row-major `(m, 3)` slice (length a multiple of 3).
     pub fn push_slice<T: Sample>(&mut self, data: &[T]) {
         let nrows = data.len() / 3;
         let mut i = 0;
-        // Head: single rows until the lane index is aligned.
-        while !self.nb.is_multiple_of(LANES) && i < nrows {
+        // Head: single rows until the lane index is aligned and a previous row exists.
+        while (!self.nb.is_multiple_of(LANES) || self.count() == 0) && i < nrows {
             let r = &data[3 * i..3 * i + 3];
             self.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
             i += 1;
@@ -229,8 +346,8 @@ impl SegmentAcc {
         let mut rest = &data[3 * i..3 * nrows];
         // Body: whole groups of LANES rows, a block at a time, with the accumulators in locals
         // (registers) and the group seen as 3 * LANES independent sums: element j of a group
-        // is lane j / 3, axis j % 3, exactly as in `add`, so results are bit-identical to the
-        // row-by-row path and independent of chunking.
+        // is lane j / 3, axis j % 3, exactly as in `push_row`, so results are bit-identical to
+        // the row-by-row path and independent of chunking.
         while rest.len() >= W {
             if self.nb == 0 {
                 self.shift = [rest[0].to_f64(), rest[1].to_f64(), rest[2].to_f64()];
@@ -238,18 +355,16 @@ impl SegmentAcc {
             let groups = ((BLOCK - self.nb) / LANES).min(rest.len() / W);
             let (body, tail) = rest.split_at(groups * W);
             let mut sh = [0.0; W];
-            let mut s1 = [0.0; W];
-            let mut s2 = [0.0; W];
-            for j in 0..W {
-                sh[j] = self.shift[j % 3];
-                s1[j] = self.s1[j / 3][j % 3];
-                s2[j] = self.s2[j / 3][j % 3];
+            for (j, s) in sh.iter_mut().enumerate() {
+                *s = self.shift[j % 3];
             }
-            T::accumulate(body, &sh, &mut s1, &mut s2);
-            for j in 0..W {
-                self.s1[j / 3][j % 3] = s1[j];
-                self.s2[j / 3][j % 3] = s2[j];
-            }
+            T::accumulate(body, &self.last, &sh, &mut self.lanes);
+            let z = body.len();
+            self.last = [
+                body[z - 3].to_f64(),
+                body[z - 2].to_f64(),
+                body[z - 1].to_f64(),
+            ];
             self.nb += groups * LANES;
             if self.nb == BLOCK {
                 self.flush();
@@ -261,123 +376,208 @@ impl SegmentAcc {
         }
     }
 
-    /// Add rows `[a, b)` of a `(N, 3)` view of any strides (fast path when contiguous).
+    /// Add rows `[a, b)` of a `(N, 3)` view of any strides: in place when C-contiguous, else
+    /// through a small row-major buffer (the same sums in the same order: bit-identical).
     pub fn push_view<T: Sample>(&mut self, v: &ArrayView2<'_, T>, a: usize, b: usize) {
+        const ROWS: usize = 256;
         let sub = v.slice(ndarray::s![a..b, ..]);
         if let Some(s) = sub.as_slice() {
             self.push_slice(s);
-        } else {
-            for r in sub.rows() {
-                self.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
+            return;
+        }
+        let Some(&fill) = sub.iter().next() else {
+            return;
+        };
+        let mut buf = [fill; 3 * ROWS];
+        let mut k = 0;
+        for r in sub.rows() {
+            buf[3 * k..3 * k + 3].copy_from_slice(&[r[0], r[1], r[2]]);
+            k += 1;
+            if k == ROWS {
+                self.push_slice(&buf);
+                k = 0;
             }
         }
+        self.push_slice(&buf[..3 * k]);
+    }
+
+    /// True when no sum has become NaN or inf (cheaper than `moments().is_finite()`).
+    pub fn is_finite(&self) -> bool {
+        let l = &self.lanes;
+        self.done.is_finite()
+            && self.d2_done.iter().all(|v| v.is_finite())
+            && l.s1
+                .iter()
+                .chain(&l.s2)
+                .chain(&l.d2)
+                .fold(0.0, |acc, v| acc + v * 0.0)
+                == 0.0
     }
 
     /// The moments of everything pushed so far.
     pub fn moments(&self) -> Moments {
-        self.done.merge(&self.block_moments())
+        if self.count() == 0 {
+            return Moments::EMPTY;
+        }
+        let mut m = self.done.merge_stats(&self.block_moments());
+        m.d2 = self.lane_d2();
+        m.first = self.first;
+        m.last = self.last;
+        m
     }
 }
 
-/// The hot loop: `s1[j] += x[j] - sh[j]`, `s2[j] += (x[j] - sh[j])^2` over groups of
-/// `3 * LANES` values (no FMA contraction, so the rounding is the same as in `SegmentAcc::add`).
+/// The hot loop: `s1[j] += x[j] - sh[j]`, `s2[j] += (x[j] - sh[j])^2` and
+/// `d2[j] += (x[j] - x[j - 3])^2` over groups of `3 * LANES` values (no FMA contraction, so
+/// the rounding is the same as in `SegmentAcc::push_row`).
 #[inline(always)]
-fn accumulate_groups<T: Sample>(body: &[T], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
-    for g in body.chunks_exact(W) {
+fn accumulate_groups<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
+    if body.len() < W {
+        return;
+    }
+    let (mut s1, mut s2, mut d2) = (l.s1, l.s2, l.d2);
+    // The first group: the previous row of its first row is `prev`.
+    for j in 0..W {
+        let x = body[j].to_f64();
+        let d = x - sh[j];
+        s1[j] += d;
+        s2[j] += d * d;
+        let p = if j < 3 { prev[j] } else { body[j - 3].to_f64() };
+        let e = x - p;
+        d2[j] += e * e;
+    }
+    // The others: the previous row of element j is element j - 3 (an offset slice).
+    for (g, gp) in body[W..].chunks_exact(W).zip(body[W - 3..].chunks_exact(W)) {
         for j in 0..W {
-            let d = g[j].to_f64() - sh[j];
+            let x = g[j].to_f64();
+            let d = x - sh[j];
             s1[j] += d;
             s2[j] += d * d;
+            let e = x - gp[j].to_f64();
+            d2[j] += e * e;
         }
     }
+    l.s1 = s1;
+    l.s2 = s2;
+    l.d2 = d2;
 }
 
 /// [`accumulate_groups`] compiled for AVX2 when the CPU has it (wider vectors, same
 /// operations in the same order, so bit-identical results), else for the baseline target.
 #[inline]
-fn accumulate_dispatch<T: Sample>(body: &[T], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+fn accumulate_dispatch<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports AVX2 (checked just above).
-            unsafe { accumulate_groups_avx2(body, sh, s1, s2) };
+            unsafe { accumulate_groups_avx2(body, prev, sh, l) };
             return;
         }
     }
-    accumulate_groups(body, sh, s1, s2);
+    accumulate_groups(body, prev, sh, l);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn accumulate_groups_avx2<T: Sample>(
-    body: &[T],
-    sh: &[f64; W],
-    s1: &mut [f64; W],
-    s2: &mut [f64; W],
-) {
-    accumulate_groups(body, sh, s1, s2);
+fn accumulate_groups_avx2<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
+    accumulate_groups(body, prev, sh, l);
 }
 
 /// int16 counts: the same sums in exact integer arithmetic.
 ///
-/// With an integer shift every deviation `d` is an integer with `|d| <= 65535`, so within one
-/// block (<= 4096 rows) every float64 partial sum of `d` and `d^2` in [`accumulate_groups`] is
-/// an integer below 2^53 and therefore exact whatever the order. Integer sums give the same
-/// exact totals, so the result is bit-identical to the float path (the row-by-row and strided
-/// paths included). The totals go into lane 0; lanes are only ever summed.
+/// With an integer shift every deviation `d` is an integer with `|d| <= 65535`, and so is every
+/// first difference, so within one block (<= 4096 rows) every float64 partial sum of `d`,
+/// `d^2` and `e^2` in [`accumulate_groups`] is an integer below 2^53 and therefore exact
+/// whatever the order. Integer sums give the same exact totals, so the result is bit-identical
+/// to the float path (the row-by-row and strided paths included). The totals go into lane 0;
+/// lanes are only ever summed.
 #[inline(always)]
-fn accumulate_i16(body: &[i16], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+fn accumulate_i16(body: &[i16], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
     const U: usize = 2 * W;
+    if body.len() < 3 {
+        return;
+    }
     let shu: [i32; U] = std::array::from_fn(|j| sh[j % 3] as i32);
     let mut a1 = [0i32; U];
     let mut a2 = [0u64; U];
-    let mut it = body.chunks_exact(U);
-    for g in it.by_ref() {
+    let mut a3 = [0u64; U];
+    // |d|, |e| <= 65535, so their squares fit u32 (the wrapping product of the two's
+    // complement bits is exact).
+    let sq = |v: i32| u64::from((v as u32).wrapping_mul(v as u32));
+    // The first row: its previous row is `prev` (int16 values, checked by the caller).
+    for j in 0..3 {
+        let x = i32::from(body[j]);
+        let d = x - shu[j];
+        a1[j] += d;
+        a2[j] += sq(d);
+        a3[j] += sq(x - prev[j] as i32);
+    }
+    // The other rows: the previous row of value i is value i - 3.
+    let rest = &body[3..];
+    let before = &body[..body.len() - 3];
+    for (g, gp) in rest.chunks_exact(U).zip(before.chunks_exact(U)) {
         for j in 0..U {
-            let d = i32::from(g[j]) - shu[j];
+            let x = i32::from(g[j]);
+            let d = x - shu[j];
             a1[j] += d;
-            // |d| <= 65535, so d^2 < 2^32 fits u32 (the wrapping product of the two's
-            // complement bits is exact).
-            a2[j] += u64::from((d as u32).wrapping_mul(d as u32));
+            a2[j] += sq(d);
+            a3[j] += sq(x - i32::from(gp[j]));
         }
     }
-    for (j, &v) in it.remainder().iter().enumerate() {
-        let d = i32::from(v) - shu[j];
+    let done = (rest.len() / U) * U;
+    for (j, (&v, &p)) in rest[done..].iter().zip(&before[done..]).enumerate() {
+        let x = i32::from(v);
+        let d = x - shu[j];
         a1[j] += d;
-        a2[j] += u64::from((d as u32).wrapping_mul(d as u32));
+        a2[j] += sq(d);
+        a3[j] += sq(x - i32::from(p));
     }
     let mut t1 = [0i64; 3];
     let mut t2 = [0u64; 3];
+    let mut t3 = [0u64; 3];
     for j in 0..U {
         t1[j % 3] += i64::from(a1[j]);
         t2[j % 3] += a2[j];
+        t3[j % 3] += a3[j];
     }
     for a in 0..3 {
-        s1[a] += t1[a] as f64;
-        s2[a] += t2[a] as f64;
+        l.s1[a] += t1[a] as f64;
+        l.s2[a] += t2[a] as f64;
+        l.d2[a] += t3[a] as f64;
     }
 }
 
+/// True when `v` is an int16 value (so deviations and differences from it stay within 65535).
+fn is_i16(v: f64) -> bool {
+    v.fract() == 0.0 && (-32768.0..=32767.0).contains(&v)
+}
+
 #[inline]
-fn accumulate_i16_dispatch(body: &[i16], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
+fn accumulate_i16_dispatch(body: &[i16], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
+    // The shift and the previous row come from earlier rows of the stream, which may have had
+    // another dtype: the exact integer path needs them to be int16 values.
+    if !(prev.iter().chain(&sh[..3]).all(|&v| is_i16(v))) {
+        accumulate_dispatch(body, prev, sh, l);
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     {
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports AVX2 (checked just above).
-            unsafe { accumulate_i16_avx2(body, sh, s1, s2) };
+            unsafe { accumulate_i16_avx2(body, prev, sh, l) };
             return;
         }
     }
-    accumulate_i16(body, sh, s1, s2);
+    accumulate_i16(body, prev, sh, l);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn accumulate_i16_avx2(body: &[i16], sh: &[f64; W], s1: &mut [f64; W], s2: &mut [f64; W]) {
-    accumulate_i16(body, sh, s1, s2);
+fn accumulate_i16_avx2(body: &[i16], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
+    accumulate_i16(body, prev, sh, l);
 }
 
-/// Check that `samples` is `(N, 3)`.
+/// Check that `samples` is `(N, 3)` and not empty.
 pub fn check_samples<T>(v: &ArrayView2<'_, T>) -> Result<usize> {
     if v.ncols() != 3 {
         return invalid(format!(
@@ -422,53 +622,446 @@ pub fn check_bounds(bounds: &[[usize; 2]], n: usize) -> Result<()> {
     Ok(())
 }
 
-fn nonfinite_error(k: usize, a: usize, b: usize) -> CoreError {
-    CoreError::InvalidInput(format!(
-        "samples contain NaN or inf (or values too large to square) in dwell {k} [{a}, {b})"
-    ))
-}
-
-/// Per-dwell moments of `samples` over `[start, stop)` bounds (parallel over dwells).
-pub fn dwell_moments<T: Sample>(
-    samples: &ArrayView2<'_, T>,
-    bounds: &[[usize; 2]],
-) -> Result<Vec<Moments>> {
-    let n = check_samples(samples)?;
+/// [`check_bounds`] plus the dwell-statistics rule: every dwell has at least
+/// [`MIN_DWELL_SAMPLES`] samples.
+pub fn check_dwell_bounds(bounds: &[[usize; 2]], n: usize) -> Result<()> {
     check_bounds(bounds, n)?;
-    let out: Vec<Moments> = bounds
-        .par_iter()
-        .map(|&[a, b]| {
-            let mut acc = SegmentAcc::new();
-            acc.push_view(samples, a, b);
-            acc.moments()
-        })
-        .collect();
-    for (k, m) in out.iter().enumerate() {
-        if !m.is_finite() {
-            return Err(nonfinite_error(k, bounds[k][0], bounds[k][1]));
+    for (k, &[a, b]) in bounds.iter().enumerate() {
+        if b - a < MIN_DWELL_SAMPLES {
+            return invalid(format!(
+                "dwell {k}: bounds [{a}, {b}) hold {} sample; a dwell needs at least \
+                 {MIN_DWELL_SAMPLES} samples (its variance is undefined otherwise)",
+                b - a
+            ));
         }
     }
-    Ok(out)
+    Ok(())
 }
 
-/// Mean of an auxiliary per-sample channel (e.g. temperature) over each dwell.
-pub fn aux_mean(x: &[f64], bounds: &[[usize; 2]]) -> Result<Vec<f64>> {
-    bounds
-        .iter()
-        .enumerate()
-        .map(|(k, &[a, b])| {
-            let s: f64 = x[a..b].iter().sum();
-            let m = s / (b - a) as f64;
-            if m.is_finite() {
-                Ok(m)
-            } else {
-                invalid(format!(
-                    "temperature (auxiliary channel) has NaN or inf in dwell {k}"
-                ))
-            }
-        })
-        .collect()
+/// Check a per-sample channel (time, temperature): its length and that it is finite.
+pub fn check_channel(x: Option<&[f64]>, n: usize, what: &str) -> Result<()> {
+    let Some(x) = x else { return Ok(()) };
+    if x.len() != n {
+        return invalid(format!(
+            "{what} has {} values but the samples have {n} rows",
+            x.len()
+        ));
+    }
+    if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+        let bad = x.iter().filter(|v| !v.is_finite()).count();
+        return invalid(format!(
+            "{what} contains NaN or inf: {bad} value(s), the first at row {i} ({}); \
+             {what} must be finite everywhere",
+            x[i]
+        ));
+    }
+    Ok(())
 }
+
+/// Rows of `[a, b)` with a NaN or inf value: how many, and the first one (view-relative).
+fn count_bad<T: Sample>(v: &ArrayView2<'_, T>, a: usize, b: usize) -> (u64, Option<usize>) {
+    let mut n = 0;
+    let mut first = None;
+    for (i, r) in v
+        .slice(ndarray::s![a..b, ..])
+        .rows()
+        .into_iter()
+        .enumerate()
+    {
+        if r.iter().any(|x| !x.to_f64().is_finite()) {
+            n += 1;
+            first.get_or_insert(a + i);
+        }
+    }
+    (n, first)
+}
+
+// ---- Allan noise inflation -------------------------------------------------------------------
+
+/// Factor by which the noise of a dwell's mean exceeds white noise, per axis, from the
+/// consecutive segments that cover the dwell (`total` is their merge).
+///
+/// Definition (per axis): with `L` samples, `r(m) = ADEV(m) sqrt(m) / ADEV(1)` compares the
+/// overlapping Allan deviation at cluster size `m` with white noise of the same
+/// sample-to-sample deviation; it is evaluated at `m16 ~ L/16` and `m4 ~ L/4` and extrapolated
+/// to `tau = L` along the log-log slope between them (clipped to `[0, 1]`):
+/// `f = r(m4) (L / m4)^slope`. `f ~ 1` for white noise, `> 1` for flicker or random-walk noise.
+///
+/// `ADEV(1)` is exact (from the summed squared first differences). `ADEV(m)` is the
+/// overlapping estimator at segment stride: clusters of `J` whole segments starting at every
+/// segment boundary (`J = S/16` and `S/4` of `S` segments; 64 sub-blocks per dwell for given
+/// bounds, the detector's blocks for detected dwells). It has the same expectation as the
+/// sample-stride estimator and a slightly larger variance.
+///
+/// NaN where not estimable: fewer than [`MIN_ALLAN_SAMPLES`] samples or 8 segments, or no
+/// sample-to-sample variation on that axis.
+pub fn allan_inflation(segs: &[Moments], total: &Moments) -> [f64; 3] {
+    let s = segs.len();
+    if s == 0 {
+        return [f64::NAN; 3];
+    }
+    // Prefix sums of counts and of deviations from the first segment's mean (no cancellation
+    // of large offsets such as raw counts).
+    let r0 = segs[0].mean;
+    let mut c = vec![0.0f64; s + 1];
+    let mut p = vec![[0.0f64; 3]; s + 1];
+    for (i, m) in segs.iter().enumerate() {
+        let n = m.n as f64;
+        c[i + 1] = c[i] + n;
+        for a in 0..3 {
+            let v = if m.n == 0 {
+                0.0
+            } else {
+                n * (m.mean[a] - r0[a])
+            };
+            p[i + 1][a] = p[i][a] + v;
+        }
+    }
+    allan_from_prefix(&c, &p, total)
+}
+
+/// [`allan_inflation`] from prefix sums over `S` segments: `c[i]` samples and `p[i]` the sum of
+/// deviations from any fixed reference over the first `i` segments (`S + 1` entries each).
+pub fn allan_from_prefix(c: &[f64], p: &[[f64; 3]], total: &Moments) -> [f64; 3] {
+    let s = c.len().saturating_sub(1);
+    if total.n < MIN_ALLAN_SAMPLES || s < 8 || p.len() != c.len() || !total.is_finite() {
+        return [f64::NAN; 3];
+    }
+    let j16 = ((s as f64 / 16.0).round() as usize).max(1);
+    let j4 = ((s as f64 / 4.0).round() as usize).max(j16 + 1).min(s / 2);
+    if j4 <= j16 {
+        return [f64::NAN; 3];
+    }
+    let big_l = total.n as f64;
+    let avar = |j: usize| -> [f64; 3] {
+        let mut acc = [0.0f64; 3];
+        let mut cnt = 0usize;
+        for i in 0..=(s - 2 * j) {
+            let (n1, n2) = (c[i + j] - c[i], c[i + 2 * j] - c[i + j]);
+            if n1 <= 0.0 || n2 <= 0.0 {
+                continue;
+            }
+            for (a, o) in acc.iter_mut().enumerate() {
+                let y1 = (p[i + j][a] - p[i][a]) / n1;
+                let y2 = (p[i + 2 * j][a] - p[i + j][a]) / n2;
+                *o += (y2 - y1) * (y2 - y1);
+            }
+            cnt += 1;
+        }
+        if cnt == 0 {
+            return [f64::NAN; 3];
+        }
+        acc.map(|v| 0.5 * v / cnt as f64)
+    };
+    let (v16, v4) = (avar(j16), avar(j4));
+    let (m16, m4) = (j16 as f64 * big_l / s as f64, j4 as f64 * big_l / s as f64);
+    let a1 = total.avar1();
+    let mut out = [f64::NAN; 3];
+    for a in 0..3 {
+        if !(a1[a] > 0.0 && a1[a].is_finite()) {
+            continue;
+        }
+        let r16 = (v16[a] * m16 / a1[a]).sqrt();
+        let r4 = (v4[a] * m4 / a1[a]).sqrt();
+        let slope = ((r4.max(1e-12) / r16.max(1e-12)).ln() / (m4 / m16).ln()).clamp(0.0, 1.0);
+        let f = r4 * (big_l / m4).powf(slope);
+        if f.is_finite() {
+            out[a] = f;
+        }
+    }
+    out
+}
+
+/// Everything the dwell pass gives per dwell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DwellStat {
+    /// Moments of the whole dwell.
+    pub moments: Moments,
+    /// Mean of its first and of its second half, per axis.
+    pub half_mean: [[f64; 3]; 2],
+    /// Allan noise inflation per axis ([`allan_inflation`]; NaN where not estimable).
+    pub inflation: [f64; 3],
+}
+
+impl DwellStat {
+    /// From consecutive segments; the first half is `segs[..half_at]`.
+    pub fn from_segments(segs: &[Moments], half_at: usize) -> DwellStat {
+        let h = half_at.min(segs.len());
+        let half = [fold(&segs[..h]), fold(&segs[h..])];
+        let moments = half[0].merge(&half[1]);
+        DwellStat {
+            moments,
+            half_mean: [half[0].mean, half[1].mean],
+            inflation: allan_inflation(segs, &moments),
+        }
+    }
+
+    /// From the running moments at the ends of `S` consecutive sub-blocks (`cum[S - 1]` is the
+    /// whole dwell); the first half ends at `cum[half_at - 1]`. Sub-block and second-half means
+    /// come from differences of running sums, relative to the first sample (so raw-count
+    /// offsets do not cancel).
+    fn from_cumulative(cum: &[Moments], half_at: usize) -> DwellStat {
+        let Some(total) = cum.last().copied() else {
+            return DwellStat {
+                moments: Moments::EMPTY,
+                half_mean: [[f64::NAN; 3]; 2],
+                inflation: [f64::NAN; 3],
+            };
+        };
+        let r0 = total.first;
+        let mut c = vec![0.0f64; cum.len() + 1];
+        let mut p = vec![[0.0f64; 3]; cum.len() + 1];
+        for (i, m) in cum.iter().enumerate() {
+            c[i + 1] = m.n as f64;
+            for a in 0..3 {
+                p[i + 1][a] = m.n as f64 * (m.mean[a] - r0[a]);
+            }
+        }
+        let h = half_at.clamp(1, cum.len());
+        let (n0, nt) = (c[h], c[cum.len()]);
+        let m0 = cum[h - 1].mean;
+        let m1 = std::array::from_fn(|a| {
+            if nt > n0 {
+                r0[a] + (p[cum.len()][a] - p[h][a]) / (nt - n0)
+            } else {
+                f64::NAN
+            }
+        });
+        DwellStat {
+            moments: total,
+            half_mean: [m0, m1],
+            inflation: allan_from_prefix(&c, &p, &total),
+        }
+    }
+}
+
+// ---- one dwell given by bounds ------------------------------------------------------------
+
+/// A dwell `[a, b)` being accumulated in one pass, with its running moments taken at the ends
+/// of [`SUBS`] equal sub-blocks (2 halves below [`MIN_ALLAN_SAMPLES`] samples), whatever the
+/// chunking.
+#[derive(Debug, Clone, PartialEq)]
+struct DwellBuild {
+    a: usize,
+    b: usize,
+    cum: Vec<Moments>,
+    cur: SegmentAcc,
+    bad: u64,
+    first_bad: Option<usize>,
+}
+
+/// A finished dwell given by bounds, with its non-finite rows.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct DwellOutcome {
+    stat: DwellStat,
+    bad: u64,
+    first_bad: Option<usize>,
+}
+
+impl DwellBuild {
+    fn new(a: usize, b: usize) -> Self {
+        DwellBuild {
+            a,
+            b,
+            cum: Vec::new(),
+            cur: SegmentAcc::new(),
+            bad: 0,
+            first_bad: None,
+        }
+    }
+
+    fn nsub(&self) -> usize {
+        if (self.b - self.a) as u64 >= MIN_ALLAN_SAMPLES {
+            SUBS
+        } else {
+            2
+        }
+    }
+
+    /// Stream position where sub-block `j` starts.
+    fn edge(&self, j: usize) -> usize {
+        let (l, n) = (self.b - self.a, self.nsub());
+        match j.checked_mul(l) {
+            Some(jl) => self.a + jl / n,
+            None => self.a + (j as u128 * l as u128 / n as u128) as usize,
+        }
+    }
+
+    /// Push stream rows `[lo, hi)` (within `[a, b)`) of `chunk`, whose row 0 is stream row `c0`.
+    fn push<T: Sample>(&mut self, chunk: &ArrayView2<'_, T>, c0: usize, lo: usize, hi: usize) {
+        let nsub = self.nsub();
+        let mut p = lo;
+        while p < hi && self.cum.len() < nsub {
+            let e = self.edge(self.cum.len() + 1);
+            if e <= p {
+                // Unreachable for a consistent state (checked when one is decoded).
+                break;
+            }
+            let end = e.min(hi);
+            self.cur.push_view(chunk, p - c0, end - c0);
+            if !self.cur.is_finite() {
+                let (n, first) = count_bad(chunk, p - c0, end - c0);
+                self.bad += n;
+                if self.first_bad.is_none() {
+                    self.first_bad = first.map(|i| i + c0);
+                }
+            }
+            p = end;
+            if p == e {
+                self.cum.push(self.cur.moments());
+            }
+        }
+    }
+
+    fn is_done(&self) -> bool {
+        self.cum.len() == self.nsub()
+    }
+
+    fn outcome(&self) -> DwellOutcome {
+        DwellOutcome {
+            stat: DwellStat::from_cumulative(&self.cum, self.nsub() / 2),
+            bad: self.bad,
+            first_bad: self.first_bad,
+        }
+    }
+}
+
+/// Refuse dwells (given by bounds) with non-finite samples or values too large to square.
+fn check_outcomes(bounds: &[[usize; 2]], out: &[DwellOutcome]) -> Result<()> {
+    let bad: Vec<usize> = (0..out.len()).filter(|&k| out[k].bad > 0).collect();
+    if let Some(&k) = bad.first() {
+        let [a, b] = bounds[k];
+        let more = if bad.len() > 1 {
+            format!(" (and {} more dwell(s))", bad.len() - 1)
+        } else {
+            String::new()
+        };
+        return invalid(format!(
+            "samples contain NaN or inf in dwell {k} [{a}, {b}): {} row(s), the first at \
+             sample {}{more}; a dwell given by bounds must be complete (cut it out, or use \
+             detect_dwells, which treats non-finite samples as dropouts)",
+            out[k].bad,
+            out[k].first_bad.unwrap_or(a)
+        ));
+    }
+    if let Some(k) = (0..out.len()).find(|&k| !out[k].stat.moments.is_finite()) {
+        let [a, b] = bounds[k];
+        return invalid(format!(
+            "samples in dwell {k} [{a}, {b}) are too large to square in float64 (NaN or inf \
+             variance): rescale them"
+        ));
+    }
+    Ok(())
+}
+
+// ---- output resolution ---------------------------------------------------------------------
+
+/// A bounded, chunking-independent subsample of the stream for the LSB estimate: the rows at
+/// the multiples of a power-of-two step, the smallest step that keeps at most [`LSB_CAP`] rows.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LsbSampler {
+    step: u64,
+    rows: Vec<[f64; 3]>,
+    integer: bool,
+    seen: bool,
+}
+
+impl Default for LsbSampler {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl LsbSampler {
+    /// Nothing seen yet.
+    pub fn new() -> Self {
+        LsbSampler {
+            step: 1,
+            rows: Vec::new(),
+            integer: true,
+            seen: false,
+        }
+    }
+
+    /// Offer the rows of `v`, the first of which is stream row `pos0`.
+    ///
+    /// The step is settled first from where the chunk ends (the smallest power of two that
+    /// keeps at most [`LSB_CAP`] multiples below it), so only the rows kept are read.
+    pub fn push<T: Sample>(&mut self, v: &ArrayView2<'_, T>, pos0: u64) {
+        if v.nrows() == 0 {
+            return;
+        }
+        self.seen = true;
+        self.integer &= T::INTEGER;
+        let end = pos0 + v.nrows() as u64;
+        while end.div_ceil(self.step) > LSB_CAP as u64 {
+            let mut i = 0usize;
+            self.rows.retain(|_| {
+                i += 1;
+                i % 2 == 1
+            });
+            self.step *= 2;
+        }
+        let mut p = pos0.div_ceil(self.step) * self.step;
+        while p < end {
+            let r = v.row((p - pos0) as usize);
+            self.rows
+                .push([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
+            p += self.step;
+        }
+    }
+
+    /// Output resolution per axis: for integer samples the greatest common divisor of the
+    /// spacings between distinct values (1 count for ordinary data); for float samples the
+    /// common spacing of which every gap between distinct values is a whole multiple (within
+    /// 10 %), or None when the values are not quantised (or an axis has one distinct value).
+    pub fn estimate(&self) -> Option<[f64; 3]> {
+        if !self.seen {
+            return None;
+        }
+        let mut out = [0.0; 3];
+        for (a, o) in out.iter_mut().enumerate() {
+            let mut v: Vec<f64> = self
+                .rows
+                .iter()
+                .map(|r| r[a])
+                .filter(|x| x.is_finite())
+                .collect();
+            v.sort_by(f64::total_cmp);
+            v.dedup();
+            let d: Vec<f64> = v.windows(2).map(|w| w[1] - w[0]).collect();
+            *o = if self.integer {
+                let g = d.iter().fold(0u64, |g, &x| gcd(g, x as u64));
+                if g == 0 {
+                    1.0
+                } else {
+                    g as f64
+                }
+            } else {
+                let q0 = d.iter().cloned().fold(f64::INFINITY, f64::min);
+                if !(q0.is_finite() && q0 > 0.0) {
+                    return None;
+                }
+                let k: Vec<f64> = d.iter().map(|x| (x / q0).round()).collect();
+                let q = d.iter().sum::<f64>() / k.iter().sum::<f64>();
+                if !d.iter().zip(&k).all(|(x, k)| (x - k * q).abs() <= 0.1 * q) {
+                    return None;
+                }
+                q
+            };
+        }
+        Some(out)
+    }
+}
+
+fn gcd(mut a: u64, mut b: u64) -> u64 {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
+}
+
+// ---- automatic detection ---------------------------------------------------------------------
 
 /// Settings of the automatic static-interval detector.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -491,6 +1084,19 @@ pub struct DetectorSettings {
     pub noise_var: Option<[f64; 3]>,
 }
 
+/// `v` in the interval `(lo, hi]` (`open_lo`) or `[lo, hi]`, or an error naming the setting.
+fn in_range(v: f64, name: &str, lo: f64, hi: f64, open_lo: bool, unit: &str) -> Result<()> {
+    let ok = v.is_finite() && (if open_lo { v > lo } else { v >= lo }) && v <= hi;
+    if ok {
+        Ok(())
+    } else {
+        let br = if open_lo { "(" } else { "[" };
+        invalid(format!(
+            "{name} must be a finite number in {br}{lo}, {hi:e}]{unit}; got {v}"
+        ))
+    }
+}
+
 impl DetectorSettings {
     /// Defaults tuned once on three real sessions (Xsens, MPU6050, imucal) and a 5 kHz simulation.
     pub fn new(fs: f64) -> Self {
@@ -506,50 +1112,79 @@ impl DetectorSettings {
         }
     }
 
-    /// Check every setting.
+    /// Check every setting: finite, in range, and a window of at least
+    /// [`MIN_WINDOW_SAMPLES`] samples.
     pub fn validate(&self) -> Result<()> {
-        let pos = |v: f64, name: &str| -> Result<()> {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                invalid(format!("{name} must be a positive finite number; got {v}"))
-            }
-        };
-        pos(self.fs, "fs (sample rate, Hz)")?;
-        pos(self.window_s, "window_s (s)")?;
-        pos(self.k, "k (threshold factor)")?;
-        pos(self.block_s, "block_s (s)")?;
-        if !(self.min_dwell_s.is_finite() && self.min_dwell_s >= 0.0) {
-            return invalid(format!(
-                "min_dwell_s must be >= 0; got {}",
-                self.min_dwell_s
-            ));
-        }
-        if !(self.trim_s.is_finite() && self.trim_s >= 0.0) {
-            return invalid(format!("trim_s must be >= 0; got {}", self.trim_s));
-        }
+        in_range(self.fs, "fs", 0.0, MAX_FS, true, " Hz")?;
+        in_range(self.window_s, "window_s", 0.0, MAX_DURATION_S, true, " s")?;
+        in_range(self.k, "k", 0.0, 1e6, true, " (threshold factor)")?;
+        in_range(
+            self.min_dwell_s,
+            "min_dwell_s",
+            0.0,
+            MAX_DURATION_S,
+            false,
+            " s",
+        )?;
+        in_range(self.trim_s, "trim_s", 0.0, MAX_DURATION_S, false, " s")?;
+        in_range(self.block_s, "block_s", 0.0, MAX_DURATION_S, true, " s")?;
         if !(self.noise_quantile > 0.0 && self.noise_quantile < 1.0) {
             return invalid(format!(
-                "noise_quantile must be in (0, 1); got {}",
+                "noise_quantile must be a number in (0, 1); got {}",
                 self.noise_quantile
             ));
         }
+        if self.block_s > self.window_s {
+            return invalid(format!(
+                "block_s must not exceed window_s; got block_s = {} s, window_s = {} s",
+                self.block_s, self.window_s
+            ));
+        }
+        let wn = self.window_s * self.fs;
+        if wn < MIN_WINDOW_SAMPLES {
+            return invalid(format!(
+                "window_s = {} s at fs = {} Hz spans {wn} sample(s); the detector needs at least \
+                 {MIN_WINDOW_SAMPLES} samples per window (is fs the sample rate in Hz? else \
+                 raise window_s)",
+                self.window_s, self.fs
+            ));
+        }
         if let Some(v) = self.noise_var {
-            if !v.iter().all(|x| x.is_finite() && *x > 0.0) {
-                return invalid("noise_var must be three positive finite variances");
+            if !v.iter().all(|x| x.is_finite() && *x > 0.0 && *x < 1e300) {
+                return invalid(format!(
+                    "noise_var must be three positive finite variances; got {v:?}"
+                ));
             }
         }
         Ok(())
     }
 
-    /// Samples per block.
+    /// Samples per block (at least 1; at most `MAX_FS * MAX_DURATION_S`, so no overflow).
     pub fn block_len(&self) -> usize {
-        ((self.fs * self.block_s).round() as usize).max(1)
+        ((self.fs * self.block_s)
+            .round()
+            .clamp(1.0, MAX_FS * MAX_DURATION_S)) as usize
     }
 
     /// Blocks per window (at least 2).
     pub fn window_blocks(&self) -> usize {
-        ((self.window_s * self.fs / self.block_len() as f64).round() as usize).max(2)
+        let w = (self.window_s * self.fs / self.block_len() as f64).round();
+        (w.clamp(2.0, MAX_FS * MAX_DURATION_S)) as usize
+    }
+
+    /// Fewest blocks in a kept dwell (min_dwell_s, and at least [`MIN_DWELL_SAMPLES`]).
+    fn min_blocks(&self) -> usize {
+        let b = self.block_len() as f64;
+        let m = (self.min_dwell_s * self.fs / b)
+            .ceil()
+            .max((MIN_DWELL_SAMPLES as f64 / b).ceil());
+        (m.clamp(1.0, MAX_FS * MAX_DURATION_S)) as usize
+    }
+
+    /// Blocks trimmed at each end of a static run.
+    fn trim_blocks(&self) -> usize {
+        let t = (self.trim_s * self.fs / self.block_len() as f64).round();
+        (t.clamp(0.0, MAX_FS * MAX_DURATION_S)) as usize
     }
 }
 
@@ -558,8 +1193,8 @@ impl DetectorSettings {
 pub struct Detection {
     /// `[start, stop)` sample bounds of each dwell.
     pub bounds: Vec<[usize; 2]>,
-    /// Moments of each dwell.
-    pub moments: Vec<Moments>,
+    /// Statistics of each dwell.
+    pub stats: Vec<DwellStat>,
     /// Noise variance per axis used (estimated or given), in squared input units.
     pub noise_var: [f64; 3],
     /// Threshold on the window variance per axis, in squared input units.
@@ -568,38 +1203,34 @@ pub struct Detection {
 
 /// Detect static intervals from compressed block statistics.
 ///
-/// `blocks[j]` holds samples `[j * b, (j + 1) * b)` with `b = settings.block_len()`.
+/// `blocks[j]` holds samples `[j * b, (j + 1) * b)` with `b = settings.block_len()`. A block
+/// whose moments are not finite holds NaN or inf samples (a dropout): no window that contains
+/// it is static, so no dwell contains it.
 pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<Detection> {
     s.validate()?;
     let b = s.block_len();
     let w = s.window_blocks();
-    if blocks.len() < w + 1 {
+    if blocks.len() <= w {
         return invalid(format!(
-            "stream too short for dwell detection: {} samples, need more than one {} s window ({} samples)",
-            blocks.len() * b,
+            "stream too short for dwell detection: {} samples, need more than one {} s window \
+             ({} samples)",
+            blocks.len().saturating_mul(b),
             s.window_s,
-            w * b
+            w.saturating_mul(b)
         ));
     }
-    for (j, m) in blocks.iter().enumerate() {
-        if !m.is_finite() {
-            return invalid(format!(
-                "samples contain NaN or inf near sample {} (block [{}, {}))",
-                j * b,
-                j * b,
-                (j + 1) * b
-            ));
-        }
-    }
-    // Window variance per axis; window i covers blocks i..i+w.
+    // Window variance per axis; window i covers blocks i..i+w (inf where it has a dropout).
     let nw = blocks.len() - w + 1;
     let var: Vec<[f64; 3]> = (0..nw)
         .into_par_iter()
         .map(|i| {
-            let m = blocks[i..i + w]
-                .iter()
-                .fold(Moments::EMPTY, |acc, x| acc.merge(x));
-            m.var()
+            let win = &blocks[i..i + w];
+            if win.iter().any(|m| !m.is_finite()) {
+                return [f64::INFINITY; 3];
+            }
+            win.iter()
+                .fold(Moments::EMPTY, |acc, x| acc.merge_stats(x))
+                .var()
         })
         .collect();
     let noise_var = match s.noise_var {
@@ -607,7 +1238,15 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         None => {
             let mut nv = [0.0; 3];
             for (a, slot) in nv.iter_mut().enumerate() {
-                let mut col: Vec<f64> = var.iter().map(|v| v[a]).collect();
+                let mut col: Vec<f64> =
+                    var.iter().map(|v| v[a]).filter(|v| v.is_finite()).collect();
+                if col.is_empty() {
+                    return invalid(format!(
+                        "no {} s window of the stream is free of NaN or inf samples: the \
+                         noise level cannot be estimated",
+                        s.window_s
+                    ));
+                }
                 let q = ((col.len() - 1) as f64 * s.noise_quantile).round() as usize;
                 let (_, val, _) = col.select_nth_unstable_by(q, |x, y| x.total_cmp(y));
                 *slot = *val;
@@ -629,10 +1268,10 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
     for (i, v) in var.iter().enumerate() {
         is_static[i + h] = (0..3).all(|a| v[a] < thr[a]);
     }
-    let trim = (s.trim_s * s.fs / b as f64).round() as usize;
-    let min_blocks = (s.min_dwell_s * s.fs / b as f64).ceil() as usize;
+    let trim = s.trim_blocks();
+    let min_blocks = s.min_blocks();
     let mut bounds = Vec::new();
-    let mut moments = Vec::new();
+    let mut stats = Vec::new();
     let mut j = 0;
     while j < blocks.len() {
         if !is_static[j] {
@@ -643,69 +1282,45 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         while j < blocks.len() && is_static[j] {
             j += 1;
         }
-        let (a, z) = (start + trim, j.saturating_sub(trim));
-        if z > a && z - a >= min_blocks.max(1) {
-            let m = blocks[a..z]
-                .iter()
-                .fold(Moments::EMPTY, |acc, x| acc.merge(x));
+        let (a, z) = (start.saturating_add(trim), j.saturating_sub(trim));
+        if z > a && z - a >= min_blocks {
+            let segs = &blocks[a..z];
             bounds.push([a * b, z * b]);
-            moments.push(m);
+            stats.push(DwellStat::from_segments(segs, segs.len() / 2));
         }
+    }
+    if bounds.is_empty() {
+        let n = blocks.len() * b;
+        return degenerate(format!(
+            "no static dwell found in {n} samples ({:.4} s at {} Hz): no run of at least \
+             min_dwell_s = {} s stayed below k = {} x the noise variance (noise std {:.3e}, \
+             {:.3e}, {:.3e}); check fs, or lower min_dwell_s, raise k or give noise_std",
+            n as f64 / s.fs,
+            s.fs,
+            s.min_dwell_s,
+            s.k,
+            noise_var[0].sqrt(),
+            noise_var[1].sqrt(),
+            noise_var[2].sqrt()
+        ));
     }
     Ok(Detection {
         bounds,
-        moments,
+        stats,
         noise_var,
         threshold: thr,
     })
 }
 
-/// Streaming accumulator of per-dwell statistics.
-#[derive(Debug, Clone)]
-pub enum DwellAccumulator {
-    /// Known `[start, stop)` bounds.
-    Bounds(BoundsAcc),
-    /// Automatic detection at `finish` (boxed: it carries a block accumulator).
-    Detect(Box<DetectAcc>),
-}
-
-/// Accumulator for known bounds (sorted internally; results in the caller's order).
-#[derive(Debug, Clone)]
-pub struct BoundsAcc {
-    bounds: Vec<[usize; 2]>,
-    order: Vec<usize>,
-    accs: Vec<SegmentAcc>,
-    aux_sum: Vec<f64>,
-    t_first: Vec<f64>,
-    t_last: Vec<f64>,
-    first_open: usize,
-    pos: usize,
-    has_t: Option<bool>,
-    has_aux: Option<bool>,
-}
-
-/// Accumulator for detection: per-block statistics only.
-#[derive(Debug, Clone)]
-pub struct DetectAcc {
-    settings: DetectorSettings,
-    blocks: Vec<Moments>,
-    aux_blocks: Vec<f64>,
-    t_blocks: Vec<[f64; 2]>,
-    cur: SegmentAcc,
-    cur_aux: f64,
-    cur_t: [f64; 2],
-    pos: usize,
-    has_t: Option<bool>,
-    has_aux: Option<bool>,
-}
+// ---- the dwell table -----------------------------------------------------------------------
 
 /// A finished dwell table.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DwellTable {
     /// `[start, stop)` sample bounds.
     pub bounds: Vec<[usize; 2]>,
-    /// Moments per dwell.
-    pub moments: Vec<Moments>,
+    /// Statistics per dwell (moments, half-dwell moments, Allan inflation).
+    pub stats: Vec<DwellStat>,
     /// Mid time `(t[start] + t[stop-1]) / 2` per dwell, when a time channel was pushed.
     pub t_mid: Option<Vec<f64>>,
     /// Mean of the auxiliary channel (temperature) per dwell, when one was pushed.
@@ -714,44 +1329,164 @@ pub struct DwellTable {
     pub noise_var: Option<[f64; 3]>,
     /// Detection threshold per axis, when the dwells were detected.
     pub threshold: Option<[f64; 3]>,
+    /// Output resolution per axis ([`LsbSampler::estimate`]).
+    pub lsb: Option<[f64; 3]>,
+    /// Rows with a NaN or inf value that were left out of every dwell (detection only;
+    /// dwells given by bounds refuse them).
+    pub dropped: u64,
 }
 
-fn check_presence(flag: &mut Option<bool>, now: bool, what: &str) -> Result<()> {
-    match *flag {
-        None => {
-            *flag = Some(now);
-            Ok(())
-        }
-        Some(f) if f == now => Ok(()),
-        Some(_) => invalid(format!(
-            "{what} must be given with every chunk or with none"
+impl DwellTable {
+    /// Moments of each dwell.
+    pub fn moments(&self) -> Vec<Moments> {
+        self.stats.iter().map(|s| s.moments).collect()
+    }
+}
+
+fn sum_seq(x: &[f64]) -> f64 {
+    let mut s = 0.0;
+    for v in x {
+        s += *v;
+    }
+    s
+}
+
+/// Per-dwell statistics of `samples` over `[start, stop)` bounds (parallel over dwells), with
+/// optional per-sample time and auxiliary (temperature) channels.
+pub fn dwell_table<T: Sample>(
+    samples: &ArrayView2<'_, T>,
+    bounds: &[[usize; 2]],
+    t: Option<&[f64]>,
+    aux: Option<&[f64]>,
+) -> Result<DwellTable> {
+    let n = check_samples(samples)?;
+    check_dwell_bounds(bounds, n)?;
+    check_channel(t, n, "t")?;
+    check_channel(aux, n, "temperature")?;
+    let out: Vec<DwellOutcome> = bounds
+        .par_iter()
+        .map(|&[a, b]| {
+            let mut d = DwellBuild::new(a, b);
+            d.push(samples, 0, a, b);
+            d.outcome()
+        })
+        .collect();
+    check_outcomes(bounds, &out)?;
+    let mut lsb = LsbSampler::new();
+    lsb.push(samples, 0);
+    Ok(DwellTable {
+        bounds: bounds.to_vec(),
+        stats: out.iter().map(|o| o.stat).collect(),
+        t_mid: t.map(|x| {
+            bounds
+                .iter()
+                .map(|&[a, z]| 0.5 * (x[a] + x[z - 1]))
+                .collect()
+        }),
+        aux_mean: aux.map(|x| {
+            bounds
+                .iter()
+                .map(|&[a, z]| sum_seq(&x[a..z]) / (z - a) as f64)
+                .collect()
+        }),
+        noise_var: None,
+        threshold: None,
+        lsb: lsb.estimate(),
+        dropped: 0,
+    })
+}
+
+/// Per-dwell moments of `samples` over `[start, stop)` bounds (parallel over dwells).
+pub fn dwell_moments<T: Sample>(
+    samples: &ArrayView2<'_, T>,
+    bounds: &[[usize; 2]],
+) -> Result<Vec<Moments>> {
+    Ok(dwell_table(samples, bounds, None, None)?.moments())
+}
+
+/// Detect the static intervals of a whole stream and return their statistics.
+pub fn detect_table<T: Sample>(
+    samples: &ArrayView2<'_, T>,
+    settings: DetectorSettings,
+    t: Option<&[f64]>,
+    aux: Option<&[f64]>,
+) -> Result<DwellTable> {
+    check_samples(samples)?;
+    let mut acc = DwellAccumulator::with_detector(settings)?;
+    acc.push(samples, t, aux)?;
+    acc.finish()
+}
+
+// ---- streaming -----------------------------------------------------------------------------
+
+/// Streaming accumulator of per-dwell statistics.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DwellAccumulator {
+    /// Known `[start, stop)` bounds.
+    Bounds(Box<BoundsAcc>),
+    /// Automatic detection at `finish`.
+    Detect(Box<DetectAcc>),
+}
+
+/// Accumulator for known bounds (sorted internally; results in the caller's order).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoundsAcc {
+    bounds: Vec<[usize; 2]>,
+    order: Vec<usize>,
+    done: Vec<Option<DwellOutcome>>,
+    open: Option<(usize, DwellBuild)>,
+    aux_sum: Vec<f64>,
+    t_first: Vec<f64>,
+    t_last: Vec<f64>,
+    first_open: usize,
+    pos: usize,
+    has_t: Option<bool>,
+    has_aux: Option<bool>,
+    lsb: LsbSampler,
+}
+
+/// Accumulator for detection: per-block statistics only.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DetectAcc {
+    settings: DetectorSettings,
+    blocks: Vec<Moments>,
+    aux_blocks: Vec<f64>,
+    t_blocks: Vec<[f64; 2]>,
+    cur: SegmentAcc,
+    cur_bad: bool,
+    cur_aux: f64,
+    cur_t: [f64; 2],
+    pos: usize,
+    dropped: u64,
+    overflow_at: Option<usize>,
+    has_t: Option<bool>,
+    has_aux: Option<bool>,
+    lsb: LsbSampler,
+}
+
+/// A channel must be given with every chunk or with none (checked without changing anything).
+fn check_presence(flag: Option<bool>, now: bool, what: &str) -> Result<()> {
+    match flag {
+        Some(f) if f != now => invalid(format!(
+            "{what} must be given with every chunk or with none (the first chunk {} it)",
+            if f { "had" } else { "did not have" }
         )),
+        _ => Ok(()),
     }
-}
-
-fn check_aux_len(x: Option<&[f64]>, n: usize, what: &str) -> Result<()> {
-    if let Some(x) = x {
-        if x.len() != n {
-            return invalid(format!(
-                "{what} has {} values but the chunk has {n} samples",
-                x.len()
-            ));
-        }
-    }
-    Ok(())
 }
 
 impl DwellAccumulator {
     /// Accumulate over known bounds.
     pub fn with_bounds(bounds: Vec<[usize; 2]>) -> Result<Self> {
-        check_bounds(&bounds, usize::MAX)?;
+        check_dwell_bounds(&bounds, usize::MAX)?;
         let mut order: Vec<usize> = (0..bounds.len()).collect();
         order.sort_by_key(|&k| bounds[k][0]);
         let k = bounds.len();
-        Ok(DwellAccumulator::Bounds(BoundsAcc {
+        Ok(DwellAccumulator::Bounds(Box::new(BoundsAcc {
             bounds,
             order,
-            accs: vec![SegmentAcc::new(); k],
+            done: vec![None; k],
+            open: None,
             aux_sum: vec![0.0; k],
             t_first: vec![f64::NAN; k],
             t_last: vec![f64::NAN; k],
@@ -759,7 +1494,8 @@ impl DwellAccumulator {
             pos: 0,
             has_t: None,
             has_aux: None,
-        }))
+            lsb: LsbSampler::new(),
+        })))
     }
 
     /// Accumulate block statistics and detect dwells at `finish`.
@@ -771,11 +1507,15 @@ impl DwellAccumulator {
             aux_blocks: Vec::new(),
             t_blocks: Vec::new(),
             cur: SegmentAcc::new(),
+            cur_bad: false,
             cur_aux: 0.0,
             cur_t: [f64::NAN; 2],
             pos: 0,
+            dropped: 0,
+            overflow_at: None,
             has_t: None,
             has_aux: None,
+            lsb: LsbSampler::new(),
         })))
     }
 
@@ -788,6 +1528,9 @@ impl DwellAccumulator {
     }
 
     /// Push a chunk of samples `(m, 3)` with optional time and auxiliary (temperature) channels.
+    ///
+    /// Every check runs before anything changes: after an error the accumulator holds exactly
+    /// what it held before the call.
     pub fn push<T: Sample>(
         &mut self,
         chunk: &ArrayView2<'_, T>,
@@ -801,23 +1544,27 @@ impl DwellAccumulator {
             ));
         }
         let m = chunk.nrows();
-        check_aux_len(t, m, "t")?;
-        check_aux_len(aux, m, "temperature")?;
-        match self {
-            DwellAccumulator::Bounds(s) => {
-                check_presence(&mut s.has_t, t.is_some(), "t")?;
-                check_presence(&mut s.has_aux, aux.is_some(), "temperature")?;
-                s.push(chunk, t, aux)
-            }
-            DwellAccumulator::Detect(s) => {
-                check_presence(&mut s.has_t, t.is_some(), "t")?;
-                check_presence(&mut s.has_aux, aux.is_some(), "temperature")?;
-                s.push(chunk, t, aux)
-            }
+        check_channel(t, m, "t")?;
+        check_channel(aux, m, "temperature")?;
+        let (has_t, has_aux) = match self {
+            DwellAccumulator::Bounds(s) => (&mut s.has_t, &mut s.has_aux),
+            DwellAccumulator::Detect(s) => (&mut s.has_t, &mut s.has_aux),
+        };
+        check_presence(*has_t, t.is_some(), "t")?;
+        check_presence(*has_aux, aux.is_some(), "temperature")?;
+        if m == 0 {
+            return Ok(());
         }
+        *has_t = Some(t.is_some());
+        *has_aux = Some(aux.is_some());
+        match self {
+            DwellAccumulator::Bounds(s) => s.push(chunk, t, aux),
+            DwellAccumulator::Detect(s) => s.push(chunk, t, aux),
+        }
+        Ok(())
     }
 
-    /// Finish and return the dwell table.
+    /// The dwell table of everything pushed so far (the accumulator stays usable).
     pub fn finish(&self) -> Result<DwellTable> {
         match self {
             DwellAccumulator::Bounds(s) => s.finish(),
@@ -832,8 +1579,9 @@ impl BoundsAcc {
         chunk: &ArrayView2<'_, T>,
         t: Option<&[f64]>,
         aux: Option<&[f64]>,
-    ) -> Result<()> {
+    ) {
         let (c0, c1) = (self.pos, self.pos + chunk.nrows());
+        self.lsb.push(chunk, c0 as u64);
         let mut i = self.first_open;
         while i < self.order.len() {
             let k = self.order[i];
@@ -843,7 +1591,16 @@ impl BoundsAcc {
             }
             let (lo, hi) = (a.max(c0), b.min(c1));
             if lo < hi {
-                self.accs[k].push_view(chunk, lo - c0, hi - c0);
+                if !matches!(&self.open, Some((ko, _)) if *ko == k) {
+                    self.open = Some((k, DwellBuild::new(a, b)));
+                }
+                if let Some((_, build)) = self.open.as_mut() {
+                    build.push(chunk, c0, lo, hi);
+                    if build.is_done() {
+                        self.done[k] = Some(build.outcome());
+                        self.open = None;
+                    }
+                }
                 if let Some(x) = aux {
                     for v in &x[lo - c0..hi - c0] {
                         self.aux_sum[k] += *v;
@@ -864,56 +1621,45 @@ impl BoundsAcc {
             i += 1;
         }
         self.pos = c1;
-        Ok(())
     }
 
     fn finish(&self) -> Result<DwellTable> {
-        let mut moments = Vec::with_capacity(self.bounds.len());
-        for (k, (&[a, b], acc)) in self.bounds.iter().zip(&self.accs).enumerate() {
-            if b > self.pos {
-                return invalid(format!(
-                    "dwell {k} [{a}, {b}) out of range: only {} samples were pushed",
-                    self.pos
-                ));
+        let mut out = Vec::with_capacity(self.bounds.len());
+        for (k, (&[a, b], d)) in self.bounds.iter().zip(&self.done).enumerate() {
+            match d {
+                Some(o) if b <= self.pos => out.push(*o),
+                _ => {
+                    return invalid(format!(
+                        "dwell {k} [{a}, {b}) out of range: only {} samples were pushed",
+                        self.pos
+                    ))
+                }
             }
-            let m = acc.moments();
-            if !m.is_finite() {
-                return Err(nonfinite_error(k, a, b));
-            }
-            moments.push(m);
         }
-        let t_mid = if self.has_t == Some(true) {
-            Some(
-                self.t_first
-                    .iter()
-                    .zip(&self.t_last)
-                    .map(|(a, b)| 0.5 * (a + b))
-                    .collect(),
-            )
-        } else {
-            None
-        };
-        let aux_mean = if self.has_aux == Some(true) {
-            let v: Vec<f64> = self
-                .aux_sum
+        check_outcomes(&self.bounds, &out)?;
+        let t_mid = (self.has_t == Some(true)).then(|| {
+            self.t_first
+                .iter()
+                .zip(&self.t_last)
+                .map(|(a, b)| 0.5 * (a + b))
+                .collect()
+        });
+        let aux_mean = (self.has_aux == Some(true)).then(|| {
+            self.aux_sum
                 .iter()
                 .zip(&self.bounds)
                 .map(|(s, &[a, b])| s / (b - a) as f64)
-                .collect();
-            if v.iter().any(|x| !x.is_finite()) {
-                return invalid("temperature contains NaN or inf inside a dwell");
-            }
-            Some(v)
-        } else {
-            None
-        };
+                .collect()
+        });
         Ok(DwellTable {
             bounds: self.bounds.clone(),
-            moments,
+            stats: out.iter().map(|o| o.stat).collect(),
             t_mid,
             aux_mean,
             noise_var: None,
             threshold: None,
+            lsb: self.lsb.estimate(),
+            dropped: 0,
         })
     }
 }
@@ -924,12 +1670,13 @@ impl DetectAcc {
         chunk: &ArrayView2<'_, T>,
         t: Option<&[f64]>,
         aux: Option<&[f64]>,
-    ) -> Result<()> {
+    ) {
         let bl = self.settings.block_len();
         let m = chunk.nrows();
+        self.lsb.push(chunk, self.pos as u64);
         let mut i = 0;
         while i < m {
-            let in_block = (self.cur.count() as usize) % bl;
+            let in_block = self.cur.count() as usize;
             let take = (bl - in_block).min(m - i);
             if in_block == 0 {
                 if let Some(t) = t {
@@ -937,6 +1684,11 @@ impl DetectAcc {
                 }
             }
             self.cur.push_view(chunk, i, i + take);
+            if !self.cur.is_finite() {
+                let (n, _) = count_bad(chunk, i, i + take);
+                self.dropped += n;
+                self.cur_bad |= n > 0;
+            }
             if let Some(x) = aux {
                 for v in &x[i..i + take] {
                     self.cur_aux += *v;
@@ -947,57 +1699,55 @@ impl DetectAcc {
             }
             i += take;
             if self.cur.count() as usize == bl {
-                self.blocks.push(self.cur.moments());
+                let mo = self.cur.moments();
+                if !mo.is_finite() && !self.cur_bad && self.overflow_at.is_none() {
+                    self.overflow_at = Some(self.blocks.len() * bl);
+                }
+                self.blocks.push(mo);
                 self.aux_blocks.push(self.cur_aux);
                 self.t_blocks.push(self.cur_t);
                 self.cur = SegmentAcc::new();
+                self.cur_bad = false;
                 self.cur_aux = 0.0;
                 self.cur_t = [f64::NAN; 2];
             }
         }
         self.pos += m;
-        Ok(())
     }
 
     fn finish(&self) -> Result<DwellTable> {
         if self.pos == 0 {
             return invalid("no samples were pushed");
         }
+        if let Some(p) = self.overflow_at {
+            return invalid(format!(
+                "samples near sample {p} are too large to square in float64 (NaN or inf \
+                 variance): rescale them"
+            ));
+        }
         let det = detect_from_blocks(&self.blocks, &self.settings)?;
         let bl = self.settings.block_len();
-        let t_mid = if self.has_t == Some(true) {
-            Some(
-                det.bounds
-                    .iter()
-                    .map(|&[a, b]| 0.5 * (self.t_blocks[a / bl][0] + self.t_blocks[b / bl - 1][1]))
-                    .collect(),
-            )
-        } else {
-            None
-        };
-        let aux_mean = if self.has_aux == Some(true) {
-            let v: Vec<f64> = det
-                .bounds
+        let t_mid = (self.has_t == Some(true)).then(|| {
+            det.bounds
                 .iter()
-                .map(|&[a, b]| {
-                    let s: f64 = self.aux_blocks[a / bl..b / bl].iter().sum();
-                    s / (b - a) as f64
-                })
-                .collect();
-            if v.iter().any(|x| !x.is_finite()) {
-                return invalid("temperature contains NaN or inf inside a dwell");
-            }
-            Some(v)
-        } else {
-            None
-        };
+                .map(|&[a, b]| 0.5 * (self.t_blocks[a / bl][0] + self.t_blocks[b / bl - 1][1]))
+                .collect()
+        });
+        let aux_mean = (self.has_aux == Some(true)).then(|| {
+            det.bounds
+                .iter()
+                .map(|&[a, b]| sum_seq(&self.aux_blocks[a / bl..b / bl]) / (b - a) as f64)
+                .collect()
+        });
         Ok(DwellTable {
             bounds: det.bounds,
-            moments: det.moments,
+            stats: det.stats,
             t_mid,
             aux_mean,
             noise_var: Some(det.noise_var),
             threshold: Some(det.threshold),
+            lsb: self.lsb.estimate(),
+            dropped: self.dropped,
         })
     }
 }
@@ -1005,6 +1755,7 @@ impl DetectAcc {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::CoreError;
     use ndarray::Array2;
 
     fn lcg(seed: &mut u64) -> f64 {
@@ -1014,17 +1765,41 @@ mod tests {
         ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
     }
 
-    fn two_pass(x: &Array2<f64>, a: usize, b: usize) -> ([f64; 3], [f64; 3]) {
+    fn gauss(seed: &mut u64) -> f64 {
+        let (u, v) = (lcg(seed).max(1e-300), lcg(seed));
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
+    fn two_pass(x: &Array2<f64>, a: usize, b: usize) -> ([f64; 3], [f64; 3], [f64; 3]) {
         let mut mean = [0.0; 3];
         let mut var = [0.0; 3];
+        let mut d2 = [0.0; 3];
         for ax in 0..3 {
             let col: Vec<f64> = (a..b).map(|i| x[[i, ax]]).collect();
             let m = col.iter().sum::<f64>() / col.len() as f64;
             let v = col.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (col.len() - 1) as f64;
             mean[ax] = m;
             var[ax] = v;
+            d2[ax] = col.windows(2).map(|w| (w[1] - w[0]) * (w[1] - w[0])).sum();
         }
-        (mean, var)
+        (mean, var, d2)
+    }
+
+    /// Bitwise equality (NaN fields included) through the exact `Debug` representation.
+    fn same<A: std::fmt::Debug, B: std::fmt::Debug>(a: &A, b: &B) {
+        assert_eq!(format!("{a:?}"), format!("{b:?}"));
+    }
+
+    fn push_chunked<T: Sample>(acc: &mut DwellAccumulator, x: &Array2<T>, mut step: usize) {
+        let n = x.nrows();
+        let mut pos = 0;
+        while pos < n {
+            let e = (pos + step).min(n);
+            acc.push(&x.slice(ndarray::s![pos..e, ..]), None, None)
+                .unwrap();
+            pos = e;
+            step = (step * 7 + 3) % 5003 + 1;
+        }
     }
 
     #[test]
@@ -1033,14 +1808,25 @@ mod tests {
         let n = 20_000;
         let x = Array2::from_shape_fn((n, 3), |_| 33000.0 + (3.0 * lcg(&mut s) * 3.0).round());
         let bounds = vec![[0, 5000], [5000, 13_001], [13_001, 20_000]];
-        let m = dwell_moments(&x.view(), &bounds).unwrap();
+        let t = dwell_table(&x.view(), &bounds, None, None).unwrap();
         for (k, &[a, b]) in bounds.iter().enumerate() {
-            let (mean, var) = two_pass(&x, a, b);
+            let (mean, var, d2) = two_pass(&x, a, b);
+            let m = t.stats[k].moments;
             for ax in 0..3 {
-                assert!((m[k].mean[ax] - mean[ax]).abs() <= 1e-12 * mean[ax].abs());
-                assert!((m[k].var()[ax] - var[ax]).abs() <= 1e-9 * var[ax]);
+                assert!((m.mean[ax] - mean[ax]).abs() <= 1e-12 * mean[ax].abs());
+                assert!((m.var()[ax] - var[ax]).abs() <= 1e-9 * var[ax]);
+                assert!((m.d2[ax] - d2[ax]).abs() <= 1e-12 * d2[ax]);
+            }
+            // Half-dwell means split at floor(L / 2).
+            let h = a + (b - a) / 2;
+            let (m0, _, _) = two_pass(&x, a, h);
+            let (m1, _, _) = two_pass(&x, h, b);
+            for ax in 0..3 {
+                assert!((t.stats[k].half_mean[0][ax] - m0[ax]).abs() <= 1e-12 * m0[ax]);
+                assert!((t.stats[k].half_mean[1][ax] - m1[ax]).abs() <= 1e-12 * m1[ax]);
             }
         }
+        assert_eq!(t.lsb, Some([1.0; 3]));
     }
 
     #[test]
@@ -1048,20 +1834,23 @@ mod tests {
         let mut s = 3u64;
         let n = 30_011;
         let x = Array2::from_shape_fn((n, 3), |_| 1e4 + lcg(&mut s));
-        let bounds = vec![[10, 9000], [9000, 9001 + 8000], [20_000, 30_011]];
-        let one = dwell_moments(&x.view(), &bounds).unwrap();
-        let mut acc = DwellAccumulator::with_bounds(bounds.clone()).unwrap();
-        let mut pos = 0;
-        let mut step = 1;
-        while pos < n {
-            let e = (pos + step).min(n);
-            acc.push(&x.slice(ndarray::s![pos..e, ..]), None, None)
-                .unwrap();
-            pos = e;
-            step = (step * 7 + 3) % 5003 + 1;
+        let bounds = vec![
+            [10, 9000],
+            [9000, 9001 + 8000],
+            [20_000, 30_011],
+            [17_050, 17_090],
+        ];
+        let one = dwell_table(&x.view(), &bounds, None, None).unwrap();
+        for first in [1, 2, 5, 4096, 30_011] {
+            let mut acc = DwellAccumulator::with_bounds(bounds.clone()).unwrap();
+            push_chunked(&mut acc, &x, first);
+            same(&acc.finish().unwrap(), &one);
+            let mut det = DwellAccumulator::with_detector(DetectorSettings::new(100.0)).unwrap();
+            let mut whole = DwellAccumulator::with_detector(DetectorSettings::new(100.0)).unwrap();
+            push_chunked(&mut det, &x, first);
+            whole.push(&x.view(), None, None).unwrap();
+            same(&det, &whole);
         }
-        let t = acc.finish().unwrap();
-        assert_eq!(t.moments, one);
     }
 
     #[test]
@@ -1070,8 +1859,8 @@ mod tests {
         let x = Array2::from_shape_fn((1000, 6), |_| lcg(&mut s));
         let strided = x.slice(ndarray::s![.., 0..6;2]);
         let copy = strided.to_owned();
-        let a = dwell_moments(&strided, &[[0, 1000]]).unwrap();
-        let b = dwell_moments(&copy.view(), &[[0, 1000]]).unwrap();
+        let a = dwell_table(&strided, &[[0, 1000]], None, None).unwrap();
+        let b = dwell_table(&copy.view(), &[[0, 1000]], None, None).unwrap();
         assert_eq!(a, b);
     }
 
@@ -1080,11 +1869,19 @@ mod tests {
         let x = Array2::<f64>::zeros((100, 3));
         assert!(dwell_moments(&x.view(), &[[0, 101]]).is_err());
         assert!(dwell_moments(&x.view(), &[[5, 5]]).is_err());
+        assert!(dwell_moments(&x.view(), &[[5, 6]]).is_err());
         assert!(dwell_moments(&x.view(), &[[0, 50], [40, 60]]).is_err());
         let mut y = x.clone();
         y[[10, 1]] = f64::NAN;
+        y[[12, 0]] = f64::INFINITY;
         let e = dwell_moments(&y.view(), &[[0, 50]]).unwrap_err();
-        assert!(e.to_string().contains("NaN"));
+        assert!(e.to_string().contains("NaN"), "{e}");
+        assert!(
+            e.to_string().contains("2 row(s), the first at sample 10"),
+            "{e}"
+        );
+        // Outside every dwell it does not matter.
+        assert!(dwell_moments(&y.view(), &[[20, 50]]).is_ok());
         let bad = Array2::<f64>::zeros((10, 2));
         assert!(dwell_moments(&bad.view(), &[[0, 5]]).is_err());
     }
@@ -1113,11 +1910,39 @@ mod tests {
         }
         assert_eq!(fast.moments(), slow.moments());
         let xf = x.mapv(f64::from);
-        let (mean, var) = two_pass(&xf, 0, 10_007);
+        let (mean, var, d2) = two_pass(&xf, 0, 10_007);
         let m = fast.moments();
         for ax in 0..3 {
             assert!((m.mean[ax] - mean[ax]).abs() <= 1e-12 * mean[ax].abs());
             assert!((m.var()[ax] - var[ax]).abs() <= 1e-12 * var[ax]);
+            assert_eq!(m.d2[ax], d2[ax]);
+        }
+        // A float chunk before int16 ones (non-integer shift and previous row) stays exact.
+        let mut mixed = SegmentAcc::new();
+        mixed.push_row([0.5, -0.25, 3.75]);
+        mixed.push_slice(x.as_slice().unwrap());
+        let mut rows = SegmentAcc::new();
+        rows.push_row([0.5, -0.25, 3.75]);
+        for r in x.rows() {
+            rows.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
+        }
+        assert_eq!(mixed.moments(), rows.moments());
+    }
+
+    #[test]
+    fn f64_fast_path_is_bit_identical_to_row_path() {
+        let mut s = 23u64;
+        let x = Array2::from_shape_fn((9_001, 3), |_| 9.8 + gauss(&mut s));
+        for cut in [0, 1, 3, 4, 7, 4096] {
+            let mut fast = SegmentAcc::new();
+            let flat = x.as_slice().unwrap();
+            fast.push_slice(&flat[..3 * cut]);
+            fast.push_slice(&flat[3 * cut..]);
+            let mut slow = SegmentAcc::new();
+            for r in x.rows() {
+                slow.push_row([r[0], r[1], r[2]]);
+            }
+            assert_eq!(fast.moments(), slow.moments());
         }
     }
 
@@ -1128,19 +1953,16 @@ mod tests {
         assert!(e.to_string().contains("too large"));
     }
 
-    #[test]
-    fn detector_finds_simulated_dwells() {
-        // 5 dwells of 5 s at 100 Hz separated by 2 s ramps.
-        let fs = 100.0;
-        let mut s = 5u64;
+    fn piecewise(seed: u64, levels: &[f64], noise: f64) -> Array2<f64> {
+        // Dwells of 5 s at 100 Hz separated by 2 s ramps.
+        let mut s = seed;
         let mut rows = Vec::new();
-        let levels = [0.0, 1.0, -1.0, 2.0, 0.5];
         for (i, &l) in levels.iter().enumerate() {
             for _ in 0..500 {
                 rows.push([
-                    l + 0.01 * lcg(&mut s),
-                    0.01 * lcg(&mut s),
-                    9.8 + 0.01 * lcg(&mut s),
+                    l + noise * lcg(&mut s),
+                    noise * lcg(&mut s),
+                    9.8 + noise * lcg(&mut s),
                 ]);
             }
             if i + 1 < levels.len() {
@@ -1151,13 +1973,228 @@ mod tests {
                 }
             }
         }
-        let x = Array2::from_shape_fn((rows.len(), 3), |(i, a)| rows[i][a]);
-        let mut acc = DwellAccumulator::with_detector(DetectorSettings::new(fs)).unwrap();
+        Array2::from_shape_fn((rows.len(), 3), |(i, a)| rows[i][a])
+    }
+
+    #[test]
+    fn detector_finds_simulated_dwells() {
+        let levels = [0.0, 1.0, -1.0, 2.0, 0.5];
+        let x = piecewise(5, &levels, 0.01);
+        let mut acc = DwellAccumulator::with_detector(DetectorSettings::new(100.0)).unwrap();
         acc.push(&x.view(), None, None).unwrap();
         let t = acc.finish().unwrap();
         assert_eq!(t.bounds.len(), 5);
-        for (m, &l) in t.moments.iter().zip(&levels) {
+        for (m, &l) in t.moments().iter().zip(&levels) {
             assert!((m.mean[0] - (l + 0.005)).abs() < 0.002);
+        }
+        assert_eq!(t.dropped, 0);
+        assert_eq!(t.lsb, None);
+    }
+
+    #[test]
+    fn detector_treats_nan_as_dropout_and_counts_it() {
+        let levels = [0.0, 1.0, -1.0];
+        let mut x = piecewise(5, &levels, 0.01);
+        // Three bad rows in the middle of the second dwell (samples 700..1200).
+        for i in [950, 951, 960] {
+            x[[i, 1]] = f64::NAN;
+        }
+        let t = detect_table(&x.view(), DetectorSettings::new(100.0), None, None).unwrap();
+        assert_eq!(t.dropped, 3);
+        for &[a, b] in &t.bounds {
+            assert!(b <= 950 || a > 960, "dwell [{a}, {b}) holds a NaN");
+        }
+        assert!(t.stats.iter().all(|s| s.moments.is_finite()));
+        // Whole-stream NaN: no window to estimate the noise from.
+        let y = Array2::from_elem((1000, 3), f64::NAN);
+        let e = detect_table(&y.view(), DetectorSettings::new(100.0), None, None).unwrap_err();
+        assert!(e.to_string().contains("NaN"), "{e}");
+    }
+
+    #[test]
+    fn no_dwell_found_says_so() {
+        let mut s = 1u64;
+        // A steady ramp: nothing is static.
+        let x = Array2::from_shape_fn((3000, 3), |(i, _)| i as f64 * 0.1 + 0.001 * lcg(&mut s));
+        let mut st = DetectorSettings::new(100.0);
+        st.noise_var = Some([1e-8; 3]);
+        let e = detect_table(&x.view(), st, None, None).unwrap_err();
+        assert!(matches!(e, CoreError::Degenerate(_)));
+        assert!(e.to_string().contains("no static dwell found"), "{e}");
+    }
+
+    #[test]
+    fn huge_settings_are_errors_not_panics() {
+        let x = Array2::<f64>::zeros((100, 3));
+        for w in [4e38, 3.7e17, 1e7, f64::INFINITY, f64::NAN, -1.0, 0.0] {
+            let mut st = DetectorSettings::new(100.0);
+            st.window_s = w;
+            let e = detect_table(&x.view(), st, None, None).unwrap_err();
+            assert!(e.to_string().contains("window_s"), "{e}");
+        }
+        for fs in [4e38, 1.0, 0.0, f64::NAN] {
+            let e = detect_table(&x.view(), DetectorSettings::new(fs), None, None).unwrap_err();
+            assert!(e.to_string().contains("fs"), "{e}");
+        }
+        let mut st = DetectorSettings::new(100.0);
+        st.min_dwell_s = 1e6;
+        st.trim_s = 1e6;
+        let y = piecewise(5, &[0.0, 1.0], 0.01);
+        assert!(detect_table(&y.view(), st, None, None).is_err());
+    }
+
+    fn white_plus_walk(seed: u64, n: usize, walk: f64) -> Array2<f64> {
+        let mut s = seed;
+        let mut w = [0.0; 3];
+        Array2::from_shape_fn((n, 3), |(_, a)| {
+            w[a] += walk * gauss(&mut s);
+            9.8 + w[a] + gauss(&mut s)
+        })
+    }
+
+    /// The sample-stride reference: overlapping ADEV at 1, L/16 and L/4 from cumulative sums.
+    fn inflation_reference(x: &Array2<f64>) -> [f64; 3] {
+        let l = x.nrows();
+        let mut out = [0.0; 3];
+        for (a, o) in out.iter_mut().enumerate() {
+            let mut c = vec![0.0];
+            for i in 0..l {
+                c.push(c[i] + x[[i, a]] - 9.8);
+            }
+            let avar = |m: usize| -> f64 {
+                let n = l - 2 * m + 1;
+                (0..n)
+                    .map(|i| {
+                        let d = (c[i + 2 * m] - 2.0 * c[i + m] + c[i]) / m as f64;
+                        d * d
+                    })
+                    .sum::<f64>()
+                    / (2.0 * n as f64)
+            };
+            let (m16, m4) = (l / 16, l / 4);
+            let a1 = avar(1);
+            let r16 = (avar(m16) * m16 as f64 / a1).sqrt();
+            let r4 = (avar(m4) * m4 as f64 / a1).sqrt();
+            let slope = ((r4 / r16).ln() / (m4 as f64 / m16 as f64).ln()).clamp(0.0, 1.0);
+            *o = r4 * (l as f64 / m4 as f64).powf(slope);
+        }
+        out
+    }
+
+    #[test]
+    fn inflation_tracks_the_sample_stride_reference() {
+        // Median over dwells of the ratio to the reference, for white and correlated noise.
+        for (walk, lo, hi) in [(0.0, 0.7, 1.5), (0.005, 3.0, 40.0)] {
+            let mut ratios = Vec::new();
+            let mut ours = Vec::new();
+            for seed in 0..24 {
+                let x = white_plus_walk(seed, 4096, walk);
+                let t = dwell_table(&x.view(), &[[0, 4096]], None, None).unwrap();
+                let r = inflation_reference(&x);
+                for (f, fr) in t.stats[0].inflation.iter().zip(&r) {
+                    ratios.push(f / fr);
+                    ours.push(*f);
+                }
+            }
+            ratios.sort_by(f64::total_cmp);
+            ours.sort_by(f64::total_cmp);
+            let med = ratios[ratios.len() / 2];
+            assert!((med - 1.0).abs() < 0.1, "walk {walk}: median ratio {med}");
+            let m = ours[ours.len() / 2];
+            assert!(m > lo && m < hi, "walk {walk}: median inflation {m}");
+        }
+        // Too short: NaN.
+        let x = white_plus_walk(1, 63, 0.0);
+        let t = dwell_table(&x.view(), &[[0, 63]], None, None).unwrap();
+        assert!(t.stats[0].inflation.iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn lsb_of_integer_quantised_and_continuous_streams() {
+        let mut s = 2u64;
+        let q = 0.000_598_5;
+        let counts = Array2::from_shape_fn((50_000, 3), |_| (3.0 * gauss(&mut s)).round());
+        let scaled = counts.mapv(|c| 100.0 * q + c * q);
+        let ints = counts.mapv(|c| c as i32 * 4);
+        let cont = Array2::from_shape_fn((50_000, 3), |_| gauss(&mut s));
+        let b = [[0, 50_000]];
+        let l = dwell_table(&scaled.view(), &b, None, None)
+            .unwrap()
+            .lsb
+            .unwrap();
+        assert!(l.iter().all(|v| (v / q - 1.0).abs() < 1e-9), "{l:?}");
+        let l = dwell_table(&ints.view(), &b, None, None).unwrap().lsb;
+        assert_eq!(l, Some([4.0; 3]));
+        assert_eq!(dwell_table(&cont.view(), &b, None, None).unwrap().lsb, None);
+        // Chunking-independent subsample.
+        let mut acc = DwellAccumulator::with_bounds(b.to_vec()).unwrap();
+        push_chunked(&mut acc, &scaled, 3);
+        same(
+            &acc.finish().unwrap(),
+            &dwell_table(&scaled.view(), &b, None, None).unwrap(),
+        );
+    }
+
+    #[test]
+    fn failed_push_changes_nothing() {
+        let x = piecewise(5, &[0.0, 1.0], 0.01);
+        let t: Vec<f64> = (0..x.nrows()).map(|i| i as f64 / 100.0).collect();
+        for mut acc in [
+            DwellAccumulator::with_bounds(vec![[0, 400], [800, 1100]]).unwrap(),
+            DwellAccumulator::with_detector(DetectorSettings::new(100.0)).unwrap(),
+        ] {
+            acc.push(&x.slice(ndarray::s![..300, ..]), Some(&t[..300]), None)
+                .unwrap();
+            let before = acc.clone();
+            let mut bad_t = t[300..].to_vec();
+            bad_t[5] = f64::NAN;
+            assert!(acc
+                .push(&x.slice(ndarray::s![300.., ..]), Some(&bad_t), None)
+                .is_err());
+            assert!(acc
+                .push(&x.slice(ndarray::s![300.., ..]), None, None)
+                .is_err());
+            assert!(acc
+                .push(&x.slice(ndarray::s![300.., ..]), Some(&t[..3]), None)
+                .is_err());
+            same(&acc, &before);
+            acc.push(&x.slice(ndarray::s![300.., ..]), Some(&t[300..]), None)
+                .unwrap();
+            assert!(acc.finish().is_ok());
+        }
+    }
+
+    #[test]
+    fn state_round_trip_resumes_bit_identically() {
+        let x = piecewise(9, &[0.0, 1.0, -1.0, 2.0], 0.01);
+        let n = x.nrows();
+        for mut acc in [
+            DwellAccumulator::with_bounds(vec![[0, 400], [700, 1100], [1500, 1900]]).unwrap(),
+            DwellAccumulator::with_detector(DetectorSettings::new(100.0)).unwrap(),
+        ] {
+            let mut whole = acc.clone();
+            whole.push(&x.view(), None, None).unwrap();
+            for cut in [0, 1, 333, 1001, n] {
+                let mut a = acc.clone();
+                a.push(&x.slice(ndarray::s![..cut, ..]), None, None)
+                    .unwrap();
+                let bytes = a.to_state();
+                let mut b = DwellAccumulator::from_state(&bytes).unwrap();
+                same(&a, &b);
+                b.push(&x.slice(ndarray::s![cut.., ..]), None, None)
+                    .unwrap();
+                same(&b.finish().unwrap(), &whole.finish().unwrap());
+                // Corruption is an error, never a panic.
+                for k in (0..bytes.len()).step_by(bytes.len() / 97 + 1) {
+                    assert!(DwellAccumulator::from_state(&bytes[..k]).is_err());
+                    let mut c = bytes.clone();
+                    c[k] ^= 0xA5;
+                    if let Ok(acc2) = DwellAccumulator::from_state(&c) {
+                        let _ = acc2.finish();
+                    }
+                }
+            }
+            acc.push(&x.view(), None, None).unwrap();
         }
     }
 }

@@ -9,6 +9,7 @@ pub mod gap;
 pub mod gradiometer;
 pub mod lsq;
 pub mod static_fit;
+pub mod text;
 
 #[cfg(feature = "python")]
 mod py;

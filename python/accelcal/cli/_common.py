@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -23,8 +24,33 @@ from .._files import atomic_write
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+#: Python keyword arguments named in library messages -> the command-line option that sets
+#: them. `friendly` rewrites messages with it, so the command line speaks its own language.
+CLI_WORDS: dict[str, str] = {
+    "fs": "--fs",
+    "columns": "--columns",
+    "time_column": "--time-column",
+    "window_s": "--window",
+    "min_dwell_s": "--min-dwell",
+    "k": "--k",
+    "chunk_rows": "--chunk-rows",
+    "g": "--g",
+}
+
+
+def cli_words(msg: str) -> str:
+    """Rewrite ``give fs= (Hz)``, ``columns=[...]`` and the like into option names."""
+
+    def repl(m: re.Match[str]) -> str:
+        opt = CLI_WORDS[m.group(1)]
+        return opt + (" ..." if m.group(2) else "")
+
+    keys = "|".join(sorted(map(re.escape, CLI_WORDS), key=len, reverse=True))
+    return re.sub(rf"(?<![\w-])({keys})=(\[\.\.\.\])?(?![\w\d.+-])", repl, msg)
+
+
 def _fail(msg: str) -> None:
-    click.echo(f"accelcal: error: {msg}", err=True)
+    click.echo(f"accelcal: error: {cli_words(msg)}", err=True)
     sys.exit(2)
 
 
@@ -43,11 +69,17 @@ def friendly(fn: F) -> F:
             _fail(f"file not found: {e.filename or e}")
         except (OSError, ValueError) as e:
             _fail(str(e))
-        except Exception as e:  # an internal bug: still one line, the traceback on request
+        except (KeyboardInterrupt, SystemExit, GeneratorExit):
+            raise
+        except BaseException as e:  # noqa: BLE001 - the last resort (a Rust panic surfaces as
+            # pyo3's PanicException, a BaseException): one line, the traceback on request.
             if os.environ.get("ACCELCAL_DEBUG"):
                 raise
+            first = (str(e).strip().splitlines() or [""])[0]
+            if len(first) > 200:
+                first = first[:197] + "..."
             click.echo(
-                f"accelcal: internal error: {type(e).__name__}: {e} "
+                f"accelcal: internal error: {type(e).__name__}: {first} "
                 "(set ACCELCAL_DEBUG=1 for the traceback and please report it)",
                 err=True,
             )
@@ -76,11 +108,17 @@ def emit_json(obj: Any) -> None:
 
 
 def recording_options(fn: F) -> F:
-    """``--fs`` and ``--columns``: how to read a recording."""
+    """``--fs``, ``--columns``, ``--time-column`` and ``--quiet``: how to read a recording."""
+    fn = click.option("--quiet", is_flag=True,
+                      help="No progress bar (none is shown off a terminal either).")(fn)
+    fn = click.option("--time-column", "time_column", default=None,
+                      help="Time column (name or 0-based index; s, or ms/us/ns when the name "
+                           "says so), else recognised by name.")(fn)
     fn = click.option("--columns", default=None,
-                      help="Accelerometer columns, e.g. ax,ay,az or 1,2,3.")(fn)
+                      help="Accelerometer columns, e.g. ax,ay,az or 1,2,3 (0-based).")(fn)
     return click.option("--fs", type=float, default=None,
-                        help="Sample rate, Hz (else from the file).")(fn)  # type: ignore[no-any-return]
+                        help="Sample rate, Hz (else from the file's metadata or time "
+                             "column).")(fn)  # type: ignore[no-any-return]
 
 
 def gravity_options(fn: F) -> F:
@@ -116,15 +154,54 @@ def _save_fig(fig: Any, path: str) -> None:
     save_figure(fig, path)
 
 
-def _load_stream(file: str, fs: float | None, columns: str | None) -> Any:
-    from ..io import read_stream
+def echo_notes(notes: list[str]) -> None:
+    """What a person should know about how the recording was read (stderr, one line each)."""
+    for n in notes:
+        click.echo(f"note: {cli_words(n)}", err=True)
 
-    st = read_stream(file, columns=columns, fs=fs)
-    if st.fs is None:
-        raise CalibrationError(
-            f"{file}: the sample rate is not in the file; give it with --fs (Hz)"
-        )
-    return st
+
+def open_recording(file: str, fs: float | None, columns: str | None,
+                   time_column: str | None) -> Any:
+    from ..io import open_recording as _open
+
+    return _open(file, columns=columns, fs=fs, time_column=time_column)
+
+
+def is_dwell_table(file: str) -> bool:
+    """True for a dwell table written by ``accelcal dwells -o`` (or ``--dwells-out``)."""
+    if file == "-":
+        return False
+    try:
+        with open(file, "rb") as fh:
+            return fh.read(64).startswith(b"# accelcal dwell table")
+    except OSError:
+        return False
+
+
+def stream_dwells(file: str, fs: float | None, columns: str | None, time_column: str | None,
+                  quiet: bool, desc: str, **detector: Any) -> tuple[Any, Any]:
+    """Detect the dwells of a recording in one streaming pass (bounded memory, progress bar).
+
+    Returns the DwellSet and the opened recording (rows read, notes), or, for a dwell table
+    written by ``accelcal dwells -o``, the table and None.
+    """
+    if is_dwell_table(file):
+        from ..dwell import DwellSet
+
+        return DwellSet.from_csv(file), None
+    from ..io import _stream_dwells
+
+    d, rec = _stream_dwells(file, fs=fs, columns=columns, time_column=time_column,
+                            progress=False if quiet else None, desc=desc, **detector)
+    return d, rec
+
+
+def source_line(file: str, rec: Any, d: Any) -> str:
+    """``FILE: N samples at F Hz -> k dwells`` (or the dwell table's size)."""
+    if rec is None:
+        fs = "" if d.fs is None else f" (recorded at {d.fs:.6g} Hz)"
+        return f"{file}: dwell table with {len(d)} dwells{fs}"
+    return f"{file}: {rec.rows} samples at {rec.fs:.6g} Hz -> {len(d)} dwells"
 
 
 def _resolve_g(g: float | None, lat: float | None, height: float) -> tuple[float, str]:

@@ -13,8 +13,7 @@ from .._core import CalibrationError
 from ._common import F, _need_plot, _save_fig, emit_json, friendly, main
 
 #: The options ``calibrate static`` takes for a fleet run (all default to "not given").
-FLEET_OPTIONS = ("summary", "out_dir", "scheduler", "workers", "manifest", "diagnose_gap",
-                 "quiet")
+FLEET_OPTIONS = ("summary", "out_dir", "scheduler", "workers", "manifest", "diagnose_gap")
 
 
 def fleet_options(fn: F) -> F:
@@ -36,8 +35,6 @@ def fleet_options(fn: F) -> F:
                           "sensor_id, g, lat, height, fs, columns, date."),
         click.option("--diagnose", "diagnose_gap", is_flag=True, default=False,
                      help="Fleet run: add the gap diagnosis verdict per recording."),
-        click.option("--quiet", is_flag=True, default=False,
-                     help="Fleet run: no progress bar."),
     ]
     for o in reversed(opts):
         fn = o(fn)
@@ -46,16 +43,17 @@ def fleet_options(fn: F) -> F:
 
 def is_fleet_run(files: tuple[str, ...], fleet: dict[str, Any]) -> bool:
     """Several recordings, or any fleet option given."""
-    return len(files) != 1 or any(fleet.get(k) for k in FLEET_OPTIONS if k != "quiet")
+    return len(files) != 1 or any(fleet.get(k) for k in FLEET_OPTIONS)
 
 
 def run_static_fleet(
     files: tuple[str, ...], *, g: float | None, lat: float | None, height: float,
-    fs: float | None, columns: str | None, model: str, method: str, window_s: float,
+    fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
+    method: str, window_s: float,
     k_thr: float, min_dwell_s: float, sensor_id: str, output: str | None,
     dwells_out: str | None, plot_path: str | None, as_json: bool, summary: str | None,
     out_dir: str | None, scheduler: str | None, workers: int | None, manifest: str | None,
-    diagnose_gap: bool, quiet: bool,
+    diagnose_gap: bool,
 ) -> None:
     """``calibrate static`` over many recordings (see :func:`accelcal.calibrate_many`)."""
     from ..dwell import DetectorSettings
@@ -94,7 +92,8 @@ def run_static_fleet(
     detector = DetectorSettings(window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
     t0 = time.perf_counter()
     df = calibrate_many(
-        sources, g=g, lat=lat, height=height, fs=fs, columns=columns, model=model,
+        sources, g=g, lat=lat, height=height, fs=fs, columns=columns,
+        time_column=time_column, model=model,
         method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
         workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
         _cli=True,

@@ -9,22 +9,24 @@ import numpy as np
 
 from .._core import CalibrationError
 from ._common import (
-    _load_stream,
     _need_plot,
     _resolve_g,
     _save_fig,
     calibrate,
+    echo_notes,
     emit_json,
     friendly,
     gravity_options,
     main,
     recording_options,
+    source_line,
+    stream_dwells,
 )
 from .fleet import fleet_options, is_fleet_run, run_static_fleet
 
 
 @calibrate.command("static")
-@click.argument("files", metavar="FILE...", nargs=-1, type=click.Path())
+@click.argument("files", metavar="FILE...", nargs=-1, type=click.Path(allow_dash=True))
 @gravity_options
 @recording_options
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
@@ -48,36 +50,42 @@ from .fleet import fleet_options, is_fleet_run, run_static_fleet
 @fleet_options
 @friendly
 def calibrate_static(
-    files: tuple[str, ...], g: float | None, lat: float | None, height: float, fs: float | None,
-    columns: str | None, model: str, method: str, window_s: float, k_thr: float,
-    min_dwell_s: float, sensor_id: str, output: str | None,
-    dwells_out: str | None, plot_path: str | None, as_json: bool, **fleet: Any,
+    files: tuple[str, ...], g: float | None, lat: float | None, height: float,
+    fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
+    method: str, window_s: float, k_thr: float, min_dwell_s: float, sensor_id: str,
+    output: str | None, dwells_out: str | None, plot_path: str | None, as_json: bool,
+    **fleet: Any,
 ) -> None:
     """Static field calibration: detect dwells, fit scale, bias and non-orthogonality.
 
-    Several recordings (or --summary, --out, --scheduler, --manifest) make a fleet run: one
-    row per recording in a summary table, one calibration file per sensor, on all local
-    cores or a Dask cluster; see `accelcal fleet report`.
-    """
+    FILE is a recording (read in one streaming pass) or a dwell table written by
+    ``accelcal dwells -o`` / ``--dwells-out``. Several recordings (or --summary, --out,
+    --scheduler, --manifest) make a fleet run: one row per recording in a summary table, one
+    calibration file per sensor, on all local cores or a Dask cluster; see `accelcal fleet
+    report`."""
     if is_fleet_run(files, fleet):
         return run_static_fleet(
-            files, g=g, lat=lat, height=height, fs=fs, columns=columns, model=model,
-            method=method, window_s=window_s, k_thr=k_thr, min_dwell_s=min_dwell_s,
-            sensor_id=sensor_id, output=output, dwells_out=dwells_out, plot_path=plot_path,
-            as_json=as_json, **fleet)
+            files, g=g, lat=lat, height=height, fs=fs, columns=columns,
+            time_column=time_column, quiet=quiet, model=model, method=method,
+            window_s=window_s, k_thr=k_thr, min_dwell_s=min_dwell_s, sensor_id=sensor_id,
+            output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
+            **fleet)
     file = files[0]
     import datetime
     import warnings
 
     from .._core import DegenerateDataError
-    from ..dwell import detect_dwells
     from ..static import fit_static
 
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height)
-    st = _load_stream(file, fs, columns)
-    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, window_s=window_s,
-                      k=k_thr, min_dwell_s=min_dwell_s)
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate",
+                           window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
+    read_notes = [] if rec is None else rec.notes()
+    if len(d) == 0:
+        raise CalibrationError(
+            f"{file}: no static dwells detected; check --fs, or loosen the detector with "
+            "--k, --window and --min-dwell")
     if dwells_out:
         d.to_csv(dwells_out)
     notes: list[str] = []
@@ -106,10 +114,12 @@ def calibrate_static(
         _save_fig(static_norm_figure(fit, d), plot_path)
     if as_json:
         out = fit.to_dict()
-        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file))
+        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file),
+                   samples=None if rec is None else rec.rows, notes=read_notes)
         emit_json(out)
         return
-    click.echo(f"{file}: {len(st.samples)} samples at {st.fs:g} Hz -> {len(d)} dwells")
+    echo_notes(read_notes)
+    click.echo(source_line(file, rec, d))
     click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
     click.echo(fit.summary())
     for n in notes:

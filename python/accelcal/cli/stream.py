@@ -1,99 +1,356 @@
 """Commands on raw recordings: ``dwells`` (static intervals and their statistics) and
-``apply`` (a calibration applied to a stream)."""
+``apply`` (a calibration applied to a stream). Both read the recording in one streaming pass
+with bounded memory, whatever its length."""
 
 from __future__ import annotations
 
+import os
+import struct
+import sys
+import tempfile
+import zipfile
+from contextlib import ExitStack
 from pathlib import Path
+from typing import IO, Any
 
 import click
 import numpy as np
 
 from .._core import CalibrationError
 from .._files import atomic_open
-from ._common import _tqdm_disable, emit_json, friendly, main, recording_options
+from ._common import (
+    _need_plot,
+    _save_fig,
+    echo_notes,
+    emit_json,
+    friendly,
+    main,
+    open_recording,
+    recording_options,
+    source_line,
+    stream_dwells,
+)
+
+
+class _Envelope:
+    """A decimated picture of the stream for the figure: mean, min and max of every axis over
+    bins of ``bin_rows`` samples (bins restart at chunk boundaries)."""
+
+    def __init__(self, bin_rows: int) -> None:
+        self.bin = max(int(bin_rows), 1)
+        self.pos = 0
+        self.idx: list[np.ndarray] = []
+        self.mean: list[np.ndarray] = []
+        self.lo: list[np.ndarray] = []
+        self.hi: list[np.ndarray] = []
+
+    def push(self, s: np.ndarray) -> None:
+        m = s.shape[0]
+        starts = np.arange(0, m, self.bin)
+        x = np.asarray(s, dtype=np.float64)
+        self.idx.append(self.pos + starts + np.minimum(self.bin, m - starts) / 2.0)
+        width = np.diff(np.append(starts, m))
+        self.mean.append(np.add.reduceat(x, starts, axis=0) / width[:, None])
+        self.lo.append(np.minimum.reduceat(x, starts, axis=0))
+        self.hi.append(np.maximum.reduceat(x, starts, axis=0))
+        self.pos += m
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return (np.concatenate(self.idx), np.concatenate(self.mean), np.concatenate(self.lo),
+                np.concatenate(self.hi))
+
+
+def _units_of(names: tuple[str, ...]) -> str:
+    from ..io import _split_unit
+
+    units = {_split_unit(n)[1] for n in names}
+    return units.pop() if len(units) == 1 and "" not in units else ""
 
 
 @main.command()
-@click.argument("file", type=click.Path())
+@click.argument("file", type=click.Path(allow_dash=True))
 @recording_options
-@click.option("--window", "window_s", type=float, default=1.0, show_default=True, help="s")
-@click.option("--k", type=float, default=6.0, show_default=True, help="Threshold factor.")
-@click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True, help="s")
+@click.option("--window", "window_s", type=float, default=1.0, show_default=True,
+              help="Detector window, s.")
+@click.option("--k", type=float, default=6.0, show_default=True,
+              help="Threshold factor (x noise variance).")
+@click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
+              help="Shortest dwell kept, s.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              help="Write the dwell table as CSV.")
+              help="Write the dwell table as CSV (calibrate static reads it back).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="The stream with the dwells shaded (PNG/PDF/SVG).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @friendly
 def dwells(
     file: str,
     fs: float | None,
     columns: str | None,
+    time_column: str | None,
+    quiet: bool,
     window_s: float,
     k: float,
     min_dwell_s: float,
     output: str | None,
+    plot_path: str | None,
     as_json: bool,
-    quiet: bool,
 ) -> None:
     """Detect the static dwells of a recording and print their statistics."""
-    from ..io import stream_dwells
+    from ..dwell import DwellAccumulator
+    from ..io import _progress_bar
 
-    d = stream_dwells(file, fs=fs, columns=columns, window_s=window_s, k=k,
-                      min_dwell_s=min_dwell_s, progress=False if quiet else None)
+    _need_plot(plot_path)
+    if not plot_path:
+        d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells",
+                               window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+    else:
+        # The same single pass, also keeping a decimated picture of the stream.
+        rec = open_recording(file, fs, columns, time_column)
+        if rec.fs is None:
+            raise CalibrationError(
+                f"{rec.path}: the sample rate is unknown (no rate metadata or time column); "
+                "give it with --fs (Hz)")
+        env = _Envelope((rec.rows_estimate() or 100_000) // 4000)
+        acc = DwellAccumulator(fs=rec.fs, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        with _progress_bar(rec, "dwells", False if quiet else None) as cb:
+            for s, t, temp in rec.chunks(None, cb):
+                acc.push(s, t, temp)
+                env.push(s)
+        if rec.rows == 0:
+            raise CalibrationError(f"{rec.path}: no data rows")
+        d = acc.finish()
+    notes = [] if rec is None else rec.notes()
     if output:
         d.to_csv(output)
+    if plot_path:
+        from ..plots import dwells_figure
+
+        idx, mean, lo, hi = env.arrays()
+        fig = dwells_figure(idx / rec.fs, mean, lo, hi, d, units=_units_of(_names(rec)),
+                            title=os.path.basename(file))
+        _save_fig(fig, plot_path)
     if as_json:
-        emit_json(d.to_dict())
+        out = d.to_dict()
+        out.update(file=file, samples=None if rec is None else rec.rows, notes=notes)
+        emit_json(out)
         return
-    click.echo(f"{file}: {len(d)} dwells at {d.fs:.6g} Hz")
+    echo_notes(notes)
+    click.echo(source_line(file, rec, d) if rec is not None else
+               f"{file}: {len(d)} dwells")
     if d.noise_std is not None and d.threshold is not None:
+        unit = (_units_of(_names(rec)) if rec is not None else "") or d.units or (
+            "the recording's units")
         click.echo(
-            "noise std per axis (from the data): "
+            "noise std per axis x, y, z (from the data): "
             + " ".join(f"{v:.4g}" for v in d.noise_std)
-            + f"; threshold = {k:g} x noise variance"
+            + f" [{unit}]; threshold = {k:g} x noise variance"
         )
     click.echo(d.table())
-    if output:
-        click.echo(f"wrote {output}")
+    for p in (output, plot_path):
+        if p:
+            click.echo(f"wrote {p}")
+
+
+def _names(rec: Any) -> tuple[str, ...]:
+    from ..io import _names_of
+
+    return _names_of(rec.lay)
+
+
+# ---- apply: streaming writers ------------------------------------------------------------------
+_NPY_HEADER_LEN = 128  # magic + header, padded: room for any 64-bit row count
+
+
+def _npy_header(rows: int, ncols: int) -> bytes:
+    shape = f"({rows},)" if ncols == 0 else f"({rows}, {ncols})"
+    d = f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}"
+    pad = _NPY_HEADER_LEN - 10 - len(d) - 1
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", _NPY_HEADER_LEN - 10) + (
+        d + " " * pad + "\n").encode("latin-1")
+
+
+class _NpyWriter:
+    """A float64 .npy written row block by row block; the row count is fixed at the end."""
+
+    def __init__(self, fh: IO[bytes], ncols: int, what: str) -> None:
+        if not fh.seekable():
+            raise CalibrationError(
+                f"{what}: a .npy output must be a regular file (its row count is written at "
+                "the end); use a .csv output to write to a pipe")
+        self.fh, self.ncols, self.rows = fh, ncols, 0
+        self.start = fh.tell()
+        fh.write(_npy_header(0, ncols))
+
+    def write(self, block: np.ndarray) -> None:
+        self.fh.write(np.ascontiguousarray(block, dtype="<f8").tobytes())
+        self.rows += block.shape[0]
+
+    def close(self) -> None:
+        end = self.fh.tell()
+        self.fh.seek(self.start)
+        self.fh.write(_npy_header(self.rows, self.ncols))
+        self.fh.seek(end)
+
+
+class _Output:
+    """Where calibrated rows go: .csv (text), .npy (t, ax, ay, az), .npz (samples, t),
+    .h5/.hdf5 (datasets samples, t; needs h5py). Everything goes through a temporary file
+    that replaces the output only when complete (an interrupted run leaves it untouched)."""
+
+    KINDS = {".csv": "csv", ".txt": "csv", ".npy": "npy", ".npz": "npz", ".h5": "h5",
+             ".hdf5": "h5"}
+
+    def __init__(self, path: str, has_t: bool, header: list[str]) -> None:
+        self.path = path
+        self.kind = self.KINDS.get(Path(path).suffix.lower(), "csv")
+        self.has_t = has_t
+        self.header = header
+        self.rows = 0
+        self.stack = ExitStack()
+
+    def __enter__(self) -> _Output:
+        with ExitStack() as setup:
+            setup.push(self.stack)
+            self.stack.__enter__()
+            mode = "w+b" if self.kind == "h5" else "wb"
+            self.fh = self.stack.enter_context(atomic_open(self.path, mode))
+            if self.kind == "csv":
+                for h in self.header:
+                    self.fh.write(f"# {h}\n".encode())
+                self.fh.write(b"t_s,ax,ay,az\n" if self.has_t else b"ax,ay,az\n")
+            elif self.kind == "npy":
+                self.npy = [_NpyWriter(self.fh, 4 if self.has_t else 3, self.path)]
+            elif self.kind == "npz":
+                # One temporary .npy per array beside the output, zipped at the end.
+                p = Path(self.path)
+                self.names = ["samples", "t"] if self.has_t else ["samples"]
+                tmps = [self.stack.enter_context(tempfile.NamedTemporaryFile(
+                    dir=p.parent if str(p.parent) else ".", prefix=f".{p.name}.{n}.",
+                    suffix=".tmp")) for n in self.names]
+                self.npy = [_NpyWriter(f, 3 if n == "samples" else 0, self.path)
+                            for n, f in zip(self.names, tmps, strict=True)]
+            else:
+                try:
+                    import h5py
+                except ImportError:
+                    raise CalibrationError(
+                        f"{self.path}: writing HDF5 needs h5py: pip install 'accelcal[hdf5]'"
+                    ) from None
+                self.h5 = self.stack.enter_context(h5py.File(self.fh, "w"))
+                self.h5.create_dataset("samples", shape=(0, 3), maxshape=(None, 3),
+                                       dtype="f8", chunks=(65536, 3))
+                if self.has_t:
+                    self.h5.create_dataset("t", shape=(0,), maxshape=(None,), dtype="f8",
+                                           chunks=(65536,))
+                self.h5.attrs["units"] = "m/s^2"
+                for h in self.header:
+                    k, _, v = h.partition(": ")
+                    if v:
+                        self.h5.attrs[k] = v
+            setup.pop_all()
+        return self
+
+    def write(self, t: np.ndarray | None, a: np.ndarray) -> None:
+        m = a.shape[0]
+        if self.has_t and t is None:
+            raise CalibrationError(f"{self.path}: a chunk came without its sample times")
+        if self.kind == "csv":
+            from .._core import format_rows
+
+            self.fh.write(format_rows(a, t if self.has_t else None))
+        elif self.kind == "npy":
+            self.npy[0].write(a if t is None or not self.has_t else np.column_stack([t, a]))
+        elif self.kind == "npz":
+            self.npy[0].write(a)
+            if self.has_t:
+                self.npy[1].write(np.asarray(t))
+        else:
+            ds = self.h5["samples"]
+            ds.resize(self.rows + m, axis=0)
+            ds[self.rows:] = a
+            if self.has_t:
+                ts = self.h5["t"]
+                ts.resize(self.rows + m, axis=0)
+                ts[self.rows:] = t
+        self.rows += m
+
+    def _finish(self) -> None:
+        if self.kind == "npy":
+            self.npy[0].close()
+        elif self.kind == "npz":
+            with zipfile.ZipFile(self.fh, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
+                for name, w in zip(self.names, self.npy, strict=True):
+                    w.close()
+                    w.fh.flush()
+                    z.write(w.fh.name, arcname=f"{name}.npy")
+
+    def __exit__(self, *exc: Any) -> bool | None:
+        if exc[0] is None:
+            try:
+                self._finish()
+            except BaseException:
+                if not self.stack.__exit__(*sys.exc_info()):
+                    raise
+                return None
+        return self.stack.__exit__(*exc)
 
 
 @main.command()
 @click.argument("cal", type=click.Path())
-@click.argument("file", type=click.Path())
+@click.argument("file", type=click.Path(allow_dash=True))
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
-              help="Calibrated stream: .csv (t_s, ax, ay, az in m/s^2) or .npy.")
+              help="Calibrated stream in m/s^2: .csv (t_s, ax, ay, az), .npy ((N, 4) t_s, "
+                   "ax, ay, az), .npz (samples, t) or .h5 (samples, t; needs h5py).")
 @recording_options
-@click.option("--chunk-rows", type=int, default=500_000, show_default=True)
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--chunk-rows", type=click.IntRange(min=1), default=500_000, show_default=True,
+              help="Rows calibrated at a time (memory use is about 100 bytes per row).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def apply(cal: str, file: str, output: str, fs: float | None, columns: str | None,
-          chunk_rows: int, quiet: bool) -> None:
+          time_column: str | None, quiet: bool, chunk_rows: int, as_json: bool) -> None:
     """Apply a calibration file to a recording, streaming chunk by chunk."""
-    from tqdm import tqdm
-
-    from ..io import iter_stream
+    from ..io import _progress_bar
     from ..static import TriadModel
 
-    model = TriadModel.load(cal)
-    out = Path(output)
-    if out.resolve() == Path(file).resolve():
-        raise CalibrationError("the output would overwrite the input recording; choose -o")
-    chunks = tqdm(iter_stream(file, chunk_rows=chunk_rows, columns=columns, fs=fs),
-                  unit="chunk", desc="apply", disable=_tqdm_disable(quiet))
-    n = 0
-    if out.suffix == ".npy":
-        parts = [model.apply(chunk) for chunk, _t in chunks]
-        arr = np.concatenate(parts) if parts else np.empty((0, 3))
-        n = len(arr)
-        with atomic_open(out, "wb") as fh:
-            np.save(fh, arr)
-    else:
-        with atomic_open(out, "w") as fh:
-            fh.write(f"# calibrated by accelcal with {cal}; units m/s^2\n")
-            fh.write("t_s,ax,ay,az\n")
-            for chunk, t in chunks:
-                a = model.apply(chunk)
-                tt = t if t is not None else np.full(len(a), np.nan)
-                np.savetxt(fh, np.column_stack([tt, a]), delimiter=",", fmt="%.10g")
-                n += len(a)
-    click.echo(f"wrote {n} calibrated samples to {output}")
+    model = _load_model(cal)
+    if file != "-" and Path(output).resolve() == Path(file).resolve():
+        raise CalibrationError("the output would overwrite the input recording; choose another -o")
+    rec = open_recording(file, fs, columns, time_column)
+    has_t = rec.lay.time is not None or rec.fs is not None or (
+        rec.arrays is not None and rec.arrays.t is not None)
+    header = [f"calibrated by accelcal from {cal}", f"source: {file}", "units: m/s^2"]
+    if rec.lay.t0_text:
+        header.append(f"t0: {rec.lay.t0_text}")
+    if rec.fs is not None:
+        header.append(f"fs_hz: {rec.fs!r}")
+    assert isinstance(model, TriadModel)
+    with _Output(output, has_t, header) as out, \
+            _progress_bar(rec, "apply", False if quiet else None) as cb:
+        for chunk, t, _temp in rec.chunks(chunk_rows, cb):
+            out.write(t, model.apply(chunk))
+    if rec.rows == 0:
+        raise CalibrationError(f"{rec.path}: no data rows")
+    notes = rec.notes()
+    if as_json:
+        emit_json({"output": output, "format": out.kind, "rows": out.rows, "time_column": has_t,
+                   "units": "m/s^2", "calibration": cal, "file": file, "notes": notes})
+        return
+    echo_notes(notes)
+    click.echo(f"wrote {out.rows} calibrated samples (m/s^2{', with t_s' if has_t else ''}) "
+               f"to {output}")
+
+
+def _load_model(cal: str) -> Any:
+    """The calibration file, or one clear line naming what is wrong with it."""
+    from ..static import TriadModel
+
+    try:
+        return TriadModel.load(cal)
+    except CalibrationError:
+        raise
+    except KeyError as e:
+        raise CalibrationError(
+            f"{cal}: not a complete calibration file: the field {e.args[0]!r} is missing"
+        ) from None
+    except (TypeError, ValueError, IndexError) as e:
+        raise CalibrationError(f"{cal}: not a valid calibration file ({e})") from None

@@ -1,46 +1,110 @@
 //! Bindings of the dwell-statistics core.
+//!
+//! Locking rule (no deadlock with the GIL): the accumulator's mutex is only ever taken with the
+//! interpreter detached (`py.detach`), so a thread holding the mutex never waits for the GIL
+//! and a thread waiting for the mutex never holds it.
 
-use numpy::{IntoPyArray, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
+use numpy::{PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2, ToPyArray};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
-use std::sync::Mutex;
+use pyo3::types::{PyBytes, PyTuple};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::{Mutex, PoisonError};
 
 use super::convert::{bounds_from, opt_slice, with_view, SampleArray};
 use super::CalibrationError;
 use crate::dwell::{DetectorSettings, DwellAccumulator, DwellTable};
 
-fn table_to_dict<'py>(py: Python<'py>, t: DwellTable) -> PyResult<Bound<'py, PyDict>> {
-    let k = t.bounds.len();
-    let mut mean = Vec::with_capacity(3 * k);
-    let mut var = Vec::with_capacity(3 * k);
-    let mut count = Vec::with_capacity(k);
-    for m in &t.moments {
-        mean.extend_from_slice(&m.mean);
-        var.extend_from_slice(&m.var());
-        count.push(m.n as i64);
+/// Run `f`, turning a panic (a bug) into a CalibrationError instead of letting it cross the
+/// boundary.
+fn guarded<R>(what: &str, f: impl FnOnce() -> crate::Result<R>) -> PyResult<R> {
+    match catch_unwind(AssertUnwindSafe(f)) {
+        Ok(r) => r.map_err(PyErr::from),
+        Err(p) => {
+            let msg = p
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| p.downcast_ref::<&str>().copied())
+                .unwrap_or("unknown panic");
+            Err(CalibrationError::new_err(format!(
+                "internal error in {what} ({msg}); please report it"
+            )))
+        }
     }
-    let to2 = |v: Vec<f64>| -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let a = ndarray::Array2::from_shape_vec((k, 3), v)
-            .map_err(|e| CalibrationError::new_err(e.to_string()))?;
-        Ok(a.into_pyarray(py))
-    };
-    let d = PyDict::new(py);
-    d.set_item("mean", to2(mean)?)?;
-    d.set_item("var", to2(var)?)?;
-    d.set_item("count", count.into_pyarray(py))?;
-    for (key, end) in [("start", 0), ("stop", 1)] {
-        let v: Vec<i64> = t.bounds.iter().map(|b| b[end] as i64).collect();
-        d.set_item(key, v.into_pyarray(py))?;
-    }
-    d.set_item("t", t.t_mid.map(|v| v.into_pyarray(py)))?;
-    d.set_item("temperature", t.aux_mean.map(|v| v.into_pyarray(py)))?;
-    for (key, v) in [("noise_var", t.noise_var), ("threshold", t.threshold)] {
-        d.set_item(key, v.map(|v| v.to_vec().into_pyarray(py)))?;
-    }
-    Ok(d)
 }
 
-/// Per-dwell statistics over explicit bounds; returns a dict of arrays.
+/// A finished dwell table (see `accelcal.DwellSet` for the meaning of each field).
+#[pyclass(name = "DwellTableRaw", module = "accelcal._core", frozen, get_all)]
+pub struct DwellTableRaw {
+    /// (k,) int64 first sample of each dwell.
+    start: Py<PyArray1<i64>>,
+    /// (k,) int64 one past the last sample.
+    stop: Py<PyArray1<i64>>,
+    /// (k,) int64 samples per dwell.
+    count: Py<PyArray1<i64>>,
+    /// (k, 3) mean per dwell and axis.
+    mean: Py<PyArray2<f64>>,
+    /// (k, 3) sample variance (ddof = 1).
+    var: Py<PyArray2<f64>>,
+    /// (k, 2, 3) mean of the first and of the second half of each dwell.
+    half_mean: Py<PyArray3<f64>>,
+    /// (k, 3) Allan noise inflation of each dwell mean (NaN where not estimable).
+    inflation: Py<PyArray2<f64>>,
+    /// (3,) output resolution per axis, or None when the values are not quantised.
+    lsb: Option<Py<PyArray1<f64>>>,
+    /// Rows with NaN or inf left out of every dwell (detection).
+    dropped: u64,
+    /// (k,) mid time per dwell, when a time channel was given.
+    t: Option<Py<PyArray1<f64>>>,
+    /// (k,) mean temperature per dwell, when given.
+    temperature: Option<Py<PyArray1<f64>>>,
+    /// (3,) noise variance the detector used.
+    noise_var: Option<Py<PyArray1<f64>>>,
+    /// (3,) the detector's variance threshold.
+    threshold: Option<Py<PyArray1<f64>>>,
+}
+
+impl DwellTableRaw {
+    fn new(py: Python<'_>, t: &DwellTable) -> Self {
+        let k = t.stats.len();
+        let v1 = |v: &[f64]| v.to_pyarray(py).unbind();
+        let o3 = |v: Option<[f64; 3]>| v.map(|v| v1(&v));
+        let i1 = |f: &dyn Fn(usize) -> i64| -> Py<PyArray1<i64>> {
+            let v: Vec<i64> = (0..k).map(f).collect();
+            v.to_pyarray(py).unbind()
+        };
+        let f2 = |f: &dyn Fn(usize, usize) -> f64| -> Py<PyArray2<f64>> {
+            ndarray::Array2::from_shape_fn((k, 3), |(i, a)| f(i, a))
+                .to_pyarray(py)
+                .unbind()
+        };
+        let s = &t.stats;
+        DwellTableRaw {
+            start: i1(&|i| t.bounds[i][0] as i64),
+            stop: i1(&|i| t.bounds[i][1] as i64),
+            count: i1(&|i| s[i].moments.n as i64),
+            mean: f2(&|i, a| s[i].moments.mean[a]),
+            var: f2(&|i, a| s[i].moments.var()[a]),
+            half_mean: ndarray::Array3::from_shape_fn((k, 2, 3), |(i, h, a)| s[i].half_mean[h][a])
+                .to_pyarray(py)
+                .unbind(),
+            inflation: f2(&|i, a| s[i].inflation[a]),
+            lsb: o3(t.lsb),
+            dropped: t.dropped,
+            t: t.t_mid.as_deref().map(v1),
+            temperature: t.aux_mean.as_deref().map(v1),
+            noise_var: o3(t.noise_var),
+            threshold: o3(t.threshold),
+        }
+    }
+}
+
+impl From<DwellTable> for DwellTableRaw {
+    fn from(t: DwellTable) -> Self {
+        Python::attach(|py| DwellTableRaw::new(py, &t))
+    }
+}
+
+/// Per-dwell statistics over explicit bounds.
 #[pyfunction]
 #[pyo3(signature = (samples, bounds, t=None, temperature=None))]
 pub fn dwell_stats_raw<'py>(
@@ -49,39 +113,15 @@ pub fn dwell_stats_raw<'py>(
     bounds: PyReadonlyArray2<'py, i64>,
     t: Option<PyReadonlyArray1<'py, f64>>,
     temperature: Option<PyReadonlyArray1<'py, f64>>,
-) -> PyResult<Bound<'py, PyDict>> {
+) -> PyResult<DwellTableRaw> {
     let arr = SampleArray::extract(samples)?;
     let b = bounds_from(&bounds)?;
     let ts = opt_slice(&t, "t")?;
     let temp = opt_slice(&temperature, "temperature")?;
-    let table = with_view!(&arr, v => {
-        py.detach(|| -> crate::Result<DwellTable> {
-            // One-shot: parallel over dwells, then the (cheap) time/temperature channels.
-            let moments = crate::dwell::dwell_moments(&v, &b)?;
-            let t_mid = match ts {
-                Some(x) => {
-                    if x.len() != v.nrows() {
-                        return crate::error::invalid(format!(
-                            "t has {} values but samples have {} rows", x.len(), v.nrows()));
-                    }
-                    Some(b.iter().map(|&[a, z]| 0.5 * (x[a] + x[z - 1])).collect())
-                }
-                None => None,
-            };
-            let aux_mean = match temp {
-                Some(x) => {
-                    if x.len() != v.nrows() {
-                        return crate::error::invalid(format!(
-                            "temperature has {} values but samples have {} rows", x.len(), v.nrows()));
-                    }
-                    Some(crate::dwell::aux_mean(x, &b)?)
-                }
-                None => None,
-            };
-            Ok(DwellTable { bounds: b.clone(), moments, t_mid, aux_mean, noise_var: None, threshold: None })
-        })
-    })?;
-    table_to_dict(py, table)
+    let table = with_view!(&arr, v => py.detach(|| guarded("dwell_stats", || {
+        crate::dwell::dwell_table(&v, &b, ts, temp)
+    })))?;
+    Ok(DwellTableRaw::new(py, &table))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -107,7 +147,7 @@ fn settings_from(
     }
 }
 
-/// Automatic static-interval detection plus per-dwell statistics; returns a dict of arrays.
+/// Automatic static-interval detection plus per-dwell statistics.
 #[pyfunction]
 #[pyo3(signature = (samples, fs, window_s, k, min_dwell_s, trim_s, noise_quantile, block_s, noise_var=None, t=None, temperature=None))]
 #[allow(clippy::too_many_arguments)]
@@ -124,7 +164,7 @@ pub fn detect_dwells_raw<'py>(
     noise_var: Option<[f64; 3]>,
     t: Option<PyReadonlyArray1<'py, f64>>,
     temperature: Option<PyReadonlyArray1<'py, f64>>,
-) -> PyResult<Bound<'py, PyDict>> {
+) -> PyResult<DwellTableRaw> {
     let arr = SampleArray::extract(samples)?;
     let s = settings_from(
         fs,
@@ -138,21 +178,25 @@ pub fn detect_dwells_raw<'py>(
     );
     let ts = opt_slice(&t, "t")?;
     let temp = opt_slice(&temperature, "temperature")?;
-    let table = with_view!(&arr, v => {
-        py.detach(|| -> crate::Result<DwellTable> {
-            crate::dwell::check_samples(&v)?;
-            let mut acc = DwellAccumulator::with_detector(s)?;
-            acc.push(&v, ts, temp)?;
-            acc.finish()
-        })
-    })?;
-    table_to_dict(py, table)
+    let table = with_view!(&arr, v => py.detach(|| guarded("detect_dwells", || {
+        crate::dwell::detect_table(&v, s, ts, temp)
+    })))?;
+    Ok(DwellTableRaw::new(py, &table))
 }
 
-/// Streaming accumulator (bounds or detector mode).
-#[pyclass(name = "RawDwellAccumulator", module = "accelcal._core")]
+/// Streaming accumulator (bounds or detector mode); safe to share between threads.
+#[pyclass(name = "RawDwellAccumulator", module = "accelcal._core", frozen)]
 pub struct RawDwellAccumulator {
     inner: Mutex<DwellAccumulator>,
+}
+
+impl RawDwellAccumulator {
+    /// Run `f` on the state. Call only with the interpreter detached (see the module doc). A
+    /// poisoned mutex (a panic inside `f`, caught by `guarded`) is recovered, not fatal.
+    fn locked<R>(&self, f: impl FnOnce(&mut DwellAccumulator) -> R) -> R {
+        let mut g = self.inner.lock().unwrap_or_else(PoisonError::into_inner);
+        f(&mut g)
+    }
 }
 
 #[pymethods]
@@ -194,7 +238,8 @@ impl RawDwellAccumulator {
         })
     }
 
-    /// Push a chunk `(m, 3)` with optional `t` and `temperature` (m,) channels.
+    /// Push a chunk `(m, 3)` with optional `t` and `temperature` (m,) channels. On error
+    /// nothing of the chunk is kept and the accumulator stays usable.
     #[pyo3(signature = (chunk, t=None, temperature=None))]
     fn push<'py>(
         &self,
@@ -206,33 +251,50 @@ impl RawDwellAccumulator {
         let arr = SampleArray::extract(chunk)?;
         let ts = opt_slice(&t, "t")?;
         let temp = opt_slice(&temperature, "temperature")?;
-        let mut g = self
-            .inner
-            .lock()
-            .map_err(|_| CalibrationError::new_err("accumulator poisoned by an earlier error"))?;
-        let acc: &mut DwellAccumulator = &mut g;
-        with_view!(&arr, v => py.detach(|| acc.push(&v, ts, temp)))?;
-        Ok(())
+        with_view!(&arr, v => py.detach(|| guarded("DwellAccumulator.push", || {
+            self.locked(|acc| acc.push(&v, ts, temp))
+        })))
     }
 
     /// Samples pushed so far.
     #[getter]
-    fn position(&self) -> PyResult<usize> {
-        let g = self
-            .inner
-            .lock()
-            .map_err(|_| CalibrationError::new_err("accumulator poisoned by an earlier error"))?;
-        Ok(g.position())
+    fn position(&self, py: Python<'_>) -> usize {
+        py.detach(|| self.locked(|acc| acc.position()))
     }
 
     /// The dwell table of everything pushed so far (the accumulator stays usable).
-    fn finish<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let g = self
-            .inner
-            .lock()
-            .map_err(|_| CalibrationError::new_err("accumulator poisoned by an earlier error"))?;
-        let acc: &DwellAccumulator = &g;
-        let t = py.detach(|| acc.finish())?;
-        table_to_dict(py, t)
+    fn finish(&self, py: Python<'_>) -> PyResult<DwellTableRaw> {
+        let t = py.detach(|| {
+            guarded("DwellAccumulator.finish", || {
+                self.locked(|acc| acc.finish())
+            })
+        })?;
+        Ok(DwellTableRaw::new(py, &t))
+    }
+
+    /// The state as versioned bytes (see `from_state`).
+    fn to_state<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        let b = py.detach(|| self.locked(|acc| acc.to_state()));
+        PyBytes::new(py, &b)
+    }
+
+    /// Rebuild an accumulator from `to_state` bytes (checked; corrupted bytes are an error).
+    #[staticmethod]
+    fn from_state(py: Python<'_>, state: &[u8]) -> PyResult<Self> {
+        let inner = py.detach(|| {
+            guarded("DwellAccumulator.from_state", || {
+                DwellAccumulator::from_state(state)
+            })
+        })?;
+        Ok(RawDwellAccumulator {
+            inner: Mutex::new(inner),
+        })
+    }
+
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<Bound<'py, PyTuple>> {
+        let py = slf.py();
+        let ctor = py.get_type::<Self>().getattr("from_state")?;
+        let state = slf.get().to_state(py);
+        PyTuple::new(py, [ctor, PyTuple::new(py, [state])?.into_any()])
     }
 }

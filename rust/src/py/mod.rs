@@ -6,6 +6,7 @@ mod dwell;
 mod gap;
 mod gradiometer;
 mod static_fit;
+mod text;
 
 use crate::error::CoreError;
 use pyo3::exceptions::PyValueError;
@@ -40,7 +41,7 @@ mod _core {
         centrifuge_correct_raw, centrifuge_fit_raw, centrifuge_unit_check_raw, PyCentrifugeFit,
     };
     #[pymodule_export]
-    use super::dwell::{detect_dwells_raw, dwell_stats_raw, RawDwellAccumulator};
+    use super::dwell::{detect_dwells_raw, dwell_stats_raw, DwellTableRaw, RawDwellAccumulator};
     #[pymodule_export]
     use super::gap::{gap_chi2_sf, gap_diagnose_raw, gap_f_sf, gap_model_residuals_raw};
     #[pymodule_export]
@@ -50,6 +51,8 @@ mod _core {
     };
     #[pymodule_export]
     use super::static_fit::{apply_triad_raw, static_fit_batch_raw, static_fit_raw, StaticFitRaw};
+    #[pymodule_export]
+    use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
 }

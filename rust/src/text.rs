@@ -1,0 +1,1390 @@
+//! Delimited text recordings, parsed block by block.
+//!
+//! The layout of a file (delimiter, which columns hold what, where the data start) is decided
+//! from its first lines by the caller; this module parses the bulk. Delimited fields are split
+//! by the `csv-core` state machine (quoting, CRLF, comment lines, blank lines), runs of spaces
+//! and tabs by `split_ascii_whitespace`, and numbers are read by `fast-float2` (correctly
+//! rounded, like `strtod`). Only the columns asked for are converted.
+//!
+//! [`TextStream`] reads a source on a background thread in blocks of whole lines, parses a
+//! batch of blocks in parallel (rayon) and hands them over in file order through a bounded
+//! channel, so the next blocks are parsed while the caller reduces the previous one. Memory
+//! is bounded by the block size times the channel depth, whatever the file's length.
+
+use crate::error::{invalid, CoreError, Result};
+use rayon::prelude::*;
+use std::io::Read;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// How the fields of a line are separated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Delimiter {
+    /// Runs of spaces and tabs.
+    Whitespace,
+    /// One byte (`,`, `;`, `\t`, ...), with CSV quoting.
+    Byte(u8),
+}
+
+/// How one column is converted to a float.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ColumnKind {
+    /// A number, multiplied by `scale` (e.g. 1e-3 for a time column in ms).
+    Number {
+        /// Factor applied to the value.
+        scale: f64,
+    },
+    /// An ISO-8601 date and time (`2024-03-01T12:00:00.25Z`, space instead of `T`, optional
+    /// UTC offset; no offset means UTC), as seconds since the instant `t0_s` s + `t0_ns` ns
+    /// after 1970-01-01T00:00:00Z.
+    Iso8601 {
+        /// Whole seconds of the reference instant since the Unix epoch.
+        t0_s: i64,
+        /// Nanoseconds of the reference instant (0 ..= 999 999 999).
+        t0_ns: i64,
+    },
+}
+
+/// One column to extract.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Column {
+    /// 0-based index among the fields of a row.
+    pub index: usize,
+    /// Conversion.
+    pub kind: ColumnKind,
+}
+
+/// Everything the parser needs to know about a file's data rows.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TextLayout {
+    /// Field separator.
+    pub delimiter: Delimiter,
+    /// Fields per data row (rows with another count are an error).
+    pub ncols: usize,
+    /// Output groups: each is a list of columns written row-major into one array
+    /// (e.g. `[[ax, ay, az], [t], [temperature]]`).
+    pub groups: Vec<Vec<Column>>,
+    /// Numbers use a decimal comma (`9,81`); not allowed with a `,` delimiter.
+    pub decimal_comma: bool,
+    /// Lines starting with this byte (after leading blanks) are comments; in whitespace
+    /// mode the rest of a line from this byte on is a comment too.
+    pub comment: Option<u8>,
+    /// Column names (for messages), when the file has a header.
+    pub names: Option<Vec<String>>,
+    /// Line number (1-based) of the first byte handed to the parser (for messages).
+    pub first_line: u64,
+}
+
+impl TextLayout {
+    /// Check the layout before any parsing.
+    pub fn validate(&self) -> Result<()> {
+        if self.ncols == 0 {
+            return invalid("text layout: ncols must be at least 1");
+        }
+        for c in self.groups.iter().flatten() {
+            if c.index >= self.ncols {
+                return invalid(format!(
+                    "text layout: column index {} out of range for {} columns",
+                    c.index, self.ncols
+                ));
+            }
+            if let ColumnKind::Number { scale } = c.kind {
+                if !scale.is_finite() || scale == 0.0 {
+                    return invalid(format!(
+                        "text layout: column scale must be finite and non-zero; got {scale}"
+                    ));
+                }
+            }
+        }
+        if self.decimal_comma && self.delimiter == Delimiter::Byte(b',') {
+            return invalid(
+                "decimal commas cannot be read from a comma-delimited file (every comma would \
+                 be a field separator); use ';' or tabs as the delimiter",
+            );
+        }
+        if let Some(names) = &self.names {
+            if names.len() != self.ncols {
+                return invalid(format!(
+                    "text layout: {} names for {} columns",
+                    names.len(),
+                    self.ncols
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn column_label(&self, index: usize) -> String {
+        match &self.names {
+            Some(n) => format!("column {:?}", n[index]),
+            None => format!("column {index} (0-based)"),
+        }
+    }
+}
+
+/// Parsed rows of one block.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Block {
+    /// One row-major array per layout group (`rows * group.len()` values).
+    pub values: Vec<Vec<f64>>,
+    /// Data rows in the block.
+    pub rows: usize,
+    /// Bytes of text the block covered.
+    pub bytes: usize,
+    /// Line terminators (`\n`) in the block.
+    pub lines: u64,
+    /// Data rows whose first group equals the previous row's (repeated samples: a sensor
+    /// read faster than it updates). Counted within the block.
+    pub repeats: u64,
+}
+
+/// A bad row, located by its line within the block (0-based).
+#[derive(Debug, Clone, PartialEq)]
+struct RowError {
+    line: u64,
+    msg: String,
+}
+
+type RowResult<T> = std::result::Result<T, RowError>;
+
+fn trim(mut s: &[u8]) -> &[u8] {
+    while let [first, rest @ ..] = s {
+        if first.is_ascii_whitespace() {
+            s = rest;
+        } else {
+            break;
+        }
+    }
+    while let [rest @ .., last] = s {
+        if last.is_ascii_whitespace() {
+            s = rest;
+        } else {
+            break;
+        }
+    }
+    s
+}
+
+fn show(s: &[u8]) -> String {
+    let t = String::from_utf8_lossy(s);
+    if t.chars().count() > 40 {
+        let head: String = t.chars().take(40).collect();
+        format!("{head:?}...")
+    } else {
+        format!("{t:?}")
+    }
+}
+
+/// Days from 1970-01-01 to the civil date `y-m-d` (proleptic Gregorian).
+fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let mp = (m + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
+fn digits(s: &[u8], n: usize) -> Option<i64> {
+    if s.len() < n {
+        return None;
+    }
+    let mut v = 0i64;
+    for &c in &s[..n] {
+        if !c.is_ascii_digit() {
+            return None;
+        }
+        v = v * 10 + i64::from(c - b'0');
+    }
+    Some(v)
+}
+
+/// Parse an ISO-8601 date and time: `YYYY-MM-DD(T| )hh:mm[:ss[.f...]][Z|±hh[:mm]|±hhmm]`.
+///
+/// Returns whole seconds since the Unix epoch and nanoseconds (a time without offset is UTC);
+/// None when the text is not such a timestamp.
+pub fn parse_iso8601(s: &[u8]) -> Option<(i64, i64)> {
+    let s = trim(s);
+    if s.len() < 16 || s[4] != b'-' || s[7] != b'-' || !matches!(s[10], b'T' | b't' | b' ') {
+        return None;
+    }
+    let (y, mo, d) = (digits(s, 4)?, digits(&s[5..], 2)?, digits(&s[8..], 2)?);
+    let leap = y % 4 == 0 && (y % 100 != 0 || y % 400 == 0);
+    let month_days = [
+        31,
+        if leap { 29 } else { 28 },
+        31,
+        30,
+        31,
+        30,
+        31,
+        31,
+        30,
+        31,
+        30,
+        31,
+    ];
+    if !(1..=12).contains(&mo) || !(1..=month_days[(mo - 1) as usize]).contains(&d) {
+        return None;
+    }
+    let (h, mi) = (digits(&s[11..], 2)?, digits(&s[14..], 2)?);
+    if s[13] != b':' || h > 24 || mi > 59 {
+        return None;
+    }
+    let mut i = 16;
+    let mut sec = 0i64;
+    let mut ns = 0i64;
+    if i < s.len() && s[i] == b':' {
+        sec = digits(&s[i + 1..], 2)?;
+        if sec > 60 {
+            return None;
+        }
+        i += 3;
+        if i < s.len() && (s[i] == b'.' || s[i] == b',') {
+            i += 1;
+            let start = i;
+            let mut scale = 100_000_000i64;
+            while i < s.len() && s[i].is_ascii_digit() {
+                ns += i64::from(s[i] - b'0') * scale;
+                scale /= 10;
+                i += 1;
+            }
+            if i == start {
+                return None;
+            }
+        }
+    }
+    let mut offset = 0i64;
+    if i < s.len() {
+        match s[i] {
+            b'Z' | b'z' if i + 1 == s.len() => {}
+            b'+' | b'-' => {
+                let sign = if s[i] == b'+' { 1 } else { -1 };
+                let rest = &s[i + 1..];
+                let (oh, om) = match rest.len() {
+                    2 => (digits(rest, 2)?, 0),
+                    4 => (digits(rest, 2)?, digits(&rest[2..], 2)?),
+                    5 if rest[2] == b':' => (digits(rest, 2)?, digits(&rest[3..], 2)?),
+                    _ => return None,
+                };
+                if oh > 23 || om > 59 {
+                    return None;
+                }
+                offset = sign * (oh * 3600 + om * 60);
+            }
+            _ => return None,
+        }
+    }
+    let secs = days_from_civil(y, mo, d) * 86_400 + h * 3600 + mi * 60 + sec - offset;
+    Some((secs, ns))
+}
+
+/// Exact powers of ten representable in a double.
+const POW10: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+];
+
+/// Clinger's fast path for the plain decimals recorders write (`-12.345678`): at most 15
+/// digits and no exponent, so the digits form an integer below 2^53 and the value is one
+/// correctly rounded division by an exact power of ten, the same double any correct parser
+/// gives. None for anything else (the general parser takes it).
+#[inline(always)]
+fn parse_simple_decimal(f: &[u8]) -> Option<f64> {
+    let (neg, digits) = match f.first() {
+        Some(b'-') => (true, &f[1..]),
+        Some(b'+') => (false, &f[1..]),
+        _ => (false, f),
+    };
+    if digits.is_empty() || digits.len() > 16 {
+        return None;
+    }
+    let mut m: u64 = 0;
+    let mut frac: Option<usize> = None;
+    let mut nd = 0;
+    for (i, &c) in digits.iter().enumerate() {
+        match c {
+            b'0'..=b'9' => {
+                m = m * 10 + u64::from(c - b'0');
+                nd += 1;
+            }
+            b'.' if frac.is_none() => frac = Some(digits.len() - i - 1),
+            _ => return None,
+        }
+    }
+    if nd == 0 || nd > 15 {
+        return None;
+    }
+    let v = match frac {
+        Some(k) if k > 0 => m as f64 / POW10[k],
+        _ => m as f64,
+    };
+    Some(if neg { -v } else { v })
+}
+
+/// Parse a number field (`decimal_comma`: `,` is the decimal mark).
+#[inline]
+fn parse_number(field: &[u8], decimal_comma: bool) -> Option<f64> {
+    if let Some(v) = parse_simple_decimal(field) {
+        return Some(v);
+    }
+    let mut f = trim(field);
+    // A quoted field after blanks (`1, "2"`) keeps its quotes in CSV: drop them here.
+    if let [b'"', inner @ .., b'"'] = f {
+        f = trim(inner);
+    }
+    if let Ok(v) = fast_float2::parse::<f64, _>(f) {
+        return Some(v);
+    }
+    if decimal_comma && f.len() <= 64 {
+        let mut buf = [0u8; 64];
+        for (o, &c) in buf.iter_mut().zip(f) {
+            *o = if c == b',' { b'.' } else { c };
+        }
+        return fast_float2::parse::<f64, _>(&buf[..f.len()]).ok();
+    }
+    None
+}
+
+/// Converts the fields of one row at a time into the output groups.
+struct RowSink<'a> {
+    layout: &'a TextLayout,
+    /// Per field index: where its value goes in `row` and how to convert it.
+    want: Vec<Option<(usize, ColumnKind)>>,
+    /// `row[offsets[g]..offsets[g + 1]]` is group `g` of the current row.
+    offsets: Vec<usize>,
+    row: Vec<f64>,
+    out: Vec<Vec<f64>>,
+    rows: usize,
+    repeats: u64,
+    max_rows: usize,
+}
+
+impl<'a> RowSink<'a> {
+    fn new(layout: &'a TextLayout, rows_hint: usize, max_rows: usize) -> Self {
+        let mut want = vec![None; layout.ncols];
+        let mut offsets = vec![0];
+        let mut slot = 0;
+        for g in &layout.groups {
+            for c in g {
+                want[c.index] = Some((slot, c.kind));
+                slot += 1;
+            }
+            offsets.push(slot);
+        }
+        let out = layout
+            .groups
+            .iter()
+            .map(|g| Vec::with_capacity(rows_hint * g.len()))
+            .collect();
+        RowSink {
+            layout,
+            want,
+            offsets,
+            row: vec![0.0; slot],
+            out,
+            rows: 0,
+            repeats: 0,
+            max_rows,
+        }
+    }
+
+    fn full(&self) -> bool {
+        self.rows >= self.max_rows
+    }
+
+    /// Convert field `index` of the current row (ignored unless it is wanted).
+    #[inline(always)]
+    fn field(&mut self, index: usize, f: &[u8], line: u64) -> RowResult<()> {
+        let Some(&Some((slot, kind))) = self.want.get(index) else {
+            return Ok(());
+        };
+        let v = match kind {
+            ColumnKind::Number { scale } => match parse_number(f, self.layout.decimal_comma) {
+                Some(v) if scale == 1.0 => v,
+                Some(v) => v * scale,
+                None => return Err(self.bad(index, f, line)),
+            },
+            ColumnKind::Iso8601 { t0_s, t0_ns } => match parse_iso8601(f) {
+                Some((s, ns)) => (s - t0_s) as f64 + (ns - t0_ns) as f64 * 1e-9,
+                None => return Err(self.bad(index, f, line)),
+            },
+        };
+        self.row[slot] = v;
+        Ok(())
+    }
+
+    #[cold]
+    fn bad(&self, index: usize, f: &[u8], line: u64) -> RowError {
+        let lay = self.layout;
+        let f = trim(f);
+        let what = match self.want[index].map(|w| w.1) {
+            Some(ColumnKind::Iso8601 { .. }) => {
+                format!("{} is not an ISO-8601 date and time", show(f))
+            }
+            _ if f.is_empty() => "is empty (missing value)".to_string(),
+            _ => {
+                let hint = if !lay.decimal_comma && f.contains(&b',') {
+                    " (a decimal comma? those are read only when the first data rows use \
+                     them too)"
+                } else {
+                    ""
+                };
+                format!("{} is not a number{hint}", show(f))
+            }
+        };
+        RowError {
+            line,
+            msg: format!("{}: {what}", lay.column_label(index)),
+        }
+    }
+
+    /// Finish the current row, which had `nfields` fields.
+    #[inline(always)]
+    fn end_row(&mut self, nfields: usize, line: u64) -> RowResult<()> {
+        let ncols = self.layout.ncols;
+        if nfields != ncols {
+            return Err(RowError {
+                line,
+                msg: format!(
+                    "{nfields} field{} where the data rows have {ncols}",
+                    if nfields == 1 { "" } else { "s" },
+                ),
+            });
+        }
+        for (g, out) in self.out.iter_mut().enumerate() {
+            let vals = &self.row[self.offsets[g]..self.offsets[g + 1]];
+            if g == 0 && self.rows > 0 {
+                let n = out.len();
+                let k = vals.len();
+                if k > 0 && out[n - k..] == *vals {
+                    self.repeats += 1;
+                }
+            }
+            out.extend_from_slice(vals);
+        }
+        self.rows += 1;
+        Ok(())
+    }
+
+    fn finish(self, bytes: usize, lines: u64) -> Block {
+        Block {
+            values: self.out,
+            rows: self.rows,
+            bytes,
+            lines,
+            repeats: self.repeats,
+        }
+    }
+}
+
+/// True when the line starting at `buf[pos..]` holds no data: blank, or a comment.
+#[inline(always)]
+fn skip_line(buf: &[u8], pos: usize, comment: Option<u8>) -> bool {
+    match buf.get(pos) {
+        Some(&c) if c.is_ascii_digit() || c == b'-' || c == b'.' || c == b'+' => false,
+        _ => {
+            let mut i = pos;
+            while i < buf.len() && matches!(buf[i], b' ' | b'\t' | b'\r' | 0x0b | 0x0c) {
+                i += 1;
+            }
+            i >= buf.len() || buf[i] == b'\n' || comment.is_some_and(|c| buf[i] == c)
+        }
+    }
+}
+
+/// Rows split on a delimiter byte, or on runs of spaces and tabs (`delim` None), for text
+/// without quote characters (quoted fields go through csv-core). Blank lines and comment
+/// lines are skipped; in whitespace mode a comment byte also ends a line's data.
+fn parse_plain(buf: &[u8], delim: Option<u8>, sink: &mut RowSink<'_>) -> RowResult<(usize, u64)> {
+    let comment = sink.layout.comment;
+    let mut pos = 0;
+    let mut line = 0u64;
+    while pos < buf.len() && !sink.full() {
+        let end = memchr::memchr(b'\n', &buf[pos..]).map_or(buf.len(), |i| pos + i);
+        if !skip_line(buf, pos, comment) {
+            let l = &buf[pos..end];
+            let mut nf = 0;
+            match delim {
+                Some(d) => {
+                    let mut a = 0;
+                    for i in memchr::memchr_iter(d, l) {
+                        sink.field(nf, &l[a..i], line)?;
+                        nf += 1;
+                        a = i + 1;
+                    }
+                    sink.field(nf, &l[a..], line)?;
+                    nf += 1;
+                }
+                None => {
+                    let l = match comment.and_then(|c| memchr::memchr(c, l)) {
+                        Some(i) => &l[..i],
+                        None => l,
+                    };
+                    let mut i = 0;
+                    while i < l.len() {
+                        while i < l.len() && l[i].is_ascii_whitespace() {
+                            i += 1;
+                        }
+                        if i == l.len() {
+                            break;
+                        }
+                        let a = i;
+                        while i < l.len() && !l[i].is_ascii_whitespace() {
+                            i += 1;
+                        }
+                        sink.field(nf, &l[a..i], line)?;
+                        nf += 1;
+                    }
+                }
+            }
+            if nf > 0 {
+                sink.end_row(nf, line)?;
+            }
+        }
+        if end < buf.len() {
+            line += 1;
+            pos = end + 1;
+        } else {
+            pos = end;
+        }
+    }
+    Ok((pos, line))
+}
+
+fn parse_delimited(buf: &[u8], delim: u8, sink: &mut RowSink<'_>) -> RowResult<(usize, u64)> {
+    use csv_core::{ReadRecordResult, ReaderBuilder};
+    let mut rdr = ReaderBuilder::new()
+        .delimiter(delim)
+        .comment(sink.layout.comment)
+        .build();
+    let comment = sink.layout.comment;
+    let mut out = vec![0u8; 4096];
+    let mut ends = vec![0usize; sink.layout.ncols.max(1) + 4];
+    let mut input = buf;
+    let mut consumed = 0usize;
+    // A record may need several calls when `out`/`ends` fill up.
+    let mut nout = 0usize;
+    let mut nend = 0usize;
+    let mut at_eof = false;
+    loop {
+        if sink.full() {
+            break;
+        }
+        let (res, nin, o, e) = rdr.read_record(input, &mut out[nout..], &mut ends[nend..]);
+        // `read_record` with empty input signals the end of the data.
+        let last = if nin > 0 { input[nin - 1] } else { 0 };
+        input = &input[nin..];
+        consumed += nin;
+        nout += o;
+        nend += e;
+        match res {
+            ReadRecordResult::InputEmpty => {
+                if at_eof {
+                    break;
+                }
+                if input.is_empty() {
+                    at_eof = true;
+                }
+            }
+            ReadRecordResult::OutputFull => {
+                let n = out.len();
+                out.resize(2 * n, 0);
+            }
+            ReadRecordResult::OutputEndsFull => {
+                let n = ends.len();
+                ends.resize(2 * n, 0);
+            }
+            ReadRecordResult::Record => {
+                // `line()` counts the `\n` consumed so far (from 1); the record's own
+                // terminator is among them unless it ended at a `\r` or the end of input.
+                let line = rdr.line() - 1 - u64::from(last == b'\n');
+                let (o, e) = (&out[..nout], &ends[..nend]);
+                let field = |i: usize| -> &[u8] {
+                    let a = if i == 0 { 0 } else { e[i - 1] };
+                    &o[a..e[i]]
+                };
+                let blank = nend == 1 && {
+                    let f = trim(field(0));
+                    f.is_empty() || comment.is_some_and(|c| f[0] == c)
+                };
+                if !blank {
+                    for i in 0..nend {
+                        sink.field(i, field(i), line)?;
+                    }
+                    sink.end_row(nend, line)?;
+                }
+                nout = 0;
+                nend = 0;
+            }
+            ReadRecordResult::End => break,
+        }
+    }
+    let lines = memchr::memchr_iter(b'\n', &buf[..consumed]).count() as u64;
+    Ok((consumed, lines))
+}
+
+/// Parse the data rows of `buf` (whole lines) into a [`Block`].
+///
+/// At most `max_rows` rows are read (then `bytes` and `lines` cover only what was read).
+/// A row with the wrong number of fields, or a requested field that does not parse, is an
+/// error naming its line (`layout.first_line` is the line of `buf[0]`).
+pub fn parse_block(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> Result<Block> {
+    layout.validate()?;
+    parse_block_rel(buf, layout, max_rows).map_err(|e| locate(e, layout.first_line))
+}
+
+fn locate(e: RowError, first_line: u64) -> CoreError {
+    CoreError::InvalidInput(format!("line {}: {}", first_line + e.line, e.msg))
+}
+
+fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> RowResult<Block> {
+    // Rough row count for the first allocation: 8 bytes per field.
+    let hint = (buf.len() / (8 * layout.ncols).max(1)).min(max_rows.unwrap_or(usize::MAX));
+    let mut sink = RowSink::new(layout, hint, max_rows.unwrap_or(usize::MAX));
+    let (bytes, lines) = match layout.delimiter {
+        Delimiter::Whitespace => parse_plain(buf, None, &mut sink)?,
+        // csv-core reads quoted fields; text without a quote character splits the same way
+        // on the delimiter byte alone, which is what the plain path does, faster.
+        Delimiter::Byte(d) if memchr::memchr(b'"', buf).is_some() => {
+            parse_delimited(buf, d, &mut sink)?
+        }
+        Delimiter::Byte(d) => parse_plain(buf, Some(d), &mut sink)?,
+    };
+    Ok(sink.finish(bytes, lines))
+}
+
+/// Where the text comes from.
+pub enum Source {
+    /// Any reader (a file positioned at the first data byte, a pipe, stdin, bytes in memory).
+    Reader(Box<dyn Read + Send>),
+}
+
+/// Options of a [`TextStream`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StreamOptions {
+    /// Target bytes per block (whole lines; a longer line makes a longer block).
+    pub block_bytes: usize,
+    /// Blocks parsed in parallel per batch (0: the rayon pool size).
+    pub parallel: usize,
+}
+
+impl Default for StreamOptions {
+    fn default() -> Self {
+        StreamOptions {
+            block_bytes: 4 << 20,
+            parallel: 0,
+        }
+    }
+}
+
+/// What [`TextStream::next_block`] found.
+#[derive(Debug)]
+pub enum Next {
+    /// The next block in file order.
+    Block(Block),
+    /// The end of the data.
+    Done,
+    /// Nothing yet within the timeout (the reader is still busy).
+    Pending,
+}
+
+/// What the reader thread hands over for one block: the receiving end of its parse job.
+type Job = Receiver<std::result::Result<Block, JobError>>;
+
+enum JobError {
+    /// A bad row, by its line within the block.
+    Row(RowError),
+    /// The source could not be read.
+    Read(CoreError),
+}
+
+/// Blocks of a text source, read on a background thread and parsed ahead on the rayon pool
+/// (several blocks at once), handed over in file order.
+pub struct TextStream {
+    jobs: Receiver<Job>,
+    current: Option<Job>,
+    line: u64,
+    stop: Arc<AtomicBool>,
+    done: bool,
+}
+
+impl TextStream {
+    /// Start reading `source` (positioned at the first data byte) with `layout`.
+    pub fn new(source: Source, layout: TextLayout, opts: StreamOptions) -> Result<Self> {
+        layout.validate()?;
+        let par = if opts.parallel == 0 {
+            rayon::current_num_threads().max(1)
+        } else {
+            opts.parallel
+        };
+        let block_bytes = opts.block_bytes.max(1);
+        // Blocks in flight: `par` parse jobs queued or running, one being handed over.
+        let (tx, jobs) = sync_channel(par);
+        let stop = Arc::new(AtomicBool::new(false));
+        let stop2 = Arc::clone(&stop);
+        let Source::Reader(reader) = source;
+        let first_line = layout.first_line;
+        let layout = Arc::new(layout);
+        std::thread::Builder::new()
+            .name("accelcal-text".into())
+            .spawn(move || read_loop(reader, layout, block_bytes, &tx, &stop2))
+            .map_err(|e| CoreError::InvalidInput(format!("cannot start the reader thread: {e}")))?;
+        Ok(TextStream {
+            jobs,
+            current: None,
+            line: first_line,
+            stop,
+            done: false,
+        })
+    }
+
+    /// The next block, waiting at most `timeout`.
+    pub fn next_block(&mut self, timeout: Duration) -> Result<Next> {
+        if self.done {
+            return Ok(Next::Done);
+        }
+        let job = match self.current.take() {
+            Some(j) => j,
+            None => match self.jobs.recv_timeout(timeout) {
+                Ok(j) => j,
+                Err(RecvTimeoutError::Timeout) => return Ok(Next::Pending),
+                Err(RecvTimeoutError::Disconnected) => {
+                    self.done = true;
+                    return Ok(Next::Done);
+                }
+            },
+        };
+        match job.recv_timeout(timeout) {
+            Ok(Ok(b)) => {
+                self.line += b.lines;
+                Ok(Next::Block(b))
+            }
+            Ok(Err(e)) => {
+                self.done = true;
+                Err(match e {
+                    JobError::Row(r) => locate(r, self.line),
+                    JobError::Read(e) => e,
+                })
+            }
+            Err(RecvTimeoutError::Timeout) => {
+                self.current = Some(job);
+                Ok(Next::Pending)
+            }
+            Err(RecvTimeoutError::Disconnected) => {
+                self.done = true;
+                invalid("the text reader stopped unexpectedly")
+            }
+        }
+    }
+}
+
+impl Iterator for TextStream {
+    type Item = Result<Block>;
+
+    fn next(&mut self) -> Option<Result<Block>> {
+        loop {
+            match self.next_block(Duration::from_secs(3600)) {
+                Ok(Next::Block(b)) => return Some(Ok(b)),
+                Ok(Next::Done) => return None,
+                Ok(Next::Pending) => continue,
+                Err(e) => return Some(Err(e)),
+            }
+        }
+    }
+}
+
+impl Drop for TextStream {
+    fn drop(&mut self) {
+        // The reader thread stops at its next read or hand-over; it owns nothing of ours.
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Read until `buf` holds at least `target` bytes or the source ends; true at the end.
+fn fill(src: &mut dyn Read, buf: &mut Vec<u8>, target: usize) -> std::io::Result<bool> {
+    let mut chunk = vec![0u8; 1 << 16];
+    while buf.len() < target {
+        let want = (target - buf.len()).min(chunk.len());
+        match src.read(&mut chunk[..want]) {
+            Ok(0) => return Ok(true),
+            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(false)
+}
+
+fn read_loop(
+    mut src: Box<dyn Read + Send>,
+    layout: Arc<TextLayout>,
+    block_bytes: usize,
+    tx: &SyncSender<Job>,
+    stop: &AtomicBool,
+) {
+    let mut carry: Vec<u8> = Vec::new();
+    let mut eof = false;
+    while !eof {
+        if stop.load(Ordering::Relaxed) {
+            return;
+        }
+        let mut buf = std::mem::take(&mut carry);
+        buf.reserve(block_bytes + (1 << 16));
+        let mut target = block_bytes.max(buf.len() + 1);
+        let (jtx, jrx) = sync_channel(1);
+        loop {
+            match fill(src.as_mut(), &mut buf, target) {
+                Ok(true) => {
+                    eof = true;
+                    break;
+                }
+                Ok(false) => {}
+                Err(e) => {
+                    let msg = format!("cannot read the data: {e}");
+                    let _ = jtx.send(Err(JobError::Read(CoreError::InvalidInput(msg))));
+                    let _ = tx.send(jrx);
+                    return;
+                }
+            }
+            match memchr::memrchr(b'\n', &buf) {
+                Some(p) => {
+                    carry = buf[p + 1..].to_vec();
+                    buf.truncate(p + 1);
+                    break;
+                }
+                None => target = 2 * buf.len(), // one line longer than a block
+            }
+        }
+        if buf.is_empty() {
+            break;
+        }
+        let lay = Arc::clone(&layout);
+        rayon::spawn(move || {
+            let r = parse_block_rel(&buf, &lay, None).map_err(JobError::Row);
+            let _ = jtx.send(r);
+        });
+        if tx.send(jrx).is_err() {
+            return;
+        }
+    }
+}
+
+/// Rows as delimited text: per row the `lead` value (e.g. time, when given) and then the `k`
+/// values of `values` (row-major), each in the shortest form that reads back to the same
+/// float64 (ryu), separated by `delim`, one row per line. Numbers never need quoting.
+/// Rows are formatted in parallel; the output is the same whatever the thread count.
+pub fn format_rows(lead: Option<&[f64]>, values: &[f64], k: usize, delim: u8) -> Result<Vec<u8>> {
+    if k == 0 || !values.len().is_multiple_of(k) {
+        return invalid(format!(
+            "format_rows: {} values do not make rows of {k}",
+            values.len()
+        ));
+    }
+    let rows = values.len() / k;
+    if let Some(l) = lead {
+        if l.len() != rows {
+            return invalid(format!(
+                "format_rows: {} lead values for {rows} rows",
+                l.len()
+            ));
+        }
+    }
+    const PART: usize = 16_384;
+    let parts: Vec<Vec<u8>> = (0..rows.div_ceil(PART))
+        .into_par_iter()
+        .map(|p| {
+            let (a, b) = (p * PART, ((p + 1) * PART).min(rows));
+            let mut out = Vec::with_capacity((b - a) * (k + 1) * 20);
+            let mut fmt = ryu::Buffer::new();
+            let mut put = |out: &mut Vec<u8>, v: f64| {
+                if v.is_finite() {
+                    out.extend_from_slice(fmt.format_finite(v).as_bytes());
+                } else if v.is_nan() {
+                    out.extend_from_slice(b"nan");
+                } else if v > 0.0 {
+                    out.extend_from_slice(b"inf");
+                } else {
+                    out.extend_from_slice(b"-inf");
+                }
+            };
+            for i in a..b {
+                if let Some(l) = lead {
+                    put(&mut out, l[i]);
+                    out.push(delim);
+                }
+                for j in 0..k {
+                    if j > 0 {
+                        out.push(delim);
+                    }
+                    put(&mut out, values[i * k + j]);
+                }
+                out.push(b'\n');
+            }
+            out
+        })
+        .collect();
+    Ok(parts.concat())
+}
+
+/// A whole source parsed into one array per group (rows in file order).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Collected {
+    /// One row-major array per group.
+    pub values: Vec<Vec<f64>>,
+    /// Data rows.
+    pub rows: usize,
+    /// Bytes of text read.
+    pub bytes: usize,
+    /// Rows repeating the previous row's first group.
+    pub repeats: u64,
+}
+
+impl Collected {
+    /// Empty, with room for about `rows_hint` rows.
+    pub fn with_capacity(layout: &TextLayout, rows_hint: usize) -> Self {
+        Collected {
+            values: layout
+                .groups
+                .iter()
+                .map(|g| Vec::with_capacity(rows_hint.saturating_mul(g.len())))
+                .collect(),
+            ..Collected::default()
+        }
+    }
+
+    /// Append a block.
+    pub fn push(&mut self, b: &Block) {
+        if self.values.len() < b.values.len() {
+            self.values.resize(b.values.len(), Vec::new());
+        }
+        for (dst, src) in self.values.iter_mut().zip(&b.values) {
+            dst.extend_from_slice(src);
+        }
+        self.rows += b.rows;
+        self.bytes += b.bytes;
+        self.repeats += b.repeats;
+    }
+}
+
+/// Parse a whole source (one pass, blocks in parallel).
+pub fn read_all(source: Source, layout: TextLayout, opts: StreamOptions) -> Result<Collected> {
+    let mut out = Collected::with_capacity(&layout, 0);
+    for b in TextStream::new(source, layout, opts)? {
+        out.push(&b?);
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dwell::{DetectorSettings, DwellAccumulator};
+    use ndarray::{Array2, ArrayView2};
+
+    fn lcg(seed: &mut u64) -> f64 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+
+    fn num(i: usize) -> Column {
+        Column {
+            index: i,
+            kind: ColumnKind::Number { scale: 1.0 },
+        }
+    }
+
+    fn layout(delimiter: Delimiter, ncols: usize, groups: Vec<Vec<Column>>) -> TextLayout {
+        TextLayout {
+            delimiter,
+            ncols,
+            groups,
+            decimal_comma: false,
+            comment: Some(b'#'),
+            names: None,
+            first_line: 1,
+        }
+    }
+
+    fn source(text: &str) -> Source {
+        Source::Reader(Box::new(std::io::Cursor::new(text.as_bytes().to_vec())))
+    }
+
+    fn all(text: &str, lay: &TextLayout, block: usize) -> Result<Collected> {
+        read_all(
+            source(text),
+            lay.clone(),
+            StreamOptions {
+                block_bytes: block,
+                parallel: 3,
+            },
+        )
+    }
+
+    /// Rows of `n` random values, with the independent `str::parse` result.
+    fn generate(rows: usize, ncols: usize, seed: u64) -> (Vec<Vec<String>>, Vec<Vec<f64>>) {
+        let mut s = seed;
+        let mut text = Vec::new();
+        let mut vals = Vec::new();
+        for i in 0..rows {
+            let mut tr = Vec::new();
+            let mut vr = Vec::new();
+            for c in 0..ncols {
+                let u = lcg(&mut s);
+                let t = match (i + c) % 5 {
+                    0 => format!("{}", (u * 70000.0).round() - 35000.0),
+                    1 => format!("{:.17e}", (u - 0.5) * 1e-3),
+                    2 => format!("{}", 9.80665 + u),
+                    3 => format!("{:.3}", -u * 12.0),
+                    _ => format!("{:+.6E}", u * 1e6),
+                };
+                vr.push(t.parse::<f64>().unwrap());
+                tr.push(t);
+            }
+            text.push(tr);
+            vals.push(vr);
+        }
+        (text, vals)
+    }
+
+    #[test]
+    fn parity_with_str_parse_for_every_delimiter_and_block_size() {
+        let (text, vals) = generate(2000, 5, 42);
+        for (d, sep) in [
+            (Delimiter::Byte(b','), ","),
+            (Delimiter::Byte(b';'), ";"),
+            (Delimiter::Byte(b'\t'), "\t"),
+            (Delimiter::Whitespace, "  \t "),
+            (Delimiter::Byte(b','), " , "),
+        ] {
+            for (eol, quoted) in [("\n", false), ("\r\n", false), ("\n", true), ("\r\n", true)] {
+                if quoted && d == Delimiter::Whitespace {
+                    continue;
+                }
+                // Quoted fields (every 3rd row) send the blocks through csv-core.
+                let mut s: String = text
+                    .iter()
+                    .enumerate()
+                    .map(|(i, r)| {
+                        if quoted && i % 3 == 0 {
+                            r.iter()
+                                .map(|f| format!("\"{f}\""))
+                                .collect::<Vec<_>>()
+                                .join(sep)
+                                + eol
+                        } else {
+                            r.join(sep) + eol
+                        }
+                    })
+                    .collect::<Vec<_>>()
+                    .concat();
+                s.pop(); // no trailing newline on the last row
+                if eol == "\r\n" {
+                    s.pop();
+                }
+                let lay = layout(d, 5, vec![vec![num(3), num(1), num(4)], vec![num(0)]]);
+                for block in [1, 97, 4096, 1 << 20] {
+                    let c = all(&s, &lay, block).unwrap();
+                    assert_eq!(c.rows, 2000);
+                    let want: Vec<f64> = vals.iter().flat_map(|r| [r[3], r[1], r[4]]).collect();
+                    assert_eq!(c.values[0], want, "{sep:?} {eol:?} {block}");
+                    let t: Vec<f64> = vals.iter().map(|r| r[0]).collect();
+                    assert_eq!(c.values[1], t);
+                    assert_eq!(c.bytes, s.len());
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fast_path_decimals_equal_the_general_parser_bit_for_bit() {
+        let mut s = 77u64;
+        let mut n = 0;
+        for i in 0..400_000 {
+            let int_digits = (lcg(&mut s) * 9.0) as usize;
+            let frac_digits = (lcg(&mut s) * 12.0) as usize;
+            let mut t = String::new();
+            match i % 3 {
+                0 => t.push('-'),
+                1 => t.push('+'),
+                _ => {}
+            }
+            for _ in 0..int_digits {
+                t.push(char::from(b'0' + (lcg(&mut s) * 10.0) as u8));
+            }
+            if frac_digits > 0 || i % 7 == 0 {
+                t.push('.');
+            }
+            for _ in 0..frac_digits {
+                t.push(char::from(b'0' + (lcg(&mut s) * 10.0) as u8));
+            }
+            let fast = parse_simple_decimal(t.as_bytes());
+            let general = fast_float2::parse::<f64, _>(t.as_bytes()).ok();
+            let std = t.parse::<f64>().ok();
+            if let Some(v) = fast {
+                n += 1;
+                assert_eq!(Some(v.to_bits()), general.map(f64::to_bits), "{t}");
+                assert_eq!(Some(v.to_bits()), std.map(f64::to_bits), "{t}");
+            }
+            assert_eq!(
+                parse_number(t.as_bytes(), false).map(f64::to_bits),
+                std.map(f64::to_bits),
+                "{t}"
+            );
+        }
+        assert!(n > 300_000);
+        for t in [
+            "1e5",
+            " 1",
+            "1.2.3",
+            "nan",
+            "inf",
+            "-",
+            ".",
+            "1234567890123456.5",
+        ] {
+            assert_eq!(parse_simple_decimal(t.as_bytes()), None, "{t}");
+        }
+    }
+
+    #[test]
+    fn comments_blank_lines_quotes_and_bom() {
+        let s =
+            "\u{feff}1,2,3\n\n# a comment\n  # indented comment\n\"4\",\" 5 \",6\n   \n7,8,9 \n";
+        let lay = layout(Delimiter::Byte(b','), 3, vec![vec![num(0), num(1), num(2)]]);
+        let c = all(s, &lay, 1 << 20).unwrap();
+        assert_eq!(c.values[0], vec![1., 2., 3., 4., 5., 6., 7., 8., 9.]);
+        let w = "1 2 3 # inline\n# full line\n\n4\t5 6\n";
+        let lay = layout(Delimiter::Whitespace, 3, vec![vec![num(0), num(1), num(2)]]);
+        let c = all(w, &lay, 1 << 20).unwrap();
+        assert_eq!(c.values[0], vec![1., 2., 3., 4., 5., 6.]);
+    }
+
+    #[test]
+    fn bad_rows_name_their_line() {
+        let mut s = String::new();
+        for i in 0..500 {
+            s += &format!("{i},1,2,3\n");
+            if i == 10 {
+                s += "\n# comment\n";
+            }
+        }
+        // Row 0 is line 7; a blank line and a comment come after row 10, so row i >= 11 is
+        // line i + 9 and the bad row 500 is line 509.
+        let mut bad = s.clone();
+        bad += "500,1,x,3\n501,1,2,3\n";
+        let mut lay = layout(
+            Delimiter::Byte(b','),
+            4,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        lay.first_line = 7;
+        for block in [16, 300, 1 << 20] {
+            let e = all(&bad, &lay, block).unwrap_err().to_string();
+            assert_eq!(
+                e, "line 509: column 2 (0-based): \"x\" is not a number",
+                "block {block}"
+            );
+        }
+        let ragged = s.clone() + "1,2,3\n";
+        let e = all(&ragged, &lay, 64).unwrap_err().to_string();
+        assert_eq!(e, "line 509: 3 fields where the data rows have 4");
+        let mut crlf = bad.replace('\n', "\r\n");
+        crlf.truncate(crlf.len() - 2);
+        let e = all(&crlf, &lay, 100).unwrap_err().to_string();
+        assert!(e.starts_with("line 509:"), "{e}");
+        let ws = bad.replace(',', " ");
+        lay.delimiter = Delimiter::Whitespace;
+        lay.names = Some(vec!["t".into(), "ax".into(), "ay".into(), "az".into()]);
+        let e = all(&ws, &lay, 50).unwrap_err().to_string();
+        assert_eq!(e, "line 509: column \"ay\": \"x\" is not a number");
+        let empty = "1,,3\n".to_string();
+        let lay3 = layout(Delimiter::Byte(b','), 3, vec![vec![num(0), num(1), num(2)]]);
+        let e = all(&empty, &lay3, 50).unwrap_err().to_string();
+        assert_eq!(e, "line 1: column 1 (0-based): is empty (missing value)");
+    }
+
+    #[test]
+    fn decimal_comma_and_iso_timestamps() {
+        let s = "2024-03-01T12:00:00Z;9,5;-0,25;1e-3\n2024-03-01 12:00:00.010+01:00;1;2;3\n\
+                 2024-02-29T23:59:59.5;4,0;5;6\n";
+        let t0 = parse_iso8601(b"2024-03-01T12:00:00Z").unwrap();
+        assert_eq!(t0, (1_709_294_400, 0));
+        let mut lay = layout(
+            Delimiter::Byte(b';'),
+            4,
+            vec![
+                vec![num(1), num(2), num(3)],
+                vec![Column {
+                    index: 0,
+                    kind: ColumnKind::Iso8601 {
+                        t0_s: t0.0,
+                        t0_ns: t0.1,
+                    },
+                }],
+            ],
+        );
+        lay.decimal_comma = true;
+        let c = all(s, &lay, 1 << 20).unwrap();
+        assert_eq!(c.values[0], vec![9.5, -0.25, 1e-3, 1., 2., 3., 4., 5., 6.]);
+        let t = &c.values[1];
+        assert_eq!(t[0], 0.0);
+        assert!((t[1] - (-3600.0 + 0.01)).abs() < 1e-9, "{}", t[1]);
+        assert_eq!(t[2], -12.0 * 3600.0 - 0.5);
+        for bad in [
+            "2024-13-01T00:00:00",
+            "2023-02-29T00:00:00",
+            "2024-03-01",
+            "12:00:00",
+            "2024-03-01T12:00:00+5",
+        ] {
+            assert_eq!(parse_iso8601(bad.as_bytes()), None, "{bad}");
+        }
+        // Against a known epoch: 2000-01-01T00:00:00Z = 946684800.
+        assert_eq!(
+            parse_iso8601(b"2000-01-01T00:00:00"),
+            Some((946_684_800, 0))
+        );
+        assert_eq!(
+            parse_iso8601(b"1969-12-31T23:59:59.999999999Z"),
+            Some((-1, 999_999_999))
+        );
+        let comma = layout(Delimiter::Byte(b','), 3, vec![vec![num(0)]]);
+        let mut dc = comma.clone();
+        dc.decimal_comma = true;
+        assert!(dc.validate().is_err());
+        let nodc = layout(Delimiter::Byte(b';'), 2, vec![vec![num(0), num(1)]]);
+        let e = all("1,5;2\n", &nodc, 64).unwrap_err().to_string();
+        assert!(e.contains("decimal comma"), "{e}");
+    }
+
+    #[test]
+    fn repeated_samples_are_counted() {
+        let mut s = String::new();
+        for i in 0..400 {
+            let v = i / 4; // each sample repeated 4 times
+            s += &format!("{},{},1,2\n", i, v);
+        }
+        let lay = layout(Delimiter::Byte(b','), 4, vec![vec![num(1), num(2), num(3)]]);
+        let c = all(&s, &lay, 1 << 20).unwrap();
+        assert_eq!(c.repeats, 300);
+    }
+
+    #[test]
+    fn head_parse_stops_after_max_rows() {
+        let s = "1 2\n3 4\n5 6\nbad row here\n";
+        let lay = layout(Delimiter::Whitespace, 2, vec![vec![num(0), num(1)]]);
+        let b = parse_block(s.as_bytes(), &lay, Some(3)).unwrap();
+        assert_eq!(b.rows, 3);
+        assert_eq!(b.values[0], vec![1., 2., 3., 4., 5., 6.]);
+        assert_eq!(b.bytes, 12);
+        assert_eq!(b.lines, 3);
+    }
+
+    #[test]
+    fn streamed_text_feeds_the_dwell_accumulator_like_one_shot() {
+        // Five dwells at 100 Hz, written as text with 4 significant digits and a time column.
+        let fs = 100.0;
+        let mut s = 9u64;
+        let mut text = String::new();
+        let levels = [0.0, 1.0, -1.0, 2.0, 0.5];
+        let mut n = 0;
+        for (i, &l) in levels.iter().enumerate() {
+            for j in 0..700 {
+                let r = if j < 500 {
+                    [
+                        l + 0.01 * lcg(&mut s),
+                        0.01 * lcg(&mut s),
+                        9.8 + 0.01 * lcg(&mut s),
+                    ]
+                } else {
+                    let f = (j - 500) as f64 / 200.0;
+                    let next = levels.get(i + 1).copied().unwrap_or(l);
+                    [l + f * (next - l), 0.3 * (f * 6.3).sin(), 9.8]
+                };
+                text += &format!("{:.3} {:.5} {:.5} {:.5}\n", n as f64 / fs, r[0], r[1], r[2]);
+                n += 1;
+            }
+        }
+        let lay = layout(
+            Delimiter::Whitespace,
+            4,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        let whole = all(&text, &lay, 1 << 24).unwrap();
+        let x = Array2::from_shape_vec((whole.rows, 3), whole.values[0].clone()).unwrap();
+        let mut one = DwellAccumulator::with_detector(DetectorSettings::new(fs)).unwrap();
+        one.push(&x.view(), Some(&whole.values[1]), None).unwrap();
+        let one = one.finish().unwrap();
+        let mut acc = DwellAccumulator::with_detector(DetectorSettings::new(fs)).unwrap();
+        let stream = TextStream::new(
+            source(&text),
+            lay,
+            StreamOptions {
+                block_bytes: 1000,
+                parallel: 2,
+            },
+        )
+        .unwrap();
+        let mut blocks = 0;
+        for b in stream {
+            let b = b.unwrap();
+            let v = ArrayView2::from_shape((b.rows, 3), &b.values[0]).unwrap();
+            acc.push(&v, Some(&b.values[1]), None).unwrap();
+            blocks += 1;
+        }
+        assert!(blocks > 100);
+        let streamed = acc.finish().unwrap();
+        assert_eq!(streamed, one);
+        assert_eq!(streamed.bounds.len(), 5);
+    }
+
+    #[test]
+    fn formatted_rows_read_back_bit_for_bit() {
+        let mut s = 5u64;
+        let vals: Vec<f64> = (0..3000)
+            .map(|i| match i % 4 {
+                0 => (lcg(&mut s) - 0.5) * 1e-9,
+                1 => 9.80665 + lcg(&mut s),
+                2 => -(lcg(&mut s) * 1e300),
+                _ => (lcg(&mut s) * 1000.0).round(),
+            })
+            .collect();
+        let t: Vec<f64> = (0..1000).map(|i| i as f64 / 3.0).collect();
+        let text = format_rows(Some(&t), &vals, 3, b',').unwrap();
+        let lay = layout(
+            Delimiter::Byte(b','),
+            4,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        let c = all(std::str::from_utf8(&text).unwrap(), &lay, 777).unwrap();
+        assert_eq!(c.values[0], vals);
+        assert_eq!(c.values[1], t);
+        let nan = format_rows(None, &[f64::NAN, f64::INFINITY, -f64::INFINITY], 3, b' ').unwrap();
+        assert_eq!(nan, b"nan inf -inf\n");
+        assert!(format_rows(None, &[1.0, 2.0], 3, b',').is_err());
+    }
+
+    #[test]
+    fn a_dropped_stream_stops_its_reader() {
+        let text: String = (0..100_000).map(|i| format!("{i} 1 2\n")).collect();
+        let lay = layout(Delimiter::Whitespace, 3, vec![vec![num(0), num(1), num(2)]]);
+        let mut st = TextStream::new(
+            source(&text),
+            lay,
+            StreamOptions {
+                block_bytes: 256,
+                parallel: 1,
+            },
+        )
+        .unwrap();
+        let first = st.next().unwrap().unwrap();
+        assert_eq!(first.values[0][..3], [0., 1., 2.]);
+        drop(st); // must not hang or panic
+    }
+}

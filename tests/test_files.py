@@ -1,0 +1,157 @@
+"""Atomic output files: complete or untouched; devices, FIFOs and symlinks never replaced;
+temporary files removed on errors, Ctrl-C, SIGTERM and SIGHUP, and stale ones cleaned."""
+
+from __future__ import annotations
+
+import os
+import signal
+import stat
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from accelcal import CalibrationError
+from accelcal._files import TMP_PREFIX, atomic_open, atomic_write, clean_stale_temps
+
+
+def temps(folder: Path) -> list[str]:
+    return sorted(n for n in os.listdir(folder) if n.startswith(TMP_PREFIX))
+
+
+def test_regular_file_replaced_atomically_keeping_its_mode(tmp_path: Path) -> None:
+    p = tmp_path / "out.csv"
+    p.write_text("old\n")
+    os.chmod(p, 0o640)
+    with pytest.raises(RuntimeError):
+        with atomic_open(p) as fh:
+            fh.write("half")
+            raise RuntimeError("boom")
+    assert p.read_text() == "old\n" and temps(tmp_path) == []
+    atomic_write(p, "new\n")
+    assert p.read_text() == "new\n" and stat.S_IMODE(os.stat(p).st_mode) == 0o640
+    assert temps(tmp_path) == []
+
+
+def test_dev_null_is_written_through_not_replaced() -> None:
+    before = os.stat("/dev/null")
+    atomic_write("/dev/null", "x" * 1000)
+    with atomic_open("/dev/null", "wb") as fh:
+        fh.write(b"y")
+    after = os.stat("/dev/null")
+    assert stat.S_ISCHR(after.st_mode) and after.st_ino == before.st_ino
+    assert temps(Path("/dev")) == []
+
+
+def test_fifo_is_written_through(tmp_path: Path) -> None:
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got: list[str] = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    atomic_write(fifo, "through the pipe\n")
+    reader.join(timeout=30)
+    assert got == ["through the pipe\n"]
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and temps(tmp_path) == []
+
+
+def test_symlink_is_refused_and_both_ends_untouched(tmp_path: Path) -> None:
+    target = tmp_path / "real.csv"
+    target.write_text("keep\n")
+    link = tmp_path / "link.csv"
+    link.symlink_to(target)
+    with pytest.raises(CalibrationError, match="symbolic link.*real.csv"):
+        atomic_write(link, "new\n")
+    assert link.is_symlink() and target.read_text() == "keep\n" and temps(tmp_path) == []
+    dangling = tmp_path / "dangling.csv"
+    dangling.symlink_to(tmp_path / "nowhere.csv")
+    with pytest.raises(CalibrationError, match="symbolic link"):
+        atomic_write(dangling, "new\n")
+    assert not (tmp_path / "nowhere.csv").exists()
+
+
+def test_stale_temps_of_dead_processes_are_cleaned(tmp_path: Path) -> None:
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead_pid = int(dead.stdout)
+    stale = tmp_path / f"{TMP_PREFIX}out.csv-{dead_pid}-abc123"
+    live = tmp_path / f"{TMP_PREFIX}out.csv-{os.getppid()}-def456"
+    other = tmp_path / f"{TMP_PREFIX}other.csv-{dead_pid}-ghi789"
+    for f in (stale, live, other):
+        f.write_text("partial")
+    atomic_write(tmp_path / "out.csv", "done\n")
+    assert not stale.exists() and live.exists() and other.exists()
+    assert clean_stale_temps(tmp_path / "other.csv") == [other]
+
+
+WRITER = """
+import sys, time
+from accelcal._files import atomic_open
+with atomic_open(sys.argv[1], "wb") as fh:
+    fh.write(b"x" * (1 << 20))
+    fh.flush()
+    print("started", flush=True)
+    for _ in range(600):  # a long write: 60 s unless interrupted
+        fh.write(b"y" * 4096)
+        time.sleep(0.1)
+print("finished", flush=True)
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP", "SIGINT"])
+@pytest.mark.parametrize("existing", [False, True])
+def test_signal_during_long_write_removes_temp(sig: str, existing: bool, tmp_path: Path) -> None:
+    signum = getattr(signal, sig)
+    out = tmp_path / "big.bin"
+    if existing:
+        out.write_bytes(b"previous")
+    with subprocess.Popen([sys.executable, "-c", WRITER, str(out)], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().strip() == "started"
+        assert len(temps(tmp_path)) == 1  # findable while it is being written
+        time.sleep(0.2)
+        proc.send_signal(signum)
+        rc = proc.wait(timeout=60)
+        err = proc.stderr.read()
+    # SIGTERM/SIGHUP: exit 128 + signum; SIGINT: Python's KeyboardInterrupt (exit 1 or -2).
+    if sig == "SIGINT":
+        assert rc != 0 and "KeyboardInterrupt" in err
+    else:
+        assert rc == 128 + signum, err
+    assert temps(tmp_path) == []
+    if existing:
+        assert out.read_bytes() == b"previous"
+    else:
+        assert not out.exists()
+
+
+def test_nohup_keeps_sighup_ignored(tmp_path: Path) -> None:
+    code = WRITER.replace("import sys, time", "import sys, time, signal\n"
+                          "signal.signal(signal.SIGHUP, signal.SIG_IGN)")
+    code = code.replace("range(600)", "range(10)")
+    with subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "o.bin")],
+                          stdout=subprocess.PIPE, text=True) as proc:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "started"
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(timeout=60) == 0
+    assert (tmp_path / "o.bin").stat().st_size > (1 << 20) and temps(tmp_path) == []
+
+
+def test_cli_output_to_dev_null(tmp_path: Path) -> None:
+    import numpy as np
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    rng = np.random.default_rng(0)
+    f = tmp_path / "rec.csv"
+    np.savetxt(f, rng.normal(size=(2000, 3)), delimiter=",", header="ax,ay,az", comments="")
+    r = CliRunner().invoke(main, ["dwells", str(f), "--fs", "100", "-o", "/dev/null"])
+    assert r.exit_code == 0, r.output
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and temps(Path("/dev")) == []
+    link = tmp_path / "link.csv"
+    link.symlink_to(tmp_path / "t.csv")
+    r = CliRunner().invoke(main, ["dwells", str(f), "--fs", "100", "-o", str(link)])
+    assert r.exit_code == 2 and "symbolic link" in r.output
