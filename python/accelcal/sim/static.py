@@ -17,10 +17,11 @@ from numpy.typing import ArrayLike, NDArray
 from .._core import CalibrationError
 from .._triad import attitudes_to_force, k_matrix
 from ..dwell import DwellSet
-from .field import SEED000_TRUTH
+from .field import FIELD_TRUTH, SEED000_TRUTH
 
 __all__ = [
     "G0",
+    "FIELD_TRUTH",
     "SEED000_TRUTH",
     "StaticSession",
     "attitudes_to_force",
@@ -81,7 +82,7 @@ class StaticSession:
 
 def static_dwell_means(
     n_or_attitudes: int | ArrayLike = 20,
-    truth: ArrayLike = SEED000_TRUTH,
+    truth: ArrayLike = FIELD_TRUTH,
     g: float = G0,
     sigma: float = 1e-3,
     sigma_g: float = 1e-5,
