@@ -7,9 +7,24 @@ the calling test with a clear reason when the folder is absent (a bare source ch
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# Hypothesis profiles: "default" is fast and derandomised (CI gives the same cases every run);
+# HYPOTHESIS_PROFILE=slow draws many more cases on demand. Tests that set no max_examples of
+# their own follow the profile.
+settings.register_profile(
+    "default", max_examples=60, derandomize=True, deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+settings.register_profile(
+    "slow", max_examples=2000, deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"

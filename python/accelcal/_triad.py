@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._core import CalibrationError
+from ._validate import real_array
 
 __all__ = [
     "MODELS",
@@ -87,7 +88,7 @@ def gravity_from_tilts(tx_rad: ArrayLike, ty_rad: ArrayLike, g: float) -> NDArra
 def attitudes_to_force(attitudes: ArrayLike, g: float) -> NDArray[np.float64]:
     """Specific force at rest (n, 3), units of ``g``, from tilts (n, 2) in degrees or gravity
     directions (n, 3) (normalised here)."""
-    a = np.asarray(attitudes, dtype=np.float64)
+    a = real_array(attitudes, "attitudes", "tilts in deg or gravity directions")
     if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
         raise CalibrationError(
             "attitudes must be tilts (n, 2) in degrees or gravity directions (n, 3) with n >= 1; "

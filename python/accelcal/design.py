@@ -246,12 +246,14 @@ def plan_poses(
         tilts = None
         force = gv * cand_dirs
     else:
-        mt = number(max_tilt_deg, "max_tilt_deg", lo=0.0, hi=90.0, lo_open=True,
+        mt = number(max_tilt_deg, "max_tilt_deg", lo=1.0, hi=90.0,
                     unit="deg (None for the full sphere)")
         step = mt / 20.0
         if grid_step_deg is not None:
-            step = number(grid_step_deg, "grid_step_deg", lo=0.0, hi=mt, lo_open=True, unit="deg")
-        ax = np.arange(-mt, mt + 1e-9, step)
+            step = number(grid_step_deg, "grid_step_deg", lo=mt / 200.0, hi=mt, unit="deg")
+        # Grid points -mt, -mt + step, ..., up to +mt (both ends when step divides 2 mt).
+        n_ax = int(np.floor(2.0 * mt / step * (1.0 + 1e-12))) + 1
+        ax = -mt + step * np.arange(n_ax)
         tx, ty = np.meshgrid(ax, ax, indexing="ij")
         tilts = np.stack([tx.ravel(), ty.ravel()], axis=1)
         force = attitudes_to_force(tilts, gv)
@@ -526,14 +528,34 @@ def centrifuge_sensitivity(
     if method not in ("nls", "taylor-paper"):
         raise CalibrationError(f"unknown method {method!r}; use 'taylor-paper' or 'nls'")
     _error_kwargs(source, 0.0)  # validate the name first
+    if source == "radius" and np.any(mags <= -des.radius):
+        raise CalibrationError(
+            f"magnitudes for source 'radius' are radius errors in m (true - nominal) and must "
+            f"exceed -{des.radius:g} m (the nominal radius); got {mags.tolist()}"
+        )
+    if source == "rate" and np.any(mags <= -1.0):
+        raise CalibrationError(
+            f"magnitudes for source 'rate' are relative rate errors and must exceed -1; "
+            f"got {mags.tolist()}"
+        )
 
     def run(n: NDArray[np.float64]) -> NDArray[np.float64]:
-        fit = _core.centrifuge_fit_raw(n, des.omega, des.radius, g, method, robust=False)
+        # The error is injected on purpose: the unit check must not refuse what it does.
+        fit = _core.centrifuge_fit_raw(n, des.omega, des.radius, g, method, robust=False,
+                                       check_units=False)
         return np.asarray(fit.params)
 
+    def shifted(m: float) -> NDArray[np.float64]:
+        try:
+            return run(centrifuge_outputs(des, **kw, **_error_kwargs(source, m))) - base
+        except CalibrationError as e:
+            raise type(e)(
+                f"source {source!r} with magnitude {m!r}: the perturbed outputs cannot be "
+                f"fitted ({e}); the magnitude is far beyond a sensitivity analysis' range"
+            ) from None
+
     base = run(centrifuge_outputs(des, **kw))
-    shifts = np.array([run(centrifuge_outputs(des, **kw, **_error_kwargs(source, m))) - base
-                       for m in mags])
+    shifts = np.array([shifted(float(m)) for m in mags])
     return CentrifugeSensitivity(
         source=source,
         magnitudes=mags,

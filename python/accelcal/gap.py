@@ -195,10 +195,12 @@ def allan_deviation(
     a = np.ascontiguousarray(a, dtype=np.float64)
     fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     one = a.ndim == 1
-    a2 = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
-    n = a2.shape[0]
-    if n < 3:
-        raise CalibrationError(f"Allan deviation needs at least 3 samples; got {n}")
+    n = a.shape[0] if a.ndim else 1
+    if n < 3 or a.size == 0:
+        raise CalibrationError(
+            f"Allan deviation of x needs at least 3 samples; got shape {a.shape}"
+        )
+    a2 = a.reshape(n, -1) if a.ndim else a.reshape(1, 1)
     if not np.all(np.isfinite(a2)):
         raise CalibrationError("x contains NaN or inf samples: remove them first")
     if m is None:
@@ -1009,6 +1011,19 @@ def _noise_curves(samples: NDArray[Any] | None, d: DwellSet, fs: float | None,
     return out
 
 
+def _gravity(g: Any, check: bool) -> float:
+    """The reference gravity, refused when it cannot be Earth's in m/s^2, g or cm/s^2."""
+    g_v = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
+    if check and not (9.7 <= g_v <= 9.9 or 0.99 <= g_v <= 1.01 or 970.0 <= g_v <= 990.0):
+        raise CalibrationError(
+            f"g = {g_v!r} is not a plausible local gravity: Earth's is 9.78-9.84 m/s^2 "
+            "(0.997-1.003 in units of g, 978-983 cm/s^2). Give g in the units the calibrated "
+            "output should have, or turn this check off (check_g=False) for a deliberate other "
+            "value"
+        )
+    return g_v
+
+
 def diagnose(
     data: DwellSet | ArrayLike,
     *,
@@ -1030,6 +1045,7 @@ def diagnose(
     t: ArrayLike | None = None,
     temperature: ArrayLike | None = None,
     noise_model: Literal["auto", "white", "allan"] = "auto",
+    check_g: bool = True,
 ) -> GapReport:
     """Diagnose the sim-to-real gap of a static session.
 
@@ -1084,6 +1100,8 @@ def diagnose(
         carries its own.
     noise_model : "auto" (the Allan model when within-dwell information is available - a raw
         stream or a DwellSet with ``inflation`` - white noise otherwise), "white" or "allan".
+    check_g : refuse a ``g`` that is not a plausible local gravity in m/s^2, g or cm/s^2
+        (``False`` for a deliberate other value).
 
     Returns
     -------
@@ -1092,7 +1110,7 @@ def diagnose(
     settings = _settings(alpha=alpha, max_effects=max_effects, loo=loo, test=test, gate=gate,
                          trust_level=trust_level, correction=correction, n_draws=n_draws,
                          gate_margin=gate_margin, preset=preset)
-    g_v = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
+    g_v = _gravity(g, check_g)
     eff = _names(effects, list(EFFECTS))
     cal = _calibration(fit, g_v)
     nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))

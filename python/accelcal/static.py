@@ -91,6 +91,35 @@ def _as_means(x: Any, name: str) -> NDArray[np.float64]:
     return a
 
 
+def _variance(s: Any) -> Any:
+    """sigma^2, refusing a sigma whose square over- or underflows (no finite variance)."""
+    with np.errstate(over="ignore", under="ignore"):
+        v = np.square(s)
+    if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+        bad = float(np.asarray(s).reshape(-1)[np.argmax(~(np.isfinite(v) & (v > 0)).reshape(-1))])
+        raise CalibrationError(
+            f"sigma = {bad!r} is out of range: its square (the variance of a dwell mean) is not "
+            "a finite positive number; give the std of each dwell mean in output units "
+            "(1e-150 .. 1e150)"
+        )
+    return v
+
+
+def _resolvable(var: Any, means: NDArray[np.float64]) -> Any:
+    """Refuse a dwell-mean noise below what double precision resolves in the means (the
+    whitened problem would overflow)."""
+    mag = float(np.max(np.abs(means))) if means.size else 0.0
+    floor = (1e-12 * mag) ** 2
+    if mag > 0 and np.any(np.asarray(var) < floor):
+        low = float(np.sqrt(np.min(var)))
+        raise CalibrationError(
+            f"sigma = {low:.3g} is below the double-precision resolution of dwell means of "
+            f"size {mag:.3g} (sigma must be >= {1e-12 * mag:.3g}, 1e-12 of the largest mean): "
+            "give the std of each dwell mean in the means' units"
+        )
+    return var
+
+
 def _inputs(
     data: Any, sigma: Any
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | float | None, str, str]:
@@ -104,7 +133,8 @@ def _inputs(
     if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
         sv = number(sigma, "sigma", lo=0.0, lo_open=True,
                     unit="(std of each dwell mean, output units)")
-        return means, sv * sv, "given sigma (std of each dwell mean)", units
+        return means, _resolvable(_variance(np.float64(sv)), means), \
+            "given sigma (std of each dwell mean)", units
     if sigma is not None:
         s = np.asarray(sigma)
         if s.dtype.kind not in "fiu":
@@ -123,7 +153,8 @@ def _inputs(
             raise CalibrationError(
                 "sigma must be positive and finite (std of each dwell mean, output units)"
             )
-        return means, s * s, "given sigma (std of each dwell mean)", units
+        return means, _resolvable(_variance(s), means), "given sigma (std of each dwell mean)", \
+            units
     if isinstance(data, DwellSet) and data.var is not None and data.count is not None:
         v = data.var / data.count[:, None]
         if np.all(np.isfinite(v)) and np.all(v.sum(axis=1) > 0):

@@ -11,7 +11,7 @@ import json
 import os
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -38,8 +38,22 @@ CLI_WORDS: dict[str, str] = {
 }
 
 
-def cli_words(msg: str) -> str:
-    """Rewrite ``give fs= (Hz)``, ``columns=[...]`` and the like into option names."""
+def cli_words(
+    msg: str,
+    phrases: Mapping[str, str] | None = None,
+    names: Mapping[str, str] | None = None,
+) -> str:
+    """A library message in the terms of the command line: options, not Python keywords.
+
+    ``phrases`` (a command's own, exact text -> CLI text) are replaced first, then ``names``
+    (argument -> option) where a name stands for the argument (``outlier_k must ...``,
+    ``radius (...)``, ``radius looks ...``), then the shared ``keyword=`` spellings of
+    :data:`CLI_WORDS` (``give fs= (Hz)`` -> ``give --fs (Hz)``, ``columns=[...]``).
+    """
+    for py, cli in (phrases or {}).items():
+        msg = msg.replace(py, cli)
+    for kw, opt in (names or {}).items():
+        msg = re.sub(rf"(^|\s){re.escape(kw)}(?= must| \(| looks| =)", rf"\g<1>{opt}", msg)
 
     def repl(m: re.Match[str]) -> str:
         opt = CLI_WORDS[m.group(1)]

@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
-import re
-
 import click
 
 from .._core import CalibrationError
-from ._common import _need_plot, _save_fig, calibrate, emit_json, friendly, write_json_file
+from ._common import (
+    _need_plot,
+    _save_fig,
+    calibrate,
+    cli_words,
+    emit_json,
+    friendly,
+    write_json_file,
+)
 
 #: Python keywords in messages of the fit and the option that sets each on the command line.
-_OPTION_OF = {
+_PHRASES = {"pass check_units=False": "use --no-unit-check"}
+_NAMES = {
     "check_units=False": "--no-unit-check",
     "outlier_k": "--outlier-k",
     "max_draws": "--max-draws",
@@ -20,14 +27,9 @@ _OPTION_OF = {
 }
 
 
-def cli_words(msg: str) -> str:
-    """A message of the Python API in the command line's terms (``outlier_k`` ->
-    ``--outlier-k``, ``pass check_units=False`` -> ``use --no-unit-check``)."""
-    msg = msg.replace("pass check_units=False", "use --no-unit-check")
-    for kw, opt in _OPTION_OF.items():
-        # Only the keyword where it names the argument: at the start or before " must".
-        msg = re.sub(rf"(^|\s){re.escape(kw)}(?= must| \(| looks)", rf"\g<1>{opt}", msg)
-    return msg
+def _cli(msg: str) -> str:
+    """A message of the fit in the command line's terms (``outlier_k`` -> ``--outlier-k``)."""
+    return cli_words(msg, _PHRASES, _NAMES)
 
 
 @calibrate.command("centrifuge")
@@ -75,7 +77,7 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
                 outlier_k=outlier_k, check_units=not no_unit_check, labels=t.labels(),
             )
         except CalibrationError as e:
-            raise type(e)(cli_words(str(e))) from None
+            raise type(e)(_cli(str(e))) from None
     # The summary names the excluded rows once; other warnings are printed as they come.
     notes = [str(w.message) for w in caught
              if not issubclass(w.category, CentrifugeOutlierWarning)]

@@ -11,6 +11,7 @@ from ._common import (
     _need_plot,
     _resolve_g,
     _save_fig,
+    cli_words,
     echo_notes,
     emit_json,
     friendly,
@@ -38,12 +39,14 @@ from ._common import (
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="The gap figure: residuals against time, temperature or pose (sphere map), "
                    "tilt, and the noise panel (Allan deviation and the noise models).")
+@click.option("--no-check-g", "no_check_g", is_flag=True,
+              help="Accept a reference gravity outside Earth's range (deliberate other units).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
              columns: str | None, time_column: str | None, quiet: bool, noise: str,
              preset: str, calibration: str | None, plot_path: str | None,
-             as_json: bool) -> None:
+             no_check_g: bool, as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
@@ -58,7 +61,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose")
     if len(d) == 0:
         raise CalibrationError(f"{file}: no static dwells detected in the recording")
-    kw: dict[str, Any] = {"fit": fit}
+    kw: dict[str, Any] = {"fit": fit, "check_g": not no_check_g}
     if noise == "white":
         kw["noise_model"] = "white"
     extra: list[str] = []
@@ -73,10 +76,14 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
 
         st = read_stream(file, columns=columns, fs=fs, time_column=time_column,
                          progress=False if quiet else None)
-        rep = run_diagnose(st.samples, g=gv, fs=st.fs, t=st.t, temperature=st.temperature,
-                           preset=preset, fit=fit)
+        run = (st.samples,)
+        kw.update(fs=st.fs, t=st.t, temperature=st.temperature)
     else:
-        rep = run_diagnose(d, g=gv, preset=preset, **kw)
+        run = (d,)
+    try:
+        rep = run_diagnose(*run, g=gv, preset=preset, **kw)
+    except CalibrationError as e:
+        raise type(e)(cli_words(str(e), {"check_g=False": "--no-check-g"})) from None
     notes = ([] if rec is None else rec.notes()) + extra
     if plot_path:
         _save_fig(rep.plot(), plot_path)

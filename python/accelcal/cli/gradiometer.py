@@ -5,22 +5,28 @@ from __future__ import annotations
 import click
 
 from .._core import CalibrationError
-from ._common import _need_plot, _save_fig, calibrate, emit_json, friendly, write_json_file
+from ._common import (
+    _need_plot,
+    _save_fig,
+    calibrate,
+    cli_words,
+    emit_json,
+    friendly,
+    write_json_file,
+)
 
 #: Python keywords in messages of the estimator and the option that sets each.
-_OPTION_OF = {
+_PHRASES = {
     "drift=True": "--drift",
     "give sigma=": "give --sigma",
     "sigma must": "--sigma must",
     "sigma=": "--sigma",
+    "dwell times t (s)": "dwell times (a t_s column, s)",
 }
 
 
-def cli_words(msg: str) -> str:
-    """A message of the Python API in the command line's terms."""
-    for kw, opt in _OPTION_OF.items():
-        msg = msg.replace(kw, opt)
-    return msg.replace("dwell times t (s)", "dwell times (a t_s column, s)")
+def _cli(msg: str) -> str:
+    return cli_words(msg, _PHRASES)
 
 
 @calibrate.command("gradiometer")
@@ -42,7 +48,7 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
     try:
         sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma)
     except CalibrationError as e:
-        raise type(e)(cli_words(str(e))) from None
+        raise type(e)(_cli(str(e))) from None
     if output:
         write_json_file(output, sb.to_dict())
     if plot_path:
@@ -52,7 +58,7 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
     if as_json:
         emit_json(sb.to_dict())
         return
-    click.echo(cli_words(sb.summary()))
+    click.echo(_cli(sb.summary()))
     if output:
         click.echo(f"wrote {output}")
     if plot_path:

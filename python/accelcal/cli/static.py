@@ -14,6 +14,7 @@ from ._common import (
     _resolve_g,
     _save_fig,
     calibrate,
+    cli_words,
     echo_notes,
     emit_json,
     friendly,
@@ -24,21 +25,18 @@ from ._common import (
     stream_dwells,
 )
 
-#: Python keywords in the library's messages, as the command line spells them.
-_CLI_WORDS = (
-    ("check_g=False", "--no-check-g"),
-    ('model "diag"', "--model diag"),
-    ("model='diag'", "--model diag"),
-    ('model="diag"', "--model diag"),
-    ("max_tilt_deg", "--max-tilt"),
-)
+#: Python keywords in the static fit's messages, as the command line spells them.
+_PHRASES = {
+    "check_g=False": "--no-check-g",
+    'model "diag"': "--model diag",
+    "model='diag'": "--model diag",
+    'model="diag"': "--model diag",
+    "max_tilt_deg": "--max-tilt",
+}
 
 
-def cli_words(msg: str) -> str:
-    """A library message in the terms of the command line (options, not keywords)."""
-    for py, cli in _CLI_WORDS:
-        msg = msg.replace(py, cli)
-    return msg
+def _cli(msg: str) -> str:
+    return cli_words(msg, _PHRASES)
 
 
 @calibrate.command("static")
@@ -106,17 +104,17 @@ def calibrate_static(
             hint = ""
             if model != "diag" and "diag" not in str(e):
                 hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
-            raise CalibrationError(cli_words(
+            raise CalibrationError(_cli(
                 f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
                 f"model: {e}.{hint}"
             )) from None
         except CalibrationError as e:
-            raise CalibrationError(cli_words(str(e))) from None
+            raise CalibrationError(_cli(str(e))) from None
     for w in caught:
         # The summary already lists weakly determined parameters: say it once.
         if issubclass(w.category, WeakDesignWarning) and fit.weak and not fit.degenerate:
             continue
-        notes.append(cli_words(str(w.message)))
+        notes.append(_cli(str(w.message)))
     if output:
         temp = None if d.temperature is None else float(np.mean(d.temperature))
         meta = {"source": str(file), "n_dwells": len(d)}
@@ -134,7 +132,7 @@ def calibrate_static(
     echo_notes(read_notes)
     click.echo(source_line(file, rec, d))
     click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
-    click.echo(cli_words(fit.summary()))
+    click.echo(_cli(fit.summary()))
     for n in notes:
         click.echo(f"warning: {n}")
     if output:
@@ -171,7 +169,7 @@ def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | Non
     except CalibrationError as e:
         msg = re.sub(r"^n = (\d+) poses", r"--n \1: \1 poses", str(e))
         msg = re.sub(r"^n must", "--n must", msg).replace("sigma must", "--sigma must")
-        raise CalibrationError(cli_words(msg)) from None
+        raise CalibrationError(_cli(msg)) from None
     if plot_path:
         from ..plots import poses_figure
 

@@ -589,7 +589,13 @@ pub fn check_solved(
     let failed = s.start.error.is_some();
     if s.cov.summary.degenerate && (set.raise_degenerate || failed) {
         let o = obs_report(&jc()?, s.cov.obs_scale, set)?;
-        return degenerate(degenerate_message(&o, set.model, n, &s.cov.summary));
+        return degenerate(degenerate_message(
+            &o,
+            set.model,
+            n,
+            &s.cov.summary,
+            set.degenerate_std,
+        ));
     }
     if let Some(e) = &s.start.error {
         // The design is determined, so the linear solution failed because of the data.

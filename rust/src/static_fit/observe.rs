@@ -280,13 +280,19 @@ pub fn obs_report(jc: &DMatrix<f64>, scale: f64, set: &FitSettings) -> Result<Ob
 }
 
 /// The message of a degenerate fit, naming the undetermined combination.
-pub fn degenerate_message(obs: &Observability, model: Model, n: usize, sum: &ObsSummary) -> String {
+pub fn degenerate_message(
+    obs: &Observability,
+    model: Model,
+    n: usize,
+    sum: &ObsSummary,
+    degenerate_std: f64,
+) -> String {
     let how = if obs.weakest_std.is_infinite() || sum.weakest_std.is_infinite() {
         "exactly singular design".to_string()
     } else {
         format!(
-            "predicted std {:.2e} in relative units (scale factors relative, biases in g), \
-             condition number {:.2e}",
+            "predicted std {:.2e} in relative units (scale factors relative, biases in g) \
+             above degenerate_std = {degenerate_std}, condition number {:.2e}",
             obs.weakest_std, obs.condition
         )
     };

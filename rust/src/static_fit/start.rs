@@ -60,6 +60,36 @@ fn not_ellipsoid(detail: &str) -> CoreError {
     ))
 }
 
+/// Columns of the quadric regression, as the user reads them.
+const QUADRIC_COLUMNS: [&str; 9] = ["x^2", "y^2", "xy", "xz", "yz", "x", "y", "z", "1"];
+const QUADRIC_COLUMNS_DIAG: [&str; 6] = ["x^2", "y^2", "x", "y", "z", "1"];
+
+/// A singular quadric regression in the terms of the dwell means (which output never varies).
+fn quadric_design_error(e: CoreError, diag: bool) -> CoreError {
+    let CoreError::Degenerate(m) = &e else {
+        return e;
+    };
+    let names: &[&str] = if diag {
+        &QUADRIC_COLUMNS_DIAG
+    } else {
+        &QUADRIC_COLUMNS
+    };
+    let col = m
+        .strip_prefix("design column ")
+        .and_then(|r| r.split(' ').next())
+        .and_then(|j| j.parse::<usize>().ok())
+        .and_then(|j| names.get(j));
+    let what = match col {
+        Some(c) => format!("its {c} column is zero or not finite"),
+        None => m.clone(),
+    };
+    CoreError::Degenerate(format!(
+        "the dwell means cannot determine an ellipsoid: the quadric regression is singular \
+         ({what}); the outputs must vary on every axis between dwells (turn the sensor to \
+         different attitudes) and be static dwell means of one sensor"
+    ))
+}
+
 /// Quadric regression `z^2 = x . beta` on the points `f.point(means[k])` (9 columns, or 6
 /// for the diagonal model; the last entries of the result are zero then). `exact`: by QR
 /// (the linear method's answer); otherwise by the normal equations (a start value, with the
@@ -72,10 +102,11 @@ pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Re
             ([x * x, y * y, 2.0 * x, 2.0 * y, 2.0 * z, 1.0], z * z)
         };
         let b = if exact {
-            lstsq_fn::<6>(n, row)?
+            lstsq_fn::<6>(n, row)
         } else {
-            lstsq_normal_fn::<6>(n, row)?
-        };
+            lstsq_normal_fn::<6>(n, row)
+        }
+        .map_err(|e| quadric_design_error(e, true))?;
         let mut out = [0.0; 9];
         out[..6].copy_from_slice(&b);
         Ok(out)
@@ -102,6 +133,7 @@ pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Re
         } else {
             lstsq_normal_fn::<9>(n, row)
         }
+        .map_err(|e| quadric_design_error(e, false))
     }
 }
 
