@@ -1363,7 +1363,7 @@ fn availability<M: GapModel>(m: &M, effects: &[usize]) -> (Vec<usize>, Vec<(usiz
 fn baseline<M: GapModel>(m: &M, start: &[f64], opt: &GapOptions) -> Result<(Fit, f64, RangeBasis)> {
     let n = m.n_rows();
     let rows: Vec<usize> = (0..n).collect();
-    let ctx = Ctx { m, scale: 1.0, opt };
+    let ctx = Ctx::new(m, 1.0, opt);
     let base = fit(&ctx, &rows, &[], start)?;
     let b0 = basis(&base.jac)?;
     if n <= b0.rank {
@@ -1377,7 +1377,7 @@ fn baseline<M: GapModel>(m: &M, start: &[f64], opt: &GapOptions) -> Result<(Fit,
     } else {
         (base.rss / (n - b0.rank) as f64).sqrt().max(1e-300)
     };
-    let ctx = Ctx { m, scale, opt };
+    let ctx = Ctx::new(m, scale, opt);
     let base = fit(&ctx, &rows, &[], &base.p)?;
     let b0 = basis(&base.jac)?;
     Ok((base, scale, b0))
@@ -1475,7 +1475,7 @@ pub fn run<M: GapModel>(
 ) -> Result<EngineResult> {
     opt.validate()?;
     let (base, scale, b0) = baseline(m, start, opt)?;
-    let ctx = Ctx { m, scale, opt };
+    let ctx = Ctx::new(m, scale, opt);
     let rows: Vec<usize> = (0..m.n_rows()).collect();
     let cfg = TestCfg::of(opt, m.noise_known());
     let (cands, unavailable) = availability(m, effects);
@@ -1706,11 +1706,7 @@ mod tests {
     }
 
     fn ctx(t: &Toy) -> Ctx<'_, Toy> {
-        Ctx {
-            m: t,
-            scale: 1.0,
-            opt: &OPT,
-        }
+        Ctx::new(t, 1.0, &OPT)
     }
     static OPT: std::sync::LazyLock<GapOptions> = std::sync::LazyLock::new(GapOptions::default);
 
@@ -1726,6 +1722,102 @@ mod tests {
         });
         let b = DVector::from_fn(p, |i, _| cols[i].iter().zip(y).map(|(u, v)| u * v).sum());
         a.lu().solve(&b).unwrap().as_slice().to_vec()
+    }
+
+    /// Residual sum of squares of the weighted least-squares fit of `y` on `cols`.
+    fn wls_rss(cols: &[Vec<f64>], y: &[f64], w: &[f64]) -> f64 {
+        let sc: Vec<Vec<f64>> = cols
+            .iter()
+            .map(|c| c.iter().zip(w).map(|(v, wk)| v * wk.sqrt()).collect())
+            .collect();
+        let ys: Vec<f64> = y.iter().zip(w).map(|(v, wk)| v * wk.sqrt()).collect();
+        let b = ols(&sc, &ys);
+        (0..y.len())
+            .map(|k| (ys[k] - (0..sc.len()).map(|i| sc[i][k] * b[i]).sum::<f64>()).powi(2))
+            .sum()
+    }
+
+    #[test]
+    fn gls_test_is_the_weighted_f_test_at_its_own_offset_variance() {
+        // A line plus a quadratic term, heteroscedastic noise and a per-row offset (sd 1.5).
+        let n = 60;
+        let mut rng = Rng(11);
+        let sig: Vec<f64> = (0..n).map(|k| 0.5 + (k % 4) as f64 * 0.5).collect();
+        let x: Vec<f64> = (0..n).map(|k| k as f64 / n as f64 - 0.5).collect();
+        let session = |off: f64, noise: f64, rng: &mut Rng| -> Vec<f64> {
+            (0..n)
+                .map(|k| {
+                    1.0 + 2.0 * x[k] + 3.0 * x[k] * x[k]
+                        + noise * sig[k] * rng.normal()
+                        + off * rng.normal()
+                })
+                .collect()
+        };
+        let cfg = TestCfg::of(&OPT, true);
+        let run = |y: &[f64]| {
+            let e = DVector::from_fn(n, |k, _| y[k] / sig[k]);
+            let j = DMatrix::from_fn(n, 2, |k, c| [1.0, x[k]][c] / sig[k]);
+            let xb = DMatrix::from_fn(n, 1, |k, _| x[k] * x[k] / sig[k]);
+            let v = View::new(e, j, sig.clone()).unwrap();
+            let sb = v.space(0.0);
+            let qb = Arc::new(sb.basis.q.clone());
+            let scb = screen(&xb, &sb.basis, &sb.e, sb.rss, cfg);
+            let (sc, q) = gls_test(&xb, &v, &scb, &qb, 0.0, cfg);
+            (scb, sc, q, qb)
+        };
+        let y = session(1.5, 1.0, &mut rng);
+        let (_, sc, q, qb) = run(&y);
+        assert!(sc.s2 > 0.5 && sc.s2 < 6.0, "{}", sc.s2);
+        assert!(!Arc::ptr_eq(&q, &qb) && !sc.chi2_used);
+        // Independent reference: weighted least squares at weights 1 / (sigma^2 + s2), full
+        // and restricted, by the normal equations; at the moment root the full fit's chi2 is
+        // n - 3, and F is the usual nested-model F.
+        let w: Vec<f64> = sig.iter().map(|s| 1.0 / (s * s + sc.s2)).collect();
+        let (one, x2) = (vec![1.0; n], x.iter().map(|v| v * v).collect::<Vec<_>>());
+        let rss1 = wls_rss(&[one.clone(), x.clone(), x2], &y, &w);
+        let rss0 = wls_rss(&[one, x.clone()], &y, &w);
+        assert!((rss1 - (n - 3) as f64).abs() < 1e-6, "{rss1}");
+        let f_want = (rss0 - rss1) / (rss1 / (n - 3) as f64);
+        assert!((sc.f / f_want - 1.0).abs() < 1e-6, "{} {f_want}", sc.f);
+        assert_eq!(sc.dof2, (n - 3) as f64);
+        // Without excess over the noise model the base screen comes back unchanged.
+        let y = session(0.0, 0.3, &mut rng);
+        let (scb, sc, q, qb) = run(&y);
+        assert_eq!(sc.s2, 0.0);
+        assert_eq!(sc.f, scb.f);
+        assert!(Arc::ptr_eq(&q, &qb));
+    }
+
+    #[test]
+    fn stepwise_with_random_offsets_selects_the_effect_in_its_own_whitening() {
+        static RO: std::sync::LazyLock<GapOptions> = std::sync::LazyLock::new(|| GapOptions {
+            random_offset: true,
+            ..GapOptions::default()
+        });
+        let mut t = Toy::new(60, Some((3, 1.5)), 5);
+        let mut rng = Rng(77);
+        t.y.iter_mut().for_each(|y| *y += 3.0 * SIG * rng.normal());
+        let c = Ctx::new(&t, 1.0, &RO);
+        assert!(c.gls);
+        let base = fit(&c, &all(60), &[], &[0.0, 0.0]).unwrap();
+        let cfg = TestCfg::of(&RO, true);
+        let sw = stepwise(&c, &all(60), base, &[0, 1, 2, 3], 3, cfg, true).unwrap();
+        assert_eq!(sw.effects, vec![3]);
+        // The offset variance of the model with the effect is near the true 9 SIG^2 (moment
+        // estimate); the baseline's also carries the unexplained effect.
+        let first = &sw.first.iter().find(|x| x.0 == 3).unwrap().1;
+        let s2 = first.s2 / (SIG * SIG);
+        assert!(s2 > 4.0 && s2 < 20.0, "{s2}");
+        assert!(sw.figures[0].s2 > first.s2 && !first.chi2_used);
+        assert!((sw.history[1].s2 - first.s2).abs() < 1e-12);
+        assert!((sw.history[1].p[2] - 1.5).abs() < 0.4, "{:?}", sw.history[1].p);
+        // The same session without the variance-component model tests in the noise model's
+        // whitening (no offset variance anywhere).
+        let c0 = ctx(&t);
+        let base = fit(&c0, &all(60), &[], &[0.0, 0.0]).unwrap();
+        let sw0 = stepwise(&c0, &all(60), base, &[0, 1, 2, 3], 3, cfg, true).unwrap();
+        assert!(sw0.first.iter().all(|x| x.1.s2 == 0.0));
+        assert!(sw0.figures.iter().all(|f| f.s2 == 0.0));
     }
 
     #[test]
@@ -1810,8 +1902,9 @@ mod tests {
 
     #[test]
     fn family_decision_bonferroni_and_min_p() {
-        let q = DMatrix::from_fn(40, 2, |a, b| f64::from(u8::from(a == b)));
+        let q = Arc::new(DMatrix::from_fn(40, 2, |a, b| f64::from(u8::from(a == b))));
         let mk = |k: usize, p: f64| Member {
+            q: q.clone(),
             w: DMatrix::from_fn(40, 1, |a, _| f64::from(u8::from(a == k))),
             chi2: true,
             dof2: 30.0,
@@ -1824,15 +1917,15 @@ mod tests {
             ..GapOptions::default()
         };
         assert_eq!(
-            family_decision(&q, &fam, 0.02, 3, &bon, true),
+            family_decision(&fam, 0.02, 3, &bon, true),
             (0.06, false)
         );
-        let (pa, dec) = family_decision(&q, &fam, 0.02, 3, &OPT, true);
+        let (pa, dec) = family_decision(&fam, 0.02, 3, &OPT, true);
         assert!(pa > 0.02 && pa <= 0.06 && !dec, "{pa}");
         // A clear case is declared without Monte Carlo inside folds.
-        let (pa, dec) = family_decision(&q, &fam, 1e-4, 3, &OPT, false);
+        let (pa, dec) = family_decision(&fam, 1e-4, 3, &OPT, false);
         assert!((pa - 3e-4).abs() < 1e-15 && dec);
-        assert!(family_decision(&q, &fam, f64::NAN, 3, &OPT, true)
+        assert!(family_decision(&fam, f64::NAN, 3, &OPT, true)
             .0
             .is_nan());
     }

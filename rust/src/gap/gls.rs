@@ -51,8 +51,8 @@ fn wls_residual(b: &DMatrix<f64>, e: &[f64], w: &[f64]) -> Option<Vec<f64>> {
     if r == 0 {
         return Some(e.to_vec());
     }
-    let mut g = DMatrix::zeros(r, r);
-    let mut rhs = DVector::zeros(r);
+    let mut g = DMatrix::<f64>::zeros(r, r);
+    let mut rhs = DVector::<f64>::zeros(r);
     for k in 0..n {
         for a in 0..r {
             let ba = w[k] * b[(k, a)];
