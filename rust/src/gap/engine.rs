@@ -733,7 +733,11 @@ fn screen_stage<M: GapModel>(
     let view = view(ctx, rows, active, &cur.p)?;
     let sb = view.space(0.0);
     let qb = Arc::new(sb.basis.q.clone());
-    let s2m = if ctx.gls { view.offset(None, cur.s2) } else { 0.0 };
+    let s2m = if ctx.gls {
+        view.offset(None, cur.s2)
+    } else {
+        0.0
+    };
     let sm = (want_null && s2m > 0.0).then(|| view.space(s2m));
     let figures = StageFigures {
         chi2: sb.rss,
@@ -792,7 +796,12 @@ fn fit_weighted<M: GapModel>(
     (at_active, at): (&[usize], &[f64]),
 ) -> Result<Fit> {
     let mut f = if s2 > 0.0 {
-        fit(&ctx.weighted(ctx.factors_at(at_active, at, s2)?), rows, active, p0)?
+        fit(
+            &ctx.weighted(ctx.factors_at(at_active, at, s2)?),
+            rows,
+            active,
+            p0,
+        )?
     } else {
         fit(&ctx.unweighted(), rows, active, p0)?
     };
@@ -849,7 +858,15 @@ pub fn stepwise<M: GapModel>(
             break; // inside a fold nothing more can be selected: no need to screen
         }
         let cfg_s = cfg.with_estimate(full && step == 0);
-        let st = screen_stage(ctx, rows, &cur, &sw.effects, cands, cfg_s, full && step == 0)?;
+        let st = screen_stage(
+            ctx,
+            rows,
+            &cur,
+            &sw.effects,
+            cands,
+            cfg_s,
+            full && step == 0,
+        )?;
         sw.figures.push(st.figures);
         // The offset variance of the best candidate's model, when its test ran in that
         // whitening.
@@ -1747,7 +1764,8 @@ mod tests {
         let session = |off: f64, noise: f64, rng: &mut Rng| -> Vec<f64> {
             (0..n)
                 .map(|k| {
-                    1.0 + 2.0 * x[k] + 3.0 * x[k] * x[k]
+                    1.0 + 2.0 * x[k]
+                        + 3.0 * x[k] * x[k]
                         + noise * sig[k] * rng.normal()
                         + off * rng.normal()
                 })
@@ -1810,7 +1828,11 @@ mod tests {
         assert!(s2 > 4.0 && s2 < 20.0, "{s2}");
         assert!(sw.figures[0].s2 > first.s2 && !first.chi2_used);
         assert!((sw.history[1].s2 - first.s2).abs() < 1e-12);
-        assert!((sw.history[1].p[2] - 1.5).abs() < 0.4, "{:?}", sw.history[1].p);
+        assert!(
+            (sw.history[1].p[2] - 1.5).abs() < 0.4,
+            "{:?}",
+            sw.history[1].p
+        );
         // The same session without the variance-component model tests in the noise model's
         // whitening (no offset variance anywhere).
         let c0 = ctx(&t);
@@ -1916,18 +1938,13 @@ mod tests {
             correction: Correction::Bonferroni,
             ..GapOptions::default()
         };
-        assert_eq!(
-            family_decision(&fam, 0.02, 3, &bon, true),
-            (0.06, false)
-        );
+        assert_eq!(family_decision(&fam, 0.02, 3, &bon, true), (0.06, false));
         let (pa, dec) = family_decision(&fam, 0.02, 3, &OPT, true);
         assert!(pa > 0.02 && pa <= 0.06 && !dec, "{pa}");
         // A clear case is declared without Monte Carlo inside folds.
         let (pa, dec) = family_decision(&fam, 1e-4, 3, &OPT, false);
         assert!((pa - 3e-4).abs() < 1e-15 && dec);
-        assert!(family_decision(&fam, f64::NAN, 3, &OPT, true)
-            .0
-            .is_nan());
+        assert!(family_decision(&fam, f64::NAN, 3, &OPT, true).0.is_nan());
     }
 
     #[test]

@@ -169,7 +169,9 @@ pub fn space(q: &DMatrix<f64>, e: &DVector<f64>, sigma: &[f64], s2: f64) -> Spac
     let f = factors(sigma, s2);
     let ef = DVector::from_fn(n, |k, _| e[k] * f[k]);
     let qf = if s2 > 0.0 && q.ncols() > 0 {
-        DMatrix::from_fn(n, q.ncols(), |k, c| q[(k, c)] * f[k]).qr().q()
+        DMatrix::from_fn(n, q.ncols(), |k, c| q[(k, c)] * f[k])
+            .qr()
+            .q()
     } else {
         q.clone()
     };

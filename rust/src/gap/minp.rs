@@ -227,7 +227,11 @@ mod tests {
     fn min_p_matches_closed_forms() {
         // n = 40, Q = first 5 unit vectors; members are further unit vectors (orthogonal to Q).
         let n = 40;
-        let q = Arc::new(DMatrix::from_fn(n, 5, |a, b| if a == b { 1.0 } else { 0.0 }));
+        let q = Arc::new(DMatrix::from_fn(
+            n,
+            5,
+            |a, b| if a == b { 1.0 } else { 0.0 },
+        ));
         let unit = |k: usize| DMatrix::from_fn(n, 1, |a, _| if a == k { 1.0 } else { 0.0 });
         let p_obs: f64 = 0.02;
         let crit = chi2_isf(p_obs, 1.0);
