@@ -809,24 +809,6 @@ fn fit_weighted<M: GapModel>(
     Ok(f)
 }
 
-/// With the variance-component model: the fit `base` (noise-model weights) refitted with the
-/// weights of its own offset variance. Otherwise `base` itself.
-pub fn gls_refit<M: GapModel>(
-    ctx: &Ctx<'_, M>,
-    rows: &[usize],
-    active: &[usize],
-    base: Fit,
-) -> Result<Fit> {
-    if !ctx.gls {
-        return Ok(base);
-    }
-    let s2 = view(ctx, rows, active, &base.p)?.offset(None, 0.0);
-    if !(s2 > 0.0) {
-        return Ok(base);
-    }
-    fit_weighted(ctx, rows, active, &base.p, s2, (active, &base.p))
-}
-
 /// Forward stepwise selection from the baseline fit `base`. `full`: the run on all rows
 /// (exact min-p for the report, estimates); otherwise a held-out fold.
 pub fn stepwise<M: GapModel>(
