@@ -712,8 +712,8 @@ pub struct Stage {
     pub fam: Vec<Member>,
     /// The model's figures.
     pub figures: StageFigures,
-    /// The model at this stage, in base units.
-    pub view: View,
+    /// The model at this stage, in base units (with the variance-component model only).
+    pub view: Option<View>,
 }
 
 /// Screen every candidate not yet active against the current fit `cur`: the test in base
@@ -730,15 +730,28 @@ fn screen_stage<M: GapModel>(
     cfg: TestCfg,
     want_null: bool,
 ) -> Result<Stage> {
-    let view = view(ctx, rows, active, &cur.p)?;
-    let sb = view.space(0.0);
-    let qb = Arc::new(sb.basis.q.clone());
-    let s2m = if ctx.gls {
-        view.offset(None, cur.s2)
+    // Without the variance-component model the fit's own rows are the base whitening.
+    let view = if ctx.gls {
+        Some(view(ctx, rows, active, &cur.p)?)
     } else {
-        0.0
+        None
     };
-    let sm = (want_null && s2m > 0.0).then(|| view.space(s2m));
+    let sb = match &view {
+        Some(v) => v.space(0.0),
+        None => Space {
+            s2: 0.0,
+            f: vec![],
+            basis: basis(&cur.jac)?,
+            e: DVector::from_column_slice(&cur.e),
+            rss: cur.rss,
+        },
+    };
+    let qb = Arc::new(sb.basis.q.clone());
+    let s2m = view.as_ref().map_or(0.0, |v| v.offset(None, cur.s2));
+    let sm = view
+        .as_ref()
+        .filter(|_| want_null && s2m > 0.0)
+        .map(|v| v.space(s2m));
     let figures = StageFigures {
         chi2: sb.rss,
         rank: sb.basis.rank,
@@ -758,10 +771,11 @@ fn screen_stage<M: GapModel>(
     for &c in cands.iter().filter(|c| !active.contains(c)) {
         let xb = base.columns(rows, active, &cur.p, c);
         let scb = screen(&xb, &sb.basis, &sb.e, sb.rss, cfg);
-        let (sc, q) = if ctx.gls && scb.status == Status::Testable && !scb.chi2_used {
-            gls_test(&xb, &view, &scb, &qb, s2m, cfg)
-        } else {
-            (scb.clone(), qb.clone())
+        let (sc, q) = match &view {
+            Some(v) if scb.status == Status::Testable && !scb.chi2_used => {
+                gls_test(&xb, v, &scb, &qb, s2m, cfg)
+            }
+            _ => (scb.clone(), qb.clone()),
         };
         if want_null {
             let nl = match &sm {
@@ -879,7 +893,7 @@ pub fn stepwise<M: GapModel>(
             v
         } else {
             let w = st.base_w.iter().find(|x| x.0 == bc).map(|x| &x.1);
-            st.view.offset(w, st.figures.s2)
+            st.view.as_ref().map_or(0.0, |v| v.offset(w, st.figures.s2))
         };
         sw.effects.push(bc);
         sw.step_p.push(pb);
