@@ -786,6 +786,19 @@ fn dot4(a: &[f64], b: &[f64]) -> f64 {
     (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
+/// Householder QR of a tall matrix (nalgebra): the thin `Q` (m x n, orthonormal columns)
+/// and `R` (n x n, upper triangular), `a = Q R`.
+pub fn householder_qr(a: &DMatrix<f64>) -> (DMatrix<f64>, DMatrix<f64>) {
+    let qr = a.clone().qr();
+    (qr.q(), qr.r())
+}
+
+/// Solve `g x = b` for a symmetric positive definite `g` by Cholesky; `None` when `g` is
+/// not positive definite.
+pub fn cholesky_solve_dense(g: DMatrix<f64>, b: &DVector<f64>) -> Option<DVector<f64>> {
+    g.cholesky().map(|c| c.solve(b))
+}
+
 /// Inverse of a 3 x 3 matrix (closed form); `None` when singular or not finite.
 #[inline]
 pub fn inverse3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {

@@ -20,7 +20,9 @@ use super::minp::{min_p, Member};
 use super::special::{chi2_sf, f_sf};
 use super::{Correction, GapOptions, Gate, Status, TestMode};
 use crate::error::{degenerate, CoreError, Result};
-use crate::lsq::{range_basis, solve_nls, thin_svd, NlsOptions, RangeBasis, Residuals};
+use crate::lsq::{
+    householder_qr, range_basis, solve_nls, thin_svd, NlsOptions, RangeBasis, Residuals,
+};
 use nalgebra::{DMatrix, DVector};
 use std::sync::Arc;
 
@@ -422,8 +424,7 @@ fn projected_directions(
     if n < cn.ncols() || cn.iter().any(|v| !v.is_finite()) {
         return None;
     }
-    let qr = cn.qr();
-    let (qm, r) = (qr.q(), qr.r());
+    let (qm, r) = householder_qr(&cn);
     let kc: Vec<usize> = (0..r.nrows().min(r.ncols()))
         .filter(|&i| r[(i, i)].abs() > 1e-8)
         .collect();

@@ -23,7 +23,7 @@
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-use crate::lsq::RangeBasis;
+use crate::lsq::{cholesky_solve_dense, householder_qr, RangeBasis};
 use nalgebra::{DMatrix, DVector};
 
 /// Row factors `f_k = sigma_k / sqrt(sigma_k^2 + s2)` that turn base-whitened rows into rows
@@ -67,7 +67,7 @@ fn wls_residual(b: &DMatrix<f64>, e: &[f64], w: &[f64]) -> Option<Vec<f64>> {
             g[(c, a)] = g[(a, c)];
         }
     }
-    let beta = g.cholesky()?.solve(&rhs);
+    let beta = cholesky_solve_dense(g, &rhs)?;
     Some(
         (0..n)
             .map(|k| e[k] - (0..r).map(|a| b[(k, a)] * beta[a]).sum::<f64>())
@@ -169,9 +169,7 @@ pub fn space(q: &DMatrix<f64>, e: &DVector<f64>, sigma: &[f64], s2: f64) -> Spac
     let f = factors(sigma, s2);
     let ef = DVector::from_fn(n, |k, _| e[k] * f[k]);
     let qf = if s2 > 0.0 && q.ncols() > 0 {
-        DMatrix::from_fn(n, q.ncols(), |k, c| q[(k, c)] * f[k])
-            .qr()
-            .q()
+        householder_qr(&DMatrix::from_fn(n, q.ncols(), |k, c| q[(k, c)] * f[k])).0
     } else {
         q.clone()
     };
@@ -206,7 +204,7 @@ mod tests {
             .map(|k| 1.0 + 2.0 * x[k] + sigma[k] * rng.normal() + s2.sqrt() * rng.normal())
             .collect();
         let j = DMatrix::from_fn(n, 2, |k, c| [1.0, x[k]][c] / sigma[k]);
-        let q = j.qr().q();
+        let q = householder_qr(&j).0;
         let e = DVector::from_fn(n, |k, _| y[k] / sigma[k]);
         let e = &e - &q * (q.transpose() * &e);
         (q, e, sigma)
