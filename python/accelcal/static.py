@@ -91,17 +91,21 @@ def _as_means(x: Any, name: str) -> NDArray[np.float64]:
     return a
 
 
+def _variance_message(bad: float) -> str:
+    return (
+        f"sigma = {bad!r} is out of range: its square (the variance of a dwell mean) is not "
+        "a finite positive number; give the std of each dwell mean in output units "
+        "(1e-150 .. 1e150)"
+    )
+
+
 def _variance(s: Any) -> Any:
     """sigma^2, refusing a sigma whose square over- or underflows (no finite variance)."""
     with np.errstate(over="ignore", under="ignore"):
         v = np.square(s)
     if not (np.all(np.isfinite(v)) and np.all(v > 0)):
         bad = float(np.asarray(s).reshape(-1)[np.argmax(~(np.isfinite(v) & (v > 0)).reshape(-1))])
-        raise CalibrationError(
-            f"sigma = {bad!r} is out of range: its square (the variance of a dwell mean) is not "
-            "a finite positive number; give the std of each dwell mean in output units "
-            "(1e-150 .. 1e150)"
-        )
+        raise CalibrationError(_variance_message(bad))
     return v
 
 
@@ -133,8 +137,13 @@ def _inputs(
     if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
         sv = number(sigma, "sigma", lo=0.0, lo_open=True,
                     unit="(std of each dwell mean, output units)")
-        return means, _resolvable(_variance(np.float64(sv)), means), \
-            "given sigma (std of each dwell mean)", units
+        # One variance for every dwell and axis, checked without NumPy (its error state and
+        # reductions cost more than the fit); the resolution against the means' size is
+        # checked in Rust.
+        v = sv * sv
+        if not (math.isfinite(v) and v > 0.0):
+            raise CalibrationError(_variance_message(sv))
+        return means, v, "given sigma (std of each dwell mean)", units
     if sigma is not None:
         s = np.asarray(sigma)
         if s.dtype.kind not in "fiu":
