@@ -54,6 +54,7 @@ __all__ = [
 BatchFit = _core.BatchFit
 
 _OBSERVABILITY = ("raise", "warn", "ignore")
+_F64 = np.dtype(np.float64)
 
 
 class WeakDesignWarning(UserWarning):
@@ -129,7 +130,13 @@ def _inputs(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | float | None, str, str]:
     """Dwell means, the per-axis variance of each mean (one number for all, (k, 3), or None:
     estimated), how the noise model was obtained, and the input units."""
-    if isinstance(data, DwellSet):
+    if type(data) is np.ndarray and data.dtype is _F64 and data.flags.aligned:
+        # The common case, without the general coercion: float64 as given (any strides).
+        means, units = data, ""
+        sh = data.shape
+        if len(sh) != 2 or sh[1] != 3:
+            raise CalibrationError(f"dwell means must have shape (k, 3); got {sh}")
+    elif isinstance(data, DwellSet):
         means, units = data.mean, data.units
     else:
         means, units = _as_means(data, "dwell means"), ""

@@ -11,7 +11,7 @@ use numpy::{
 };
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
-use pyo3::types::{PyDict, PyList, PyTuple};
+use pyo3::types::{PyDict, PyList, PyString, PyTuple};
 
 use super::convert::{frozen1, frozen2, rows3, with_view, SampleArray};
 use super::CalibrationError;
@@ -49,7 +49,19 @@ fn arg_f64(
     range: &str,
     ok: impl Fn(f64) -> bool,
 ) -> PyResult<f64> {
-    let v = if obj.is_instance_of::<pyo3::types::PyBool>() {
+    arg_f64_with(obj, name, || range.to_string(), ok)
+}
+
+/// [`arg_f64`] with the range worded only for the error message.
+fn arg_f64_with(
+    obj: &Bound<'_, PyAny>,
+    name: &str,
+    range: impl FnOnce() -> String,
+    ok: impl Fn(f64) -> bool,
+) -> PyResult<f64> {
+    let v = if let Ok(f) = obj.cast_exact::<pyo3::types::PyFloat>() {
+        Some(f.value())
+    } else if obj.is_instance_of::<pyo3::types::PyBool>() {
         None
     } else {
         obj.extract::<f64>().ok()
@@ -57,7 +69,8 @@ fn arg_f64(
     match v {
         Some(x) if ok(x) => Ok(x),
         _ => Err(CalibrationError::new_err(format!(
-            "{name} must be {range}; got {}",
+            "{name} must be {}; got {}",
+            range(),
             describe(obj)
         ))),
     }
@@ -85,9 +98,12 @@ fn arg_int(obj: &Bound<'_, PyAny>, name: &str, lo: i64, hi: i64) -> PyResult<usi
 }
 
 fn positive(obj: &Bound<'_, PyAny>, name: &str, what: &str) -> PyResult<f64> {
-    arg_f64(obj, name, &format!("a positive, finite {what}"), |x| {
-        x > 0.0 && x.is_finite()
-    })
+    arg_f64_with(
+        obj,
+        name,
+        || format!("a positive, finite {what}"),
+        |x| x > 0.0 && x.is_finite(),
+    )
 }
 
 /// Local gravity in any of the units the calibrated output may have.
@@ -404,10 +420,10 @@ pub struct PyStaticFit {
     check_g: bool,
     /// How the dwell weights were obtained (text from the caller).
     #[pyo3(get)]
-    noise_model: String,
+    noise_model: Py<PyString>,
     /// Units of the raw output (text from the caller).
     #[pyo3(get)]
-    input_units: String,
+    input_units: Py<PyString>,
     /// Nominal model for the "before" norm statistics (any object; None).
     #[pyo3(get)]
     nominal: Option<Py<PyAny>>,
@@ -455,7 +471,7 @@ impl VarArg {
 #[pymethods]
 impl PyStaticFit {
     #[new]
-    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model="", input_units="", nominal=None))]
+    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model=None, input_units=None, nominal=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -470,8 +486,8 @@ impl PyStaticFit {
         degenerate_std: Given<'_>,
         weak_std: Given<'_>,
         check_g: bool,
-        noise_model: &str,
-        input_units: &str,
+        noise_model: Option<Bound<'_, PyString>>,
+        input_units: Option<Bound<'_, PyString>>,
         nominal: Option<Py<PyAny>>,
     ) -> PyResult<Self> {
         let gv = self::check_g(g, check_g)?;
@@ -544,8 +560,13 @@ impl PyStaticFit {
             degenerate_std: s.degenerate_std,
             weak_std: s.weak_std,
             check_g,
-            noise_model: noise_model.to_string(),
-            input_units: input_units.to_string(),
+            // The caller's str objects themselves (no copy).
+            noise_model: noise_model
+                .unwrap_or_else(|| pyo3::intern!(py, "").clone())
+                .unbind(),
+            input_units: input_units
+                .unwrap_or_else(|| pyo3::intern!(py, "").clone())
+                .unbind(),
             nominal,
         })
     }
@@ -651,8 +672,8 @@ impl PyStaticFit {
         kw.set_item("degenerate_std", self.degenerate_std)?;
         kw.set_item("weak_std", self.weak_std)?;
         kw.set_item("check_g", self.check_g)?;
-        kw.set_item("noise_model", self.noise_model.clone())?;
-        kw.set_item("input_units", self.input_units.clone())?;
+        kw.set_item("noise_model", self.noise_model.clone_ref(py))?;
+        kw.set_item("input_units", self.input_units.clone_ref(py))?;
         kw.set_item("nominal", self.nominal.as_ref().map(|n| n.clone_ref(py)))?;
         Ok((args, kw))
     }

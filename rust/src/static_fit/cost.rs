@@ -288,6 +288,36 @@ impl NormProblem<'_> {
         h: &mut [[f64; K]; K],
         gr: &mut [f64; K],
     ) -> Result<f64> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above).
+                return unsafe { self.accumulate_avx2::<K>(p, h, gr) };
+            }
+        }
+        self.accumulate_lanes::<K>(p, h, gr)
+    }
+
+    /// [`Self::accumulate_lanes`] compiled for AVX2 (one register per four lanes; no FMA, so
+    /// the arithmetic and its rounding are those of the baseline build).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn accumulate_avx2<const K: usize>(
+        &self,
+        p: &[f64],
+        h: &mut [[f64; K]; K],
+        gr: &mut [f64; K],
+    ) -> Result<f64> {
+        self.accumulate_lanes::<K>(p, h, gr)
+    }
+
+    #[inline(always)]
+    fn accumulate_lanes<const K: usize>(
+        &self,
+        p: &[f64],
+        h: &mut [[f64; K]; K],
+        gr: &mut [f64; K],
+    ) -> Result<f64> {
         self.in_range(p)?;
         let t = inv_k(self.model, p)?;
         let n = self.pts.len();
