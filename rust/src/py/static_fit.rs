@@ -154,9 +154,9 @@ fn resolvable(py: Python<'_>, var: f64, means: &[[f64; 3]]) -> PyResult<()> {
     // The numbers as Python formats them (`format(x, ".3g")`), as for every message of the
     // Python layer.
     let g3 = |x: f64| -> PyResult<String> {
-        Ok(pyo3::types::PyString::new(py, "{:.3g}")
+        pyo3::types::PyString::new(py, "{:.3g}")
             .call_method1("format", (x,))?
-            .extract::<String>()?)
+            .extract::<String>()
     };
     Err(CalibrationError::new_err(format!(
         "sigma = {} is below the double-precision resolution of dwell means of size {} (sigma \

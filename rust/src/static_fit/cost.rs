@@ -312,6 +312,7 @@ impl NormProblem<'_> {
     }
 
     #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // lane-indexed arithmetic
     fn accumulate_lanes<const K: usize>(
         &self,
         p: &[f64],
@@ -391,6 +392,7 @@ impl LaneBlock {
     /// [`eval_dwell`] and [`ml_row`] on every lane (`t = K^-1`); true when a used lane has a
     /// zero or non-finite norm or residual variance.
     #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // lane-indexed arithmetic, as written per dwell
     fn eval(&mut self, t: &Matrix3<f64>, g: f64, model: Model) -> bool {
         type L = [f64; LANES];
         let z0: L = [0.0; LANES];
