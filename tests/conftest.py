@@ -3,12 +3,15 @@
 ``shared_data(*parts)`` is the one way tests reach the reference recordings, which live in
 ``../shared/data`` beside the checkout (CI lays it out that way): it returns the path, or skips
 the calling test with a clear reason when the folder is absent (a bare source checkout).
+``dask_client`` is a real two-worker Dask cluster (separate processes) for the session.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -47,3 +50,14 @@ def shared_root() -> Path:
     if not SHARED_DATA.exists():
         pytest.skip(f"{SHARED} is not present beside the repository")
     return SHARED
+
+
+@pytest.fixture(scope="session")
+def dask_client() -> Iterator[Any]:
+    """A real two-process Dask cluster (LocalCluster, processes=True), shared by the session."""
+    import distributed
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as cluster:
+        with distributed.Client(cluster) as client:
+            yield client

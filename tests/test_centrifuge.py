@@ -11,6 +11,7 @@ import accelcal.sim
 import numpy as np
 import pytest
 from accelcal import CalibrationError, DegenerateDataError
+from accelcal._reference import centrifuge_fit_reference
 from accelcal.centrifuge import (
     CentrifugeOutlierWarning,
     calibrate_centrifuge_table,
@@ -19,7 +20,6 @@ from accelcal.centrifuge import (
 )
 from accelcal.sim.centrifuge import centrifuge_session
 from conftest import shared_data
-from scipy.optimize import least_squares
 
 PRINTED = partial(shared_data, 'seed004', 'table1_as_printed.csv')
 CORRECTED = partial(shared_data, 'seed004', 'table1_sign_corrected.csv')
@@ -33,20 +33,6 @@ PAPER_S = np.array([1.28999, 1.21001, 1.25996])
 PAPER_B = np.array([0.212999, 0.256004, 0.515972])
 
 
-def _scipy_reference(out, omega, radius, g, x0):
-    """Slow independent reference: scipy least_squares on the same norm residual."""
-    t = (omega**2 * radius / g) ** 2 + 1.0
-
-    def res(p):
-        s, b, d = p[:3], p[3:6], p[6:9] * 1e-4
-        h = (out - b) / s
-        f = 2 * h / (1 + np.sqrt(1 + 4 * d * h))
-        return ((f**2).sum(1) - t) / (2 * np.sqrt(t))
-
-    x = least_squares(res, np.r_[x0[:6], x0[6:9] * 1e4], xtol=1e-15, ftol=1e-15, gtol=1e-15).x
-    return np.r_[x[:6], x[6:9] * 1e-4], res
-
-
 def test_nls_reproduces_stated_truth_on_corrected_table():
     fit = calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8)
     assert len(fit.outliers) == 0 and fit.converged
@@ -58,7 +44,7 @@ def test_nls_reproduces_stated_truth_on_corrected_table():
     np.testing.assert_allclose(fit.k2[1], D[1], rtol=1e-4)
     # The fit is at least as good as the truth on its own cost (it converged) ...
     t = read_centrifuge_table(CORRECTED())
-    ref, res = _scipy_reference(t.outputs, t.omega, 1.0, 9.8, fit.params)
+    ref, res = centrifuge_fit_reference(t.outputs, t.omega, 1.0, 9.8, fit.params)
     assert np.sum(fit.residuals**2) <= np.sum(res(np.r_[S, B, D * 1e4]) ** 2)
     # ... equals an independent SciPy solution, and the truth lies within its error bars.
     np.testing.assert_allclose(fit.params, ref, rtol=1e-6, atol=1e-10)

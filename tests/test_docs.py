@@ -2,8 +2,8 @@
 
 Python blocks run in order in one namespace per guide; shell lines that call ``accelcal`` run
 through click's runner; ``printf ... > file`` lines are honoured (the gradiometer guide makes
-its table that way). The working folder is a scratch copy laid out like the repository, so the
-guides' ``../shared/data/...`` paths resolve.
+its table that way). The working folder is a scratch folder with the public recordings in
+``data/``, as each guide tells its reader to lay them out.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ def test_guide_examples_run(guide: Path, tmp_path: Path) -> None:
     matplotlib.use("Agg")
     work = tmp_path / "main"
     work.mkdir()
-    (tmp_path / "shared").symlink_to(shared_root())
+    # The guides read the public recordings from a data/ folder beside the user's script.
+    (work / "data").symlink_to(shared_root() / "data")
     (work / "examples").symlink_to(ROOT / "examples")
     blocks = _blocks(guide.read_text())
     assert blocks, f"{guide.name} has no examples"

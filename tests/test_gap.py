@@ -114,6 +114,11 @@ def test_mis_scaled_noise_flags_gap_not_an_effect(preset: str, most: int) -> Non
     assert alarms <= most
 
 
+def test_allan_deviation_refuses_a_sample_rate_that_gives_infinite_tau() -> None:
+    with pytest.raises(CalibrationError, match="fs must be"):
+        allan_deviation(np.arange(6.0), 5e-324)
+
+
 def test_allan_deviation_of_white_noise_and_random_walk() -> None:
     rng = np.random.default_rng(0)
     x = rng.normal(size=(40000, 2))

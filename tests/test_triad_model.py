@@ -96,6 +96,11 @@ CORRUPTIONS = [
     ("covariance not symmetric", _set(["covariance_noise_model", 0, 1]), 1.0, "symmetric"),
     ("covariance negative variance", _set(["covariance_scaled", 4, 4]), -1.0, "negative"),
     ("realistic cov disagrees", _set(["covariance", 0, 0]), 123.0, "covariance"),
+    ("scaled cov 100x", lambda d, _: d["covariance_scaled"][0].__setitem__(
+        0, 100 * d["covariance_scaled"][0][0]), None, "covariance_scaled"),
+    ("noise-model cov 0.5x", lambda d, _: d["covariance_noise_model"][3].__setitem__(
+        3, 0.5 * d["covariance_noise_model"][3][3]), None, "covariance_noise_model"),
+    ("chi2_dof negative", _set(["metadata", "chi2_dof"]), -2.0, "chi2_dof"),
     ("g NaN", _set(["g"]), NAN, "g"),
     ("g negative", _set(["g"]), -9.8, "g"),
     ("g text", _set(["g"]), "9.8", "g"),

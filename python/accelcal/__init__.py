@@ -28,6 +28,7 @@ from .design import (
     predict_startup_accuracy,
 )
 from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
+from .fleet import FleetReport, calibrate_many, fleet_report
 from .gap import (
     GapReport,
     allan_deviation,
@@ -84,6 +85,9 @@ __all__ = [
     "diagnose_gradiometer",
     "detect_dwells",
     "dwell_stats",
+    "FleetReport",
+    "calibrate_many",
+    "fleet_report",
     "BatchFit",
     "PosePlan",
     "Prediction",

@@ -3,11 +3,15 @@ tests (each kernel is checked against its reference on the same inputs)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "allan_inflation_reference",
+    "apply_triad_reference",
+    "centrifuge_fit_reference",
     "allan_inflation_sample_stride",
     "demodulate_reference",
     "dwell_edges_reference",
@@ -87,6 +91,36 @@ def static_fit_reference(
     if best is None:
         raise ValueError("no start gave a finite fit")
     return best
+
+
+def centrifuge_fit_reference(
+    out: ArrayLike, omega: ArrayLike, radius: float, g: float, x0: ArrayLike
+) -> tuple[np.ndarray, Any]:
+    """Independent centrifuge fit: ``scipy.optimize.least_squares`` on the norm residual
+    ``(|f|^2 - t) / (2 sqrt t)``, ``t = (omega^2 R / g)^2 + 1``, with the K2 model inverted
+    exactly, ``f = 2h / (1 + sqrt(1 + 4 D h))``, ``h = (out - b) / s`` (outputs in g).
+    Parameters ``[s (3), b (3), D (3)]``; returns them and the residual function."""
+    from scipy.optimize import least_squares
+
+    o = np.asarray(out, dtype=np.float64)
+    w = np.asarray(omega, dtype=np.float64)
+    t = (w**2 * radius / g) ** 2 + 1.0
+
+    def res(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        s, b, d = p[:3], p[3:6], p[6:9] * 1e-4
+        h = (o - b) / s
+        f = 2 * h / (1 + np.sqrt(1 + 4 * d * h))
+        return ((f**2).sum(1) - t) / (2 * np.sqrt(t))  # type: ignore[no-any-return]
+
+    x0 = np.asarray(x0, dtype=np.float64)
+    x = least_squares(res, np.r_[x0[:6], x0[6:9] * 1e4], xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+    return np.r_[x[:6], x[6:9] * 1e-4], res
+
+
+def apply_triad_reference(raw: ArrayLike, k: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """Calibrated specific force ``K^-1 (raw - b)`` by a NumPy solve, row by row."""
+    r = np.asarray(raw, dtype=np.float64)
+    return np.linalg.solve(np.asarray(k, dtype=np.float64), (r - np.asarray(b)).T).T
 
 
 # ---- dwell statistics ------------------------------------------------------------------------

@@ -28,6 +28,26 @@ __all__ = ["TriadModel", "iso_utc"]
 MAX_CONDITION = 1e6
 
 
+def _check_covariances(m: TriadModel, source: str) -> None:
+    """The two stored covariances are one fit's: the scaled one is the noise-model one times
+    ``metadata.chi2_dof`` (noise given), or equal to it (noise estimated from the residuals)."""
+    cn, cs = m.covariance_noise_model, m.covariance_scaled
+    chi2 = (m.metadata or {}).get("chi2_dof")
+    if cn is None or cs is None or not isinstance(chi2, (int, float)) or isinstance(chi2, bool):
+        return
+    if not math.isfinite(chi2) or chi2 <= 0:
+        raise CalibrationError(f"{source}: field 'metadata.chi2_dof' must be a positive number; "
+                               f"got {chi2}")
+    scale = float(np.abs(cs).max()) or 1.0
+    if not (np.allclose(cs, chi2 * cn, rtol=1e-6, atol=1e-12 * scale)
+            or np.allclose(cs, cn, rtol=1e-6, atol=1e-12 * scale)):
+        raise CalibrationError(
+            f"{source}: fields 'covariance_scaled' and 'covariance_noise_model' disagree: the "
+            f"scaled covariance must be the noise-model one times metadata.chi2_dof ({chi2:.6g}) "
+            "or, when the noise was estimated, equal to it; one of them was changed"
+        )
+
+
 def iso_utc(when: str | _dt.datetime | _dt.date | None = None) -> str:
     """ISO 8601 UTC timestamp ``YYYY-MM-DDTHH:MM:SSZ`` of ``when`` (now when None; naive
     datetimes and date-only strings are taken as UTC)."""
@@ -333,6 +353,7 @@ class TriadModel:
                     f"{source}: field 'vector' disagrees with K and bias ({v.tolist()} against "
                     f"{want.tolist()})"
                 )
+        _check_covariances(m, source)
         if d.get("version") == 2 and d.get("covariance") is not None:
             c = _finite_array(d["covariance"], f"{source}: covariance")
             if m.covariance is None or c.shape != m.covariance.shape or not np.allclose(

@@ -22,7 +22,7 @@ from . import _core
 from ._core import CalibrationError, DegenerateDataError
 from ._triad import PARAM_NAMES, attitudes_to_force, fibonacci_sphere, n_params
 from ._validate import number, real_array
-from .centrifuge import SEED004_TRUTH, CentrifugeMethod, centrifuge_outputs, paper_design
+from .centrifuge import CENTRIFUGE_TRUTH, CentrifugeMethod, centrifuge_outputs, paper_design
 from .gradiometer import _F64, _azimuths, _dwell_std, _times
 
 __all__ = [
@@ -518,7 +518,7 @@ def centrifuge_sensitivity(
     CentrifugeSensitivity
     """
     des = design if design is not None else paper_design()
-    tr = dict(SEED004_TRUTH)
+    tr = dict(CENTRIFUGE_TRUTH)
     if truth:
         tr.update({k: np.asarray(v, float) for k, v in truth.items()})
     kw: dict[str, Any] = {"scale": tr["scale"], "bias": tr["bias"], "k2": tr["k2"], "g": g}

@@ -193,7 +193,7 @@ def allan_deviation(
         raise CalibrationError(f"x: unsupported dtype {a.dtype}; give real numbers")
     # C order: NumPy's pairwise sums depend on the memory layout, the result must not.
     a = np.ascontiguousarray(a, dtype=np.float64)
-    fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
+    fs_v = number(fs, "fs", lo=1e-9, hi=1e9, unit="Hz")
     one = a.ndim == 1
     n = a.shape[0] if a.ndim else 1
     if n < 3 or a.size == 0:

@@ -24,6 +24,7 @@ from ._common import (
     source_line,
     stream_dwells,
 )
+from .fleet import fleet_options, is_fleet_run, run_static_fleet
 
 #: Python keywords in the static fit's messages, as the command line spells them.
 _PHRASES = {
@@ -40,7 +41,7 @@ def _cli(msg: str) -> str:
 
 
 @calibrate.command("static")
-@click.argument("file", type=click.Path(allow_dash=True))
+@click.argument("files", metavar="FILE...", nargs=-1, type=click.Path(allow_dash=True))
 @gravity_options
 @recording_options
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
@@ -65,18 +66,30 @@ def _cli(msg: str) -> str:
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="Norm before/after and per-dwell residuals (PNG/PDF/SVG).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@fleet_options
 @friendly
 def calibrate_static(
-    file: str, g: float | None, lat: float | None, height: float, fs: float | None,
-    columns: str | None, time_column: str | None, quiet: bool, model: str, method: str,
-    window_s: float, k_thr: float, min_dwell_s: float, no_check_g: bool,
+    files: tuple[str, ...], g: float | None, lat: float | None, height: float,
+    fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
+    method: str, window_s: float, k_thr: float, min_dwell_s: float, no_check_g: bool,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
-    plot_path: str | None, as_json: bool,
+    plot_path: str | None, as_json: bool, **fleet: Any,
 ) -> None:
     """Static field calibration: detect dwells, fit scale, bias and non-orthogonality.
 
     FILE is a recording (read in one streaming pass) or a dwell table written by
-    ``accelcal dwells -o`` / ``--dwells-out``."""
+    ``accelcal dwells -o`` / ``--dwells-out``. Several recordings (or --summary, --out,
+    --scheduler, --manifest) make a fleet run: one row per recording in a summary table, one
+    calibration file per sensor, on all local cores or a Dask cluster; see `accelcal fleet
+    report`."""
+    if is_fleet_run(files, fleet):
+        return run_static_fleet(
+            files, g=g, lat=lat, height=height, fs=fs, columns=columns,
+            time_column=time_column, quiet=quiet, model=model, method=method,
+            window_s=window_s, k_thr=k_thr, min_dwell_s=min_dwell_s, sensor_id=sensor_id,
+            output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
+            check_g=not no_check_g, nominal_path=nominal_path, **fleet)
+    file = files[0]
     import warnings
 
     from .._core import DegenerateDataError

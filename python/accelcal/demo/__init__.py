@@ -22,7 +22,7 @@ from .static import fit_section as static_fit_section
 
 
 def field_section(*, quick: bool = False, seed: int = 0) -> str:
-    """Simulate a seed-000-like session at 5 kHz, detect its dwells, calibrate it."""
+    """Simulate a field session at 5 kHz, detect its dwells, calibrate it."""
     return _field(quick=quick, seed=seed)[0]
 
 
@@ -36,7 +36,7 @@ def _field(*, quick: bool, seed: int) -> tuple[str, Any, Any]:
     t2 = time.perf_counter()
     nbytes = s.samples.nbytes
     lines = [
-        "== Static field calibration (seed 000) ==",
+        "== Static field calibration (norm observation, two-axis platform) ==",
         f"simulated {n} dwells x {dwell_s:g} s at {s.fs:g} Hz, tilts within +-30 deg, "
         f"noise {s.sigma:g} m/s^2 per sample ({nbytes / 1e6:.0f} MB, {t1 - t0:.2f} s to simulate)",
         f"detected {len(d)} dwells in {1e3 * (t2 - t1):.1f} ms "

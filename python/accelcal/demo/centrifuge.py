@@ -17,7 +17,7 @@ from ..centrifuge import (
     read_centrifuge_table,
 )
 from ..design import centrifuge_sensitivity
-from ..sim.centrifuge import SEED004_TRUTH, centrifuge_session
+from ..sim.centrifuge import CENTRIFUGE_TRUTH, centrifuge_session
 
 _SEED_DIRS = (
     Path(__file__).resolve().parents[4] / "shared" / "data" / "seed004",
@@ -31,7 +31,7 @@ def demo_section(rng_seed: int = 0) -> str:
     t0 = time.perf_counter()
     fit = fit_centrifuge(s.outputs, s.omega, s.radius, g=s.g)
     dt = time.perf_counter() - t0
-    truth = np.r_[SEED004_TRUTH["scale"], SEED004_TRUTH["bias"], SEED004_TRUTH["k2"]]
+    truth = np.r_[CENTRIFUGE_TRUTH["scale"], CENTRIFUGE_TRUTH["bias"], CENTRIFUGE_TRUTH["k2"]]
     lines = [
         "== Centrifuge calibration with K2 (norm observation, Wang and Li 2021) ==",
         f"simulated {len(s.omega)} rows (20 positions x 3 speeds, R = {s.radius:g} m), noise "
@@ -47,8 +47,8 @@ def demo_section(rng_seed: int = 0) -> str:
                             latitude_deg=39.0)
     fr = fit_centrifuge(sr.outputs, sr.omega, sr.radius, g=sr.g)
     zf = np.abs(fit.params - truth) / fit.std
-    ds_f = np.max(np.abs(fit.scale - SEED004_TRUTH["scale"]))
-    ds_r = np.max(np.abs(fr.scale - SEED004_TRUTH["scale"]))
+    ds_f = np.max(np.abs(fit.scale - CENTRIFUGE_TRUTH["scale"]))
+    ds_r = np.max(np.abs(fr.scale - CENTRIFUGE_TRUTH["scale"]))
     lines.append(
         f"  |z| up to {zf.max():.0f} ({fit.names[int(np.argmax(zf))]}): the Earth rate the model "
         "lacks. The arm turns at omega + Omega_ie sin(lat) in inertial space, so "

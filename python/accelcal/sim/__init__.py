@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._triad import gravity_from_tilts, k_matrix
 from .centrifuge import centrifuge_session
-from .field import SEED000_TRUTH, FieldSession, field_session
+from .field import FIELD_TRUTH, SEED000_TRUTH, FieldSession, field_session
 from .gap import gap_session
 from .gradiometer import gradiometer_session
 from .static import static_dwell_means
@@ -24,6 +24,7 @@ __all__ = [
     "gap_session",
     "gradiometer_session",
     "static_dwell_means",
+    "FIELD_TRUTH",
     "SEED000_TRUTH",
     "FieldSession",
     "field_session",

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..centrifuge import (
-    SEED004_TRUTH,
+    CENTRIFUGE_TRUTH,
     CentrifugeDesign,
     _vec3,
     centrifuge_outputs,
@@ -119,9 +119,9 @@ def centrifuge_session(
     """
     des = design if design is not None else paper_design(radius=radius)
     truth = {
-        "scale": _vec3(scale, "scale", SEED004_TRUTH["scale"]),
-        "bias": _vec3(bias, "bias", SEED004_TRUTH["bias"]),
-        "k2": _vec3(k2, "k2", SEED004_TRUTH["k2"]),
+        "scale": _vec3(scale, "scale", CENTRIFUGE_TRUTH["scale"]),
+        "bias": _vec3(bias, "bias", CENTRIFUGE_TRUTH["bias"]),
+        "k2": _vec3(k2, "k2", CENTRIFUGE_TRUTH["k2"]),
         "k3": _vec3(k3, "k3", np.zeros(3)),
         "misalignment": np.zeros((3, 3)) if misalignment is None else np.asarray(misalignment),
         "lever_arm": np.zeros((3, 3)) if lever_arm is None else np.asarray(lever_arm),

@@ -1,4 +1,6 @@
-"""Simulator of a static field-calibration session (seed 000): raw high-rate streams with truth."""
+"""Simulator of a static field-calibration session: raw high-rate streams with known truth
+(the setting of Huang et al.'s field calibration of an atomic gravimeter's accelerometer by
+norm observation: a triad on a two-axis stabilised platform, tilts within +-30 deg)."""
 
 from __future__ import annotations
 
@@ -11,10 +13,15 @@ from numpy.typing import ArrayLike, NDArray
 from .._core import CalibrationError
 from .._triad import gravity_from_tilts, k_matrix
 
-__all__ = ["SEED000_TRUTH", "FieldSession", "field_session", "gravity_from_tilts"]
+__all__ = [
+    "FIELD_TRUTH", "SEED000_TRUTH", "FieldSession", "field_session", "gravity_from_tilts",
+]
 
-#: The seed's truth [sx, sy, sz, bx, by, bz, m1, m2, m3] (SPEC 1; b in m/s^2).
-SEED000_TRUTH: NDArray[np.float64] = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
+#: The norm-observation paper's simulation truth [sx, sy, sz, bx, by, bz, m1, m2, m3]
+#: (b in m/s^2).
+FIELD_TRUTH: NDArray[np.float64] = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
+#: Former name of :data:`FIELD_TRUTH` (kept for existing scripts).
+SEED000_TRUTH = FIELD_TRUTH
 
 
 
@@ -52,12 +59,12 @@ def field_session(
     move_s: float = 4.0,
     max_tilt_deg: float = 30.0,
     tilts_deg: ArrayLike | None = None,
-    truth: ArrayLike = SEED000_TRUTH,
+    truth: ArrayLike = FIELD_TRUTH,
     g: float = 9.80665,
     sigma: float = 1e-3,
     rng: int | np.random.Generator | None = 0,
 ) -> FieldSession:
-    """Simulate a seed-000-like field session as a raw stream.
+    """Simulate a field session on a two-axis platform as a raw stream.
 
     The platform holds ``n_dwells`` attitudes for ``dwell_s`` seconds each, tilts uniform in
     +-``max_tilt_deg`` (or the given ``tilts_deg`` (n, 2)), and moves between them over

@@ -1,4 +1,5 @@
-"""The seed-000 paper's dwell-mean simulation (SPEC 1, sec. 3), with known truth.
+"""Dwell means of a static session with known truth, as simulated by the norm-observation
+paper (Huang et al., field calibration of an atomic gravimeter's accelerometer; its sec. 3).
 
 Attitudes are platform tilts ``(tx, ty)`` in degrees, giving the specific force
 ``a = [-g sin ty, g sin tx cos ty, g cos tx cos ty]``, or unit gravity directions (n, 3) for
@@ -16,10 +17,11 @@ from numpy.typing import ArrayLike, NDArray
 from .._core import CalibrationError
 from .._triad import attitudes_to_force, k_matrix
 from ..dwell import DwellSet
-from .field import SEED000_TRUTH
+from .field import FIELD_TRUTH, SEED000_TRUTH
 
 __all__ = [
     "G0",
+    "FIELD_TRUTH",
     "SEED000_TRUTH",
     "StaticSession",
     "attitudes_to_force",
@@ -80,7 +82,7 @@ class StaticSession:
 
 def static_dwell_means(
     n_or_attitudes: int | ArrayLike = 20,
-    truth: ArrayLike = SEED000_TRUTH,
+    truth: ArrayLike = FIELD_TRUTH,
     g: float = G0,
     sigma: float = 1e-3,
     sigma_g: float = 1e-5,
@@ -89,7 +91,7 @@ def static_dwell_means(
     *,
     model: str = "lower",
 ) -> StaticSession:
-    """Simulate dwell means as in the seed paper (SPEC 1 settings).
+    """Simulate dwell means with the norm-observation paper's settings.
 
     Parameters
     ----------

@@ -32,7 +32,7 @@ use super::engine::{self, EffectInfo, GapModel};
 use super::structure::{self, SmoothTest, StructureInput};
 use super::{locate, GapOptions, GapResult, RowInfo, Status, System};
 use crate::error::{degenerate, invalid, CoreError, Result};
-use crate::lsq::lstsq_qr;
+use crate::lsq::{cholesky3, inverse3, lstsq_qr};
 use crate::static_fit::{eval_dwell, inv_k, ml_row, Model};
 use nalgebra::{DMatrix, Matrix3, Vector3};
 
@@ -148,10 +148,8 @@ impl Calibration {
     /// chol(K K^T)` gives `|L^-1 y| = |K^-1 y|` for every `y` (a rotation of the frame).
     pub fn lower_params(&self) -> Result<[f64; N_BASE]> {
         let k = Matrix3::from_fn(|i, j| self.k[i][j]);
-        let l = (k * k.transpose())
-            .cholesky()
-            .ok_or_else(|| CoreError::InvalidInput("the calibration's K is singular".into()))?
-            .l();
+        let l = cholesky3(&(k * k.transpose()))
+            .ok_or_else(|| CoreError::InvalidInput("the calibration's K is singular".into()))?;
         let p = [
             l[(0, 0)],
             l[(1, 1)],
@@ -294,17 +292,17 @@ fn quadric_recover(beta: &[f64], g: f64, sc: f64, mu: [f64; 3]) -> Result<[f64; 
     let bb = qti * Vector3::new(beta[5], beta[6], beta[7]);
     let q33 = g * g / ((bb.transpose() * qt * bb)[(0, 0)] + beta[8]);
     let q = qt * q33;
-    let chol = q.cholesky().ok_or_else(|| {
+    let not_ellipsoid = || {
         CoreError::Degenerate(
             "the dwell means do not lie on an ellipsoid (quadric not positive definite): \
              poses too few or too clustered"
                 .into(),
         )
-    })?;
-    let k = chol.inverse().cholesky().ok_or_else(|| {
+    };
+    cholesky3(&q).ok_or_else(not_ellipsoid)?;
+    let k = inverse3(&q).and_then(|qi| cholesky3(&qi)).ok_or_else(|| {
         CoreError::Degenerate("the fitted ellipsoid is not positive definite".into())
     })?;
-    let k = k.l();
     let p = [
         k[(0, 0)] * sc,
         k[(1, 1)] * sc,

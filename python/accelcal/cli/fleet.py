@@ -1,0 +1,157 @@
+"""Fleet calibration on the command line: ``calibrate static`` with several recordings (or
+``--summary``/``--out``/``--scheduler``/``--manifest``), and ``fleet report``."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+import click
+
+from .._core import CalibrationError
+from ._common import F, _need_plot, _save_fig, emit_json, friendly, main
+
+#: The options ``calibrate static`` takes for a fleet run (all default to "not given").
+FLEET_OPTIONS = ("summary", "out_dir", "scheduler", "workers", "manifest", "diagnose_gap")
+
+
+def fleet_options(fn: F) -> F:
+    """Options of ``calibrate static`` that turn it into a fleet run."""
+    opts = [
+        click.option("--summary", type=click.Path(dir_okay=False), default=None,
+                     help="Fleet run: write the table of all recordings (Parquet, and CSV "
+                          "beside it).", ),
+        click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+                     help="Fleet run: folder for one calibration file per sensor (and the "
+                          "table, unless --summary says where)."),
+        click.option("--scheduler", default=None,
+                     help="Fleet run on a Dask cluster: scheduler address, e.g. "
+                          "tcp://host:8786 (default: all local cores)."),
+        click.option("--workers", type=click.IntRange(min=1), default=None,
+                     help="Fleet run: local processes (default: all cores)."),
+        click.option("--manifest", type=click.Path(dir_okay=False), default=None,
+                     help="Fleet run: CSV/Parquet table with a path column and optional "
+                          "sensor_id, g, lat, height, fs, columns, date."),
+        click.option("--diagnose", "diagnose_gap", is_flag=True, default=False,
+                     help="Fleet run: add the gap diagnosis verdict per recording."),
+    ]
+    for o in reversed(opts):
+        fn = o(fn)
+    return fn
+
+
+def is_fleet_run(files: tuple[str, ...], fleet: dict[str, Any]) -> bool:
+    """Several recordings, or any fleet option given."""
+    return len(files) != 1 or any(fleet.get(k) for k in FLEET_OPTIONS)
+
+
+def run_static_fleet(
+    files: tuple[str, ...], *, g: float | None, lat: float | None, height: float,
+    fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
+    method: str, window_s: float,
+    k_thr: float, min_dwell_s: float, sensor_id: str, output: str | None,
+    dwells_out: str | None, plot_path: str | None, as_json: bool, summary: str | None,
+    out_dir: str | None, scheduler: str | None, workers: int | None, manifest: str | None,
+    diagnose_gap: bool, check_g: bool = True, nominal_path: str | None = None,
+) -> None:
+    """``calibrate static`` over many recordings (see :func:`accelcal.calibrate_many`)."""
+    from ..dwell import DetectorSettings
+    from ..fleet import STATUSES, calibrate_many
+
+    for flag, val in (("-o/--output", output), ("--dwells-out", dwells_out),
+                      ("--plot", plot_path), ("--nominal", nominal_path)):
+        if val:
+            raise CalibrationError(
+                f"{flag} takes one recording; for several use --out FOLDER (one calibration "
+                "file per sensor) and --summary TABLE"
+            )
+    if sensor_id:
+        raise CalibrationError(
+            "--sensor-id names one recording; for several give sensor ids in a --manifest "
+            "(the file stem is used otherwise)"
+        )
+    if manifest and files:
+        raise CalibrationError("give the recordings either as FILE ... or in --manifest, not both")
+    if not manifest and not files:
+        raise CalibrationError("give the recordings (FILE ..., a glob such as 'rec/*.csv') "
+                               "or --manifest")
+    if manifest:
+        import os
+
+        from ..fleet import _is_manifest_file
+
+        if not os.path.isfile(manifest):
+            raise CalibrationError(f"--manifest: file not found: {manifest}")
+        if not _is_manifest_file(manifest):
+            raise CalibrationError(f"--manifest {manifest}: the table needs a 'path' column "
+                                   "(one recording per row)")
+    sources: Any = manifest if manifest else (files[0] if len(files) == 1 else list(files))
+    if len(files) == 1 and not any(c in files[0] for c in "*?["):
+        sources = [files[0]]  # one recording, not a manifest or a glob
+    detector = DetectorSettings(window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
+    t0 = time.perf_counter()
+    df = calibrate_many(
+        sources, g=g, lat=lat, height=height, fs=fs, columns=columns,
+        time_column=time_column, model=model,
+        method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
+        workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
+        check_g=check_g, _cli=True,
+    )
+    dt = time.perf_counter() - t0
+    if as_json:
+        emit_json(json.loads(df.to_json(orient="records")))
+        return
+    counts = {s: int((df["status"] == s).sum()) for s in STATUSES}
+    where = f"the Dask cluster at {scheduler}" if scheduler else "local processes"
+    click.echo(f"calibrated {len(df)} recordings on {where} in {dt:.1f} s: "
+               + ", ".join(f"{counts[s]} {s}" for s in STATUSES))
+    if not summary and not out_dir:
+        cols = ["sensor_id", "status", "n_dwells", "rms_mps2", "chi2_dof"]
+        if diagnose_gap:
+            cols += ["gap_best", "gap_structure", "gap_chi2_dof"]
+        click.echo(df[cols].to_string(index=False, na_rep="-"))
+    bad = df[df["status"] != "ok"]
+    for r in bad.itertuples():
+        click.echo(f"  {r.sensor_id} ({r.path}): {r.status}: {r.message}")
+    if out_dir:
+        n_cal = int((df["cal_file"] != "").sum())
+        click.echo(f"wrote {n_cal} calibration files to {out_dir}")
+    if summary or out_dir:
+        from ..fleet import _summary_paths
+
+        pq, csv = _summary_paths(summary or f"{out_dir}/fleet.parquet")
+        click.echo(f"wrote {pq} and {csv}; see `accelcal fleet report {pq}`")
+
+
+@main.group()
+def fleet() -> None:
+    """Fleet summaries of tables written by `calibrate static FILE ... --summary`."""
+
+
+@fleet.command("report")
+@click.argument("table", type=click.Path())
+@click.option("--z", "z_limit", type=float, default=5.0, show_default=True,
+              help="Outlier limit on the robust z (median and 1.4826 x MAD).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="Histogram per parameter with the outliers marked (PNG/PDF/SVG).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@friendly
+def report(table: str, z_limit: float, plot_path: str | None, as_json: bool) -> None:
+    """Parameter distributions, outlier sensors and failed recordings of a fleet table."""
+    import math
+
+    from ..fleet import fleet_report
+
+    _need_plot(plot_path)
+    if not (math.isfinite(z_limit) and z_limit > 0):
+        raise CalibrationError(f"--z must be a positive number; got {z_limit}")
+    rep = fleet_report(table, z=z_limit)
+    if plot_path:
+        _save_fig(rep.plot(), plot_path)
+    if as_json:
+        emit_json(rep.to_dict())
+        return
+    click.echo(rep.summary())
+    if plot_path:
+        click.echo(f"wrote {plot_path}")

@@ -1,0 +1,1001 @@
+"""Fleet calibration: many static-session recordings, one summary table.
+
+:func:`calibrate_many` reads each recording, detects its dwells and fits it (as
+``accelcal calibrate static`` does for one file), on all local cores by default or on a Dask
+cluster when a client or scheduler address is given. Each recording becomes one row of a
+:class:`pandas.DataFrame`; a recording that cannot be calibrated becomes a row whose
+``status`` says why, never a failed run. :func:`fleet_report` summarises such a table:
+parameter distributions (median, robust spread, range), outlier sensors and failures.
+
+Needs the ``fleet`` extra (pandas, pyarrow for Parquet, Dask for clusters):
+``pip install 'accelcal[fleet]'``.
+"""
+
+from __future__ import annotations
+
+import glob as _glob
+import io as _io
+import itertools
+import math
+import os
+import re
+import socket
+import stat
+import time
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._core import CalibrationError, DegenerateDataError
+from ._files import atomic_write
+from ._triad import MODELS, PARAM_NAMES
+
+__all__ = [
+    "STATUSES",
+    "FleetReport",
+    "calibrate_many",
+    "fleet_report",
+    "read_fleet_table",
+]
+
+#: Row statuses, best first.
+STATUSES = ("ok", "weak", "degenerate", "error")
+
+_METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
+_MANIFEST_COLUMNS = ("path", "sensor_id", "g", "lat", "height", "fs", "columns", "time_column",
+                     "date")
+
+#: Units of the table's columns (the parameters are in the recording's own output units).
+COLUMN_UNITS: dict[str, str] = {
+    **{f"s{a}": "recording units per m/s^2" for a in "xyz"},
+    **{f"b{a}": "recording units" for a in "xyz"},
+    **{f"m{i}": "recording units per m/s^2" for i in (1, 2, 3)},
+    "fs_hz": "Hz",
+    "g_mps2": "m/s^2",
+    "rms_mps2": "m/s^2",
+    "duration_s": "s",
+    "elapsed_s": "s",
+    "gap_rms_after_mps2": "m/s^2",
+}
+
+
+# ---- options in the caller's language -----------------------------------------------------------
+_PY_NAMES = {
+    "g": "g= (m/s^2)", "latlon": "lat=/height=", "fs": "fs= (Hz)", "sources": "sources",
+    "model": "model=", "method": "method=", "workers": "workers=", "client": "client=",
+    "out": "out=", "summary": "summary=",
+}
+_CLI_NAMES = {
+    "g": "--g (m/s^2)", "latlon": "--lat/--height", "fs": "--fs (Hz)", "sources": "FILE ...",
+    "model": "--model", "method": "--method", "workers": "--workers", "client": "--scheduler",
+    "out": "--out", "summary": "--summary",
+}
+
+
+def _names(cli: bool) -> dict[str, str]:
+    return _CLI_NAMES if cli else _PY_NAMES
+
+
+# ---- the work for one recording ---------------------------------------------------------------
+@dataclass(frozen=True)
+class _Job:
+    """Everything a worker needs for one recording (it reads the file itself)."""
+
+    index: int
+    path: str  # as given (reported)
+    read_path: str  # absolute (read on the worker)
+    sensor_id: str
+    g: float | None
+    g_source: str
+    fs: float | None
+    columns: Any
+    time_column: Any
+    model: str
+    method: str
+    detector: dict[str, Any]
+    diagnose: bool
+    date: str | None
+    cli: bool
+    extra: dict[str, Any] = field(default_factory=dict)
+    check_g: bool = True
+
+
+def _columns(diagnose: bool) -> list[str]:
+    cols = ["sensor_id", "path", "status", "message", "n_dwells", "n_samples", "duration_s",
+            "fs_hz", "g_mps2", "g_source", "model", "method"]
+    for p in PARAM_NAMES:
+        cols += [p, f"{p}_std"]
+    cols += ["chi2_dof", "dof", "rms_mps2", "noise_model", "iterations", "temperature"]
+    if diagnose:
+        cols += ["gap_best", "gap_selected", "gap_structure", "gap_chi2_dof", "gap_p_value",
+                 "gap_held_out", "gap_rms_after_mps2", "gap_error"]
+    cols += ["cal_file", "elapsed_s", "worker"]
+    return cols
+
+
+def _blank_row(job: _Job) -> dict[str, Any]:
+    row: dict[str, Any] = {c: math.nan for c in _columns(job.diagnose)}
+    row.update(
+        sensor_id=job.sensor_id, path=job.path, status="error", message="", n_dwells=None,
+        n_samples=None, dof=None, iterations=None, g_mps2=math.nan if job.g is None else job.g,
+        g_source=job.g_source, model=job.model, method=job.method, noise_model="",
+        cal_file="", worker=f"{socket.gethostname()}:{os.getpid()}",
+    )
+    if job.diagnose:
+        row.update(gap_best="", gap_selected="", gap_structure="", gap_error="")
+    return row
+
+
+def _structure_verdict(rep: Any) -> str:
+    s = getattr(rep, "structure", None)
+    if s is None:
+        return ""
+    v = s.get("verdict") if isinstance(s, dict) else getattr(s, "verdict", None)
+    return "" if v is None else str(v)
+
+
+def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
+    """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
+    from . import io as _aio
+    from .dwell import DetectorSettings, detect_dwells
+    from .static import WeakDesignWarning, fit_static
+
+    names = _names(job.cli)
+    if job.g is None:
+        row["message"] = (
+            f"no reference gravity for this recording: give {names['g']} or "
+            f"{names['latlon']}, or a g or lat column in the manifest"
+        )
+        return None
+    mode = os.stat(job.read_path).st_mode
+    if not stat.S_ISREG(mode):  # a FIFO or a device would block the worker for ever
+        kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
+        row["message"] = f"{job.path} is {kind}, not a recording"
+        return None
+    st = _aio.read_stream(job.read_path, columns=job.columns, fs=job.fs,
+                          time_column=job.time_column)
+    n = len(st)
+    row["n_samples"] = n
+    if st.fs is None:
+        row["message"] = (
+            f"the sample rate is not in the file (no fs metadata or time column): give "
+            f"{names['fs']}" + ("" if job.cli else " or an fs column in the manifest")
+        )
+        return None
+    row["fs_hz"] = float(st.fs)
+    row["duration_s"] = n / float(st.fs)
+    bad = ~np.all(np.isfinite(np.asarray(st.samples, dtype=np.float64)), axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        row["message"] = (
+            f"{int(bad.sum())} of {n} data rows hold NaN or inf samples (the first is data row "
+            f"{first}, counting from 0); the recording is damaged"
+        )
+        return None
+    settings = DetectorSettings(**job.detector)
+    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=settings)
+    k = len(d)
+    row["n_dwells"] = k
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            fit = fit_static(d, job.g, model=job.model, method=job.method, check_g=job.check_g)
+        except DegenerateDataError as e:
+            row["status"], row["message"] = "degenerate", str(e)
+            return None
+    weak = [str(w.message) for w in caught if issubclass(w.category, WeakDesignWarning)]
+    notes = [str(w.message) for w in caught if not issubclass(w.category, WeakDesignWarning)]
+    vec, std = fit.vector, fit.std
+    for i, p in enumerate(PARAM_NAMES[: vec.size]):
+        row[p] = float(vec[i])
+        row[f"{p}_std"] = float(std[i])
+    row.update(
+        chi2_dof=float(fit.chi2_dof), dof=int(fit.dof), rms_mps2=float(fit.rms),
+        noise_model=fit.noise_model, iterations=int(fit.iterations),
+    )
+    temp = None if d.temperature is None else float(np.mean(d.temperature))
+    row["temperature"] = math.nan if temp is None else temp
+    row["status"] = "weak" if (fit.weak or weak) else "ok"
+    row["message"] = "; ".join(weak + notes)
+    meta = {"source": job.path, "n_dwells": k}
+    kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
+    if job.date:
+        kw["date"] = job.date
+    model = fit.to_model(**kw)
+    if job.diagnose:
+        from .gap import diagnose
+
+        try:
+            rep = diagnose(st.samples, g=job.g, fs=st.fs, t=st.t, temperature=st.temperature)
+            row.update(
+                gap_best=str(rep.best), gap_selected=",".join(rep.selected),
+                gap_structure=_structure_verdict(rep), gap_chi2_dof=float(rep.chi2_per_dof),
+                gap_p_value=float(rep.p_value), gap_held_out=float(rep.held_out_gap),
+                gap_rms_after_mps2=float(rep.rms_after),
+            )
+        except CalibrationError as e:
+            row["gap_error"] = str(e)
+    return model
+
+
+def _calibrate_one(job: _Job) -> tuple[dict[str, Any], Any]:
+    """One recording -> (row, TriadModel or None). Never raises for a bad recording."""
+    t0 = time.perf_counter()
+    row = _blank_row(job)
+    model = None
+    try:
+        model = _fit_one(job, row)
+    except DegenerateDataError as e:
+        row["status"], row["message"] = "degenerate", str(e)
+    except CalibrationError as e:
+        row["status"], row["message"] = "error", str(e)
+    except FileNotFoundError as e:
+        row["status"], row["message"] = "error", f"file not found: {e.filename or e}"
+    except OSError as e:
+        row["status"], row["message"] = "error", f"cannot read the file: {e}"
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as e:  # noqa: BLE001 - a bug (or a Rust panic) stays in its row
+        row["status"] = "error"
+        row["message"] = f"internal error: {type(e).__name__}: {e} (please report it)"
+    if model is None and row["status"] in ("ok", "weak"):
+        row["status"] = "error"
+    row["elapsed_s"] = time.perf_counter() - t0
+    return row, model
+
+
+def _init_worker() -> None:
+    """Process-pool initializer: one rayon thread per worker (set before the extension's
+    thread pool starts), so N workers use N cores."""
+    os.environ["RAYON_NUM_THREADS"] = "1"
+
+
+def _calibrate_chunk_dask(jobs: list[_Job]) -> list[tuple[dict[str, Any], Any]]:
+    """A Dask task: a few recordings, each isolated as on the local pool."""
+    # A Dask worker runs one task per thread: keep rayon to one thread there too, unless
+    # the worker was started with its own RAYON_NUM_THREADS.
+    os.environ.setdefault("RAYON_NUM_THREADS", "1")
+    return [_calibrate_one(j) for j in jobs]
+
+
+def _chunk_size(n_jobs: int, n_threads: int) -> int:
+    """Recordings per Dask task: at least 8 tasks per worker thread (load balance, progress),
+    at most 16 recordings (each task then carries enough work that the scheduler's cost per
+    task, about 10 ms of CPU, stays small against the fits)."""
+    return max(1, min(16, n_jobs // max(1, 8 * n_threads)))
+
+
+# ---- sources --------------------------------------------------------------------------------
+def _need_pandas() -> Any:
+    try:
+        import pandas as pd
+    except ImportError:
+        raise CalibrationError(
+            "fleet calibration needs pandas: pip install 'accelcal[fleet]'"
+        ) from None
+    return pd
+
+
+def _is_manifest_file(p: str) -> bool:
+    low = p.lower()
+    if low.endswith((".parquet", ".pq")):
+        return True
+    if not low.endswith((".csv", ".tsv", ".txt")) or not os.path.isfile(p):
+        return False
+    with open(p, encoding="utf-8", errors="replace") as fh:
+        for line in itertools.islice(fh, 50):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            fields = [f.strip().strip("\"'").lower() for f in re.split(r"[,;\t]", s)]
+            return "path" in fields
+    return False
+
+
+def _read_table(path: str) -> Any:
+    pd = _need_pandas()
+    low = path.lower()
+    try:
+        if low.endswith((".parquet", ".pq")):
+            return pd.read_parquet(path)
+        return pd.read_csv(path, comment="#", sep=None, engine="python",
+                           dtype={"sensor_id": str, "path": str, "columns": str})
+    except FileNotFoundError:
+        raise CalibrationError(f"table not found: {path}") from None
+    except ImportError as e:
+        raise CalibrationError(
+            f"reading {path} needs pyarrow (Parquet): pip install 'accelcal[fleet]' ({e})"
+        ) from None
+    except (ValueError, OSError) as e:
+        raise CalibrationError(f"cannot read the table {path}: {e}") from None
+
+
+def _missing(v: Any) -> bool:
+    if v is None:
+        return True
+    if isinstance(v, float) and math.isnan(v):
+        return True
+    try:
+        import pandas as pd
+
+        if v is pd.NA or v is pd.NaT:
+            return True
+    except ImportError:  # pragma: no cover
+        pass
+    return isinstance(v, str) and not v.strip()
+
+
+def _sources_table(sources: Any, names: dict[str, str]) -> tuple[list[dict[str, Any]], Path]:
+    """Rows (dicts with at least 'path') and the folder relative paths are read from."""
+    pd = _need_pandas()
+    base = Path.cwd()
+    if isinstance(sources, pd.DataFrame):
+        table = sources.copy()
+    elif isinstance(sources, (str, os.PathLike)):
+        s = os.fspath(sources)
+        if any(c in s for c in "*?[") and not os.path.exists(s):
+            files = sorted(_glob.glob(s, recursive=True))
+            if not files:
+                raise CalibrationError(f"no recording matches {s!r}")
+            return [{"path": f} for f in files], base
+        if _is_manifest_file(s):
+            table = _read_table(s)
+            base = Path(s).resolve().parent
+        else:
+            return [{"path": s}], base
+    elif isinstance(sources, Iterable):
+        items = list(sources)
+        rows = []
+        for x in items:
+            if not isinstance(x, (str, os.PathLike)):
+                raise CalibrationError(
+                    f"{names['sources']} must hold file paths; got {type(x).__name__} {x!r}"
+                )
+            rows.append({"path": os.fspath(x)})
+        if not rows:
+            raise CalibrationError(f"{names['sources']}: no recordings given")
+        return rows, base
+    else:
+        raise CalibrationError(
+            f"{names['sources']} must be a list of paths, a glob such as 'rec/*.csv', or a "
+            f"manifest (CSV/Parquet path or DataFrame); got {type(sources).__name__}"
+        )
+    if "path" not in table.columns:
+        raise CalibrationError(
+            f"the manifest needs a 'path' column (one recording per row); it has "
+            f"{list(map(str, table.columns))}"
+        )
+    if len(table) == 0:
+        raise CalibrationError("the manifest has no rows")
+    return table.to_dict("records"), base
+
+
+def _num(v: Any, what: str, where: str) -> float | None:
+    if _missing(v):
+        return None
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: {what} must be a number; got {v!r}") from None
+    if not math.isfinite(x):
+        raise CalibrationError(f"{where}: {what} must be finite; got {v!r}")
+    return x
+
+
+def _safe_name(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", s).strip("._") or "sensor"
+
+
+def _make_jobs(
+    rows: list[dict[str, Any]], base: Path, *, g: float | None, lat: float | None,
+    height: float | None, fs: float | None, columns: Any, time_column: Any, model: str,
+    method: str, detector: dict[str, Any], diagnose: bool, cli: bool, check_g: bool = True,
+) -> list[_Job]:
+    from .static import local_gravity
+
+    names = _names(cli)
+    jobs = []
+    for i, r in enumerate(rows):
+        p = r.get("path")
+        if _missing(p):
+            raise CalibrationError(f"manifest row {i}: the path is empty")
+        path = os.fspath(p) if isinstance(p, (str, os.PathLike)) else str(p)
+        read_path = str(base / path) if not os.path.isabs(path) else path
+        where = f"manifest row {i} ({path})"
+        sid = r.get("sensor_id")
+        sensor_id = Path(path).stem if _missing(sid) else str(sid)
+        rg = _num(r.get("g"), "g (m/s^2)", where)
+        rlat = _num(r.get("lat"), "lat (deg)", where)
+        rh = _num(r.get("height"), "height (m)", where)
+        rfs = _num(r.get("fs"), "fs (Hz)", where)
+        if rfs is not None and rfs <= 0:
+            raise CalibrationError(f"{where}: fs must be positive (Hz); got {rfs}")
+        h = rh if rh is not None else (height if height is not None else 0.0)
+        gv: float | None
+        if rg is not None:
+            gv, src = rg, "manifest g"
+        elif rlat is not None:
+            gv, src = local_gravity(rlat, h), f"WGS84 normal gravity at {rlat:g} deg, {h:g} m"
+        elif g is not None:
+            gv, src = g, "given"
+        elif lat is not None:
+            gv, src = local_gravity(lat, h), f"WGS84 normal gravity at {lat:g} deg, {h:g} m"
+        else:
+            gv, src = None, ""
+        cols = r.get("columns")
+        date = r.get("date")
+        extra = {k: v for k, v in r.items() if k not in _MANIFEST_COLUMNS}
+        jobs.append(_Job(
+            index=i, path=path, read_path=os.path.abspath(read_path), sensor_id=sensor_id,
+            g=gv, g_source=src, fs=rfs if rfs is not None else fs,
+            columns=columns if _missing(cols) else cols,
+            time_column=time_column if _missing(r.get("time_column")) else r.get("time_column"),
+            model=model, method=method,
+            detector=detector, diagnose=diagnose,
+            date=None if _missing(date) else str(date), cli=cli, extra=extra,
+            check_g=check_g,
+        ))
+    if all(j.g is None for j in jobs):
+        raise CalibrationError(
+            f"give the reference gravity: {names['g']} or {names['latlon']}"
+            + ("" if cli else ", or g or lat columns in the manifest")
+        )
+    return jobs
+
+
+# ---- execution ------------------------------------------------------------------------------
+def _bar(total: int, progress: bool | None) -> Any:
+    from tqdm import tqdm
+
+    disable = None if progress is None else not progress
+    return tqdm(total=total, unit="rec", desc="calibrating", disable=disable, leave=False)
+
+
+Result = tuple[dict[str, Any], Any]
+
+
+def _run_local(jobs: list[_Job], workers: int, progress: bool | None) -> list[Result]:
+    out: list[Result | None] = [None] * len(jobs)
+    with _bar(len(jobs), progress) as bar:
+        if workers == 1:
+            for j in jobs:
+                out[j.index] = _calibrate_one(j)
+                bar.update(1)
+            return [r for r in out if r is not None]
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures.process import BrokenProcessPool
+
+        # spawn: fresh interpreters, so rayon's pool starts in each worker after the
+        # initializer has set its size (a forked rayon pool would not survive the fork).
+        ctx = multiprocessing.get_context("spawn")
+        ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
+        try:
+            futs = {ex.submit(_calibrate_one, j): j for j in jobs}
+            for f in as_completed(futs):
+                j = futs[f]
+                try:
+                    out[j.index] = f.result()
+                except BrokenProcessPool as e:
+                    out[j.index] = _failed(j, f"a worker process died ({e}); run this "
+                                              "recording alone to see why")
+                except Exception as e:  # noqa: BLE001 - e.g. a result that cannot be sent back
+                    out[j.index] = _failed(j, f"worker failed: {type(e).__name__}: {e}")
+                bar.update(1)
+        except BaseException:  # Ctrl-C: drop what has not started, do not wait for it
+            ex.shutdown(wait=False, cancel_futures=True)
+            raise
+        ex.shutdown(wait=True)
+    return [r for r in out if r is not None]
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
+def _failed(job: _Job, msg: str) -> Result:
+    row = _blank_row(job)
+    row["message"] = msg
+    row["worker"] = ""
+    return row, None
+
+
+def _need_distributed() -> Any:
+    try:
+        import distributed
+    except ImportError:
+        raise CalibrationError(
+            "running on a Dask cluster needs dask.distributed: pip install 'accelcal[fleet]'"
+        ) from None
+    return distributed
+
+
+#: How long to keep trying to reach a scheduler given by address, s.
+_CONNECT_TIMEOUT_S = 20.0
+
+
+def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -> list[Result]:
+    distributed = _need_distributed()
+    names = _names(cli)
+    own = False
+    if isinstance(client, str):
+        try:
+            client = distributed.Client(client, timeout=f"{_CONNECT_TIMEOUT_S:g}s")
+        except (OSError, TimeoutError, ValueError) as e:
+            raise CalibrationError(
+                f"cannot reach the Dask scheduler at {client!r} ({names['client']}): {e}"
+            ) from None
+        own = True
+    elif not isinstance(client, distributed.Client):
+        raise CalibrationError(
+            f"{names['client']} must be a dask.distributed.Client or a scheduler address "
+            f"such as 'tcp://host:8786'; got {type(client).__name__}"
+        )
+    out: list[Result | None] = [None] * len(jobs)
+    try:
+        if not client.scheduler_info().get("workers"):
+            try:  # a scheduler without workers would queue the recordings for ever
+                client.wait_for_workers(1, timeout=_CONNECT_TIMEOUT_S)
+            except Exception:  # noqa: BLE001 - dask raises its own TimeoutError types
+                raise CalibrationError(
+                    f"the Dask cluster at {client.scheduler.address} ({names['client']}) has "
+                    f"no workers (waited {_CONNECT_TIMEOUT_S:g} s); start some with "
+                    "`dask worker ADDRESS`"
+                ) from None
+        n_threads = sum(int(w.get("nthreads", 1))
+                        for w in client.scheduler_info().get("workers", {}).values())
+        size = _chunk_size(len(jobs), n_threads)
+        chunks = [jobs[i : i + size] for i in range(0, len(jobs), size)]
+        futs = client.map(_calibrate_chunk_dask, chunks, pure=False)
+        by_key = {f.key: c for f, c in zip(futs, chunks, strict=True)}
+        try:
+            with _bar(len(jobs), progress) as bar:
+                for f in distributed.as_completed(futs):
+                    chunk = by_key[f.key]
+                    try:
+                        for j, r in zip(chunk, f.result(), strict=True):
+                            out[j.index] = r
+                    except Exception as e:  # noqa: BLE001 - a lost worker stays in its rows
+                        for j in chunk:
+                            out[j.index] = _failed(
+                                j, f"the Dask task failed: {type(e).__name__}: {e}")
+                    f.release()
+                    bar.update(len(chunk))
+        except BaseException:  # Ctrl-C: cancel what is still queued on the cluster
+            client.cancel(futs)
+            raise
+    finally:
+        if own:
+            client.close()
+    return [r for r in out if r is not None]
+
+
+# ---- output ---------------------------------------------------------------------------------
+def _frame(results: list[Result], jobs: list[_Job], diagnose: bool) -> Any:
+    pd = _need_pandas()
+    cols = _columns(diagnose)
+    extra_keys: list[str] = []
+    for j in jobs:
+        for k in j.extra:
+            if k not in extra_keys:
+                extra_keys.append(k)
+    recs = []
+    for (row, _), j in zip(results, jobs, strict=True):
+        r = {c: row.get(c) for c in cols}
+        for k in extra_keys:
+            r[k if k not in cols else f"manifest_{k}"] = j.extra.get(k)
+        recs.append(r)
+    df = pd.DataFrame.from_records(recs, columns=cols + [
+        k if k not in cols else f"manifest_{k}" for k in extra_keys])
+    for c in ("n_dwells", "n_samples", "dof", "iterations"):
+        df[c] = df[c].astype("Int64")
+    str_cols = ["sensor_id", "path", "status", "message", "g_source", "model", "method",
+                "noise_model", "cal_file", "worker"]
+    if diagnose:
+        str_cols += ["gap_best", "gap_selected", "gap_structure", "gap_error"]
+    float_cols = [c for c in cols if c not in str_cols
+                  and c not in ("n_dwells", "n_samples", "dof", "iterations")]
+    for c in float_cols:
+        df[c] = df[c].astype("float64")
+    df.attrs["units"] = dict(COLUMN_UNITS)
+    return df
+
+
+def _stamp(date: Any) -> str:
+    """``YYYYmmddTHHMMSSZ`` (UTC) of an ISO 8601 date; naive dates are taken as UTC."""
+    import datetime as dt
+
+    try:
+        d = dt.datetime.fromisoformat(str(date).strip().replace("Z", "+00:00"))
+    except ValueError:
+        return "undated"
+    if d.tzinfo is not None:
+        d = d.astimezone(dt.timezone.utc)
+    return d.strftime("%Y%m%dT%H%M%SZ")
+
+
+def _cal_name(model: Any) -> str:
+    """``<sensor_id>_<UTC date>.json``, the name TriadModel gives its own files: later
+    calibrations of a sensor sit beside earlier ones, and the file of a time is found by
+    sensor id and date."""
+    own = getattr(model, "default_filename", None)
+    if callable(own):
+        return str(own())
+    return f"{_safe_name(model.sensor_id)}_{_stamp(model.date)}.json"
+
+
+def _cal_names(models: list[Any]) -> list[str | None]:
+    """One distinct file name per model (``-2``, ``-3`` ... when a sensor repeats within the
+    same second)."""
+    used: set[str] = set()
+    names: list[str | None] = []
+    for m in models:
+        if m is None:
+            names.append(None)
+            continue
+        base = _cal_name(m)
+        name, k = base, 2
+        while name in used:
+            name, k = f"{base[:-5]}-{k}.json", k + 1
+        used.add(name)
+        names.append(name)
+    return names
+
+
+def _summary_paths(summary: str | os.PathLike[str]) -> tuple[Path, Path]:
+    p = Path(summary)
+    if p.suffix.lower() == ".csv":
+        return p.with_suffix(".parquet"), p
+    return p, p.with_suffix(".csv")
+
+
+def _write_table(df: Any, parquet: Path, csv: Path, names: dict[str, str]) -> None:
+    buf = _io.BytesIO()
+    try:
+        df.to_parquet(buf, index=False)
+    except ImportError as e:
+        raise CalibrationError(
+            f"writing {names['summary']} as Parquet needs pyarrow: pip install "
+            f"'accelcal[fleet]' ({e})"
+        ) from None
+    atomic_write(parquet, buf.getvalue())
+    atomic_write(csv, df.to_csv(index=False))
+
+
+def read_fleet_table(path: str | os.PathLike[str]) -> Any:
+    """Read a table written by :func:`calibrate_many` (Parquet, or the CSV beside it)."""
+    pd = _need_pandas()
+    p = os.fspath(path)
+    if p.lower().endswith((".parquet", ".pq")):
+        return _read_table(p)
+    try:
+        df = pd.read_csv(p, keep_default_na=False, na_values=[""])
+    except FileNotFoundError:
+        raise CalibrationError(f"table not found: {p}") from None
+    except (ValueError, OSError) as e:
+        raise CalibrationError(f"cannot read the table {p}: {e}") from None
+    for c in ("n_dwells", "n_samples", "dof", "iterations"):
+        if c in df.columns:
+            df[c] = df[c].astype("Int64")
+    for c in df.columns:
+        if df[c].dtype == object or str(df[c].dtype).startswith("str"):
+            df[c] = df[c].fillna("").astype(object)
+    return df
+
+
+def _check_outputs(out_paths: Sequence[Path], jobs: list[_Job], sources: Any,
+                   names: dict[str, str]) -> None:
+    given = {os.path.realpath(j.read_path) for j in jobs}
+    if isinstance(sources, (str, os.PathLike)) and os.path.exists(sources):
+        given.add(os.path.realpath(sources))
+    for p in out_paths:
+        if os.path.realpath(p) in given:
+            raise CalibrationError(
+                f"{names['summary']}/{names['out']} would overwrite an input: {p}; "
+                "choose another name"
+            )
+
+
+# ---- the entry point ------------------------------------------------------------------------
+def calibrate_many(
+    sources: Any,
+    *,
+    g: float | None = None,
+    lat: float | None = None,
+    height: float | None = None,
+    fs: float | None = None,
+    columns: Any = None,
+    time_column: Any = None,
+    model: str = "lower",
+    method: str = "lm",
+    detector: Any = None,
+    diagnose: bool = False,
+    client: Any = None,
+    workers: int | None = None,
+    out: str | os.PathLike[str] | None = None,
+    summary: str | os.PathLike[str] | None = None,
+    progress: bool | None = None,
+    check_g: bool = True,
+    _cli: bool = False,
+) -> Any:
+    """Calibrate many static-session recordings; one row per recording.
+
+    Each recording is read, its dwells are detected and the static model is fitted, exactly
+    as ``accelcal calibrate static FILE`` does for one file. A recording that cannot be
+    calibrated gives a row whose ``status`` says why; it never stops the run.
+
+    Parameters
+    ----------
+    sources : list of paths, a glob (``"rec/*.csv"``), or a manifest
+        A manifest is a DataFrame or a CSV/Parquet file with a ``path`` column and optional
+        ``sensor_id``, ``g`` (m/s^2) or ``lat`` (deg) / ``height`` (m), ``fs`` (Hz),
+        ``columns`` ("ax,ay,az"), ``time_column`` and ``date`` columns; a value in a row
+        overrides the keyword default, an empty cell uses it. Relative paths in a manifest
+        file are relative to the manifest's folder. Other manifest columns are carried into
+        the result.
+    g : reference gravity, m/s^2 (or ``lat``, deg, and ``height``, m: WGS84 normal gravity).
+    fs : sample rate, Hz, when the files do not give it.  columns, time_column : the
+        accelerometer columns and the time column, as for :func:`accelcal.io.read_stream`.
+    model, method : as for :func:`~accelcal.fit_static`.
+    detector : :class:`~accelcal.DetectorSettings` for the dwell detector (default settings
+        otherwise).
+    diagnose : also run :func:`~accelcal.diagnose` (Allan-deviation noise model from the
+        raw stream) and add the gap verdict columns.
+    client : a ``dask.distributed.Client`` or a scheduler address (``"tcp://host:8786"``):
+        the recordings are mapped over the cluster in small batches (up to 16 per task) and
+        each file is read on the worker that processes it (the paths must be readable there).
+        Default: a local process pool.
+    workers : local processes (default: all cores; 1 runs in this process). Each process
+        runs rayon with one thread, so N processes use N cores.
+    out : folder for the calibration files: one TriadModel per calibrated recording, named
+        ``<sensor_id>_<UTC date>.json`` (``YYYYmmddTHHMMSSZ``; the date is the manifest's
+        ``date`` or the time of the fit), written atomically, so later calibrations of a
+        sensor sit beside earlier ones and ``TriadModel.find`` picks the one valid at a time.
+        The table is also written there as ``fleet.parquet`` and ``fleet.csv`` unless
+        ``summary`` says otherwise.
+    summary : path of the table (Parquet; the CSV is written beside it with a ``.csv``
+        suffix), written atomically.
+    progress : progress bar over recordings on stderr: True, False, or None (only when stderr
+        is a terminal).
+    check_g : refuse a reference gravity outside 9.76-9.84 m/s^2 (default), as
+        :func:`~accelcal.fit_static` does; False for a centrifuge or another planet.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per recording, in input order: ``sensor_id``, ``path``, ``status`` (``ok``,
+        ``weak``, ``degenerate`` or ``error``), ``message`` (why, for anything but ``ok``),
+        ``n_dwells``, ``n_samples``, ``duration_s``, ``fs_hz``, ``g_mps2``, ``g_source``,
+        ``model``, ``method``, each parameter ``sx ... m3`` with ``<name>_std`` (the
+        recording's units: scale and coupling per m/s^2, bias in recording units; NaN when
+        not fitted, and m1..m3 for ``model="diag"``), ``chi2_dof``, ``dof``, ``rms_mps2``,
+        ``noise_model``, ``iterations``, ``temperature``, with ``diagnose=True`` ``gap_best``,
+        ``gap_selected``, ``gap_structure``, ``gap_chi2_dof``, ``gap_p_value``,
+        ``gap_held_out``, ``gap_rms_after_mps2``, ``gap_error``; then ``cal_file``,
+        ``elapsed_s`` and ``worker`` (host:pid). ``DataFrame.attrs["units"]`` names the units.
+
+    Raises
+    ------
+    CalibrationError
+        Only for the call itself (no gravity anywhere, unknown model or method, no
+        recordings, an unreachable scheduler, an output that would overwrite an input).
+    """
+    names = _names(_cli)
+    _need_pandas()
+    if model not in MODELS:
+        raise CalibrationError(f"{names['model']} must be one of {', '.join(MODELS)}; "
+                               f"got {model!r}")
+    if method not in _METHODS:
+        raise CalibrationError(f"{names['method']} must be one of {', '.join(_METHODS)}; "
+                               f"got {method!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
+                                or workers < 1):
+        raise CalibrationError(f"{names['workers']} must be a positive integer (processes); "
+                               f"got {workers!r}")
+    if workers is not None and client is not None:
+        raise CalibrationError(f"{names['workers']} sets local processes; with "
+                               f"{names['client']} the cluster's workers do the work")
+    if g is not None:
+        gv = _num(g, "g (m/s^2)", names["g"])
+        if gv is None or gv <= 0:
+            raise CalibrationError(f"{names['g']} must be positive; got {g!r}")
+        g = gv
+    from .dwell import DetectorSettings
+
+    if detector is None:
+        detector = DetectorSettings()
+    elif not isinstance(detector, DetectorSettings):
+        raise CalibrationError("detector must be an accelcal.DetectorSettings")
+    det = dict(detector.__dict__)
+    rows, base = _sources_table(sources, names)
+    jobs = _make_jobs(rows, base, g=g, lat=lat, height=height, fs=fs, columns=columns,
+                      time_column=time_column, model=model, method=method, detector=det,
+                      diagnose=diagnose, cli=_cli, check_g=check_g)
+    if summary is None and out is not None:
+        summary = Path(out) / "fleet.parquet"
+    if summary is not None:
+        _check_outputs(list(_summary_paths(summary)), jobs, sources, names)
+
+    if client is not None:
+        results = _run_dask(jobs, client, progress, _cli)
+    else:
+        n = workers if workers is not None else _cores()
+        results = _run_local(jobs, max(1, min(n, len(jobs))), progress)
+
+    if out is not None:
+        folder = Path(out)
+        cal_names = _cal_names([m for _, m in results])
+        _check_outputs([folder / n for n in cal_names if n], jobs, sources, names)
+        folder.mkdir(parents=True, exist_ok=True)
+        for (row, model_obj), name in zip(results, cal_names, strict=True):
+            if model_obj is not None and name:
+                model_obj.save(folder / name)
+                row["cal_file"] = str(folder / name)
+    df = _frame(results, jobs, diagnose)
+    if summary is not None:
+        pq, csv = _summary_paths(summary)
+        _write_table(df, pq, csv, names)
+    return df
+
+
+# ---- the fleet report -----------------------------------------------------------------------
+@dataclass
+class FleetReport:
+    """Summary of a fleet table (see :func:`fleet_report`).
+
+    n : recordings.  counts : status -> number of recordings.
+    distributions : one dict per parameter over the ``ok`` rows: ``param``, ``unit``, ``n``,
+        ``median``, ``spread`` (robust std: 1.4826 x the median absolute deviation), ``min``,
+        ``max``.
+    outliers : one dict per (sensor, parameter) with robust ``|z| > z_limit``: ``sensor_id``,
+        ``path``, ``param``, ``value``, ``median``, ``z``.
+    failed : one dict per recording with status degenerate or error: ``sensor_id``, ``path``,
+        ``status``, ``message``.  weak : the same for status weak.
+    z_limit : the outlier threshold on the robust z.
+    """
+
+    n: int
+    counts: dict[str, int]
+    distributions: list[dict[str, Any]]
+    outliers: list[dict[str, Any]]
+    failed: list[dict[str, Any]]
+    weak: list[dict[str, Any]]
+    z_limit: float
+    table: Any = field(repr=False, default=None)
+
+    def summary(self) -> str:
+        """The report as text."""
+        c = self.counts
+        L = [f"fleet: {self.n} recordings: " + ", ".join(f"{c.get(s, 0)} {s}" for s in STATUSES)]
+        if self.distributions:
+            L.append(f"parameter distributions over the {c.get('ok', 0)} ok recordings "
+                     "(spread = 1.4826 x MAD):")
+            L.append(f"  {'param':<10} {'median':>12} {'spread':>11} {'min':>12} {'max':>12}"
+                     "  unit")
+            for d in self.distributions:
+                L.append(f"  {d['param']:<10} {d['median']:>12.6g} {d['spread']:>11.3g} "
+                         f"{d['min']:>12.6g} {d['max']:>12.6g}  {d['unit']}")
+        if self.outliers:
+            L.append(f"outlier sensors (robust |z| > {self.z_limit:g}):")
+            by: dict[str, list[dict[str, Any]]] = {}
+            for o in self.outliers:
+                by.setdefault(f"{o['sensor_id']} ({o['path']})", []).append(o)
+            for who, items in by.items():
+                L.append(f"  {who}: " + ", ".join(
+                    f"{o['param']} = {o['value']:.6g} (z = {o['z']:+.1f})" for o in items))
+        else:
+            L.append(f"no outlier sensors (robust |z| > {self.z_limit:g})")
+        if self.weak:
+            L.append(f"weakly determined ({len(self.weak)}):")
+            L += [f"  {f['sensor_id']} ({f['path']}): {f['message']}" for f in self.weak]
+        if self.failed:
+            L.append(f"failed recordings ({len(self.failed)}):")
+            L += [f"  {f['sensor_id']} ({f['path']}): {f['status']}: {f['message']}"
+                  for f in self.failed]
+        return "\n".join(L)
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "n": self.n, "counts": dict(self.counts), "distributions": self.distributions,
+            "outliers": self.outliers, "failed": self.failed, "weak": self.weak,
+            "z_limit": self.z_limit,
+        }
+
+    def plot(self, fig: Any = None) -> Any:
+        """One histogram per parameter (ok recordings), outliers marked and named."""
+        from .plots import _plt
+
+        plt = _plt()
+        dists = self.distributions
+        if not dists:
+            raise CalibrationError("no ok recordings to plot")
+        ncol = 3
+        nrow = math.ceil(len(dists) / ncol)
+        if fig is None:
+            fig = plt.figure(figsize=(4.0 * ncol, 2.9 * nrow))
+        axs = np.atleast_1d(fig.subplots(nrow, ncol)).reshape(-1)
+        ok = self.table[self.table["status"] == "ok"]
+        for ax, d in zip(axs, dists, strict=False):
+            p = d["param"]
+            x = ok[p].to_numpy(dtype=float)
+            x = x[np.isfinite(x)]
+            ax.hist(x, bins=min(40, max(5, int(np.sqrt(x.size)) * 2)), color="0.6")
+            ax.axvline(d["median"], color="k", lw=0.8)
+            for o in (o for o in self.outliers if o["param"] == p):
+                ax.axvline(o["value"], color="tab:red", lw=1.2)
+                ax.annotate(f"{o['sensor_id']} z={o['z']:+.0f}", (o["value"], 1.0),
+                            xycoords=("data", "axes fraction"), rotation=90, va="top",
+                            ha="right", fontsize=7, color="tab:red")
+            ax.set_xlabel(f"{p} ({d['unit']})")
+            ax.set_ylabel("recordings")
+            ax.locator_params(axis="x", nbins=5)
+        for ax in axs[len(dists):]:
+            ax.set_axis_off()
+        n_out = len({o["sensor_id"] for o in self.outliers})
+        fig.suptitle(f"fleet of {self.n}: {self.counts.get('ok', 0)} ok; {n_out} outlier "
+                     f"sensor(s) (red, robust |z| > {self.z_limit:g})")
+        fig.tight_layout()
+        return fig
+
+
+def _unit(p: str) -> str:
+    return COLUMN_UNITS.get(p, "")
+
+
+def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
+    """Summarise a fleet table (a DataFrame from :func:`calibrate_many`, or the path of its
+    Parquet/CSV file): distributions of every fitted parameter over the ``ok`` recordings,
+    outlier sensors with robust ``|z| > z`` on any parameter (z = (value - median) /
+    (1.4826 x MAD); a parameter with zero spread is not screened), and the recordings that
+    failed, with their reasons."""
+    pd = _need_pandas()
+    df = table if isinstance(table, pd.DataFrame) else read_fleet_table(table)
+    missing = {"sensor_id", "path", "status", "message"} - set(df.columns)
+    if missing:
+        raise CalibrationError(
+            f"not a fleet table from calibrate_many: columns {sorted(missing)} are missing"
+        )
+    zl = float(z)
+    if not (math.isfinite(zl) and zl > 0):
+        raise CalibrationError(f"z must be a positive number (robust z limit); got {z!r}")
+    counts = {s: int((df["status"] == s).sum()) for s in STATUSES}
+    ok = df[df["status"] == "ok"]
+    dists: list[dict[str, Any]] = []
+    outliers: list[dict[str, Any]] = []
+    params = [p for p in PARAM_NAMES if p in df.columns]
+    for p in params:
+        x = ok[p].to_numpy(dtype=float)
+        good = np.isfinite(x)
+        if not good.any():
+            continue
+        xs = x[good]
+        med = float(np.median(xs))
+        spread = float(1.4826 * np.median(np.abs(xs - med)))
+        dists.append({"param": p, "unit": _unit(p), "n": int(xs.size), "median": med,
+                      "spread": spread, "min": float(xs.min()), "max": float(xs.max())})
+        if spread > 0 and xs.size >= 3:
+            zz = (x - med) / spread
+            for i in np.flatnonzero(good & (np.abs(zz) > zl)):
+                r = ok.iloc[int(i)]
+                outliers.append({"sensor_id": str(r["sensor_id"]), "path": str(r["path"]),
+                                 "param": p, "value": float(x[i]), "median": med,
+                                 "z": float(zz[i])})
+    outliers.sort(key=lambda o: (str(o["sensor_id"]), -abs(float(o["z"]))))
+
+    def rows(status: Sequence[str]) -> list[dict[str, Any]]:
+        sel = df[df["status"].isin(status)]
+        return [{"sensor_id": str(r.sensor_id), "path": str(r.path), "status": str(r.status),
+                 "message": str(r.message)} for r in sel.itertuples()]
+
+    return FleetReport(len(df), counts, dists, outliers, rows(("degenerate", "error")),
+                       rows(("weak",)), zl, df)

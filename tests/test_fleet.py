@@ -1,0 +1,483 @@
+"""Fleet calibration: calibrate_many on simulated fleets (local pool, in-process, Dask), the
+written table and calibration files, the fleet report, and the command line end to end."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import accelcal as ac
+import numpy as np
+import pandas as pd
+import pytest
+from accelcal.cli import main
+from accelcal.fleet import read_fleet_table
+from accelcal.sim.fleet import CORRUPTIONS, fleet_recordings, random_calibration
+from accelcal.sim.static import G0
+from click.testing import CliRunner
+
+N = 32
+OUTLIER = 3  # this sensor's sx is 12 fleet-sigma high
+PARAMS = ["sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3"]
+# What each corruption must be reported as, and words the message must contain.
+EXPECTED = {
+    "truncated": ("error", r"column|field|truncat|ragged"),
+    "nan_rows": ("error", r"NaN"),
+    "wrong_columns": ("error", r"column|field"),
+    "few_poses": ("degenerate", r"\b5 dwells\b"),
+}
+
+
+def _digest(paths: list[str]) -> dict[str, tuple[str, int]]:
+    return {p: (hashlib.sha256(Path(p).read_bytes()).hexdigest(), os.stat(p).st_mtime_ns)
+            for p in paths}
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    root = tmp_path_factory.mktemp("fleet")
+    rng = np.random.default_rng(11)
+    truths = np.array([random_calibration(rng) for _ in range(N)])
+    truths[OUTLIER, 0] += 0.25
+    recs = fleet_recordings(root / "rec", N, truths=truths, corrupt=4 / N, seed=3)
+    paths = [r.path for r in recs]
+    before = _digest(paths)
+    df = ac.calibrate_many(sorted(paths), g=G0, out=root / "cals", workers=2, progress=False)
+    return {"root": root, "recs": recs, "df": df, "before": before}
+
+
+def test_one_row_per_recording_in_input_order_none_lost(fleet: dict[str, Any]) -> None:
+    df, recs = fleet["df"], fleet["recs"]
+    assert list(df["path"]) == sorted(r.path for r in recs)
+    assert list(df["sensor_id"]) == [Path(p).stem for p in df["path"]]
+    assert set(df["status"]) <= set(ac.fleet.STATUSES)
+    # Two local processes did the work, not this one.
+    workers = {w.split(":")[1] for w in df["worker"]}
+    assert len(workers) == 2 and str(os.getpid()) not in workers
+
+
+def test_parameters_match_the_simulator_truth_within_their_std(fleet: dict[str, Any]) -> None:
+    df = fleet["df"].set_index("sensor_id")
+    z = []
+    for r in fleet["recs"]:
+        if r.corruption:
+            continue
+        row = df.loc[r.sensor_id]
+        assert row["status"] == "ok", row["message"]
+        assert row["n_dwells"] == 24
+        est = row[PARAMS].to_numpy(float)
+        std = row[[f"{p}_std" for p in PARAMS]].to_numpy(float)
+        assert np.all(std > 0)
+        z.append((est - r.truth) / std)
+        # residual RMS of the dwell norms: the simulated noise averaged over a dwell
+        assert 0 < row["rms_mps2"] < 2e-3
+    zz = np.array(z)
+    assert np.abs(zz).max() < 4.5
+    assert 0.6 < np.sqrt(np.mean(zz**2)) < 1.5
+
+
+def test_every_corrupted_recording_is_reported_with_its_problem(fleet: dict[str, Any]) -> None:
+    df = fleet["df"].set_index("sensor_id")
+    kinds = [r.corruption for r in fleet["recs"] if r.corruption]
+    assert sorted(kinds) == sorted(CORRUPTIONS)
+    for r in fleet["recs"]:
+        row = df.loc[r.sensor_id]
+        if not r.corruption:
+            assert row["message"] == ""
+            continue
+        status, pattern = EXPECTED[r.corruption]
+        assert row["status"] == status, (r.corruption, row["message"])
+        assert re.search(pattern, row["message"]), (r.corruption, row["message"])
+        assert np.isnan(row[PARAMS].to_numpy(float)).all()
+        assert row["cal_file"] == ""
+    nan_row = df.loc[next(r.sensor_id for r in fleet["recs"] if r.corruption == "nan_rows")]
+    assert nan_row["message"].startswith("3 of ")
+
+
+def test_the_table_on_disk_equals_the_returned_one(fleet: dict[str, Any]) -> None:
+    df = fleet["df"]
+    cals = fleet["root"] / "cals"
+    pd.testing.assert_frame_equal(pd.read_parquet(cals / "fleet.parquet"), df)
+    pd.testing.assert_frame_equal(read_fleet_table(cals / "fleet.parquet"), df)
+    pd.testing.assert_frame_equal(read_fleet_table(cals / "fleet.csv"), df, check_dtype=False)
+    assert not list(cals.glob(".*.tmp"))
+
+
+def test_one_calibration_file_per_calibrated_sensor(fleet: dict[str, Any]) -> None:
+    df = fleet["df"]
+    cals = fleet["root"] / "cals"
+    ok = df[df["status"].isin(["ok", "weak"])]
+    assert sorted(p.name for p in cals.glob("*.json")) == sorted(
+        Path(p).name for p in ok["cal_file"])
+    for r in ok.itertuples():
+        assert re.fullmatch(rf"{r.sensor_id}_\d{{8}}T\d{{6}}Z\.json", Path(r.cal_file).name)
+        m = ac.TriadModel.load(r.cal_file)
+        assert m.sensor_id == r.sensor_id
+        np.testing.assert_allclose(m.vector, [getattr(r, p) for p in PARAMS], rtol=1e-14)
+        assert m.metadata["source"] == r.path
+
+
+def test_nothing_the_user_gave_is_modified(fleet: dict[str, Any]) -> None:
+    assert _digest(list(fleet["before"])) == fleet["before"]
+    assert sorted(p.name for p in (fleet["root"] / "rec").iterdir()) == sorted(
+        Path(p).name for p in fleet["before"])
+
+
+def test_in_process_run_gives_the_pool_results(fleet: dict[str, Any]) -> None:
+    paths = [r.path for r in fleet["recs"][:6]]
+    one = ac.calibrate_many(paths, g=G0, workers=1, progress=False)
+    assert set(one["worker"]) == {f"{os.uname().nodename}:{os.getpid()}"}
+    pool = fleet["df"].set_index("path").loc[paths]
+    np.testing.assert_allclose(one[PARAMS].to_numpy(float), pool[PARAMS].to_numpy(float),
+                               rtol=1e-12, equal_nan=True)
+    assert list(one["status"]) == list(pool["status"])
+
+
+def test_dask_cluster_gives_the_local_results(fleet: dict[str, Any], dask_client: Any) -> None:
+    paths = sorted(r.path for r in fleet["recs"])
+    df = ac.calibrate_many(paths, g=G0, client=dask_client, progress=False)
+    local = fleet["df"]
+    assert list(df["status"]) == list(local["status"])
+    assert list(df["message"]) == list(local["message"])
+    np.testing.assert_allclose(df[PARAMS].to_numpy(float), local[PARAMS].to_numpy(float),
+                               rtol=1e-12, equal_nan=True)
+    dask_pids = {str(p) for p in dask_client.run(os.getpid).values()}
+    assert {w.split(":")[1] for w in df["worker"]} <= dask_pids
+    # a scheduler address works the same (the function makes and closes its own client)
+    addr = dask_client.scheduler.address
+    again = ac.calibrate_many(paths[:4], g=G0, client=addr, progress=False)
+    assert list(again["status"]) == list(local["status"][:4])
+
+
+@pytest.fixture
+def quick_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ac.fleet, "_CONNECT_TIMEOUT_S", 1.0)
+
+
+def test_unreachable_scheduler_is_a_clear_error(quick_timeout: None) -> None:
+    with pytest.raises(ac.CalibrationError, match=r"cannot reach the Dask scheduler.*client="):
+        ac.calibrate_many(["x.csv"], g=G0, client="tcp://127.0.0.1:1", progress=False)
+    with pytest.raises(ac.CalibrationError, match="dask.distributed.Client"):
+        ac.calibrate_many(["x.csv"], g=G0, client=42, progress=False)
+    with pytest.raises(ac.CalibrationError, match="workers= sets local processes"):
+        ac.calibrate_many(["x.csv"], g=G0, client="tcp://127.0.0.1:1", workers=2)
+
+
+def test_a_cluster_without_workers_is_an_error_not_a_hang(quick_timeout: None) -> None:
+    import distributed
+
+    with distributed.LocalCluster(n_workers=0, processes=True, dashboard_address=":0") as cl:
+        with distributed.Client(cl) as client:
+            with pytest.raises(ac.CalibrationError, match=r"has no workers \(waited 1 s\)"):
+                ac.calibrate_many(["x.csv"], g=G0, client=client, progress=False)
+
+
+def _rayon_threads_started() -> int:
+    """Threads the extension's rayon pool adds to a fresh process on first use."""
+    from accelcal.sim import static_dwell_means
+
+    before = len(os.listdir("/proc/self/task"))
+    m = np.stack([static_dwell_means(20, rng=i).means for i in range(400)])
+    ac.fit_static_batch(m, G0)
+    return len(os.listdir("/proc/self/task")) - before
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="counts threads in /proc")
+def test_pool_workers_run_rayon_with_one_thread() -> None:
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from accelcal.fleet import _init_worker
+
+    ctx = multiprocessing.get_context("spawn")
+    env = os.environ.pop("RAYON_NUM_THREADS", None)
+    try:
+        with ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker) as ex:
+            with_init = ex.submit(_rayon_threads_started).result()
+        with ProcessPoolExecutor(1, mp_context=ctx) as ex:
+            without = ex.submit(_rayon_threads_started).result()
+    finally:
+        if env is not None:
+            os.environ["RAYON_NUM_THREADS"] = env
+    assert with_init == 1
+    assert without == (os.cpu_count() or 1)
+
+
+def test_manifest_rows_override_the_defaults(fleet: dict[str, Any], tmp_path: Path) -> None:
+    recs = [r for r in fleet["recs"] if not r.corruption][:4]
+    # one recording without its fs line, so the manifest has to give it
+    no_fs = tmp_path / "no_fs.csv"
+    lines = Path(recs[3].path).read_text().splitlines(True)
+    assert lines[:2] == ["# fs: 50\n", "t,ax,ay,az\n"]
+    no_fs.write_text("n,ax,ay,az\n" + "".join(lines[2:]))  # no fs line, no time column
+    rows = [
+        {"path": os.path.relpath(recs[0].path, tmp_path), "sensor_id": "A-1", "g": None,
+         "fs": None, "line": 7},
+        {"path": os.path.relpath(recs[1].path, tmp_path), "sensor_id": "A-2", "g": 9.70,
+         "fs": None, "line": 7},
+        {"path": os.path.relpath(recs[2].path, tmp_path), "sensor_id": "A-3", "g": None,
+         "fs": None, "line": 8},
+        {"path": "no_fs.csv", "sensor_id": "A-4", "g": None, "fs": 50.0, "line": 8},
+    ]
+    man = pd.DataFrame(rows)
+    man.to_csv(tmp_path / "manifest.csv", index=False)
+    kept = man.copy()
+    df = ac.calibrate_many(str(tmp_path / "manifest.csv"), g=G0, workers=2, progress=False)
+    pd.testing.assert_frame_equal(man, kept)
+    assert list(df["sensor_id"]) == ["A-1", "A-2", "A-3", "A-4"]
+    assert list(df["status"]) == ["ok"] * 4, list(df["message"])
+    assert list(df["line"]) == [7, 7, 8, 8]  # other manifest columns are carried over
+    assert df["g_mps2"].tolist() == [G0, 9.70, G0, G0]
+    assert df["g_source"].tolist()[:2] == ["given", "manifest g"]
+    # With g 1 % low, the fitted scale factors come out 1 % high (K scales with 1/g).
+    for i in (0, 1):
+        est = df.loc[i, ["sx", "sy", "sz"]].to_numpy(float)
+        expect = recs[i].truth[:3] * (G0 / df.loc[i, "g_mps2"])
+        assert np.all(np.abs(est - expect) < 5 * df.loc[i, ["sx_std", "sy_std", "sz_std"]]
+                      .to_numpy(float) + 1e-4)
+    assert df.loc[3, "fs_hz"] == 50.0
+    # without the fs column that recording has no sample rate: an error row naming fs
+    man.loc[3, "fs"] = None
+    df2 = ac.calibrate_many(man.assign(path=[str(tmp_path / p) for p in man["path"]]),
+                            g=G0, workers=1, progress=False)
+    assert df2.loc[3, "status"] == "error"
+    assert "fs= (Hz)" in df2.loc[3, "message"]
+
+
+def test_missing_files_folders_and_fifos_are_error_rows(fleet: dict[str, Any],
+                                                        tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo.csv"
+    os.mkfifo(fifo)  # reading it would block for ever
+    good = next(r for r in fleet["recs"] if not r.corruption).path
+    paths = [str(tmp_path / "gone.csv"), str(tmp_path), str(fifo), good]
+    df = ac.calibrate_many(paths, g=G0, workers=1, progress=False)
+    assert df["status"].tolist() == ["error", "error", "error", "ok"]
+    assert "file not found" in df.loc[0, "message"]
+    assert "is a folder" in df.loc[1, "message"]
+    assert "not a regular file" in df.loc[2, "message"]
+
+
+def test_latitude_gives_wgs84_gravity(fleet: dict[str, Any]) -> None:
+    r = next(r for r in fleet["recs"] if not r.corruption)
+    df = ac.calibrate_many([r.path], lat=48.0, height=300.0, workers=1, progress=False)
+    assert df.loc[0, "g_mps2"] == pytest.approx(ac.local_gravity(48.0, 300.0), rel=1e-15)
+    assert "WGS84" in df.loc[0, "g_source"]
+
+
+def test_repeated_sensor_ids_get_distinct_files(fleet: dict[str, Any], tmp_path: Path) -> None:
+    recs = [r for r in fleet["recs"] if not r.corruption][:4]
+    man = pd.DataFrame({"path": [r.path for r in recs], "sensor_id": ["X", "X", "X", "Y"],
+                        "date": ["2026-05-01T08:00:00Z", "2026-06-01T08:00:00+02:00",
+                                 "2026-05-01T08:00:00Z", None]})
+    df = ac.calibrate_many(man, g=G0, out=tmp_path / "c", workers=1, progress=False)
+    names = [Path(p).name for p in df["cal_file"]]
+    assert names[:3] == ["X_20260501T080000Z.json", "X_20260601T060000Z.json",
+                         "X_20260501T080000Z-2.json"]
+    assert re.fullmatch(r"Y_\d{8}T\d{6}Z\.json", names[3])
+    for i in range(4):
+        m = ac.TriadModel.load(df.loc[i, "cal_file"])
+        assert m.sensor_id == df.loc[i, "sensor_id"] and m.vector[0] == df.loc[i, "sx"]
+    assert ac.TriadModel.load(df.loc[1, "cal_file"]).date.startswith("2026-06-01T")
+
+
+def test_diagnose_adds_the_gap_verdict(fleet: dict[str, Any]) -> None:
+    r = next(r for r in fleet["recs"] if not r.corruption)
+    df = ac.calibrate_many([r.path], g=G0, diagnose=True, workers=1, progress=False)
+    st = ac.io.read_stream(r.path)
+    rep = ac.diagnose(st.samples, g=G0, fs=st.fs, t=st.t)
+    assert df.loc[0, "gap_best"] == rep.best
+    assert df.loc[0, "gap_chi2_dof"] == pytest.approx(rep.chi2_per_dof, rel=1e-12)
+    assert df.loc[0, "gap_held_out"] == pytest.approx(rep.held_out_gap, rel=1e-12)
+    assert df.loc[0, "gap_error"] == ""
+
+
+@pytest.mark.parametrize(
+    ("kw", "needle"),
+    [
+        ({}, r"give the reference gravity: g= \(m/s\^2\) or lat=/height="),
+        ({"g": G0, "model": "full"}, r"model= must be one of lower, diag, upper"),
+        ({"g": G0, "method": "magic"}, r"method= must be one of"),
+        ({"g": G0, "workers": 0}, r"workers= must be a positive integer"),
+        ({"g": -1.0}, r"g= \(m/s\^2\) must be positive"),
+    ],
+)
+def test_bad_calls_are_clear_errors(fleet: dict[str, Any], kw: dict[str, Any],
+                                    needle: str) -> None:
+    with pytest.raises(ac.CalibrationError, match=needle):
+        ac.calibrate_many([fleet["recs"][0].path], progress=False, **kw)
+
+
+def test_bad_sources_are_clear_errors(fleet: dict[str, Any], tmp_path: Path) -> None:
+    with pytest.raises(ac.CalibrationError, match="no recording matches"):
+        ac.calibrate_many(str(tmp_path / "*.csv"), g=G0)
+    with pytest.raises(ac.CalibrationError, match="'path' column"):
+        ac.calibrate_many(pd.DataFrame({"file": ["a.csv"]}), g=G0)
+    with pytest.raises(ac.CalibrationError, match="must hold file paths"):
+        ac.calibrate_many([1, 2], g=G0)
+    # the summary may never replace a recording
+    r = fleet["recs"][0].path
+    with pytest.raises(ac.CalibrationError, match="would overwrite an input"):
+        ac.calibrate_many([r], g=G0, summary=Path(r).with_suffix(".parquet"))
+
+
+def test_fleet_report_names_outliers_and_failures(fleet: dict[str, Any]) -> None:
+    rep = ac.fleet_report(fleet["df"])
+    out_id = f"S{OUTLIER:05d}"
+    assert {(o["sensor_id"], o["param"]) for o in rep.outliers} == {(out_id, "sx")}
+    o = rep.outliers[0]
+    truths = np.array([r.truth for r in fleet["recs"] if not r.corruption])
+    assert o["z"] > 5
+    sx = next(d for d in rep.distributions if d["param"] == "sx")
+    assert sx["median"] == pytest.approx(np.median(truths[:, 0]), abs=0.01)
+    assert 0.01 < sx["spread"] < 0.04  # the fleet's 2 % scale spread
+    assert sx["max"] == pytest.approx(o["value"])
+    failed = {f["sensor_id"]: f for f in rep.failed}
+    bad = {r.sensor_id: r.corruption for r in fleet["recs"] if r.corruption}
+    assert set(failed) == set(bad)
+    for sid, kind in bad.items():
+        assert re.search(EXPECTED[kind][1], failed[sid]["message"])
+    assert rep.counts == {"ok": N - 4, "weak": 0, "degenerate": 1, "error": 3}
+    text = rep.summary()
+    assert f"{out_id} (" in text and "sx = " in text and "z = +" in text
+
+
+def test_fleet_report_plot_marks_the_outliers(fleet: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rep = ac.fleet_report(fleet["df"])
+    fig = rep.plot()
+    try:
+        axes = [a for a in fig.axes if a.get_xlabel()]
+        assert [a.get_xlabel().split(" ")[0] for a in axes] == PARAMS
+        assert "(recording units per m/s^2)" in axes[0].get_xlabel()
+        assert all(a.get_ylabel() == "recordings" for a in axes)
+        red = [ln.get_xdata()[0] for ln in axes[0].get_lines() if ln.get_color() == "tab:red"]
+        assert red == [pytest.approx(rep.outliers[0]["value"])]
+        assert not [ln for a in axes[1:] for ln in a.get_lines() if ln.get_color() == "tab:red"]
+    finally:
+        plt.close(fig)
+
+
+# ---- command line -----------------------------------------------------------------------------
+def _cli(*args: str) -> tuple[int, str]:
+    r = CliRunner().invoke(main, list(args))
+    assert "Traceback" not in r.output
+    return r.exit_code, r.output
+
+
+def test_cli_fleet_run_and_report(fleet: dict[str, Any], tmp_path: Path) -> None:
+    files = sorted(r.path for r in fleet["recs"])
+    summary = tmp_path / "fleet.parquet"
+    code, out = _cli("calibrate", "static", *files, "--g", str(G0), "--summary", str(summary),
+                     "--out", str(tmp_path / "cals"), "--workers", "2", "--quiet")
+    assert code == 0, out
+    assert f"calibrated {N} recordings" in out and f"{N - 4} ok" in out
+    for r in fleet["recs"]:
+        if r.corruption:
+            assert f"{r.sensor_id} ({r.path}): {EXPECTED[r.corruption][0]}" in out
+    table = pd.read_parquet(summary)
+    assert (tmp_path / "fleet.csv").is_file()
+    np.testing.assert_array_equal(table[PARAMS].to_numpy(float),
+                                  fleet["df"][PARAMS].to_numpy(float))
+    assert len(list((tmp_path / "cals").glob("*.json"))) == N - 4
+
+    code, out = _cli("fleet", "report", str(summary))
+    assert code == 0, out
+    assert f"S{OUTLIER:05d}" in out and "outlier sensors (robust |z| > 5)" in out
+    assert "failed recordings (4)" in out
+    code, out = _cli("fleet", "report", str(tmp_path / "fleet.csv"), "--json",
+                     "--plot", str(tmp_path / "fleet.png"))
+    assert code == 0, out
+    rep = json.loads(out)
+    assert [(o["sensor_id"], o["param"]) for o in rep["outliers"]] == [(f"S{OUTLIER:05d}", "sx")]
+    assert (tmp_path / "fleet.png").stat().st_size > 10_000
+
+
+def test_cli_glob_json_and_single_file_still_single(fleet: dict[str, Any]) -> None:
+    folder = Path(fleet["recs"][0].path).parent
+    code, out = _cli("calibrate", "static", str(folder / "S0000[0-2].csv"), "--g", str(G0),
+                     "--json", "--quiet", "--workers", "1")
+    assert code == 0, out
+    rows = json.loads(out)
+    assert [r["sensor_id"] for r in rows] == ["S00000", "S00001", "S00002"]
+    code, out = _cli("calibrate", "static", str(folder / "S00000.csv"), "--g", str(G0), "--json")
+    assert code == 0, out
+    assert "vector" in json.loads(out)  # the one-recording output, unchanged
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["-o", "x.json"], "-o/--output takes one recording"),
+        (["--plot", "x.png"], "--plot takes one recording"),
+        (["--sensor-id", "A"], "--sensor-id names one recording"),
+        (["--scheduler", "tcp://127.0.0.1:1"], "cannot reach the Dask scheduler"),
+    ],
+)
+def test_cli_fleet_errors_name_options(fleet: dict[str, Any], extra: list[str],
+                                       needle: str, quick_timeout: None) -> None:
+    files = [r.path for r in fleet["recs"][:2]]
+    code, out = _cli("calibrate", "static", *files, "--g", str(G0), *extra)
+    assert code == 2 and needle in out, out
+    if "--scheduler" in extra:
+        assert "--scheduler" in out and "client=" not in out
+
+
+def test_cli_fleet_errors_without_gravity_or_files(fleet: dict[str, Any]) -> None:
+    files = [r.path for r in fleet["recs"][:2]]
+    code, out = _cli("calibrate", "static", *files)
+    assert code == 2 and "--g (m/s^2) or --lat/--height" in out and "g=" not in out
+    code, out = _cli("calibrate", "static", "--g", "9.8")
+    assert code == 2 and "give the recordings" in out
+    code, out = _cli("fleet", "report", "missing.parquet")
+    assert code == 2 and "not found" in out
+
+
+def test_cli_runs_as_a_program_with_a_progress_bar_off_a_terminal(fleet: dict[str, Any],
+                                                                   tmp_path: Path) -> None:
+    files = [r.path for r in fleet["recs"][:3]]
+    exe = str(Path(sys.executable).with_name("accelcal"))
+    p = subprocess.run([exe, "calibrate", "static", *files,
+                        "--g", str(G0), "--summary", str(tmp_path / "s.parquet")],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode == 0, p.stderr
+    assert "calibrating" not in p.stderr  # stderr is a pipe: no bar
+    assert pd.read_parquet(tmp_path / "s.parquet")["status"].tolist() == ["ok"] * 3
+
+
+def test_missing_optional_dependencies_are_named(fleet: dict[str, Any], tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    r = next(r for r in fleet["recs"] if not r.corruption)
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "distributed", None)  # import fails as if not installed
+        with pytest.raises(ac.CalibrationError, match=r"pip install 'accelcal\[fleet\]'"):
+            ac.calibrate_many([r.path], g=G0, client="tcp://127.0.0.1:1")
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "pyarrow", None)
+        with pytest.raises(ac.CalibrationError, match=r"Parquet needs pyarrow"):
+            ac.calibrate_many([r.path], g=G0, workers=1, summary=tmp_path / "s.parquet",
+                              progress=False)
+    assert not (tmp_path / "s.parquet").exists() and not (tmp_path / "s.csv").exists()
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "pandas", None)
+        with pytest.raises(ac.CalibrationError, match=r"needs pandas"):
+            ac.calibrate_many([r.path], g=G0)
+
+
+def test_progress_bar_counts_recordings_when_asked(fleet: dict[str, Any],
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    paths = [r.path for r in fleet["recs"][:3]]
+    ac.calibrate_many(paths, g=G0, workers=1, progress=True)
+    err = capsys.readouterr().err
+    assert "calibrating" in err and "/3 [" in err  # a bar over the 3 recordings
+    ac.calibrate_many(paths, g=G0, workers=1, progress=False)
+    assert capsys.readouterr().err == ""
