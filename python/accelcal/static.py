@@ -142,8 +142,8 @@ def _inputs(
         means, units = _as_means(data, "dwell means"), ""
     k = means.shape[0]
     if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
-        sv = number(sigma, "sigma", lo=0.0, lo_open=True,
-                    unit="(std of each dwell mean, output units)")
+        sv = sigma if type(sigma) is float and 0.0 < sigma < math.inf else number(
+            sigma, "sigma", lo=0.0, lo_open=True, unit="(std of each dwell mean, output units)")
         # One variance for every dwell and axis, checked without NumPy (its error state and
         # reductions cost more than the fit); the resolution against the means' size is
         # checked in Rust.
