@@ -727,40 +727,15 @@ pub fn lstsq_normal_fn<const C: usize>(
     if m < C {
         return lstsq_fn(m, row);
     }
-    // Four rows side by side, sums per lane (vector registers), added up at the end.
-    const L: usize = 4;
-    let mut al = [[[0.0f64; L]; C]; C];
-    let mut rl = [[0.0f64; L]; C];
-    let mut i0 = 0;
-    while i0 < m {
-        let mut xs = [[0.0f64; L]; C];
-        let mut ys = [0.0f64; L];
-        for l in 0..L.min(m - i0) {
-            let (x, y) = row(i0 + l);
-            for p in 0..C {
-                xs[p][l] = x[p];
-            }
-            ys[l] = y;
-        }
-        for p in 0..C {
-            for l in 0..L {
-                rl[p][l] += xs[p][l] * ys[l];
-            }
-            for q in p..C {
-                for l in 0..L {
-                    al[p][q][l] += xs[p][l] * xs[q][l];
-                }
-            }
-        }
-        i0 += L;
-    }
-    let sum = |v: &[f64; L]| (v[0] + v[1]) + (v[2] + v[3]);
     let mut a = [[0.0f64; C]; C];
     let mut r = [0.0f64; C];
-    for p in 0..C {
-        r[p] = sum(&rl[p]);
-        for q in p..C {
-            a[p][q] = sum(&al[p][q]);
+    for i in 0..m {
+        let (x, y) = row(i);
+        for p in 0..C {
+            r[p] += x[p] * y;
+            for q in p..C {
+                a[p][q] += x[p] * x[q];
+            }
         }
     }
     let mut d = [0.0f64; C];

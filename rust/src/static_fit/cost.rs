@@ -278,9 +278,9 @@ impl NormProblem<'_> {
     ///
     /// The dwells are taken [`LANES`] at a time, every quantity of [`eval_dwell`] and
     /// [`ml_row`] computed for the lanes side by side (the same arithmetic per dwell, in
-    /// vector registers) and the sums kept per lane, added up at the end: a deterministic
-    /// summation order (lane sums, then lanes in pairs), whatever the number of dwells. A dwell
-    /// that cannot be evaluated is reported as [`NormProblem::for_each`] reports it.
+    /// vector registers); the sums are then added in dwell order, so the result is bit for bit
+    /// that of one dwell at a time. A dwell that cannot be evaluated is reported as
+    /// [`NormProblem::for_each`] reports it.
     #[inline(always)]
     pub fn accumulate<const K: usize>(
         &self,
@@ -322,9 +322,7 @@ impl NormProblem<'_> {
         self.in_range(p)?;
         let t = inv_k(self.model, p)?;
         let n = self.pts.len();
-        let mut hl = [[[0.0f64; LANES]; K]; K];
-        let mut gl = [[0.0f64; LANES]; K];
-        let mut cl = [0.0f64; LANES];
+        let mut c = 0.0;
         let mut bad = false;
         let mut k0 = 0;
         while k0 < n {
@@ -343,17 +341,20 @@ impl NormProblem<'_> {
                 b.mask[l] = if l < used { 1.0 } else { 0.0 };
             }
             bad |= b.eval(&t, self.g, self.model);
-            let (e, row) = (&b.e, &b.row);
-            for l in 0..LANES {
-                cl[l] += e[l] * e[l];
-            }
-            for i in 0..K {
-                for l in 0..LANES {
-                    gl[i][l] += row[i][l] * e[l];
+            // The sums in dwell order (as one dwell at a time would add them: the same
+            // rounding), each rank-1 update across a row of `h`.
+            for l in 0..used {
+                let e = b.e[l];
+                let mut row = [0.0f64; K];
+                for (j, rj) in row.iter_mut().enumerate() {
+                    *rj = b.row[j][l];
                 }
-                for j in i..K {
-                    for l in 0..LANES {
-                        hl[i][j][l] += row[i][l] * row[j][l];
+                c += e * e;
+                for i in 0..K {
+                    let ri = row[i];
+                    gr[i] += ri * e;
+                    for j in i..K {
+                        h[i][j] += ri * row[j];
                     }
                 }
             }
@@ -363,14 +364,7 @@ impl NormProblem<'_> {
             // Name the first dwell that cannot be evaluated, as the scalar pass does.
             self.for_each(p, |_, _, _| {})?;
         }
-        let sum = |v: &[f64; LANES]| (v[0] + v[1]) + (v[2] + v[3]);
-        for i in 0..K {
-            gr[i] += sum(&gl[i]);
-            for j in i..K {
-                h[i][j] += sum(&hl[i][j]);
-            }
-        }
-        Ok(sum(&cl))
+        Ok(c)
     }
 }
 
