@@ -7,6 +7,7 @@ use std::hint::black_box;
 use accelcal::dwell::dwell_moments;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use ndarray::Array2;
+use rayon::prelude::*;
 
 /// 20 dwells x 20 s x 5 kHz: the seed-000 field test.
 const DWELLS: usize = 20;
@@ -27,6 +28,18 @@ fn dwell_workload<T>(f: impl Fn(f64) -> T) -> (Array2<T>, Vec<[usize; 2]>) {
     (x, bounds)
 }
 
+/// Sum of `x` with 16 independent accumulators (vectorised; memory-bound on large buffers).
+fn plain_sum(x: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 16];
+    let mut it = x.chunks_exact(16);
+    for c in &mut it {
+        for (a, v) in acc.iter_mut().zip(c) {
+            *a += v;
+        }
+    }
+    acc.iter().sum::<f64>() + it.remainder().iter().sum::<f64>()
+}
+
 fn bench_dwell(c: &mut Criterion) {
     let mut g = c.benchmark_group("dwell_moments");
     g.sample_size(20);
@@ -35,6 +48,22 @@ fn bench_dwell(c: &mut Criterion) {
     g.throughput(Throughput::Bytes((x.len() * 8) as u64));
     g.bench_function("f64_20x20s_5kHz_48MB", |b| {
         b.iter(|| black_box(dwell_moments(&x.view(), black_box(&bounds)).unwrap()))
+    });
+    // The memory-read ceiling of the same buffer in the same process: a plain vectorised sum,
+    // on one thread and split per dwell over the rayon pool as the kernel is.
+    let flat = x.as_slice().expect("a fresh array is contiguous");
+    g.bench_function("ceiling_sum_f64_48MB_1thread", |b| {
+        b.iter(|| black_box(plain_sum(black_box(flat))))
+    });
+    g.bench_function("ceiling_sum_f64_48MB_pool", |b| {
+        b.iter(|| {
+            black_box(
+                black_box(flat)
+                    .par_chunks(3 * ROWS_PER_DWELL)
+                    .map(plain_sum)
+                    .sum::<f64>(),
+            )
+        })
     });
 
     let (x, bounds) = dwell_workload(|u| (-32000.0 + 20.0 * u) as i16);

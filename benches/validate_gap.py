@@ -655,6 +655,11 @@ def real_noise_validation(n: int) -> list[str]:
         "is itself a smooth function of time). The same null sessions built from the three "
         "MPU-9150 control recordings (18 of 22 dwells, synthetic temperature, no effect): "
         + ctrl + ".",
+        "", "A per-dwell variance-component model (diagnose(random_offset=True), generalised "
+        "least squares with a moment estimate of the per-dwell offset variance) is compared "
+        "with the default on these sessions in docs/gap-offset-model.md "
+        "(benches/compare_gap_offset.py): a few points more top-1, but more false "
+        "attributions on the xsens null sessions, so it is off by default.",
     ]
     return lines
 

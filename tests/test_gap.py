@@ -615,3 +615,21 @@ def test_gap_figure_sphere_map_flags_and_allan_panel(tmp_path: Any) -> None:
     fig = accelcal.diagnose_centrifuge(c.outputs, c.omega, c.radius, g=c.g,
                                        sigma=np.full((60, 3), 2e-6)).plot()
     assert len(fig.axes) == 1
+
+
+def test_random_offset_model_keeps_false_alarms_on_per_dwell_offsets() -> None:
+    # Sessions whose only gap is persistent random per-dwell offsets (what the
+    # variance-component model describes), chi2 300 above the noise model: with the offset
+    # variance estimated under every model compared, no dictionary effect is attributed
+    # (alpha = 0.05 family-wise; at most 1 of 12 allowed), and the option reaches the engine.
+    from accelcal.sim.gap import structure_session
+
+    assert accelcal._core.GapSettings(random_offset=True).random_offset is True
+    assert accelcal._core.GapSettings().random_offset is False
+    alarms = 0
+    for seed in range(12):
+        s = structure_session("per_dwell", rng=500 + seed, n_dwells=40, lam=300.0)
+        r = accelcal.diagnose(s.dwells, g=s.g, random_offset=True, loo=False)
+        assert r.chi2_per_dof > 3.0
+        alarms += r.best != "none"
+    assert alarms <= 1, alarms

@@ -282,6 +282,7 @@ class GapSettings:
         gate_margin: float | None = None,
         correction: Literal["minp", "bonferroni"] | None = None,
         n_draws: int | None = None,
+        random_offset: bool | None = None,
     ) -> GapSettings: ...
     @property
     def alpha(self) -> float: ...
@@ -311,6 +312,8 @@ class GapSettings:
     def correction(self) -> str: ...
     @property
     def n_draws(self) -> int: ...
+    @property
+    def random_offset(self) -> bool: ...
 
 @final
 class GapCandidate:

@@ -21,6 +21,8 @@ use crate::error::{degenerate, invalid, Result};
 use ndarray::ArrayView2;
 use rayon::prelude::*;
 
+#[cfg(target_arch = "x86_64")]
+mod simd;
 mod state;
 pub use state::STATE_VERSION;
 
@@ -61,17 +63,53 @@ pub trait Sample: Copy + Send + Sync + 'static {
     fn accumulate(body: &[Self], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
         accumulate_dispatch(body, prev, sh, l);
     }
+
+    /// The first four values of `x` as f64 in an AVX register (exact, as [`Sample::to_f64`]).
+    ///
+    /// # Safety
+    /// `x` holds at least 4 values; only called where AVX2 is enabled.
+    #[cfg(target_arch = "x86_64")]
+    #[doc(hidden)]
+    #[inline(always)]
+    unsafe fn load4(x: &[Self]) -> std::arch::x86_64::__m256d {
+        // SAFETY: AVX is enabled where this is called (the caller's contract).
+        unsafe {
+            std::arch::x86_64::_mm256_setr_pd(
+                x[0].to_f64(),
+                x[1].to_f64(),
+                x[2].to_f64(),
+                x[3].to_f64(),
+            )
+        }
+    }
 }
 impl Sample for f64 {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         self
     }
+
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(x: &[Self]) -> std::arch::x86_64::__m256d {
+        debug_assert!(x.len() >= 4);
+        // SAFETY: 4 in-bounds values; AVX enabled (the caller's contract).
+        unsafe { std::arch::x86_64::_mm256_loadu_pd(x.as_ptr()) }
+    }
 }
 impl Sample for f32 {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         f64::from(self)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(x: &[Self]) -> std::arch::x86_64::__m256d {
+        use std::arch::x86_64::{_mm256_cvtps_pd, _mm_loadu_ps};
+        debug_assert!(x.len() >= 4);
+        // SAFETY: 4 in-bounds values; AVX enabled (the caller's contract).
+        unsafe { _mm256_cvtps_pd(_mm_loadu_ps(x.as_ptr())) }
     }
 }
 impl Sample for i16 {
@@ -93,6 +131,15 @@ impl Sample for i32 {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         f64::from(self)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(x: &[Self]) -> std::arch::x86_64::__m256d {
+        use std::arch::x86_64::{_mm256_cvtepi32_pd, _mm_loadu_si128};
+        debug_assert!(x.len() >= 4);
+        // SAFETY: 4 in-bounds values (16 bytes); AVX enabled (the caller's contract).
+        unsafe { _mm256_cvtepi32_pd(_mm_loadu_si128(x.as_ptr().cast())) }
     }
 }
 
@@ -462,17 +509,42 @@ fn accumulate_groups<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W], l: &
     l.d2 = d2;
 }
 
-/// [`accumulate_groups`] compiled for AVX2 when the CPU has it (wider vectors, same
-/// operations in the same order, so bit-identical results), else for the baseline target.
+/// The widest kernel family the dispatchers may choose: 0 the portable loops (compiled for
+/// the baseline target), 1 AVX2 (+ FMA), 2 AVX-512 (int16 only). Always 2 outside tests; the
+/// unit tests lower it on their own thread to check every path against the others.
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+#[inline(always)]
+fn kernel_cap() -> u8 {
+    #[cfg(test)]
+    {
+        KERNEL_CAP.with(std::cell::Cell::get)
+    }
+    #[cfg(not(test))]
+    {
+        2
+    }
+}
+
+#[cfg(test)]
+thread_local! {
+    static KERNEL_CAP: std::cell::Cell<u8> = const { std::cell::Cell::new(2) };
+}
+
+/// The float kernel: [`simd::groups_fma`] (explicit AVX2 vectors) when the CPU has AVX2 and
+/// FMA, else [`accumulate_groups`] compiled for AVX2 when it has AVX2, else the portable loop.
+/// All three do the same operations in the same order: bit-identical results.
 #[inline]
 fn accumulate_dispatch<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
     #[cfg(target_arch = "x86_64")]
-    {
-        if std::is_x86_feature_detected!("avx2") {
+    if kernel_cap() >= 1 && std::is_x86_feature_detected!("avx2") {
+        if std::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports AVX2 and FMA (checked just above).
+            unsafe { simd::groups_fma(body, prev, sh, l) };
+        } else {
             // SAFETY: the CPU supports AVX2 (checked just above).
             unsafe { accumulate_groups_avx2(body, prev, sh, l) };
-            return;
         }
+        return;
     }
     accumulate_groups(body, prev, sh, l);
 }
@@ -483,6 +555,77 @@ fn accumulate_groups_avx2<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W],
     accumulate_groups(body, prev, sh, l);
 }
 
+/// Exact integer sums of int16 values over a piece, per axis: `s1 = sum (x - c)`,
+/// `s2 = sum (x - c)^2` and `d2 = sum (x - previous row)^2`.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct I16Sums {
+    s1: [i64; 3],
+    s2: [u64; 3],
+    d2: [u64; 3],
+}
+
+impl I16Sums {
+    /// Add the totals to lane 0 of `l` (exact: see [`accumulate_i16`]).
+    fn add_to(&self, l: &mut Lanes) {
+        for a in 0..3 {
+            l.s1[a] += self.s1[a] as f64;
+            l.s2[a] += self.s2[a] as f64;
+            l.d2[a] += self.d2[a] as f64;
+        }
+    }
+}
+
+/// [`i16_sums`] for a few rows (no lane set-up).
+#[inline(always)]
+fn i16_rows(x: &[i16], p: &[i16], c: &[i32; 3], t: &mut I16Sums) {
+    for (r, rp) in x.chunks_exact(3).zip(p.chunks_exact(3)) {
+        for a in 0..3 {
+            let v = i32::from(r[a]);
+            let d = i64::from(v - c[a]);
+            let e = i64::from(v - i32::from(rp[a]));
+            t.s1[a] += d;
+            t.s2[a] += (d * d) as u64;
+            t.d2[a] += (e * e) as u64;
+        }
+    }
+}
+
+/// The portable exact int16 sums of whole rows `x` (value `j` on axis `j % 3`), whose
+/// previous rows are `p` (`p[j]` is the value 3 before `x[j]`; same length), shift `c`.
+#[inline(always)]
+fn i16_sums(x: &[i16], p: &[i16], c: &[i32; 3], t: &mut I16Sums) {
+    const U: usize = 2 * W;
+    let shu: [i32; U] = std::array::from_fn(|j| c[j % 3]);
+    let mut a1 = [0i32; U];
+    let mut a2 = [0u64; U];
+    let mut a3 = [0u64; U];
+    // |d|, |e| <= 65535, so their squares fit u32 (the wrapping product of the two's
+    // complement bits is exact).
+    let sq = |v: i32| u64::from((v as u32).wrapping_mul(v as u32));
+    for (g, gp) in x.chunks_exact(U).zip(p.chunks_exact(U)) {
+        for j in 0..U {
+            let v = i32::from(g[j]);
+            let d = v - shu[j];
+            a1[j] += d;
+            a2[j] += sq(d);
+            a3[j] += sq(v - i32::from(gp[j]));
+        }
+    }
+    let done = (x.len().min(p.len()) / U) * U;
+    for (j, (&v, &q)) in x[done..].iter().zip(&p[done..]).enumerate() {
+        let v = i32::from(v);
+        let d = v - shu[j];
+        a1[j] += d;
+        a2[j] += sq(d);
+        a3[j] += sq(v - i32::from(q));
+    }
+    for j in 0..U {
+        t.s1[j % 3] += i64::from(a1[j]);
+        t.s2[j % 3] += a2[j];
+        t.d2[j % 3] += a3[j];
+    }
+}
+
 /// int16 counts: the same sums in exact integer arithmetic.
 ///
 /// With an integer shift every deviation `d` is an integer with `|d| <= 65535`, and so is every
@@ -491,65 +634,25 @@ fn accumulate_groups_avx2<T: Sample>(body: &[T], prev: &[f64; 3], sh: &[f64; W],
 /// whatever the order. Integer sums give the same exact totals, so the result is bit-identical
 /// to the float path (the row-by-row and strided paths included). The totals go into lane 0;
 /// lanes are only ever summed.
+///
+/// `prev` and `sh` must hold int16 values (checked by [`accumulate_i16_dispatch`]).
 #[inline(always)]
 fn accumulate_i16(body: &[i16], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
-    const U: usize = 2 * W;
     if body.len() < 3 {
         return;
     }
-    let shu: [i32; U] = std::array::from_fn(|j| sh[j % 3] as i32);
-    let mut a1 = [0i32; U];
-    let mut a2 = [0u64; U];
-    let mut a3 = [0u64; U];
-    // |d|, |e| <= 65535, so their squares fit u32 (the wrapping product of the two's
-    // complement bits is exact).
-    let sq = |v: i32| u64::from((v as u32).wrapping_mul(v as u32));
-    // The first row: its previous row is `prev` (int16 values, checked by the caller).
-    for j in 0..3 {
-        let x = i32::from(body[j]);
-        let d = x - shu[j];
-        a1[j] += d;
-        a2[j] += sq(d);
-        a3[j] += sq(x - prev[j] as i32);
-    }
-    // The other rows: the previous row of value i is value i - 3.
-    let rest = &body[3..];
-    let before = &body[..body.len() - 3];
-    for (g, gp) in rest.chunks_exact(U).zip(before.chunks_exact(U)) {
-        for j in 0..U {
-            let x = i32::from(g[j]);
-            let d = x - shu[j];
-            a1[j] += d;
-            a2[j] += sq(d);
-            a3[j] += sq(x - i32::from(gp[j]));
-        }
-    }
-    let done = (rest.len() / U) * U;
-    for (j, (&v, &p)) in rest[done..].iter().zip(&before[done..]).enumerate() {
-        let x = i32::from(v);
-        let d = x - shu[j];
-        a1[j] += d;
-        a2[j] += sq(d);
-        a3[j] += sq(x - i32::from(p));
-    }
-    let mut t1 = [0i64; 3];
-    let mut t2 = [0u64; 3];
-    let mut t3 = [0u64; 3];
-    for j in 0..U {
-        t1[j % 3] += i64::from(a1[j]);
-        t2[j % 3] += a2[j];
-        t3[j % 3] += a3[j];
-    }
-    for a in 0..3 {
-        l.s1[a] += t1[a] as f64;
-        l.s2[a] += t2[a] as f64;
-        l.d2[a] += t3[a] as f64;
-    }
+    let c = [sh[0] as i32, sh[1] as i32, sh[2] as i32];
+    let p0 = [prev[0] as i16, prev[1] as i16, prev[2] as i16];
+    let mut t = I16Sums::default();
+    i16_rows(&body[..3], &p0, &c, &mut t);
+    i16_sums(&body[3..], &body[..body.len() - 3], &c, &mut t);
+    t.add_to(l);
 }
 
 /// True when `v` is an int16 value (so deviations and differences from it stay within 65535).
 fn is_i16(v: f64) -> bool {
-    v.fract() == 0.0 && (-32768.0..=32767.0).contains(&v)
+    // The cast saturates (NaN gives 0): the round trip is exact only for int16 values.
+    f64::from(v as i16) == v
 }
 
 #[inline]
@@ -562,18 +665,24 @@ fn accumulate_i16_dispatch(body: &[i16], prev: &[f64; 3], sh: &[f64; W], l: &mut
     }
     #[cfg(target_arch = "x86_64")]
     {
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            unsafe { accumulate_i16_avx2(body, prev, sh, l) };
+        let cap = kernel_cap();
+        if cap >= 2
+            && std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512bw")
+            && std::is_x86_feature_detected!("avx512vnni")
+        {
+            // SAFETY: the CPU supports AVX-512 F, BW and VNNI (checked just above); `prev`
+            // and `sh` hold int16 values (checked at the top).
+            unsafe { simd::i16_avx512(body, prev, sh, l) };
+            return;
+        }
+        if cap >= 1 && std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above); `prev` and `sh` hold int16
+            // values (checked at the top).
+            unsafe { simd::i16_avx2(body, prev, sh, l) };
             return;
         }
     }
-    accumulate_i16(body, prev, sh, l);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn accumulate_i16_avx2(body: &[i16], prev: &[f64; 3], sh: &[f64; W], l: &mut Lanes) {
     accumulate_i16(body, prev, sh, l);
 }
 
@@ -890,6 +999,9 @@ impl DwellBuild {
     /// Push stream rows `[lo, hi)` (within `[a, b)`) of `chunk`, whose row 0 is stream row `c0`.
     fn push<T: Sample>(&mut self, chunk: &ArrayView2<'_, T>, c0: usize, lo: usize, hi: usize) {
         let nsub = self.nsub();
+        // The rows as one row-major slice when the chunk is C-contiguous (sliced once).
+        let rows = chunk.slice(ndarray::s![lo - c0..hi - c0, ..]);
+        let flat = rows.as_slice();
         let mut p = lo;
         while p < hi && self.cum.len() < nsub {
             let e = self.edge(self.cum.len() + 1);
@@ -898,17 +1010,23 @@ impl DwellBuild {
                 break;
             }
             let end = e.min(hi);
-            self.cur.push_view(chunk, p - c0, end - c0);
-            if !self.cur.is_finite() {
-                let (n, first) = count_bad(chunk, p - c0, end - c0);
-                self.bad += n;
-                if self.first_bad.is_none() {
-                    self.first_bad = first.map(|i| i + c0);
-                }
+            match flat {
+                Some(f) => self.cur.push_slice(&f[3 * (p - lo)..3 * (end - lo)]),
+                None => self.cur.push_view(chunk, p - c0, end - c0),
             }
             p = end;
             if p == e {
                 self.cum.push(self.cur.moments());
+            }
+        }
+        // A NaN or inf sample makes the sums non-finite at once, and they stay so: counting
+        // the rows pushed by each call that ends with non-finite sums counts every such row
+        // once (as counting piece by piece did).
+        if !self.cur.is_finite() {
+            let (n, first) = count_bad(chunk, lo - c0, p - c0);
+            self.bad += n;
+            if self.first_bad.is_none() {
+                self.first_bad = first.map(|i| i + c0);
             }
         }
     }
@@ -1021,37 +1139,59 @@ impl LsbSampler {
         }
         let mut out = [0.0; 3];
         for (a, o) in out.iter_mut().enumerate() {
-            let mut v: Vec<f64> = self
+            if self.integer {
+                // The gcd of the gaps between the sorted distinct values is the gcd of the
+                // differences from any one value (both generate the same lattice): no sort.
+                // Integer samples are finite and exact in f64, and so are their differences.
+                let mut it = self.rows.iter().map(|r| r[a]).filter(|x| x.is_finite());
+                let v0 = it.next().unwrap_or(0.0);
+                let mut g = 0u64;
+                for x in it {
+                    if g == 1 {
+                        break;
+                    }
+                    g = gcd(g, (x - v0).abs() as u64);
+                }
+                *o = if g == 0 { 1.0 } else { g as f64 };
+                continue;
+            }
+            // Sorted by `f64::total_cmp` through its integer key (a total order: the same
+            // sequence whichever sort), then the distinct values.
+            let mut keys: Vec<i64> = self
                 .rows
                 .iter()
                 .map(|r| r[a])
                 .filter(|x| x.is_finite())
+                .map(total_key)
                 .collect();
-            v.sort_by(f64::total_cmp);
+            keys.sort_unstable();
+            let mut v: Vec<f64> = keys.into_iter().map(from_total_key).collect();
             v.dedup();
             let d: Vec<f64> = v.windows(2).map(|w| w[1] - w[0]).collect();
-            *o = if self.integer {
-                let g = d.iter().fold(0u64, |g, &x| gcd(g, x as u64));
-                if g == 0 {
-                    1.0
-                } else {
-                    g as f64
-                }
-            } else {
-                let q0 = d.iter().cloned().fold(f64::INFINITY, f64::min);
-                if !(q0.is_finite() && q0 > 0.0) {
-                    return None;
-                }
-                let k: Vec<f64> = d.iter().map(|x| (x / q0).round()).collect();
-                let q = d.iter().sum::<f64>() / k.iter().sum::<f64>();
-                if !d.iter().zip(&k).all(|(x, k)| (x - k * q).abs() <= 0.1 * q) {
-                    return None;
-                }
-                q
-            };
+            let q0 = d.iter().cloned().fold(f64::INFINITY, f64::min);
+            if !(q0.is_finite() && q0 > 0.0) {
+                return None;
+            }
+            let k: Vec<f64> = d.iter().map(|x| (x / q0).round()).collect();
+            let q = d.iter().sum::<f64>() / k.iter().sum::<f64>();
+            if !d.iter().zip(&k).all(|(x, k)| (x - k * q).abs() <= 0.1 * q) {
+                return None;
+            }
+            *o = q;
         }
         Some(out)
     }
+}
+
+/// The integer whose order is `f64::total_cmp`'s (the transform `total_cmp` itself uses).
+fn total_key(x: f64) -> i64 {
+    let b = x.to_bits() as i64;
+    b ^ ((((b >> 63) as u64) >> 1) as i64)
+}
+
+/// The inverse of [`total_key`] (the transform is an involution).
+fn from_total_key(k: i64) -> f64 {
+    f64::from_bits((k ^ ((((k >> 63) as u64) >> 1) as i64)) as u64)
 }
 
 fn gcd(mut a: u64, mut b: u64) -> u64 {
@@ -1785,6 +1925,167 @@ mod tests {
         (mean, var, d2)
     }
 
+    /// Run `f` with the dispatchers limited to kernel family `cap` on this thread.
+    fn with_cap<R>(cap: u8, f: impl FnOnce() -> R) -> R {
+        let old = KERNEL_CAP.with(|c| c.replace(cap));
+        let r = f();
+        KERNEL_CAP.with(|c| c.set(old));
+        r
+    }
+
+    /// Random int16 rows in one of several regimes: small noise about an offset (the 16-bit
+    /// vector paths), the same with rare full-scale spikes or steps (their range fallback),
+    /// or uniform over the whole int16 range.
+    fn i16_values(seed: &mut u64, n: usize, regime: usize) -> Vec<i16> {
+        let off = (lcg(seed) * 60000.0 - 30000.0) as i32;
+        let step = 4096 + (lcg(seed) * 8.0) as i32 - 4;
+        (0..n)
+            .map(|i| {
+                let u = lcg(seed);
+                let v = match regime {
+                    0 => off + (gauss(seed) * 20.0) as i32,
+                    1 if u < 0.002 => i32::from(if u < 0.001 { i16::MIN } else { i16::MAX }),
+                    1 => off + (gauss(seed) * 20.0) as i32,
+                    2 => off + (gauss(seed) * 3.0) as i32 + if i > n / 2 { step } else { 0 },
+                    _ => (u * 65536.0) as i32 - 32768,
+                };
+                v.clamp(-32768, 32767) as i16
+            })
+            .collect()
+    }
+
+    fn lanes_from(seed: &mut u64, integer: bool) -> Lanes {
+        let mut v = |_| {
+            let x = gauss(seed) * 1e3;
+            if integer {
+                x.round()
+            } else {
+                x
+            }
+        };
+        Lanes {
+            s1: std::array::from_fn(&mut v),
+            s2: std::array::from_fn(&mut v),
+            d2: std::array::from_fn(&mut v),
+        }
+    }
+
+    /// The explicit x86-64 kernels give bit-identical sums to the portable loops, called
+    /// directly on the same pieces (lengths around every vector, sub-piece and block edge).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn simd_kernels_equal_portable_kernels() {
+        let has = |f: &str| match f {
+            "avx2" => std::is_x86_feature_detected!("avx2"),
+            "fma" => std::is_x86_feature_detected!("fma"),
+            _ => {
+                std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx512bw")
+                    && std::is_x86_feature_detected!("avx512vnni")
+            }
+        };
+        if !has("avx2") {
+            // Nothing but the portable path can run on this CPU (covered by the other tests).
+            return;
+        }
+        let mut seed = 41u64;
+        let mut groups: Vec<usize> = (1..=12).collect();
+        groups.extend([
+            39, 40, 41, 79, 80, 81, 159, 160, 161, 319, 320, 321, 1023, 1024,
+        ]);
+        for &g in &groups {
+            let n = g * W;
+            for regime in 0..4 {
+                let x = i16_values(&mut seed, n, regime);
+                let shift = |s: &mut u64| f64::from(x[(lcg(s) * n as f64) as usize % n]);
+                let sh0 = [shift(&mut seed), shift(&mut seed), shift(&mut seed)];
+                let sh: [f64; W] = std::array::from_fn(|j| sh0[j % 3]);
+                let prev = [shift(&mut seed), shift(&mut seed), shift(&mut seed)];
+                let l0 = lanes_from(&mut seed, true);
+                let mut want = l0;
+                accumulate_i16(&x, &prev, &sh, &mut want);
+                let mut got = l0;
+                // SAFETY: AVX2 checked above; `prev` and `sh` are int16 values.
+                unsafe { simd::i16_avx2(&x, &prev, &sh, &mut got) };
+                same(&got, &want);
+                if has("avx512") {
+                    let mut got = l0;
+                    // SAFETY: AVX-512 F, BW and VNNI checked just above; int16 `prev`, `sh`.
+                    unsafe { simd::i16_avx512(&x, &prev, &sh, &mut got) };
+                    same(&got, &want);
+                }
+                // The float kernel on the same values (as int16, and widened to f64 with a
+                // non-integer shift), NaN and inf included in the last regime.
+                let mut xf: Vec<f64> = x.iter().map(|&v| f64::from(v) * 1.25e-3).collect();
+                if regime == 3 {
+                    xf[n / 3] = f64::NAN;
+                    xf[n / 2] = f64::INFINITY;
+                }
+                let shf: [f64; W] = std::array::from_fn(|j| sh[j] * 1.25e-3 + 0.1);
+                let lf = lanes_from(&mut seed, false);
+                if has("fma") {
+                    let mut want = lf;
+                    accumulate_groups(&xf, &prev, &shf, &mut want);
+                    let mut got = lf;
+                    // SAFETY: AVX2 and FMA checked above.
+                    unsafe { simd::groups_fma(&xf, &prev, &shf, &mut got) };
+                    same(&got, &want);
+                    let mut want = lf;
+                    accumulate_groups(&x, &prev, &shf, &mut want);
+                    let mut got = lf;
+                    // SAFETY: AVX2 and FMA checked above.
+                    unsafe { simd::groups_fma(&x, &prev, &shf, &mut got) };
+                    same(&got, &want);
+                    let x32: Vec<f32> = xf.iter().map(|&v| v as f32).collect();
+                    let mut want = lf;
+                    accumulate_groups(&x32, &prev, &shf, &mut want);
+                    let mut got = lf;
+                    // SAFETY: AVX2 and FMA checked above.
+                    unsafe { simd::groups_fma(&x32, &prev, &shf, &mut got) };
+                    same(&got, &want);
+                    let xi: Vec<i32> = x.iter().map(|&v| i32::from(v) * 70_001).collect();
+                    let mut want = lf;
+                    accumulate_groups(&xi, &prev, &shf, &mut want);
+                    let mut got = lf;
+                    // SAFETY: AVX2 and FMA checked above.
+                    unsafe { simd::groups_fma(&xi, &prev, &shf, &mut got) };
+                    same(&got, &want);
+                }
+            }
+        }
+    }
+
+    /// The whole dwell pass (sub-blocks, half means, inflation, LSB) is bit-identical with
+    /// every kernel family, for int16 and float64 input.
+    #[test]
+    fn dwell_pass_is_identical_with_every_kernel() {
+        let mut seed = 43u64;
+        let n = 50_000;
+        for regime in 0..4 {
+            let v = i16_values(&mut seed, 3 * n, regime);
+            let x = Array2::from_shape_vec((n, 3), v).unwrap();
+            let xf = x.mapv(|v| 9.8 + f64::from(v) * 1e-4);
+            let bounds = [[0, 7], [10, 20_011], [20_011, 49_999]];
+            let want = with_cap(0, || {
+                let mut acc = DwellAccumulator::with_bounds(bounds.to_vec()).unwrap();
+                push_chunked(&mut acc, &x, 1);
+                let mut accf = DwellAccumulator::with_bounds(bounds.to_vec()).unwrap();
+                push_chunked(&mut accf, &xf, 1);
+                (acc.finish().unwrap(), accf.finish().unwrap())
+            });
+            for cap in 1..=2 {
+                let got = with_cap(cap, || {
+                    let mut acc = DwellAccumulator::with_bounds(bounds.to_vec()).unwrap();
+                    push_chunked(&mut acc, &x, 4000);
+                    let mut accf = DwellAccumulator::with_bounds(bounds.to_vec()).unwrap();
+                    push_chunked(&mut accf, &xf, 4000);
+                    (acc.finish().unwrap(), accf.finish().unwrap())
+                });
+                same(&got, &want);
+            }
+        }
+    }
+
     /// Bitwise equality (NaN fields included) through the exact `Debug` representation.
     fn same<A: std::fmt::Debug, B: std::fmt::Debug>(a: &A, b: &B) {
         assert_eq!(format!("{a:?}"), format!("{b:?}"));
@@ -1902,13 +2203,18 @@ mod tests {
                 (-32000.0 + 20.0 * u) as i16
             }
         });
-        let mut fast = SegmentAcc::new();
-        fast.push_slice(x.as_slice().unwrap());
         let mut slow = SegmentAcc::new();
         for r in x.rows() {
             slow.push_row([r[0].to_f64(), r[1].to_f64(), r[2].to_f64()]);
         }
-        assert_eq!(fast.moments(), slow.moments());
+        // Every kernel family: portable, AVX2, AVX-512 (where the CPU has them).
+        for cap in 0..=2 {
+            let mut fast = SegmentAcc::new();
+            with_cap(cap, || fast.push_slice(x.as_slice().unwrap()));
+            assert_eq!(fast.moments(), slow.moments(), "kernel cap {cap}");
+        }
+        let mut fast = SegmentAcc::new();
+        fast.push_slice(x.as_slice().unwrap());
         let xf = x.mapv(f64::from);
         let (mean, var, d2) = two_pass(&xf, 0, 10_007);
         let m = fast.moments();
@@ -1933,16 +2239,24 @@ mod tests {
     fn f64_fast_path_is_bit_identical_to_row_path() {
         let mut s = 23u64;
         let x = Array2::from_shape_fn((9_001, 3), |_| 9.8 + gauss(&mut s));
-        for cut in [0, 1, 3, 4, 7, 4096] {
-            let mut fast = SegmentAcc::new();
-            let flat = x.as_slice().unwrap();
-            fast.push_slice(&flat[..3 * cut]);
-            fast.push_slice(&flat[3 * cut..]);
-            let mut slow = SegmentAcc::new();
-            for r in x.rows() {
-                slow.push_row([r[0], r[1], r[2]]);
+        let mut slow = SegmentAcc::new();
+        for r in x.rows() {
+            slow.push_row([r[0], r[1], r[2]]);
+        }
+        for cap in 0..=2 {
+            for cut in [0, 1, 3, 4, 7, 4096] {
+                let mut fast = SegmentAcc::new();
+                let flat = x.as_slice().unwrap();
+                with_cap(cap, || {
+                    fast.push_slice(&flat[..3 * cut]);
+                    fast.push_slice(&flat[3 * cut..]);
+                });
+                assert_eq!(
+                    fast.moments(),
+                    slow.moments(),
+                    "kernel cap {cap}, cut {cut}"
+                );
             }
-            assert_eq!(fast.moments(), slow.moments());
         }
     }
 

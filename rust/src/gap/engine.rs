@@ -1,19 +1,28 @@
 //! The diagnosis engine shared by every system: fit, screen, select, hold out, gate, report.
 //!
 //! A system implements [`GapModel`]; [`run`] chains the stages, each its own function with its
-//! own unit test: [`fit`], [`basis`], [`screen`], [`family_decision`], [`stepwise`],
-//! [`held_out`], [`gate`], [`candidate_reports`] (with BIC weights), [`ambiguity`] and
-//! [`finish`].
+//! own unit test: [`fit`], [`basis`], [`screen`], [`gls_test`], [`family_decision`],
+//! [`stepwise`], [`held_out`], [`gate`], [`candidate_reports`] (with BIC weights),
+//! [`ambiguity`] and [`finish`].
+//!
+//! With a known noise model and [`GapOptions::random_offset`], the rows carry a random offset
+//! of variance `s^2` on top of the noise model ([`super::gls`]): the fits, the tests that do
+//! not trust the noise model (F), their min-p family and the held-out gate weigh every row by
+//! `1 / (sigma_k^2 + s^2)`, with `s^2` re-estimated under every model compared (the current
+//! one, each candidate added to it, each fold's). The global gap, the chi2 tests that trust the
+//! noise model and the "after" chi2 stay in units of the noise model alone.
 
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+use super::gls::{factors, pm_offset, space, Space};
 use super::minp::{min_p, Member};
 use super::special::{chi2_sf, f_sf};
 use super::{Correction, GapOptions, Gate, Status, TestMode};
 use crate::error::{degenerate, CoreError, Result};
 use crate::lsq::{range_basis, solve_nls, thin_svd, NlsOptions, RangeBasis, Residuals};
 use nalgebra::{DMatrix, DVector};
+use std::sync::Arc;
 
 /// One effect of a system's dictionary.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -73,7 +82,7 @@ pub fn n_params<M: GapModel>(m: &M, active: &[usize]) -> usize {
     m.n_base() + active.iter().map(|&c| m.dictionary()[c].dim).sum::<usize>()
 }
 
-/// The model, its noise scale and the test settings.
+/// The model, its noise scale, the test settings and the row weights of a fit.
 pub struct Ctx<'a, M: GapModel> {
     /// The system model.
     pub m: &'a M,
@@ -81,9 +90,40 @@ pub struct Ctx<'a, M: GapModel> {
     pub scale: f64,
     /// Settings.
     pub opt: &'a GapOptions,
+    /// Whether rows carry a random offset (variance-component model, see [`super::gls`]).
+    pub gls: bool,
+    /// Row factors of the variance-component whitening, per model row (empty: none).
+    pub f: Vec<f64>,
 }
 
-impl<M: GapModel> Ctx<'_, M> {
+impl<'a, M: GapModel> Ctx<'a, M> {
+    /// The context without row factors (rows whitened by the noise model alone).
+    pub fn new(m: &'a M, scale: f64, opt: &'a GapOptions) -> Self {
+        Ctx {
+            m,
+            scale,
+            opt,
+            gls: opt.random_offset && m.noise_known(),
+            f: vec![],
+        }
+    }
+
+    /// The same context with row factors `f` (one per model row).
+    pub fn weighted(&self, f: Vec<f64>) -> Ctx<'a, M> {
+        Ctx {
+            m: self.m,
+            scale: self.scale,
+            opt: self.opt,
+            gls: self.gls,
+            f,
+        }
+    }
+
+    /// The same context without row factors.
+    pub fn unweighted(&self) -> Ctx<'a, M> {
+        self.weighted(vec![])
+    }
+
     fn eval(
         &self,
         rows: &[usize],
@@ -97,6 +137,12 @@ impl<M: GapModel> Ctx<'_, M> {
             e.iter_mut().for_each(|v| *v /= self.scale);
             *jac /= self.scale;
         }
+        if !self.f.is_empty() {
+            for (ri, &k) in rows.iter().enumerate() {
+                e[ri] *= self.f[k];
+                jac.row_mut(ri).scale_mut(self.f[k]);
+            }
+        }
         if e.iter().any(|v| !v.is_finite()) {
             return Err(CoreError::NotConverged(
                 "the model is not evaluable at these parameters".into(),
@@ -109,6 +155,11 @@ impl<M: GapModel> Ctx<'_, M> {
         match self.m.columns(rows, active, p, c) {
             Ok(mut x) => {
                 x /= self.scale;
+                if !self.f.is_empty() {
+                    for (ri, &k) in rows.iter().enumerate() {
+                        x.row_mut(ri).scale_mut(self.f[k]);
+                    }
+                }
                 if x.iter().all(|v| v.is_finite()) {
                     x
                 } else {
@@ -117,6 +168,18 @@ impl<M: GapModel> Ctx<'_, M> {
             }
             Err(_) => DMatrix::zeros(rows.len(), 0),
         }
+    }
+
+    /// Row factors of offset variance `s2` for every model row, at `p` with `active` effects.
+    fn factors_at(&self, active: &[usize], p: &[f64], s2: f64) -> Result<Vec<f64>> {
+        let all: Vec<usize> = (0..self.m.n_rows()).collect();
+        let sig: Vec<f64> = self
+            .m
+            .sigma(&all, active, p)?
+            .iter()
+            .map(|s| s * self.scale)
+            .collect();
+        Ok(factors(&sig, s2))
     }
 }
 
@@ -134,6 +197,8 @@ pub struct Fit {
     pub jac: DMatrix<f64>,
     /// Sum of squared whitened residuals.
     pub rss: f64,
+    /// Offset variance of the weights the fit used (0: the noise model alone).
+    pub s2: f64,
 }
 
 /// The least-squares problem on the parameters whose Jacobian column is not zero at the
@@ -233,7 +298,13 @@ pub fn fit<M: GapModel>(
     };
     ctx.eval(rows, active, &p, &mut e, &mut jac)?;
     let rss = e.iter().map(|v| v * v).sum();
-    Ok(Fit { p, e, jac, rss })
+    Ok(Fit {
+        p,
+        e,
+        jac,
+        rss,
+        s2: 0.0,
+    })
 }
 
 /// Range basis, unit covariance and rank of a whitened Jacobian.
@@ -273,6 +344,8 @@ pub struct Screened {
     pub w: DMatrix<f64>,
     /// Denominator degrees of freedom of the F test.
     pub dof2: f64,
+    /// Offset variance of the whitening the test ran in (0: the noise model alone).
+    pub s2: f64,
 }
 
 /// Test mode settings after accounting for an unknown noise model.
@@ -320,6 +393,7 @@ fn empty_screen(n: usize, dim: usize) -> Screened {
         std: vec![f64::NAN; dim],
         w: DMatrix::zeros(n, 0),
         dof2: f64::NAN,
+        s2: 0.0,
     }
 }
 
@@ -441,9 +515,10 @@ pub fn screen(
     out
 }
 
-/// The min-p family member of a testable screen.
-pub fn member_of(sc: &Screened) -> Member {
+/// The min-p family member of a testable screen run in the whitening whose range basis is `q`.
+pub fn member_of(sc: &Screened, q: &Arc<DMatrix<f64>>) -> Member {
     Member {
+        q: q.clone(),
         w: sc.w.clone(),
         chi2: sc.chi2_used,
         dof2: sc.dof2,
@@ -452,11 +527,104 @@ pub fn member_of(sc: &Screened) -> Member {
     }
 }
 
+// ------------------------------------------------------------------------------------------
+// The variance-component whitening.
+
+/// The model at one point in base units (rows whitened by the noise model alone).
+#[derive(Debug, Clone)]
+pub struct View {
+    /// Whitened residual.
+    pub e: DVector<f64>,
+    /// Whitened Jacobian.
+    pub j: DMatrix<f64>,
+    /// Noise of each row, physical units.
+    pub sig: Vec<f64>,
+    /// Range basis of `j`.
+    pub b: RangeBasis,
+}
+
+impl View {
+    /// A view from its parts.
+    pub fn new(e: DVector<f64>, j: DMatrix<f64>, sig: Vec<f64>) -> Result<View> {
+        let b = basis(&j)?;
+        Ok(View { e, j, sig, b })
+    }
+
+    /// The space of offset variance `s2` (0: the noise model's own whitening).
+    pub fn space(&self, s2: f64) -> Space {
+        space(&self.b.q, &self.e, &self.sig, s2)
+    }
+
+    /// Offset variance of the model, or of the model with the extra orthonormal directions
+    /// `w` (orthogonal to the model's range), by the moment equation ([`pm_offset`]).
+    pub fn offset(&self, w: Option<&DMatrix<f64>>, start: f64) -> f64 {
+        let q = &self.b.q;
+        let b = match w {
+            Some(w) if w.ncols() > 0 => {
+                let mut b = DMatrix::zeros(q.nrows(), q.ncols() + w.ncols());
+                b.columns_mut(0, q.ncols()).copy_from(q);
+                b.columns_mut(q.ncols(), w.ncols()).copy_from(w);
+                b
+            }
+            _ => q.clone(),
+        };
+        let dof = self.e.len() as f64 - b.ncols() as f64;
+        pm_offset(&b, self.e.as_slice(), &self.sig, dof, start)
+    }
+}
+
+/// The model of `ctx` at `p` on `rows`, in base units.
+pub fn view<M: GapModel>(
+    ctx: &Ctx<'_, M>,
+    rows: &[usize],
+    active: &[usize],
+    p: &[f64],
+) -> Result<View> {
+    let mut e = vec![0.0; rows.len()];
+    let mut j = DMatrix::zeros(rows.len(), p.len());
+    ctx.unweighted().eval(rows, active, p, &mut e, &mut j)?;
+    let sig = ctx
+        .m
+        .sigma(rows, active, p)?
+        .iter()
+        .map(|s| s * ctx.scale)
+        .collect();
+    View::new(DVector::from_vec(e), j, sig)
+}
+
+/// A candidate's test in the whitening of its own model: the offset variance `s2` re-estimated
+/// with the candidate's directions in the model (from the base screen `scb`, which must be
+/// testable), the candidate's columns `xb` (base units) whitened by it, and the sigma-free F
+/// test there (its denominator then estimates the unit variance of a model whose weights are
+/// right). Returns the screen and the range basis of its whitening. An offset variance of 0
+/// gives the base screen back.
+pub fn gls_test(
+    xb: &DMatrix<f64>,
+    view: &View,
+    scb: &Screened,
+    qb: &Arc<DMatrix<f64>>,
+    start: f64,
+    cfg: TestCfg,
+) -> (Screened, Arc<DMatrix<f64>>) {
+    let s2 = view.offset(Some(&scb.w), start);
+    if !(s2 > 0.0) {
+        return (scb.clone(), qb.clone());
+    }
+    let sp = view.space(s2);
+    let xf = DMatrix::from_fn(xb.nrows(), xb.ncols(), |k, c| xb[(k, c)] * sp.f[k]);
+    let cfg_f = TestCfg {
+        mode: TestMode::F,
+        ..cfg
+    };
+    let mut sc = screen(&xf, &sp.basis, &sp.e, sp.rss, cfg_f);
+    sc.s2 = s2;
+    (sc, Arc::new(sp.basis.q))
+}
+
 /// Family-wise adjusted p-value of the best candidate of a stage and whether it is declared.
 /// `m_bonf`: the Bonferroni family size. `exact`: always compute the min-p value (on the full
 /// data, for the report); otherwise only when Bonferroni does not already decide.
 pub fn family_decision(
-    q: &DMatrix<f64>,
     fam: &[Member],
     p_best: f64,
     m_bonf: usize,
@@ -478,7 +646,7 @@ pub fn family_decision(
             } else if !exact && bonf < opt.alpha {
                 (bonf, true)
             } else {
-                let pa = min_p(q, fam, p_best, opt.alpha, opt.n_draws);
+                let pa = min_p(fam, p_best, opt.alpha, opt.n_draws);
                 (pa, pa < opt.alpha)
             }
         }
@@ -505,49 +673,154 @@ pub struct Stepwise {
     pub stop_p_adj: f64,
     /// Fits after 0, 1, ... selected effects.
     pub history: Vec<Fit>,
-    /// First-stage screening of every candidate.
+    /// Per fit of `history` that was screened: chi2 against the noise model alone (the
+    /// calibration re-optimised with the noise model's weights, to first order), the rank of
+    /// the Jacobian and the offset variance of the model.
+    pub figures: Vec<StageFigures>,
+    /// First-stage screening of every candidate (the test each ran).
     pub first: Vec<(usize, Screened)>,
+    /// First-stage screening of every candidate in the whitening of the baseline (the common
+    /// yardstick of the BIC weights and the ambiguity cosines).
+    pub first_null: Vec<(usize, Screened)>,
+}
+
+/// Figures of one stage's model (see [`Stepwise::figures`]).
+#[derive(Debug, Clone, Copy)]
+pub struct StageFigures {
+    /// chi2 against the noise model alone.
+    pub chi2: f64,
+    /// Rank of the Jacobian.
+    pub rank: usize,
+    /// Offset variance of the model (0 without the variance-component model).
+    pub s2: f64,
+    /// Residual sum of squares in the model's own offset whitening (= `chi2` when `s2` = 0).
+    pub rss_null: f64,
 }
 
 /// One stepwise stage's screening: every candidate not yet active, the best (index, p) and
 /// the min-p family of the testable ones.
 pub struct Stage {
-    /// Screen of every candidate not yet active.
+    /// Screen of every candidate not yet active (the test it ran).
     pub screens: Vec<(usize, Screened)>,
+    /// The same in the model's own offset whitening (with `want_null`; else empty).
+    pub nulls: Vec<(usize, Screened)>,
+    /// The base-unit projected directions of every candidate (for its offset variance).
+    pub base_w: Vec<(usize, DMatrix<f64>)>,
     /// The testable candidate with the smallest p-value.
     pub best: Option<(usize, f64)>,
     /// The family of testable candidates.
     pub fam: Vec<Member>,
+    /// The model's figures.
+    pub figures: StageFigures,
+    /// The model at this stage, in base units (with the variance-component model only).
+    pub view: Option<View>,
 }
 
-/// Screen every candidate not yet active against the current fit `cur` (basis `b`).
+/// Screen every candidate not yet active against the current fit `cur`: the test in base
+/// units (chi2 when the noise model is trusted, see [`screen`]), and, with the
+/// variance-component model, an F test that does not trust it in the whitening of the
+/// candidate's own model ([`gls_test`]). `want_null`: also screen every candidate in the
+/// current model's own whitening.
 fn screen_stage<M: GapModel>(
     ctx: &Ctx<'_, M>,
     rows: &[usize],
     cur: &Fit,
-    b: &RangeBasis,
     active: &[usize],
     cands: &[usize],
     cfg: TestCfg,
-) -> Stage {
-    let ev = DVector::from_column_slice(&cur.e);
+    want_null: bool,
+) -> Result<Stage> {
+    // Without the variance-component model the fit's own rows are the base whitening.
+    let view = if ctx.gls {
+        Some(view(ctx, rows, active, &cur.p)?)
+    } else {
+        None
+    };
+    let sb = match &view {
+        Some(v) => v.space(0.0),
+        None => Space {
+            s2: 0.0,
+            f: vec![],
+            basis: basis(&cur.jac)?,
+            e: DVector::from_column_slice(&cur.e),
+            rss: cur.rss,
+        },
+    };
+    let qb = Arc::new(sb.basis.q.clone());
+    let s2m = view.as_ref().map_or(0.0, |v| v.offset(None, cur.s2));
+    let sm = view
+        .as_ref()
+        .filter(|_| want_null && s2m > 0.0)
+        .map(|v| v.space(s2m));
+    let figures = StageFigures {
+        chi2: sb.rss,
+        rank: sb.basis.rank,
+        s2: s2m,
+        rss_null: sm.as_ref().map_or(sb.rss, |x| x.rss),
+    };
     let mut st = Stage {
         screens: vec![],
+        nulls: vec![],
+        base_w: vec![],
         best: None,
         fam: vec![],
+        figures,
+        view: view.clone(),
     };
+    let base = ctx.unweighted();
     for &c in cands.iter().filter(|c| !active.contains(c)) {
-        let cols = ctx.columns(rows, active, &cur.p, c);
-        let sc = screen(&cols, b, &ev, cur.rss, cfg);
+        let xb = base.columns(rows, active, &cur.p, c);
+        let scb = screen(&xb, &sb.basis, &sb.e, sb.rss, cfg);
+        let (sc, q) = match &view {
+            Some(v) if scb.status == Status::Testable && !scb.chi2_used => {
+                gls_test(&xb, v, &scb, &qb, s2m, cfg)
+            }
+            _ => (scb.clone(), qb.clone()),
+        };
+        if want_null {
+            let nl = match &sm {
+                Some(sm) => {
+                    let xf = DMatrix::from_fn(xb.nrows(), xb.ncols(), |k, j| xb[(k, j)] * sm.f[k]);
+                    screen(&xf, &sm.basis, &sm.e, sm.rss, cfg.with_estimate(false))
+                }
+                None => scb.clone(),
+            };
+            st.nulls.push((c, nl));
+        }
         if sc.status == Status::Testable {
             if st.best.is_none_or(|(_, pb)| sc.p < pb || pb.is_nan()) {
                 st.best = Some((c, sc.p));
             }
-            st.fam.push(member_of(&sc));
+            st.fam.push(member_of(&sc, &q));
         }
+        st.base_w.push((c, scb.w));
         st.screens.push((c, sc));
     }
-    st
+    Ok(st)
+}
+
+/// Fit the model with `active` effects from `p0` with the offset variance `s2` in the weights
+/// (factors at `at` with `at_active`).
+fn fit_weighted<M: GapModel>(
+    ctx: &Ctx<'_, M>,
+    rows: &[usize],
+    active: &[usize],
+    p0: &[f64],
+    s2: f64,
+    (at_active, at): (&[usize], &[f64]),
+) -> Result<Fit> {
+    let mut f = if s2 > 0.0 {
+        fit(
+            &ctx.weighted(ctx.factors_at(at_active, at, s2)?),
+            rows,
+            active,
+            p0,
+        )?
+    } else {
+        fit(&ctx.unweighted(), rows, active, p0)?
+    };
+    f.s2 = s2;
+    Ok(f)
 }
 
 /// Forward stepwise selection from the baseline fit `base`. `full`: the run on all rows
@@ -569,7 +842,9 @@ pub fn stepwise<M: GapModel>(
         stop_p: f64::NAN,
         stop_p_adj: f64::NAN,
         history: vec![],
+        figures: vec![],
         first: vec![],
+        first_null: vec![],
     };
     let mut cur = base;
     let mut m_test = 0usize;
@@ -578,21 +853,47 @@ pub fn stepwise<M: GapModel>(
         if !full && step == e_max {
             break; // inside a fold nothing more can be selected: no need to screen
         }
-        let b = basis(&cur.jac)?;
         let cfg_s = cfg.with_estimate(full && step == 0);
-        let st = screen_stage(ctx, rows, &cur, &b, &sw.effects, cands, cfg_s);
+        let st = screen_stage(
+            ctx,
+            rows,
+            &cur,
+            &sw.effects,
+            cands,
+            cfg_s,
+            full && step == 0,
+        )?;
+        sw.figures.push(st.figures);
+        // The offset variance of the best candidate's model, when its test ran in that
+        // whitening.
+        let best_s2 = st
+            .best
+            .and_then(|(bc, _)| st.screens.iter().find(|x| x.0 == bc))
+            .map(|x| x.1.s2)
+            .filter(|v| *v > 0.0);
         let fam = st.fam;
         if step == 0 {
             m_test = fam.len();
             sw.first = st.screens;
+            sw.first_null = st.nulls;
         }
         let m_bonf = m_test.saturating_sub(step);
         let pb = st.best.map_or(f64::NAN, |x| x.1);
-        let (p_adj, declare) = family_decision(&b.q, &fam, pb, m_bonf, ctx.opt, full);
+        let (p_adj, declare) = family_decision(&fam, pb, m_bonf, ctx.opt, full);
         let Some((bc, pb)) = st.best.filter(|_| declare && step < e_max) else {
             sw.stop_p = pb;
             sw.stop_p_adj = p_adj;
             break;
+        };
+        // The offset variance of the model with the selected effect: from its test when that
+        // ran in its own whitening, otherwise re-estimated with its directions.
+        let s2 = if !ctx.gls {
+            0.0
+        } else if let Some(v) = best_s2 {
+            v
+        } else {
+            let w = st.base_w.iter().find(|x| x.0 == bc).map(|x| &x.1);
+            st.view.as_ref().map_or(0.0, |v| v.offset(w, st.figures.s2))
         };
         sw.effects.push(bc);
         sw.step_p.push(pb);
@@ -600,7 +901,8 @@ pub fn stepwise<M: GapModel>(
         sw.step_m.push(fam.len());
         let mut p0 = cur.p.clone();
         p0.extend(std::iter::repeat_n(0.0, ctx.m.dictionary()[bc].dim));
-        let next = fit(ctx, rows, &sw.effects, &p0)?;
+        let at_active = sw.effects[..sw.effects.len() - 1].to_vec();
+        let next = fit_weighted(ctx, rows, &sw.effects, &p0, s2, (&at_active, &cur.p))?;
         sw.history.push(std::mem::replace(&mut cur, next));
     }
     sw.history.push(cur);
@@ -1074,7 +1376,7 @@ fn availability<M: GapModel>(m: &M, effects: &[usize]) -> (Vec<usize>, Vec<(usiz
 fn baseline<M: GapModel>(m: &M, start: &[f64], opt: &GapOptions) -> Result<(Fit, f64, RangeBasis)> {
     let n = m.n_rows();
     let rows: Vec<usize> = (0..n).collect();
-    let ctx = Ctx { m, scale: 1.0, opt };
+    let ctx = Ctx::new(m, 1.0, opt);
     let base = fit(&ctx, &rows, &[], start)?;
     let b0 = basis(&base.jac)?;
     if n <= b0.rank {
@@ -1088,7 +1390,7 @@ fn baseline<M: GapModel>(m: &M, start: &[f64], opt: &GapOptions) -> Result<(Fit,
     } else {
         (base.rss / (n - b0.rank) as f64).sqrt().max(1e-300)
     };
-    let ctx = Ctx { m, scale, opt };
+    let ctx = Ctx::new(m, scale, opt);
     let base = fit(&ctx, &rows, &[], &base.p)?;
     let b0 = basis(&base.jac)?;
     Ok((base, scale, b0))
@@ -1186,7 +1488,7 @@ pub fn run<M: GapModel>(
 ) -> Result<EngineResult> {
     opt.validate()?;
     let (base, scale, b0) = baseline(m, start, opt)?;
-    let ctx = Ctx { m, scale, opt };
+    let ctx = Ctx::new(m, scale, opt);
     let rows: Vec<usize> = (0..m.n_rows()).collect();
     let cfg = TestCfg::of(opt, m.noise_known());
     let (cands, unavailable) = availability(m, effects);
@@ -1417,11 +1719,7 @@ mod tests {
     }
 
     fn ctx(t: &Toy) -> Ctx<'_, Toy> {
-        Ctx {
-            m: t,
-            scale: 1.0,
-            opt: &OPT,
-        }
+        Ctx::new(t, 1.0, &OPT)
     }
     static OPT: std::sync::LazyLock<GapOptions> = std::sync::LazyLock::new(GapOptions::default);
 
@@ -1437,6 +1735,107 @@ mod tests {
         });
         let b = DVector::from_fn(p, |i, _| cols[i].iter().zip(y).map(|(u, v)| u * v).sum());
         a.lu().solve(&b).unwrap().as_slice().to_vec()
+    }
+
+    /// Residual sum of squares of the weighted least-squares fit of `y` on `cols`.
+    fn wls_rss(cols: &[Vec<f64>], y: &[f64], w: &[f64]) -> f64 {
+        let sc: Vec<Vec<f64>> = cols
+            .iter()
+            .map(|c| c.iter().zip(w).map(|(v, wk)| v * wk.sqrt()).collect())
+            .collect();
+        let ys: Vec<f64> = y.iter().zip(w).map(|(v, wk)| v * wk.sqrt()).collect();
+        let b = ols(&sc, &ys);
+        (0..y.len())
+            .map(|k| (ys[k] - (0..sc.len()).map(|i| sc[i][k] * b[i]).sum::<f64>()).powi(2))
+            .sum()
+    }
+
+    #[test]
+    fn gls_test_is_the_weighted_f_test_at_its_own_offset_variance() {
+        // A line plus a quadratic term, heteroscedastic noise and a per-row offset (sd 1.5).
+        let n = 60;
+        let mut rng = Rng(11);
+        let sig: Vec<f64> = (0..n).map(|k| 0.5 + (k % 4) as f64 * 0.5).collect();
+        let x: Vec<f64> = (0..n).map(|k| k as f64 / n as f64 - 0.5).collect();
+        let session = |off: f64, noise: f64, rng: &mut Rng| -> Vec<f64> {
+            (0..n)
+                .map(|k| {
+                    1.0 + 2.0 * x[k]
+                        + 3.0 * x[k] * x[k]
+                        + noise * sig[k] * rng.normal()
+                        + off * rng.normal()
+                })
+                .collect()
+        };
+        let cfg = TestCfg::of(&OPT, true);
+        let run = |y: &[f64]| {
+            let e = DVector::from_fn(n, |k, _| y[k] / sig[k]);
+            let j = DMatrix::from_fn(n, 2, |k, c| [1.0, x[k]][c] / sig[k]);
+            let xb = DMatrix::from_fn(n, 1, |k, _| x[k] * x[k] / sig[k]);
+            let v = View::new(e, j, sig.clone()).unwrap();
+            let sb = v.space(0.0);
+            let qb = Arc::new(sb.basis.q.clone());
+            let scb = screen(&xb, &sb.basis, &sb.e, sb.rss, cfg);
+            let (sc, q) = gls_test(&xb, &v, &scb, &qb, 0.0, cfg);
+            (scb, sc, q, qb)
+        };
+        let y = session(1.5, 1.0, &mut rng);
+        let (_, sc, q, qb) = run(&y);
+        assert!(sc.s2 > 0.5 && sc.s2 < 6.0, "{}", sc.s2);
+        assert!(!Arc::ptr_eq(&q, &qb) && !sc.chi2_used);
+        // Independent reference: weighted least squares at weights 1 / (sigma^2 + s2), full
+        // and restricted, by the normal equations; at the moment root the full fit's chi2 is
+        // n - 3, and F is the usual nested-model F.
+        let w: Vec<f64> = sig.iter().map(|s| 1.0 / (s * s + sc.s2)).collect();
+        let (one, x2) = (vec![1.0; n], x.iter().map(|v| v * v).collect::<Vec<_>>());
+        let rss1 = wls_rss(&[one.clone(), x.clone(), x2], &y, &w);
+        let rss0 = wls_rss(&[one, x.clone()], &y, &w);
+        assert!((rss1 - (n - 3) as f64).abs() < 1e-6, "{rss1}");
+        let f_want = (rss0 - rss1) / (rss1 / (n - 3) as f64);
+        assert!((sc.f / f_want - 1.0).abs() < 1e-6, "{} {f_want}", sc.f);
+        assert_eq!(sc.dof2, (n - 3) as f64);
+        // Without excess over the noise model the base screen comes back unchanged.
+        let y = session(0.0, 0.3, &mut rng);
+        let (scb, sc, q, qb) = run(&y);
+        assert_eq!(sc.s2, 0.0);
+        assert_eq!(sc.f, scb.f);
+        assert!(Arc::ptr_eq(&q, &qb));
+    }
+
+    #[test]
+    fn stepwise_with_random_offsets_selects_the_effect_in_its_own_whitening() {
+        static RO: std::sync::LazyLock<GapOptions> = std::sync::LazyLock::new(|| GapOptions {
+            random_offset: true,
+            ..GapOptions::default()
+        });
+        let mut t = Toy::new(60, Some((3, 1.5)), 5);
+        let mut rng = Rng(77);
+        t.y.iter_mut().for_each(|y| *y += 3.0 * SIG * rng.normal());
+        let c = Ctx::new(&t, 1.0, &RO);
+        assert!(c.gls);
+        let base = fit(&c, &all(60), &[], &[0.0, 0.0]).unwrap();
+        let cfg = TestCfg::of(&RO, true);
+        let sw = stepwise(&c, &all(60), base, &[0, 1, 2, 3], 3, cfg, true).unwrap();
+        assert_eq!(sw.effects, vec![3]);
+        // The offset variance of the model with the effect is near the true 9 SIG^2 (moment
+        // estimate); the baseline's also carries the unexplained effect.
+        let first = &sw.first.iter().find(|x| x.0 == 3).unwrap().1;
+        let s2 = first.s2 / (SIG * SIG);
+        assert!(s2 > 4.0 && s2 < 20.0, "{s2}");
+        assert!(sw.figures[0].s2 > first.s2 && !first.chi2_used);
+        assert!((sw.history[1].s2 - first.s2).abs() < 1e-12);
+        assert!(
+            (sw.history[1].p[2] - 1.5).abs() < 0.4,
+            "{:?}",
+            sw.history[1].p
+        );
+        // The same session without the variance-component model tests in the noise model's
+        // whitening (no offset variance anywhere).
+        let c0 = ctx(&t);
+        let base = fit(&c0, &all(60), &[], &[0.0, 0.0]).unwrap();
+        let sw0 = stepwise(&c0, &all(60), base, &[0, 1, 2, 3], 3, cfg, true).unwrap();
+        assert!(sw0.first.iter().all(|x| x.1.s2 == 0.0));
+        assert!(sw0.figures.iter().all(|f| f.s2 == 0.0));
     }
 
     #[test]
@@ -1521,8 +1920,9 @@ mod tests {
 
     #[test]
     fn family_decision_bonferroni_and_min_p() {
-        let q = DMatrix::from_fn(40, 2, |a, b| f64::from(u8::from(a == b)));
+        let q = Arc::new(DMatrix::from_fn(40, 2, |a, b| f64::from(u8::from(a == b))));
         let mk = |k: usize, p: f64| Member {
+            q: q.clone(),
             w: DMatrix::from_fn(40, 1, |a, _| f64::from(u8::from(a == k))),
             chi2: true,
             dof2: 30.0,
@@ -1534,18 +1934,13 @@ mod tests {
             correction: Correction::Bonferroni,
             ..GapOptions::default()
         };
-        assert_eq!(
-            family_decision(&q, &fam, 0.02, 3, &bon, true),
-            (0.06, false)
-        );
-        let (pa, dec) = family_decision(&q, &fam, 0.02, 3, &OPT, true);
+        assert_eq!(family_decision(&fam, 0.02, 3, &bon, true), (0.06, false));
+        let (pa, dec) = family_decision(&fam, 0.02, 3, &OPT, true);
         assert!(pa > 0.02 && pa <= 0.06 && !dec, "{pa}");
         // A clear case is declared without Monte Carlo inside folds.
-        let (pa, dec) = family_decision(&q, &fam, 1e-4, 3, &OPT, false);
+        let (pa, dec) = family_decision(&fam, 1e-4, 3, &OPT, false);
         assert!((pa - 3e-4).abs() < 1e-15 && dec);
-        assert!(family_decision(&q, &fam, f64::NAN, 3, &OPT, true)
-            .0
-            .is_nan());
+        assert!(family_decision(&fam, f64::NAN, 3, &OPT, true).0.is_nan());
     }
 
     #[test]

@@ -2,18 +2,25 @@
 //!
 //! The adjusted p-value of the best of a family of tests is the probability, under the null
 //! of the current model, that the smallest p-value over the family is at most the observed
-//! one. The null whitened residual is `(I - Q Q^T) z`, `z ~ N(0, I)` with `Q` the orthonormal
-//! range basis of the current Jacobian; each member keeps the test (chi2 score or sigma-free F)
-//! chosen on the data. Monte Carlo with fixed-seed draws (deterministic), never above the
-//! Bonferroni bound `M p`.
+//! one. Each member is a test in its own whitening (the noise model, or the noise model plus a
+//! per-row offset variance estimated under that member's model, see [`super::gls`]): its null
+//! whitened residual is `(I - Q_m Q_m^T) z`, `z ~ N(0, I)`, with `Q_m` the orthonormal range
+//! basis of the current Jacobian in that whitening, so every member's null distribution is its
+//! own exact one (chi2 score or sigma-free F, the test chosen on the data), and the draws `z`
+//! they share give the dependence between them. Monte Carlo with fixed-seed draws
+//! (deterministic), never above the Bonferroni bound `M p`.
 
 use super::special::{chi2_isf, f_isf};
 use nalgebra::DMatrix;
+use std::sync::Arc;
 
 /// One test of a family, as the min-p correction needs it.
 #[derive(Debug, Clone)]
 pub struct Member {
-    /// Orthonormal projected directions (`n x d`), orthogonal to the current Jacobian.
+    /// Orthonormal range basis of the current Jacobian in this member's whitening (members
+    /// of one whitening share it).
+    pub q: Arc<DMatrix<f64>>,
+    /// Orthonormal projected directions (`n x d`), orthogonal to `q`.
     pub w: DMatrix<f64>,
     /// chi2 score test (else the sigma-free F test).
     pub chi2: bool,
@@ -69,25 +76,49 @@ pub fn normals(seed: u64, len: usize) -> Vec<f64> {
     out
 }
 
-/// Rows `[Q^T; W_1^T; ...; W_M^T]` and the first row of each member.
-fn stack_family(q: &DMatrix<f64>, fam: &[Member]) -> (DMatrix<f64>, Vec<usize>) {
-    let m = q.nrows();
-    let r = q.ncols();
-    let ncol = r + fam.iter().map(|f| f.w.ncols()).sum::<usize>();
-    let mut at = DMatrix::zeros(ncol, m);
-    for j in 0..r {
-        at.row_mut(j).copy_from(&q.column(j).transpose());
-    }
-    let mut off = Vec::with_capacity(fam.len());
-    let mut c0 = r;
+/// The stacked rows `[Q_a^T; Q_b^T; ...; W_1^T; ...; W_M^T]` (each distinct basis once).
+struct Stacked {
+    at: DMatrix<f64>,
+    /// First row and rank of each distinct basis.
+    bases: Vec<(usize, usize)>,
+    /// Per member: index of its basis, first row of its directions.
+    member: Vec<(usize, usize)>,
+}
+
+fn stack_family(fam: &[Member]) -> Stacked {
+    let m = fam.first().map_or(0, |f| f.w.nrows());
+    let mut distinct: Vec<&Arc<DMatrix<f64>>> = vec![];
+    let mut which = Vec::with_capacity(fam.len());
     for f in fam {
-        off.push(c0);
+        match distinct.iter().position(|q| Arc::ptr_eq(q, &f.q)) {
+            Some(i) => which.push(i),
+            None => {
+                which.push(distinct.len());
+                distinct.push(&f.q);
+            }
+        }
+    }
+    let nq: usize = distinct.iter().map(|q| q.ncols()).sum();
+    let ncol = nq + fam.iter().map(|f| f.w.ncols()).sum::<usize>();
+    let mut at = DMatrix::zeros(ncol, m);
+    let mut bases = Vec::with_capacity(distinct.len());
+    let mut c0 = 0;
+    for q in &distinct {
+        bases.push((c0, q.ncols()));
+        for j in 0..q.ncols() {
+            at.row_mut(c0 + j).copy_from(&q.column(j).transpose());
+        }
+        c0 += q.ncols();
+    }
+    let mut member = Vec::with_capacity(fam.len());
+    for (f, &b) in fam.iter().zip(&which) {
+        member.push((b, c0));
         for j in 0..f.w.ncols() {
             at.row_mut(c0 + j).copy_from(&f.w.column(j).transpose());
         }
         c0 += f.w.ncols();
     }
-    (at, off)
+    Stacked { at, bases, member }
 }
 
 /// The statistic of each member at which its p-value equals `p_obs` (one inversion per
@@ -120,16 +151,26 @@ fn critical_values(fam: &[Member], p_obs: f64) -> Vec<f64> {
 
 /// Whether one null draw (its projections `col` on the stacked rows, squared norm `zz`)
 /// reaches a member's critical value.
-fn draw_hits(col: &[f64], zz: f64, r: usize, fam: &[Member], off: &[usize], crit: &[f64]) -> bool {
-    let ssq: f64 = col[..r].iter().map(|v| v * v).sum();
-    let rss = zz - ssq;
+fn draw_hits(col: &[f64], zz: f64, st: &Stacked, fam: &[Member], crit: &[f64]) -> bool {
+    let mut rss = [0.0; 8];
+    let mut rss_v = vec![];
+    let rss: &mut [f64] = if st.bases.len() <= rss.len() {
+        &mut rss[..st.bases.len()]
+    } else {
+        rss_v.resize(st.bases.len(), 0.0);
+        &mut rss_v
+    };
+    for (b, &(r0, r)) in st.bases.iter().enumerate() {
+        rss[b] = zz - col[r0..r0 + r].iter().map(|v| v * v).sum::<f64>();
+    }
     fam.iter().enumerate().any(|(i, f)| {
         let d = f.w.ncols();
-        let sc: f64 = col[off[i]..off[i] + d].iter().map(|v| v * v).sum();
+        let (b, off) = st.member[i];
+        let sc: f64 = col[off..off + d].iter().map(|v| v * v).sum();
         if f.chi2 {
             sc >= crit[i]
         } else {
-            let rem = rss - sc;
+            let rem = rss[b] - sc;
             rem <= 0.0 || (sc / d as f64) >= crit[i] * rem / f.dof2
         }
     })
@@ -139,7 +180,7 @@ fn draw_hits(col: &[f64], zz: f64, r: usize, fam: &[Member], off: &[usize], crit
 /// Sequential Monte Carlo (250 fixed-seed draws, then chunks of 500, at most `n_draws`,
 /// stopped once the estimate is 3 standard errors from `alpha`); the estimate
 /// `(k + 1) / (b + 1)` is capped by the Bonferroni bound `M p_obs`.
-pub fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: usize) -> f64 {
+pub fn min_p(fam: &[Member], p_obs: f64, alpha: f64, n_draws: usize) -> f64 {
     let m_fam = fam.len();
     if m_fam == 0 || !p_obs.is_finite() {
         return f64::NAN;
@@ -148,8 +189,8 @@ pub fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: 
     if m_fam == 1 || p_obs <= 0.0 || bonf < 1e-4 || n_draws == 0 {
         return if m_fam == 1 { p_obs } else { bonf };
     }
-    let m = q.nrows();
-    let (at, off) = stack_family(q, fam);
+    let m = fam[0].w.nrows();
+    let st = stack_family(fam);
     let crit = critical_values(fam, p_obs);
     let local;
     let pool: &[f64] = if m * n_draws <= POOL_LEN {
@@ -162,10 +203,10 @@ pub fn min_p(q: &DMatrix<f64>, fam: &[Member], p_obs: f64, alpha: f64, n_draws: 
     while done < n_draws {
         let bc = (if done == 0 { 250 } else { 500 }).min(n_draws - done);
         let zs = nalgebra::DMatrixView::from_slice(&pool[done * m..(done + bc) * m], m, bc);
-        let pm = &at * zs;
+        let pm = &st.at * zs;
         for b in 0..bc {
             let zz = zs.column(b).norm_squared();
-            hits += draw_hits(pm.column(b).as_slice(), zz, q.ncols(), fam, &off, &crit) as usize;
+            hits += draw_hits(pm.column(b).as_slice(), zz, &st, fam, &crit) as usize;
         }
         done += bc;
         let ph = (hits + 1) as f64 / (done + 1) as f64;
@@ -186,12 +227,17 @@ mod tests {
     fn min_p_matches_closed_forms() {
         // n = 40, Q = first 5 unit vectors; members are further unit vectors (orthogonal to Q).
         let n = 40;
-        let q = DMatrix::from_fn(n, 5, |a, b| if a == b { 1.0 } else { 0.0 });
+        let q = Arc::new(DMatrix::from_fn(
+            n,
+            5,
+            |a, b| if a == b { 1.0 } else { 0.0 },
+        ));
         let unit = |k: usize| DMatrix::from_fn(n, 1, |a, _| if a == k { 1.0 } else { 0.0 });
         let p_obs: f64 = 0.02;
         let crit = chi2_isf(p_obs, 1.0);
         assert!((chi2_sf(crit, 1.0) - p_obs).abs() < 1e-9);
         let mk = |w: DMatrix<f64>, p: f64| Member {
+            q: q.clone(),
             w,
             chi2: true,
             dof2: 30.0,
@@ -200,7 +246,7 @@ mod tests {
         };
         // Two identical members: min-p = the single-test p-value (no multiplicity).
         let same = [mk(unit(7), p_obs), mk(unit(7), 0.3)];
-        let pa = min_p(&q, &same, p_obs, 0.05, 4000);
+        let pa = min_p(&same, p_obs, 0.05, 4000);
         assert!((pa - p_obs).abs() < 0.008, "{pa}");
         // Four independent members: 1 - (1 - p)^4 = 0.0776 (Bonferroni 0.08).
         let ind = [
@@ -209,12 +255,45 @@ mod tests {
             mk(unit(9), 0.5),
             mk(unit(10), 0.5),
         ];
-        let pa = min_p(&q, &ind, p_obs, 0.05, 4000);
+        let pa = min_p(&ind, p_obs, 0.05, 4000);
         let want = 1.0 - (1.0 - p_obs).powi(4);
         assert!((pa - want).abs() < 0.015, "{pa} vs {want}");
         assert!(pa <= 4.0 * p_obs + 1e-12);
         // Deterministic.
-        assert_eq!(pa, min_p(&q, &ind, p_obs, 0.05, 4000));
+        assert_eq!(pa, min_p(&ind, p_obs, 0.05, 4000));
+    }
+
+    #[test]
+    fn f_members_use_their_own_whitening() {
+        // F members in their own whitenings (distinct Arcs). Two members with the same
+        // directions and bases of the same content hit together: the adjusted p-value is the
+        // single test's exact p-value, which needs each member's own residual (40 - 5 - 1
+        // degrees of freedom) in its denominator.
+        let n = 40;
+        let basis = |r: usize| Arc::new(DMatrix::from_fn(n, r, |a, b| f64::from(u8::from(a == b))));
+        let unit = |k: usize| DMatrix::from_fn(n, 1, |a, _| f64::from(u8::from(a == k)));
+        let p_obs = 0.03;
+        let f_mem = |q: Arc<DMatrix<f64>>, k: usize, p: f64| {
+            let dof2 = (n - q.ncols() - 1) as f64;
+            Member {
+                w: unit(k),
+                chi2: false,
+                dof2,
+                p,
+                stat: f_isf(p, 1.0, dof2),
+                q,
+            }
+        };
+        let fam = [f_mem(basis(5), 20, p_obs), f_mem(basis(5), 20, 0.4)];
+        // alpha = p_obs: the sequential stop never triggers early, all draws are used.
+        let pa = min_p(&fam, p_obs, p_obs, 20_000);
+        assert!((pa - p_obs).abs() < 0.005, "{pa}");
+        // Independent directions in whitenings of 5 and 8 columns: nearly independent tests,
+        // 1 - (1 - p)^2 = 0.0591, never above Bonferroni.
+        let fam = [f_mem(basis(5), 20, p_obs), f_mem(basis(8), 21, 0.5)];
+        let pa = min_p(&fam, p_obs, 0.0591, 20_000);
+        assert!((pa - 0.0591).abs() < 0.006, "{pa}");
+        assert!(pa <= 2.0 * p_obs + 1e-12);
     }
 
     #[test]

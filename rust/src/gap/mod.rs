@@ -24,6 +24,7 @@
 
 pub mod centrifuge;
 pub mod engine;
+pub mod gls;
 pub mod gradiometer;
 pub mod locate;
 pub mod minp;
@@ -183,6 +184,12 @@ pub struct GapOptions {
     pub correction: Correction,
     /// [`Correction::MinP`]: at most this many null draws per decision.
     pub n_draws: usize,
+    /// With a known noise model: rows carry a random offset of variance `s^2` on top of it
+    /// (a per-dwell variance component, see [`gls`]), estimated under every model compared,
+    /// and the attribution weighs rows by `1 / (sigma_k^2 + s^2)`. Off by default: on real
+    /// sessions whose excess is smooth in time (not independent per dwell) it raises the false
+    /// alarms (docs/gap-validation.md).
+    pub random_offset: bool,
 }
 
 impl Default for GapOptions {
@@ -203,6 +210,7 @@ impl Default for GapOptions {
             gate_margin: 1.0,
             correction: Correction::MinP,
             n_draws: 4000,
+            random_offset: false,
         }
     }
 }

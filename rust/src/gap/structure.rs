@@ -299,6 +299,7 @@ fn smooth_stage(
     opt: &GapOptions,
 ) -> Result<Vec<StructureTest>> {
     let b = basis(&eng.jac_after)?;
+    let qb = std::sync::Arc::new(b.q.clone());
     let e = DVector::from_column_slice(&eng.e_after);
     let rss = eng.chi2_after;
     // The sigma-free F form: the alternative to a smooth structure is an unstructured excess
@@ -331,7 +332,7 @@ fn smooth_stage(
             t.statistic = if sc.chi2_used { sc.score } else { sc.f };
             t.p_value = sc.p;
             t.explained = sc.score / rss.max(1e-300);
-            fam.push(member_of(&sc));
+            fam.push(member_of(&sc, &qb));
         }
         out.push(t);
     }
@@ -345,7 +346,7 @@ fn smooth_stage(
         .fold(f64::INFINITY, f64::min);
     for t in out.iter_mut().filter(|t| t.status == Status::Testable) {
         t.p_adjusted = if t.p_value == best && t.p_value < opt.alpha {
-            min_p(&b.q, &fam, t.p_value, opt.alpha, opt.n_draws)
+            min_p(&fam, t.p_value, opt.alpha, opt.n_draws)
         } else {
             (m * t.p_value).min(1.0)
         };

@@ -32,6 +32,7 @@ pub struct GapSettings {
     gate_margin: f64,
     correction: String,
     n_draws: usize,
+    random_offset: bool,
 }
 
 #[pymethods]
@@ -41,7 +42,7 @@ impl GapSettings {
     #[pyo3(signature = (*, alpha=None, max_effects=None, loo=None, sine_tol=None,
                         ambiguity_cos=None, ambiguity_weight=None, min_temp_range=None,
                         test=None, trust_level=None, gate=None, gate_sd=None, gate_margin=None,
-                        correction=None, n_draws=None))]
+                        correction=None, n_draws=None, random_offset=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         alpha: Option<f64>,
@@ -58,6 +59,7 @@ impl GapSettings {
         gate_margin: Option<f64>,
         correction: Option<String>,
         n_draws: Option<usize>,
+        random_offset: Option<bool>,
     ) -> PyResult<Self> {
         let d = GapSettings::from(&GapOptions::default());
         let s = GapSettings {
@@ -75,6 +77,7 @@ impl GapSettings {
             gate_margin: gate_margin.unwrap_or(d.gate_margin),
             correction: correction.unwrap_or(d.correction),
             n_draws: n_draws.unwrap_or(d.n_draws),
+            random_offset: random_offset.unwrap_or(d.random_offset),
         };
         s.options()?.validate()?;
         Ok(s)
@@ -83,7 +86,7 @@ impl GapSettings {
     fn __repr__(&self) -> String {
         format!(
             "GapSettings(alpha={}, max_effects={}, test={:?}, trust_level={}, gate={:?}, \
-             gate_margin={}, correction={:?}, n_draws={})",
+             gate_margin={}, correction={:?}, n_draws={}, random_offset={})",
             self.alpha,
             self.max_effects,
             self.test,
@@ -91,7 +94,8 @@ impl GapSettings {
             self.gate,
             self.gate_margin,
             self.correction,
-            self.n_draws
+            self.n_draws,
+            if self.random_offset { "True" } else { "False" }
         )
     }
 }
@@ -127,6 +131,7 @@ impl From<&GapOptions> for GapSettings {
             gate_margin: o.gate_margin,
             correction: correction.into(),
             n_draws: o.n_draws,
+            random_offset: o.random_offset,
         }
     }
 }
@@ -148,6 +153,7 @@ impl GapSettings {
             gate_margin: self.gate_margin,
             correction: Correction::from_name(&self.correction)?,
             n_draws: self.n_draws,
+            random_offset: self.random_offset,
         })
     }
 }
