@@ -766,8 +766,8 @@ class StaticFit:
         degenerate_std: float = ...,
         weak_std: float = ...,
         check_g: bool = True,
-        noise_model: str = "",
-        input_units: str = "",
+        noise_model: str | None = None,
+        input_units: str | None = None,
         nominal: Any = None,
     ) -> Self: ...
     @property

@@ -54,6 +54,7 @@ __all__ = [
 BatchFit = _core.BatchFit
 
 _OBSERVABILITY = ("raise", "warn", "ignore")
+_F64 = np.dtype(np.float64)
 
 
 class WeakDesignWarning(UserWarning):
@@ -91,17 +92,21 @@ def _as_means(x: Any, name: str) -> NDArray[np.float64]:
     return a
 
 
+def _variance_message(bad: float) -> str:
+    return (
+        f"sigma = {bad!r} is out of range: its square (the variance of a dwell mean) is not "
+        "a finite positive number; give the std of each dwell mean in output units "
+        "(1e-150 .. 1e150)"
+    )
+
+
 def _variance(s: Any) -> Any:
     """sigma^2, refusing a sigma whose square over- or underflows (no finite variance)."""
     with np.errstate(over="ignore", under="ignore"):
         v = np.square(s)
     if not (np.all(np.isfinite(v)) and np.all(v > 0)):
         bad = float(np.asarray(s).reshape(-1)[np.argmax(~(np.isfinite(v) & (v > 0)).reshape(-1))])
-        raise CalibrationError(
-            f"sigma = {bad!r} is out of range: its square (the variance of a dwell mean) is not "
-            "a finite positive number; give the std of each dwell mean in output units "
-            "(1e-150 .. 1e150)"
-        )
+        raise CalibrationError(_variance_message(bad))
     return v
 
 
@@ -125,16 +130,27 @@ def _inputs(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | float | None, str, str]:
     """Dwell means, the per-axis variance of each mean (one number for all, (k, 3), or None:
     estimated), how the noise model was obtained, and the input units."""
-    if isinstance(data, DwellSet):
+    if type(data) is np.ndarray and data.dtype is _F64 and data.flags.aligned:
+        # The common case, without the general coercion: float64 as given (any strides).
+        means, units = data, ""
+        sh = data.shape
+        if len(sh) != 2 or sh[1] != 3:
+            raise CalibrationError(f"dwell means must have shape (k, 3); got {sh}")
+    elif isinstance(data, DwellSet):
         means, units = data.mean, data.units
     else:
         means, units = _as_means(data, "dwell means"), ""
     k = means.shape[0]
     if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
-        sv = number(sigma, "sigma", lo=0.0, lo_open=True,
-                    unit="(std of each dwell mean, output units)")
-        return means, _resolvable(_variance(np.float64(sv)), means), \
-            "given sigma (std of each dwell mean)", units
+        sv = sigma if type(sigma) is float and 0.0 < sigma < math.inf else number(
+            sigma, "sigma", lo=0.0, lo_open=True, unit="(std of each dwell mean, output units)")
+        # One variance for every dwell and axis, checked without NumPy (its error state and
+        # reductions cost more than the fit); the resolution against the means' size is
+        # checked in Rust.
+        v = sv * sv
+        if not (math.isfinite(v) and v > 0.0):
+            raise CalibrationError(_variance_message(sv))
+        return means, v, "given sigma (std of each dwell mean)", units
     if sigma is not None:
         s = np.asarray(sigma)
         if s.dtype.kind not in "fiu":

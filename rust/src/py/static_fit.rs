@@ -10,7 +10,8 @@ use numpy::{
     PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
-use pyo3::types::{PyDict, PyList, PyTuple};
+use pyo3::sync::PyOnceLock;
+use pyo3::types::{PyDict, PyList, PyString, PyTuple};
 
 use super::convert::{frozen1, frozen2, rows3, with_view, SampleArray};
 use super::CalibrationError;
@@ -48,7 +49,19 @@ fn arg_f64(
     range: &str,
     ok: impl Fn(f64) -> bool,
 ) -> PyResult<f64> {
-    let v = if obj.is_instance_of::<pyo3::types::PyBool>() {
+    arg_f64_with(obj, name, || range.to_string(), ok)
+}
+
+/// [`arg_f64`] with the range worded only for the error message.
+fn arg_f64_with(
+    obj: &Bound<'_, PyAny>,
+    name: &str,
+    range: impl FnOnce() -> String,
+    ok: impl Fn(f64) -> bool,
+) -> PyResult<f64> {
+    let v = if let Ok(f) = obj.cast_exact::<pyo3::types::PyFloat>() {
+        Some(f.value())
+    } else if obj.is_instance_of::<pyo3::types::PyBool>() {
         None
     } else {
         obj.extract::<f64>().ok()
@@ -56,7 +69,8 @@ fn arg_f64(
     match v {
         Some(x) if ok(x) => Ok(x),
         _ => Err(CalibrationError::new_err(format!(
-            "{name} must be {range}; got {}",
+            "{name} must be {}; got {}",
+            range(),
             describe(obj)
         ))),
     }
@@ -84,9 +98,12 @@ fn arg_int(obj: &Bound<'_, PyAny>, name: &str, lo: i64, hi: i64) -> PyResult<usi
 }
 
 fn positive(obj: &Bound<'_, PyAny>, name: &str, what: &str) -> PyResult<f64> {
-    arg_f64(obj, name, &format!("a positive, finite {what}"), |x| {
-        x > 0.0 && x.is_finite()
-    })
+    arg_f64_with(
+        obj,
+        name,
+        || format!("a positive, finite {what}"),
+        |x| x > 0.0 && x.is_finite(),
+    )
 }
 
 /// Local gravity in any of the units the calibrated output may have.
@@ -117,6 +134,38 @@ fn means_arg<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArr
                 .unwrap_or_default()
         ))
     })
+}
+
+/// Refuse a dwell-mean variance `var` (one value for every dwell and axis) below what double
+/// precision resolves in the means (the whitened problem would overflow): `sqrt(var)` must be
+/// at least 1e-12 of the largest mean (NaN in the means: no test; the NaN is reported later).
+fn resolvable(py: Python<'_>, var: f64, means: &[[f64; 3]]) -> PyResult<()> {
+    let mag = means.iter().flatten().fold(0.0f64, |m, x| {
+        if m.is_nan() || x.is_nan() {
+            f64::NAN
+        } else {
+            m.max(x.abs())
+        }
+    });
+    let floor = (1e-12 * mag) * (1e-12 * mag);
+    if !(mag > 0.0 && var < floor) {
+        return Ok(());
+    }
+    // The numbers as Python formats them (`format(x, ".3g")`), as for every message of the
+    // Python layer.
+    let g3 = |x: f64| -> PyResult<String> {
+        pyo3::types::PyString::new(py, "{:.3g}")
+            .call_method1("format", (x,))?
+            .extract::<String>()
+    };
+    Err(CalibrationError::new_err(format!(
+        "sigma = {} is below the double-precision resolution of dwell means of size {} (sigma \
+         must be >= {}, 1e-12 of the largest mean): give the std of each dwell mean in the \
+         means' units",
+        g3(var.sqrt())?,
+        g3(mag)?,
+        g3(1e-12 * mag)?
+    )))
 }
 
 fn settings_from(
@@ -272,82 +321,111 @@ impl PyObservability {
 
 /// One static fit (the Python `accelcal.StaticFit` subclasses it). Constructing it fits
 /// `means` (k, 3) to the reference gravity `g`; every field is in the caller's units.
-#[pyclass(
-    name = "StaticFit",
-    module = "accelcal._core",
-    frozen,
-    get_all,
-    subclass
-)]
+///
+/// The array fields are kept as Rust values and become read-only NumPy arrays on first
+/// access (then the same array on every access): a fit whose arrays are never read costs
+/// no array allocation.
+#[pyclass(name = "StaticFit", module = "accelcal._core", frozen, subclass)]
 pub struct PyStaticFit {
     /// Sensor model: "lower", "diag" or "upper".
+    #[pyo3(get)]
     model: &'static str,
     /// Estimation method.
+    #[pyo3(get)]
     method: &'static str,
     /// Reference gravity (units of the calibrated output).
+    #[pyo3(get)]
     g: f64,
     /// Dwell means (k, 3), output units (a copy of the input).
-    means: Py<PyArray2<f64>>,
+    means_v: Vec<[f64; 3]>,
+    means: PyOnceLock<Py<PyArray2<f64>>>,
     /// Variance of each dwell mean per axis, output units squared: one value for every dwell
     /// and axis, or (k, 3); None when the noise is estimated.
+    #[pyo3(get)]
     var: Option<Py<PyAny>>,
+    /// Number of parameters (9, or 6 for "diag").
+    np: usize,
     /// Parameters `[sx, sy, sz, bx, by, bz, m1, m2, m3]` (p = 6 for "diag").
-    vector: Py<PyArray1<f64>>,
+    vector_v: [f64; 9],
+    vector: PyOnceLock<Py<PyArray1<f64>>>,
     /// Start of GN/LM (or the linear method's own solution).
-    start: Py<PyArray1<f64>>,
+    start_v: [f64; 9],
+    start: PyOnceLock<Py<PyArray1<f64>>>,
     /// Where the start came from: "quadric", "linear-paper", "user" or "fallback".
+    #[pyo3(get)]
     start_source: &'static str,
     /// Why the linear solution failed (when the start is the fallback).
+    #[pyo3(get)]
     start_error: Option<String>,
     /// The start given by the caller, if any.
+    #[pyo3(get)]
     user_start: Option<Vec<f64>>,
-    /// `(J^T W J)^-1` (p, p) with the noise model's weights; per unit output variance when
-    /// the noise is estimated. NaN when singular.
-    covariance_unscaled: Py<PyArray2<f64>>,
+    /// `(J^T W J)^-1` (p, p) row-major.
+    covariance_v: Vec<f64>,
+    covariance_unscaled: PyOnceLock<Py<PyArray2<f64>>>,
     /// `|a_k| - g` per dwell (units of g).
-    residuals: Py<PyArray1<f64>>,
-    /// Predicted std of each residual (units of g): from the noise model, or from the noise
-    /// level estimated from the residuals.
-    sigma_residual: Py<PyArray1<f64>>,
+    residuals_v: Vec<f64>,
+    residuals: PyOnceLock<Py<PyArray1<f64>>>,
+    /// Predicted std of each residual (units of g).
+    sigma_residual_v: Vec<f64>,
+    sigma_residual: PyOnceLock<Py<PyArray1<f64>>>,
     /// Minimised cost `sum e_k^2`.
+    #[pyo3(get)]
     cost: f64,
     /// Degrees of freedom `k - p`.
+    #[pyo3(get)]
     dof: usize,
     /// chi2/dof of a known noise model, or the estimated per-axis variance of a dwell mean
     /// (output units squared) when the noise is estimated. NaN when `dof == 0`.
+    #[pyo3(get)]
     chi2_dof: f64,
     /// GN/LM iterations.
+    #[pyo3(get)]
     iterations: usize,
     /// The minimum was reached (within 1e-3 parameter std).
+    #[pyo3(get)]
     converged: bool,
     /// Squared distance, in parameter std, to the minimum of the local quadratic model.
+    #[pyo3(get)]
     decrement: f64,
     /// The noise model was known (not estimated from the residuals).
+    #[pyo3(get)]
     noise_known: bool,
     /// Some parameter is weakly determined (predicted std above `weak_std`).
+    #[pyo3(get)]
     weak: bool,
     /// The dwells cannot determine some combination (predicted std above `degenerate_std`).
+    #[pyo3(get)]
     degenerate: bool,
-    /// Predicted std of each parameter in comparable units (scale and misalignment relative,
-    /// biases in g).
-    predicted_std_relative: Py<PyArray1<f64>>,
+    /// Predicted std of each parameter in comparable units.
+    predicted_std_v: [f64; 9],
+    predicted_std_relative: PyOnceLock<Py<PyArray1<f64>>>,
     /// Predicted std of the least determined combination (comparable units).
+    #[pyo3(get)]
     weakest_std: f64,
     /// Iteration limit used.
+    #[pyo3(get)]
     max_iter: usize,
     /// A degenerate design raised (True) or was returned with `degenerate` set (False).
+    #[pyo3(get)]
     raise_degenerate: bool,
     /// Threshold of `degenerate` (comparable units).
+    #[pyo3(get)]
     degenerate_std: f64,
     /// Threshold of `weak` (comparable units).
+    #[pyo3(get)]
     weak_std: f64,
     /// `g` was checked for plausibility.
+    #[pyo3(get)]
     check_g: bool,
     /// How the dwell weights were obtained (text from the caller).
-    noise_model: String,
+    #[pyo3(get)]
+    noise_model: Py<PyString>,
     /// Units of the raw output (text from the caller).
-    input_units: String,
+    #[pyo3(get)]
+    input_units: Py<PyString>,
     /// Nominal model for the "before" norm statistics (any object; None).
+    #[pyo3(get)]
     nominal: Option<Py<PyAny>>,
 }
 
@@ -363,6 +441,13 @@ impl VarArg {
         let Some(v) = var.filter(|v| !v.is_none()) else {
             return Ok(VarArg::Estimated);
         };
+        if let Ok(x) = v.cast_exact::<pyo3::types::PyFloat>() {
+            // The common case (one variance from a scalar sigma): no failed array extraction.
+            let x = x.value();
+            if x >= 0.0 && x.is_finite() {
+                return Ok(VarArg::Uniform(x));
+            }
+        }
         if let Ok(a) = v.extract::<PyReadonlyArray2<'_, f64>>() {
             return Ok(VarArg::PerDwell(rows3(&a, "var")?));
         }
@@ -386,7 +471,7 @@ impl VarArg {
 #[pymethods]
 impl PyStaticFit {
     #[new]
-    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model="", input_units="", nominal=None))]
+    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model=None, input_units=None, nominal=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -401,14 +486,18 @@ impl PyStaticFit {
         degenerate_std: Given<'_>,
         weak_std: Given<'_>,
         check_g: bool,
-        noise_model: &str,
-        input_units: &str,
+        noise_model: Option<Bound<'_, PyString>>,
+        input_units: Option<Bound<'_, PyString>>,
         nominal: Option<Py<PyAny>>,
     ) -> PyResult<Self> {
         let gv = self::check_g(g, check_g)?;
         let ma = means_arg(means, "means")?;
         let m = rows3(&ma, "means")?;
+        drop(ma);
         let va = VarArg::from_py(var)?;
+        if let VarArg::Uniform(v) = va {
+            resolvable(py, v, &m)?;
+        }
         let s = settings_from(
             model,
             method,
@@ -421,24 +510,39 @@ impl PyStaticFit {
         let f = fit_static(&m, gv, &va.noise(), &s)?;
         let np = f.params.len();
         let k = m.len();
+        let mut vector_v = [0.0; 9];
+        vector_v[..np].copy_from_slice(&f.params);
+        let mut start_v = [0.0; 9];
+        start_v[..np].copy_from_slice(&f.start);
+        let mut predicted_std_v = [0.0; 9];
+        predicted_std_v[..np].copy_from_slice(f.summary.std());
         Ok(PyStaticFit {
             model: f.model.name(),
             method: method_name(f.method),
             g: gv,
-            means: arr2(py, k, 3, |i, j| m[i][j]),
-            var: match &va {
+            means_v: m,
+            means: PyOnceLock::new(),
+            var: match va {
                 VarArg::Estimated => None,
                 VarArg::Uniform(x) => Some(x.into_pyobject(py)?.into_any().unbind()),
-                VarArg::PerDwell(v) => Some(frozen2(py, flat(v), k, 3).into_any()),
+                VarArg::PerDwell(v) => Some(frozen2(py, flat(&v), k, 3).into_any()),
             },
-            vector: arr1(py, &f.params),
-            start: arr1(py, &f.start),
+            np,
+            vector_v,
+            vector: PyOnceLock::new(),
+            start_v,
+            start: PyOnceLock::new(),
             start_source: f.start_source.name(),
-            start_error: f.start_error.clone(),
+            start_error: f.start_error,
             user_start: start,
-            covariance_unscaled: arr2(py, np, np, |i, j| f.covariance[(i, j)]),
-            residuals: arr1(py, &f.residuals),
-            sigma_residual: arr1(py, &f.sigma_r),
+            covariance_v: (0..np * np)
+                .map(|i| f.covariance[(i / np, i % np)])
+                .collect(),
+            covariance_unscaled: PyOnceLock::new(),
+            residuals_v: f.residuals,
+            residuals: PyOnceLock::new(),
+            sigma_residual_v: f.sigma_r,
+            sigma_residual: PyOnceLock::new(),
             cost: f.cost,
             dof: f.dof,
             chi2_dof: f.chi2_dof,
@@ -448,17 +552,93 @@ impl PyStaticFit {
             noise_known: f.noise_known,
             weak: f.summary.weak,
             degenerate: f.summary.degenerate,
-            predicted_std_relative: arr1(py, f.summary.std()),
+            predicted_std_v,
+            predicted_std_relative: PyOnceLock::new(),
             weakest_std: f.summary.weakest_std,
             max_iter: s.max_iter,
             raise_degenerate,
             degenerate_std: s.degenerate_std,
             weak_std: s.weak_std,
             check_g,
-            noise_model: noise_model.to_string(),
-            input_units: input_units.to_string(),
+            // The caller's str objects themselves (no copy).
+            noise_model: noise_model
+                .unwrap_or_else(|| pyo3::intern!(py, "").clone())
+                .unbind(),
+            input_units: input_units
+                .unwrap_or_else(|| pyo3::intern!(py, "").clone())
+                .unbind(),
             nominal,
         })
+    }
+
+    /// Dwell means (k, 3), output units (a copy of the input).
+    #[getter]
+    fn means<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        self.means
+            .get_or_init(py, || {
+                frozen2(py, flat(&self.means_v), self.means_v.len(), 3)
+            })
+            .bind(py)
+            .clone()
+    }
+
+    /// Parameters `[sx, sy, sz, bx, by, bz, m1, m2, m3]` (p = 6 for "diag").
+    #[getter]
+    fn vector<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.vector
+            .get_or_init(py, || arr1(py, &self.vector_v[..self.np]))
+            .bind(py)
+            .clone()
+    }
+
+    /// Start of GN/LM (or the linear method's own solution).
+    #[getter]
+    fn start<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.start
+            .get_or_init(py, || arr1(py, &self.start_v[..self.np]))
+            .bind(py)
+            .clone()
+    }
+
+    /// `(J^T W J)^-1` (p, p) with the noise model's weights; per unit output variance when
+    /// the noise is estimated. NaN when singular.
+    #[getter]
+    fn covariance_unscaled<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        self.covariance_unscaled
+            .get_or_init(py, || {
+                frozen2(py, self.covariance_v.clone(), self.np, self.np)
+            })
+            .bind(py)
+            .clone()
+    }
+
+    /// `|a_k| - g` per dwell (units of g).
+    #[getter]
+    fn residuals<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.residuals
+            .get_or_init(py, || arr1(py, &self.residuals_v))
+            .bind(py)
+            .clone()
+    }
+
+    /// Predicted std of each residual (units of g): from the noise model, or from the noise
+    /// level estimated from the residuals.
+    #[getter]
+    fn sigma_residual<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.sigma_residual
+            .get_or_init(py, || arr1(py, &self.sigma_residual_v))
+            .bind(py)
+            .clone()
+    }
+
+    /// Predicted std of each parameter in comparable units (scale and misalignment relative,
+    /// biases in g).
+    #[getter]
+    fn predicted_std_relative<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.predicted_std_relative
+            .get_or_init(py, || arr1(py, &self.predicted_std_v[..self.np]))
+            .bind(py)
+            .clone()
     }
 
     /// Full observability report: SVD of the whitened Jacobian in comparable units.
@@ -478,7 +658,7 @@ impl PyStaticFit {
         let args = PyTuple::new(
             py,
             [
-                self.means.clone_ref(py).into_any(),
+                self.means(py).into_any().unbind(),
                 self.g.into_pyobject(py)?.into_any().unbind(),
             ],
         )?;
@@ -492,8 +672,8 @@ impl PyStaticFit {
         kw.set_item("degenerate_std", self.degenerate_std)?;
         kw.set_item("weak_std", self.weak_std)?;
         kw.set_item("check_g", self.check_g)?;
-        kw.set_item("noise_model", self.noise_model.clone())?;
-        kw.set_item("input_units", self.input_units.clone())?;
+        kw.set_item("noise_model", self.noise_model.clone_ref(py))?;
+        kw.set_item("input_units", self.input_units.clone_ref(py))?;
         kw.set_item("nominal", self.nominal.as_ref().map(|n| n.clone_ref(py)))?;
         Ok((args, kw))
     }
@@ -501,7 +681,7 @@ impl PyStaticFit {
 
 impl PyStaticFit {
     fn inputs(&self, py: Python<'_>) -> PyResult<(Vec<[f64; 3]>, VarArg, FitSettings)> {
-        let m = rows3(&self.means.bind(py).readonly(), "means")?;
+        let m = self.means_v.clone();
         let v = VarArg::from_py(self.var.as_ref().map(|v| v.bind(py)))?;
         let mut s = FitSettings::new(Model::parse(self.model)?, Method::parse(self.method)?);
         s.start = self.user_start.clone();

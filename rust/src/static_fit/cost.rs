@@ -274,7 +274,13 @@ impl NormProblem<'_> {
     }
 
     /// Cost, `J^T e` and the upper triangle of `J^T J` for the first `K` parameters at `p`
-    /// (`K` = the model's parameter count; the rank-1 updates unroll).
+    /// (`K` = the model's parameter count), added to `h` and `gr`.
+    ///
+    /// The dwells are taken [`LANES`] at a time, every quantity of [`eval_dwell`] and
+    /// [`ml_row`] computed for the lanes side by side (the same arithmetic per dwell, in
+    /// vector registers); the sums are then added in dwell order, so the result is bit for bit
+    /// that of one dwell at a time. A dwell that cannot be evaluated is reported as
+    /// [`NormProblem::for_each`] reports it.
     #[inline(always)]
     pub fn accumulate<const K: usize>(
         &self,
@@ -282,23 +288,203 @@ impl NormProblem<'_> {
         h: &mut [[f64; K]; K],
         gr: &mut [f64; K],
     ) -> Result<f64> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above).
+                return unsafe { self.accumulate_avx2::<K>(p, h, gr) };
+            }
+        }
+        self.accumulate_lanes::<K>(p, h, gr)
+    }
+
+    /// [`Self::accumulate_lanes`] compiled for AVX2 (one register per four lanes; no FMA, so
+    /// the arithmetic and its rounding are those of the baseline build).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn accumulate_avx2<const K: usize>(
+        &self,
+        p: &[f64],
+        h: &mut [[f64; K]; K],
+        gr: &mut [f64; K],
+    ) -> Result<f64> {
+        self.accumulate_lanes::<K>(p, h, gr)
+    }
+
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // lane-indexed arithmetic
+    fn accumulate_lanes<const K: usize>(
+        &self,
+        p: &[f64],
+        h: &mut [[f64; K]; K],
+        gr: &mut [f64; K],
+    ) -> Result<f64> {
         self.in_range(p)?;
+        let t = inv_k(self.model, p)?;
+        let n = self.pts.len();
         let mut c = 0.0;
-        let mut row = [0.0f64; 9];
-        let model = self.model;
-        self.for_each(p, |_, t, d| {
-            let e = d.e();
-            c += e * e;
-            ml_row(model, t, d, &mut row);
-            for i in 0..K {
-                let ri = row[i];
-                gr[i] += ri * e;
-                for j in i..K {
-                    h[i][j] += ri * row[j];
+        let mut bad = false;
+        let mut k0 = 0;
+        while k0 < n {
+            let used = (n - k0).min(LANES);
+            let mut b = LaneBlock::default();
+            for l in 0..LANES {
+                // Unused lanes repeat the block's first dwell (finite whenever it is) and are
+                // masked out below.
+                let k = if l < used { k0 + l } else { k0 };
+                let pt = &self.pts[k];
+                let v = self.noise.var(k);
+                for i in 0..3 {
+                    b.x[i][l] = pt[i] - p[3 + i];
+                    b.var[i][l] = v[i];
+                }
+                b.mask[l] = if l < used { 1.0 } else { 0.0 };
+            }
+            bad |= b.eval(&t, self.g, self.model);
+            // The sums in dwell order (as one dwell at a time would add them: the same
+            // rounding), each rank-1 update across a row of `h`.
+            for l in 0..used {
+                let e = b.e[l];
+                let mut row = [0.0f64; K];
+                for (j, rj) in row.iter_mut().enumerate() {
+                    *rj = b.row[j][l];
+                }
+                c += e * e;
+                for i in 0..K {
+                    let ri = row[i];
+                    gr[i] += ri * e;
+                    for j in i..K {
+                        h[i][j] += ri * row[j];
+                    }
                 }
             }
-        })?;
+            k0 += LANES;
+        }
+        if bad {
+            // Name the first dwell that cannot be evaluated, as the scalar pass does.
+            self.for_each(p, |_, _, _| {})?;
+        }
         Ok(c)
+    }
+}
+
+/// Dwells evaluated side by side in [`NormProblem::accumulate`].
+pub const LANES: usize = 4;
+
+/// [`LANES`] dwells: inputs (`x = am - b`, per-axis variance, lane mask) and the whitened
+/// residual `e` and its gradient row (masked lanes zero).
+#[derive(Default)]
+struct LaneBlock {
+    x: [[f64; LANES]; 3],
+    var: [[f64; LANES]; 3],
+    mask: [f64; LANES],
+    e: [f64; LANES],
+    row: [[f64; LANES]; 9],
+}
+
+impl LaneBlock {
+    /// [`eval_dwell`] and [`ml_row`] on every lane (`t = K^-1`); true when a used lane has a
+    /// zero or non-finite norm or residual variance.
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // lane-indexed arithmetic, as written per dwell
+    fn eval(&mut self, t: &Matrix3<f64>, g: f64, model: Model) -> bool {
+        type L = [f64; LANES];
+        let z0: L = [0.0; LANES];
+        let (x, var) = (&self.x, &self.var);
+        // a = T x
+        let mut a = [z0; 3];
+        for (i, ai) in a.iter_mut().enumerate() {
+            for l in 0..LANES {
+                ai[l] = t[(i, 0)] * x[0][l] + t[(i, 1)] * x[1][l] + t[(i, 2)] * x[2][l];
+            }
+        }
+        let (mut inv_n, mut r) = (z0, z0);
+        let mut bad = 0.0f64;
+        for l in 0..LANES {
+            let norm = (a[0][l] * a[0][l] + a[1][l] * a[1][l] + a[2][l] * a[2][l]).sqrt();
+            bad += if norm > 0.0 && norm.is_finite() {
+                0.0
+            } else {
+                self.mask[l]
+            };
+            inv_n[l] = 1.0 / norm;
+            r[l] = norm - g;
+        }
+        // w = T^T a / |a|
+        let mut w = [z0; 3];
+        for (i, wi) in w.iter_mut().enumerate() {
+            for l in 0..LANES {
+                wi[l] =
+                    (t[(0, i)] * a[0][l] + t[(1, i)] * a[1][l] + t[(2, i)] * a[2][l]) * inv_n[l];
+            }
+        }
+        let mut is = z0;
+        for l in 0..LANES {
+            let s2 = w[0][l] * w[0][l] * var[0][l]
+                + w[1][l] * w[1][l] * var[1][l]
+                + w[2][l] * w[2][l] * var[2][l];
+            bad += if s2 > 0.0 && s2.is_finite() {
+                0.0
+            } else {
+                self.mask[l]
+            };
+            is[l] = 1.0 / s2.sqrt();
+            self.e[l] = r[l] * is[l] * self.mask[l];
+        }
+        // ml_row: v = Sigma w, z = T v, y = (z - (z.u) u) / |a|, q = T^T y.
+        let mut c = z0;
+        for l in 0..LANES {
+            c[l] = r[l] * is[l] * is[l] * is[l];
+        }
+        let mut z = [z0; 3];
+        for (i, zi) in z.iter_mut().enumerate() {
+            for l in 0..LANES {
+                zi[l] = t[(i, 0)] * (var[0][l] * w[0][l])
+                    + t[(i, 1)] * (var[1][l] * w[1][l])
+                    + t[(i, 2)] * (var[2][l] * w[2][l]);
+            }
+        }
+        let mut zu = z0;
+        for l in 0..LANES {
+            zu[l] =
+                (z[0][l] * a[0][l] + z[1][l] * a[1][l] + z[2][l] * a[2][l]) * inv_n[l] * inv_n[l];
+        }
+        let mut y = [z0; 3];
+        for i in 0..3 {
+            for l in 0..LANES {
+                y[i][l] = (z[i][l] - a[i][l] * zu[l]) * inv_n[l];
+            }
+        }
+        let (mut al, mut be) = ([z0; 3], [z0; 3]);
+        for i in 0..3 {
+            for l in 0..LANES {
+                let q = t[(0, i)] * y[0][l] + t[(1, i)] * y[1][l] + t[(2, i)] * y[2][l];
+                al[i][l] = c[l] * z[i][l] - is[l] * a[i][l];
+                be[i][l] = c[l] * q;
+            }
+        }
+        let m = &self.mask;
+        let row = &mut self.row;
+        let kij = |i: usize, j: usize, l: usize| (w[i][l] * al[j][l] + be[i][l] * a[j][l]) * m[l];
+        for l in 0..LANES {
+            row[0][l] = kij(0, 0, l);
+            row[1][l] = kij(1, 1, l);
+            row[2][l] = kij(2, 2, l);
+            row[3][l] = (be[0][l] - w[0][l] * is[l]) * m[l];
+            row[4][l] = (be[1][l] - w[1][l] * is[l]) * m[l];
+            row[5][l] = (be[2][l] - w[2][l] * is[l]) * m[l];
+        }
+        let (i6, i7, i8) = match model {
+            Model::Lower => ((1, 0), (2, 0), (2, 1)),
+            Model::Upper => ((0, 1), (0, 2), (1, 2)),
+            Model::Diag => return bad > 0.0,
+        };
+        for l in 0..LANES {
+            row[6][l] = kij(i6.0, i6.1, l);
+            row[7][l] = kij(i7.0, i7.1, l);
+            row[8][l] = kij(i8.0, i8.1, l);
+        }
+        bad > 0.0
     }
 }
 
