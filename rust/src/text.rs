@@ -325,6 +325,56 @@ fn parse_simple_decimal(f: &[u8]) -> Option<f64> {
     Some(if neg { -v } else { v })
 }
 
+/// One field of the line `l`, from `a` to the delimiter `d` or the end of the line, scanned
+/// once: the bytes are split and parsed as a plain decimal in the same loop (the fast path of
+/// [`parse_simple_decimal`], the same correctly rounded value). Returns the field's end and
+/// its value; None when the field is not a plain decimal (the general parser then takes it).
+/// A `\r` ending the line ends the field.
+#[inline(always)]
+fn scan_field(l: &[u8], a: usize, d: u8) -> (usize, Option<f64>) {
+    let n = l.len();
+    let mut i = a;
+    let neg = match l.get(i) {
+        Some(b'-') => {
+            i += 1;
+            true
+        }
+        Some(b'+') => {
+            i += 1;
+            false
+        }
+        _ => false,
+    };
+    let mut m: u64 = 0;
+    let mut nd = 0usize;
+    let mut dot: Option<usize> = None;
+    while i < n {
+        let c = l[i];
+        if c.is_ascii_digit() {
+            if nd < 19 {
+                m = m * 10 + u64::from(c - b'0');
+            }
+            nd += 1;
+        } else if c == b'.' && dot.is_none() {
+            dot = Some(i);
+        } else if c == d || (c == b'\r' && i + 1 == n) {
+            break;
+        } else {
+            let end = memchr::memchr(d, &l[i..]).map_or(n, |k| i + k);
+            return (end, None);
+        }
+        i += 1;
+    }
+    if nd == 0 || nd > 15 {
+        return (i, None);
+    }
+    let v = match dot.map(|p| i - p - 1) {
+        Some(k) if k > 0 => m as f64 / POW10[k],
+        _ => m as f64,
+    };
+    (i, Some(if neg { -v } else { v }))
+}
+
 /// Parse a number field (`decimal_comma`: `,` is the decimal mark).
 #[inline]
 fn parse_number(field: &[u8], decimal_comma: bool) -> Option<f64> {
@@ -415,6 +465,20 @@ impl<'a> RowSink<'a> {
         };
         self.row[slot] = v;
         Ok(())
+    }
+
+    /// Store field `index`, already parsed as the plain decimal `v` (its text `f` is used
+    /// only by a column that is not a number).
+    #[inline(always)]
+    fn value(&mut self, index: usize, v: f64, f: &[u8], line: u64) -> RowResult<()> {
+        match self.want.get(index) {
+            Some(&Some((slot, ColumnKind::Number { scale }))) => {
+                self.row[slot] = if scale == 1.0 { v } else { v * scale };
+                Ok(())
+            }
+            Some(&Some(_)) => self.field(index, f, line),
+            _ => Ok(()),
+        }
     }
 
     #[cold]
@@ -511,13 +575,18 @@ fn parse_plain(buf: &[u8], delim: Option<u8>, sink: &mut RowSink<'_>) -> RowResu
             match delim {
                 Some(d) => {
                     let mut a = 0;
-                    for i in memchr::memchr_iter(d, l) {
-                        sink.field(nf, &l[a..i], line)?;
+                    loop {
+                        let (e, v) = scan_field(l, a, d);
+                        match v {
+                            Some(v) => sink.value(nf, v, &l[a..e], line)?,
+                            None => sink.field(nf, &l[a..e], line)?,
+                        }
                         nf += 1;
-                        a = i + 1;
+                        if e >= l.len() || l[e] != d {
+                            break;
+                        }
+                        a = e + 1;
                     }
-                    sink.field(nf, &l[a..], line)?;
-                    nf += 1;
                 }
                 None => {
                     let l = match comment.and_then(|c| memchr::memchr(c, l)) {
@@ -805,13 +874,13 @@ impl Drop for TextStream {
 }
 
 /// Read until `buf` holds at least `target` bytes or the source ends; true at the end.
+/// The bytes go straight into `buf`'s spare capacity (no intermediate chunk, no zeroing).
 fn fill(src: &mut dyn Read, buf: &mut Vec<u8>, target: usize) -> std::io::Result<bool> {
-    let mut chunk = vec![0u8; 1 << 16];
     while buf.len() < target {
-        let want = (target - buf.len()).min(chunk.len());
-        match src.read(&mut chunk[..want]) {
+        let want = (target - buf.len()) as u64;
+        match src.take(want).read_to_end(buf) {
             Ok(0) => return Ok(true),
-            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            Ok(_) => {}
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
             Err(e) => return Err(e),
         }
@@ -1149,6 +1218,73 @@ mod tests {
             "1234567890123456.5",
         ] {
             assert_eq!(parse_simple_decimal(t.as_bytes()), None, "{t}");
+        }
+    }
+
+    #[test]
+    fn one_pass_field_scan_equals_split_then_parse() {
+        // Lines of random plain and non-plain fields: scan_field gives the same field bounds
+        // as splitting on the delimiter, and, when it parses, the value parse_number gives.
+        let pieces = [
+            "1",
+            "-2.5",
+            "+3.25",
+            ".5",
+            "7.",
+            "",
+            "-",
+            " 4",
+            "1e3",
+            "nan",
+            "1.2.3",
+            "12345678901234567",
+            "0.000123456789012",
+            "9,5",
+            "\"6\"",
+            "-0.0",
+            "x",
+        ];
+        let mut s = 5u64;
+        for d in [b',', b';', b'\t', b'|'] {
+            for _ in 0..20_000 {
+                let k = 1 + (lcg(&mut s) * 5.0) as usize;
+                let fields: Vec<&str> = (0..k)
+                    .map(|_| pieces[(lcg(&mut s) * pieces.len() as f64) as usize])
+                    .filter(|f| !f.as_bytes().contains(&d))
+                    .collect();
+                if fields.is_empty() {
+                    continue;
+                }
+                let mut line = fields.join(std::str::from_utf8(&[d]).unwrap());
+                let cr = lcg(&mut s) < 0.3;
+                if cr {
+                    line.push('\r');
+                }
+                let l = line.as_bytes();
+                let mut a = 0;
+                for (j, f) in fields.iter().enumerate() {
+                    let (e, v) = scan_field(l, a, d);
+                    let last = j + 1 == fields.len();
+                    // A field the scan does not parse keeps a line-ending `\r` (as when
+                    // split on the delimiter): the general parser trims it.
+                    let text = if last && cr && v.is_none() && e == l.len() {
+                        &l[a..e - 1]
+                    } else {
+                        &l[a..e]
+                    };
+                    assert_eq!(text, f.as_bytes(), "{line:?} field {j}");
+                    if let Some(v) = v {
+                        let want = parse_number(f.as_bytes(), false).map(f64::to_bits);
+                        assert_eq!(Some(v.to_bits()), want, "{line:?} field {j}");
+                    }
+                    if last {
+                        assert!(e == l.len() || (cr && e + 1 == l.len()), "{line:?}");
+                    } else {
+                        assert_eq!(l[e], d);
+                        a = e + 1;
+                    }
+                }
+            }
         }
     }
 
