@@ -101,6 +101,8 @@ CORRUPTIONS = [
     ("noise-model cov 0.5x", lambda d, _: d["covariance_noise_model"][3].__setitem__(
         3, 0.5 * d["covariance_noise_model"][3][3]), None, "covariance_noise_model"),
     ("chi2_dof negative", _set(["metadata", "chi2_dof"]), -2.0, "chi2_dof"),
+    ("realistic covariance null", _set(["covariance_noise_model"]), None,
+     "covariance_noise_model"),
     ("g NaN", _set(["g"]), NAN, "g"),
     ("g negative", _set(["g"]), -9.8, "g"),
     ("g text", _set(["g"]), "9.8", "g"),

@@ -194,6 +194,8 @@ class TriadModel:
             )
         if realistic == "scaled" and self.covariance_scaled is None:
             raise CalibrationError("realistic='scaled' needs covariance_scaled")
+        if realistic == "noise_model" and self.covariance_noise_model is None:
+            raise CalibrationError("realistic='noise_model' needs covariance_noise_model")
         self.realistic = realistic
         if g is not None:
             if isinstance(g, bool) or not isinstance(g, (int, float, np.floating, np.integer)):
