@@ -333,6 +333,8 @@ def test_diagnose_reads_a_dwell_table(tmp_path: Path) -> None:
 
 
 def test_ctrl_c_during_apply_leaves_the_old_output(tmp_path: Path) -> None:
+    """The recording arrives on stdin and the test holds the rest back, so apply is still
+    running whatever the machine's speed when SIGINT comes."""
     import signal
     import subprocess
     import sys
@@ -341,26 +343,26 @@ def test_ctrl_c_during_apply_leaves_the_old_output(tmp_path: Path) -> None:
     from accelcal import _core
 
     cal = _calibration(tmp_path)
-    rec = tmp_path / "long.csv"
-    n = 3_000_000
-    with open(rec, "wb") as f:
-        f.write(b"t,ax,ay,az\n")
-        for a in range(0, n, 500_000):
-            i = np.arange(a, a + 500_000, dtype=np.float64)
-            x = np.column_stack([33000 + i % 7, 33200 - i % 5, 36400 + i % 3])
-            f.write(_core.format_rows(x, i / 100.0))
+    i = np.arange(500_000, dtype=np.float64)
+    x = np.column_stack([33000 + i % 7, 33200 - i % 5, 36400 + i % 3])
+    first = b"t,ax,ay,az\n" + _core.format_rows(x, i / 100.0)
     out = tmp_path / "out.npy"
     np.save(out, np.zeros((2, 4)))
     before = out.read_bytes()
     code = "import sys; from accelcal.cli import main; main(sys.argv[1:])"
-    p = subprocess.Popen([sys.executable, "-c", code, "apply", str(cal), str(rec), "-o",
-                          str(out), "--chunk-rows", "20000"], stderr=subprocess.DEVNULL)
+    p = subprocess.Popen([sys.executable, "-c", code, "apply", str(cal), "-", "--fs", "100",
+                          "-o", str(out), "--chunk-rows", "20000"],
+                         stdin=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    assert p.stdin is not None
+    p.stdin.write(first)
+    p.stdin.flush()
     deadline = time.monotonic() + 60
     while not any(q.name.startswith(".accelcal-tmp-out.npy") for q in tmp_path.iterdir()):
         assert p.poll() is None and time.monotonic() < deadline, "apply ended too soon"
         time.sleep(0.01)
-    time.sleep(0.2)
     p.send_signal(signal.SIGINT)
+    time.sleep(0.2)
+    p.stdin.close()  # the rest of the recording never comes
     assert p.wait(timeout=60) != 0
     assert out.read_bytes() == before
     assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []

@@ -791,8 +791,9 @@ impl TextStream {
             opts.parallel
         };
         let block_bytes = opts.block_bytes.max(1);
-        // Blocks in flight: `par` parse jobs queued or running, one being handed over.
-        let (tx, jobs) = sync_channel(par);
+        // Blocks in flight: up to 2 par + 1 parse jobs queued or running (the reader keeps
+        // reading while the oldest block is handed over, so no parser waits for it).
+        let (tx, jobs) = sync_channel(2 * par + 1);
         let stop = Arc::new(AtomicBool::new(false));
         let stop2 = Arc::clone(&stop);
         let Source::Reader(reader) = source;
