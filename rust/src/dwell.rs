@@ -1898,12 +1898,7 @@ mod tests {
     use crate::error::CoreError;
     use ndarray::Array2;
 
-    fn lcg(seed: &mut u64) -> f64 {
-        *seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
-    }
+    use crate::test_rng::unit as lcg;
 
     fn gauss(seed: &mut u64) -> f64 {
         let (u, v) = (lcg(seed).max(1e-300), lcg(seed));

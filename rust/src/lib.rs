@@ -15,3 +15,15 @@ pub mod text;
 mod py;
 
 pub use error::{CoreError, Result};
+
+/// Deterministic pseudo-random numbers for the unit tests (one 64-bit LCG).
+#[cfg(test)]
+pub(crate) mod test_rng {
+    /// The next number of the sequence at `seed`, uniform in [0, 1).
+    pub fn unit(seed: &mut u64) -> f64 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+}

@@ -1619,12 +1619,7 @@ mod tests {
     #[test]
     fn small_symmetric_eigenvalues_and_cholesky_match_nalgebra() {
         let mut seed = 0x1234_5678_u64;
-        let mut rnd = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64) / ((1u64 << 53) as f64) - 0.5
-        };
+        let mut rnd = || crate::test_rng::unit(&mut seed) - 0.5;
         for n in [1usize, 2, 3, 9, 12, 13, 24, 30] {
             let b = DMatrix::<f64>::from_fn(n + 3, n, |_, _| rnd());
             let a = b.transpose() * &b;

@@ -1055,12 +1055,7 @@ mod tests {
     use crate::dwell::{DetectorSettings, DwellAccumulator};
     use ndarray::{Array2, ArrayView2};
 
-    fn lcg(seed: &mut u64) -> f64 {
-        *seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
-    }
+    use crate::test_rng::unit as lcg;
 
     fn num(i: usize) -> Column {
         Column {

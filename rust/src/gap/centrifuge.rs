@@ -246,9 +246,6 @@ impl GapModel for CentrifugeModel {
     fn unavailable(&self, c: usize) -> Option<Status> {
         (c <= 1 && self.inp.spin_axis.is_none()).then_some(Status::NoSpinAxis)
     }
-    fn group(&self, row: usize) -> usize {
-        row
-    }
     fn noise_known(&self) -> bool {
         self.noise_known
     }

@@ -49,8 +49,11 @@ pub trait GapModel: Sync {
     fn dictionary(&self) -> &[EffectInfo];
     /// Why effect `c` cannot be tested on this session (`None`: it can).
     fn unavailable(&self, c: usize) -> Option<Status>;
-    /// Held-out group of a row (rows of one group are left out together).
-    fn group(&self, row: usize) -> usize;
+    /// Held-out group of a row (rows of one group are left out together); by default each
+    /// row is its own group.
+    fn group(&self, row: usize) -> usize {
+        row
+    }
     /// Whether the noise level is known (otherwise it is estimated from the baseline fit).
     fn noise_known(&self) -> bool;
     /// Whitened residuals `e` and Jacobian `de/dp` of `rows` at `p` with `active` effects.

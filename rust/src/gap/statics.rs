@@ -524,9 +524,6 @@ impl GapModel for StaticModel {
             _ => None,
         }
     }
-    fn group(&self, row: usize) -> usize {
-        row
-    }
     fn noise_known(&self) -> bool {
         self.noise_known
     }

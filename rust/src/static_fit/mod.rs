@@ -759,10 +759,7 @@ pub(crate) mod tests_common {
 
     /// Deterministic pseudo-random numbers in [-1, 1].
     pub fn lcg(seed: &mut u64) -> f64 {
-        *seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        crate::test_rng::unit(seed) * 2.0 - 1.0
     }
 
     /// Gravity seen at tilts (tx, ty): `[-g sin ty, g sin tx cos ty, g cos tx cos ty]`.
