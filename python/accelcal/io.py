@@ -1478,6 +1478,10 @@ def _stream_dwells(
 
     cr = None if chunk_rows is None else _chunk_rows(chunk_rows)
     rec = _Recording(path, columns, fs, time_column)
+    if rec.text is not None:
+        # Text arrives in blocks of a few MB already: pushed as they come (the result does
+        # not depend on the chunking), with no copy into chunks of exactly chunk_rows rows.
+        cr = None
     if bounds is None and rec.fs is None:
         raise CalibrationError(
             f"{rec.path}: the sample rate is unknown (no rate metadata or time column); "

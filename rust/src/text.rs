@@ -14,7 +14,7 @@
 use crate::error::{invalid, CoreError, Result};
 use rayon::prelude::*;
 use std::io::Read;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
 use std::sync::Arc;
 use std::time::Duration;
@@ -375,6 +375,268 @@ fn scan_field(l: &[u8], a: usize, d: u8) -> (usize, Option<f64>) {
     (i, Some(if neg { -v } else { v }))
 }
 
+const ONES: u64 = 0x0101_0101_0101_0101;
+
+/// Eight bytes of `b` from `p` as a little-endian word (the first byte lowest), if there.
+#[inline(always)]
+fn load8(b: &[u8], p: usize) -> Option<u64> {
+    let s: [u8; 8] = b.get(p..p.checked_add(8)?)?.try_into().ok()?;
+    Some(u64::from_le_bytes(s))
+}
+
+/// The bytes of `x` (ASCII already xor-ed with `'0'`) that are not digits: their high bit set.
+#[inline(always)]
+fn non_digits(x: u64) -> u64 {
+    (((x & (0x7f * ONES)) + (0x76 * ONES)) | x) & (0x80 * ONES)
+}
+
+/// The integer written by the first `n` (1..=8) bytes of `x` (digit values 0..=9, the first
+/// byte the most significant): eight digits at once (the SWAR method of fast_float).
+#[inline(always)]
+fn swar_digits(x: u64, n: usize) -> u64 {
+    // The n digits moved to the top bytes; the bytes below become leading zeros.
+    let v = x << (8 * (8 - n));
+    let v = v.wrapping_mul(10).wrapping_add(v >> 8);
+    let m = 0x0000_00ff_0000_00ff;
+    let a = (v & m).wrapping_mul(100 + (1_000_000 << 32));
+    let b = ((v >> 16) & m).wrapping_mul(1 + (10_000 << 32));
+    a.wrapping_add(b) >> 32
+}
+
+/// Bit `i` set when `w[i]` is the delimiter `d` or `\n`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn sep_mask64(w: &[u8; 64], d: u8) -> u64 {
+    use std::arch::x86_64::{
+        __m128i, _mm_cmpeq_epi8, _mm_loadu_si128, _mm_movemask_epi8, _mm_or_si128, _mm_set1_epi8,
+    };
+    let mut m = 0u64;
+    // SAFETY: SSE2 is part of every x86_64 CPU; each `part` holds 16 bytes, which an
+    // unaligned load reads exactly.
+    unsafe {
+        let vd = _mm_set1_epi8(d as i8);
+        let vn = _mm_set1_epi8(b'\n' as i8);
+        for (k, part) in w.chunks_exact(16).enumerate() {
+            let v = _mm_loadu_si128(part.as_ptr().cast::<__m128i>());
+            let e = _mm_or_si128(_mm_cmpeq_epi8(v, vd), _mm_cmpeq_epi8(v, vn));
+            m |= u64::from(_mm_movemask_epi8(e) as u16) << (16 * k);
+        }
+    }
+    m
+}
+
+/// Bit `i` set when `w[i]` is the delimiter `d` or `\n`.
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+fn sep_mask64(w: &[u8; 64], d: u8) -> u64 {
+    let mut m = 0u64;
+    for (i, &c) in w.iter().enumerate() {
+        m |= u64::from(c == d || c == b'\n') << i;
+    }
+    m
+}
+
+/// The positions of the delimiter and of `\n` in a block, in order, found 64 bytes at a time
+/// (so that finding where a field ends does not wait for the previous field's parse).
+struct Seps<'a> {
+    buf: &'a [u8],
+    d: u8,
+    /// Start of the window `mask` describes.
+    base: usize,
+    /// Separators of the window not yet returned (bit `i`: `buf[base + i]`).
+    mask: u64,
+}
+
+impl<'a> Seps<'a> {
+    fn new(buf: &'a [u8], d: u8, from: usize) -> Self {
+        let mut s = Seps {
+            buf,
+            d,
+            base: from,
+            mask: 0,
+        };
+        s.seek(from);
+        s
+    }
+
+    /// Go on from position `from`.
+    fn seek(&mut self, from: usize) {
+        self.base = from;
+        self.mask = self.window(from);
+    }
+
+    fn window(&self, base: usize) -> u64 {
+        match self.buf.get(base..base.saturating_add(64)) {
+            Some(w) => match <&[u8; 64]>::try_from(w) {
+                Ok(w) => sep_mask64(w, self.d),
+                Err(_) => 0,
+            },
+            None => {
+                let rest = self.buf.get(base..).unwrap_or_default();
+                let mut a = [0u8; 64];
+                a[..rest.len()].copy_from_slice(rest);
+                // Only the bytes that are there (the padding could equal the delimiter).
+                sep_mask64(&a, self.d) & ((1u64 << rest.len()) - 1)
+            }
+        }
+    }
+
+    /// The next separator's position, None at the end of the block.
+    #[inline(always)]
+    fn next(&mut self) -> Option<usize> {
+        while self.mask == 0 {
+            self.base += 64;
+            if self.base >= self.buf.len() {
+                return None;
+            }
+            self.mask = self.window(self.base);
+        }
+        let i = self.mask.trailing_zeros() as usize;
+        self.mask &= self.mask - 1;
+        Some(self.base + i)
+    }
+}
+
+/// The plain decimal `buf[a..e]` (sign, at most 7 digits, optionally `.` and at most 7 more
+/// digits), read eight bytes at a time: the same value as [`scan_field`] (the same integer of
+/// digits over the same power of ten). None for anything else, which [`scan_field`] then
+/// takes. Needs 17 bytes of `buf` from `a` (None otherwise).
+#[inline(always)]
+fn parse_span(buf: &[u8], a: usize, e: usize) -> Option<f64> {
+    // Branch-free sign (random signs would defeat the branch predictor).
+    let c0 = *buf.get(a)?;
+    let neg = c0 == b'-';
+    let s = a + usize::from(neg | (c0 == b'+'));
+    let len = e.checked_sub(s)?;
+    let zero = 0x30 * ONES;
+    let x = load8(buf, s)? ^ zero;
+    let n1 = (non_digits(x).trailing_zeros() / 8) as usize;
+    if n1 > 7 {
+        return None;
+    }
+    let (m, n2) = if n1 == len {
+        if n1 == 0 {
+            return None;
+        }
+        (swar_digits(x, n1), 0)
+    } else {
+        // A '.' after the integer digits, then digits only up to the end.
+        if n1 > len || len - n1 > 8 || (x >> (8 * n1)) as u8 != b'.' ^ b'0' {
+            return None;
+        }
+        let n2 = len - n1 - 1;
+        let xf = load8(buf, s + n1 + 1)? ^ zero;
+        if non_digits(xf) & ((1u64 << (8 * n2)) - 1) != 0 {
+            return None;
+        }
+        let nd = n1 + n2;
+        let m = if nd == 0 {
+            return None;
+        } else if nd <= 8 {
+            // Both parts in one word (the '.' taken out): one conversion.
+            swar_digits((x & ((1u64 << (8 * n1)) - 1)) | (xf << (8 * n1)), nd)
+        } else {
+            swar_digits(x, n1) * POW10_U64[n2] + swar_digits(xf, n2)
+        };
+        (m, n2)
+    };
+    // m < 10^14: exact as an i64 and as a double (the signed conversion is one instruction).
+    let mf = m as i64 as f64;
+    // mf / 10^n2 >= 0: setting the sign bit negates it (-0.0 for "-0"), without a branch.
+    let v = (mf / POW10[n2]).to_bits() | (u64::from(neg) << 63);
+    Some(f64::from_bits(v))
+}
+
+/// [`parse_span`] with SSE4.1: the field's 16 bytes checked and converted in vector
+/// registers (digits found by compare, the '.' dropped and the digits right-aligned by one
+/// byte shuffle, converted by multiply-adds), up to 15 digits. The same value: the same
+/// integer of digits over the same power of ten.
+#[cfg(target_arch = "x86_64")]
+mod sse41 {
+    use super::POW10;
+    use std::arch::x86_64::{
+        __m128i, _mm_cmpeq_epi8, _mm_cvtsi128_si64, _mm_loadu_si128, _mm_madd_epi16,
+        _mm_maddubs_epi16, _mm_min_epu8, _mm_movemask_epi8, _mm_packus_epi32, _mm_set1_epi8,
+        _mm_setr_epi16, _mm_setr_epi8, _mm_shuffle_epi8, _mm_sub_epi8,
+    };
+
+    /// `SHUF[n1][nd]`: the shuffle that right-aligns `nd` digits in 16 bytes, taken from the
+    /// field's bytes in order but for the byte at `n1` (the '.'); 0x80 gives a zero byte.
+    static SHUF: [[[u8; 16]; 16]; 16] = {
+        let mut t = [[[0x80u8; 16]; 16]; 16];
+        let mut n1 = 0;
+        while n1 < 16 {
+            let mut nd = 1;
+            while nd < 16 {
+                let mut i = 0;
+                while i < nd {
+                    let src = if i < n1 { i } else { i + 1 };
+                    t[n1][nd][16 - nd + i] = src as u8;
+                    i += 1;
+                }
+                nd += 1;
+            }
+            n1 += 1;
+        }
+        t
+    };
+
+    /// The plain decimal `buf[a..e]`: sign, digits with at most one '.', at most 15 digits
+    /// and 16 bytes after the sign. Needs 17 bytes of `buf` from `a` (None otherwise).
+    ///
+    /// # Safety
+    /// The CPU must have SSE4.1.
+    #[inline]
+    #[target_feature(enable = "sse4.1")]
+    pub(super) unsafe fn span(buf: &[u8], a: usize, e: usize) -> Option<f64> {
+        let c0 = *buf.get(a)?;
+        let neg = c0 == b'-';
+        let s = a + usize::from(neg | (c0 == b'+'));
+        let len = e.checked_sub(s)?;
+        let w: &[u8; 16] = buf.get(s..s + 16)?.try_into().ok()?;
+        if len == 0 || len > 16 {
+            return None;
+        }
+        // SAFETY: `w` holds 16 bytes, which an unaligned load reads exactly.
+        let v = unsafe { _mm_loadu_si128(w.as_ptr().cast::<__m128i>()) };
+        let d = _mm_sub_epi8(v, _mm_set1_epi8(b'0' as i8));
+        let digit = _mm_movemask_epi8(_mm_cmpeq_epi8(_mm_min_epu8(d, _mm_set1_epi8(9)), d)) as u32;
+        let dot = _mm_movemask_epi8(_mm_cmpeq_epi8(v, _mm_set1_epi8(b'.' as i8))) as u32;
+        let within = (1u32 << len) - 1;
+        let other = !digit & within;
+        // Every byte a digit but for at most one '.'.
+        if other != dot & within || other & other.wrapping_sub(1) != 0 {
+            return None;
+        }
+        let has_dot = usize::from(other != 0);
+        let n1 = (other | (1 << len)).trailing_zeros() as usize;
+        let nd = len - has_dot;
+        if nd == 0 || nd > 15 {
+            return None;
+        }
+        let n2 = (len - n1).saturating_sub(1);
+        let shuf = SHUF.get(n1.min(15))?.get(nd)?;
+        // SAFETY: `shuf` holds 16 bytes.
+        let mask = unsafe { _mm_loadu_si128(shuf.as_ptr().cast::<__m128i>()) };
+        let x = _mm_shuffle_epi8(d, mask);
+        let x = _mm_maddubs_epi16(
+            x,
+            _mm_setr_epi8(10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1),
+        );
+        let x = _mm_madd_epi16(x, _mm_setr_epi16(100, 1, 100, 1, 100, 1, 100, 1));
+        let x = _mm_packus_epi32(x, x);
+        let x = _mm_madd_epi16(x, _mm_setr_epi16(10000, 1, 10000, 1, 0, 0, 0, 0));
+        let q = _mm_cvtsi128_si64(x) as u64;
+        let m = (q & 0xffff_ffff) * 100_000_000 + (q >> 32);
+        // m < 10^15: exact as an i64 and as a double.
+        let mf = m as i64 as f64;
+        let v = (mf / POW10[n2]).to_bits() | (u64::from(neg) << 63);
+        Some(f64::from_bits(v))
+    }
+}
+
+const POW10_U64: [u64; 8] = [1, 10, 100, 1000, 10_000, 100_000, 1_000_000, 10_000_000];
+
 /// Parse a number field (`decimal_comma`: `,` is the decimal mark).
 #[inline]
 fn parse_number(field: &[u8], decimal_comma: bool) -> Option<f64> {
@@ -399,60 +661,140 @@ fn parse_number(field: &[u8], decimal_comma: bool) -> Option<f64> {
     None
 }
 
-/// Converts the fields of one row at a time into the output groups.
-struct RowSink<'a> {
-    layout: &'a TextLayout,
-    /// Per field index: where its value goes in `row` and how to convert it.
-    want: Vec<Option<(usize, ColumnKind)>>,
-    /// `row[offsets[g]..offsets[g + 1]]` is group `g` of the current row.
-    offsets: Vec<usize>,
-    row: Vec<f64>,
-    out: Vec<Vec<f64>>,
-    rows: usize,
-    repeats: u64,
-    max_rows: usize,
+/// Where one wanted field of a row goes: element `row * k + j` of output group `g`.
+#[derive(Debug, Clone, Copy)]
+struct Dest {
+    g: usize,
+    k: usize,
+    j: usize,
+    kind: ColumnKind,
 }
 
-impl<'a> RowSink<'a> {
-    fn new(layout: &'a TextLayout, rows_hint: usize, max_rows: usize) -> Self {
+/// A wanted number column of a row stored whole: field `field` goes where `dest` says, times
+/// `scale`.
+#[derive(Debug, Clone, Copy)]
+struct Planned {
+    field: usize,
+    dest: Dest,
+    scale: f64,
+}
+
+/// Converts the fields of one row at a time straight into the output groups: preallocated
+/// row-major windows (`rows * group.len()` values each), of a block's own arrays or of the
+/// final arrays of a whole file.
+struct RowSink<'a, 'o> {
+    layout: &'a TextLayout,
+    /// Per field index: where its value goes and how to convert it.
+    want: Vec<Option<Dest>>,
+    out: Vec<&'o mut [f64]>,
+    /// Width of the first group (repeated samples compare it).
+    k0: usize,
+    rows: usize,
+    repeats: u64,
+    /// Rows to read at most (no more than the windows hold).
+    max_rows: usize,
+    /// The first group of the row last stored (repeated samples).
+    prev0: Vec<f64>,
+    /// When every wanted column is a number: where each goes, for rows stored whole
+    /// ([`RowSink::put_row`]).
+    plan: Option<Vec<Planned>>,
+}
+
+impl<'a, 'o> RowSink<'a, 'o> {
+    /// A sink writing into `out` (one window per group of `layout`), at most `max_rows` rows;
+    /// the windows hold at least that many rows.
+    fn new(layout: &'a TextLayout, out: Vec<&'o mut [f64]>, max_rows: usize) -> Self {
         let mut want = vec![None; layout.ncols];
-        let mut offsets = vec![0];
-        let mut slot = 0;
-        for g in &layout.groups {
-            for c in g {
-                want[c.index] = Some((slot, c.kind));
-                slot += 1;
+        for (g, cols) in layout.groups.iter().enumerate() {
+            for (j, c) in cols.iter().enumerate() {
+                want[c.index] = Some(Dest {
+                    g,
+                    k: cols.len(),
+                    j,
+                    kind: c.kind,
+                });
             }
-            offsets.push(slot);
         }
-        let out = layout
+        let room = layout
             .groups
             .iter()
-            .map(|g| Vec::with_capacity(rows_hint * g.len()))
+            .zip(&out)
+            .filter(|(cols, _)| !cols.is_empty())
+            .map(|(cols, w)| w.len() / cols.len())
+            .min()
+            .unwrap_or(usize::MAX);
+        let plan = want
+            .iter()
+            .enumerate()
+            .filter_map(|(f, w)| w.map(|d| (f, d)))
+            .map(|(field, dest)| match dest.kind {
+                ColumnKind::Number { scale } => Some(Planned { field, dest, scale }),
+                ColumnKind::Iso8601 { .. } => None,
+            })
             .collect();
         RowSink {
             layout,
             want,
-            offsets,
-            row: vec![0.0; slot],
             out,
+            k0: layout.groups.first().map_or(0, Vec::len),
             rows: 0,
             repeats: 0,
-            max_rows,
+            max_rows: max_rows.min(room),
+            prev0: vec![0.0; layout.groups.first().map_or(0, Vec::len)],
+            plan,
         }
+    }
+
+    /// Store a whole row of parsed fields (`vals[i]` is field `i`; as many as the rows
+    /// have), all wanted columns being numbers (`plan`), and count it.
+    #[inline(always)]
+    fn put_row(&mut self, plan: &[Planned], vals: &[f64]) {
+        let r = self.rows;
+        // Whether the first group repeats the previous row's (kept in `prev0`).
+        let mut same = r > 0 && self.k0 > 0;
+        for p in plan {
+            let Dest { g, k, j, .. } = p.dest;
+            let scale = p.scale;
+            let v = vals.get(p.field).copied().unwrap_or_default();
+            let v = if scale == 1.0 { v } else { v * scale };
+            if g == 0 {
+                if let Some(p) = self.prev0.get_mut(j) {
+                    same &= *p == v;
+                    *p = v;
+                }
+            }
+            if let Some(x) = self.out.get_mut(g).and_then(|w| w.get_mut(r * k + j)) {
+                *x = v;
+            }
+        }
+        self.repeats += u64::from(same);
+        self.rows += 1;
     }
 
     fn full(&self) -> bool {
         self.rows >= self.max_rows
     }
 
+    /// Store `v` where `d` says, in the current row (which is within the windows: rows are
+    /// only started while the sink is not full).
+    #[inline(always)]
+    fn put(&mut self, d: Dest, v: f64) {
+        if let Some(x) = self
+            .out
+            .get_mut(d.g)
+            .and_then(|w| w.get_mut(self.rows * d.k + d.j))
+        {
+            *x = v;
+        }
+    }
+
     /// Convert field `index` of the current row (ignored unless it is wanted).
     #[inline(always)]
     fn field(&mut self, index: usize, f: &[u8], line: u64) -> RowResult<()> {
-        let Some(&Some((slot, kind))) = self.want.get(index) else {
+        let Some(&Some(d)) = self.want.get(index) else {
             return Ok(());
         };
-        let v = match kind {
+        let v = match d.kind {
             ColumnKind::Number { scale } => match parse_number(f, self.layout.decimal_comma) {
                 Some(v) if scale == 1.0 => v,
                 Some(v) => v * scale,
@@ -463,7 +805,7 @@ impl<'a> RowSink<'a> {
                 None => return Err(self.bad(index, f, line)),
             },
         };
-        self.row[slot] = v;
+        self.put(d, v);
         Ok(())
     }
 
@@ -471,12 +813,28 @@ impl<'a> RowSink<'a> {
     /// only by a column that is not a number).
     #[inline(always)]
     fn value(&mut self, index: usize, v: f64, f: &[u8], line: u64) -> RowResult<()> {
+        self.value_in(index, v, f, 0, f.len(), line)
+    }
+
+    /// [`RowSink::value`] for the field `text[a..e]` (sliced only when it is needed).
+    #[inline(always)]
+    fn value_in(
+        &mut self,
+        index: usize,
+        v: f64,
+        text: &[u8],
+        a: usize,
+        e: usize,
+        line: u64,
+    ) -> RowResult<()> {
         match self.want.get(index) {
-            Some(&Some((slot, ColumnKind::Number { scale }))) => {
-                self.row[slot] = if scale == 1.0 { v } else { v * scale };
-                Ok(())
-            }
-            Some(&Some(_)) => self.field(index, f, line),
+            Some(&Some(d)) => match d.kind {
+                ColumnKind::Number { scale } => {
+                    self.put(d, if scale == 1.0 { v } else { v * scale });
+                    Ok(())
+                }
+                _ => self.field(index, text.get(a..e).unwrap_or_default(), line),
+            },
             _ => Ok(()),
         }
     }
@@ -485,7 +843,7 @@ impl<'a> RowSink<'a> {
     fn bad(&self, index: usize, f: &[u8], line: u64) -> RowError {
         let lay = self.layout;
         let f = trim(f);
-        let what = match self.want[index].map(|w| w.1) {
+        let what = match self.want[index].map(|w| w.kind) {
             Some(ColumnKind::Iso8601 { .. }) => {
                 format!("{} is not an ISO-8601 date and time", show(f))
             }
@@ -509,38 +867,38 @@ impl<'a> RowSink<'a> {
     /// Finish the current row, which had `nfields` fields.
     #[inline(always)]
     fn end_row(&mut self, nfields: usize, line: u64) -> RowResult<()> {
-        let ncols = self.layout.ncols;
-        if nfields != ncols {
-            return Err(RowError {
-                line,
-                msg: format!(
-                    "{nfields} field{} where the data rows have {ncols}",
-                    if nfields == 1 { "" } else { "s" },
-                ),
-            });
+        if nfields != self.layout.ncols {
+            return Err(self.ragged(nfields, line));
         }
-        for (g, out) in self.out.iter_mut().enumerate() {
-            let vals = &self.row[self.offsets[g]..self.offsets[g + 1]];
-            if g == 0 && self.rows > 0 {
-                let n = out.len();
-                let k = vals.len();
-                if k > 0 && out[n - k..] == *vals {
-                    self.repeats += 1;
-                }
-            }
-            out.extend_from_slice(vals);
-        }
-        self.rows += 1;
+        self.count_row();
         Ok(())
     }
 
-    fn finish(self, bytes: usize, lines: u64) -> Block {
-        Block {
-            values: self.out,
-            rows: self.rows,
-            bytes,
-            lines,
-            repeats: self.repeats,
+    /// Count the row just stored, and whether it repeats the one before.
+    #[inline(always)]
+    fn count_row(&mut self) {
+        let (r, k) = (self.rows, self.k0);
+        if let Some(cur) = self.out.first().and_then(|w| w.get(r * k..(r + 1) * k)) {
+            // Element by element: a few values, which memcmp/memcpy calls would cost more for.
+            let mut same = r > 0 && k > 0;
+            for (p, &c) in self.prev0.iter_mut().zip(cur) {
+                same &= *p == c;
+                *p = c;
+            }
+            self.repeats += u64::from(same);
+        }
+        self.rows += 1;
+    }
+
+    #[cold]
+    fn ragged(&self, nfields: usize, line: u64) -> RowError {
+        let ncols = self.layout.ncols;
+        RowError {
+            line,
+            msg: format!(
+                "{nfields} field{} where the data rows have {ncols}",
+                if nfields == 1 { "" } else { "s" },
+            ),
         }
     }
 }
@@ -560,10 +918,35 @@ fn skip_line(buf: &[u8], pos: usize, comment: Option<u8>) -> bool {
     }
 }
 
+/// The fields of one line `l` (no `\n`) split on the delimiter `d`, each scanned once.
+#[inline]
+fn scan_line(l: &[u8], d: u8, line: u64, sink: &mut RowSink<'_, '_>) -> RowResult<()> {
+    let mut nf = 0;
+    let mut a = 0;
+    loop {
+        let (e, v) = scan_field(l, a, d);
+        match v {
+            Some(v) => sink.value(nf, v, &l[a..e], line)?,
+            None => sink.field(nf, &l[a..e], line)?,
+        }
+        nf += 1;
+        if e >= l.len() || l[e] != d {
+            break;
+        }
+        a = e + 1;
+    }
+    sink.end_row(nf, line)
+}
+
 /// Rows split on a delimiter byte, or on runs of spaces and tabs (`delim` None), for text
-/// without quote characters (quoted fields go through csv-core). Blank lines and comment
-/// lines are skipped; in whitespace mode a comment byte also ends a line's data.
-fn parse_plain(buf: &[u8], delim: Option<u8>, sink: &mut RowSink<'_>) -> RowResult<(usize, u64)> {
+/// without quote characters (quoted fields go through csv-core), a line at a time. Blank lines
+/// and comment lines are skipped; in whitespace mode a comment byte also ends a line's data.
+/// (Delimited text takes [`parse_seps`]; this line-by-line form is its reference in the tests.)
+fn parse_plain(
+    buf: &[u8],
+    delim: Option<u8>,
+    sink: &mut RowSink<'_, '_>,
+) -> RowResult<(usize, u64)> {
     let comment = sink.layout.comment;
     let mut pos = 0;
     let mut line = 0u64;
@@ -571,28 +954,14 @@ fn parse_plain(buf: &[u8], delim: Option<u8>, sink: &mut RowSink<'_>) -> RowResu
         let end = memchr::memchr(b'\n', &buf[pos..]).map_or(buf.len(), |i| pos + i);
         if !skip_line(buf, pos, comment) {
             let l = &buf[pos..end];
-            let mut nf = 0;
             match delim {
-                Some(d) => {
-                    let mut a = 0;
-                    loop {
-                        let (e, v) = scan_field(l, a, d);
-                        match v {
-                            Some(v) => sink.value(nf, v, &l[a..e], line)?,
-                            None => sink.field(nf, &l[a..e], line)?,
-                        }
-                        nf += 1;
-                        if e >= l.len() || l[e] != d {
-                            break;
-                        }
-                        a = e + 1;
-                    }
-                }
+                Some(d) => scan_line(l, d, line, sink)?,
                 None => {
                     let l = match comment.and_then(|c| memchr::memchr(c, l)) {
                         Some(i) => &l[..i],
                         None => l,
                     };
+                    let mut nf = 0;
                     let mut i = 0;
                     while i < l.len() {
                         while i < l.len() && l[i].is_ascii_whitespace() {
@@ -608,10 +977,10 @@ fn parse_plain(buf: &[u8], delim: Option<u8>, sink: &mut RowSink<'_>) -> RowResu
                         sink.field(nf, &l[a..i], line)?;
                         nf += 1;
                     }
+                    if nf > 0 {
+                        sink.end_row(nf, line)?;
+                    }
                 }
-            }
-            if nf > 0 {
-                sink.end_row(nf, line)?;
             }
         }
         if end < buf.len() {
@@ -624,7 +993,170 @@ fn parse_plain(buf: &[u8], delim: Option<u8>, sink: &mut RowSink<'_>) -> RowResu
     Ok((pos, line))
 }
 
-fn parse_delimited(buf: &[u8], delim: u8, sink: &mut RowSink<'_>) -> RowResult<(usize, u64)> {
+/// Rows split on the delimiter byte `d`, for text without quote characters: the same rows,
+/// values and errors as [`parse_plain`], faster. The separators are found 64 bytes at a
+/// time ([`Seps`]) and plain decimals read eight bytes at a time ([`parse_span`]); any other
+/// field goes through [`scan_field`] and the general parser, and a line that does not start
+/// like a number (blank, comment, leading blanks) through [`scan_line`].
+fn parse_seps(buf: &[u8], d: u8, sink: &mut RowSink<'_, '_>) -> RowResult<(usize, u64)> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("sse4.1") {
+        // SAFETY: the CPU has SSE4.1.
+        return unsafe { parse_seps_sse41(buf, d, sink) };
+    }
+    parse_seps_with::<false>(buf, d, sink)
+}
+
+/// Fields per row that [`fast_row`] takes.
+const ROW_MAX: usize = 16;
+
+/// The line at `pos` when it is plain decimals separated by the delimiter and ended by `\n`
+/// (or `\r\n`), each parsed into `vals`: the next line's start and the field count. None
+/// for anything else (the general scan then takes the line).
+#[inline(always)]
+fn fast_row<const SSE: bool>(
+    buf: &[u8],
+    pos: usize,
+    fast_end: usize,
+    seps: &mut Seps<'_>,
+    vals: &mut [f64; ROW_MAX],
+) -> Option<(usize, usize)> {
+    let mut a = pos;
+    let mut f = 0;
+    loop {
+        if a >= fast_end || f >= ROW_MAX {
+            return None;
+        }
+        let e = seps.next()?;
+        let nl = *buf.get(e)? == b'\n';
+        let fe = if nl && e > a && buf[e - 1] == b'\r' {
+            e - 1
+        } else {
+            e
+        };
+        vals[f] = span::<SSE>(buf, a, fe)?;
+        f += 1;
+        if nl {
+            return Some((e + 1, f));
+        }
+        a = e + 1;
+    }
+}
+
+/// [`parse_seps`] compiled for SSE4.1.
+///
+/// # Safety
+/// The CPU must have SSE4.1.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "sse4.1")]
+unsafe fn parse_seps_sse41(
+    buf: &[u8],
+    d: u8,
+    sink: &mut RowSink<'_, '_>,
+) -> RowResult<(usize, u64)> {
+    parse_seps_with::<true>(buf, d, sink)
+}
+
+/// The one plain decimal `buf[a..e]`, by [`sse41::span`] when `SSE` (the caller runs with
+/// SSE4.1), else by [`parse_span`].
+#[inline(always)]
+fn span<const SSE: bool>(buf: &[u8], a: usize, e: usize) -> Option<f64> {
+    #[cfg(target_arch = "x86_64")]
+    if SSE {
+        // SAFETY: `SSE` is true only in code compiled for and run on SSE4.1 CPUs.
+        return unsafe { sse41::span(buf, a, e) };
+    }
+    parse_span(buf, a, e)
+}
+
+#[inline(always)]
+fn parse_seps_with<const SSE: bool>(
+    buf: &[u8],
+    d: u8,
+    sink: &mut RowSink<'_, '_>,
+) -> RowResult<(usize, u64)> {
+    let n = buf.len();
+    let comment = sink.layout.comment;
+    // parse_span reads up to 17 bytes from a field's start.
+    let fast_end = n.saturating_sub(17);
+    let mut seps = Seps::new(buf, d, 0);
+    let mut pos = 0;
+    let mut line = 0u64;
+    // Rows of numbers only, stored whole: fields parsed into `vals` first.
+    let plan = sink.plan.take().filter(|_| sink.layout.ncols <= ROW_MAX);
+    let mut vals = [0.0f64; ROW_MAX];
+    while pos < n && !sink.full() {
+        if let Some(plan) = &plan {
+            if let Some(next) = fast_row::<SSE>(buf, pos, fast_end, &mut seps, &mut vals) {
+                if next.1 == sink.layout.ncols {
+                    sink.put_row(plan, &vals);
+                    line += 1;
+                    pos = next.0;
+                    continue;
+                }
+            }
+            // Not a plain row: the general scan below takes it from its start.
+            seps.seek(pos);
+        }
+        if !matches!(buf[pos], b'0'..=b'9' | b'-' | b'+' | b'.') {
+            let end = memchr::memchr(b'\n', &buf[pos..]).map_or(n, |i| pos + i);
+            if !skip_line(buf, pos, comment) {
+                scan_line(&buf[pos..end], d, line, sink)?;
+            }
+            if end < n {
+                line += 1;
+                pos = end + 1;
+                seps.seek(pos);
+            } else {
+                pos = n;
+            }
+            continue;
+        }
+        let mut nf = 0;
+        let mut a = pos;
+        let end = loop {
+            let e = seps.next().unwrap_or(n);
+            let eol = e >= n || buf[e] == b'\n';
+            // A `\r` before the `\n` ends the last field.
+            let fe = if eol && e > a && buf[e - 1] == b'\r' {
+                e - 1
+            } else {
+                e
+            };
+            match if a < fast_end {
+                span::<SSE>(buf, a, fe)
+            } else {
+                None
+            } {
+                Some(v) => sink.value_in(nf, v, buf, a, fe, line)?,
+                None => {
+                    // As scan_line would see it: up to the line's end, or past this delimiter.
+                    let l = &buf[..if eol { e } else { e + 1 }];
+                    let (fe, v) = scan_field(l, a, d);
+                    match v {
+                        Some(v) => sink.value(nf, v, &l[a..fe], line)?,
+                        None => sink.field(nf, &l[a..fe], line)?,
+                    }
+                }
+            }
+            nf += 1;
+            if eol {
+                break e;
+            }
+            a = e + 1;
+        };
+        sink.end_row(nf, line)?;
+        if end < n {
+            line += 1;
+            pos = end + 1;
+        } else {
+            pos = n;
+        }
+    }
+    Ok((pos, line))
+}
+
+fn parse_delimited(buf: &[u8], delim: u8, sink: &mut RowSink<'_, '_>) -> RowResult<(usize, u64)> {
     use csv_core::{ReadRecordResult, ReaderBuilder};
     let mut rdr = ReaderBuilder::new()
         .delimiter(delim)
@@ -711,25 +1243,108 @@ fn locate(e: RowError, first_line: u64) -> CoreError {
 }
 
 fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> RowResult<Block> {
-    // Rough row count for the first allocation: 8 bytes per field.
-    let hint = (buf.len() / (8 * layout.ncols).max(1)).min(max_rows.unwrap_or(usize::MAX));
-    let mut sink = RowSink::new(layout, hint, max_rows.unwrap_or(usize::MAX));
-    let (bytes, lines) = match layout.delimiter {
-        Delimiter::Whitespace => parse_plain(buf, None, &mut sink)?,
+    let cap = row_bound(buf).min(max_rows.unwrap_or(usize::MAX));
+    let mut values: Vec<Vec<f64>> = layout
+        .groups
+        .iter()
+        .map(|g| vec![0.0; cap * g.len()])
+        .collect();
+    let mut sink = RowSink::new(
+        layout,
+        values.iter_mut().map(Vec::as_mut_slice).collect(),
+        cap,
+    );
+    let (bytes, lines) = parse_rows(buf, &mut sink)?;
+    let (rows, repeats) = (sink.rows, sink.repeats);
+    for (v, g) in values.iter_mut().zip(&layout.groups) {
+        v.truncate(rows * g.len());
+    }
+    Ok(Block {
+        values,
+        rows,
+        bytes,
+        lines,
+        repeats,
+    })
+}
+
+/// At most this many data rows are in `buf`: its lines (a data row ends a line, the last
+/// maybe without `\n`), and with quotes (csv-core also ends a record at a lone `\r`) its
+/// `\r` too.
+fn row_bound(buf: &[u8]) -> usize {
+    let mut n = memchr::memchr_iter(b'\n', buf).count() + usize::from(buf.last() != Some(&b'\n'));
+    if memchr::memchr(b'"', buf).is_some() {
+        n += memchr::memchr_iter(b'\r', buf).count();
+    }
+    n
+}
+
+/// The rows of `buf` (whole lines) into `sink`: `(bytes, lines)` consumed.
+fn parse_rows(buf: &[u8], sink: &mut RowSink<'_, '_>) -> RowResult<(usize, u64)> {
+    match sink.layout.delimiter {
+        Delimiter::Whitespace => parse_plain(buf, None, sink),
         // csv-core reads quoted fields; text without a quote character splits the same way
         // on the delimiter byte alone, which is what the plain path does, faster.
-        Delimiter::Byte(d) if memchr::memchr(b'"', buf).is_some() => {
-            parse_delimited(buf, d, &mut sink)?
+        Delimiter::Byte(d) if memchr::memchr(b'"', buf).is_some() => parse_delimited(buf, d, sink),
+        Delimiter::Byte(d) => parse_seps(buf, d, sink),
+    }
+}
+
+/// A regular file mapped into memory, read from a byte offset on.
+///
+/// The pages are the operating system's file cache: reading costs no copy, and memory that
+/// counts against the process is only what the parsed arrays take. The map is read-only. A
+/// file that another program shortens while it is mapped makes the reading of the lost pages
+/// fail with SIGBUS (the process ends); growing or rewriting it is harmless (the map keeps
+/// the length it had when opened). Callers that read files being truncated use a
+/// [`Source::Reader`] instead.
+#[derive(Clone)]
+pub struct MappedText {
+    map: Arc<memmap2::Mmap>,
+    start: usize,
+}
+
+impl std::fmt::Debug for MappedText {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "MappedText({} bytes)", self.bytes().len())
+    }
+}
+
+impl MappedText {
+    /// Map `file` from byte `offset` on: None when it is not a regular file or holds nothing
+    /// past `offset` (read those with a reader).
+    pub fn open(file: &std::fs::File, offset: u64) -> std::io::Result<Option<MappedText>> {
+        let meta = file.metadata()?;
+        if !meta.is_file() || meta.len() <= offset {
+            return Ok(None);
         }
-        Delimiter::Byte(d) => parse_plain(buf, Some(d), &mut sink)?,
-    };
-    Ok(sink.finish(bytes, lines))
+        let Ok(start) = usize::try_from(offset) else {
+            return Ok(None);
+        };
+        // SAFETY: a read-only private map of a regular file; the bytes are only read. The
+        // one hazard is another process truncating the file while it is mapped (SIGBUS on
+        // the lost pages), documented on the type.
+        let map = unsafe { memmap2::MmapOptions::new().map(file)? };
+        // Read front to back: the kernel reads ahead and drops pages behind.
+        let _ = map.advise(memmap2::Advice::Sequential);
+        Ok(Some(MappedText {
+            map: Arc::new(map),
+            start,
+        }))
+    }
+
+    /// The text from the offset on.
+    pub fn bytes(&self) -> &[u8] {
+        self.map.get(self.start..).unwrap_or_default()
+    }
 }
 
 /// Where the text comes from.
 pub enum Source {
     /// Any reader (a file positioned at the first data byte, a pipe, stdin, bytes in memory).
     Reader(Box<dyn Read + Send>),
+    /// A regular file mapped into memory (no copy; blocks are parsed where they lie).
+    Map(MappedText),
 }
 
 /// Options of a [`TextStream`].
@@ -796,12 +1411,15 @@ impl TextStream {
         let (tx, jobs) = sync_channel(2 * par + 1);
         let stop = Arc::new(AtomicBool::new(false));
         let stop2 = Arc::clone(&stop);
-        let Source::Reader(reader) = source;
         let first_line = layout.first_line;
         let layout = Arc::new(layout);
+        let run = move || match source {
+            Source::Reader(reader) => read_loop(reader, layout, block_bytes, &tx, &stop2),
+            Source::Map(map) => map_loop(map, layout, block_bytes, &tx, &stop2),
+        };
         std::thread::Builder::new()
             .name("accelcal-text".into())
-            .spawn(move || read_loop(reader, layout, block_bytes, &tx, &stop2))
+            .spawn(run)
             .map_err(|e| CoreError::InvalidInput(format!("cannot start the reader thread: {e}")))?;
         Ok(TextStream {
             jobs,
@@ -943,6 +1561,47 @@ fn read_loop(
     }
 }
 
+/// The end of the block of whole lines that starts at `a`: after the last `\n` within
+/// `target` bytes, or after the first `\n` past them (a line longer than a block), or the end.
+fn block_end(data: &[u8], a: usize, target: usize) -> usize {
+    let b = a.saturating_add(target.max(1)).min(data.len());
+    if b == data.len() {
+        return b;
+    }
+    match memchr::memrchr(b'\n', &data[a..b]) {
+        Some(i) => a + i + 1,
+        None => memchr::memchr(b'\n', &data[b..]).map_or(data.len(), |i| b + i + 1),
+    }
+}
+
+/// [`read_loop`] for a mapped file: blocks are cut where they lie, nothing is copied.
+fn map_loop(
+    map: MappedText,
+    layout: Arc<TextLayout>,
+    block_bytes: usize,
+    tx: &SyncSender<Job>,
+    stop: &AtomicBool,
+) {
+    let n = map.bytes().len();
+    let mut a = 0;
+    while a < n {
+        if stop.load(Ordering::Relaxed) {
+            return;
+        }
+        let b = block_end(map.bytes(), a, block_bytes);
+        let (jtx, jrx) = sync_channel(1);
+        let (lay, m) = (Arc::clone(&layout), map.clone());
+        rayon::spawn(move || {
+            let r = parse_block_rel(&m.bytes()[a..b], &lay, None).map_err(JobError::Row);
+            let _ = jtx.send(r);
+        });
+        if tx.send(jrx).is_err() {
+            return;
+        }
+        a = b;
+    }
+}
+
 /// Rows as delimited text: per row the `lead` value (e.g. time, when given) and then the `k`
 /// values of `values` (row-major), each in the shortest form that reads back to the same
 /// float64 (ryu), separated by `delim`, one row per line. Numbers never need quoting.
@@ -1040,13 +1699,168 @@ impl Collected {
     }
 }
 
+/// How far a whole-source read ([`read_all_with`]) has got, and a way to stop it: shared
+/// with another thread that reports progress and watches for Ctrl-C.
+#[derive(Debug, Default)]
+pub struct Progress {
+    /// Data rows parsed so far.
+    pub rows: AtomicUsize,
+    /// Bytes of text parsed so far.
+    pub bytes: AtomicUsize,
+    /// Set to stop the read (it then fails with "stopped").
+    pub stop: AtomicBool,
+}
+
 /// Parse a whole source (one pass, blocks in parallel).
 pub fn read_all(source: Source, layout: TextLayout, opts: StreamOptions) -> Result<Collected> {
-    let mut out = Collected::with_capacity(&layout, 0);
-    for b in TextStream::new(source, layout, opts)? {
-        out.push(&b?);
+    read_all_with(source, layout, opts, &Progress::default())
+}
+
+/// [`read_all`], reporting to and stoppable through `progress`.
+///
+/// A mapped file is parsed in chunks of whole lines on the rayon pool, each chunk straight
+/// into its place in the final arrays (its rows are counted first); any other source is
+/// read as a [`TextStream`] and its blocks appended.
+pub fn read_all_with(
+    source: Source,
+    layout: TextLayout,
+    opts: StreamOptions,
+    progress: &Progress,
+) -> Result<Collected> {
+    layout.validate()?;
+    if let Source::Map(m) = &source {
+        return read_mapped(m.bytes(), &layout, opts.block_bytes, progress);
     }
-    Ok(out)
+    let mut out = Collected::with_capacity(&layout, 0);
+    let mut stream = TextStream::new(source, layout, opts)?;
+    loop {
+        // Waiting a little at a time: a stop is seen even while a pipe sends nothing.
+        let next = stream.next_block(Duration::from_millis(50))?;
+        if progress.stop.load(Ordering::Relaxed) {
+            return invalid("stopped");
+        }
+        match next {
+            Next::Block(b) => {
+                out.push(&b);
+                progress.rows.store(out.rows, Ordering::Relaxed);
+                progress.bytes.store(out.bytes, Ordering::Relaxed);
+            }
+            Next::Done => return Ok(out),
+            Next::Pending => {}
+        }
+    }
+}
+
+/// The whole text `data` parsed in chunks of about `chunk` bytes (whole lines), in parallel,
+/// straight into the final arrays.
+///
+/// A first parallel pass counts each chunk's lines, a bound on its rows (a data row ends a
+/// line; with quotes, csv-core also ends records at a lone `\r`, so `\r` count too there);
+/// each chunk then writes into its own window of arrays allocated once. Chunks with fewer
+/// rows than lines (blank lines, comments) are closed up at the end. A bad row is named by
+/// its line in the file: the lines of the chunks before it are known.
+fn read_mapped(
+    data: &[u8],
+    layout: &TextLayout,
+    chunk: usize,
+    progress: &Progress,
+) -> Result<Collected> {
+    let mut ranges = Vec::new();
+    let mut a = 0;
+    while a < data.len() {
+        let b = block_end(data, a, chunk);
+        ranges.push(a..b);
+        a = b;
+    }
+    // Lines per chunk, and the room its rows may need.
+    let counts: Vec<(u64, usize)> = ranges
+        .par_iter()
+        .map(|r| {
+            let c = &data[r.clone()];
+            (memchr::memchr_iter(b'\n', c).count() as u64, row_bound(c))
+        })
+        .collect();
+    let total: usize = counts.iter().map(|c| c.1).sum();
+    let widths: Vec<usize> = layout.groups.iter().map(Vec::len).collect();
+    // Zeroed allocations this large come straight from the kernel: pages are only touched
+    // (and counted) when written.
+    let mut values: Vec<Vec<f64>> = widths.iter().map(|&k| vec![0.0; total * k]).collect();
+    let mut windows: Vec<Vec<&mut [f64]>> = counts.iter().map(|_| Vec::new()).collect();
+    for (col, &k) in values.iter_mut().zip(&widths) {
+        let mut rest: &mut [f64] = col;
+        for (w, &(_, cap)) in windows.iter_mut().zip(&counts) {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(cap * k);
+            w.push(head);
+            rest = tail;
+        }
+    }
+    let results: Vec<std::result::Result<(usize, u64), JobError>> = ranges
+        .par_iter()
+        .zip(windows.into_par_iter())
+        .zip(counts.par_iter())
+        .map(|((r, w), &(_, cap))| {
+            if progress.stop.load(Ordering::Relaxed) {
+                return Err(JobError::Read(CoreError::InvalidInput("stopped".into())));
+            }
+            let c = &data[r.clone()];
+            let mut sink = RowSink::new(layout, w, cap);
+            // A bad row is located below, once the lines before this chunk are known.
+            let (bytes, _) = parse_rows(c, &mut sink).map_err(JobError::Row)?;
+            if bytes != c.len() {
+                return Err(JobError::Read(CoreError::InvalidInput(
+                    "the text reader found more rows than lines (internal error)".into(),
+                )));
+            }
+            progress.rows.fetch_add(sink.rows, Ordering::Relaxed);
+            progress.bytes.fetch_add(bytes, Ordering::Relaxed);
+            Ok((sink.rows, sink.repeats))
+        })
+        .collect();
+    // The first error in file order, located by line.
+    let mut line = layout.first_line;
+    for (res, &(lines, _)) in results.iter().zip(&counts) {
+        match res {
+            Err(JobError::Row(e)) => return Err(locate(e.clone(), line)),
+            Err(JobError::Read(e)) => return Err(e.clone()),
+            Ok(_) => {}
+        }
+        line += lines;
+    }
+    // Close up the gaps left by chunks with fewer rows than room, counting repeated samples
+    // across chunk boundaries too.
+    let k0 = widths.first().copied().unwrap_or(0);
+    let mut rows = 0usize;
+    let mut repeats = 0u64;
+    let mut off = 0usize;
+    for (res, &(_, cap)) in results.iter().zip(&counts) {
+        let (n, rep) = match res {
+            Ok(x) => *x,
+            Err(_) => (0, 0),
+        };
+        if n > 0 && rows > 0 && k0 > 0 {
+            let first = &values[0][off * k0..(off + 1) * k0];
+            if *first == values[0][(rows - 1) * k0..rows * k0] {
+                repeats += 1;
+            }
+        }
+        if off != rows {
+            for (col, &k) in values.iter_mut().zip(&widths) {
+                col.copy_within(off * k..(off + n) * k, rows * k);
+            }
+        }
+        rows += n;
+        repeats += rep;
+        off += cap;
+    }
+    for (col, &k) in values.iter_mut().zip(&widths) {
+        col.truncate(rows * k);
+    }
+    Ok(Collected {
+        values,
+        rows,
+        bytes: data.len(),
+        repeats,
+    })
 }
 
 #[cfg(test)]

@@ -16,7 +16,7 @@ use crate::dwell::{DetectorSettings, DwellAccumulator, DwellTable};
 
 /// Run `f`, turning a panic (a bug) into a CalibrationError instead of letting it cross the
 /// boundary.
-fn guarded<R>(what: &str, f: impl FnOnce() -> crate::Result<R>) -> PyResult<R> {
+pub(super) fn guarded<R>(what: &str, f: impl FnOnce() -> crate::Result<R>) -> PyResult<R> {
     match catch_unwind(AssertUnwindSafe(f)) {
         Ok(r) => r.map_err(PyErr::from),
         Err(p) => {

@@ -8,10 +8,11 @@ use std::io::{Read, Seek, SeekFrom};
 use std::sync::Mutex;
 use std::time::Duration;
 
+use super::dwell::guarded;
 use super::CalibrationError;
 use crate::text::{
-    Block, Collected, Column, ColumnKind, Delimiter, Next, Source, StreamOptions, TextLayout,
-    TextStream,
+    read_all_with, Block, Collected, Column, ColumnKind, Delimiter, MappedText, Next, Progress,
+    Source, StreamOptions, TextLayout, TextStream,
 };
 
 /// How often a waiting call looks for Ctrl-C.
@@ -88,6 +89,13 @@ fn open_source(
         Some(p) => {
             let mut f = std::fs::File::open(p)
                 .map_err(|e| CalibrationError::new_err(format!("{p}: cannot open ({e})")))?;
+            // A regular file is mapped (no copy); ACCELCAL_MMAP=0 reads it instead, e.g. for
+            // a file that another program may truncate while it is read (see MappedText).
+            if std::env::var_os("ACCELCAL_MMAP").is_none_or(|v| v != "0") {
+                if let Ok(Some(m)) = MappedText::open(&f, offset) {
+                    return Ok(Source::Map(m));
+                }
+            }
             f.seek(SeekFrom::Start(offset))
                 .map_err(|e| CalibrationError::new_err(format!("{p}: cannot seek ({e})")))?;
             Ok(Source::Reader(Box::new(f)))
@@ -219,8 +227,8 @@ impl TextBlocks {
 
 /// Read a whole text recording (blocks parsed in parallel) into one array per column group.
 ///
-/// ``progress(rows, bytes)`` is called after every block (it may raise to stop); Ctrl-C stops
-/// the read. Returns ``(arrays, rows, bytes, repeats)``.
+/// ``progress(rows, bytes)`` is called about every 0.1 s while reading (it may raise to
+/// stop); Ctrl-C stops the read. Returns ``(arrays, rows, bytes, repeats)``.
 #[pyfunction]
 #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None))]
 #[allow(clippy::too_many_arguments)]
@@ -242,6 +250,8 @@ pub fn text_read_all<'py>(
     rows_hint: usize,
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
+    // The whole file is parsed into arrays of the final size: no hint needed.
+    let _ = rows_hint;
     let layout = layout_from(
         delimiter,
         ncols,
@@ -257,26 +267,52 @@ pub fn text_read_all<'py>(
         block_bytes,
         parallel: 0,
     };
-    let mut out = Collected::with_capacity(&layout, rows_hint);
     let w = widths(&layout);
-    let mut stream = TextStream::new(src, layout, opts)?;
     let cb = progress.map(Bound::unbind);
+    let shared = Progress::default();
+    // The read runs on its own thread (and the rayon pool); this one reports progress and
+    // watches for Ctrl-C, with the interpreter released in between.
     let collected = py.detach(|| -> PyResult<Collected> {
-        loop {
-            match stream.next_block(POLL)? {
-                Next::Block(b) => out.push(&b),
-                Next::Done => return Ok(out),
-                Next::Pending => {}
-            }
-            Python::attach(|py| -> PyResult<()> {
-                py.check_signals()?;
-                if let Some(f) = &cb {
-                    f.call1(py, (out.rows, out.bytes))?;
+        std::thread::scope(|s| {
+            let (tx, rx) = std::sync::mpsc::channel();
+            let p = &shared;
+            s.spawn(move || {
+                let r = guarded("text_read_all", || read_all_with(src, layout, opts, p));
+                let _ = tx.send(r);
+            });
+            loop {
+                match rx.recv_timeout(POLL) {
+                    Ok(r) => return r,
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                    Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                        return Err(CalibrationError::new_err(
+                            "the text reader stopped unexpectedly",
+                        ))
+                    }
                 }
-                Ok(())
-            })?;
-        }
+                let polled = Python::attach(|py| -> PyResult<()> {
+                    py.check_signals()?;
+                    if let Some(f) = &cb {
+                        let rows = shared.rows.load(std::sync::atomic::Ordering::Relaxed);
+                        let bytes = shared.bytes.load(std::sync::atomic::Ordering::Relaxed);
+                        f.call1(py, (rows, bytes))?;
+                    }
+                    Ok(())
+                });
+                if let Err(e) = polled {
+                    // Stop the reader and wait for it (it checks between chunks).
+                    shared
+                        .stop
+                        .store(true, std::sync::atomic::Ordering::Relaxed);
+                    let _ = rx.recv();
+                    return Err(e);
+                }
+            }
+        })
     })?;
+    if let Some(f) = &cb {
+        f.call1(py, (collected.rows, collected.bytes))?;
+    }
     let arrays = groups_to_py(py, collected.values, collected.rows, &w)?;
     PyTuple::new(
         py,
