@@ -1057,7 +1057,9 @@ def text_read_all(
     progress: Callable[[int, int], object] | None = None,
 ) -> tuple[list[NDArray[np.float64]], int, int, int]:
     """Read a whole text recording into one array per column group: (arrays, rows, bytes,
-    repeats)."""
+    repeats). A regular file is memory-mapped and parsed in parallel chunks straight into the
+    arrays (``rows_hint`` is then not needed); ``progress(rows, bytes)`` is called about every
+    0.1 s and may raise to stop."""
 
 def text_parse_head(
     data: bytes,

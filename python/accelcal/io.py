@@ -5,7 +5,10 @@ that streams large files into :class:`~accelcal.DwellAccumulator` in one pass.
 
 Text is parsed by the Rust core in blocks of whole lines, in parallel and with the
 interpreter released: reading is faster than ``pandas.read_csv`` and streaming keeps memory
-bounded whatever the file's length.
+bounded whatever the file's length. A regular file is memory-mapped (read where it lies in
+the file cache, each block's pages let go once parsed); set the environment variable
+``ACCELCAL_MMAP=0`` to read it with plain reads instead, e.g. for a file that another program
+may truncate while it is being read (a mapped file that shrinks ends the process with SIGBUS).
 
 Layout rules for text files
 ---------------------------

@@ -1011,13 +1011,15 @@ fn parse_seps(buf: &[u8], d: u8, sink: &mut RowSink<'_, '_>) -> RowResult<(usize
 const ROW_MAX: usize = 16;
 
 /// The line at `pos` when it is plain decimals separated by the delimiter and ended by `\n`
-/// (or `\r\n`), each parsed into `vals`: the next line's start and the field count. None
+/// (or `\r\n`), each parsed into `vals`: the next line's start and the field count. Only the
+/// fields of `wanted` (bit `i`: field `i`) are parsed: the others may hold anything. None
 /// for anything else (the general scan then takes the line).
 #[inline(always)]
 fn fast_row<const SSE: bool>(
     buf: &[u8],
     pos: usize,
     fast_end: usize,
+    wanted: u32,
     seps: &mut Seps<'_>,
     vals: &mut [f64; ROW_MAX],
 ) -> Option<(usize, usize)> {
@@ -1034,7 +1036,9 @@ fn fast_row<const SSE: bool>(
         } else {
             e
         };
-        vals[f] = span::<SSE>(buf, a, fe)?;
+        if wanted >> f & 1 == 1 {
+            vals[f] = span::<SSE>(buf, a, fe)?;
+        }
         f += 1;
         if nl {
             return Some((e + 1, f));
@@ -1085,9 +1089,16 @@ fn parse_seps_with<const SSE: bool>(
     // Rows of numbers only, stored whole: fields parsed into `vals` first.
     let plan = sink.plan.take().filter(|_| sink.layout.ncols <= ROW_MAX);
     let mut vals = [0.0f64; ROW_MAX];
+    let wanted = sink
+        .want
+        .iter()
+        .take(ROW_MAX)
+        .enumerate()
+        .filter(|(_, w)| w.is_some())
+        .fold(0u32, |m, (i, _)| m | 1 << i);
     while pos < n && !sink.full() {
         if let Some(plan) = &plan {
-            if let Some(next) = fast_row::<SSE>(buf, pos, fast_end, &mut seps, &mut vals) {
+            if let Some(next) = fast_row::<SSE>(buf, pos, fast_end, wanted, &mut seps, &mut vals) {
                 if next.1 == sink.layout.ncols {
                     sink.put_row(plan, &vals);
                     line += 1;
@@ -1243,7 +1254,8 @@ fn locate(e: RowError, first_line: u64) -> CoreError {
 }
 
 fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> RowResult<Block> {
-    let cap = row_bound(buf).min(max_rows.unwrap_or(usize::MAX));
+    let bound = row_bound(buf);
+    let cap = bound.rows.min(max_rows.unwrap_or(usize::MAX));
     let mut values: Vec<Vec<f64>> = layout
         .groups
         .iter()
@@ -1254,7 +1266,7 @@ fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> 
         values.iter_mut().map(Vec::as_mut_slice).collect(),
         cap,
     );
-    let (bytes, lines) = parse_rows(buf, &mut sink)?;
+    let (bytes, lines) = parse_rows(buf, bound.quoted, &mut sink)?;
     let (rows, repeats) = (sink.rows, sink.repeats);
     for (v, g) in values.iter_mut().zip(&layout.groups) {
         v.truncate(rows * g.len());
@@ -1271,21 +1283,39 @@ fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> 
 /// At most this many data rows are in `buf`: its lines (a data row ends a line, the last
 /// maybe without `\n`), and with quotes (csv-core also ends a record at a lone `\r`) its
 /// `\r` too.
-fn row_bound(buf: &[u8]) -> usize {
-    let mut n = memchr::memchr_iter(b'\n', buf).count() + usize::from(buf.last() != Some(&b'\n'));
-    if memchr::memchr(b'"', buf).is_some() {
-        n += memchr::memchr_iter(b'\r', buf).count();
+fn row_bound(buf: &[u8]) -> Bound {
+    let lines = memchr::memchr_iter(b'\n', buf).count();
+    let mut rows = lines + usize::from(buf.last() != Some(&b'\n'));
+    let quoted = memchr::memchr(b'"', buf).is_some();
+    if quoted {
+        rows += memchr::memchr_iter(b'\r', buf).count();
     }
-    n
+    Bound {
+        lines: lines as u64,
+        rows,
+        quoted,
+    }
 }
 
-/// The rows of `buf` (whole lines) into `sink`: `(bytes, lines)` consumed.
-fn parse_rows(buf: &[u8], sink: &mut RowSink<'_, '_>) -> RowResult<(usize, u64)> {
+/// What [`row_bound`] found in a block.
+#[derive(Debug, Clone, Copy)]
+struct Bound {
+    /// `\n` in the block.
+    lines: u64,
+    /// At most this many data rows.
+    rows: usize,
+    /// The block holds a quote character (csv-core parses it).
+    quoted: bool,
+}
+
+/// The rows of `buf` (whole lines; `quoted` when it holds a quote character) into `sink`:
+/// `(bytes, lines)` consumed.
+fn parse_rows(buf: &[u8], quoted: bool, sink: &mut RowSink<'_, '_>) -> RowResult<(usize, u64)> {
     match sink.layout.delimiter {
         Delimiter::Whitespace => parse_plain(buf, None, sink),
         // csv-core reads quoted fields; text without a quote character splits the same way
         // on the delimiter byte alone, which is what the plain path does, faster.
-        Delimiter::Byte(d) if memchr::memchr(b'"', buf).is_some() => parse_delimited(buf, d, sink),
+        Delimiter::Byte(d) if quoted => parse_delimited(buf, d, sink),
         Delimiter::Byte(d) => parse_seps(buf, d, sink),
     }
 }
@@ -1336,6 +1366,26 @@ impl MappedText {
     /// The text from the offset on.
     pub fn bytes(&self) -> &[u8] {
         self.map.get(self.start..).unwrap_or_default()
+    }
+
+    /// Unmap the pages of `range` (of [`MappedText::bytes`]) once they have been read: they
+    /// stay in the file cache, but no longer count in this process's resident memory, which
+    /// so stays bounded however long the file. Reading them again maps them again.
+    fn release(&self, range: std::ops::Range<usize>) {
+        let len = range.end.saturating_sub(range.start);
+        if len == 0 {
+            return;
+        }
+        // SAFETY: the map is private and read-only and never written, so dropping its pages
+        // loses nothing: a later read maps the file's page again (MADV_DONTNEED on a file
+        // map). No reference into the map is invalidated; the memory stays mapped.
+        let _ = unsafe {
+            self.map.unchecked_advise_range(
+                memmap2::UncheckedAdvice::DontNeed,
+                self.start + range.start,
+                len,
+            )
+        };
     }
 }
 
@@ -1593,6 +1643,7 @@ fn map_loop(
         let (lay, m) = (Arc::clone(&layout), map.clone());
         rayon::spawn(move || {
             let r = parse_block_rel(&m.bytes()[a..b], &lay, None).map_err(JobError::Row);
+            m.release(a..b);
             let _ = jtx.send(r);
         });
         if tx.send(jrx).is_err() {
@@ -1729,7 +1780,7 @@ pub fn read_all_with(
 ) -> Result<Collected> {
     layout.validate()?;
     if let Source::Map(m) = &source {
-        return read_mapped(m.bytes(), &layout, opts.block_bytes, progress);
+        return read_mapped(m, &layout, opts.block_bytes, progress);
     }
     let mut out = Collected::with_capacity(&layout, 0);
     let mut stream = TextStream::new(source, layout, opts)?;
@@ -1760,11 +1811,12 @@ pub fn read_all_with(
 /// rows than lines (blank lines, comments) are closed up at the end. A bad row is named by
 /// its line in the file: the lines of the chunks before it are known.
 fn read_mapped(
-    data: &[u8],
+    map: &MappedText,
     layout: &TextLayout,
     chunk: usize,
     progress: &Progress,
 ) -> Result<Collected> {
+    let data = map.bytes();
     let mut ranges = Vec::new();
     let mut a = 0;
     while a < data.len() {
@@ -1773,14 +1825,16 @@ fn read_mapped(
         a = b;
     }
     // Lines per chunk, and the room its rows may need.
-    let counts: Vec<(u64, usize)> = ranges
+    // Each pass unmaps the pages it has read (resident memory: the arrays and a few chunks).
+    let counts: Vec<Bound> = ranges
         .par_iter()
         .map(|r| {
-            let c = &data[r.clone()];
-            (memchr::memchr_iter(b'\n', c).count() as u64, row_bound(c))
+            let b = row_bound(&data[r.clone()]);
+            map.release(r.clone());
+            b
         })
         .collect();
-    let total: usize = counts.iter().map(|c| c.1).sum();
+    let total: usize = counts.iter().map(|c| c.rows).sum();
     let widths: Vec<usize> = layout.groups.iter().map(Vec::len).collect();
     // Zeroed allocations this large come straight from the kernel: pages are only touched
     // (and counted) when written.
@@ -1788,8 +1842,8 @@ fn read_mapped(
     let mut windows: Vec<Vec<&mut [f64]>> = counts.iter().map(|_| Vec::new()).collect();
     for (col, &k) in values.iter_mut().zip(&widths) {
         let mut rest: &mut [f64] = col;
-        for (w, &(_, cap)) in windows.iter_mut().zip(&counts) {
-            let (head, tail) = std::mem::take(&mut rest).split_at_mut(cap * k);
+        for (w, c) in windows.iter_mut().zip(&counts) {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(c.rows * k);
             w.push(head);
             rest = tail;
         }
@@ -1798,14 +1852,16 @@ fn read_mapped(
         .par_iter()
         .zip(windows.into_par_iter())
         .zip(counts.par_iter())
-        .map(|((r, w), &(_, cap))| {
+        .map(|((r, w), bound)| {
             if progress.stop.load(Ordering::Relaxed) {
                 return Err(JobError::Read(CoreError::InvalidInput("stopped".into())));
             }
             let c = &data[r.clone()];
-            let mut sink = RowSink::new(layout, w, cap);
+            let mut sink = RowSink::new(layout, w, bound.rows);
             // A bad row is located below, once the lines before this chunk are known.
-            let (bytes, _) = parse_rows(c, &mut sink).map_err(JobError::Row)?;
+            let parsed = parse_rows(c, bound.quoted, &mut sink);
+            map.release(r.clone());
+            let (bytes, _) = parsed.map_err(JobError::Row)?;
             if bytes != c.len() {
                 return Err(JobError::Read(CoreError::InvalidInput(
                     "the text reader found more rows than lines (internal error)".into(),
@@ -1818,13 +1874,13 @@ fn read_mapped(
         .collect();
     // The first error in file order, located by line.
     let mut line = layout.first_line;
-    for (res, &(lines, _)) in results.iter().zip(&counts) {
+    for (res, c) in results.iter().zip(&counts) {
         match res {
             Err(JobError::Row(e)) => return Err(locate(e.clone(), line)),
             Err(JobError::Read(e)) => return Err(e.clone()),
             Ok(_) => {}
         }
-        line += lines;
+        line += c.lines;
     }
     // Close up the gaps left by chunks with fewer rows than room, counting repeated samples
     // across chunk boundaries too.
@@ -1832,7 +1888,7 @@ fn read_mapped(
     let mut rows = 0usize;
     let mut repeats = 0u64;
     let mut off = 0usize;
-    for (res, &(_, cap)) in results.iter().zip(&counts) {
+    for (res, c) in results.iter().zip(&counts) {
         let (n, rep) = match res {
             Ok(x) => *x,
             Err(_) => (0, 0),
@@ -1850,7 +1906,7 @@ fn read_mapped(
         }
         rows += n;
         repeats += rep;
-        off += cap;
+        off += c.rows;
     }
     for (col, &k) in values.iter_mut().zip(&widths) {
         col.truncate(rows * k);
@@ -2332,5 +2388,352 @@ mod tests {
         let first = st.next().unwrap().unwrap();
         assert_eq!(first.values[0][..3], [0., 1., 2.]);
         drop(st); // must not hang or panic
+    }
+
+    /// A random plain decimal: sign, 0..=9 integer digits, maybe '.', 0..=9 fraction digits.
+    fn decimal(s: &mut u64) -> String {
+        let mut t = String::new();
+        match (lcg(s) * 4.0) as u32 {
+            0 => t.push('-'),
+            1 => t.push('+'),
+            _ => {}
+        }
+        for _ in 0..(lcg(s) * 10.0) as usize {
+            t.push(char::from(b'0' + (lcg(s) * 10.0) as u8));
+        }
+        if lcg(s) < 0.8 {
+            t.push('.');
+            for _ in 0..(lcg(s) * 10.0) as usize {
+                t.push(char::from(b'0' + (lcg(s) * 10.0) as u8));
+            }
+        }
+        if t.trim_start_matches(['-', '+', '.']).is_empty() {
+            t.push('7');
+        }
+        t
+    }
+
+    /// Text of `rows` lines of 4 fields: mostly plain decimals, some in other forms the
+    /// general parser takes, repeated rows, blank and comment lines, CRLF, leading blanks;
+    /// with `junk`, also fields that are not numbers and ragged rows.
+    fn mixed_text(rows: usize, d: char, junk: bool, seed: u64) -> String {
+        let other = [
+            "1e3",
+            "-2.5E-7",
+            " 4",
+            "12345678901234567",
+            "0.000123456789012",
+            "7.",
+        ];
+        let bad = ["x", "", "nan", "1.2.3", "9,5", "--1"];
+        let mut s = seed;
+        let mut out = String::new();
+        let mut prev: Vec<String> = Vec::new();
+        for i in 0..rows {
+            let u = lcg(&mut s);
+            if u < 0.02 {
+                out += "\n";
+                continue;
+            }
+            if u < 0.04 {
+                out += "# a comment, with the delimiter\n";
+                continue;
+            }
+            let mut f: Vec<String> = if u < 0.1 && !prev.is_empty() {
+                prev.clone()
+            } else {
+                (0..4)
+                    .map(|_| {
+                        let v = lcg(&mut s);
+                        if v < 0.05 {
+                            other[(lcg(&mut s) * other.len() as f64) as usize].to_string()
+                        } else if junk && v < 0.052 {
+                            bad[(lcg(&mut s) * bad.len() as f64) as usize].to_string()
+                        } else {
+                            decimal(&mut s)
+                        }
+                    })
+                    .collect()
+            };
+            if junk && lcg(&mut s) < 0.002 {
+                f.pop();
+            }
+            prev = f.clone();
+            if i % 97 == 5 {
+                out.push(' ');
+            }
+            out += &f.join(&d.to_string());
+            out += if i % 7 == 3 { "\r\n" } else { "\n" };
+        }
+        out
+    }
+
+    /// Values (as bits), rows, repeats, bytes and lines of a parse.
+    type Parsed = (Vec<Vec<u64>>, usize, u64, usize, u64);
+
+    /// Parse `buf` with the fast delimited parser or the line-by-line reference.
+    fn parse_either(
+        buf: &[u8],
+        lay: &TextLayout,
+        fast: bool,
+    ) -> std::result::Result<Parsed, RowError> {
+        let Delimiter::Byte(d) = lay.delimiter else {
+            panic!("a delimited layout");
+        };
+        let cap = row_bound(buf).rows;
+        let mut values: Vec<Vec<f64>> = lay
+            .groups
+            .iter()
+            .map(|g| vec![0.0; cap * g.len()])
+            .collect();
+        let mut sink = RowSink::new(lay, values.iter_mut().map(Vec::as_mut_slice).collect(), cap);
+        let (bytes, lines) = if fast {
+            parse_seps(buf, d, &mut sink)?
+        } else {
+            parse_plain(buf, Some(d), &mut sink)?
+        };
+        let (rows, repeats) = (sink.rows, sink.repeats);
+        let bits = values
+            .iter()
+            .zip(&lay.groups)
+            .map(|(v, g)| v[..rows * g.len()].iter().map(|x| x.to_bits()).collect())
+            .collect();
+        Ok((bits, rows, repeats, bytes, lines))
+    }
+
+    #[test]
+    fn separator_scan_parses_like_the_line_by_line_reference() {
+        let scaled = Column {
+            index: 0,
+            kind: ColumnKind::Number { scale: 1e-3 },
+        };
+        let layouts = [
+            vec![vec![num(1), num(2), num(3)], vec![scaled]],
+            vec![vec![num(2)], vec![num(3), num(1)]],
+        ];
+        let mut checked = 0;
+        for (k, d) in [',', ';', '\t', '|'].into_iter().enumerate() {
+            for junk in [false, true] {
+                for seed in 0..6u64 {
+                    let text = mixed_text(3000, d, junk, 31 * seed + k as u64);
+                    for groups in &layouts {
+                        let lay = layout(Delimiter::Byte(d as u8), 4, groups.clone());
+                        // Whole, and cut short anywhere (a last line without its newline).
+                        for end in [text.len(), text.len() - 1, text.len() / 3] {
+                            let buf = &text.as_bytes()[..end];
+                            let fast = parse_either(buf, &lay, true);
+                            let reference = parse_either(buf, &lay, false);
+                            assert_eq!(fast, reference, "{d:?} junk {junk} seed {seed}");
+                            checked += usize::from(fast.is_ok());
+                        }
+                    }
+                }
+            }
+        }
+        assert!(checked > 100, "{checked}");
+    }
+
+    #[test]
+    fn vector_and_word_spans_equal_the_field_scan() {
+        // Every value parse_span (8 bytes at a time) or the SSE4.1 span gives is the one
+        // scan_field gives (which the general parser checks), bit for bit.
+        let mut s = 11u64;
+        let junk = [
+            ".", "-", "+", "..5", "1.2.3", "1e5", "0x1", "1_0", "5-", ":", "/", " 1",
+        ];
+        let mut taken = [0usize; 2];
+        for i in 0..300_000 {
+            let field = if i % 10 == 0 {
+                junk[(lcg(&mut s) * junk.len() as f64) as usize].to_string()
+            } else {
+                let mut t = decimal(&mut s);
+                // Longer integer or fraction parts too (up to 17 digits in all).
+                for _ in 0..(lcg(&mut s) * 8.0) as usize {
+                    t.push(char::from(b'0' + (lcg(&mut s) * 10.0) as u8));
+                }
+                t
+            };
+            let mut buf = field.clone().into_bytes();
+            let e = buf.len();
+            buf.extend_from_slice(b",99999999999999999999\n");
+            let (se, want) = scan_field(&buf, 0, b',');
+            let want = want.filter(|_| se == e).map(f64::to_bits);
+            if let Some(v) = parse_span(&buf, 0, e) {
+                assert_eq!(Some(v.to_bits()), want, "{field}");
+                taken[0] += 1;
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("sse4.1") {
+                // SAFETY: the CPU has SSE4.1.
+                if let Some(v) = unsafe { sse41::span(&buf, 0, e) } {
+                    assert_eq!(Some(v.to_bits()), want, "{field}");
+                    taken[1] += 1;
+                }
+            }
+        }
+        assert!(taken[0] > 100_000, "{taken:?}");
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("sse4.1") {
+            assert!(taken[1] > taken[0], "{taken:?}");
+        }
+    }
+
+    /// A temporary file holding `text`, removed on drop.
+    struct TempFile(std::path::PathBuf);
+
+    impl TempFile {
+        fn new(name: &str, text: &[u8]) -> Self {
+            let p = std::env::temp_dir().join(format!("accelcal-{}-{name}", std::process::id()));
+            std::fs::write(&p, text).unwrap();
+            TempFile(p)
+        }
+
+        fn map(&self, offset: u64) -> Source {
+            let f = std::fs::File::open(&self.0).unwrap();
+            Source::Map(MappedText::open(&f, offset).unwrap().unwrap())
+        }
+
+        fn reader(&self, offset: u64) -> Source {
+            use std::io::Seek;
+            let mut f = std::fs::File::open(&self.0).unwrap();
+            f.seek(std::io::SeekFrom::Start(offset)).unwrap();
+            Source::Reader(Box::new(f))
+        }
+    }
+
+    impl Drop for TempFile {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_file(&self.0);
+        }
+    }
+
+    /// Repeated samples counted over whole arrays: rows whose first group equals the row
+    /// before's.
+    fn repeats_of(c: &Collected, k: usize) -> u64 {
+        let v = &c.values[0];
+        (1..c.rows)
+            .filter(|&r| v[r * k..(r + 1) * k] == v[(r - 1) * k..r * k])
+            .count() as u64
+    }
+
+    #[test]
+    fn mapped_files_stream_the_same_blocks_as_read_ones() {
+        let text = format!("t,ax,ay,az\n{}", mixed_text(20_000, ',', false, 3));
+        let file = TempFile::new("blocks.csv", text.as_bytes());
+        let mut lay = layout(
+            Delimiter::Byte(b','),
+            4,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        lay.first_line = 2;
+        for block in [64, 1000, 1 << 16, 1 << 22] {
+            let opts = StreamOptions {
+                block_bytes: block,
+                parallel: 2,
+            };
+            let mapped: Vec<Block> = TextStream::new(file.map(11), lay.clone(), opts)
+                .unwrap()
+                .map(|b| b.unwrap())
+                .collect();
+            let read: Vec<Block> = TextStream::new(file.reader(11), lay.clone(), opts)
+                .unwrap()
+                .map(|b| b.unwrap())
+                .collect();
+            assert!(mapped.len() > 1 || block == 1 << 22);
+            let cat = |bs: &[Block]| -> (Vec<f64>, usize) {
+                let v = bs.iter().flat_map(|b| b.values[0].clone()).collect();
+                (v, bs.iter().map(|b| b.bytes).sum())
+            };
+            assert_eq!(cat(&mapped), cat(&read), "block {block}");
+            if block >= 1000 {
+                // Lines shorter than a block: the same blocks, cut at the same lines.
+                assert_eq!(mapped, read, "block {block}");
+            }
+        }
+    }
+
+    #[test]
+    fn whole_mapped_files_parse_into_place_like_the_stream() {
+        // Chunks of several sizes on pools of 1 to 3 threads give the arrays the stream
+        // gives (comments and blank lines close up, a last line without newline counts).
+        let mut text = format!("t;ax;ay;az\n{}", mixed_text(30_000, ';', false, 8));
+        text += "1;2;3;4";
+        let file = TempFile::new("whole.csv", text.as_bytes());
+        let mut lay = layout(
+            Delimiter::Byte(b';'),
+            4,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        lay.first_line = 2;
+        let stream = read_all(file.reader(11), lay.clone(), StreamOptions::default()).unwrap();
+        assert!(stream.rows > 25_000);
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            for chunk in [1, 37, 5000, 1 << 20] {
+                let opts = StreamOptions {
+                    block_bytes: chunk,
+                    parallel: 0,
+                };
+                let whole = pool
+                    .install(|| read_all(file.map(11), lay.clone(), opts))
+                    .unwrap();
+                assert_eq!(
+                    whole.values, stream.values,
+                    "{threads} threads, chunk {chunk}"
+                );
+                assert_eq!((whole.rows, whole.bytes), (stream.rows, stream.bytes));
+                // Repeats are counted across chunk boundaries too: exactly.
+                assert_eq!(whole.repeats, repeats_of(&whole, 3));
+            }
+        }
+    }
+
+    #[test]
+    fn whole_mapped_files_name_the_line_of_a_bad_row() {
+        let mut text = String::from("t,ax,ay,az\n");
+        for i in 0..5000 {
+            text += &format!("{i},1,2,3\n");
+            if i == 100 {
+                text += "\n# comment\n";
+            }
+        }
+        text += "5000,1,x,3\n5001,1,2,3\n5002,y,2,3\n";
+        let file = TempFile::new("bad.csv", text.as_bytes());
+        let mut lay = layout(
+            Delimiter::Byte(b','),
+            4,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        lay.first_line = 2;
+        // Row i is line i + 2 up to row 100, then line i + 4: row 5000 is line 5004.
+        for chunk in [16, 1000, 1 << 20] {
+            let opts = StreamOptions {
+                block_bytes: chunk,
+                parallel: 0,
+            };
+            let e = read_all(file.map(11), lay.clone(), opts)
+                .unwrap_err()
+                .to_string();
+            assert_eq!(
+                e, "line 5004: column 2 (0-based): \"x\" is not a number",
+                "{chunk}"
+            );
+        }
+    }
+
+    #[test]
+    fn mapped_quoted_text_with_lone_carriage_returns() {
+        // csv-core ends records at a lone '\r' too: a quoted file with old Mac line ends
+        // has more rows than '\n', which the room for rows allows for.
+        let text = "\"1\",\"2\"\r3,4\r5,\"6\"\r";
+        let file = TempFile::new("cr.csv", text.as_bytes());
+        let lay = layout(Delimiter::Byte(b','), 2, vec![vec![num(0), num(1)]]);
+        let c = read_all(file.map(0), lay.clone(), StreamOptions::default()).unwrap();
+        assert_eq!(c.values[0], vec![1., 2., 3., 4., 5., 6.]);
+        let r = read_all(file.reader(0), lay, StreamOptions::default()).unwrap();
+        assert_eq!(c, r);
     }
 }
