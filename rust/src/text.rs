@@ -1355,8 +1355,8 @@ impl MappedText {
         // one hazard is another process truncating the file while it is mapped (SIGBUS on
         // the lost pages), documented on the type.
         let map = unsafe { memmap2::MmapOptions::new().map(file)? };
-        // Read front to back: the kernel reads ahead and drops pages behind.
-        let _ = map.advise(memmap2::Advice::Sequential);
+        // No MADV_SEQUENTIAL: it keeps the pages read from counting as used, so that a file
+        // read again soon (the next command on the same recording) may have left the cache.
         Ok(Some(MappedText {
             map: Arc::new(map),
             start,
@@ -1825,14 +1825,11 @@ fn read_mapped(
         a = b;
     }
     // Lines per chunk, and the room its rows may need.
-    // Each pass unmaps the pages it has read (resident memory: the arrays and a few chunks).
+    // The parse pass unmaps the pages it has read. (The counting pass leaves them mapped:
+    // unmapping them there too would only map them again right after.)
     let counts: Vec<Bound> = ranges
         .par_iter()
-        .map(|r| {
-            let b = row_bound(&data[r.clone()]);
-            map.release(r.clone());
-            b
-        })
+        .map(|r| row_bound(&data[r.clone()]))
         .collect();
     let total: usize = counts.iter().map(|c| c.rows).sum();
     let widths: Vec<usize> = layout.groups.iter().map(Vec::len).collect();
