@@ -278,8 +278,8 @@ impl NormProblem<'_> {
     ///
     /// The dwells are taken [`LANES`] at a time, every quantity of [`eval_dwell`] and
     /// [`ml_row`] computed for the lanes side by side (the same arithmetic per dwell, in
-    /// vector registers); the sums are then added in dwell order, so the result is bit for bit
-    /// that of one dwell at a time. A dwell that cannot be evaluated is reported as
+    /// vector registers); the sums are kept per lane and added across lanes at the end in a
+    /// fixed order, so the result does not depend on threads or call order. A dwell that cannot be evaluated is reported as
     /// [`NormProblem::for_each`] reports it.
     #[inline(always)]
     pub fn accumulate<const K: usize>(
@@ -322,7 +322,10 @@ impl NormProblem<'_> {
         self.in_range(p)?;
         let t = inv_k(self.model, p)?;
         let n = self.pts.len();
-        let mut c = 0.0;
+        // Per-lane partial sums of the cost, `J^T e` and the upper triangle of `J^T J`.
+        let mut cl = [0.0f64; LANES];
+        let mut gl = [[0.0f64; LANES]; K];
+        let mut hl = [[[0.0f64; LANES]; K]; K];
         let mut bad = false;
         let mut k0 = 0;
         while k0 < n {
@@ -341,25 +344,32 @@ impl NormProblem<'_> {
                 b.mask[l] = if l < used { 1.0 } else { 0.0 };
             }
             bad |= b.eval(&t, self.g, self.model);
-            // The sums in dwell order (as one dwell at a time would add them: the same
-            // rounding), each rank-1 update across a row of `h`.
-            for l in 0..used {
+            // Masked lanes have e = 0 and a zero row: they add nothing.
+            for l in 0..LANES {
                 let e = b.e[l];
-                let mut row = [0.0f64; K];
-                for (j, rj) in row.iter_mut().enumerate() {
-                    *rj = b.row[j][l];
+                cl[l] += e * e;
+            }
+            for i in 0..K {
+                for l in 0..LANES {
+                    gl[i][l] += b.row[i][l] * b.e[l];
                 }
-                c += e * e;
-                for i in 0..K {
-                    let ri = row[i];
-                    gr[i] += ri * e;
-                    for j in i..K {
-                        h[i][j] += ri * row[j];
+                for j in i..K {
+                    for l in 0..LANES {
+                        hl[i][j][l] += b.row[i][l] * b.row[j][l];
                     }
                 }
             }
             k0 += LANES;
         }
+        // Lane sums in a fixed order: (l0 + l1) + (l2 + l3).
+        let fold = |v: &[f64; LANES]| (v[0] + v[1]) + (v[2] + v[3]);
+        for i in 0..K {
+            gr[i] += fold(&gl[i]);
+            for j in i..K {
+                h[i][j] += fold(&hl[i][j]);
+            }
+        }
+        let c = fold(&cl);
         if bad {
             // Name the first dwell that cannot be evaluated, as the scalar pass does.
             self.for_each(p, |_, _, _| {})?;

@@ -95,6 +95,31 @@ fn quadric_design_error(e: CoreError, diag: bool) -> CoreError {
 /// (the linear method's answer); otherwise by the normal equations (a start value, with the
 /// QR when the design is ill-conditioned).
 pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Result<[f64; 9]> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe { quadric_beta_avx2(means, f, diag, exact) };
+        }
+    }
+    quadric_beta_body(means, f, diag, exact)
+}
+
+/// [`quadric_beta`] compiled for AVX2 (wider vectors for the QR's dot products and updates;
+/// no FMA, so the arithmetic and its rounding are those of the baseline build).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn quadric_beta_avx2(
+    means: &[[f64; 3]],
+    f: Frame,
+    diag: bool,
+    exact: bool,
+) -> Result<[f64; 9]> {
+    quadric_beta_body(means, f, diag, exact)
+}
+
+#[inline(always)]
+fn quadric_beta_body(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Result<[f64; 9]> {
     let n = means.len();
     if diag {
         let row = |k: usize| {
