@@ -1058,7 +1058,8 @@ def text_read_all(
 ) -> tuple[list[NDArray[np.float64]], int, int, int]:
     """Read a whole text recording into one array per column group: (arrays, rows, bytes,
     repeats). A regular file is memory-mapped and parsed in parallel chunks straight into the
-    arrays (``rows_hint`` is then not needed); ``progress(rows, bytes)`` is called about every
+    arrays; any other source is read in blocks into arrays presized for ``rows_hint`` rows (an
+    estimate: they grow past it). ``progress(rows, bytes)`` is called about every
     0.1 s and may raise to stop."""
 
 def text_parse_head(

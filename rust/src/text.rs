@@ -1764,25 +1764,27 @@ pub struct Progress {
 
 /// Parse a whole source (one pass, blocks in parallel).
 pub fn read_all(source: Source, layout: TextLayout, opts: StreamOptions) -> Result<Collected> {
-    read_all_with(source, layout, opts, &Progress::default())
+    read_all_with(source, layout, opts, 0, &Progress::default())
 }
 
 /// [`read_all`], reporting to and stoppable through `progress`.
 ///
 /// A mapped file is parsed in chunks of whole lines on the rayon pool, each chunk straight
 /// into its place in the final arrays (its rows are counted first); any other source is
-/// read as a [`TextStream`] and its blocks appended.
+/// read as a [`TextStream`] and its blocks appended to arrays sized for `rows_hint` rows
+/// (an estimate; they grow past it).
 pub fn read_all_with(
     source: Source,
     layout: TextLayout,
     opts: StreamOptions,
+    rows_hint: usize,
     progress: &Progress,
 ) -> Result<Collected> {
     layout.validate()?;
     if let Source::Map(m) = &source {
         return read_mapped(m, &layout, opts.block_bytes, progress);
     }
-    let mut out = Collected::with_capacity(&layout, 0);
+    let mut out = Collected::with_capacity(&layout, rows_hint);
     let mut stream = TextStream::new(source, layout, opts)?;
     loop {
         // Waiting a little at a time: a stop is seen even while a pipe sends nothing.

@@ -250,8 +250,6 @@ pub fn text_read_all<'py>(
     rows_hint: usize,
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
-    // The whole file is parsed into arrays of the final size: no hint needed.
-    let _ = rows_hint;
     let layout = layout_from(
         delimiter,
         ncols,
@@ -277,7 +275,9 @@ pub fn text_read_all<'py>(
             let (tx, rx) = std::sync::mpsc::channel();
             let p = &shared;
             s.spawn(move || {
-                let r = guarded("text_read_all", || read_all_with(src, layout, opts, p));
+                let r = guarded("text_read_all", || {
+                    read_all_with(src, layout, opts, rows_hint, p)
+                });
                 let _ = tx.send(r);
             });
             loop {
