@@ -110,16 +110,7 @@ def main() -> None:
     gen = np.random.default_rng(7)
     for i in range(2 * n):
         rec = recs[i % len(recs)]
-        dd = accelcal.detect_dwells(rec["samples"], rec["fs"], t=rec["t"])
-        keep = np.sort(gen.choice(len(dd), size=min(18, len(dd)), replace=False))
-        t = rec["t"]
-        t0, t1 = t[dd.start[keep[0]]], t[dd.stop[keep[-1]] - 1]
-        peak = t0 + gen.uniform(0.35, 0.65) * (t1 - t0)
-        T = 20.0 + gen.uniform(5.0, 15.0) * np.where(t < peak, (t - t0) / (peak - t0),
-                                                     (t1 - t) / (t1 - peak))
-        d = accelcal.dwell_stats(rec["samples"], np.column_stack([dd.start[keep],
-                                                                   dd.stop[keep]]),
-                                 t=t, temperature=T)
+        d = V._control_session(rec, gen)
         for ro in SETTINGS:
             ctrl[ro] += accelcal.diagnose(d, g=rec["g"], random_offset=ro).best != "none"
     row("MPU-9150 null: false alarms", ctrl, 2 * n)

@@ -544,6 +544,25 @@ def _effect_term(eff: str, p: np.ndarray, z: np.ndarray, c: np.ndarray, dT: np.n
     }[eff]()
 
 
+def _heat_cool(gen: np.random.Generator, t: np.ndarray, t0: float, t1: float) -> np.ndarray:
+    """A synthetic temperature channel (deg C) over the times ``t``: 20 C at ``t0`` and
+    ``t1``, heated linearly to a peak 5-15 K higher at 35-65 % of the way, then cooled."""
+    peak = t0 + gen.uniform(0.35, 0.65) * (t1 - t0)
+    dTmax = gen.uniform(5.0, 15.0)
+    return 20.0 + dTmax * np.where(t < peak, (t - t0) / (peak - t0), (t1 - t) / (t1 - peak))
+
+
+def _control_session(rec: dict, gen: np.random.Generator) -> accelcal.DwellSet:
+    """A control null session: 18 random dwells of a recording (time order kept) with a
+    synthetic heat-then-cool temperature channel and no effect added."""
+    d = accelcal.detect_dwells(rec["samples"], rec["fs"], t=rec["t"])
+    keep = np.sort(gen.choice(len(d), size=min(18, len(d)), replace=False))
+    t = rec["t"]
+    T = _heat_cool(gen, t, t[d.start[keep[0]]], t[d.stop[keep[-1]] - 1])
+    return accelcal.dwell_stats(rec["samples"], np.column_stack([d.start[keep], d.stop[keep]]),
+                                t=t, temperature=T)
+
+
 def _xsens_session(base: dict, gen: np.random.Generator, eff: str | None, lam_emp: float,
                    n_dwells: int = 32) -> tuple[accelcal.DwellSet, float]:
     """A subset of the real dwells, a synthetic heat-then-cool temperature channel and, when
@@ -553,10 +572,7 @@ def _xsens_session(base: dict, gen: np.random.Generator, eff: str | None, lam_em
     keep = np.sort(gen.choice(k_all, size=min(n_dwells, k_all), replace=False))
     st, sp = base["start"][keep], base["stop"][keep]
     t, s = base["t"], base["s"]
-    t0, t1 = t[st[0]], t[sp[-1] - 1]
-    peak = t0 + gen.uniform(0.35, 0.65) * (t1 - t0)
-    dTmax = gen.uniform(5.0, 15.0)
-    T = 20.0 + dTmax * np.where(t < peak, (t - t0) / (peak - t0), (t1 - t) / (t1 - peak))
+    T = _heat_cool(gen, t, t[st[0]], t[sp[-1] - 1])
     T = T + gen.normal(scale=0.01, size=T.size)
     bounds = np.column_stack([st, sp])
     d0 = accelcal.dwell_stats(s, bounds, t=t, temperature=T)
@@ -734,17 +750,7 @@ def _control_nulls(gen: np.random.Generator, n: int) -> str:
     picked: dict[str, int] = {}
     for i in range(n):
         rec = recs[i % len(recs)]
-        d = accelcal.detect_dwells(rec["samples"], rec["fs"], t=rec["t"])
-        keep = np.sort(gen.choice(len(d), size=min(18, len(d)), replace=False))
-        t = rec["t"]
-        t0, t1 = t[d.start[keep[0]]], t[d.stop[keep[-1]] - 1]
-        peak = t0 + gen.uniform(0.35, 0.65) * (t1 - t0)
-        T = 20.0 + gen.uniform(5.0, 15.0) * np.where(t < peak, (t - t0) / (peak - t0),
-                                                     (t1 - t) / (t1 - peak))
-        dd = accelcal.dwell_stats(rec["samples"], np.column_stack([d.start[keep],
-                                                                    d.stop[keep]]),
-                                  t=t, temperature=T)
-        r = accelcal.diagnose(dd, g=rec["g"])
+        r = accelcal.diagnose(_control_session(rec, gen), g=rec["g"])
         tot += 1
         if r.best != "none":
             alarms += 1
