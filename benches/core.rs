@@ -151,6 +151,38 @@ fn bench_static(c: &mut Criterion) {
             });
         }
     }
+    // The stages alone, on the first session of each design: the normal equations of the ML
+    // cost (one evaluation) and the quadric start.
+    for (design, all) in [("30deg", &tilt30), ("sphere", &sphere)] {
+        use accelcal::static_fit::{cost::DwellNoise, start::quadric_beta, NormProblem};
+        let means = &all[..n];
+        let f = accelcal::static_fit::frame::Frame::centroid(means, g).unwrap();
+        let prob = NormProblem {
+            pts: means,
+            g,
+            noise: DwellNoise::Isotropic,
+            model: Model::Lower,
+            kmax: f64::INFINITY,
+        };
+        let p = [1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03];
+        grp.bench_function(format!("normal_equations_n20_{design}"), |b| {
+            b.iter(|| {
+                let (mut h, mut gr) = ([[0.0; 9]; 9], [0.0; 9]);
+                black_box(
+                    prob.accumulate::<9>(black_box(&p), &mut h, &mut gr)
+                        .unwrap(),
+                );
+                black_box((h, gr))
+            })
+        });
+        grp.bench_function(format!("quadric_start_n20_{design}"), |b| {
+            b.iter(|| black_box(quadric_beta(black_box(means), f, false, false).unwrap()))
+        });
+        let m80 = &all[..80];
+        grp.bench_function(format!("quadric_start_n80_{design}"), |b| {
+            b.iter(|| black_box(quadric_beta(black_box(m80), f, false, false).unwrap()))
+        });
+    }
     let set = FitSettings::new(Model::Lower, Method::Lm);
     grp.sample_size(20);
     grp.throughput(Throughput::Elements(sessions as u64));

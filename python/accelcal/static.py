@@ -140,8 +140,12 @@ def _inputs(
         means, units = data.mean, data.units
     else:
         means, units = _as_means(data, "dwell means"), ""
-    k = means.shape[0]
-    if isinstance(sigma, (float, int, np.floating, np.integer)) and not isinstance(sigma, bool):
+    if sigma is None:
+        if not isinstance(data, DwellSet):
+            return means, None, _ESTIMATED_ISOTROPIC, units
+    elif type(sigma) is float or (
+        isinstance(sigma, (int, np.floating, np.integer)) and not isinstance(sigma, bool)
+    ):
         sv = sigma if type(sigma) is float and 0.0 < sigma < math.inf else number(
             sigma, "sigma", lo=0.0, lo_open=True, unit="(std of each dwell mean, output units)")
         # One variance for every dwell and axis, checked without NumPy (its error state and
@@ -152,6 +156,7 @@ def _inputs(
             raise CalibrationError(_variance_message(sv))
         return means, v, "given sigma (std of each dwell mean)", units
     if sigma is not None:
+        k = means.shape[0]
         s = np.asarray(sigma)
         if s.dtype.kind not in "fiu":
             raise CalibrationError(f"sigma must be a real number or array; got {sigma!r}")
@@ -176,7 +181,10 @@ def _inputs(
         if np.all(np.isfinite(v)) and np.all(v.sum(axis=1) > 0):
             return means, v, "dwell variance / count (white noise)", units
         return means, None, "estimated from the residuals (dwell variances unusable)", units
-    return means, None, "estimated from the residuals (isotropic output noise)", units
+    return means, None, _ESTIMATED_ISOTROPIC, units
+
+
+_ESTIMATED_ISOTROPIC = "estimated from the residuals (isotropic output noise)"
 
 
 # ------------------------------------------------------------------------------------------
@@ -563,16 +571,27 @@ def fit_static(
         NaN, bad shapes or options (the message names the argument, value and valid range),
         implausible g, non-convergence.
     """
-    means, var, noise_model, units = _inputs(data, sigma)
     if observability not in _OBSERVABILITY:
         raise CalibrationError(
             f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
-    st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
-    fit = StaticFit(  # positional: the fastest call into the constructor
-        means, g, cast(Any, model), cast(Any, method), var, st, max_iter,
-        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
-    )
+    if (type(data) is np.ndarray and data.dtype is _F64 and sigma is None and start is None
+            and data.ndim == 2 and data.shape[1] == 3 and data.flags.aligned):
+        # The common call (float64 means, the noise estimated, the quadric start), without
+        # the general coercion of the inputs.
+        fit = StaticFit(  # positional: the fastest call into the constructor
+            data, g, model, method, None, None, max_iter,  # type: ignore[arg-type]
+            observability == "raise", degenerate_std, weak_std, check_g, _ESTIMATED_ISOTROPIC,
+            "", nominal,
+        )
+    else:
+        means, var, noise_model, units = _inputs(data, sigma)
+        st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+        fit = StaticFit(
+            means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
+            observability == "raise", degenerate_std, weak_std, check_g, noise_model, units,
+            nominal,
+        )
     if not fit.converged and not fit.degenerate:
         raise CalibrationError(
             f"{method} did not reach the minimum in {fit.max_iter} iterations (start "

@@ -18,6 +18,7 @@
 use std::ops::IndexMut;
 
 use crate::error::{degenerate, invalid, CoreError, Result};
+use crate::lanes::{F64x4, Portable};
 use faer::linalg::solvers::SolveLstsq;
 use nalgebra::{DMatrix, DVector, Matrix3};
 
@@ -724,40 +725,73 @@ pub fn lstsq_normal_fn<const C: usize>(
     m: usize,
     row: impl Fn(usize) -> ([f64; C], f64),
 ) -> Result<[f64; C]> {
+    lstsq_normal_lanes::<Portable, C>(m, row)
+}
+
+/// [`lstsq_normal_fn`] with the sums of the normal equations taken four rows at a time in the
+/// lanes of `V` (see [`crate::lanes`]) and added across lanes at the end in a fixed order.
+#[inline(always)]
+pub fn lstsq_normal_lanes<V: F64x4, const C: usize>(
+    m: usize,
+    row: impl Fn(usize) -> ([f64; C], f64),
+) -> Result<[f64; C]> {
     if m < C {
         return lstsq_fn(m, row);
     }
-    let mut a = [[0.0f64; C]; C];
-    let mut r = [0.0f64; C];
-    for i in 0..m {
-        let (x, y) = row(i);
+    let zero = V::splat(0.0);
+    let mut al = [[zero; C]; C];
+    let mut rl = [zero; C];
+    let mut i0 = 0;
+    while i0 < m {
+        // Rows past the end stay zero: they add nothing.
+        let (mut xs, mut ys) = ([[0.0f64; 4]; C], [0.0f64; 4]);
+        for l in 0..4.min(m - i0) {
+            let (x, y) = row(i0 + l);
+            for p in 0..C {
+                xs[p][l] = x[p];
+            }
+            ys[l] = y;
+        }
+        let mut x = [zero; C];
+        for (v, lanes) in x.iter_mut().zip(&xs) {
+            *v = V::from_array(*lanes);
+        }
+        let y = V::from_array(ys);
         for p in 0..C {
-            r[p] += x[p] * y;
+            rl[p] = x[p].mul_add(y, rl[p]);
             for q in p..C {
-                a[p][q] += x[p] * x[q];
+                al[p][q] = x[p].mul_add(x[q], al[p][q]);
             }
         }
+        i0 += 4;
     }
+    let mut a = [[0.0f64; C]; C];
+    let mut r = [0.0f64; C];
     let mut d = [0.0f64; C];
     for p in 0..C {
+        r[p] = rl[p].fold();
+        for q in p..C {
+            a[p][q] = al[p][q].fold();
+        }
         d[p] = a[p][p].sqrt();
         if !(d[p] > 0.0) || !d[p].is_finite() {
             return degenerate(format!("design column {p} is zero or not finite"));
         }
     }
+    let di = d.map(|v| 1.0 / v);
     for p in 0..C {
-        r[p] /= d[p];
+        r[p] *= di[p];
         for q in p..C {
-            a[p][q] /= d[p] * d[q];
+            a[p][q] *= di[p] * di[q];
             a[q][p] = a[p][q];
         }
     }
-    if !cholesky_lower(&mut a, |_, s| s > 1e-10) {
+    if !cholesky_full(&mut a, |_, s| s > 1e-10) {
         return lstsq_fn(m, row);
     }
     cholesky_solve(&a, &mut r);
     for p in 0..C {
-        r[p] /= d[p];
+        r[p] *= di[p];
     }
     if r.iter().any(|v| !v.is_finite()) {
         return lstsq_fn(m, row);
@@ -846,6 +880,39 @@ pub struct FixedReport<const N: usize> {
 /// `ftol * cost`, it is not taken. The report carries `J^T J` and `J^T r` there, for the
 /// covariance and a convergence check. Errors as [`solve_normal`].
 pub fn solve_normal_fixed<const N: usize, P: NormalEquationsFixed<N>>(
+    prob: &P,
+    p0: &[f64; N],
+    opt: &NlsOptions,
+    lambda0: f64,
+) -> Result<FixedReport<N>> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if crate::lanes::avx2_fma() {
+            // SAFETY: the CPU supports AVX2 and FMA (checked just above).
+            return unsafe { solve_normal_fixed_avx2(prob, p0, opt, lambda0) };
+        }
+    }
+    solve_normal_fixed_body(prob, p0, opt, lambda0)
+}
+
+/// [`solve_normal_fixed`] compiled for AVX2 (wider vectors for the small dense steps; the
+/// arithmetic is the baseline build's, without contraction into fused multiply-adds).
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn solve_normal_fixed_avx2<const N: usize, P: NormalEquationsFixed<N>>(
+    prob: &P,
+    p0: &[f64; N],
+    opt: &NlsOptions,
+    lambda0: f64,
+) -> Result<FixedReport<N>> {
+    solve_normal_fixed_body(prob, p0, opt, lambda0)
+}
+
+#[inline(always)]
+fn solve_normal_fixed_body<const N: usize, P: NormalEquationsFixed<N>>(
     prob: &P,
     p0: &[f64; N],
     opt: &NlsOptions,
@@ -959,7 +1026,7 @@ impl<S: AsRef<[f64]> + AsMut<[f64]>> MatMut for RowMajor<S> {
 
 /// Owned workspace of the solvers: a matrix type with its vector type, allocated once per
 /// solve (stack arrays for [`solve_normal_fixed`], heap buffers otherwise).
-trait Dense: MatMut {
+trait Dense: MatMut + Sized {
     /// `n`-vector.
     type Vector: IndexMut<usize, Output = f64>;
     /// Zero `n x n` matrix (a fixed size ignores `n`).
@@ -968,10 +1035,20 @@ trait Dense: MatMut {
     fn zeros_vector(n: usize) -> Self::Vector;
     /// The vector as a slice.
     fn slice(v: &Self::Vector) -> &[f64];
+    /// In-place Cholesky of a full symmetric matrix: `L` in the lower triangle (the strict
+    /// upper triangle is left unspecified); `pivot_ok` as for [`cholesky_lower`].
+    #[inline(always)]
+    fn cholesky_symmetric(&mut self, pivot_ok: impl Fn(usize, f64) -> bool) -> bool {
+        cholesky_lower(self, pivot_ok)
+    }
 }
 
 impl<const N: usize> Dense for [[f64; N]; N] {
     type Vector = [f64; N];
+    #[inline(always)]
+    fn cholesky_symmetric(&mut self, pivot_ok: impl Fn(usize, f64) -> bool) -> bool {
+        cholesky_full(self, pivot_ok)
+    }
     #[inline(always)]
     fn zeros(_: usize) -> Self {
         [[0.0; N]; N]
@@ -1003,48 +1080,108 @@ impl Dense for DMatrix<f64> {
 /// In-place Cholesky `A = L L^T` on the lower triangle of `a` (the strict upper triangle is
 /// neither read nor written). `pivot_ok(k, s)` judges the `k`-th pivot before its square
 /// root; false when it rejects one.
+///
+/// Computed as `A = U D U^T` (`U` unit lower) column by column, each column updating the
+/// trailing triangle at once, and then `L = U D^(1/2)`: the square roots are off the chain of
+/// dependent operations (one division, one multiplication and one subtraction per column),
+/// which is what limits a 9 x 9 factor.
 #[inline(always)]
 fn cholesky_lower<M: MatMut>(a: &mut M, pivot_ok: impl Fn(usize, f64) -> bool) -> bool {
     let n = a.dim();
     for k in 0..n {
-        let mut s = a.at(k, k);
-        for t in 0..k {
-            s -= a.at(k, t) * a.at(k, t);
-        }
-        if !pivot_ok(k, s) {
+        let d = a.at(k, k);
+        if !pivot_ok(k, d) {
             return false;
         }
-        let lk = s.sqrt();
-        let inv = 1.0 / lk;
-        *a.at_mut(k, k) = lk;
+        let inv = 1.0 / d;
+        // a(i, k) = u_ik d until the column is scaled below.
         for i in (k + 1)..n {
-            let mut v = a.at(i, k);
-            for t in 0..k {
-                v -= a.at(i, t) * a.at(k, t);
+            let u = a.at(i, k) * inv;
+            for j in (k + 1)..=i {
+                *a.at_mut(i, j) -= u * a.at(j, k);
             }
-            *a.at_mut(i, k) = v * inv;
+        }
+        for i in (k + 1)..n {
+            *a.at_mut(i, k) *= inv;
+        }
+    }
+    for k in 0..n {
+        let s = a.at(k, k).sqrt();
+        *a.at_mut(k, k) = s;
+        for i in (k + 1)..n {
+            *a.at_mut(i, k) *= s;
         }
     }
     true
 }
 
-/// Solve `L L^T x = b` in place for `L` from [`cholesky_lower`].
+/// [`cholesky_lower`] for a full symmetric `N x N` array: each column's update of the trailing
+/// rows runs over whole rows of fixed length `N` (the entries it must not change get a zero
+/// multiplier), so the compiler unrolls and vectorises it. `L` ends in the lower triangle;
+/// the strict upper triangle is left unspecified.
+#[inline(always)]
+fn cholesky_full<const N: usize>(
+    a: &mut [[f64; N]; N],
+    pivot_ok: impl Fn(usize, f64) -> bool,
+) -> bool {
+    for k in 0..N {
+        let d = a[k][k];
+        if !pivot_ok(k, d) {
+            return false;
+        }
+        let inv = 1.0 / d;
+        // c_j = a(j, k) = u_jk d below the diagonal, zero elsewhere.
+        let c: [f64; N] = std::array::from_fn(|j| if j > k { a[j][k] } else { 0.0 });
+        for i in (k + 1)..N {
+            let u = c[i] * inv;
+            for (x, cj) in a[i].iter_mut().zip(&c) {
+                *x -= u * cj;
+            }
+        }
+        for i in (k + 1)..N {
+            a[i][k] = c[i] * inv;
+        }
+    }
+    for k in 0..N {
+        let s = a[k][k].sqrt();
+        a[k][k] = s;
+        for row in a.iter_mut().skip(k + 1) {
+            row[k] *= s;
+        }
+    }
+    true
+}
+
+/// Solve `L L^T x = b` in place for `L` from [`cholesky_lower`] (column by column, with the
+/// reciprocals of the diagonal taken first).
 #[inline(always)]
 fn cholesky_solve<M: Mat, V: IndexMut<usize, Output = f64> + ?Sized>(l: &M, x: &mut V) {
     let n = l.dim();
-    for i in 0..n {
-        let mut v = x[i];
-        for t in 0..i {
-            v -= l.at(i, t) * x[t];
-        }
-        x[i] = v / l.at(i, i);
+    const MAX: usize = 16;
+    let mut inv_buf = [0.0f64; MAX];
+    let mut inv_vec = Vec::new();
+    let inv: &mut [f64] = if n <= MAX {
+        &mut inv_buf[..n]
+    } else {
+        inv_vec.resize(n, 0.0);
+        &mut inv_vec
+    };
+    for (k, v) in inv.iter_mut().enumerate() {
+        *v = 1.0 / l.at(k, k);
     }
-    for i in (0..n).rev() {
-        let mut v = x[i];
-        for t in (i + 1)..n {
-            v -= l.at(t, i) * x[t];
+    for k in 0..n {
+        let xk = x[k] * inv[k];
+        x[k] = xk;
+        for i in (k + 1)..n {
+            x[i] -= l.at(i, k) * xk;
         }
-        x[i] = v / l.at(i, i);
+    }
+    for k in (0..n).rev() {
+        let xk = x[k] * inv[k];
+        x[k] = xk;
+        for i in 0..k {
+            x[i] -= l.at(k, i) * xk;
+        }
     }
 }
 
@@ -1058,14 +1195,16 @@ fn cholesky_inverse<L: Mat, W: MatMut>(
     fin: impl Fn(usize, usize, f64) -> f64,
 ) {
     let n = l.dim();
+    for k in 0..n {
+        *li.at_mut(k, k) = 1.0 / l.at(k, k);
+    }
     for col in 0..n {
-        *li.at_mut(col, col) = 1.0 / l.at(col, col);
         for i in (col + 1)..n {
             let mut v = 0.0;
             for t in col..i {
                 v -= l.at(i, t) * li.at(t, col);
             }
-            *li.at_mut(i, col) = v / l.at(i, i);
+            *li.at_mut(i, col) = v * li.at(i, i);
         }
     }
     for p in 0..n {
@@ -1084,7 +1223,7 @@ fn cholesky_inverse<L: Mat, W: MatMut>(
 /// Solve `(A + damp diag(d)) x = -g` by Cholesky in `l` (lower triangle of `a` read); false
 /// when the damped matrix is not numerically positive definite or the step is not finite.
 #[inline(always)]
-fn chol_solve_damped<M: MatMut, V: IndexMut<usize, Output = f64> + ?Sized>(
+fn chol_solve_damped<M: Dense, V: IndexMut<usize, Output = f64> + ?Sized>(
     a: &M,
     d: &V,
     damp: f64,
@@ -1094,14 +1233,13 @@ fn chol_solve_damped<M: MatMut, V: IndexMut<usize, Output = f64> + ?Sized>(
 ) -> bool {
     let n = a.dim();
     for i in 0..n {
-        for j in 0..=i {
+        for j in 0..n {
             *l.at_mut(i, j) = a.at(i, j);
         }
         *l.at_mut(i, i) += damp * d[i];
     }
-    let ok = cholesky_lower(l, |k, s| {
-        s > 1e-300 && s > 1e-15 * a.at(k, k).abs().max(1e-300) * 1e-3
-    });
+    let ok =
+        l.cholesky_symmetric(|k, s| s > 1e-300 && s > 1e-15 * a.at(k, k).abs().max(1e-300) * 1e-3);
     if !ok {
         return false;
     }
@@ -1124,17 +1262,20 @@ fn covariance_of_normal<M: Dense>(mut a: M, rtol: f64) -> Option<M> {
             return None;
         }
     }
+    for i in 0..n {
+        d[i] = 1.0 / d[i];
+    }
     for p in 0..n {
         for q in 0..n {
-            *a.at_mut(p, q) /= d[p] * d[q];
+            *a.at_mut(p, q) *= d[p] * d[q];
         }
     }
-    if !cholesky_lower(&mut a, |_, s| s > rtol * rtol) {
+    if !a.cholesky_symmetric(|_, s| s > rtol * rtol) {
         return None;
     }
     let mut li = M::zeros(n);
     let mut c = M::zeros(n);
-    cholesky_inverse(&a, &mut li, &mut c, |p, q, v| v / (d[p] * d[q]));
+    cholesky_inverse(&a, &mut li, &mut c, |p, q, v| v * (d[p] * d[q]));
     for p in 0..n {
         for q in 0..n {
             if !c.at(p, q).is_finite() {
@@ -1376,6 +1517,7 @@ fn predicted_gain<M: Mat, V: IndexMut<usize, Output = f64> + ?Sized>(a: &M, g: &
 /// when it diverges, meets singular normal equations or reaches the iteration limit. The
 /// start must have passed [`check_start`]. `flavor` selects the documented small
 /// differences between the public solvers.
+#[inline(always)]
 fn lm_core<M: Dense, E: Evaluate<M>>(
     prob: &mut E,
     mut p: M::Vector,
@@ -1409,10 +1551,11 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
         for i in 0..n {
             diag[i] = jtj.at(i, i).max(1e-300);
         }
-        let gnorm = (0..n)
-            .map(|i| g[i].abs() / diag[i].sqrt())
-            .fold(0.0, f64::max);
-        if gnorm <= opt.gtol * cost.sqrt().max(1e-300) || cost == 0.0 {
+        // max_i |g_i| / sqrt(diag_i) <= gtol sqrt(cost), squared (no root or division per
+        // parameter; a NaN component counts as small, as in the maximum of the ratios).
+        let t = opt.gtol * cost.sqrt().max(1e-300);
+        let small = (0..n).all(|i| !(g[i] * g[i] > t * t * diag[i]));
+        if small || cost == 0.0 {
             converged = true;
             break;
         }
@@ -1655,6 +1798,101 @@ mod tests {
         );
         let mut s = [1.0, 2.0, 2.0, 4.0];
         assert!(!cholesky_small(&mut s, 2));
+    }
+
+    /// The fixed-size factor (whole-row updates) equals the general one to rounding on random
+    /// positive definite 9 x 9 matrices, solves and inverts to the same values, and rejects
+    /// the same pivot of a matrix that is not positive definite.
+    #[test]
+    #[allow(clippy::needless_range_loop)] // matrix entries, indexed as written
+    fn fixed_size_cholesky_matches_the_general_factor() {
+        let mut seed = 11u64;
+        for trial in 0..20 {
+            let b: Vec<f64> = (0..81)
+                .map(|_| crate::test_rng::unit(&mut seed) - 0.5)
+                .collect();
+            let mut a = [[0.0f64; 9]; 9];
+            for i in 0..9 {
+                for j in 0..9 {
+                    a[i][j] = (0..9).map(|t| b[i * 9 + t] * b[j * 9 + t]).sum::<f64>();
+                }
+                a[i][i] += 0.05 * (1 + trial) as f64;
+            }
+            let (mut f, mut g) = (a, RowMajor::zeros(9));
+            for i in 0..9 {
+                for j in 0..9 {
+                    *g.at_mut(i, j) = a[i][j];
+                }
+            }
+            assert!(cholesky_full(&mut f, |_, s| s > 0.0));
+            assert!(cholesky_lower(&mut g, |_, s| s > 0.0));
+            for i in 0..9 {
+                for j in 0..=i {
+                    assert!((f[i][j] - g.at(i, j)).abs() <= 1e-12, "{i} {j}");
+                }
+            }
+            let rhs: [f64; 9] = std::array::from_fn(|i| i as f64 - 4.0);
+            let mut x = rhs;
+            cholesky_solve(&f, &mut x);
+            for i in 0..9 {
+                let ax: f64 = (0..9).map(|j| a[i][j] * x[j]).sum();
+                assert!((ax - rhs[i]).abs() <= 1e-9, "{ax} {}", rhs[i]);
+            }
+            let c = covariance_normal_fixed(&a, 1e-9).unwrap();
+            for i in 0..9 {
+                for j in 0..9 {
+                    let e: f64 = (0..9).map(|t| a[i][t] * c[t][j]).sum();
+                    let want = if i == j { 1.0 } else { 0.0 };
+                    assert!((e - want).abs() <= 1e-8, "{i} {j} {e}");
+                }
+            }
+        }
+        // Pivot 2 of this matrix is -3: both factors stop there.
+        let bad = [[1.0, 2.0, 0.0], [2.0, 5.0, 2.0], [0.0, 2.0, 1.0]];
+        let seen = std::cell::Cell::new(0);
+        let mut f = bad;
+        assert!(!cholesky_full(&mut f, |k, s| {
+            seen.set(k);
+            s > 0.0
+        }));
+        assert_eq!(seen.get(), 2);
+        let mut g = RowMajor::zeros(3);
+        for i in 0..3 {
+            for j in 0..3 {
+                *g.at_mut(i, j) = bad[i][j];
+            }
+        }
+        assert!(!cholesky_lower(&mut g, |k, s| k < 2 || s > 0.0));
+    }
+
+    /// The normal equations summed in AVX2 lanes give the portable lanes' solution (to the
+    /// rounding of the fused multiply-adds).
+    #[test]
+    fn normal_equation_lanes_agree_across_kernels() {
+        let row = |i: usize| {
+            let x = i as f64 * 0.13;
+            (
+                [1.0, x, x * x, x.sin(), x.cos()],
+                1.0 - x + 0.2 * x * x + 0.05 * x.sin(),
+            )
+        };
+        let p = lstsq_normal_lanes::<Portable, 5>(37, row).unwrap();
+        #[cfg(target_arch = "x86_64")]
+        if crate::lanes::avx2_fma() {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn run(row: impl Fn(usize) -> ([f64; 5], f64)) -> [f64; 5] {
+                lstsq_normal_lanes::<crate::lanes::Avx2Fma, 5>(37, row).unwrap()
+            }
+            // SAFETY: checked just above.
+            let v = unsafe { run(row) };
+            for (a, b) in v.iter().zip(&p) {
+                assert!((a - b).abs() <= 1e-10 * b.abs().max(1.0), "{a} {b}");
+            }
+        }
+        let q = lstsq_fn::<5>(37, row).unwrap();
+        for (a, b) in q.iter().zip(&p) {
+            assert!((a - b).abs() <= 1e-8 * b.abs().max(1.0), "{a} {b}");
+        }
     }
 
     #[test]

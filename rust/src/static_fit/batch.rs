@@ -139,7 +139,7 @@ fn fit_one<const N: usize>(
     let mut ss = 0.0;
     let prob = s.problem(pts, g, noise, set.model);
     if prob
-        .for_each(&s.ml.params, |_, _, d| ss += d.r * d.r)
+        .residuals_each(&s.ml.params, |_, r, _| ss += r * r)
         .is_err()
     {
         ss = f64::NAN;

@@ -26,6 +26,7 @@
 
 use super::Model;
 use crate::error::{invalid, CoreError, Result};
+use crate::lanes::{F64x4, Portable};
 use crate::lsq::{inverse3, NormalEquations, NormalEquationsFixed};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
@@ -277,10 +278,11 @@ impl NormProblem<'_> {
     /// (`K` = the model's parameter count), added to `h` and `gr`.
     ///
     /// The dwells are taken [`LANES`] at a time, every quantity of [`eval_dwell`] and
-    /// [`ml_row`] computed for the lanes side by side (the same arithmetic per dwell, in
-    /// vector registers); the sums are kept per lane and added across lanes at the end in a
-    /// fixed order, so the result does not depend on threads or call order. A dwell that cannot be evaluated is reported as
-    /// [`NormProblem::for_each`] reports it.
+    /// [`ml_row`] computed for the lanes side by side in one vector ([`crate::lanes`]: AVX2
+    /// with fused multiply-adds where the CPU has them); the sums are kept per lane and added
+    /// across lanes at the end in a fixed order, so the result does not depend on threads or
+    /// call order. A dwell that cannot be evaluated is reported as [`NormProblem::for_each`]
+    /// reports it.
     #[inline(always)]
     pub fn accumulate<const K: usize>(
         &self,
@@ -290,30 +292,31 @@ impl NormProblem<'_> {
     ) -> Result<f64> {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU supports AVX2 (checked just above).
+            if crate::lanes::avx2_fma() {
+                // SAFETY: the CPU supports AVX2 and FMA (checked just above).
                 return unsafe { self.accumulate_avx2::<K>(p, h, gr) };
             }
         }
-        self.accumulate_lanes::<K>(p, h, gr)
+        self.accumulate_lanes::<Portable, K>(p, h, gr)
     }
 
-    /// [`Self::accumulate_lanes`] compiled for AVX2 (one register per four lanes; no FMA, so
-    /// the arithmetic and its rounding are those of the baseline build).
+    /// [`Self::accumulate_lanes`] on 256-bit registers with fused multiply-adds.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,fma")]
     unsafe fn accumulate_avx2<const K: usize>(
         &self,
         p: &[f64],
         h: &mut [[f64; K]; K],
         gr: &mut [f64; K],
     ) -> Result<f64> {
-        self.accumulate_lanes::<K>(p, h, gr)
+        self.accumulate_lanes::<crate::lanes::Avx2Fma, K>(p, h, gr)
     }
 
     #[inline(always)]
-    #[allow(clippy::needless_range_loop)] // lane-indexed arithmetic
-    fn accumulate_lanes<const K: usize>(
+    fn accumulate_lanes<V: F64x4, const K: usize>(
         &self,
         p: &[f64],
         h: &mut [[f64; K]; K],
@@ -321,181 +324,276 @@ impl NormProblem<'_> {
     ) -> Result<f64> {
         self.in_range(p)?;
         let t = inv_k(self.model, p)?;
+        let ts = splat3::<V>(&t);
+        let (g, zero) = (V::splat(self.g), V::splat(0.0));
         let n = self.pts.len();
         // Per-lane partial sums of the cost, `J^T e` and the upper triangle of `J^T J`.
-        let mut cl = [0.0f64; LANES];
-        let mut gl = [[0.0f64; LANES]; K];
-        let mut hl = [[[0.0f64; LANES]; K]; K];
+        let mut cl = zero;
+        let mut gl = [zero; K];
+        let mut hl = [[zero; K]; K];
         let mut bad = false;
-        let mut k0 = 0;
-        while k0 < n {
-            let used = (n - k0).min(LANES);
-            let mut b = LaneBlock::default();
-            for l in 0..LANES {
-                // Unused lanes repeat the block's first dwell (finite whenever it is) and are
-                // masked out below.
-                let k = if l < used { k0 + l } else { k0 };
-                let pt = &self.pts[k];
-                let v = self.noise.var(k);
-                for i in 0..3 {
-                    b.x[i][l] = pt[i] - p[3 + i];
-                    b.var[i][l] = v[i];
-                }
-                b.mask[l] = if l < used { 1.0 } else { 0.0 };
-            }
-            bad |= b.eval(&t, self.g, self.model);
-            // Masked lanes have e = 0 and a zero row: they add nothing.
-            for l in 0..LANES {
-                let e = b.e[l];
-                cl[l] += e * e;
-            }
-            for i in 0..K {
-                for l in 0..LANES {
-                    gl[i][l] += b.row[i][l] * b.e[l];
-                }
-                for j in i..K {
-                    for l in 0..LANES {
-                        hl[i][j][l] += b.row[i][l] * b.row[j][l];
-                    }
-                }
-            }
-            k0 += LANES;
+        for k0 in (0..n).step_by(LANES) {
+            let (ev, bad_block) = self.block(&ts, p, g, k0);
+            add_block(&ev, &mut cl, &mut gl, &mut hl);
+            bad |= bad_block;
         }
-        // Lane sums in a fixed order: (l0 + l1) + (l2 + l3).
-        let fold = |v: &[f64; LANES]| (v[0] + v[1]) + (v[2] + v[3]);
         for i in 0..K {
-            gr[i] += fold(&gl[i]);
+            gr[i] += gl[i].fold();
             for j in i..K {
-                h[i][j] += fold(&hl[i][j]);
+                h[i][j] += hl[i][j].fold();
             }
         }
-        let c = fold(&cl);
+        let c = cl.fold();
         if bad {
             // Name the first dwell that cannot be evaluated, as the scalar pass does.
             self.for_each(p, |_, _, _| {})?;
         }
         Ok(c)
     }
+
+    /// The block of [`LANES`] dwells from `k0`, evaluated at `p` (`ts = K^-1` in every lane,
+    /// `g` the reference), and whether a used lane cannot be evaluated.
+    #[inline(always)]
+    fn block<V: F64x4>(&self, ts: &[[V; 3]; 3], p: &[f64], g: V, k0: usize) -> (LaneEval<V>, bool) {
+        let (x, var, mask, used) = self.gather(p, k0);
+        let ev = eval_lanes(
+            ts,
+            load3(&x),
+            load3(&var),
+            g,
+            V::from_array(mask),
+            self.model,
+        );
+        let ok = lanes_ok(ev.norm, ev.s2, used);
+        (ev, !ok)
+    }
+
+    /// Lanes of the block of dwells from `k0`: `am - b`, the per-axis variance, the lane mask
+    /// and the number of used lanes. Unused lanes repeat the block's first dwell (finite
+    /// whenever it is) and are masked out.
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn gather(
+        &self,
+        p: &[f64],
+        k0: usize,
+    ) -> ([[f64; LANES]; 3], [[f64; LANES]; 3], [f64; LANES], usize) {
+        let used = (self.pts.len() - k0).min(LANES);
+        let (mut x, mut var, mut mask) = ([[0.0; LANES]; 3], [[0.0; LANES]; 3], [0.0; LANES]);
+        for l in 0..LANES {
+            let k = if l < used { k0 + l } else { k0 };
+            let (pt, v) = (&self.pts[k], self.noise.var(k));
+            for i in 0..3 {
+                x[i][l] = pt[i] - p[3 + i];
+                var[i][l] = v[i];
+            }
+            mask[l] = if l < used { 1.0 } else { 0.0 };
+        }
+        (x, var, mask, used)
+    }
+
+    /// The norm residual `r_k = |a_k| - g` and its std `sigma_k` of every dwell at `p`, passed
+    /// to `f(k, r_k, sigma_k)` in dwell order: the per-dwell pass of [`Self::for_each`] taken
+    /// [`LANES`] dwells at a time (AVX2 with fused multiply-adds where the CPU has them). A
+    /// dwell that cannot be evaluated is reported as [`Self::for_each`] reports it (`f` may
+    /// have seen the dwells of the blocks before it).
+    pub fn residuals_each(&self, p: &[f64], f: impl FnMut(usize, f64, f64)) -> Result<()> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if crate::lanes::avx2_fma() {
+                // SAFETY: the CPU supports AVX2 and FMA (checked just above).
+                return unsafe { self.residuals_avx2(p, f) };
+            }
+        }
+        self.residuals_lanes::<Portable>(p, f)
+    }
+
+    /// [`Self::residuals_lanes`] on 256-bit registers with fused multiply-adds.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn residuals_avx2(&self, p: &[f64], f: impl FnMut(usize, f64, f64)) -> Result<()> {
+        self.residuals_lanes::<crate::lanes::Avx2Fma>(p, f)
+    }
+
+    #[inline(always)]
+    fn residuals_lanes<V: F64x4>(
+        &self,
+        p: &[f64],
+        mut f: impl FnMut(usize, f64, f64),
+    ) -> Result<()> {
+        let t = inv_k(self.model, p)?;
+        let ts = splat3::<V>(&t);
+        let g = V::splat(self.g);
+        let n = self.pts.len();
+        for k0 in (0..n).step_by(LANES) {
+            let (x, var, _, used) = self.gather(p, k0);
+            let (x, var) = (load3::<V>(&x), load3::<V>(&var));
+            let a = mat3_vec(&ts, &x, false);
+            let norm = dot3(&a, &a).sqrt();
+            let inv_n = V::splat(1.0) / norm;
+            let ta = mat3_vec(&ts, &a, true);
+            let w = [ta[0] * inv_n, ta[1] * inv_n, ta[2] * inv_n];
+            let vw = [var[0] * w[0], var[1] * w[1], var[2] * w[2]];
+            let s2 = dot3(&vw, &w);
+            if !lanes_ok(norm, s2, used) {
+                self.for_each(p, |_, _, _| {})?;
+            }
+            let (r, sd) = ((norm - g).to_array(), s2.sqrt().to_array());
+            for l in 0..used {
+                f(k0 + l, r[l], sd[l]);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `|a| > 0`, `sigma^2 > 0` and both finite in the first `used` lanes.
+#[inline(always)]
+fn lanes_ok<V: F64x4>(norm: V, s2: V, used: usize) -> bool {
+    let (norm, s2) = (norm.to_array(), s2.to_array());
+    (0..used).all(|l| norm[l] > 0.0 && norm[l].is_finite() && s2[l] > 0.0 && s2[l].is_finite())
+}
+
+/// `T v` (or `T^T v` when `transpose`) in every lane.
+#[inline(always)]
+fn mat3_vec<V: F64x4>(t: &[[V; 3]; 3], v: &[V; 3], transpose: bool) -> [V; 3] {
+    let mut out = [v[0]; 3];
+    for (i, o) in out.iter_mut().enumerate() {
+        let (c0, c1, c2) = if transpose {
+            (t[0][i], t[1][i], t[2][i])
+        } else {
+            (t[i][0], t[i][1], t[i][2])
+        };
+        *o = c2.mul_add(v[2], c1.mul_add(v[1], c0 * v[0]));
+    }
+    out
+}
+
+/// Three rows of lanes as vectors.
+#[inline(always)]
+fn load3<V: F64x4>(x: &[[f64; LANES]; 3]) -> [V; 3] {
+    [
+        V::from_array(x[0]),
+        V::from_array(x[1]),
+        V::from_array(x[2]),
+    ]
+}
+
+/// Every entry of `t` in every lane.
+#[inline(always)]
+fn splat3<V: F64x4>(t: &Matrix3<f64>) -> [[V; 3]; 3] {
+    let mut out = [[V::splat(0.0); 3]; 3];
+    for (i, row) in out.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = V::splat(t[(i, j)]);
+        }
+    }
+    out
+}
+
+/// `u . v` in every lane.
+#[inline(always)]
+fn dot3<V: F64x4>(u: &[V; 3], v: &[V; 3]) -> V {
+    u[2].mul_add(v[2], u[1].mul_add(v[1], u[0] * v[0]))
 }
 
 /// Dwells evaluated side by side in [`NormProblem::accumulate`].
 pub const LANES: usize = 4;
 
-/// [`LANES`] dwells: inputs (`x = am - b`, per-axis variance, lane mask) and the whitened
-/// residual `e` and its gradient row (masked lanes zero).
-#[derive(Default)]
-struct LaneBlock {
-    x: [[f64; LANES]; 3],
-    var: [[f64; LANES]; 3],
-    mask: [f64; LANES],
-    e: [f64; LANES],
-    row: [[f64; LANES]; 9],
+/// Add a block's cost, `J^T e` and upper triangle of `J^T J` to the per-lane sums.
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // the triangle of a matrix, indexed as written
+fn add_block<V: F64x4, const K: usize>(
+    ev: &LaneEval<V>,
+    cl: &mut V,
+    gl: &mut [V; K],
+    hl: &mut [[V; K]; K],
+) {
+    *cl = ev.e.mul_add(ev.e, *cl);
+    for i in 0..K {
+        gl[i] = ev.row[i].mul_add(ev.e, gl[i]);
+        for j in i..K {
+            hl[i][j] = ev.row[i].mul_add(ev.row[j], hl[i][j]);
+        }
+    }
 }
 
-impl LaneBlock {
-    /// [`eval_dwell`] and [`ml_row`] on every lane (`t = K^-1`); true when a used lane has a
-    /// zero or non-finite norm or residual variance.
-    #[inline(always)]
-    #[allow(clippy::needless_range_loop)] // lane-indexed arithmetic, as written per dwell
-    fn eval(&mut self, t: &Matrix3<f64>, g: f64, model: Model) -> bool {
-        type L = [f64; LANES];
-        let z0: L = [0.0; LANES];
-        let (x, var) = (&self.x, &self.var);
-        // a = T x
-        let mut a = [z0; 3];
-        for (i, ai) in a.iter_mut().enumerate() {
-            for l in 0..LANES {
-                ai[l] = t[(i, 0)] * x[0][l] + t[(i, 1)] * x[1][l] + t[(i, 2)] * x[2][l];
-            }
+/// [`LANES`] dwells evaluated: the whitened residual `e` and its gradient row (masked lanes
+/// zero), with `|a|` and the residual variance `sigma^2` to check.
+struct LaneEval<V> {
+    e: V,
+    norm: V,
+    s2: V,
+    row: [V; 9],
+}
+
+/// [`eval_dwell`] and [`ml_row`] on every lane (`t = K^-1`, `x = am - b`, per-axis variance
+/// `var`, lane mask `m`).
+#[inline(always)]
+fn eval_lanes<V: F64x4>(
+    t: &[[V; 3]; 3],
+    x: [V; 3],
+    var: [V; 3],
+    g: V,
+    m: V,
+    model: Model,
+) -> LaneEval<V> {
+    // Written without closures: a closure is compiled on its own, without the caller's
+    // target features, whenever the compiler does not inline it.
+    let one = V::splat(1.0);
+    // a = T x, w = T^T a / |a|, sigma^2 = w^T Sigma w.
+    let a = mat3_vec(t, &x, false);
+    let norm = dot3(&a, &a).sqrt();
+    let inv_n = one / norm;
+    let r = norm - g;
+    let ta = mat3_vec(t, &a, true);
+    let w = [ta[0] * inv_n, ta[1] * inv_n, ta[2] * inv_n];
+    let vw = [var[0] * w[0], var[1] * w[1], var[2] * w[2]];
+    let s2 = dot3(&vw, &w);
+    let is = one / s2.sqrt();
+    let e = r * is * m;
+    // ml_row: z = T Sigma w, y = (z - (z.u) u) / |a|, q = T^T y.
+    let c = r * is * is * is;
+    let z = mat3_vec(t, &vw, false);
+    let zu = dot3(&z, &a) * inv_n * inv_n;
+    let y = [
+        (z[0] - a[0] * zu) * inv_n,
+        (z[1] - a[1] * zu) * inv_n,
+        (z[2] - a[2] * zu) * inv_n,
+    ];
+    let q = mat3_vec(t, &y, true);
+    let al = [
+        c * z[0] - is * a[0],
+        c * z[1] - is * a[1],
+        c * z[2] - is * a[2],
+    ];
+    let be = [c * q[0], c * q[1], c * q[2]];
+    // de/dK_ij = w_i al_j + be_i a_j; de/db_i = be_i - w_i is.
+    let kij = |i: usize, j: usize| -> V { w[i].mul_add(al[j], be[i] * a[j]) * m };
+    let mut row = [V::splat(0.0); 9];
+    row[0] = kij(0, 0);
+    row[1] = kij(1, 1);
+    row[2] = kij(2, 2);
+    row[3] = (be[0] - w[0] * is) * m;
+    row[4] = (be[1] - w[1] * is) * m;
+    row[5] = (be[2] - w[2] * is) * m;
+    match model {
+        Model::Lower => {
+            row[6] = kij(1, 0);
+            row[7] = kij(2, 0);
+            row[8] = kij(2, 1);
         }
-        let (mut inv_n, mut r) = (z0, z0);
-        let mut bad = 0.0f64;
-        for l in 0..LANES {
-            let norm = (a[0][l] * a[0][l] + a[1][l] * a[1][l] + a[2][l] * a[2][l]).sqrt();
-            bad += if norm > 0.0 && norm.is_finite() {
-                0.0
-            } else {
-                self.mask[l]
-            };
-            inv_n[l] = 1.0 / norm;
-            r[l] = norm - g;
+        Model::Upper => {
+            row[6] = kij(0, 1);
+            row[7] = kij(0, 2);
+            row[8] = kij(1, 2);
         }
-        // w = T^T a / |a|
-        let mut w = [z0; 3];
-        for (i, wi) in w.iter_mut().enumerate() {
-            for l in 0..LANES {
-                wi[l] =
-                    (t[(0, i)] * a[0][l] + t[(1, i)] * a[1][l] + t[(2, i)] * a[2][l]) * inv_n[l];
-            }
-        }
-        let mut is = z0;
-        for l in 0..LANES {
-            let s2 = w[0][l] * w[0][l] * var[0][l]
-                + w[1][l] * w[1][l] * var[1][l]
-                + w[2][l] * w[2][l] * var[2][l];
-            bad += if s2 > 0.0 && s2.is_finite() {
-                0.0
-            } else {
-                self.mask[l]
-            };
-            is[l] = 1.0 / s2.sqrt();
-            self.e[l] = r[l] * is[l] * self.mask[l];
-        }
-        // ml_row: v = Sigma w, z = T v, y = (z - (z.u) u) / |a|, q = T^T y.
-        let mut c = z0;
-        for l in 0..LANES {
-            c[l] = r[l] * is[l] * is[l] * is[l];
-        }
-        let mut z = [z0; 3];
-        for (i, zi) in z.iter_mut().enumerate() {
-            for l in 0..LANES {
-                zi[l] = t[(i, 0)] * (var[0][l] * w[0][l])
-                    + t[(i, 1)] * (var[1][l] * w[1][l])
-                    + t[(i, 2)] * (var[2][l] * w[2][l]);
-            }
-        }
-        let mut zu = z0;
-        for l in 0..LANES {
-            zu[l] =
-                (z[0][l] * a[0][l] + z[1][l] * a[1][l] + z[2][l] * a[2][l]) * inv_n[l] * inv_n[l];
-        }
-        let mut y = [z0; 3];
-        for i in 0..3 {
-            for l in 0..LANES {
-                y[i][l] = (z[i][l] - a[i][l] * zu[l]) * inv_n[l];
-            }
-        }
-        let (mut al, mut be) = ([z0; 3], [z0; 3]);
-        for i in 0..3 {
-            for l in 0..LANES {
-                let q = t[(0, i)] * y[0][l] + t[(1, i)] * y[1][l] + t[(2, i)] * y[2][l];
-                al[i][l] = c[l] * z[i][l] - is[l] * a[i][l];
-                be[i][l] = c[l] * q;
-            }
-        }
-        let m = &self.mask;
-        let row = &mut self.row;
-        let kij = |i: usize, j: usize, l: usize| (w[i][l] * al[j][l] + be[i][l] * a[j][l]) * m[l];
-        for l in 0..LANES {
-            row[0][l] = kij(0, 0, l);
-            row[1][l] = kij(1, 1, l);
-            row[2][l] = kij(2, 2, l);
-            row[3][l] = (be[0][l] - w[0][l] * is[l]) * m[l];
-            row[4][l] = (be[1][l] - w[1][l] * is[l]) * m[l];
-            row[5][l] = (be[2][l] - w[2][l] * is[l]) * m[l];
-        }
-        let (i6, i7, i8) = match model {
-            Model::Lower => ((1, 0), (2, 0), (2, 1)),
-            Model::Upper => ((0, 1), (0, 2), (1, 2)),
-            Model::Diag => return bad > 0.0,
-        };
-        for l in 0..LANES {
-            row[6][l] = kij(i6.0, i6.1, l);
-            row[7][l] = kij(i7.0, i7.1, l);
-            row[8][l] = kij(i8.0, i8.1, l);
-        }
-        bad > 0.0
+        Model::Diag => {}
     }
+    LaneEval { e, norm, s2, row }
 }
 
 impl NormalEquations for NormProblem<'_> {
@@ -607,6 +705,68 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The lane pass gives the residual and its std of the scalar pass (to the rounding of
+    /// the fused multiply-adds) for every dwell count around the block size, and names the
+    /// same bad dwell.
+    #[test]
+    fn residuals_each_matches_for_each() {
+        let p = [1.05, 0.97, 1.1, 0.02, -0.03, 0.05, 0.011, -0.02, 0.017];
+        let mut seed = 7u64;
+        let pts: Vec<[f64; 3]> = (0..23)
+            .map(|_| [0; 3].map(|_| 9.0 * (crate::test_rng::unit(&mut seed) - 0.5)))
+            .collect();
+        let var: Vec<[f64; 3]> = (0..23)
+            .map(|_| [0; 3].map(|_| 1e-6 * (0.5 + crate::test_rng::unit(&mut seed))))
+            .collect();
+        for n in [1, 3, 4, 5, 8, 9, 23] {
+            for noise in [
+                DwellNoise::Isotropic,
+                DwellNoise::PerDwell {
+                    var: &var,
+                    scale: 2.0,
+                },
+            ] {
+                let prob = NormProblem {
+                    pts: &pts[..n],
+                    g: 9.8,
+                    noise,
+                    model: Model::Lower,
+                    kmax: f64::INFINITY,
+                };
+                let mut want = vec![];
+                prob.for_each(&p, |k, _, d| want.push((k, d.r, d.sigma)))
+                    .unwrap();
+                let mut got = vec![];
+                prob.residuals_each(&p, |k, r, sd| got.push((k, r, sd)))
+                    .unwrap();
+                assert_eq!(got.len(), n);
+                for (a, b) in got.iter().zip(&want) {
+                    assert_eq!(a.0, b.0);
+                    assert!(
+                        (a.1 - b.1).abs() <= 1e-14 * b.1.abs().max(1.0),
+                        "{a:?} {b:?}"
+                    );
+                    assert!((a.2 - b.2).abs() <= 1e-14 * b.2, "{a:?} {b:?}");
+                }
+            }
+        }
+        let mut bad = pts.clone();
+        bad[6] = [p[3], p[4], p[5]];
+        let prob = NormProblem {
+            pts: &bad,
+            g: 9.8,
+            noise: DwellNoise::Isotropic,
+            model: Model::Lower,
+            kmax: f64::INFINITY,
+        };
+        let want = prob.for_each(&p, |_, _, _| {}).unwrap_err().to_string();
+        let got = prob
+            .residuals_each(&p, |_, _, _| {})
+            .unwrap_err()
+            .to_string();
+        assert_eq!(got, want);
     }
 
     #[test]

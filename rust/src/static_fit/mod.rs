@@ -646,9 +646,9 @@ fn fit_static_n<const N: usize>(
     let mut residuals = vec![0.0; n];
     let mut sigma_r = vec![0.0; n];
     let prob = s.problem(&pts, g, noise, set.model);
-    let pass = prob.for_each(&s.ml.params, |k, _, d| {
-        residuals[k] = d.r;
-        sigma_r[k] = d.sigma;
+    let pass = prob.residuals_each(&s.ml.params, |k, r, sd| {
+        residuals[k] = r;
+        sigma_r[k] = sd;
     });
     if let Err(e) = pass {
         return Err(s.start.error.clone().unwrap_or(e));

@@ -14,7 +14,8 @@
 use super::frame::Frame;
 use super::{FitSettings, Method, Model};
 use crate::error::{invalid, CoreError, Result};
-use crate::lsq::{cholesky3, inverse3, lstsq_fn, lstsq_normal_fn};
+use crate::lanes::{F64x4, Portable};
+use crate::lsq::{cholesky3, inverse3, lstsq_fn, lstsq_normal_lanes};
 use nalgebra::{Matrix3, Vector3};
 
 /// Where the start of the iteration (or the linear answer) came from.
@@ -97,29 +98,37 @@ fn quadric_design_error(e: CoreError, diag: bool) -> CoreError {
 pub fn quadric_beta(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Result<[f64; 9]> {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
+        if crate::lanes::avx2_fma() {
+            // SAFETY: the CPU supports AVX2 and FMA (checked just above).
             return unsafe { quadric_beta_avx2(means, f, diag, exact) };
         }
     }
-    quadric_beta_body(means, f, diag, exact)
+    quadric_beta_body::<Portable>(means, f, diag, exact)
 }
 
-/// [`quadric_beta`] compiled for AVX2 (wider vectors for the QR's dot products and updates;
-/// no FMA, so the arithmetic and its rounding are those of the baseline build).
+/// [`quadric_beta`] on 256-bit registers with fused multiply-adds (the QR's dot products and
+/// updates, and the normal equations' sums in [`lstsq_normal_lanes`]).
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn quadric_beta_avx2(
     means: &[[f64; 3]],
     f: Frame,
     diag: bool,
     exact: bool,
 ) -> Result<[f64; 9]> {
-    quadric_beta_body(means, f, diag, exact)
+    quadric_beta_body::<crate::lanes::Avx2Fma>(means, f, diag, exact)
 }
 
 #[inline(always)]
-fn quadric_beta_body(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> Result<[f64; 9]> {
+fn quadric_beta_body<V: F64x4>(
+    means: &[[f64; 3]],
+    f: Frame,
+    diag: bool,
+    exact: bool,
+) -> Result<[f64; 9]> {
     let n = means.len();
     if diag {
         let row = |k: usize| {
@@ -129,7 +138,7 @@ fn quadric_beta_body(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> R
         let b = if exact {
             lstsq_fn::<6>(n, row)
         } else {
-            lstsq_normal_fn::<6>(n, row)
+            lstsq_normal_lanes::<V, 6>(n, row)
         }
         .map_err(|e| quadric_design_error(e, true))?;
         let mut out = [0.0; 9];
@@ -156,7 +165,7 @@ fn quadric_beta_body(means: &[[f64; 3]], f: Frame, diag: bool, exact: bool) -> R
         if exact {
             lstsq_fn::<9>(n, row)
         } else {
-            lstsq_normal_fn::<9>(n, row)
+            lstsq_normal_lanes::<V, 9>(n, row)
         }
         .map_err(|e| quadric_design_error(e, false))
     }

@@ -1,0 +1,185 @@
+//! Four `f64` lanes side by side, for the small per-dwell kernels of the fits (the normal
+//! equations of the static fit and of its quadric start).
+//!
+//! A kernel is written once, generic over [`F64x4`], and compiled twice: with [`Portable`]
+//! (four scalars, what any CPU runs) and, on x86-64 CPUs with AVX2 and FMA, with
+//! [`Avx2Fma`] (one 256-bit register, chosen at run time by [`avx2_fma`]). The two run the
+//! same operations in the same order; [`F64x4::mul_add`] is fused on AVX2 + FMA (one rounding)
+//! and a multiplication then an addition in the portable build, so results may differ in the
+//! last bits between CPUs, never between runs or thread counts on one CPU.
+
+use std::ops::{Add, Div, Mul, Sub};
+
+/// Four `f64` lanes.
+pub trait F64x4:
+    Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self>
+{
+    /// Every lane `v`.
+    fn splat(v: f64) -> Self;
+    /// Lanes from an array.
+    fn from_array(a: [f64; 4]) -> Self;
+    /// Lanes into an array.
+    fn to_array(self) -> [f64; 4];
+    /// Square root of each lane.
+    fn sqrt(self) -> Self;
+    /// `self * b + c` (fused on AVX2 + FMA).
+    fn mul_add(self, b: Self, c: Self) -> Self;
+    /// Sum of the lanes in a fixed order: `(l0 + l1) + (l2 + l3)`.
+    #[inline(always)]
+    fn fold(self) -> f64 {
+        let v = self.to_array();
+        (v[0] + v[1]) + (v[2] + v[3])
+    }
+}
+
+/// Four scalars (any CPU).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Portable(pub [f64; 4]);
+
+macro_rules! portable_op {
+    ($tr:ident, $f:ident, $op:tt) => {
+        impl $tr for Portable {
+            type Output = Portable;
+            #[inline(always)]
+            fn $f(self, o: Portable) -> Portable {
+                let (a, b) = (self.0, o.0);
+                Portable([a[0] $op b[0], a[1] $op b[1], a[2] $op b[2], a[3] $op b[3]])
+            }
+        }
+    };
+}
+portable_op!(Add, add, +);
+portable_op!(Sub, sub, -);
+portable_op!(Mul, mul, *);
+portable_op!(Div, div, /);
+
+impl F64x4 for Portable {
+    #[inline(always)]
+    fn splat(v: f64) -> Portable {
+        Portable([v; 4])
+    }
+    #[inline(always)]
+    fn from_array(a: [f64; 4]) -> Portable {
+        Portable(a)
+    }
+    #[inline(always)]
+    fn to_array(self) -> [f64; 4] {
+        self.0
+    }
+    #[inline(always)]
+    fn sqrt(self) -> Portable {
+        Portable(self.0.map(f64::sqrt))
+    }
+    #[inline(always)]
+    fn mul_add(self, b: Portable, c: Portable) -> Portable {
+        self * b + c
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+pub use x86::{avx2_fma, Avx2Fma};
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::F64x4;
+    use std::arch::x86_64::{
+        __m256d, _mm256_add_pd, _mm256_div_pd, _mm256_fmadd_pd, _mm256_loadu_pd, _mm256_mul_pd,
+        _mm256_set1_pd, _mm256_sqrt_pd, _mm256_storeu_pd, _mm256_sub_pd,
+    };
+    use std::ops::{Add, Div, Mul, Sub};
+
+    /// The CPU has AVX2 and FMA: [`Avx2Fma`] may be used.
+    #[inline]
+    pub fn avx2_fma() -> bool {
+        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+    }
+
+    /// One 256-bit register. Only code that has checked [`avx2_fma`] and runs inside a
+    /// function compiled with `#[target_feature(enable = "avx2,fma")]` creates these (every
+    /// use in the crate does; the type is not exported outside it).
+    #[derive(Debug, Clone, Copy)]
+    pub struct Avx2Fma(__m256d);
+
+    macro_rules! avx_op {
+        ($tr:ident, $f:ident, $intr:ident) => {
+            impl $tr for Avx2Fma {
+                type Output = Avx2Fma;
+                #[inline(always)]
+                fn $f(self, o: Avx2Fma) -> Avx2Fma {
+                    // SAFETY: an Avx2Fma exists only where AVX2 and FMA are available.
+                    Avx2Fma(unsafe { $intr(self.0, o.0) })
+                }
+            }
+        };
+    }
+    avx_op!(Add, add, _mm256_add_pd);
+    avx_op!(Sub, sub, _mm256_sub_pd);
+    avx_op!(Mul, mul, _mm256_mul_pd);
+    avx_op!(Div, div, _mm256_div_pd);
+
+    impl F64x4 for Avx2Fma {
+        #[inline(always)]
+        fn splat(v: f64) -> Avx2Fma {
+            // SAFETY: see the type's documentation.
+            Avx2Fma(unsafe { _mm256_set1_pd(v) })
+        }
+        #[inline(always)]
+        fn from_array(a: [f64; 4]) -> Avx2Fma {
+            // SAFETY: see the type's documentation; `a` holds 4 values.
+            Avx2Fma(unsafe { _mm256_loadu_pd(a.as_ptr()) })
+        }
+        #[inline(always)]
+        fn to_array(self) -> [f64; 4] {
+            let mut a = [0.0; 4];
+            // SAFETY: see the type's documentation; `a` holds 4 values.
+            unsafe { _mm256_storeu_pd(a.as_mut_ptr(), self.0) };
+            a
+        }
+        #[inline(always)]
+        fn sqrt(self) -> Avx2Fma {
+            // SAFETY: see the type's documentation.
+            Avx2Fma(unsafe { _mm256_sqrt_pd(self.0) })
+        }
+        #[inline(always)]
+        fn mul_add(self, b: Avx2Fma, c: Avx2Fma) -> Avx2Fma {
+            // SAFETY: see the type's documentation.
+            Avx2Fma(unsafe { _mm256_fmadd_pd(self.0, b.0, c.0) })
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn kernel<V: F64x4>(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
+        let (x, y) = (V::from_array(a), V::from_array(b));
+        ((x * y + x - y) / y)
+            .sqrt()
+            .mul_add(x, V::splat(0.5))
+            .to_array()
+    }
+
+    /// The AVX2 lanes compute what the portable ones do (to the rounding of the fused
+    /// multiply-add), and the fold adds in the documented order.
+    #[test]
+    fn avx_lanes_match_portable() {
+        let (a, b) = ([1.5, 2.0, 3.25, 1e10], [0.5, 4.0, 1.0 / 3.0, 7.0]);
+        let p = kernel::<Portable>(a, b);
+        let want = [0, 1, 2, 3].map(|l| ((a[l] * b[l] + a[l] - b[l]) / b[l]).sqrt() * a[l] + 0.5);
+        assert_eq!(p, want);
+        #[cfg(target_arch = "x86_64")]
+        if avx2_fma() {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn run(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
+                kernel::<Avx2Fma>(a, b)
+            }
+            // SAFETY: checked just above.
+            let v = unsafe { run(a, b) };
+            for (x, y) in v.iter().zip(&p) {
+                assert!((x - y).abs() <= 2e-16 * y.abs(), "{x} {y}");
+            }
+        }
+        assert_eq!(Portable([1.0, 2.0, 1e-20, 3.0]).fold(), 6.0);
+    }
+}
