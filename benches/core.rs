@@ -178,10 +178,6 @@ fn bench_static(c: &mut Criterion) {
         grp.bench_function(format!("quadric_start_n20_{design}"), |b| {
             b.iter(|| black_box(quadric_beta(black_box(means), f, false, false).unwrap()))
         });
-        let m80 = &all[..80];
-        grp.bench_function(format!("quadric_start_n80_{design}"), |b| {
-            b.iter(|| black_box(quadric_beta(black_box(m80), f, false, false).unwrap()))
-        });
     }
     let set = FitSettings::new(Model::Lower, Method::Lm);
     grp.sample_size(20);

@@ -24,6 +24,12 @@ pub trait F64x4:
     fn sqrt(self) -> Self;
     /// `self * b + c` (fused on AVX2 + FMA).
     fn mul_add(self, b: Self, c: Self) -> Self;
+    /// Four 3-vectors (consecutive in memory) as three vectors of their `x`, `y` and `z`.
+    #[inline(always)]
+    fn transpose3(rows: &[[f64; 3]; 4]) -> [Self; 3] {
+        let col = |i: usize| Self::from_array([rows[0][i], rows[1][i], rows[2][i], rows[3][i]]);
+        [col(0), col(1), col(2)]
+    }
     /// Sum of the lanes in a fixed order: `(l0 + l1) + (l2 + l3)`.
     #[inline(always)]
     fn fold(self) -> f64 {
@@ -83,8 +89,9 @@ pub use x86::{avx2_fma, Avx2Fma};
 mod x86 {
     use super::F64x4;
     use std::arch::x86_64::{
-        __m256d, _mm256_add_pd, _mm256_div_pd, _mm256_fmadd_pd, _mm256_loadu_pd, _mm256_mul_pd,
-        _mm256_set1_pd, _mm256_sqrt_pd, _mm256_storeu_pd, _mm256_sub_pd,
+        __m256d, _mm256_add_pd, _mm256_blend_pd, _mm256_div_pd, _mm256_fmadd_pd, _mm256_loadu_pd,
+        _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set1_pd, _mm256_shuffle_pd, _mm256_sqrt_pd,
+        _mm256_storeu_pd, _mm256_sub_pd,
     };
     use std::ops::{Add, Div, Mul, Sub};
 
@@ -145,6 +152,28 @@ mod x86 {
             // SAFETY: see the type's documentation.
             Avx2Fma(unsafe { _mm256_fmadd_pd(self.0, b.0, c.0) })
         }
+        /// Three loads and six shuffles, without a round trip through memory.
+        #[inline(always)]
+        fn transpose3(rows: &[[f64; 3]; 4]) -> [Avx2Fma; 3] {
+            let p = rows.as_ptr().cast::<f64>();
+            // SAFETY: see the type's documentation; `rows` holds 12 consecutive values.
+            unsafe {
+                // m0 = x0 y0 z0 x1, m1 = y1 z1 x2 y2, m2 = z2 x3 y3 z3.
+                let (m0, m1, m2) = (
+                    _mm256_loadu_pd(p),
+                    _mm256_loadu_pd(p.add(4)),
+                    _mm256_loadu_pd(p.add(8)),
+                );
+                let a = _mm256_blend_pd::<0b1100>(m0, m1); // x0 y0 x2 y2
+                let b = _mm256_permute2f128_pd::<0x21>(m0, m2); // z0 x1 z2 x3
+                let c = _mm256_blend_pd::<0b1100>(m1, m2); // y1 z1 y3 z3
+                [
+                    Avx2Fma(_mm256_shuffle_pd::<0b1010>(a, b)),
+                    Avx2Fma(_mm256_shuffle_pd::<0b0101>(a, c)),
+                    Avx2Fma(_mm256_shuffle_pd::<0b1010>(b, c)),
+                ]
+            }
+        }
     }
 }
 
@@ -181,5 +210,32 @@ mod tests {
             }
         }
         assert_eq!(Portable([1.0, 2.0, 1e-20, 3.0]).fold(), 6.0);
+    }
+
+    /// Both transposes give the columns of four consecutive 3-vectors.
+    #[test]
+    fn transpose3_gives_columns() {
+        let rows = [
+            [1.0, 2.0, 3.0],
+            [4.0, 5.0, 6.0],
+            [7.0, 8.0, 9.0],
+            [10.0, 11.0, 12.0],
+        ];
+        let want = [
+            [1.0, 4.0, 7.0, 10.0],
+            [2.0, 5.0, 8.0, 11.0],
+            [3.0, 6.0, 9.0, 12.0],
+        ];
+        assert_eq!(Portable::transpose3(&rows).map(|v| v.0), want);
+        #[cfg(target_arch = "x86_64")]
+        if avx2_fma() {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn run(rows: &[[f64; 3]; 4]) -> [[f64; 4]; 3] {
+                let [x, y, z] = Avx2Fma::transpose3(rows);
+                [x.to_array(), y.to_array(), z.to_array()]
+            }
+            // SAFETY: checked just above.
+            assert_eq!(unsafe { run(&rows) }, want);
+        }
     }
 }

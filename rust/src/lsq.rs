@@ -716,6 +716,17 @@ pub fn lstsq_fn<const C: usize>(
     Ok(x)
 }
 
+/// [`lstsq_fn`] kept out of line: the fallback of [`lstsq_normal_lanes`] (its stack design
+/// would otherwise be part of every caller's frame).
+#[inline(never)]
+#[cold]
+fn lstsq_fn_cold<const C: usize>(
+    m: usize,
+    row: &dyn Fn(usize) -> ([f64; C], f64),
+) -> Result<[f64; C]> {
+    lstsq_fn(m, row)
+}
+
 /// [`lstsq_fn`] by the normal equations of the column-scaled design (Cholesky): about a
 /// third of the work of the QR, for a start value that an iteration polishes. The accuracy is
 /// about `cond^2 * eps` relative; when the scaled normal matrix has a pivot below `1e-10`
@@ -725,45 +736,86 @@ pub fn lstsq_normal_fn<const C: usize>(
     m: usize,
     row: impl Fn(usize) -> ([f64; C], f64),
 ) -> Result<[f64; C]> {
-    lstsq_normal_lanes::<Portable, C>(m, row)
+    lstsq_normal_lanes::<Portable, C>(&RowFn(m, row))
 }
 
-/// [`lstsq_normal_fn`] with the sums of the normal equations taken four rows at a time in the
-/// lanes of `V` (see [`crate::lanes`]) and added across lanes at the end in a fixed order.
+/// Rows of a least-squares design with their right-hand sides, one at a time (for the QR)
+/// and [`LANES`] at a time in the lanes of `V` (for the normal equations).
+pub trait RowLanes<V: F64x4, const C: usize> {
+    /// Number of rows.
+    fn n_rows(&self) -> usize;
+    /// Row `i` and its right-hand side.
+    fn row(&self, i: usize) -> ([f64; C], f64);
+    /// Rows `i0 .. i0 + LANES` in lanes, each column one vector, and the right-hand sides;
+    /// rows past the end are zero. The default is [`lanes_by_rows`].
+    #[inline(always)]
+    fn lanes(&self, i0: usize) -> ([V; C], V) {
+        lanes_by_rows(self, i0)
+    }
+}
+
+/// Rows `i0 .. i0 + LANES` of `rows` in lanes, transposed row by row through memory (rows
+/// past the end zero).
+#[inline(always)]
+pub fn lanes_by_rows<V: F64x4, const C: usize>(
+    rows: &(impl RowLanes<V, C> + ?Sized),
+    i0: usize,
+) -> ([V; C], V) {
+    let (mut xs, mut ys) = ([[0.0f64; LANES]; C], [0.0f64; LANES]);
+    for l in 0..LANES.min(rows.n_rows() - i0) {
+        let (x, y) = rows.row(i0 + l);
+        for p in 0..C {
+            xs[p][l] = x[p];
+        }
+        ys[l] = y;
+    }
+    let mut x = [V::splat(0.0); C];
+    for (v, lanes) in x.iter_mut().zip(&xs) {
+        *v = V::from_array(*lanes);
+    }
+    (x, V::from_array(ys))
+}
+
+/// Lanes of the rows of the least-squares solvers.
+pub const LANES: usize = 4;
+
+/// A row closure as [`RowLanes`].
+struct RowFn<F>(usize, F);
+
+impl<V: F64x4, const C: usize, F: Fn(usize) -> ([f64; C], f64)> RowLanes<V, C> for RowFn<F> {
+    #[inline(always)]
+    fn n_rows(&self) -> usize {
+        self.0
+    }
+    #[inline(always)]
+    fn row(&self, i: usize) -> ([f64; C], f64) {
+        (self.1)(i)
+    }
+}
+
+/// [`lstsq_normal_fn`] with the sums of the normal equations taken [`LANES`] rows at a time
+/// in the lanes of `V` (see [`crate::lanes`]) and added across lanes at the end in a fixed
+/// order.
 #[inline(always)]
 pub fn lstsq_normal_lanes<V: F64x4, const C: usize>(
-    m: usize,
-    row: impl Fn(usize) -> ([f64; C], f64),
+    rows: &impl RowLanes<V, C>,
 ) -> Result<[f64; C]> {
+    let m = rows.n_rows();
+    let row = |i: usize| rows.row(i);
     if m < C {
-        return lstsq_fn(m, row);
+        return lstsq_fn_cold(m, &row);
     }
     let zero = V::splat(0.0);
     let mut al = [[zero; C]; C];
     let mut rl = [zero; C];
-    let mut i0 = 0;
-    while i0 < m {
-        // Rows past the end stay zero: they add nothing.
-        let (mut xs, mut ys) = ([[0.0f64; 4]; C], [0.0f64; 4]);
-        for l in 0..4.min(m - i0) {
-            let (x, y) = row(i0 + l);
-            for p in 0..C {
-                xs[p][l] = x[p];
-            }
-            ys[l] = y;
-        }
-        let mut x = [zero; C];
-        for (v, lanes) in x.iter_mut().zip(&xs) {
-            *v = V::from_array(*lanes);
-        }
-        let y = V::from_array(ys);
+    for i0 in (0..m).step_by(LANES) {
+        let (x, y) = rows.lanes(i0);
         for p in 0..C {
             rl[p] = x[p].mul_add(y, rl[p]);
             for q in p..C {
                 al[p][q] = x[p].mul_add(x[q], al[p][q]);
             }
         }
-        i0 += 4;
     }
     let mut a = [[0.0f64; C]; C];
     let mut r = [0.0f64; C];
@@ -787,14 +839,14 @@ pub fn lstsq_normal_lanes<V: F64x4, const C: usize>(
         }
     }
     if !cholesky_full(&mut a, |_, s| s > 1e-10) {
-        return lstsq_fn(m, row);
+        return lstsq_fn_cold(m, &row);
     }
     cholesky_solve(&a, &mut r);
     for p in 0..C {
         r[p] *= di[p];
     }
     if r.iter().any(|v| !v.is_finite()) {
-        return lstsq_fn(m, row);
+        return lstsq_fn_cold(m, &row);
     }
     Ok(r)
 }
@@ -1876,12 +1928,12 @@ mod tests {
                 1.0 - x + 0.2 * x * x + 0.05 * x.sin(),
             )
         };
-        let p = lstsq_normal_lanes::<Portable, 5>(37, row).unwrap();
+        let p = lstsq_normal_lanes::<Portable, 5>(&RowFn(37, row)).unwrap();
         #[cfg(target_arch = "x86_64")]
         if crate::lanes::avx2_fma() {
             #[target_feature(enable = "avx2,fma")]
             unsafe fn run(row: impl Fn(usize) -> ([f64; 5], f64)) -> [f64; 5] {
-                lstsq_normal_lanes::<crate::lanes::Avx2Fma, 5>(37, row).unwrap()
+                lstsq_normal_lanes::<crate::lanes::Avx2Fma, 5>(&RowFn(37, row)).unwrap()
             }
             // SAFETY: checked just above.
             let v = unsafe { run(row) };

@@ -326,17 +326,20 @@ impl NormProblem<'_> {
         let t = inv_k(self.model, p)?;
         let ts = splat3::<V>(&t);
         let (g, zero) = (V::splat(self.g), V::splat(0.0));
+        let bias = [V::splat(p[3]), V::splat(p[4]), V::splat(p[5])];
         let n = self.pts.len();
         // Per-lane partial sums of the cost, `J^T e` and the upper triangle of `J^T J`.
         let mut cl = zero;
         let mut gl = [zero; K];
         let mut hl = [[zero; K]; K];
-        let mut bad = false;
+        // Zero in every lane while every dwell evaluates (see `finite_check`).
+        let mut check = zero;
         for k0 in (0..n).step_by(LANES) {
-            let (ev, bad_block) = self.block(&ts, p, g, k0);
+            let ev = self.block(&ts, &bias, g, k0);
             add_block(&ev, &mut cl, &mut gl, &mut hl);
-            bad |= bad_block;
+            check = check + ev.check;
         }
+        let bad = !check.fold().is_finite();
         for i in 0..K {
             gr[i] += gl[i].fold();
             for j in i..K {
@@ -352,51 +355,62 @@ impl NormProblem<'_> {
     }
 
     /// The block of [`LANES`] dwells from `k0`, evaluated at `p` (`ts = K^-1` in every lane,
-    /// `g` the reference), and whether a used lane cannot be evaluated.
+    /// `g` the reference).
     #[inline(always)]
-    fn block<V: F64x4>(&self, ts: &[[V; 3]; 3], p: &[f64], g: V, k0: usize) -> (LaneEval<V>, bool) {
-        let (x, var, mask, used) = self.gather(p, k0);
-        let ev = eval_lanes(
-            ts,
-            load3(&x),
-            load3(&var),
-            g,
-            V::from_array(mask),
-            self.model,
-        );
-        let ok = lanes_ok(ev.norm, ev.s2, used);
-        (ev, !ok)
+    fn block<V: F64x4>(&self, ts: &[[V; 3]; 3], bias: &[V; 3], g: V, k0: usize) -> LaneEval<V> {
+        let (x, var, mask, _) = self.gather(bias, k0);
+        eval_lanes(ts, x, var, g, mask, self.model)
     }
 
-    /// Lanes of the block of dwells from `k0`: `am - b`, the per-axis variance, the lane mask
-    /// and the number of used lanes. Unused lanes repeat the block's first dwell (finite
-    /// whenever it is) and are masked out.
+    /// Lanes of the block of dwells from `k0`: `am - b` (`bias` = `b` in every lane), the
+    /// per-axis variance, the lane mask and the number of used lanes. A full block is
+    /// transposed in registers; in the last, short block the unused lanes repeat the block's
+    /// first dwell (finite whenever it is) and are masked out.
     #[inline(always)]
-    #[allow(clippy::type_complexity)]
-    fn gather(
-        &self,
-        p: &[f64],
-        k0: usize,
-    ) -> ([[f64; LANES]; 3], [[f64; LANES]; 3], [f64; LANES], usize) {
+    fn gather<V: F64x4>(&self, bias: &[V; 3], k0: usize) -> ([V; 3], [V; 3], V, usize) {
         let used = (self.pts.len() - k0).min(LANES);
+        if used == LANES {
+            let rows: &[[f64; 3]; LANES] =
+                self.pts[k0..k0 + LANES].try_into().expect("a full block");
+            let x = V::transpose3(rows);
+            let x = [x[0] - bias[0], x[1] - bias[1], x[2] - bias[2]];
+            let var = match self.noise {
+                DwellNoise::Isotropic => [V::splat(1.0); 3],
+                DwellNoise::Uniform(v) => [V::splat(v[0]), V::splat(v[1]), V::splat(v[2])],
+                DwellNoise::PerDwell { var, scale } => {
+                    let rows: &[[f64; 3]; LANES] =
+                        var[k0..k0 + LANES].try_into().expect("a full block");
+                    let v = V::transpose3(rows);
+                    let s = V::splat(scale);
+                    [v[0] * s, v[1] * s, v[2] * s]
+                }
+            };
+            return (x, var, V::splat(1.0), used);
+        }
         let (mut x, mut var, mut mask) = ([[0.0; LANES]; 3], [[0.0; LANES]; 3], [0.0; LANES]);
         for l in 0..LANES {
             let k = if l < used { k0 + l } else { k0 };
             let (pt, v) = (&self.pts[k], self.noise.var(k));
             for i in 0..3 {
-                x[i][l] = pt[i] - p[3 + i];
+                x[i][l] = pt[i];
                 var[i][l] = v[i];
             }
             mask[l] = if l < used { 1.0 } else { 0.0 };
         }
-        (x, var, mask, used)
+        let x = load3::<V>(&x);
+        (
+            [x[0] - bias[0], x[1] - bias[1], x[2] - bias[2]],
+            load3(&var),
+            V::from_array(mask),
+            used,
+        )
     }
 
     /// The norm residual `r_k = |a_k| - g` and its std `sigma_k` of every dwell at `p`, passed
     /// to `f(k, r_k, sigma_k)` in dwell order: the per-dwell pass of [`Self::for_each`] taken
     /// [`LANES`] dwells at a time (AVX2 with fused multiply-adds where the CPU has them). A
-    /// dwell that cannot be evaluated is reported as [`Self::for_each`] reports it (`f` may
-    /// have seen the dwells of the blocks before it).
+    /// dwell that cannot be evaluated is reported as [`Self::for_each`] reports it, after `f`
+    /// has seen every dwell (the values passed for such a dwell are not finite).
     pub fn residuals_each(&self, p: &[f64], f: impl FnMut(usize, f64, f64)) -> Result<()> {
         #[cfg(target_arch = "x86_64")]
         {
@@ -427,10 +441,11 @@ impl NormProblem<'_> {
         let t = inv_k(self.model, p)?;
         let ts = splat3::<V>(&t);
         let g = V::splat(self.g);
+        let bias = [V::splat(p[3]), V::splat(p[4]), V::splat(p[5])];
         let n = self.pts.len();
+        let mut check = V::splat(0.0);
         for k0 in (0..n).step_by(LANES) {
-            let (x, var, _, used) = self.gather(p, k0);
-            let (x, var) = (load3::<V>(&x), load3::<V>(&var));
+            let (x, var, _, used) = self.gather(&bias, k0);
             let a = mat3_vec(&ts, &x, false);
             let norm = dot3(&a, &a).sqrt();
             let inv_n = V::splat(1.0) / norm;
@@ -438,23 +453,29 @@ impl NormProblem<'_> {
             let w = [ta[0] * inv_n, ta[1] * inv_n, ta[2] * inv_n];
             let vw = [var[0] * w[0], var[1] * w[1], var[2] * w[2]];
             let s2 = dot3(&vw, &w);
-            if !lanes_ok(norm, s2, used) {
-                self.for_each(p, |_, _, _| {})?;
-            }
-            let (r, sd) = ((norm - g).to_array(), s2.sqrt().to_array());
+            let sd = s2.sqrt();
+            check = check + finite_check(norm, inv_n, s2, V::splat(1.0) / sd);
+            let (r, sd) = ((norm - g).to_array(), sd.to_array());
             for l in 0..used {
                 f(k0 + l, r[l], sd[l]);
             }
+        }
+        if !check.fold().is_finite() {
+            self.for_each(p, |_, _, _| {})?;
         }
         Ok(())
     }
 }
 
-/// `|a| > 0`, `sigma^2 > 0` and both finite in the first `used` lanes.
+/// Zero in the lanes where `|a|` and `sigma^2` (both >= 0 or NaN) are positive and finite,
+/// NaN elsewhere: `x - x` is zero for a finite `x` and NaN for an infinite or NaN one, and a
+/// zero `|a|` or `sigma^2` makes its reciprocal (`inv_n`, `inv_s`) infinite. No lane needs a
+/// mask: an unused lane repeats a used one. Summed over blocks, the check stays finite while
+/// every dwell evaluates, without a comparison per lane.
 #[inline(always)]
-fn lanes_ok<V: F64x4>(norm: V, s2: V, used: usize) -> bool {
-    let (norm, s2) = (norm.to_array(), s2.to_array());
-    (0..used).all(|l| norm[l] > 0.0 && norm[l].is_finite() && s2[l] > 0.0 && s2[l].is_finite())
+#[allow(clippy::eq_op)] // x - x is the point: NaN for a non-finite x
+fn finite_check<V: F64x4>(norm: V, inv_n: V, s2: V, inv_s: V) -> V {
+    ((norm - norm) + (inv_n - inv_n)) + ((s2 - s2) + (inv_s - inv_s))
 }
 
 /// `T v` (or `T^T v` when `transpose`) in every lane.
@@ -522,11 +543,10 @@ fn add_block<V: F64x4, const K: usize>(
 }
 
 /// [`LANES`] dwells evaluated: the whitened residual `e` and its gradient row (masked lanes
-/// zero), with `|a|` and the residual variance `sigma^2` to check.
+/// zero), with the check of [`finite_check`].
 struct LaneEval<V> {
     e: V,
-    norm: V,
-    s2: V,
+    check: V,
     row: [V; 9],
 }
 
@@ -545,15 +565,21 @@ fn eval_lanes<V: F64x4>(
     // target features, whenever the compiler does not inline it.
     let one = V::splat(1.0);
     // a = T x, w = T^T a / |a|, sigma^2 = w^T Sigma w.
+    // Each reciprocal square root is a root and a reciprocal of the square taken side by
+    // side (not one after the other): the chain of dependent operations is shorter.
     let a = mat3_vec(t, &x, false);
-    let norm = dot3(&a, &a).sqrt();
-    let inv_n = one / norm;
+    let n2 = dot3(&a, &a);
+    let (norm, inv_n2) = (n2.sqrt(), one / n2);
+    let inv_n = norm * inv_n2;
     let r = norm - g;
     let ta = mat3_vec(t, &a, true);
+    let vta = [var[0] * ta[0], var[1] * ta[1], var[2] * ta[2]];
+    let s2 = dot3(&vta, &ta) * inv_n2;
+    let (sd, inv_s2) = (s2.sqrt(), one / s2);
+    let is = sd * inv_s2;
+    let check = finite_check(norm, inv_n, s2, is);
     let w = [ta[0] * inv_n, ta[1] * inv_n, ta[2] * inv_n];
-    let vw = [var[0] * w[0], var[1] * w[1], var[2] * w[2]];
-    let s2 = dot3(&vw, &w);
-    let is = one / s2.sqrt();
+    let vw = [vta[0] * inv_n, vta[1] * inv_n, vta[2] * inv_n];
     let e = r * is * m;
     // ml_row: z = T Sigma w, y = (z - (z.u) u) / |a|, q = T^T y.
     let c = r * is * is * is;
@@ -593,7 +619,7 @@ fn eval_lanes<V: F64x4>(
         }
         Model::Diag => {}
     }
-    LaneEval { e, norm, s2, row }
+    LaneEval { e, check, row }
 }
 
 impl NormalEquations for NormProblem<'_> {
@@ -762,11 +788,35 @@ mod tests {
             kmax: f64::INFINITY,
         };
         let want = prob.for_each(&p, |_, _, _| {}).unwrap_err().to_string();
-        let got = prob
-            .residuals_each(&p, |_, _, _| {})
-            .unwrap_err()
-            .to_string();
-        assert_eq!(got, want);
+        let got = prob.residuals_each(&p, |_, _, _| {}).unwrap_err();
+        assert_eq!(got.to_string(), want);
+        let (mut h, mut gr) = ([[0.0; 9]; 9], [0.0; 9]);
+        let got = prob.accumulate::<9>(&p, &mut h, &mut gr).unwrap_err();
+        assert_eq!(got.to_string(), want);
+        // A dwell with zero variance (sigma = 0): the same error from every pass, in any lane.
+        for k in [0, 5, 22] {
+            let mut v0 = var.clone();
+            v0[k] = [0.0; 3];
+            let prob = NormProblem {
+                pts: &pts,
+                g: 9.8,
+                noise: DwellNoise::PerDwell {
+                    var: &v0,
+                    scale: 1.0,
+                },
+                model: Model::Lower,
+                kmax: f64::INFINITY,
+            };
+            let want = prob.for_each(&p, |_, _, _| {}).unwrap_err().to_string();
+            assert!(
+                want.contains("zero or non-finite residual variance"),
+                "{want}"
+            );
+            let got = prob.residuals_each(&p, |_, _, _| {}).unwrap_err();
+            assert_eq!(got.to_string(), want);
+            let got = prob.accumulate::<9>(&p, &mut h, &mut gr).unwrap_err();
+            assert_eq!(got.to_string(), want);
+        }
     }
 
     #[test]

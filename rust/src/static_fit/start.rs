@@ -15,7 +15,9 @@ use super::frame::Frame;
 use super::{FitSettings, Method, Model};
 use crate::error::{invalid, CoreError, Result};
 use crate::lanes::{F64x4, Portable};
-use crate::lsq::{cholesky3, inverse3, lstsq_fn, lstsq_normal_lanes};
+use crate::lsq::{
+    cholesky3, inverse3, lanes_by_rows, lstsq_fn, lstsq_normal_lanes, RowLanes, LANES,
+};
 use nalgebra::{Matrix3, Vector3};
 
 /// Where the start of the iteration (or the linear answer) came from.
@@ -129,45 +131,120 @@ fn quadric_beta_body<V: F64x4>(
     diag: bool,
     exact: bool,
 ) -> Result<[f64; 9]> {
-    let n = means.len();
+    let rows = QuadricRows { means, f };
     if diag {
-        let row = |k: usize| {
-            let [x, y, z] = f.point(&means[k]);
-            ([x * x, y * y, 2.0 * x, 2.0 * y, 2.0 * z, 1.0], z * z)
-        };
         let b = if exact {
-            lstsq_fn::<6>(n, row)
+            lstsq_fn::<6>(means.len(), |k| RowLanes::<V, 6>::row(&rows, k))
         } else {
-            lstsq_normal_lanes::<V, 6>(n, row)
+            lstsq_normal_lanes::<V, 6>(&rows)
         }
         .map_err(|e| quadric_design_error(e, true))?;
         let mut out = [0.0; 9];
         out[..6].copy_from_slice(&b);
         Ok(out)
     } else {
-        let row = |k: usize| {
-            let [x, y, z] = f.point(&means[k]);
-            (
-                [
-                    x * x,
-                    y * y,
-                    2.0 * x * y,
-                    2.0 * x * z,
-                    2.0 * y * z,
-                    2.0 * x,
-                    2.0 * y,
-                    2.0 * z,
-                    1.0,
-                ],
-                z * z,
-            )
-        };
         if exact {
-            lstsq_fn::<9>(n, row)
+            lstsq_fn::<9>(means.len(), |k| RowLanes::<V, 9>::row(&rows, k))
         } else {
-            lstsq_normal_lanes::<V, 9>(n, row)
+            lstsq_normal_lanes::<V, 9>(&rows)
         }
         .map_err(|e| quadric_design_error(e, false))
+    }
+}
+
+/// The rows of the quadric regression on the points `f.point(means[k])`: `z^2` on
+/// `[x^2, y^2, 2xy, 2xz, 2yz, 2x, 2y, 2z, 1]` (9 columns) or `[x^2, y^2, 2x, 2y, 2z, 1]` (6,
+/// the diagonal model). Full blocks of lanes are built in registers.
+struct QuadricRows<'a> {
+    means: &'a [[f64; 3]],
+    f: Frame,
+}
+
+impl QuadricRows<'_> {
+    /// The points of rows `i0 .. i0 + LANES` in lanes (a full block).
+    #[inline(always)]
+    fn points<V: F64x4>(&self, i0: usize) -> [V; 3] {
+        let rows: &[[f64; 3]; LANES] = self.means[i0..i0 + LANES].try_into().expect("a full block");
+        let m = V::transpose3(rows);
+        let is = V::splat(1.0 / self.f.s);
+        let c = self.f.c;
+        [
+            (m[0] - V::splat(c[0])) * is,
+            (m[1] - V::splat(c[1])) * is,
+            (m[2] - V::splat(c[2])) * is,
+        ]
+    }
+}
+
+impl<V: F64x4> RowLanes<V, 9> for QuadricRows<'_> {
+    #[inline(always)]
+    fn n_rows(&self) -> usize {
+        self.means.len()
+    }
+    #[inline(always)]
+    fn row(&self, k: usize) -> ([f64; 9], f64) {
+        let [x, y, z] = self.f.point(&self.means[k]);
+        (
+            [
+                x * x,
+                y * y,
+                2.0 * x * y,
+                2.0 * x * z,
+                2.0 * y * z,
+                2.0 * x,
+                2.0 * y,
+                2.0 * z,
+                1.0,
+            ],
+            z * z,
+        )
+    }
+    #[inline(always)]
+    fn lanes(&self, i0: usize) -> ([V; 9], V) {
+        if self.means.len() - i0 < LANES {
+            return lanes_by_rows(self, i0);
+        }
+        let [x, y, z] = self.points::<V>(i0);
+        let two = V::splat(2.0);
+        let (tx, ty, tz) = (two * x, two * y, two * z);
+        (
+            [
+                x * x,
+                y * y,
+                tx * y,
+                tx * z,
+                ty * z,
+                tx,
+                ty,
+                tz,
+                V::splat(1.0),
+            ],
+            z * z,
+        )
+    }
+}
+
+impl<V: F64x4> RowLanes<V, 6> for QuadricRows<'_> {
+    #[inline(always)]
+    fn n_rows(&self) -> usize {
+        self.means.len()
+    }
+    #[inline(always)]
+    fn row(&self, k: usize) -> ([f64; 6], f64) {
+        let [x, y, z] = self.f.point(&self.means[k]);
+        ([x * x, y * y, 2.0 * x, 2.0 * y, 2.0 * z, 1.0], z * z)
+    }
+    #[inline(always)]
+    fn lanes(&self, i0: usize) -> ([V; 6], V) {
+        if self.means.len() - i0 < LANES {
+            return lanes_by_rows(self, i0);
+        }
+        let [x, y, z] = self.points::<V>(i0);
+        let two = V::splat(2.0);
+        (
+            [x * x, y * y, two * x, two * y, two * z, V::splat(1.0)],
+            z * z,
+        )
     }
 }
 
