@@ -565,3 +565,27 @@ def test_an_ignored_warning_is_not_built_but_a_shown_one_is():
         assert len(w) == 1
     finally:
         ac.StaticFit.warning_text = orig
+
+
+def test_common_call_fast_path_equals_the_general_coercion():
+    """The common calls (float64 means with no sigma or one float sigma) skip the general
+    input coercion: the same fit, noise model and errors as the general path (the means as a
+    list, sigma as a NumPy scalar)."""
+    s = static_dwell_means(20, max_tilt_deg=None, rng=5)
+    g = s.g_measured
+    for sigma in (None, 1e-3):
+        fast = ac.fit_static(s.means, g, sigma=sigma)
+        slow = ac.fit_static(s.means.tolist(), g,
+                             sigma=None if sigma is None else np.float64(sigma))
+        assert np.array_equal(fast.vector, slow.vector)
+        assert np.array_equal(fast.covariance, slow.covariance)
+        assert fast.noise_model == slow.noise_model and fast.noise_known == slow.noise_known
+    for bad in (-1e-3, 0.0, float("nan"), 1e300):
+        with pytest.raises(ac.CalibrationError) as fast_err:
+            ac.fit_static(s.means, g, sigma=bad)
+        with pytest.raises(ac.CalibrationError) as slow_err:
+            ac.fit_static(s.means.tolist(), g, sigma=bad)
+        assert str(fast_err.value) == str(slow_err.value)
+    bad_shape = np.zeros((20, 4))
+    with pytest.raises(ac.CalibrationError, match=r"shape \(k, 3\)"):
+        ac.fit_static(bad_shape, g)

@@ -154,7 +154,7 @@ def _inputs(
         v = sv * sv
         if not (math.isfinite(v) and v > 0.0):
             raise CalibrationError(_variance_message(sv))
-        return means, v, "given sigma (std of each dwell mean)", units
+        return means, v, _GIVEN_SIGMA, units
     if sigma is not None:
         k = means.shape[0]
         s = np.asarray(sigma)
@@ -185,6 +185,7 @@ def _inputs(
 
 
 _ESTIMATED_ISOTROPIC = "estimated from the residuals (isotropic output noise)"
+_GIVEN_SIGMA = "given sigma (std of each dwell mean)"
 
 
 # ------------------------------------------------------------------------------------------
@@ -575,14 +576,20 @@ def fit_static(
         raise CalibrationError(
             f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
-    if (type(data) is np.ndarray and data.dtype is _F64 and sigma is None and start is None
-            and data.ndim == 2 and data.shape[1] == 3 and data.flags.aligned):
-        # The common call (float64 means, the noise estimated, the quadric start), without
+    fast = (type(data) is np.ndarray and data.dtype is _F64 and start is None
+            and data.ndim == 2 and data.shape[1] == 3 and data.flags.aligned)
+    if fast and sigma is None:
+        var1, noise1 = None, _ESTIMATED_ISOTROPIC
+    elif fast and type(sigma) is float and sigma > 0.0 and 0.0 < sigma * sigma < math.inf:
+        var1, noise1 = sigma * sigma, _GIVEN_SIGMA
+    else:
+        fast = False
+    if fast:
+        # The common calls (float64 means, no sigma or one float, the quadric start), without
         # the general coercion of the inputs.
         fit = StaticFit(  # positional: the fastest call into the constructor
-            data, g, model, method, None, None, max_iter,  # type: ignore[arg-type]
-            observability == "raise", degenerate_std, weak_std, check_g, _ESTIMATED_ISOTROPIC,
-            "", nominal,
+            data, g, model, method, var1, None, max_iter,  # type: ignore[arg-type]
+            observability == "raise", degenerate_std, weak_std, check_g, noise1, "", nominal,
         )
     else:
         means, var, noise_model, units = _inputs(data, sigma)
