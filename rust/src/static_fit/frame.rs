@@ -78,11 +78,12 @@ impl Frame {
     /// Centroid frame with a robust scale (median distance from the centroid, over `g`):
     /// the data's spread scale, known before any fit.
     pub fn centroid(means: &[[f64; 3]], g: f64) -> Result<Frame> {
-        let n = means.len() as f64;
+        // Each mean over n before the sum (no overflow for means near the largest double).
+        let inv_n = 1.0 / means.len() as f64;
         let mut c = [0.0; 3];
         for m in means {
             for i in 0..3 {
-                c[i] += m[i] / n;
+                c[i] += m[i] * inv_n;
             }
         }
         let d = median_by(means.len(), |k| {
