@@ -48,7 +48,12 @@ impl Frame {
     /// One point in frame units.
     #[inline(always)]
     pub fn point(self, m: &[f64; 3]) -> [f64; 3] {
-        let is = 1.0 / self.s;
+        self.point_scaled(m, 1.0 / self.s)
+    }
+
+    /// [`Self::point`] with `is = 1 / s` given.
+    #[inline(always)]
+    fn point_scaled(self, m: &[f64; 3], is: f64) -> [f64; 3] {
         [
             (m[0] - self.c[0]) * is,
             (m[1] - self.c[1]) * is,
@@ -58,8 +63,10 @@ impl Frame {
 
     /// Points in frame units, written into `out` (cleared first).
     pub fn points_into(self, means: &[[f64; 3]], out: &mut Vec<[f64; 3]>) {
+        // `point` with the reciprocal of the scale taken once (the same values).
+        let is = 1.0 / self.s;
         out.clear();
-        out.extend(means.iter().map(|m| self.point(m)));
+        out.extend(means.iter().map(|m| self.point_scaled(m, is)));
     }
 
     /// Frame in which the model `p` (output units) has `K ~ I`, `b = 0`; `fallback` when `p`
