@@ -733,6 +733,68 @@ mod tests {
         }
     }
 
+    /// The portable build of the lane kernels (what a CPU without AVX2 and FMA runs) gives
+    /// the normal equations and residuals of the dispatched build (AVX2 + FMA here), for
+    /// every model, both noise kinds and dwell counts around the block size.
+    #[test]
+    fn portable_lanes_match_the_dispatched_kernels() {
+        let p = [1.05, 0.97, 1.1, 0.02, -0.03, 0.05, 0.011, -0.02, 0.017];
+        let mut seed = 3u64;
+        let pts: Vec<[f64; 3]> = (0..23)
+            .map(|_| [0; 3].map(|_| 9.0 * (crate::test_rng::unit(&mut seed) - 0.5)))
+            .collect();
+        let var: Vec<[f64; 3]> = (0..23)
+            .map(|_| [0; 3].map(|_| 1e-6 * (0.5 + crate::test_rng::unit(&mut seed))))
+            .collect();
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1e-300);
+        for model in [Model::Lower, Model::Upper, Model::Diag] {
+            for n in [9, 12, 23] {
+                for noise in [
+                    DwellNoise::Isotropic,
+                    DwellNoise::PerDwell {
+                        var: &var,
+                        scale: 3.0,
+                    },
+                ] {
+                    let prob = NormProblem {
+                        pts: &pts[..n],
+                        g: 9.8,
+                        noise,
+                        model,
+                        kmax: f64::INFINITY,
+                    };
+                    let (mut h1, mut g1, mut h2, mut g2) =
+                        ([[0.0; 9]; 9], [0.0; 9], [[0.0; 9]; 9], [0.0; 9]);
+                    let c1 = prob.accumulate::<9>(&p, &mut h1, &mut g1).unwrap();
+                    let c2 = prob
+                        .accumulate_lanes::<Portable, 9>(&p, &mut h2, &mut g2)
+                        .unwrap();
+                    assert!(close(c1, c2), "{c1} {c2}");
+                    // Entries are compared on the scale of their row and column (sums with
+                    // cancellation are small next to their terms).
+                    let np = model.n_params();
+                    for i in 0..np {
+                        let gi = (h1[i][i] * c1).sqrt();
+                        assert!((g1[i] - g2[i]).abs() <= 1e-12 * gi, "{model:?} {n} g{i}");
+                        for j in i..np {
+                            let hij = (h1[i][i] * h1[j][j]).sqrt();
+                            let d = (h1[i][j] - h2[i][j]).abs();
+                            assert!(d <= 1e-12 * hij, "{model:?} {n} h{i}{j}: {d:e} of {hij:e}");
+                        }
+                    }
+                    let (mut r1, mut r2) = (vec![], vec![]);
+                    prob.residuals_each(&p, |_, r, sd| r1.push((r, sd)))
+                        .unwrap();
+                    prob.residuals_lanes::<Portable>(&p, |_, r, sd| r2.push((r, sd)))
+                        .unwrap();
+                    for (a, b) in r1.iter().zip(&r2) {
+                        assert!((a.0 - b.0).abs() <= 1e-14 && close(a.1, b.1), "{a:?} {b:?}");
+                    }
+                }
+            }
+        }
+    }
+
     /// The lane pass gives the residual and its std of the scalar pass (to the rounding of
     /// the fused multiply-adds) for every dwell count around the block size, and names the
     /// same bad dwell.
