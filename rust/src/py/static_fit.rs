@@ -123,6 +123,15 @@ fn check_g(obj: &Bound<'_, PyAny>, check: bool) -> PyResult<f64> {
     Ok(g)
 }
 
+/// The entries of `m` row by row (nalgebra stores columns).
+fn row_major(m: &nalgebra::DMatrix<f64>) -> Vec<f64> {
+    let mut v = Vec::with_capacity(m.len());
+    for i in 0..m.nrows() {
+        v.extend(m.row(i).iter());
+    }
+    v
+}
+
 /// `(k, 3)` float64 array argument (any strides).
 fn means_arg<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArray2<'py, f64>> {
     obj.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
@@ -535,9 +544,7 @@ impl PyStaticFit {
             start_source: f.start_source.name(),
             start_error: f.start_error,
             user_start: start,
-            covariance_v: (0..np * np)
-                .map(|i| f.covariance[(i / np, i % np)])
-                .collect(),
+            covariance_v: row_major(&f.covariance),
             covariance_unscaled: PyOnceLock::new(),
             residuals_v: f.residuals,
             residuals: PyOnceLock::new(),
