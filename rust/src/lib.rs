@@ -7,7 +7,7 @@ pub mod dwell;
 pub mod error;
 pub mod gap;
 pub mod gradiometer;
-pub mod lanes;
+pub(crate) mod lanes;
 pub mod lsq;
 pub mod static_fit;
 pub mod text;

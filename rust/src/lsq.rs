@@ -741,7 +741,7 @@ pub fn lstsq_normal_fn<const C: usize>(
 
 /// Rows of a least-squares design with their right-hand sides, one at a time (for the QR)
 /// and [`LANES`] at a time in the lanes of `V` (for the normal equations).
-pub trait RowLanes<V: F64x4, const C: usize> {
+pub(crate) trait RowLanes<V: F64x4, const C: usize> {
     /// Number of rows.
     fn n_rows(&self) -> usize;
     /// Row `i` and its right-hand side.
@@ -757,7 +757,7 @@ pub trait RowLanes<V: F64x4, const C: usize> {
 /// Rows `i0 .. i0 + LANES` of `rows` in lanes, transposed row by row through memory (rows
 /// past the end zero).
 #[inline(always)]
-pub fn lanes_by_rows<V: F64x4, const C: usize>(
+pub(crate) fn lanes_by_rows<V: F64x4, const C: usize>(
     rows: &(impl RowLanes<V, C> + ?Sized),
     i0: usize,
 ) -> ([V; C], V) {
@@ -797,7 +797,7 @@ impl<V: F64x4, const C: usize, F: Fn(usize) -> ([f64; C], f64)> RowLanes<V, C> f
 /// in the lanes of `V` (see [`crate::lanes`]) and added across lanes at the end in a fixed
 /// order.
 #[inline(always)]
-pub fn lstsq_normal_lanes<V: F64x4, const C: usize>(
+pub(crate) fn lstsq_normal_lanes<V: F64x4, const C: usize>(
     rows: &impl RowLanes<V, C>,
 ) -> Result<[f64; C]> {
     let m = rows.n_rows();
