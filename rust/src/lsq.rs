@@ -794,7 +794,7 @@ impl<V: F64x4, const C: usize, F: Fn(usize) -> ([f64; C], f64)> RowLanes<V, C> f
 }
 
 /// [`lstsq_normal_fn`] with the sums of the normal equations taken [`LANES`] rows at a time
-/// in the lanes of `V` (see [`crate::lanes`]) and added across lanes at the end in a fixed
+/// in the lanes of `V` (see `crate::lanes`) and added across lanes at the end in a fixed
 /// order.
 #[inline(always)]
 pub(crate) fn lstsq_normal_lanes<V: F64x4, const C: usize>(

@@ -278,7 +278,7 @@ impl NormProblem<'_> {
     /// (`K` = the model's parameter count), added to `h` and `gr`.
     ///
     /// The dwells are taken [`LANES`] at a time, every quantity of [`eval_dwell`] and
-    /// [`ml_row`] computed for the lanes side by side in one vector ([`crate::lanes`]: AVX2
+    /// [`ml_row`] computed for the lanes side by side in one vector (`crate::lanes`: AVX2
     /// with fused multiply-adds where the CPU has them); the sums are kept per lane and added
     /// across lanes at the end in a fixed order, so the result does not depend on threads or
     /// call order. A dwell that cannot be evaluated is reported as [`NormProblem::for_each`]
