@@ -10,6 +10,9 @@
 
 use std::ops::{Add, Div, Mul, Sub};
 
+/// Number of lanes of every vector of this module.
+pub const LANES: usize = 4;
+
 /// Four `f64` lanes.
 pub trait F64x4:
     Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self>
@@ -29,6 +32,11 @@ pub trait F64x4:
     fn transpose3(rows: &[[f64; 3]; 4]) -> [Self; 3] {
         let col = |i: usize| Self::from_array([rows[0][i], rows[1][i], rows[2][i], rows[3][i]]);
         [col(0), col(1), col(2)]
+    }
+    /// [`Self::transpose3`] of the [`LANES`] 3-vectors from `i0` (which must all exist).
+    #[inline(always)]
+    fn transpose3_at(rows: &[[f64; 3]], i0: usize) -> [Self; 3] {
+        Self::transpose3(rows[i0..i0 + LANES].try_into().expect("a full block"))
     }
     /// Sum of the lanes in a fixed order: `(l0 + l1) + (l2 + l3)`.
     #[inline(always)]

@@ -18,7 +18,7 @@
 use std::ops::IndexMut;
 
 use crate::error::{degenerate, invalid, CoreError, Result};
-use crate::lanes::{F64x4, Portable};
+use crate::lanes::{F64x4, Portable, LANES};
 use faer::linalg::solvers::SolveLstsq;
 use nalgebra::{DMatrix, DVector, Matrix3};
 
@@ -775,9 +775,6 @@ pub(crate) fn lanes_by_rows<V: F64x4, const C: usize>(
     }
     (x, V::from_array(ys))
 }
-
-/// Lanes of the rows of the least-squares solvers.
-pub const LANES: usize = 4;
 
 /// A row closure as [`RowLanes`].
 struct RowFn<F>(usize, F);

@@ -370,17 +370,13 @@ impl NormProblem<'_> {
     fn gather<V: F64x4>(&self, bias: &[V; 3], k0: usize) -> ([V; 3], [V; 3], V, usize) {
         let used = (self.pts.len() - k0).min(LANES);
         if used == LANES {
-            let rows: &[[f64; 3]; LANES] =
-                self.pts[k0..k0 + LANES].try_into().expect("a full block");
-            let x = V::transpose3(rows);
+            let x = V::transpose3_at(self.pts, k0);
             let x = [x[0] - bias[0], x[1] - bias[1], x[2] - bias[2]];
             let var = match self.noise {
                 DwellNoise::Isotropic => [V::splat(1.0); 3],
                 DwellNoise::Uniform(v) => [V::splat(v[0]), V::splat(v[1]), V::splat(v[2])],
                 DwellNoise::PerDwell { var, scale } => {
-                    let rows: &[[f64; 3]; LANES] =
-                        var[k0..k0 + LANES].try_into().expect("a full block");
-                    let v = V::transpose3(rows);
+                    let v = V::transpose3_at(var, k0);
                     let s = V::splat(scale);
                     [v[0] * s, v[1] * s, v[2] * s]
                 }
@@ -522,7 +518,7 @@ fn dot3<V: F64x4>(u: &[V; 3], v: &[V; 3]) -> V {
 }
 
 /// Dwells evaluated side by side in [`NormProblem::accumulate`].
-pub const LANES: usize = 4;
+pub const LANES: usize = crate::lanes::LANES;
 
 /// Add a block's cost, `J^T e` and upper triangle of `J^T J` to the per-lane sums.
 #[inline(always)]

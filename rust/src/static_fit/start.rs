@@ -14,10 +14,8 @@
 use super::frame::Frame;
 use super::{FitSettings, Method, Model};
 use crate::error::{invalid, CoreError, Result};
-use crate::lanes::{F64x4, Portable};
-use crate::lsq::{
-    cholesky3, inverse3, lanes_by_rows, lstsq_fn, lstsq_normal_lanes, RowLanes, LANES,
-};
+use crate::lanes::{F64x4, Portable, LANES};
+use crate::lsq::{cholesky3, inverse3, lanes_by_rows, lstsq_fn, lstsq_normal_lanes, RowLanes};
 use nalgebra::{Matrix3, Vector3};
 
 /// Where the start of the iteration (or the linear answer) came from.
@@ -164,8 +162,7 @@ impl QuadricRows<'_> {
     /// The points of rows `i0 .. i0 + LANES` in lanes (a full block).
     #[inline(always)]
     fn points<V: F64x4>(&self, i0: usize) -> [V; 3] {
-        let rows: &[[f64; 3]; LANES] = self.means[i0..i0 + LANES].try_into().expect("a full block");
-        let m = V::transpose3(rows);
+        let m = V::transpose3_at(self.means, i0);
         let is = V::splat(1.0 / self.f.s);
         let c = self.f.c;
         [
