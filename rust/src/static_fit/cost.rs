@@ -156,18 +156,14 @@ pub fn jac_row(model: Model, w: &Vector3<f64>, a: &Vector3<f64>, is: f64, row: &
     row[3] = w0;
     row[4] = w1;
     row[5] = w2;
-    match model {
-        Model::Lower => {
-            row[6] = w1 * a[0];
-            row[7] = w2 * a[0];
-            row[8] = w2 * a[1];
-        }
-        Model::Upper => {
-            row[6] = w0 * a[1];
-            row[7] = w0 * a[2];
-            row[8] = w1 * a[2];
-        }
-        Model::Diag => {}
+    let w = [w0, w1, w2];
+    for (slot, (i, j)) in model
+        .misalignment_entries()
+        .into_iter()
+        .flatten()
+        .enumerate()
+    {
+        row[6 + slot] = w[i] * a[j];
     }
 }
 
@@ -204,18 +200,13 @@ pub fn ml_row(model: Model, t: &Matrix3<f64>, d: &DwellEval, row: &mut [f64; 9])
     row[3] = be[0] - w[0] * is;
     row[4] = be[1] - w[1] * is;
     row[5] = be[2] - w[2] * is;
-    match model {
-        Model::Lower => {
-            row[6] = kij(1, 0);
-            row[7] = kij(2, 0);
-            row[8] = kij(2, 1);
-        }
-        Model::Upper => {
-            row[6] = kij(0, 1);
-            row[7] = kij(0, 2);
-            row[8] = kij(1, 2);
-        }
-        Model::Diag => {}
+    for (slot, (i, j)) in model
+        .misalignment_entries()
+        .into_iter()
+        .flatten()
+        .enumerate()
+    {
+        row[6 + slot] = kij(i, j);
     }
 }
 
@@ -602,18 +593,13 @@ fn eval_lanes<V: F64x4>(
     row[3] = (be[0] - w[0] * is) * m;
     row[4] = (be[1] - w[1] * is) * m;
     row[5] = (be[2] - w[2] * is) * m;
-    match model {
-        Model::Lower => {
-            row[6] = kij(1, 0);
-            row[7] = kij(2, 0);
-            row[8] = kij(2, 1);
-        }
-        Model::Upper => {
-            row[6] = kij(0, 1);
-            row[7] = kij(0, 2);
-            row[8] = kij(1, 2);
-        }
-        Model::Diag => {}
+    for (slot, (i, j)) in model
+        .misalignment_entries()
+        .into_iter()
+        .flatten()
+        .enumerate()
+    {
+        row[6 + slot] = kij(i, j);
     }
     LaneEval { e, check, row }
 }

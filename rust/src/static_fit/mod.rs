@@ -110,13 +110,28 @@ impl Model {
         }
     }
 
+    /// The entries `(row, column)` of `K` that hold `m1, m2, m3` (none for [`Model::Diag`]).
+    #[inline(always)]
+    pub fn misalignment_entries(self) -> Option<[(usize, usize); 3]> {
+        match self {
+            Model::Lower => Some([(1, 0), (2, 0), (2, 1)]),
+            Model::Upper => Some([(0, 1), (0, 2), (1, 2)]),
+            Model::Diag => None,
+        }
+    }
+
     /// `K` from a parameter vector.
     pub fn k_matrix(self, p: &[f64]) -> Matrix3<f64> {
-        match self {
-            Model::Lower => Matrix3::new(p[0], 0.0, 0.0, p[6], p[1], 0.0, p[7], p[8], p[2]),
-            Model::Upper => Matrix3::new(p[0], p[6], p[7], 0.0, p[1], p[8], 0.0, 0.0, p[2]),
-            Model::Diag => Matrix3::new(p[0], 0.0, 0.0, 0.0, p[1], 0.0, 0.0, 0.0, p[2]),
+        let mut k = Matrix3::from_diagonal(&Vector3::new(p[0], p[1], p[2]));
+        for (slot, (i, j)) in self
+            .misalignment_entries()
+            .into_iter()
+            .flatten()
+            .enumerate()
+        {
+            k[(i, j)] = p[6 + slot];
         }
+        k
     }
 
     /// Parameter vector from `K` (the entries outside the model's pattern are ignored) and
@@ -133,10 +148,13 @@ impl Model {
             0.0,
             0.0,
         ];
-        match self {
-            Model::Lower => p[6..].copy_from_slice(&[k[(1, 0)], k[(2, 0)], k[(2, 1)]]),
-            Model::Upper => p[6..].copy_from_slice(&[k[(0, 1)], k[(0, 2)], k[(1, 2)]]),
-            Model::Diag => {}
+        for (slot, (i, j)) in self
+            .misalignment_entries()
+            .into_iter()
+            .flatten()
+            .enumerate()
+        {
+            p[6 + slot] = k[(i, j)];
         }
         p
     }
