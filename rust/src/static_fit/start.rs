@@ -130,29 +130,32 @@ fn quadric_beta_body<V: F64x4>(
     exact: bool,
 ) -> Result<[f64; 9]> {
     let rows = QuadricRows { means, f };
+    let mut out = [0.0; 9];
     if diag {
-        let b = if exact {
-            lstsq_fn::<6>(means.len(), |k| RowLanes::<V, 6>::row(&rows, k))
-        } else {
-            lstsq_normal_lanes::<V, 6>(&rows)
-        }
-        .map_err(|e| quadric_design_error(e, true))?;
-        let mut out = [0.0; 9];
+        let b = regress::<V, 6>(&rows, exact).map_err(|e| quadric_design_error(e, true))?;
         out[..6].copy_from_slice(&b);
-        Ok(out)
     } else {
-        if exact {
-            lstsq_fn::<9>(means.len(), |k| RowLanes::<V, 9>::row(&rows, k))
-        } else {
-            lstsq_normal_lanes::<V, 9>(&rows)
-        }
-        .map_err(|e| quadric_design_error(e, false))
+        out = regress::<V, 9>(&rows, exact).map_err(|e| quadric_design_error(e, false))?;
+    }
+    Ok(out)
+}
+
+/// The regression on `rows`: by QR when `exact`, else by the normal equations in lanes.
+#[inline(always)]
+fn regress<V: F64x4, const C: usize>(rows: &QuadricRows<'_>, exact: bool) -> Result<[f64; C]>
+where
+    for<'a> QuadricRows<'a>: RowLanes<V, C>,
+{
+    if exact {
+        lstsq_fn::<C>(rows.means.len(), |k| rows.row(k))
+    } else {
+        lstsq_normal_lanes::<V, C>(rows)
     }
 }
 
 /// The rows of the quadric regression on the points `f.point(means[k])`: `z^2` on
-/// `[x^2, y^2, 2xy, 2xz, 2yz, 2x, 2y, 2z, 1]` (9 columns) or `[x^2, y^2, 2x, 2y, 2z, 1]` (6,
-/// the diagonal model). Full blocks of lanes are built in registers.
+/// `[x^2, y^2, 2xy, 2xz, 2yz, 2x, 2y, 2z, 1]` (9 columns) or its [`DIAG_COLUMNS`] (6, the
+/// diagonal model). Full blocks of lanes are built in registers.
 struct QuadricRows<'a> {
     means: &'a [[f64; 3]],
     f: Frame,
@@ -221,6 +224,9 @@ impl<V: F64x4> RowLanes<V, 9> for QuadricRows<'_> {
     }
 }
 
+/// The columns of the 9-column row that the diagonal model keeps: `x^2, y^2, 2x, 2y, 2z, 1`.
+const DIAG_COLUMNS: [usize; 6] = [0, 1, 5, 6, 7, 8];
+
 impl<V: F64x4> RowLanes<V, 6> for QuadricRows<'_> {
     #[inline(always)]
     fn n_rows(&self) -> usize {
@@ -228,21 +234,24 @@ impl<V: F64x4> RowLanes<V, 6> for QuadricRows<'_> {
     }
     #[inline(always)]
     fn row(&self, k: usize) -> ([f64; 6], f64) {
-        let [x, y, z] = self.f.point(&self.means[k]);
-        ([x * x, y * y, 2.0 * x, 2.0 * y, 2.0 * z, 1.0], z * z)
+        let (r, y) = RowLanes::<V, 9>::row(self, k);
+        (diag_columns(&r), y)
     }
     #[inline(always)]
     fn lanes(&self, i0: usize) -> ([V; 6], V) {
-        if self.means.len() - i0 < LANES {
-            return lanes_by_rows(self, i0);
-        }
-        let [x, y, z] = self.points::<V>(i0);
-        let two = V::splat(2.0);
-        (
-            [x * x, y * y, two * x, two * y, two * z, V::splat(1.0)],
-            z * z,
-        )
+        let (r, y) = RowLanes::<V, 9>::lanes(self, i0);
+        (diag_columns(&r), y)
     }
+}
+
+/// The [`DIAG_COLUMNS`] of a 9-column row.
+#[inline(always)]
+fn diag_columns<T: Copy>(r: &[T; 9]) -> [T; 6] {
+    let mut out = [r[0]; 6];
+    for (o, &c) in out.iter_mut().zip(&DIAG_COLUMNS) {
+        *o = r[c];
+    }
+    out
 }
 
 /// Exact recovery of `K` and `b` from the quadric regression (no small-M assumption), in the
