@@ -433,16 +433,9 @@ impl NormProblem<'_> {
         let mut check = V::splat(0.0);
         for k0 in (0..n).step_by(LANES) {
             let (x, var, _, used) = self.gather(&bias, k0);
-            let a = mat3_vec(&ts, &x, false);
-            let norm = dot3(&a, &a).sqrt();
-            let inv_n = V::splat(1.0) / norm;
-            let ta = mat3_vec(&ts, &a, true);
-            let w = [ta[0] * inv_n, ta[1] * inv_n, ta[2] * inv_n];
-            let vw = [var[0] * w[0], var[1] * w[1], var[2] * w[2]];
-            let s2 = dot3(&vw, &w);
-            let sd = s2.sqrt();
-            check = check + finite_check(norm, inv_n, s2, V::splat(1.0) / sd);
-            let (r, sd) = ((norm - g).to_array(), sd.to_array());
+            let h = lane_norm(&ts, &x, &var);
+            check = check + h.check;
+            let (r, sd) = ((h.norm - g).to_array(), h.sd.to_array());
             for l in 0..used {
                 f(k0 + l, r[l], sd[l]);
             }
@@ -537,6 +530,47 @@ struct LaneEval<V> {
     row: [V; 9],
 }
 
+/// The part of [`eval_dwell`] that the residual pass and [`eval_lanes`] share, on every lane:
+/// `a = T x`, `|a|`, `1 / |a|`, `T^T a` (`w |a|`), `Sigma T^T a`, the residual variance
+/// `sigma^2 = w^T Sigma w`, `sigma`, `1 / sigma` and the [`finite_check`]. Each reciprocal
+/// square root is a root and a reciprocal of the square taken side by side (not one after the
+/// other): the chain of dependent operations is shorter.
+#[inline(always)]
+fn lane_norm<V: F64x4>(t: &[[V; 3]; 3], x: &[V; 3], var: &[V; 3]) -> LaneNorm<V> {
+    let one = V::splat(1.0);
+    let a = mat3_vec(t, x, false);
+    let n2 = dot3(&a, &a);
+    let (norm, inv_n2) = (n2.sqrt(), one / n2);
+    let inv_n = norm * inv_n2;
+    let ta = mat3_vec(t, &a, true);
+    let vta = [var[0] * ta[0], var[1] * ta[1], var[2] * ta[2]];
+    let s2 = dot3(&vta, &ta) * inv_n2;
+    let (sd, inv_s2) = (s2.sqrt(), one / s2);
+    let is = sd * inv_s2;
+    LaneNorm {
+        a,
+        norm,
+        inv_n,
+        ta,
+        vta,
+        sd,
+        is,
+        check: finite_check(norm, inv_n, s2, is),
+    }
+}
+
+/// What [`lane_norm`] computes.
+struct LaneNorm<V> {
+    a: [V; 3],
+    norm: V,
+    inv_n: V,
+    ta: [V; 3],
+    vta: [V; 3],
+    sd: V,
+    is: V,
+    check: V,
+}
+
 /// [`eval_dwell`] and [`ml_row`] on every lane (`t = K^-1`, `x = am - b`, per-axis variance
 /// `var`, lane mask `m`).
 #[inline(always)]
@@ -548,23 +582,17 @@ fn eval_lanes<V: F64x4>(
     m: V,
     model: Model,
 ) -> LaneEval<V> {
-    // Written without closures: a closure is compiled on its own, without the caller's
-    // target features, whenever the compiler does not inline it.
-    let one = V::splat(1.0);
-    // a = T x, w = T^T a / |a|, sigma^2 = w^T Sigma w.
-    // Each reciprocal square root is a root and a reciprocal of the square taken side by
-    // side (not one after the other): the chain of dependent operations is shorter.
-    let a = mat3_vec(t, &x, false);
-    let n2 = dot3(&a, &a);
-    let (norm, inv_n2) = (n2.sqrt(), one / n2);
-    let inv_n = norm * inv_n2;
+    let LaneNorm {
+        a,
+        norm,
+        inv_n,
+        ta,
+        vta,
+        is,
+        check,
+        ..
+    } = lane_norm(t, &x, &var);
     let r = norm - g;
-    let ta = mat3_vec(t, &a, true);
-    let vta = [var[0] * ta[0], var[1] * ta[1], var[2] * ta[2]];
-    let s2 = dot3(&vta, &ta) * inv_n2;
-    let (sd, inv_s2) = (s2.sqrt(), one / s2);
-    let is = sd * inv_s2;
-    let check = finite_check(norm, inv_n, s2, is);
     let w = [ta[0] * inv_n, ta[1] * inv_n, ta[2] * inv_n];
     let vw = [vta[0] * inv_n, vta[1] * inv_n, vta[2] * inv_n];
     let e = r * is * m;
