@@ -716,17 +716,6 @@ pub fn lstsq_fn<const C: usize>(
     Ok(x)
 }
 
-/// [`lstsq_fn`] kept out of line: the fallback of [`lstsq_normal_lanes`] (its stack design
-/// would otherwise be part of every caller's frame).
-#[inline(never)]
-#[cold]
-fn lstsq_fn_cold<const C: usize>(
-    m: usize,
-    row: &dyn Fn(usize) -> ([f64; C], f64),
-) -> Result<[f64; C]> {
-    lstsq_fn(m, row)
-}
-
 /// [`lstsq_fn`] by the normal equations of the column-scaled design (Cholesky): about a
 /// third of the work of the QR, for a start value that an iteration polishes. The accuracy is
 /// about `cond^2 * eps` relative; when the scaled normal matrix has a pivot below `1e-10`
@@ -800,7 +789,7 @@ pub(crate) fn lstsq_normal_lanes<V: F64x4, const C: usize>(
     let m = rows.n_rows();
     let row = |i: usize| rows.row(i);
     if m < C {
-        return lstsq_fn_cold(m, &row);
+        return lstsq_fn(m, row);
     }
     let zero = V::splat(0.0);
     let mut al = [[zero; C]; C];
@@ -836,14 +825,14 @@ pub(crate) fn lstsq_normal_lanes<V: F64x4, const C: usize>(
         }
     }
     if !cholesky_full(&mut a, |_, s| s > 1e-10) {
-        return lstsq_fn_cold(m, &row);
+        return lstsq_fn(m, row);
     }
     cholesky_solve(&a, &mut r);
     for p in 0..C {
         r[p] *= di[p];
     }
     if r.iter().any(|v| !v.is_finite()) {
-        return lstsq_fn_cold(m, &row);
+        return lstsq_fn(m, row);
     }
     Ok(r)
 }
