@@ -576,29 +576,12 @@ def fit_static(
         raise CalibrationError(
             f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
-    fast = (type(data) is np.ndarray and data.dtype is _F64 and start is None
-            and data.ndim == 2 and data.shape[1] == 3 and data.flags.aligned)
-    if fast and sigma is None:
-        var1, noise1 = None, _ESTIMATED_ISOTROPIC
-    elif fast and type(sigma) is float and sigma > 0.0 and 0.0 < sigma * sigma < math.inf:
-        var1, noise1 = sigma * sigma, _GIVEN_SIGMA
-    else:
-        fast = False
-    if fast:
-        # The common calls (float64 means, no sigma or one float, the quadric start), without
-        # the general coercion of the inputs.
-        fit = StaticFit(  # positional: the fastest call into the constructor
-            data, g, model, method, var1, None, max_iter,  # type: ignore[arg-type]
-            observability == "raise", degenerate_std, weak_std, check_g, noise1, "", nominal,
-        )
-    else:
-        means, var, noise_model, units = _inputs(data, sigma)
-        st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
-        fit = StaticFit(
-            means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
-            observability == "raise", degenerate_std, weak_std, check_g, noise_model, units,
-            nominal,
-        )
+    means, var, noise_model, units = _inputs(data, sigma)
+    st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+    fit = StaticFit(  # positional: the fastest call into the constructor
+        means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
+        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
+    )
     if not fit.converged and not fit.degenerate:
         raise CalibrationError(
             f"{method} did not reach the minimum in {fit.max_iter} iterations (start "
