@@ -366,7 +366,10 @@ class GapStructure:
 
     verdict : "none", "noise_model", "attitude", "time", "temperature", "pose_history",
         "quantization" or "per_dwell".
-    statistic, p_value : the statistic behind the verdict and its (adjusted) p-value.
+    statistic, p_value : the statistic behind the verdict and its (adjusted) p-value: F of the
+        deciding smooth test; the persistent share of the excess for "noise_model" and
+        "per_dwell" (chi2/dof for "per_dwell" without half-dwell means); the share of the
+        excess explained for "quantization"; chi2/dof for "none".
     persistence : correlation of the residuals from the first- and second-half dwell means,
         calibration held fixed (NaN when half-dwell means are absent:
         ``persistence_testable`` is then False).
@@ -760,12 +763,18 @@ def _structure_text(s: GapStructure) -> str:
                f"(smooth in {not_smooth}: none significant)")
     elif v == "noise_model":
         ne = s.noise_empirical
+        pt = next((x for x in s.tests if x.name == "persistence"), None)
+        f_txt = (f"; persistence F = {pt.statistic:.2f}, p = {_fmt_p(pt.p_value)}"
+                 if pt is not None and pt.status == "testable" else "")
         emp = ""
         if ne is not None:
+            p_half = ("" if not math.isfinite(ne.p_model)
+                      else f", p = {_fmt_p(ne.p_model)} under the noise model")
             emp = (f"; the half-dwell differences give a dwell-mean noise of "
-                   f"{_mag(ne.rms, s.units)} RMS, {ne.ratio_model:.2g}x the noise model's")
-        txt = (f"noise_model: the excess does not persist within a dwell ({pers}; F = "
-               f"{s.statistic:.2f}, p = {_fmt_p(s.p_value)}){emp}: the noise model is too "
+                   f"{_mag(ne.rms, s.units)} RMS, {ne.ratio_model:.2g}x the noise model's"
+                   f"{p_half}")
+        txt = (f"noise_model: the excess does not persist within a dwell ({pers}{f_txt})"
+               f"{emp}: the noise model is too "
                "optimistic (noise correlated within the dwells); use the empirical or the "
                "Allan noise model; longer dwells won't help with 1/f noise, more dwells will")
     elif v in ("attitude", "time", "temperature", "pose_history"):

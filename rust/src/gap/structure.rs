@@ -19,6 +19,15 @@
 //!   half-difference scatter under "the excess is noise", "it persists" and their mixture
 //!   (see `excess_is_noise`). Noise with memory longer than a dwell (1/f below the dwell rate, a random
 //!   walk across the session) is a per-dwell offset by this definition.
+//! - Whether there is a gap at all: with a noise model and half-dwell means, two independent
+//!   checks of the noise model, Bonferroni over the two (each at `alpha / 2`): the residual
+//!   chi2 of the dwell means, and the whitened half-dwell differences (`chi2(n)`). Half-dwell
+//!   differences that exceed the model while the means do not make the verdict
+//!   "noise_model" (the noise model is too optimistic at the dwell's time scale). Without
+//!   half-dwell means the residual chi2 alone, at `alpha`.
+//! - Order of the decisions: a significant smooth test (family-wise); no gap ("none"); the
+//!   quantisation bias when it explains at least half of the excess; "noise_model" or
+//!   "per_dwell" as above.
 //! - Empirical dwell-mean noise from the half-dwell differences, `var((m1 - m2)/2)` propagated
 //!   to the norm, against the noise model used, white noise and the Allan model.
 //! - Quantisation: the bias a dwell mean carries when the within-dwell noise is below about one
@@ -198,7 +207,9 @@ pub struct NoiseEmpirical {
 pub struct Structure {
     /// The verdict.
     pub verdict: Verdict,
-    /// The statistic behind it (F of the deciding test; chi2/dof for "none").
+    /// The statistic behind it: F of the deciding smooth test; the persistent share of the
+    /// excess for "noise_model" and "per_dwell" (chi2/dof for "per_dwell" without half-dwell
+    /// means); the share of the excess explained for "quantization"; chi2/dof for "none".
     pub statistic: f64,
     /// Its p-value.
     pub p_value: f64,
@@ -559,7 +570,13 @@ fn decide(
         return (Verdict::of_smooth(t.name), t.statistic, t.p_adjusted);
     }
     let pers = find("persistence").filter(|t| t.status == Status::Testable);
-    let gap = if eng.noise_known {
+    // With a noise model and half-dwell means, two independent checks of it: the residuals
+    // (the dwell means) and the half-dwell differences, Bonferroni over the two.
+    let half_p = noise_emp.map_or(f64::NAN, |ne| ne.p_model);
+    let half_gap = half_p < alpha / 2.0;
+    let gap = if eng.noise_known && half_p.is_finite() {
+        eng.p_after < alpha / 2.0 || half_gap
+    } else if eng.noise_known {
         eng.p_after < alpha
     } else {
         pers.is_some_and(|t| t.p_value < alpha)
@@ -577,6 +594,9 @@ fn decide(
         }
     }
     match (halves, pers) {
+        (true, Some(p)) if half_gap && !(eng.p_after < alpha / 2.0) => {
+            (Verdict::NoiseModel, p.explained, half_p)
+        }
         (true, Some(p)) if noise_emp.is_some_and(|ne| excess_is_noise(eng, ne, alpha)) => {
             (Verdict::NoiseModel, p.explained, p.p_value)
         }
@@ -757,6 +777,33 @@ mod session_tests {
         let pd = verdict(&s);
         assert!(!pd.persistence_testable && pd.persistence.is_nan());
         assert_eq!(pd.verdict, Verdict::PerDwell);
+    }
+
+    #[test]
+    fn half_dwell_differences_alone_can_show_an_optimistic_noise_model() {
+        // Dwell means consistent with the noise model, half-dwell means 3x noisier than it
+        // predicts (the two halves' errors cancel in the mean): the means alone say "none",
+        // the half-dwell differences say that the noise model is too optimistic.
+        let mut s = session(7, 1.0, 0.0, 0.0);
+        let without = {
+            let mut t = s.clone();
+            t.extras.half_mean = None;
+            verdict(&t)
+        };
+        assert_eq!(without.verdict, Verdict::None, "{without:?}");
+        let sigma = s.var.as_ref().unwrap()[0][0].sqrt();
+        let mut rng = Rng(77);
+        for (m, h) in s.mean.iter().zip(s.extras.half_mean.as_mut().unwrap()) {
+            for r in 0..3 {
+                let d = 3.0 * sigma * rng.normal();
+                h[0][r] = m[r] + d;
+                h[1][r] = m[r] - d;
+            }
+        }
+        let st = verdict(&s);
+        assert_eq!(st.verdict, Verdict::NoiseModel, "{st:?}");
+        let ne = st.noise_empirical.unwrap();
+        assert!(ne.p_model < 1e-6 && ne.ratio_model > 2.0, "{ne:?}");
     }
 
     #[test]
