@@ -123,13 +123,19 @@ fn check_g(obj: &Bound<'_, PyAny>, check: bool) -> PyResult<f64> {
     Ok(g)
 }
 
-/// The entries of `m` row by row (nalgebra stores columns).
-fn row_major(m: &nalgebra::DMatrix<f64>) -> Vec<f64> {
-    let mut v = Vec::with_capacity(m.len());
-    for i in 0..m.nrows() {
-        v.extend(m.row(i).iter());
-    }
-    v
+/// The entries of the symmetric covariance `m` row by row. It is stored by columns, but every
+/// covariance the fit makes is symmetric to the bit (the lower triangle is mirrored, and the
+/// unit conversion multiplies both triangles alike), so its storage is also its row-major
+/// order: one copy instead of a walk over row views.
+fn row_major_symmetric(m: &nalgebra::DMatrix<f64>) -> Vec<f64> {
+    debug_assert!(
+        m.is_square()
+            && (0..m.nrows()).all(|i| (0..i).all(|j| {
+                m[(i, j)].to_bits() == m[(j, i)].to_bits()
+                    || (m[(i, j)].is_nan() && m[(j, i)].is_nan())
+            }))
+    );
+    m.as_slice().to_vec()
 }
 
 /// `(k, 3)` float64 array argument (any strides).
@@ -544,7 +550,7 @@ impl PyStaticFit {
             start_source: f.start_source.name(),
             start_error: f.start_error,
             user_start: start,
-            covariance_v: row_major(&f.covariance),
+            covariance_v: row_major_symmetric(&f.covariance),
             covariance_unscaled: PyOnceLock::new(),
             residuals_v: f.residuals,
             residuals: PyOnceLock::new(),

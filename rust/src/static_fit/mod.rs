@@ -634,7 +634,8 @@ pub fn output_covariance(s: &Solved, np: usize, g: f64, noise_known: bool) -> DM
     let cs = if noise_known { s.f1.s * s.f1.s } else { 1.0 };
     let d = |i: usize| if (3..6).contains(&i) { g } else { 1.0 };
     match &s.cov.cov_c {
-        Some(c) => DMatrix::from_fn(np, np, |i, j| c[i][j] * d(i) * d(j) * cs),
+        // One factor per (i, j) pair, commutative: the result is symmetric to the bit.
+        Some(c) => DMatrix::from_fn(np, np, |i, j| c[i][j] * (d(i) * d(j) * cs)),
         None => DMatrix::from_element(np, np, f64::NAN),
     }
 }
@@ -848,6 +849,30 @@ mod tests {
                 f.params
             );
             assert!(f.converged);
+        }
+    }
+
+    #[test]
+    fn covariance_is_symmetric_to_the_bit() {
+        // The Python glue hands the column-major storage over as row-major order.
+        for (model, noise) in [
+            (Model::Lower, Noise::Estimated),
+            (Model::Lower, Noise::Uniform([1e-6; 3])),
+            (Model::Upper, Noise::Uniform([2e-6, 1e-6, 3e-6])),
+            (Model::Diag, Noise::Estimated),
+        ] {
+            let m = simulate_noisy(model, &TRUTH, 20, 40.0, 1e-3, 5);
+            let f = fit_static(&m, G, &noise, &FitSettings::new(model, Method::Lm)).unwrap();
+            let c = &f.covariance;
+            for i in 0..c.nrows() {
+                for j in 0..i {
+                    assert_eq!(
+                        c[(i, j)].to_bits(),
+                        c[(j, i)].to_bits(),
+                        "{model:?} {i} {j}"
+                    );
+                }
+            }
         }
     }
 
