@@ -434,9 +434,17 @@ impl StaticModel {
         }
     }
 
-    /// Evaluate dwell `k` with output `am` (its mean or a half mean) and variance `var`.
+    /// `K^-1` of the calibration in `p` (once per evaluation, for every dwell's [`Self::row`]).
+    fn k_inverse(&self, p: &[f64]) -> Result<Matrix3<f64>> {
+        inv_k(Model::Lower, self.split(p).0).map_err(|_| not_evaluable())
+    }
+
+    /// Evaluate dwell `k` with output `am` (its mean or a half mean) and variance `var`;
+    /// `t` is [`Self::k_inverse`] at `p`.
+    #[allow(clippy::too_many_arguments)]
     fn row(
         &self,
+        t: &Matrix3<f64>,
         k: usize,
         am: &[f64; 3],
         var: &[f64; 3],
@@ -457,11 +465,10 @@ impl StaticModel {
         }
         // The static fit's maximum-likelihood pieces on the effect-corrected output
         // `y + b`: residual, w, sigma and d e / d p (with the derivative of sigma).
-        let t = inv_k(Model::Lower, bp).ok()?;
         let out = [y[0] + bp[3], y[1] + bp[4], y[2] + bp[5]];
-        let d = eval_dwell(&t, bp, &out, *var, self.g).ok()?;
+        let d = eval_dwell(t, bp, &out, *var, self.g).ok()?;
         let mut row = [0.0; N_BASE];
-        ml_row(Model::Lower, &t, &d, &mut row);
+        ml_row(Model::Lower, t, &d, &mut row);
         // d e / d b_i = -d e / d y_i (at fixed effects): the gradient in the corrected output.
         let gy = Vector3::new(-row[3], -row[4], -row[5]);
         let gk = [row[0], row[1], row[2], row[6], row[7], row[8]];
@@ -478,24 +485,31 @@ impl StaticModel {
         })
     }
 
-    fn row_at(&self, k: usize, active: &[usize], p: &[f64]) -> Result<RowEval> {
-        self.row(k, &self.am[k], &self.var[k], active, p)
-            .ok_or_else(|| {
-                CoreError::NotConverged("model not evaluable (zero scale or norm)".into())
-            })
+    fn row_at(&self, t: &Matrix3<f64>, k: usize, active: &[usize], p: &[f64]) -> Result<RowEval> {
+        self.row(t, k, &self.am[k], &self.var[k], active, p)
+            .ok_or_else(not_evaluable)
     }
 
-    /// Norm residual (m/s^2) of dwell `k` with another output (a half mean), same model.
-    pub fn residual_of(&self, k: usize, am: &[f64; 3], active: &[usize], p: &[f64]) -> f64 {
-        self.row(k, am, &self.var[k], active, p)
-            .map_or(f64::NAN, |ev| ev.r)
+    /// Norm residuals (m/s^2) of every dwell with other outputs (half means), same model
+    /// (NaN where the model cannot be evaluated).
+    pub fn residuals_of(&self, am: &[[f64; 3]], active: &[usize], p: &[f64]) -> Vec<f64> {
+        let t = self.k_inverse(p).ok();
+        am.iter()
+            .enumerate()
+            .map(|(k, a)| {
+                t.as_ref()
+                    .and_then(|t| self.row(t, k, a, &self.var[k], active, p))
+                    .map_or(f64::NAN, |ev| ev.r)
+            })
+            .collect()
     }
 
     /// Calibrated unit gravity direction, `w` (`d r / d am`) and `a` of every dwell at `p`.
     pub fn directions(&self, active: &[usize], p: &[f64]) -> Result<Vec<([f64; 3], [f64; 3])>> {
+        let t = self.k_inverse(p)?;
         (0..self.am.len())
             .map(|k| {
-                let ev = self.row_at(k, active, p)?;
+                let ev = self.row_at(&t, k, active, p)?;
                 let u = ev.a / ev.a.norm();
                 Ok(([u[0], u[1], u[2]], [ev.w[0], ev.w[1], ev.w[2]]))
             })
@@ -536,8 +550,9 @@ impl GapModel for StaticModel {
         jac: &mut DMatrix<f64>,
     ) -> Result<()> {
         let nb = self.n_base();
+        let t = self.k_inverse(p)?;
         for (ri, &k) in rows.iter().enumerate() {
-            let ev = self.row_at(k, active, p)?;
+            let ev = self.row_at(&t, k, active, p)?;
             e[ri] = ev.r / ev.sigma;
             if nb == N_BASE {
                 // [sx, sy, sz, bx, by, bz, m1, m2, m3]
@@ -565,8 +580,9 @@ impl GapModel for StaticModel {
         c: usize,
     ) -> Result<DMatrix<f64>> {
         let mut out = DMatrix::zeros(rows.len(), 3);
+        let t = self.k_inverse(p)?;
         for (ri, &k) in rows.iter().enumerate() {
-            let ev = self.row_at(k, active, p)?;
+            let ev = self.row_at(&t, k, active, p)?;
             for i in 0..3 {
                 out[(ri, i)] = -ev.gy[i] * MICRO * self.h_term(c, k, i, ev.z[i]).0;
             }
@@ -574,10 +590,15 @@ impl GapModel for StaticModel {
         Ok(out)
     }
     fn sigma(&self, rows: &[usize], active: &[usize], p: &[f64]) -> Result<Vec<f64>> {
+        let t = self.k_inverse(p)?;
         rows.iter()
-            .map(|&k| self.row_at(k, active, p).map(|ev| ev.sigma))
+            .map(|&k| self.row_at(&t, k, active, p).map(|ev| ev.sigma))
             .collect()
     }
+}
+
+fn not_evaluable() -> CoreError {
+    CoreError::NotConverged("model not evaluable (zero scale or norm)".into())
 }
 
 // ------------------------------------------------------------------------------------------
@@ -716,13 +737,11 @@ fn structure_input(
     let n = dirs.len();
     let x = &inp.extras;
     let halves = x.half_mean.as_ref().map(|hm| {
-        let r1 = (0..n)
-            .map(|k| model.residual_of(k, &hm[k][0], act, p))
-            .collect();
-        let r2 = (0..n)
-            .map(|k| model.residual_of(k, &hm[k][1], act, p))
-            .collect();
-        (r1, r2)
+        let half = |h: usize| -> Vec<[f64; 3]> { hm[..n].iter().map(|m| m[h]).collect() };
+        (
+            model.residuals_of(&half(0), act, p),
+            model.residuals_of(&half(1), act, p),
+        )
     });
     let prop = |v: &Vec<[f64; 3]>| -> Vec<f64> {
         (0..n)
