@@ -579,6 +579,32 @@ def test_structure_verdicts_of_simulated_classes(kind: str) -> None:
     assert ok >= 10, (kind, ok)
 
 
+def test_half_dwell_differences_alone_make_the_noise_model_verdict() -> None:
+    # A null session whose half-dwell means scatter 3x more than the reported white noise
+    # predicts while the dwell means agree with it (the halves' errors cancel in the mean):
+    # without half means the verdict is "none"; with them, "noise_model", and the sentence
+    # gives the half-difference evidence, not the persistent share labelled as an F.
+    from accelcal.sim.gap import structure_session
+
+    s = structure_session("per_dwell", rng=7_900_003, lam=1e-9)
+    d = s.dwells
+    base = diagnose(DwellSet(d.mean, d.var, d.count, d.t, d.temperature, fs=d.fs), g=s.g,
+                    loo=False)
+    assert base.structure.verdict == "none", base.summary()
+    gen = np.random.default_rng(5)
+    dev = 3.0 * gen.normal(size=d.mean.shape) * np.sqrt(d.var / d.count[:, None])
+    half = np.stack([d.mean + dev, d.mean - dev], axis=1)
+    r = diagnose(DwellSet(d.mean, d.var, d.count, d.t, d.temperature, fs=d.fs, half_mean=half),
+                 g=s.g, loo=False)
+    st = r.structure
+    assert st.verdict == "noise_model", r.summary()
+    assert st.noise_empirical is not None and st.noise_empirical.ratio_model > 2.0
+    assert st.p_value == st.noise_empirical.p_model < 1e-6
+    text = st.summary()
+    assert "half-dwell differences give a dwell-mean noise" in text
+    assert "under the noise model" in text and "persistence F =" in text
+
+
 def test_gap_figure_sphere_map_flags_and_allan_panel(tmp_path: Any) -> None:
     import matplotlib
 
