@@ -157,7 +157,8 @@ fn fit_one<const N: usize>(
     if let Some(c) = &s.cov.cov_c {
         for (j, v) in std.iter_mut().enumerate().take(N) {
             let d = if (3..6).contains(&j) { g } else { 1.0 };
-            *v = (c[j][j] * d * d * scale).sqrt();
+            // Grouped as `output_covariance` groups it (same rounding as a single fit).
+            *v = (c[j][j] * (d * d * scale)).sqrt();
         }
     }
     for v in &mut params[N..] {
