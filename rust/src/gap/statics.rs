@@ -441,7 +441,6 @@ impl StaticModel {
 
     /// Evaluate dwell `k` with output `am` (its mean or a half mean) and variance `var`;
     /// `t` is [`Self::k_inverse`] at `p`.
-    #[allow(clippy::too_many_arguments)]
     fn row(
         &self,
         t: &Matrix3<f64>,

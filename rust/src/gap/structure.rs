@@ -573,9 +573,9 @@ fn decide(
     // With a noise model and half-dwell means, two independent checks of it: the residuals
     // (the dwell means) and the half-dwell differences, Bonferroni over the two.
     let half_p = noise_emp.map_or(f64::NAN, |ne| ne.p_model);
-    let half_gap = half_p < alpha / 2.0;
+    let (means_gap, half_gap) = (eng.p_after < alpha / 2.0, half_p < alpha / 2.0);
     let gap = if eng.noise_known && half_p.is_finite() {
-        eng.p_after < alpha / 2.0 || half_gap
+        means_gap || half_gap
     } else if eng.noise_known {
         eng.p_after < alpha
     } else {
@@ -594,9 +594,7 @@ fn decide(
         }
     }
     match (halves, pers) {
-        (true, Some(p)) if half_gap && !(eng.p_after < alpha / 2.0) => {
-            (Verdict::NoiseModel, p.explained, half_p)
-        }
+        (true, Some(p)) if half_gap && !means_gap => (Verdict::NoiseModel, p.explained, half_p),
         (true, Some(p)) if noise_emp.is_some_and(|ne| excess_is_noise(eng, ne, alpha)) => {
             (Verdict::NoiseModel, p.explained, p.p_value)
         }

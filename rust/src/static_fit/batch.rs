@@ -3,7 +3,7 @@
 //! to word an error).
 
 use super::observe::per_dwell;
-use super::{check_solved, solve, FitSettings, Model, Noise, Solved};
+use super::{check_solved, output_cov_entry, solve, FitSettings, Model, Noise, Solved};
 use crate::error::{invalid, CoreError, Result};
 use nalgebra::DMatrix;
 use rayon::prelude::*;
@@ -156,9 +156,7 @@ fn fit_one<const N: usize>(
     let mut std = [f64::NAN; 9];
     if let Some(c) = &s.cov.cov_c {
         for (j, v) in std.iter_mut().enumerate().take(N) {
-            let d = if (3..6).contains(&j) { g } else { 1.0 };
-            // Grouped as `output_covariance` groups it (same rounding as a single fit).
-            *v = (c[j][j] * (d * d * scale)).sqrt();
+            *v = output_cov_entry(c, j, j, g, scale).sqrt();
         }
     }
     for v in &mut params[N..] {

@@ -632,12 +632,19 @@ pub fn check_solved(
 /// estimated the covariance is per unit output variance, so the frame scale cancels).
 pub fn output_covariance(s: &Solved, np: usize, g: f64, noise_known: bool) -> DMatrix<f64> {
     let cs = if noise_known { s.f1.s * s.f1.s } else { 1.0 };
-    let d = |i: usize| if (3..6).contains(&i) { g } else { 1.0 };
     match &s.cov.cov_c {
-        // One factor per (i, j) pair, commutative: the result is symmetric to the bit.
-        Some(c) => DMatrix::from_fn(np, np, |i, j| c[i][j] * (d(i) * d(j) * cs)),
+        Some(c) => DMatrix::from_fn(np, np, |i, j| output_cov_entry(c, i, j, g, cs)),
         None => DMatrix::from_element(np, np, f64::NAN),
     }
+}
+
+/// Entry `(i, j)` of the output covariance from the comparable frame covariance `c`: bias
+/// rows and columns times `g`, everything times `scale`. The unit factors are multiplied
+/// together first (commutative), so the result is symmetric to the bit, and a batch row's std
+/// equals the single fit's.
+pub fn output_cov_entry(c: &[[f64; 9]; 9], i: usize, j: usize, g: f64, scale: f64) -> f64 {
+    let d = |i: usize| if (3..6).contains(&i) { g } else { 1.0 };
+    c[i][j] * (d(i) * d(j) * scale)
 }
 
 /// Fit the static model to `k` dwell means.
