@@ -1772,6 +1772,9 @@ pub fn range_basis(j: &DMatrix<f64>, rtol: f64) -> Result<RangeBasis> {
         })
         .collect();
     let js = DMatrix::from_fn(m, n, |a, b| j[(a, b)] / d[b]);
+    if let Some(rb) = full_rank_basis(&js, &d, rtol) {
+        return Ok(rb);
+    }
     let (u, s, vt) = thin_svd(&js)?;
     let smax = s.first().copied().unwrap_or(0.0);
     let keep: Vec<usize> = (0..s.len()).filter(|&i| s[i] > rtol * smax).collect();
@@ -1790,6 +1793,33 @@ pub fn range_basis(j: &DMatrix<f64>, rtol: f64) -> Result<RangeBasis> {
         q,
         cov,
         rank: keep.len(),
+    })
+}
+
+/// [`range_basis`] of the column-scaled `js` (scales `d`) by Householder QR, `js = Q R`, when
+/// its columns are certainly independent at `rtol`: then the SVD would keep every direction,
+/// `Q` spans the same range as its `U` (another orthonormal basis of it) and
+/// `(J^T J)^+ = D^-1 R^-1 R^-T D^-1`. Certain means `1 / |R^-1|_F > rtol |R|_F`, a lower bound
+/// of `s_min` above `rtol` times an upper bound of `s_max` (it holds whenever the condition
+/// number is below about `1 / (n rtol)`). `None` (the caller's SVD decides) otherwise, or when
+/// `js` is wide, empty or not finite.
+fn full_rank_basis(js: &DMatrix<f64>, d: &[f64], rtol: f64) -> Option<RangeBasis> {
+    let (m, n) = (js.nrows(), js.ncols());
+    if n == 0 || m < n || js.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let qr = js.clone().qr();
+    let r = qr.r();
+    let rinv = r.solve_upper_triangular(&DMatrix::identity(n, n))?;
+    let (nr, ni) = (r.norm(), rinv.norm());
+    if !(ni.is_finite() && nr.is_finite() && 1.0 / ni > rtol * nr) {
+        return None;
+    }
+    let c = &rinv * rinv.transpose();
+    Some(RangeBasis {
+        q: qr.q(),
+        cov: DMatrix::from_fn(n, n, |a, b| c[(a, b)] / d[a] / d[b]),
+        rank: n,
     })
 }
 
@@ -2026,6 +2056,54 @@ mod tests {
                 let want = if i == k { 1.0 } else { 0.0 };
                 assert!((id[(i, k)] - want).abs() < 1e-9);
             }
+        }
+    }
+
+    /// The QR basis of a full-rank Jacobian is the SVD's range basis in another orthonormal
+    /// basis (the same projection), with the same pseudo-inverse; a rank-deficient or
+    /// numerically rank-deficient one goes to the SVD, which drops the direction.
+    #[test]
+    fn range_basis_by_qr_matches_the_svd() {
+        let mut seed = 11u64;
+        let mut rnd = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        // Columns of very different sizes (the column scaling makes the decision scale-free).
+        let scale = [1.0, 1e3, 1e-4, 10.0, 1.0, 1e6, 2.0, 1e-2, 1.0];
+        let j = DMatrix::from_fn(30, 9, |_, c| rnd() * scale[c]);
+        let d: Vec<f64> = (0..9).map(|c| j.column(c).norm()).collect();
+        let js = DMatrix::from_fn(30, 9, |a, b| j[(a, b)] / d[b]);
+        let qr = full_rank_basis(&js, &d, 1e-9).expect("a well-conditioned design");
+        let (u, s, vt) = thin_svd(&js).unwrap();
+        assert_eq!(qr.rank, 9);
+        assert!((qr.q.transpose() * &qr.q - DMatrix::identity(9, 9)).norm() < 1e-13);
+        let (pq, pu) = (&qr.q * qr.q.transpose(), &u * u.transpose());
+        assert!((pq - pu).norm() < 1e-12);
+        let svd_cov = DMatrix::from_fn(9, 9, |a, b| {
+            (0..9)
+                .map(|k| vt[(k, a)] * vt[(k, b)] / (s[k] * s[k]) / d[a] / d[b])
+                .sum::<f64>()
+        });
+        for a in 0..9 {
+            for b in 0..9 {
+                let tol = 1e-10 * (svd_cov[(a, a)] * svd_cov[(b, b)]).sqrt();
+                assert!((qr.cov[(a, b)] - svd_cov[(a, b)]).abs() < tol, "{a} {b}");
+            }
+        }
+        assert_eq!(range_basis(&j, 1e-9).unwrap().q.ncols(), 9);
+        // A column that is another's multiple, exactly or to 1e-12: the SVD path, rank 8.
+        for eps in [0.0, 1e-12] {
+            let mut jd = j.clone();
+            let c0 = j.column(0).clone_owned();
+            jd.set_column(4, &(c0 * 3.0 + DVector::from_fn(30, |i, _| eps * (i as f64).sin())));
+            let dd: Vec<f64> = (0..9).map(|c| jd.column(c).norm()).collect();
+            let jsd = DMatrix::from_fn(30, 9, |a, b| jd[(a, b)] / dd[b]);
+            assert!(full_rank_basis(&jsd, &dd, 1e-9).is_none(), "eps {eps}");
+            let rb = range_basis(&jd, 1e-9).unwrap();
+            assert_eq!((rb.rank, rb.q.ncols()), (8, 8), "eps {eps}");
         }
     }
 
