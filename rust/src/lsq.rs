@@ -2098,7 +2098,10 @@ mod tests {
         for eps in [0.0, 1e-12] {
             let mut jd = j.clone();
             let c0 = j.column(0).clone_owned();
-            jd.set_column(4, &(c0 * 3.0 + DVector::from_fn(30, |i, _| eps * (i as f64).sin())));
+            jd.set_column(
+                4,
+                &(c0 * 3.0 + DVector::from_fn(30, |i, _| eps * (i as f64).sin())),
+            );
             let dd: Vec<f64> = (0..9).map(|c| jd.column(c).norm()).collect();
             let jsd = DMatrix::from_fn(30, 9, |a, b| jd[(a, b)] / dd[b]);
             assert!(full_rank_basis(&jsd, &dd, 1e-9).is_none(), "eps {eps}");
