@@ -1504,7 +1504,17 @@ impl<P: Residuals> Evaluate<Dm> for JacobianTrials<'_, P> {
     fn accept(&mut self, _: &Dv, jtj: &mut Dm, g: &mut Dv) -> Result<f64> {
         std::mem::swap(&mut self.r, &mut self.r_new);
         std::mem::swap(&mut self.jac, &mut self.j_new);
-        self.jac.tr_mul_to(&self.jac, jtj);
+        // J^T J: the upper triangle by column dot products, mirrored (half the work of a
+        // general product, and symmetric to the bit).
+        let n = self.jac.ncols();
+        for i in 0..n {
+            let ci = self.jac.column(i);
+            for j in i..n {
+                let v = ci.dot(&self.jac.column(j));
+                jtj[(i, j)] = v;
+                jtj[(j, i)] = v;
+            }
+        }
         self.jac.tr_mul_to(&self.r, g);
         Ok(self.cost)
     }
