@@ -73,6 +73,19 @@ pub trait GapModel: Sync {
         p: &[f64],
         c: usize,
     ) -> Result<DMatrix<f64>>;
+    /// [`Self::columns`] of each candidate in `cs`, in that order (a model whose candidates
+    /// share their per-row work overrides this to do it once).
+    fn columns_of(
+        &self,
+        rows: &[usize],
+        active: &[usize],
+        p: &[f64],
+        cs: &[usize],
+    ) -> Vec<Result<DMatrix<f64>>> {
+        cs.iter()
+            .map(|&c| self.columns(rows, active, p, c))
+            .collect()
+    }
     /// Standard deviation of each row's residual (physical units) at `p`.
     fn sigma(&self, rows: &[usize], active: &[usize], p: &[f64]) -> Result<Vec<f64>>;
     /// Whether effect `c` can predict a held-out group (false for parameters that belong to
@@ -156,8 +169,25 @@ impl<'a, M: GapModel> Ctx<'a, M> {
         Ok(())
     }
 
-    fn columns(&self, rows: &[usize], active: &[usize], p: &[f64], c: usize) -> DMatrix<f64> {
-        match self.m.columns(rows, active, p, c) {
+    /// The whitened columns of each candidate in `cs` in this context (the model's
+    /// [`GapModel::columns_of`]; none, `rows x 0`, for a candidate that cannot be evaluated).
+    fn columns_of(
+        &self,
+        rows: &[usize],
+        active: &[usize],
+        p: &[f64],
+        cs: &[usize],
+    ) -> Vec<DMatrix<f64>> {
+        let xs = self.m.columns_of(rows, active, p, cs);
+        xs.into_iter()
+            .map(|x| self.scaled_columns(rows, x))
+            .collect()
+    }
+
+    /// A candidate's columns from the model in this context's whitening (scale and row
+    /// factors); none (`rows x 0`) when they cannot be evaluated or are not finite.
+    fn scaled_columns(&self, rows: &[usize], x: Result<DMatrix<f64>>) -> DMatrix<f64> {
+        match x {
             Ok(mut x) => {
                 x /= self.scale;
                 if !self.f.is_empty() {
@@ -771,13 +801,17 @@ fn screen_stage<M: GapModel>(
         figures,
         view: view.clone(),
     };
-    let base = ctx.unweighted();
-    for &c in cands.iter().filter(|c| !active.contains(c)) {
-        let xb = base.columns(rows, active, &cur.p, c);
-        let scb = screen(&xb, &sb.basis, &sb.e, sb.rss, cfg);
+    let todo: Vec<usize> = cands
+        .iter()
+        .copied()
+        .filter(|c| !active.contains(c))
+        .collect();
+    let xbs = ctx.unweighted().columns_of(rows, active, &cur.p, &todo);
+    for (&c, xb) in todo.iter().zip(&xbs) {
+        let scb = screen(xb, &sb.basis, &sb.e, sb.rss, cfg);
         let (sc, q) = match &view {
             Some(v) if scb.status == Status::Testable && !scb.chi2_used => {
-                gls_test(&xb, v, &scb, &qb, s2m, cfg)
+                gls_test(xb, v, &scb, &qb, s2m, cfg)
             }
             _ => (scb.clone(), qb.clone()),
         };
@@ -1891,7 +1925,13 @@ mod tests {
         let b = basis(&base.jac).unwrap();
         let e = DVector::from_column_slice(&base.e);
         let cfg = TestCfg::of(&OPT, true).with_estimate(true);
-        let q = screen(&c.columns(&all(30), &[], &base.p, 0), &b, &e, base.rss, cfg);
+        let q = screen(
+            &c.columns_of(&all(30), &[], &base.p, &[0])[0],
+            &b,
+            &e,
+            base.rss,
+            cfg,
+        );
         assert_eq!(q.status, Status::Testable);
         // Closed form: F = (RSS0 - RSS1) / (RSS1 / (n - 3)).
         let r1: f64 = {
@@ -1917,7 +1957,13 @@ mod tests {
             q.est,
             q.std
         );
-        let a = screen(&c.columns(&all(30), &[], &base.p, 2), &b, &e, base.rss, cfg);
+        let a = screen(
+            &c.columns_of(&all(30), &[], &base.p, &[2])[0],
+            &b,
+            &e,
+            base.rss,
+            cfg,
+        );
         assert_eq!(a.status, Status::Blind);
         assert!(a.sines[0] < 1e-8);
     }

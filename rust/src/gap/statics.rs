@@ -578,15 +578,35 @@ impl GapModel for StaticModel {
         p: &[f64],
         c: usize,
     ) -> Result<DMatrix<f64>> {
-        let mut out = DMatrix::zeros(rows.len(), 3);
-        let t = self.k_inverse(p)?;
-        for (ri, &k) in rows.iter().enumerate() {
-            let ev = self.row_at(&t, k, active, p)?;
-            for i in 0..3 {
-                out[(ri, i)] = -ev.gy[i] * MICRO * self.h_term(c, k, i, ev.z[i]).0;
+        let mut out = self.columns_of(rows, active, p, &[c]);
+        out.pop()
+            .unwrap_or_else(|| Ok(DMatrix::zeros(rows.len(), 3)))
+    }
+    /// Every candidate's columns from one evaluation of each row (the rows do not depend on
+    /// the candidate).
+    fn columns_of(
+        &self,
+        rows: &[usize],
+        active: &[usize],
+        p: &[f64],
+        cs: &[usize],
+    ) -> Vec<Result<DMatrix<f64>>> {
+        let mut out = vec![DMatrix::zeros(rows.len(), 3); cs.len()];
+        let pass = self.k_inverse(p).and_then(|t| {
+            for (ri, &k) in rows.iter().enumerate() {
+                let ev = self.row_at(&t, k, active, p)?;
+                for (x, &c) in out.iter_mut().zip(cs) {
+                    for i in 0..3 {
+                        x[(ri, i)] = -ev.gy[i] * MICRO * self.h_term(c, k, i, ev.z[i]).0;
+                    }
+                }
             }
+            Ok(())
+        });
+        match pass {
+            Ok(()) => out.into_iter().map(Ok).collect(),
+            Err(e) => cs.iter().map(|_| Err(e.clone())).collect(),
         }
-        Ok(out)
     }
     fn sigma(&self, rows: &[usize], active: &[usize], p: &[f64]) -> Result<Vec<f64>> {
         let t = self.k_inverse(p)?;
@@ -898,16 +918,19 @@ pub(crate) mod tests {
                 );
             }
         }
-        // Candidate columns are the effect's Jacobian columns at zero.
-        let cols = m
-            .columns(&rows, &[], &start, Effect::Drift.index())
-            .unwrap();
+        // Candidate columns are the effect's Jacobian columns at zero, for every candidate,
+        // asked one at a time or all in one pass.
+        let all: Vec<usize> = (0..Effect::ALL.len()).collect();
+        let together = m.columns_of(&rows, &[], &start, &all);
         let mut pz = start.to_vec();
         pz.extend_from_slice(&[0.0; 3]);
-        let mut jz = DMatrix::zeros(14, 12);
-        m.eval(&rows, &[Effect::Drift.index()], &pz, &mut e, &mut jz)
-            .unwrap();
-        assert!((cols - jz.columns(9, 3)).norm() < 1e-12);
+        for (c, cols) in all.iter().zip(together) {
+            let cols = cols.unwrap();
+            let mut jz = DMatrix::zeros(14, 12);
+            m.eval(&rows, &[*c], &pz, &mut e, &mut jz).unwrap();
+            assert!((&cols - jz.columns(9, 3)).norm() < 1e-12, "candidate {c}");
+            assert_eq!(cols, m.columns(&rows, &[], &start, *c).unwrap());
+        }
     }
 
     #[test]
