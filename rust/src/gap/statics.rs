@@ -489,6 +489,35 @@ impl StaticModel {
             .ok_or_else(not_evaluable)
     }
 
+    /// Whitened Jacobian entry of effect `c`'s axis-`i` parameter for dwell `k` evaluated as
+    /// `ev`: the same entry for an active effect ([`GapModel::eval`]) and a candidate at zero
+    /// ([`GapModel::columns`]).
+    fn effect_entry(&self, ev: &RowEval, c: usize, k: usize, i: usize) -> f64 {
+        -ev.gy[i] * MICRO * self.h_term(c, k, i, ev.z[i]).0
+    }
+
+    /// The columns of every candidate in `cs` from one evaluation of each row (the rows do not
+    /// depend on the candidate).
+    fn candidate_columns(
+        &self,
+        rows: &[usize],
+        active: &[usize],
+        p: &[f64],
+        cs: &[usize],
+    ) -> Result<Vec<DMatrix<f64>>> {
+        let mut out = vec![DMatrix::zeros(rows.len(), 3); cs.len()];
+        let t = self.k_inverse(p)?;
+        for (ri, &k) in rows.iter().enumerate() {
+            let ev = self.row_at(&t, k, active, p)?;
+            for (x, &c) in out.iter_mut().zip(cs) {
+                for i in 0..3 {
+                    x[(ri, i)] = self.effect_entry(&ev, c, k, i);
+                }
+            }
+        }
+        Ok(out)
+    }
+
     /// Norm residuals (m/s^2) of every dwell with other outputs (half means), same model
     /// (NaN where the model cannot be evaluated).
     pub fn residuals_of(&self, am: &[[f64; 3]], active: &[usize], p: &[f64]) -> Vec<f64> {
@@ -564,8 +593,7 @@ impl GapModel for StaticModel {
             }
             for (j, &eff) in active.iter().enumerate() {
                 for i in 0..3 {
-                    jac[(ri, nb + 3 * j + i)] =
-                        -ev.gy[i] * MICRO * self.h_term(eff, k, i, ev.z[i]).0;
+                    jac[(ri, nb + 3 * j + i)] = self.effect_entry(&ev, eff, k, i);
                 }
             }
         }
@@ -578,12 +606,11 @@ impl GapModel for StaticModel {
         p: &[f64],
         c: usize,
     ) -> Result<DMatrix<f64>> {
-        let mut out = self.columns_of(rows, active, p, &[c]);
-        out.pop()
-            .unwrap_or_else(|| Ok(DMatrix::zeros(rows.len(), 3)))
+        self.candidate_columns(rows, active, p, &[c])?
+            .into_iter()
+            .next()
+            .ok_or_else(not_evaluable)
     }
-    /// Every candidate's columns from one evaluation of each row (the rows do not depend on
-    /// the candidate).
     fn columns_of(
         &self,
         rows: &[usize],
@@ -591,20 +618,8 @@ impl GapModel for StaticModel {
         p: &[f64],
         cs: &[usize],
     ) -> Vec<Result<DMatrix<f64>>> {
-        let mut out = vec![DMatrix::zeros(rows.len(), 3); cs.len()];
-        let pass = self.k_inverse(p).and_then(|t| {
-            for (ri, &k) in rows.iter().enumerate() {
-                let ev = self.row_at(&t, k, active, p)?;
-                for (x, &c) in out.iter_mut().zip(cs) {
-                    for i in 0..3 {
-                        x[(ri, i)] = -ev.gy[i] * MICRO * self.h_term(c, k, i, ev.z[i]).0;
-                    }
-                }
-            }
-            Ok(())
-        });
-        match pass {
-            Ok(()) => out.into_iter().map(Ok).collect(),
+        match self.candidate_columns(rows, active, p, cs) {
+            Ok(xs) => xs.into_iter().map(Ok).collect(),
             Err(e) => cs.iter().map(|_| Err(e.clone())).collect(),
         }
     }
