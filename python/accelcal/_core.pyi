@@ -798,6 +798,9 @@ class StaticFit:
     def start_error(self) -> str | None:
         """Why the linear solution failed (when the start is the fallback)."""
     @property
+    def _attention(self) -> int:
+        """Bit 0: neither converged nor degenerate (an error); bit 1: weak or degenerate."""
+    @property
     def user_start(self) -> list[float] | None:
         """The start given by the caller."""
     @property

@@ -576,19 +576,35 @@ def fit_static(
         raise CalibrationError(
             f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
-    means, var, noise_model, units = _inputs(data, sigma)
-    st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
-    fit = StaticFit(  # positional: the fastest call into the constructor
-        means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
-        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
-    )
-    if not fit.converged and not fit.degenerate:
+    if (
+        type(data) is np.ndarray and data.dtype is _F64 and start is None
+        and (sigma is None or (type(sigma) is float and 1e-150 < sigma < 1e150))
+    ):
+        # The common call (float64 means, no start, sigma absent or a float whose square is a
+        # normal number) without the general coercion: the constructor checks the shape and
+        # values and reads any strides and alignment. Positional: its fastest call.
+        fit = StaticFit(
+            data, g, model, method,  # type: ignore[arg-type]
+            None if sigma is None else sigma * sigma, None, max_iter,
+            observability == "raise", degenerate_std, weak_std, check_g,
+            _ESTIMATED_ISOTROPIC if sigma is None else _GIVEN_SIGMA, "", nominal,
+        )
+    else:
+        means, var, noise_model, units = _inputs(data, sigma)
+        st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+        fit = StaticFit(
+            means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
+            observability == "raise", degenerate_std, weak_std, check_g, noise_model, units,
+            nominal,
+        )
+    attention = fit._attention  # one read: bit 0 not converged, bit 1 weak or degenerate
+    if attention & 1:
         raise CalibrationError(
             f"{method} did not reach the minimum in {fit.max_iter} iterations (start "
             f"{fit.start.tolist()}); use the default start (the exact quadric solution) or "
             "more iterations"
         )
-    if observability != "ignore" and (fit.weak or fit.degenerate):
+    if attention and observability != "ignore":
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit
             warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit

@@ -340,6 +340,28 @@ pub fn covariance_normal_fixed<const N: usize>(
     normal: &[[f64; N]; N],
     rtol: f64,
 ) -> Option<[[f64; N]; N]> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if crate::lanes::avx2_fma() {
+            // SAFETY: the CPU supports AVX2 and FMA (checked just above).
+            return unsafe { covariance_normal_fixed_avx2(normal, rtol) };
+        }
+    }
+    covariance_of_normal(*normal, rtol)
+}
+
+/// [`covariance_normal_fixed`] compiled for AVX2: wider vectors for the row updates of the
+/// Cholesky factor and the inverse, the same arithmetic (no contraction into fused
+/// multiply-adds), so the same bits.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn covariance_normal_fixed_avx2<const N: usize>(
+    normal: &[[f64; N]; N],
+    rtol: f64,
+) -> Option<[[f64; N]; N]> {
     covariance_of_normal(*normal, rtol)
 }
 

@@ -100,9 +100,30 @@ pub fn opt_slice<'a>(
 pub fn rows3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
     if a.shape()[1] != 3 {
         return Err(CalibrationError::new_err(format!(
-            "{what} must have shape (k, 3); got {:?}",
-            a.shape()
+            "{what} must have shape (k, 3); got ({}, {})",
+            a.shape()[0],
+            a.shape()[1]
         )));
+    }
+    let b: &Bound<'_, numpy::PyArray2<f64>> = a;
+    if !aligned(b) {
+        // A view into a byte buffer at an odd offset: read each value unaligned (no slice or
+        // ndarray view of misaligned memory may be formed).
+        let st = b.strides();
+        let base = numpy::PyArrayMethods::data(b) as *const u8;
+        return Ok((0..a.shape()[0] as isize)
+            .map(|i| {
+                std::array::from_fn(|j| {
+                    // SAFETY: (i, j) is inside the array, so the byte offset is inside its
+                    // buffer; the read makes no alignment assumption.
+                    unsafe {
+                        std::ptr::read_unaligned(
+                            base.offset(i * st[0] + j as isize * st[1]) as *const f64
+                        )
+                    }
+                })
+            })
+            .collect());
     }
     // `as_slice` also succeeds on Fortran-ordered arrays (any contiguous memory): only a
     // C-contiguous array may be read as consecutive rows.
@@ -147,6 +168,13 @@ pub fn frozen2(py: Python<'_>, v: Vec<f64>, rows: usize, cols: usize) -> Py<nump
     let a = arr.into_pyarray(py);
     clear_writeable(&a);
     a.unbind()
+}
+
+/// The array's data are aligned for `T` (numpy's ALIGNED flag).
+fn aligned<T: numpy::Element, D: ndarray::Dimension>(a: &Bound<'_, numpy::PyArray<T, D>>) -> bool {
+    // SAFETY: reads the flags word of a live array object (no write, no borrow).
+    let flags = unsafe { (*numpy::npyffi::_PyArray_GET_ITEM_DATA(a.as_array_ptr())).flags };
+    flags & numpy::npyffi::NPY_ARRAY_ALIGNED != 0
 }
 
 fn writeable<T: numpy::Element, D: ndarray::Dimension>(

@@ -141,13 +141,20 @@ fn row_major_symmetric(m: &nalgebra::DMatrix<f64>) -> Vec<f64> {
 /// `(k, 3)` float64 array argument (any strides).
 fn means_arg<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArray2<'py, f64>> {
     obj.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
-        CalibrationError::new_err(format!(
-            "{name} must be a (k, 3) float64 array; got {}",
-            obj.get_type()
+        // An array says its dtype and shape (as Python prints them); anything else its type.
+        let got = match (obj.getattr("dtype"), obj.getattr("shape")) {
+            (Ok(d), Ok(s)) => format!(
+                "{} array of shape {}",
+                d.str().map(|x| x.to_string()).unwrap_or_default(),
+                s.repr().map(|x| x.to_string()).unwrap_or_default()
+            ),
+            _ => obj
+                .get_type()
                 .name()
                 .map(|n| n.to_string())
-                .unwrap_or_default()
-        ))
+                .unwrap_or_default(),
+        };
+        CalibrationError::new_err(format!("{name} must be a (k, 3) float64 array; got {got}"))
     })
 }
 
@@ -506,8 +513,8 @@ impl PyStaticFit {
         nominal: Option<Py<PyAny>>,
     ) -> PyResult<Self> {
         let gv = self::check_g(g, check_g)?;
-        let ma = means_arg(means, "means")?;
-        let m = rows3(&ma, "means")?;
+        let ma = means_arg(means, "dwell means")?;
+        let m = rows3(&ma, "dwell means")?;
         drop(ma);
         let va = VarArg::from_py(var)?;
         if let VarArg::Uniform(v) = va {
@@ -652,6 +659,15 @@ impl PyStaticFit {
             .get_or_init(py, || arr1(py, &self.predicted_std_v[..self.np]))
             .bind(py)
             .clone()
+    }
+
+    /// What the caller must act on, in one read: bit 0 the fit neither converged nor found
+    /// the design degenerate (an error), bit 1 it is weak or degenerate (a warning); 0 for
+    /// a fit to return as it is.
+    #[getter]
+    fn _attention(&self) -> u8 {
+        u8::from(!self.converged && !self.degenerate)
+            | (u8::from(self.weak || self.degenerate) << 1)
     }
 
     /// Full observability report: SVD of the whitened Jacobian in comparable units.

@@ -120,18 +120,16 @@ impl Model {
         }
     }
 
-    /// `K` from a parameter vector.
+    /// `K` from a parameter vector (the entries of [`Model::misalignment_entries`], written
+    /// out: this runs once per evaluation of the cost).
+    #[inline]
     pub fn k_matrix(self, p: &[f64]) -> Matrix3<f64> {
-        let mut k = Matrix3::from_diagonal(&Vector3::new(p[0], p[1], p[2]));
-        for (slot, (i, j)) in self
-            .misalignment_entries()
-            .into_iter()
-            .flatten()
-            .enumerate()
-        {
-            k[(i, j)] = p[6 + slot];
+        let (sx, sy, sz) = (p[0], p[1], p[2]);
+        match self {
+            Model::Lower => Matrix3::new(sx, 0.0, 0.0, p[6], sy, 0.0, p[7], p[8], sz),
+            Model::Upper => Matrix3::new(sx, p[6], p[7], 0.0, sy, p[8], 0.0, 0.0, sz),
+            Model::Diag => Matrix3::new(sx, 0.0, 0.0, 0.0, sy, 0.0, 0.0, 0.0, sz),
         }
-        k
     }
 
     /// Parameter vector from `K` (the entries outside the model's pattern are ignored) and
@@ -1129,6 +1127,27 @@ mod tests {
         ];
         let out = apply_model(&arr.view(), &kk, &[p[3], p[4], p[5]]).unwrap();
         assert!(maxerr(&out, &[1.0, -2.0, 9.0]) < 1e-12);
+    }
+
+    #[test]
+    fn k_matrix_places_the_misalignments_where_the_model_says() {
+        let p: Vec<f64> = (1..=9).map(f64::from).collect();
+        for model in [Model::Lower, Model::Upper, Model::Diag] {
+            let mut want = Matrix3::from_diagonal(&Vector3::new(1.0, 2.0, 3.0));
+            for (slot, (i, j)) in model
+                .misalignment_entries()
+                .into_iter()
+                .flatten()
+                .enumerate()
+            {
+                want[(i, j)] = p[6 + slot];
+            }
+            assert_eq!(model.k_matrix(&p), want, "{}", model.name());
+            assert_eq!(
+                model.params_from(&want, &Vector3::new(4.0, 5.0, 6.0))[..model.n_params()],
+                p[..model.n_params()]
+            );
+        }
     }
 
     #[test]
