@@ -472,17 +472,21 @@ def structure_validation(n: int) -> list[str]:
         "lsb) and g; `loo=False` (the structure does not use the held-out gap). Correct = the "
         "verdict named in the second column.", "",
         "| class | expected verdict | correct, lambda 30-300 | correct, lambda 10-30 | "
-        "verdicts given (lambda 30-300) |", "|---|---|---|---|---|",
+        f"held-out draw, lambda 30-300 ({2 * n} sessions) | verdicts given (lambda 30-300) |",
+        "|---|---|---|---|---|---|",
     ]
+    # The third block is a second, larger draw (other seeds) that played no part in choosing
+    # the order of the decisions: the figure to trust when the two differ.
+    blocks = ((7_000_000, (30.0, 300.0), n), (7_010_000, (10.0, 30.0), n),
+              (13_000_000, (30.0, 300.0), 2 * n))
     for ci, (kind, want) in enumerate(STRUCTURE_CLASSES.items()):
         cells = []
         seen: dict[str, int] = {}
-        for bi, rng_ in enumerate(((30.0, 300.0), (10.0, 30.0))):
+        for bi, (seed0, rng_, nb) in enumerate(blocks):
             ok = tot = 0
-            for i in tqdm(range(n), desc=f"{kind} {rng_}", leave=False,
+            for i in tqdm(range(nb), desc=f"{kind} {rng_}", leave=False,
                           disable=True if QUIET else None):
-                ss = structure_session(kind, rng=7_000_000 + 100_000 * ci + 10_000 * bi + i,
-                                       lam_range=rng_)
+                ss = structure_session(kind, rng=seed0 + 100_000 * ci + i, lam_range=rng_)
                 if not (rng_[0] <= ss.lam):
                     continue
                 v = accelcal.diagnose(ss.dwells, g=ss.g, loo=False).structure.verdict
@@ -492,7 +496,7 @@ def structure_validation(n: int) -> list[str]:
                     seen[v] = seen.get(v, 0) + 1
             cells.append(_pct(ok, tot))
         given = ", ".join(f"{k} {v}" for k, v in sorted(seen.items(), key=lambda x: -x[1]))
-        lines.append(f"| {kind} | {want} | {cells[0]} | {cells[1]} | {given} |")
+        lines.append(f"| {kind} | {want} | {cells[0]} | {cells[1]} | {cells[2]} | {given} |")
         print(lines[-1], file=sys.stderr)
     null = {}
     for i in range(n):
@@ -508,15 +512,24 @@ def structure_validation(n: int) -> list[str]:
               "the half-dwell differences show is 'noise_model'. (With the means' chi2 alone at "
               "alpha, the previous rule, the correlated-noise class scored 82.7 % (81/98), 7 of "
               "its sessions 'none'; per_dwell 93 %, quantization 93.8 %, null none 91 %.) "
-              "The smooth tests (attitude, time, temperature, pose_history) run at the "
-              "family-wise level alpha = 0.05 (min-p over the four), so about 5 % of sessions "
-              "whose excess has no smooth structure at all get a smooth verdict by construction "
-              "(under noise that does not persist, the half-dwell differences estimate the same "
-              "variance as the residual, so they cannot veto a chance pattern); that is most of "
-              "what the correlated-noise class loses, the rest being per-dwell (the half-dwell "
-              "persistence of a short session is itself noisy) and none (the weakest sessions). "
-              "A stricter level would trade that for the power of the smooth classes at lambda "
-              "10-30, and was not tuned here."
+              "Order of the decisions: (1) when there is a gap and the quantisation bias "
+              "predicted from the LSB and the within-dwell noise explains at least half of the "
+              "excess, 'quantization' (that bias is a function of the true output, so of "
+              "attitude, time and temperature, and a smooth test can pick up part of it: before "
+              "this order, 3 of the 96 quantised sessions above were 'attitude' or "
+              "'temperature'); (2) a smooth test (attitude, time, temperature, pose_history; "
+              "min-p over the four) at the family-wise level alpha = 0.05, or alpha / 2 when "
+              "the gap is noise that does not persist within a dwell: a smooth structure is "
+              "constant within a dwell and would persist, so beside that explanation of the "
+              "same excess it must pass Bonferroni over the two (before: alpha, and 6 of the 98 "
+              "correlated-noise sessions got a smooth verdict, the test's own 5 %; under noise "
+              "that does not persist the half-dwell differences estimate the same variance as "
+              "the residual, so they cannot veto a chance pattern by themselves); (3) no gap: "
+              "'none'; (4) 'noise_model' or 'per_dwell'. Before this order the first block "
+              "read: correlated noise 86.7 % (85/98), quantisation 92.7 % (89/96), attitude "
+              "92 %, the others as now; the held-out draw was run after the order was chosen. "
+              "What correlated noise still loses is per-dwell (the half-dwell persistence of a "
+              "short session is itself noisy) and none (the weakest sessions)."
               " (For a quantised class the lambda of the sample count is approximate: "
               "sessions below the range's lower end are left out, which is why some cells hold "
               "fewer sessions.)"]

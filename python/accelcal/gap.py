@@ -365,7 +365,12 @@ class GapStructure:
     """What the remaining gap is made of.
 
     verdict : "none", "noise_model", "attitude", "time", "temperature", "pose_history",
-        "quantization" or "per_dwell".
+        "quantization" or "per_dwell", decided in this order: "quantization" when there is a
+        gap and the quantisation bias predicted from the LSB and the within-dwell noise
+        explains at least half of the excess; a smooth test significant at the family-wise
+        ``alpha`` (``alpha / 2`` when the excess is noise that does not persist within a
+        dwell, which a structure constant within each dwell would); "none" without a gap;
+        then "noise_model" or "per_dwell" by persistence.
     statistic, p_value : the statistic behind the verdict and its (adjusted) p-value: F of the
         deciding smooth test; the persistent share of the excess for "noise_model" and
         "per_dwell" (chi2/dof for "per_dwell" without half-dwell means); the share of the

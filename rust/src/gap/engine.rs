@@ -1289,6 +1289,7 @@ pub fn ambiguity(reports: &[CandidateReport], best: usize, opt: &GapOptions) -> 
 
 /// Everything the engine measured.
 #[derive(Debug, Clone)]
+#[cfg_attr(test, derive(Default))]
 pub struct EngineResult {
     /// Residual rows.
     pub n: usize,

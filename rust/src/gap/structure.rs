@@ -25,9 +25,12 @@
 //!   differences that exceed the model while the means do not make the verdict
 //!   "noise_model" (the noise model is too optimistic at the dwell's time scale). Without
 //!   half-dwell means the residual chi2 alone, at `alpha`.
-//! - Order of the decisions: a significant smooth test (family-wise); no gap ("none"); the
-//!   quantisation bias when it explains at least half of the excess; "noise_model" or
-//!   "per_dwell" as above.
+//! - Order of the decisions: the quantisation bias when there is a gap and it explains at
+//!   least half of the excess (it is predicted from the LSB and the within-dwell noise, and
+//!   is itself a function of attitude, time and temperature); a significant smooth test
+//!   (family-wise at `alpha`, or at `alpha / 2` when the gap is noise that does not persist
+//!   within a dwell: a smooth structure is constant within a dwell, so it must beat that
+//!   explanation of the same excess); no gap ("none"); "noise_model" or "per_dwell" as above.
 //! - Empirical dwell-mean noise from the half-dwell differences, `var((m1 - m2)/2)` propagated
 //!   to the norm, against the noise model used, white noise and the Allan model.
 //! - Quantisation: the bias a dwell mean carries when the within-dwell noise is below about one
@@ -558,7 +561,11 @@ fn decide(
     noise_emp: Option<&NoiseEmpirical>,
     alpha: f64,
 ) -> (Verdict, f64, f64) {
-    let find = |nm: &str| tests.iter().find(|t| t.name == nm);
+    let find = |nm: &str| {
+        tests
+            .iter()
+            .find(|t| t.name == nm && t.status == Status::Testable)
+    };
     let best_smooth = tests
         .iter()
         .filter(|t| {
@@ -566,10 +573,7 @@ fn decide(
                 && t.status == Status::Testable
         })
         .min_by(|a, b| a.p_adjusted.total_cmp(&b.p_adjusted));
-    if let Some(t) = best_smooth.filter(|t| t.p_adjusted < alpha) {
-        return (Verdict::of_smooth(t.name), t.statistic, t.p_adjusted);
-    }
-    let pers = find("persistence").filter(|t| t.status == Status::Testable);
+    let pers = find("persistence");
     // With a noise model and half-dwell means, two independent checks of it: the residuals
     // (the dwell means) and the half-dwell differences, Bonferroni over the two.
     let half_p = noise_emp.map_or(f64::NAN, |ne| ne.p_model);
@@ -581,6 +585,25 @@ fn decide(
     } else {
         pers.is_some_and(|t| t.p_value < alpha)
     };
+    // The predicted quantisation bias (from the LSB and the within-dwell noise, not from the
+    // residual's pattern) comes first: it is itself a function of the true output, so of the
+    // attitude, time and temperature, and a smooth test can pick up part of it.
+    if let Some(q) = find("quantization").filter(|q| gap && q.explained >= 0.5) {
+        return (Verdict::Quantization, q.explained, q.p_value);
+    }
+    // The excess is noise that does not persist within a dwell (the half-dwell differences
+    // show it). A smooth structure is constant within a dwell, so it would persist: to be
+    // named beside that explanation of the same excess it must pass at alpha / 2
+    // (Bonferroni over the two explanations).
+    let noise_excess = gap
+        && halves
+        && pers.is_some()
+        && ((half_gap && !means_gap)
+            || noise_emp.is_some_and(|ne| excess_is_noise(eng, ne, alpha)));
+    let smooth_level = if noise_excess { alpha / 2.0 } else { alpha };
+    if let Some(t) = best_smooth.filter(|t| t.p_adjusted < smooth_level) {
+        return (Verdict::of_smooth(t.name), t.statistic, t.p_adjusted);
+    }
     if !gap {
         return (
             Verdict::None,
@@ -588,16 +611,9 @@ fn decide(
             eng.p_after,
         );
     }
-    if let Some(q) = find("quantization").filter(|t| t.status == Status::Testable) {
-        if q.explained >= 0.5 {
-            return (Verdict::Quantization, q.explained, q.p_value);
-        }
-    }
     match (halves, pers) {
         (true, Some(p)) if half_gap && !means_gap => (Verdict::NoiseModel, p.explained, half_p),
-        (true, Some(p)) if noise_emp.is_some_and(|ne| excess_is_noise(eng, ne, alpha)) => {
-            (Verdict::NoiseModel, p.explained, p.p_value)
-        }
+        (true, Some(p)) if noise_excess => (Verdict::NoiseModel, p.explained, p.p_value),
         (true, Some(p)) => (Verdict::PerDwell, p.explained, p.p_value),
         _ => (
             Verdict::PerDwell,
@@ -632,6 +648,68 @@ pub fn run(sin: &StructureInput, eng: &EngineResult, opt: &GapOptions) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A testable structure test with the given adjusted p-value and explained share.
+    fn tested(name: &'static str, p: f64, explained: f64) -> StructureTest {
+        let mut t = StructureTest::new(name, Status::Testable);
+        (t.p_value, t.p_adjusted, t.explained, t.statistic) = (p, p, explained, 2.0);
+        t
+    }
+
+    /// Half-dwell differences whose mean square (whitened) is `k2`, with p-value `p`.
+    fn halves_noise(k2: f64, p: f64) -> NoiseEmpirical {
+        NoiseEmpirical {
+            n: 40,
+            rms: 1.0,
+            rms_model: 1.0,
+            rms_white: f64::NAN,
+            rms_allan: f64::NAN,
+            ratio_model: k2.sqrt(),
+            ratio_white: f64::NAN,
+            ratio_allan: f64::NAN,
+            p_model: p,
+        }
+    }
+
+    #[test]
+    fn decisions_put_quantisation_first_and_hold_smooth_tests_to_alpha_half_beside_noise() {
+        let eng = |p_after: f64, c: f64| EngineResult {
+            noise_known: true,
+            p_after,
+            chi2_after: 30.0 * c,
+            dof_after: 30,
+            ..Default::default()
+        };
+        let a = 0.05;
+        // A gap in the means that a persistent offset explains (the half-dwell differences
+        // agree with the model), and a smooth pattern at p = 0.03.
+        let persistent = (eng(1e-6, 3.0), halves_noise(1.0, 0.5));
+        // The same excess shown by the half-dwell differences too: noise, not persistent.
+        let noise = (eng(1e-6, 3.0), halves_noise(3.0, 1e-6));
+        let run = |(e, ne): &(EngineResult, NoiseEmpirical), tests: &[StructureTest]| {
+            decide(tests, e, true, Some(ne), a).0
+        };
+        let pers = tested("persistence", 1e-3, 0.5);
+        let smooth = |p| tested("time", p, 0.3);
+        let quant = |x| tested("quantization", 0.2, x);
+        // Quantisation explaining half the excess comes before any smooth test.
+        let t = [smooth(1e-9), pers.clone(), quant(0.6)];
+        assert_eq!(run(&persistent, &t), Verdict::Quantization);
+        let t = [smooth(1e-9), pers.clone(), quant(0.4)];
+        assert_eq!(run(&persistent, &t), Verdict::Time);
+        // Beside a persistent excess the smooth tests keep alpha; beside noise, alpha / 2.
+        let t = [smooth(0.03), pers.clone(), quant(0.0)];
+        assert_eq!(run(&persistent, &t), Verdict::Time);
+        assert_eq!(run(&noise, &t), Verdict::NoiseModel);
+        let t = [smooth(0.02), pers.clone(), quant(0.0)];
+        assert_eq!(run(&noise, &t), Verdict::Time);
+        // Without a gap there is no quantisation verdict, and smooth tests keep alpha.
+        let quiet = (eng(0.5, 1.0), halves_noise(1.0, 0.5));
+        let t = [smooth(0.5), pers.clone(), quant(0.9)];
+        assert_eq!(run(&quiet, &t), Verdict::None);
+        let t = [smooth(0.03), pers, quant(0.9)];
+        assert_eq!(run(&quiet, &t), Verdict::Time);
+    }
 
     #[test]
     fn harmonics_are_orthogonal_on_a_dense_sphere() {
