@@ -576,27 +576,26 @@ def fit_static(
         raise CalibrationError(
             f"observability must be 'raise', 'warn' or 'ignore'; got {observability!r}"
         )
+    st: list[float] | None = None
+    var: Any
     if (
         type(data) is np.ndarray and data.dtype is _F64 and start is None
         and (sigma is None or (type(sigma) is float and 1e-150 < sigma < 1e150))
     ):
         # The common call (float64 means, no start, sigma absent or a float whose square is a
         # normal number) without the general coercion: the constructor checks the shape and
-        # values and reads any strides and alignment. Positional: its fastest call.
-        fit = StaticFit(
-            data, g, model, method,  # type: ignore[arg-type]
-            None if sigma is None else sigma * sigma, None, max_iter,
-            observability == "raise", degenerate_std, weak_std, check_g,
-            _ESTIMATED_ISOTROPIC if sigma is None else _GIVEN_SIGMA, "", nominal,
-        )
+        # values and reads any strides and alignment.
+        means, units = data, ""
+        var, noise_model = (None, _ESTIMATED_ISOTROPIC) if sigma is None else (
+            sigma * sigma, _GIVEN_SIGMA)
     else:
         means, var, noise_model, units = _inputs(data, sigma)
-        st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
-        fit = StaticFit(
-            means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
-            observability == "raise", degenerate_std, weak_std, check_g, noise_model, units,
-            nominal,
-        )
+        if start is not None:
+            st = np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+    fit = StaticFit(  # positional: the fastest call into the constructor
+        means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
+        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
+    )
     attention = fit._attention  # one read: bit 0 not converged, bit 1 weak or degenerate
     if attention & 1:
         raise CalibrationError(

@@ -1184,13 +1184,13 @@ impl LsbSampler {
 }
 
 /// The integer whose order is `f64::total_cmp`'s (the transform `total_cmp` itself uses).
-fn total_key(x: f64) -> i64 {
+pub(crate) fn total_key(x: f64) -> i64 {
     let b = x.to_bits() as i64;
     b ^ ((((b >> 63) as u64) >> 1) as i64)
 }
 
 /// The inverse of [`total_key`] (the transform is an involution).
-fn from_total_key(k: i64) -> f64 {
+pub(crate) fn from_total_key(k: i64) -> f64 {
     f64::from_bits((k ^ ((((k >> 63) as u64) >> 1) as i64)) as u64)
 }
 

@@ -7,6 +7,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use super::Model;
+use crate::dwell::{from_total_key, total_key};
 use crate::error::{degenerate, Result};
 
 /// `am' = (am - c) / s`.
@@ -156,9 +157,8 @@ fn median_by_rank_body(v: &[f64]) -> f64 {
     // Keys in the total order of `f64::total_cmp`, as integers (equal keys: equal bits); the
     // padding up to a multiple of four is below no key.
     let mut key = [i64::MAX; RANK_MAX];
-    for (k, x) in key.iter_mut().zip(v) {
-        let b = x.to_bits() as i64;
-        *k = b ^ (((b >> 63) as u64) >> 1) as i64;
+    for (k, &x) in key.iter_mut().zip(v) {
+        *k = total_key(x);
     }
     let m = n.div_ceil(4) * 4;
     // Sorted position p holds the largest value with fewer than p + 1 values below it.
@@ -179,11 +179,10 @@ fn median_by_rank_body(v: &[f64]) -> f64 {
             upper = ki;
         }
     }
-    let value = |k: i64| f64::from_bits((k ^ (((k >> 63) as u64) >> 1) as i64) as u64);
     if n % 2 == 1 {
-        value(upper)
+        from_total_key(upper)
     } else {
-        0.5 * (value(below) + value(upper))
+        0.5 * (from_total_key(below) + from_total_key(upper))
     }
 }
 
