@@ -366,3 +366,21 @@ def test_ctrl_c_during_apply_leaves_the_old_output(tmp_path: Path) -> None:
     assert p.wait(timeout=60) != 0
     assert out.read_bytes() == before
     assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []
+
+
+def test_dwells_line_counts_the_dropouts(tmp_path: Path) -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=100.0, n_dwells=8, dwell_s=10.0, move_s=3.0, rng=4)
+    x = s.samples.copy()
+    bad = np.array([s.bounds[k, 0] + 500 for k in (1, 4, 6)])  # inside three dwells
+    x[bad] = np.nan
+    p = tmp_path / "drops.csv"
+    np.savetxt(p, np.column_stack([s.t, x]), delimiter=",", header="t,ax,ay,az",
+               comments="", fmt="%.9g")
+    code, out = run("dwells", str(p), "--quiet")
+    assert code == 0, out
+    m = re.search(r"-> (\d+) dwells \((\d+) rows with NaN or inf samples: dropouts", out)
+    assert m and m.group(2) == "3", out
+    # Each dropout splits its dwell: no dwell holds it.
+    assert int(m.group(1)) == 8 + 3, out

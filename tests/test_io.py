@@ -357,6 +357,74 @@ def test_iso_timestamps_match_pandas(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_stream(q).t, [0.0, 1.0])
 
 
+def test_a_dated_column_is_the_time_whatever_its_name(tmp_path: Path) -> None:
+    rows = "".join(f"2026-03-01T12:00:{i // 100:02d}.{i % 100:02d},{i % 7},2,9.8\n"
+                   for i in range(3000))
+    s = read_stream(write(tmp_path, "recorded,ax,ay,az\n" + rows))
+    np.testing.assert_allclose(s.t, np.arange(3000) / 100.0, rtol=0, atol=1e-9)
+    assert s.fs == pytest.approx(100.0, rel=1e-12)
+    assert s.t0 == "2026-03-01T12:00:00.00"
+    assert any("'recorded' holds dates and times" in n for n in s.notes)
+
+
+def test_rate_from_epoch_stamps_is_not_their_rounding(tmp_path: Path) -> None:
+    # float64 epoch seconds are 2.4e-7 s apart: one interval's rate is off by up to 5e-5, the
+    # average of the regular intervals is not (their sum telescopes).
+    t = 1.764e9 + np.arange(4000) / 200.0
+    rows = "".join(f"{v:.3f},1,2,9.8\n" for v in t)
+    s = read_stream(write(tmp_path, "time,ax,ay,az\n" + rows))
+    assert s.fs == pytest.approx(200.0, rel=1e-7)
+    # A dropout (a missing second) and a repeated stamp do not move it either.
+    keep = np.r_[0:1000, 1200:4000]
+    rows = "".join(f"{v:.3f},1,2,9.8\n" for v in np.r_[t[keep], t[-1]])
+    assert read_stream(write(tmp_path, "time,ax,ay,az\n" + rows)).fs == pytest.approx(
+        200.0, rel=1e-7)
+
+
+def test_unknown_rate_names_the_column_that_looks_like_time(tmp_path: Path) -> None:
+    rows = "".join(f"{i / 50:.2f};{i % 7};2;9,8\n".replace(".", ",") for i in range(500))
+    p = write(tmp_path, "Zeit;ax;ay;az\n" + rows)
+    with pytest.raises(CalibrationError, match="column 'Zeit' .* time_column="):
+        stream_dwells(p)
+    assert read_stream(p, time_column="Zeit").fs == pytest.approx(50.0)
+
+
+def test_time_unit_given_with_the_column_and_explained_when_missing(tmp_path: Path) -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=100.0, n_dwells=6, dwell_s=8.0, move_s=3.0, rng=3)
+    stamp = (3.2e12 + s.t * 1e9).astype(np.int64)  # ns since boot, as Android logs them
+    p = tmp_path / "ns.csv"
+    np.savetxt(p, np.column_stack([stamp, s.samples]), delimiter=",", fmt=["%d"] + ["%.9g"] * 3,
+               header="timestamp,ax,ay,az", comments="")
+    # Read in s, the rate is 1e-7 Hz: the error says which unit gives a plausible rate.
+    with pytest.raises(CalibrationError, match=r"if it is in ns \(100 Hz\).*'timestamp \[ns\]'"):
+        stream_dwells(p)
+    st = read_stream(p, time_column="timestamp [ns]")
+    assert st.fs == pytest.approx(100.0, rel=1e-9)
+    np.testing.assert_allclose(st.t - 3200.0, s.t, atol=1e-6)
+    assert read_stream(p, time_column="0 [ns]").fs == pytest.approx(100.0, rel=1e-9)
+    assert len(stream_dwells(p, time_column="timestamp [ns]")) == 6
+    with pytest.raises(CalibrationError, match="unknown time unit 'ks'"):
+        read_stream(p, time_column="timestamp [ks]")
+
+
+@pytest.mark.parametrize(
+    ("names", "time_scale"),
+    [
+        ("millis,Ax_g,Ay_g,Az_g", 1e-3),
+        ("time_usec,imu.acc.x,imu.acc.y,imu.acc.z", 1e-6),
+        ("seconds,acc_x_mps2,acc_y_mps2,acc_z_mps2", 1.0),
+        ("micros,accel_x_raw,accel_y_raw,accel_z_raw", 1e-6),
+    ],
+)
+def test_logger_column_names(tmp_path: Path, names: str, time_scale: float) -> None:
+    rows = "".join(f"{i * 5},{i % 3},{i % 5},9.8\n" for i in range(400))
+    s = read_stream(write(tmp_path, names + "\n" + rows))
+    np.testing.assert_array_equal(s.samples[:, 0], np.arange(400) % 3)
+    assert s.fs == pytest.approx(1.0 / (5 * time_scale))
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -668,7 +668,12 @@ def _statements(raw: Any, selected: list[str], alpha: float, sysw: _System,
                    "held-out gate was skipped, the in-sample test decides; add rows to confirm "
                    "it held out")
     if raw.noise_known and math.isfinite(raw.p_chi2) and raw.p_chi2 < alpha:
-        if not selected:
+        if not selected and raw.structure.verdict == "none":
+            out.append(f"the gap is significant at alpha = {alpha:g} on its own (p = "
+                       f"{_fmt_p(raw.p_chi2)}) but not at alpha / 2, the level at which the "
+                       "structure analysis tests it beside the half-dwell noise check: a "
+                       "marginal gap with no structure found; more dwells will tell")
+        elif not selected:
             out.append("the gap is significant but no dictionary effect explains it: see "
                        "'Structure' for what it is made of")
         elif math.isfinite(raw.p_after) and raw.p_after < alpha:

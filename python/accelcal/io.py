@@ -27,7 +27,9 @@ Layout rules for text files
   ``accel_x``..., and only when none of those exist ``x``/``y``/``z``; unit suffixes such as
   ``acc_x [m/s^2]`` are ignored). A time column is recognised by name (``t``, ``time``,
   ``timestamp``, ``t[s]``, ``time_s``, ``time_ms`` ...; ``ms``/``us``/``ns`` units are converted
-  to s) and a temperature column by a name starting with ``temp``.
+  to s; without such a name, the first column of ISO-8601 times) and a temperature column
+  by a name starting with ``temp``. From a time column the sample rate is the average of its
+  regular intervals (those within half the median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
   unless it counts 0, 1, 2, ... (a sample counter); anything else needs ``columns``.
@@ -75,7 +77,12 @@ _FS_KEYS = {
     "ratehz",
     "odr",
 }
-_TIME_BASES = {"t", "time", "timestamp", "timestamps", "tstamp", "elapsed", "elapsedtime"}
+_TIME_BASES = {
+    "t", "time", "timestamp", "timestamps", "tstamp", "elapsed", "elapsedtime", "datetime",
+    "unixtime", "epoch", "epochtime", "posixtime", "timeutc", "utc", "sec", "secs", "seconds",
+}
+#: Names that are a time with their unit in the name (Arduino's millis() and micros()).
+_TIME_IMPLICIT = {"millis": 1e-3, "micros": 1e-6}
 _TIME_UNITS = {
     "": 1.0,
     "s": 1.0,
@@ -85,11 +92,17 @@ _TIME_UNITS = {
     "ms": 1e-3,
     "msec": 1e-3,
     "us": 1e-6,
+    "usec": 1e-6,
     "µs": 1e-6,
     "ns": 1e-9,
+    "nsec": 1e-9,
 }
+#: Accelerometer column names after `_norm`: an optional device prefix, the axis, and an
+#: optional unit or kind suffix (``imu.acc.x``, ``Ax_g``, ``acc_x_mps2``, ``accel_x_raw``).
 _ACC_NAME = re.compile(
-    r"^(?:a|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw)([xyz])$"
+    r"^(?:imu|sensor|device|phone)?"
+    r"(?:a|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw)([xyz])"
+    r"(?:g|mg|ms2|mps2|mss|si|raw|counts|lsb|adc)?$"
 )
 _SAMPLE_KEYS = ("samples", "acc", "accel", "acceleration", "a", "data", "x")
 _T_KEYS = ("t", "time", "timestamp", "timestamps", "t_s")
@@ -110,7 +123,7 @@ class Stream:
         Sample times in s (from the time column, else ``arange(N) / fs``; None when neither).
         An ISO-8601 time column is given as seconds since its first row (see ``t0``).
     fs : float or None
-        Sample rate in Hz: given > file metadata > median interval of the time column.
+        Sample rate in Hz: given > file metadata > average regular interval of the time column.
     metadata : dict
         ``key -> value`` strings from the lines before the data (and scalar ``.npz`` entries).
     names : tuple of str
@@ -170,10 +183,12 @@ def _time_scale(name: str) -> float | None:
     base, unit = _split_unit(name)
     b = base.lower().strip()
     if not unit:
-        m = re.match(r"^(.*?)[_\s-]+(s|sec|secs|seconds|ms|msec|us|µs|ns)$", b)
+        m = re.match(r"^(.*?)[_\s-]+(s|sec|secs|seconds|ms|msec|us|usec|µs|ns|nsec)$", b)
         if m:
             b, unit = m.group(1), m.group(2)
     b = re.sub(r"[^0-9a-z]", "", b)
+    if b in _TIME_IMPLICIT and not unit:
+        return _TIME_IMPLICIT[b]
     if b not in _TIME_BASES:
         return None
     return _TIME_UNITS.get(unit.lower().strip())
@@ -204,6 +219,23 @@ def _auto_acc(names: Sequence[str], path: str) -> list[int] | None:
             "give columns=[...] (3 names or 0-based indices)"
         )
     return None
+
+
+def _time_spec(c: Any, names: Sequence[str] | None) -> tuple[Any, float | None]:
+    """A ``time_column`` given as ``"name [unit]"`` or ``"index [unit]"`` (unit s, ms, us or
+    ns): the column and the factor to seconds (None when no unit is given)."""
+    if not isinstance(c, str) or (names is not None and c in names):
+        return c, None
+    base, unit = _split_unit(c)
+    if not unit:
+        return c, None
+    scale = _TIME_UNITS.get(unit.lower().strip())
+    if scale is None:
+        raise CalibrationError(
+            f"time_column= {c!r}: unknown time unit {unit!r}; use s, ms, us or ns, e.g. "
+            f"'{base} [ms]'"
+        )
+    return base, scale
 
 
 def _resolve_columns(columns: Any, names: Sequence[str] | None, ncols: int, path: str) -> list[int]:
@@ -530,7 +562,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     head = np.full((rows, ncols), np.nan)
     if cols:
         head[:, cols] = arrays[0].reshape(rows, len(cols))
-    lay = _decide(path, names, ncols, head, meta, columns, fs, time_column)
+    lay = _decide(path, names, ncols, head, meta, columns, fs, time_column, iso)
     lay.delim, lay.offset, lay.first_line = delim, offset, first_line
     lay.decimal_comma, lay.iso, lay.t0, lay.t0_text = decimal_comma, iso, t0, t0_text
     if rows:
@@ -565,14 +597,22 @@ def _decide(
     columns: Any,
     fs: float | None,
     time_column: Any,
+    iso: set[int] | None = None,
 ) -> _Layout:
-    """Choose accelerometer, time and temperature columns and the sample rate."""
+    """Choose accelerometer, time and temperature columns and the sample rate.
+
+    ``iso`` : columns that hold ISO-8601 times (text files); the first of them not among the
+    accelerometer columns is the time when no column is named as one.
+    """
     notes: list[str] = []
     tcol: int | None = None
     tscale = 1.0
     if time_column is not None:
-        tcol = _resolve_one(time_column, names, ncols, path, "time_column")
-        if names is not None:
+        spec, unit_scale = _time_spec(time_column, names)
+        tcol = _resolve_one(spec, names, ncols, path, "time_column")
+        if unit_scale is not None:
+            tscale = unit_scale
+        elif names is not None:
             tscale = _time_scale(names[tcol]) or 1.0
     elif names is not None:
         for i, n in enumerate(names):
@@ -604,6 +644,12 @@ def _decide(
             )
     if tcol is not None and tcol in acc:
         tcol = None
+    if tcol is None and time_column is None:
+        dated = [j for j in sorted(iso or ()) if j not in acc]
+        if dated:
+            tcol, tscale = dated[0], 1.0
+            if names is not None:
+                notes.append(f"column {names[tcol]!r} holds dates and times: read as the time")
     if tcol is None and names is None and time_column is None:
         # Without a header, a remaining strictly increasing column is the time in s.
         for i in range(ncols):
@@ -638,14 +684,13 @@ def _decide(
         if abs(fs_time / fsv - 1.0) > 0.01:
             said = "fs= " if src == "given" else "the file's metadata says "
             notes.append(
-                f"the time column's median interval gives {fs_time:.6g} Hz but {said}"
+                f"the time column's intervals give {fs_time:.6g} Hz but {said}"
                 f"{fsv:.6g} Hz; {fsv:.6g} Hz is used (the detected dwells depend on it)"
             )
     if fsv is None:
-        notes.append(
-            "the sample rate is not in the file (no rate metadata or time column); give fs= "
-            "(Hz): dwell detection and sample times need it"
-        )
+        notes.append("the sample rate is not in the file (no rate metadata or time column); "
+                     f"give fs= (Hz){_time_hint(names, acc, head)}: dwell detection and "
+                     "sample times need it")
     return _Layout(
         path=path,
         ncols=ncols,
@@ -662,12 +707,30 @@ def _decide(
     )
 
 
+def _time_hint(names: tuple[str, ...] | None, acc: list[int], head: NDArray[Any]) -> str:
+    """When the sample rate is unknown: ``", or, if column 'X' ..."`` for a named column that
+    increases strictly (and is no sample counter), else ``""``."""
+    if names is None:
+        return ""
+    for i in range(head.shape[1]):
+        if i not in acc and _increasing(head[:, i]) and not _is_counter(head[:, i]):
+            return (f", or, if column {names[i]!r} (it increases steadily) is the time in s, "
+                    "name it with time_column=")
+    return ""
+
+
 def _increasing(x: NDArray[Any]) -> bool:
     return bool(x.shape[0] >= 2 and np.all(np.isfinite(x)) and np.all(np.diff(x) > 0))
 
 
 def _fs_from_time(t: NDArray[Any], path: str) -> float | None:
-    """Sample rate from the median interval of (the first rows of) a time column."""
+    """Sample rate from (the first rows of) a time column.
+
+    The intervals within half the median interval of it (no dropouts, no repeated stamps) are
+    averaged: their sum telescopes, so time stamps rounded to a fixed resolution (e.g. epoch
+    seconds, whose float64 spacing is 2.4e-7 s) give the rate without the rounding of each
+    interval.
+    """
     if t.shape[0] < 2:
         return None
     d = np.diff(t.astype(np.float64))
@@ -680,7 +743,8 @@ def _fs_from_time(t: NDArray[Any], path: str) -> float | None:
             f"{path}: the time column is not increasing (median interval {med!r}); "
             "give fs= or time_column="
         )
-    return 1.0 / med
+    regular = d[np.abs(d - med) <= 0.5 * med]
+    return float(regular.size / regular.sum())
 
 
 def _names_of(lay: _Layout) -> tuple[str, ...]:
@@ -1120,6 +1184,47 @@ class _Recording:
         self._last: NDArray[Any] | None = None
 
     # -- what is known before reading
+    def no_rate(self) -> str:
+        """The error for a recording whose sample rate is unknown."""
+        lay = self.lay
+        return (f"{lay.path}: the sample rate is unknown (no rate metadata or time column); "
+                f"give fs= (Hz){_time_hint(lay.names, lay.acc, lay.head)}")
+
+    def rate_hint(self) -> str:
+        """For a sample rate taken from the time column: which unit of it gives a plausible
+        rate (1 Hz to 100 kHz), or ``""``."""
+        lay = self.lay
+        if lay.fs_source != "time column" or lay.fs is None or lay.time is None:
+            return ""
+        unit = {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}.get(lay.time_scale, "s")
+        alt = [(u, lay.fs * lay.time_scale / f) for u, f in _TIME_UNITS.items()
+               if u in ("s", "ms", "us", "ns") and f != lay.time_scale]
+        alt = [(u, r) for u, r in alt if 1.0 <= r <= 1e5]
+        if not alt:
+            return ""
+        name = lay.names[lay.time] if lay.names is not None else str(lay.time)
+        said = " or ".join(f"{u} ({r:.6g} Hz)" for u, r in alt)
+        return (f"the rate {lay.fs:.6g} Hz comes from the time column {_label(lay, lay.time)} "
+                f"read in {unit}: if it is in {said}, name its unit with time_column= (e.g. "
+                f"'{name} [{alt[0][0]}]') or give fs=")
+
+    def dwell_accumulator(self, bounds: Any = None, units: str = "",
+                          **detector: Any) -> Any:
+        """A :class:`~accelcal.DwellAccumulator` for this recording's rate, with the error
+        explained when the rate came from a time column of the wrong unit."""
+        from .dwell import DwellAccumulator
+
+        if bounds is None and self.fs is None:
+            raise CalibrationError(self.no_rate())
+        try:
+            return DwellAccumulator(bounds, fs=self.fs, units=units,
+                                    **({} if bounds is not None else detector))
+        except CalibrationError as exc:
+            hint = self.rate_hint()
+            if not hint:
+                raise
+            raise CalibrationError(f"{exc}; {hint}") from None
+
     @property
     def fs(self) -> float | None:
         return self.lay.fs
@@ -1328,7 +1433,8 @@ def read_stream(
     fs : float, optional
         Sample rate in Hz; overrides the file's metadata and time column.
     time_column : name or 0-based index, optional
-        The time column (s, or ms/us/ns when the name says so); recognised by name when omitted.
+        The time column (s, or ms/us/ns when the name says so, or as given: ``"stamp [ms]"``,
+        ``"0 [ns]"``); recognised by name (or by its ISO-8601 times) when omitted.
     progress : bool or None
         Show a progress bar (True), only when stderr is a terminal (None), or never (False).
 
@@ -1477,22 +1583,13 @@ def _stream_dwells(
     **detector_kw: Any,
 ) -> tuple[Any, _Recording]:
     """:func:`stream_dwells` that also returns the opened recording (rows, notes)."""
-    from .dwell import DwellAccumulator
-
     cr = None if chunk_rows is None else _chunk_rows(chunk_rows)
     rec = _Recording(path, columns, fs, time_column)
     if rec.text is not None:
         # Text arrives in blocks of a few MB already: pushed as they come (the result does
         # not depend on the chunking), with no copy into chunks of exactly chunk_rows rows.
         cr = None
-    if bounds is None and rec.fs is None:
-        raise CalibrationError(
-            f"{rec.path}: the sample rate is unknown (no rate metadata or time column); "
-            "give fs= (Hz)"
-        )
-    acc = DwellAccumulator(
-        bounds, fs=rec.fs, units=units, **({} if bounds is not None else detector_kw)
-    )
+    acc = rec.dwell_accumulator(bounds, units, **detector_kw)
     with _progress_bar(rec, desc, progress) as cb:
         for s, t, temp in rec.chunks(cr, cb):
             acc.push(s, t, temp)

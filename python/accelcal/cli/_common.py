@@ -127,7 +127,7 @@ def recording_options(fn: F) -> F:
                       help="No progress bar (none is shown off a terminal either).")(fn)
     fn = click.option("--time-column", "time_column", default=None,
                       help="Time column (name or 0-based index; s, or ms/us/ns when the name "
-                           "says so), else recognised by name.")(fn)
+                           "says so or when given as 'NAME [ms]'), else recognised by name.")(fn)
     fn = click.option("--columns", default=None,
                       help="Accelerometer columns, e.g. ax,ay,az or 1,2,3 (0-based).")(fn)
     return click.option("--fs", type=float, default=None,
@@ -215,7 +215,11 @@ def source_line(file: str, rec: Any, d: Any) -> str:
     if rec is None:
         fs = "" if d.fs is None else f" (recorded at {d.fs:.6g} Hz)"
         return f"{file}: dwell table with {len(d)} dwells{fs}"
-    return f"{file}: {rec.rows} samples at {rec.fs:.6g} Hz -> {len(d)} dwells"
+    line = f"{file}: {rec.rows} samples at {rec.fs:.6g} Hz -> {len(d)} dwells"
+    if getattr(d, "dropped", 0):
+        line += (f" ({d.dropped} rows with NaN or inf samples: dropouts, left out of every "
+                 "dwell)")
+    return line
 
 
 def _resolve_g(g: float | None, lat: float | None, height: float) -> tuple[float, str]:

@@ -96,7 +96,6 @@ def dwells(
     as_json: bool,
 ) -> None:
     """Detect the static dwells of a recording and print their statistics."""
-    from ..dwell import DwellAccumulator
     from ..io import _progress_bar
 
     _need_plot(plot_path)
@@ -106,12 +105,8 @@ def dwells(
     else:
         # The same single pass, also keeping a decimated picture of the stream.
         rec = open_recording(file, fs, columns, time_column)
-        if rec.fs is None:
-            raise CalibrationError(
-                f"{rec.path}: the sample rate is unknown (no rate metadata or time column); "
-                "give it with --fs (Hz)")
+        acc = rec.dwell_accumulator(window_s=window_s, k=k, min_dwell_s=min_dwell_s)
         env = _Envelope((rec.rows_estimate() or 100_000) // 4000)
-        acc = DwellAccumulator(fs=rec.fs, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
         with _progress_bar(rec, "dwells", False if quiet else None) as cb:
             for s, t, temp in rec.chunks(None, cb):
                 acc.push(s, t, temp)
