@@ -409,6 +409,28 @@ def test_time_unit_given_with_the_column_and_explained_when_missing(tmp_path: Pa
         read_stream(p, time_column="timestamp [ks]")
 
 
+@pytest.mark.parametrize(("unit", "factor"), [("ms", 1e3), ("us", 1e6), ("ns", 1e9)])
+def test_epoch_stamps_without_a_unit_are_read_in_theirs(tmp_path: Path, unit: str,
+                                                        factor: float) -> None:
+    # Sensor Logger's layout: epoch ns in "time", columns z, y, x.
+    t = np.arange(2000) / 100.0
+    rows = "".join(f"{int(round((1.764e9 + v) * factor))},{v:.6f},9.8,{i % 3},{i % 5}\n"
+                   for i, v in enumerate(t))
+    s = read_stream(write(tmp_path, "time,seconds_elapsed,z,y,x\n" + rows))
+    assert s.fs == pytest.approx(100.0, rel=1e-6)
+    np.testing.assert_allclose(s.t - s.t[0], t, atol=1e-6)
+    np.testing.assert_array_equal(s.samples[:5], [[0, 0, 9.8], [1, 1, 9.8], [2, 2, 9.8],
+                                                  [3, 0, 9.8], [4, 1, 9.8]])
+    assert any(f"Unix epoch times in {unit}" in n for n in s.notes)
+    # Nanoseconds since boot (3.2e12 looks like epoch ms, but would give 1e-4 Hz): not read
+    # as epoch; the rate error then names the unit that fits.
+    rows = "".join(f"{int(3.2e12 + v * 1e9)},9.8,{i % 3},{i % 5}\n" for i, v in enumerate(t))
+    p = write(tmp_path, "time,z,y,x\n" + rows)
+    assert read_stream(p).fs == pytest.approx(1e-7)
+    with pytest.raises(CalibrationError, match=r"if it is in ns \(100 Hz\)"):
+        stream_dwells(p)
+
+
 @pytest.mark.parametrize(
     ("names", "time_scale"),
     [

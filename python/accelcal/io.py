@@ -27,7 +27,8 @@ Layout rules for text files
   ``accel_x``..., and only when none of those exist ``x``/``y``/``z``; unit suffixes such as
   ``acc_x [m/s^2]`` are ignored). A time column is recognised by name (``t``, ``time``,
   ``timestamp``, ``t[s]``, ``time_s``, ``time_ms`` ...; ``ms``/``us``/``ns`` units are converted
-  to s; without such a name, the first column of ISO-8601 times) and a temperature column
+  to s, as are Unix epoch stamps in ms/us/ns under a name without a unit; without such a name,
+  the first column of ISO-8601 times) and a temperature column
   by a name starting with ``temp``. From a time column the sample rate is the average of its
   regular intervals (those within half the median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
@@ -178,8 +179,9 @@ def _norm(name: str) -> str:
     return re.sub(r"[^0-9a-zµ]", "", base.lower())
 
 
-def _time_scale(name: str) -> float | None:
-    """Factor to seconds when ``name`` is a time column, else None."""
+def _time_name(name: str) -> tuple[float, bool] | None:
+    """``(factor to seconds, whether the name states the unit)`` when ``name`` is a time
+    column, else None."""
     base, unit = _split_unit(name)
     b = base.lower().strip()
     if not unit:
@@ -188,10 +190,29 @@ def _time_scale(name: str) -> float | None:
             b, unit = m.group(1), m.group(2)
     b = re.sub(r"[^0-9a-z]", "", b)
     if b in _TIME_IMPLICIT and not unit:
-        return _TIME_IMPLICIT[b]
+        return _TIME_IMPLICIT[b], True
     if b not in _TIME_BASES:
         return None
-    return _TIME_UNITS.get(unit.lower().strip())
+    scale = _TIME_UNITS.get(unit.lower().strip())
+    return None if scale is None else (scale, bool(unit))
+
+
+def _time_scale(name: str) -> float | None:
+    """Factor to seconds when ``name`` is a time column, else None."""
+    found = _time_name(name)
+    return None if found is None else found[0]
+
+
+#: Unix epoch times of the years 2000-2100 in s; a time column without a stated unit whose
+#: first value is such a time in ms, us or ns is read in that unit.
+_EPOCH_S = (9.46e8, 4.11e9)
+
+
+def _epoch_unit(v0: float) -> tuple[str, float] | None:
+    for unit, f in (("ms", 1e-3), ("us", 1e-6), ("ns", 1e-9)):
+        if _EPOCH_S[0] <= v0 * f <= _EPOCH_S[1]:
+            return unit, f
+    return None
 
 
 def _is_temperature(name: str) -> bool:
@@ -579,8 +600,12 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     return lay
 
 
+def _label_of(names: tuple[str, ...] | None, j: int) -> str:
+    return repr(names[j]) if names is not None else f"{j} (0-based)"
+
+
 def _label(lay: _Layout, j: int) -> str:
-    return repr(lay.names[j]) if lay.names is not None else f"{j} (0-based)"
+    return _label_of(lay.names, j)
 
 
 def _is_counter(x: NDArray[Any]) -> bool:
@@ -607,29 +632,31 @@ def _decide(
     notes: list[str] = []
     tcol: int | None = None
     tscale = 1.0
+    stated = False  # the time unit is stated (by the column's name or with time_column=)
     if time_column is not None:
         spec, unit_scale = _time_spec(time_column, names)
         tcol = _resolve_one(spec, names, ncols, path, "time_column")
+        found = None if names is None else _time_name(names[tcol])
         if unit_scale is not None:
-            tscale = unit_scale
-        elif names is not None:
-            tscale = _time_scale(names[tcol]) or 1.0
+            tscale, stated = unit_scale, True
+        elif found is not None:
+            tscale, stated = found
     elif names is not None:
         for i, n in enumerate(names):
-            sc = _time_scale(n)
-            if sc is not None:
-                tcol, tscale = i, sc
+            found = _time_name(n)
+            if found is not None:
+                tcol, (tscale, stated) = i, found
                 break
     if columns is not None:
         acc = _resolve_columns(columns, names, ncols, path)
     elif names is not None:
-        found = _auto_acc(names, path)
-        if found is None:
+        by_name = _auto_acc(names, path)
+        if by_name is None:
             raise CalibrationError(
                 f"{path}: no accelerometer columns recognised among {list(names)}; "
                 "give columns=[...] (3 names or 0-based indices)"
             )
-        acc = found
+        acc = by_name
     else:
         rest = [i for i in range(ncols) if i != tcol]
         if len(rest) == 3:
@@ -661,6 +688,13 @@ def _decide(
                 else:
                     tcol = i
                 break
+    if tcol is not None and not stated and tcol not in (iso or ()) and head.shape[0]:
+        epoch = _epoch_unit(float(head[0, tcol])) if np.isfinite(head[0, tcol]) else None
+        rate = None if epoch is None else _fs_from_time(head[:, tcol] * epoch[1], path)
+        if epoch is not None and (rate is None or 1e-3 <= rate <= 1e6):
+            tscale = epoch[1]
+            notes.append(f"column {_label_of(names, tcol)} holds Unix epoch times in "
+                         f"{epoch[0]}: read as such")
     temp = None
     if names is not None:
         for i, n in enumerate(names):
