@@ -327,3 +327,35 @@ def test_residual_figure_marks_excluded_rows():
     import matplotlib.pyplot as plt
 
     plt.close(fig)
+
+
+def test_table_columns_by_name_and_unit(tmp_path):
+    # The paper's table written the way another lab might: tab-separated, rate in rpm, outputs
+    # in m/s^2 (converted with g), columns reordered, no speed index or position column.
+    t = read_centrifuge_table(CORRECTED(), g=9.8)
+    rpm = t.omega * 60 / (2 * np.pi)
+    p = tmp_path / "run.tsv"
+    rows = "\n".join("\t".join(repr(float(v)) for v in (o[2] * 9.8, w, o[0] * 9.8, o[1] * 9.8))
+                     for o, w in zip(t.outputs, rpm, strict=True))
+    p.write_text("# lab B, 2026-11-26\naz [m/s^2]\tspeed_rpm\tax [m/s^2]\tay [m/s^2]\n" + rows)
+    u = read_centrifuge_table(p, g=9.8)
+    np.testing.assert_allclose(u.omega, t.omega, rtol=1e-14)
+    np.testing.assert_allclose(u.outputs, t.outputs, rtol=1e-14, atol=1e-15)
+    np.testing.assert_array_equal(u.speed_index, t.speed_index)
+    np.testing.assert_array_equal(u.position, t.position)
+    a = calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8)
+    b = calibrate_centrifuge_table(p, 1.0, g=9.8)
+    np.testing.assert_allclose(b.params, a.params, rtol=1e-9, atol=1e-12)
+    # Clear errors: a unit it does not know, two rate columns, a malformed number.
+    for text, words in [
+        ("omega [rad/min],ax,ay,az\n1,0,0,1\n", ["'omega [rad/min]'", "rad/s, rpm"]),
+        ("omega,rpm,ax,ay,az\n1,1,0,0,1\n", ["'omega' and 'rpm'", "keep one"]),
+        ("omega,ax,ay,az\n1,0,0,1\n2,0,x,1\n", ["line 3", "'ay'", "'x' is not a number"]),
+        ("speed,ax,ay,az\n1,0,0,1\n", ["missing column", "angular rate"]),
+    ]:
+        q = tmp_path / "bad.csv"
+        q.write_text(text)
+        with pytest.raises(CalibrationError) as ei:
+            read_centrifuge_table(q)
+        for w in words:
+            assert w in str(ei.value), str(ei.value)

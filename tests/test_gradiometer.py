@@ -312,9 +312,21 @@ def test_calibrate_gradiometer_table(tmp_path):
     assert r.drift is not None
     assert np.allclose(r.bias, [2.0, 1.0], atol=1e-9)
     p2 = tmp_path / "bad.csv"
-    p2.write_text("az,inline_E,cross_E\n0,1,2\n")
-    with pytest.raises(CalibrationError, match="azimuth_deg"):
+    p2.write_text("bearing,inline_E,cross_E\n0,1,2\n")
+    with pytest.raises(CalibrationError, match="missing column.*azimuth_deg"):
         accelcal.calibrate_gradiometer_table(p2)
+    # Other names and units: radians, mE, minutes, semicolons, any column order.
+    p3 = tmp_path / "other.csv"
+    rows = "\n".join(f"{tt / 60};{float(1e3 * c)!r};{float(np.radians(a))!r};{float(1e3 * i)!r}"
+                     for a, (i, c), tt in zip(az, y, t, strict=True))
+    p3.write_text("time [min];cross [mE];heading [rad];inline [mE]\n" + rows + "\n")
+    r3 = accelcal.calibrate_gradiometer_table(p3)
+    np.testing.assert_allclose(r3.bias, r.bias, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(r3.drift, r.drift, rtol=1e-9, atol=1e-12)
+    p4 = tmp_path / "unit.csv"
+    p4.write_text("azimuth [grad],inline_E,cross_E\n0,1,2\n")
+    with pytest.raises(CalibrationError, match="'azimuth \\[grad\\]'.*deg, rad"):
+        accelcal.calibrate_gradiometer_table(p4)
     with pytest.raises(CalibrationError, match="cannot read"):
         accelcal.calibrate_gradiometer_table(tmp_path / "missing.csv")
 

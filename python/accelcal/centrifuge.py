@@ -10,7 +10,6 @@ always have ``S_i > 0`` (with K2, misalignment and lever arm signs folded accord
 
 from __future__ import annotations
 
-import csv
 import os
 import warnings
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from numpy.typing import NDArray
 
 from . import _core
 from ._core import CalibrationError
+from ._tables import RATE_UNITS, Col, read_table
 from ._validate import number, real_array
 
 __all__ = [
@@ -556,8 +556,8 @@ def fit_centrifuge(
 
 @dataclass(frozen=True)
 class CentrifugeTable:
-    """A centrifuge table: columns speed_index, omega_rad_s, position, N_ax_g, N_ay_g, N_az_g
-    (per-position mean outputs in g; the format of the paper's Table 1)."""
+    """A centrifuge table: per-position mean outputs in g at each angular rate (rad/s), with
+    each row's speed index and position (the layout of the paper's Table 1)."""
 
     speed_index: NDArray[np.int64]
     omega: NDArray[np.float64]
@@ -574,37 +574,86 @@ class CentrifugeTable:
                 for s, p in zip(self.speed_index, self.position, strict=True)]
 
 
-_COLUMNS = ("speed_index", "omega_rad_s", "position", "N_ax_g", "N_ay_g", "N_az_g")
+def _table_columns(g: float) -> list[Col]:
+    out_units = {"g": 1.0, "mg": 1e-3, "m/s2": 1.0 / g}
+    cols = [
+        Col("omega", "the angular rate (omega_rad_s, omega, rpm, ...)", {
+            "omegarads": "rad/s", "omega": "", "w": "", "rate": "", "angularrate": "",
+            "angularvelocity": "", "spinrate": "", "omegarpm": "rpm", "rpm": "rpm",
+            "speedrpm": "rpm", "omegadegs": "deg/s", "ratedegs": "deg/s", "freq": "hz",
+            "frequency": "hz", "freqhz": "hz", "spinhz": "hz", "omegahz": "hz"},
+            RATE_UNITS, "rad/s"),
+        Col("speed_index", "the speed index", dict.fromkeys(
+            ("speedindex", "speedidx", "speedno", "speednumber", "run", "step"), ""),
+            {"": 1.0}, required=False),
+        Col("position", "the position", dict.fromkeys(
+            ("position", "pos", "positionindex", "positionno", "orientation", "face"), ""),
+            {"": 1.0}, required=False),
+    ]
+    for a in "xyz":
+        names: dict[str, str] = {}
+        for stem in ("na", "a", "acc", "accel", "f", "n", "out", "output", "sf"):
+            names[f"{stem}{a}"] = ""
+            for unit, tag in (("g", "g"), ("mg", "mg"), ("ms2", "m/s2"), ("mps2", "m/s2")):
+                names[f"{stem}{a}{unit}"] = tag
+        cols.append(Col(f"out_{a}", f"the mean {a} output (N_a{a}_g, a{a}, acc_{a}, ...)",
+                        names, out_units, "g"))
+    return cols
 
 
-def read_centrifuge_table(path: str | os.PathLike[str]) -> CentrifugeTable:
-    """Read a CSV with columns speed_index, omega_rad_s, position, N_ax_g, N_ay_g, N_az_g."""
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as e:
-        raise CalibrationError(f"cannot read centrifuge table {path}: {e}") from None
-    if not rows:
-        raise CalibrationError(f"{path}: empty file")
-    head = [h.strip() for h in rows[0]]
-    missing = [c for c in _COLUMNS if c not in head]
-    if missing:
-        raise CalibrationError(f"{path}: missing column(s) {missing}; expected {list(_COLUMNS)}")
-    col = {c: head.index(c) for c in _COLUMNS}
-    body = [r for r in rows[1:] if any(x.strip() for x in r)]
-    if not body:
-        raise CalibrationError(f"{path}: no data rows")
-    try:
-        vals = {c: np.array([float(r[col[c]]) for r in body]) for c in _COLUMNS}
-    except (ValueError, IndexError) as e:
-        raise CalibrationError(f"{path}: malformed row ({e})") from None
-    return CentrifugeTable(
-        speed_index=vals["speed_index"].astype(np.int64),
-        omega=vals["omega_rad_s"],
-        position=vals["position"].astype(np.int64),
-        outputs=np.c_[vals["N_ax_g"], vals["N_ay_g"], vals["N_az_g"]],
-        path=str(path),
-    )
+def _whole(path: str, x: NDArray[np.float64] | None, what: str) -> NDArray[np.int64] | None:
+    if x is None:
+        return None
+    if not np.all(x == np.round(x)):
+        raise CalibrationError(f"{path}: the {what} column must hold whole numbers")
+    return x.astype(np.int64)
+
+
+def _number_levels(omega: NDArray[np.float64]) -> NDArray[np.int64]:
+    """1, 2, ... for the distinct rates in order of first appearance (relative 1e-9)."""
+    levels: list[float] = []
+    idx = np.empty(omega.shape[0], dtype=np.int64)
+    for i, w in enumerate(omega):
+        k = next((k for k, lv in enumerate(levels)
+                  if abs(w - lv) <= 1e-9 * max(abs(lv), abs(w))), None)
+        if k is None:
+            levels.append(float(w))
+            k = len(levels) - 1
+        idx[i] = k + 1
+    return idx
+
+
+def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> CentrifugeTable:
+    """Read a centrifuge run's per-position table (delimited text, ``#`` comments).
+
+    Columns are found by name, in any order, with the unit in brackets or implied by the name:
+
+    - the angular rate: ``omega_rad_s``, ``omega``, ``w``, ``rate`` (rad/s unless stated),
+      ``rpm``, ``omega [deg/s]``, ``freq [Hz]``;
+    - the mean outputs x, y, z: ``N_ax_g`` ..., ``ax``, ``acc_x``, ``fx``, ``out_x`` (g unless
+      stated: ``ax [mg]``, ``ax [m/s^2]``, ``ax_mps2``; m/s^2 are divided by ``g``);
+    - optional ``speed_index`` (else the distinct rates are numbered in order of appearance)
+      and ``position`` (else rows are numbered within each speed).
+
+    The paper's Table 1 layout is ``speed_index, omega_rad_s, position, N_ax_g, N_ay_g,
+    N_az_g``.
+    """
+    gv = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
+    p = str(path)
+    d = read_table(path, _table_columns(gv), "centrifuge table")
+    omega = d["omega"]
+    speed = _whole(p, d.get("speed_index"), "speed index")
+    if speed is None:
+        speed = _number_levels(omega)
+    pos = _whole(p, d.get("position"), "position")
+    if pos is None:
+        pos = np.empty_like(speed)
+        for s_ in np.unique(speed):
+            at = np.flatnonzero(speed == s_)
+            pos[at] = np.arange(1, at.size + 1)
+    outputs = np.column_stack([d[f"out_{a}"] for a in "xyz"])
+    return CentrifugeTable(speed_index=speed, omega=omega, position=pos, outputs=outputs,
+                           path=p)
 
 
 def calibrate_centrifuge_table(
@@ -612,7 +661,7 @@ def calibrate_centrifuge_table(
 ) -> CentrifugeFit:
     """Read a centrifuge table (:func:`read_centrifuge_table`) and run :func:`fit_centrifuge` on
     it, naming the rows by speed and position."""
-    t = read_centrifuge_table(path)
+    t = read_centrifuge_table(path, g=g)
     kwargs.setdefault("labels", t.labels())
     return fit_centrifuge(t.outputs, t.omega, radius, g=g, **kwargs)
 

@@ -17,7 +17,6 @@ above); the disc phase is measured from the platform x axis towards y.
 
 from __future__ import annotations
 
-import io
 import os
 from typing import Any
 
@@ -26,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
+from ._tables import ANGLE_UNITS, GRADIENT_UNITS, TIME_UNITS, Col, read_table
 from ._validate import bounds_array, number, positive, real_array
 
 __all__ = [
@@ -525,37 +525,33 @@ def calibrate_gradiometer_table(
     drift: bool | None = None,
     sigma: float | None = None,
 ) -> StartupBias:
-    """Start-up bias from a CSV table with columns ``azimuth_deg, inline_E, cross_E[, t_s]``.
+    """Start-up bias from a table of per-azimuth averages (delimited text, ``#`` comments).
 
-    Lines starting with ``#`` are comments. ``drift=None`` fits a drift when a ``t_s`` column
-    is present and there are at least 3 rows.
+    Columns are found by name, in any order, with the unit in brackets or implied by the name:
+    the azimuth (``azimuth_deg``, ``azimuth``, ``az``, ``heading``; degrees unless
+    ``[rad]``), the inline and cross channels (``inline_E``, ``inline``, ``cross_E``,
+    ``cross``; E unless ``[mE]`` or ``[1/s^2]``) and optionally the time (``t_s``, ``t``,
+    ``time``; s unless ``[min]`` or ``[h]``). ``drift=None`` fits a drift when there is a time
+    column and at least 3 rows.
     """
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as e:
-        raise CalibrationError(
-            f"cannot read gradiometer table {str(path)!r}: {e.strerror}"
-        ) from None
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise CalibrationError(f"{path}: no header row")
-    names = [c.strip() for c in lines[0].split(",")]
-    need = ("azimuth_deg", "inline_E", "cross_E")
-    if not all(n in names for n in need):
-        raise CalibrationError(f"{path}: needs columns {', '.join(need)} [, t_s]; got {names}")
-    try:
-        data = np.loadtxt(io.StringIO("\n".join(lines[1:])), delimiter=",", ndmin=2)
-    except ValueError as e:
-        raise CalibrationError(f"{path}: unreadable numbers ({e})") from None
-    if data.shape[0] == 0 or data.shape[1] != len(names):
-        raise CalibrationError(f"{path}: rows must have the header's {len(names)} columns")
-    col = {n: data[:, i] for i, n in enumerate(names)}
-    t = col.get("t_s")
-    use_drift = (t is not None and data.shape[0] >= 3) if drift is None else bool(drift)
+    d = read_table(path, [
+        Col("azimuth_deg", "the azimuth (azimuth_deg, azimuth, az, heading)", {
+            "azimuthdeg": "deg", "azimuth": "", "az": "", "heading": "", "headingdeg": "deg",
+            "azimuthrad": "rad", "angle": ""}, ANGLE_UNITS, "deg"),
+        Col("inline_E", "the inline channel (inline_E, inline)", {
+            "inlinee": "e", "inline": "", "inlineme": "me"}, GRADIENT_UNITS, "e"),
+        Col("cross_E", "the cross channel (cross_E, cross)", {
+            "crosse": "e", "cross": "", "crossme": "me"}, GRADIENT_UNITS, "e"),
+        Col("t_s", "the time (t_s, t, time)", {
+            "ts": "s", "t": "", "time": "", "tmin": "min", "timemin": "min", "th": "h"},
+            TIME_UNITS, "s", required=False),
+    ], "gradiometer table")
+    t = d.get("t_s")
+    az = d["azimuth_deg"]
+    use_drift = (t is not None and az.shape[0] >= 3) if drift is None else bool(drift)
     return startup_bias(
-        col["azimuth_deg"],
-        np.column_stack([col["inline_E"], col["cross_E"]]),
+        az,
+        np.column_stack([d["inline_E"], d["cross_E"]]),
         t=t,
         drift=use_drift,
         sigma=sigma,

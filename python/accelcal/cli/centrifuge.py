@@ -58,16 +58,18 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
                          misalignment: bool, sigma: float | None, no_screen: bool,
                          outlier_k: float, no_unit_check: bool, output: str | None,
                          plot_path: str | None, as_json: bool) -> None:
-    """Centrifuge calibration with K2 terms from a per-position table (outputs in g).
+    """Centrifuge calibration with K2 terms from a per-position table.
 
-    Rows are named by speed and position (speed_index, position columns) as well as by their
-    0-based index."""
+    Columns by name: the angular rate (omega_rad_s, omega, rpm, 'omega [deg/s]'), the mean
+    outputs (N_ax_g ..., ax ..., in g unless the header says mg or m/s^2, converted with --g),
+    and optionally speed_index and position. Rows are named by speed and position as well as
+    by their 0-based index."""
     import warnings
 
     from ..centrifuge import CentrifugeOutlierWarning, fit_centrifuge, read_centrifuge_table
 
     _need_plot(plot_path)
-    t = read_centrifuge_table(table)
+    t = read_centrifuge_table(table, g=g)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:

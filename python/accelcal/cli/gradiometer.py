@@ -41,7 +41,11 @@ def _cli(msg: str) -> str:
 @friendly
 def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
                           output: str | None, plot_path: str | None, as_json: bool) -> None:
-    """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows."""
+    """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows.
+
+    Columns by name, with units in brackets: the azimuth (azimuth_deg, azimuth, az, heading;
+    deg or rad), the inline and cross channels (E, mE or 1/s^2) and optionally the time (s,
+    min or h)."""
     from ..gradiometer import calibrate_gradiometer_table
 
     _need_plot(plot_path)
