@@ -634,3 +634,19 @@ def test_progress_bar_has_total_percentage_and_eta(tmp_path: Path,
     read_stream(p, progress=None)
     read_stream(p, progress=False)
     assert capsys.readouterr().err == ""
+
+
+def test_utf16_and_cr_only_text_get_a_remedy(tmp_path: Path) -> None:
+    text = "t,ax,ay,az\n" + "".join(f"{i / 100},{i % 3},2,9.8\n" for i in range(300))
+    p = tmp_path / "u16.csv"
+    p.write_text(text, encoding="utf-16")
+    with pytest.raises(CalibrationError, match="UTF-16.*save it as UTF-8"):
+        read_stream(p)
+    q = tmp_path / "cr.csv"
+    q.write_bytes(text.replace("\n", "\r").encode())
+    with pytest.raises(CalibrationError, match="carriage return alone"):
+        read_stream(q)
+    # The same text as UTF-8 with a byte-order mark reads.
+    r = tmp_path / "bom.csv"
+    r.write_text(text, encoding="utf-8-sig")
+    assert read_stream(r).fs == pytest.approx(100.0)

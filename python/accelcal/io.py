@@ -475,6 +475,11 @@ def _head_lines(src: _TextSource) -> Iterator[tuple[int, str]]:
     """(byte offset, text) of each complete line of the head (a partial last line dropped)."""
     data = src.head
     if b"\x00" in data[:65536]:
+        if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
+            raise CalibrationError(
+                f"{src.path}: the text is UTF-16 (as Windows' 'Unicode text' saves it); save "
+                "it as UTF-8 or plain ASCII (e.g. iconv -f UTF-16 -t UTF-8)"
+            )
         raise CalibrationError(f"{src.path}: not a text file (it contains NUL bytes)")
     start = 3 if data.startswith(b"\xef\xbb\xbf") else 0
     pos = start
@@ -538,6 +543,11 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
                 f"{path}: no numeric data row in the first {len(src.head)} bytes"
             )
         last = next(ln.strip() for _, ln in reversed(lines) if ln.strip())
+        if "\r" in last:
+            raise CalibrationError(
+                f"{path}: lines end in a carriage return alone (classic Mac text); convert "
+                "them to \\n (e.g. tr '\\r' '\\n')"
+            )
         raise CalibrationError(
             f"{path}: no numeric data rows found (the last line is {last[:60]!r}); numbers, "
             "decimal-comma numbers and ISO-8601 times are read"
