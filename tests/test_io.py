@@ -476,6 +476,8 @@ def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
         ("2024-01-01 00:00:00 1 2 3\n2024-01-01 00:00:01 1 2 3\n",
          ["line 1", "date and a time separated by a space"]),
         ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n", ["line 5002", '"oops"']),
+        ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,2,3,\n",
+         ["line 3", "is empty (missing value)", "merged log", "dropna"]),
     ],
 )
 def test_bad_rows_are_named_by_line(tmp_path: Path, text: str, words: list[str]) -> None:

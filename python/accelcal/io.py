@@ -1140,15 +1140,26 @@ def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
         try:
             return fn(*a, **kw)
         except CalibrationError as e:
-            raise CalibrationError(f"{path}: {e}") from None
+            raise CalibrationError(_with_file(path, e)) from None
 
     def gen() -> Iterator[Any]:
         try:
             yield from it
         except CalibrationError as e:
-            raise CalibrationError(f"{path}: {e}") from None
+            raise CalibrationError(_with_file(path, e)) from None
 
     return gen()
+
+
+def _with_file(path: str, e: CalibrationError) -> str:
+    msg = f"{path}: {e}"
+    if "is empty (missing value)" in msg:
+        msg += (
+            "; if rows of other sensors are interleaved (a merged log with their fields left "
+            "empty), keep only the accelerometer rows first, e.g. with pandas: "
+            "read_stream(pd.read_csv(path).dropna(subset=[the x, y, z columns]))"
+        )
+    return msg
 
 
 _Chunk = tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]
