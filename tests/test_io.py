@@ -652,3 +652,35 @@ def test_utf16_and_cr_only_text_get_a_remedy(tmp_path: Path) -> None:
     r = tmp_path / "bom.csv"
     r.write_text(text, encoding="utf-8-sig")
     assert read_stream(r).fs == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("first_empty", [False, True])
+def test_sparse_temperature_holds_its_last_value(tmp_path: Path, first_empty: bool) -> None:
+    import pandas as pd
+
+    n = 5000
+    temp = 20.0 + np.arange(n) // 700  # logged every 700th row (from row 3 when first_empty)
+    logged = np.arange(n) % 700 == (3 if first_empty else 0)
+    rows = "".join(f"{i / 100},{i % 3},2,9.8,{temp[i] if logged[i] else ''}\n" for i in range(n))
+    p = write(tmp_path, "t,ax,ay,az,temperature\n" + rows)
+    want = pd.Series(np.where(logged, temp, np.nan)).ffill().bfill().to_numpy()
+    s = read_stream(p)
+    np.testing.assert_array_equal(s.temperature, want)
+    assert any(f"empty in {int((~logged).sum())} of {n} rows" in x for x in s.notes)
+    # Streamed in small chunks: the held value crosses chunk boundaries.
+    got = [temp for _, _, temp in _iter_triples(p, 333)]
+    np.testing.assert_array_equal(np.concatenate(got), want)
+    # The same table as a DataFrame with NaN: the same hold.
+    df = pd.read_csv(p)
+    np.testing.assert_array_equal(read_stream(df).temperature, want)
+    # The accelerometer columns stay strict.
+    q = write(tmp_path, "t,ax,ay,az,temperature\n0,1,2,3,20\n0.01,1,,3,\n", "q.csv")
+    with pytest.raises(CalibrationError, match='line 3: column "ay": is empty'):
+        read_stream(q)
+
+
+def _iter_triples(p: Path, chunk_rows: int) -> Any:
+    from accelcal.io import open_recording
+
+    rec = open_recording(p)
+    yield from rec.chunks(chunk_rows, None)

@@ -1037,6 +1037,7 @@ class TextBlocks:
         prefix: bytes | None = None,
         stdin: bool = False,
         block_bytes: int = 4194304,
+        sparse_groups: list[int] = ...,
     ) -> TextBlocks: ...
     def __iter__(self) -> TextBlocks: ...
     def __next__(self) -> tuple[list[NDArray[np.float64]], int, int, int]: ...
@@ -1058,6 +1059,7 @@ def text_read_all(
     block_bytes: int = 4194304,
     rows_hint: int = 0,
     progress: Callable[[int, int], object] | None = None,
+    sparse_groups: list[int] = ...,
 ) -> tuple[list[NDArray[np.float64]], int, int, int]:
     """Read a whole text recording into one array per column group: (arrays, rows, bytes,
     repeats). A regular file is memory-mapped and parsed in parallel chunks straight into the
@@ -1077,8 +1079,12 @@ def text_parse_head(
     first_line: int = 1,
     t0: tuple[int, int] | None = None,
     max_rows: int | None = None,
+    sparse_groups: list[int] = ...,
 ) -> tuple[list[NDArray[np.float64]], int, int, int]:
-    """Parse at most ``max_rows`` data rows of ``data``: (arrays, rows, bytes, lines)."""
+    """Parse at most ``max_rows`` data rows of ``data``: (arrays, rows, bytes, lines).
+
+    In the groups listed in ``sparse_groups`` (of every text reader here) an empty field reads
+    as NaN instead of being an error: a slow channel written on some rows only."""
 
 def parse_iso8601(text: str) -> tuple[int, int] | None:
     """(seconds, nanoseconds) since 1970-01-01T00:00:00Z of an ISO-8601 date and time."""

@@ -28,9 +28,10 @@ Layout rules for text files
   ``acc_x [m/s^2]`` are ignored). A time column is recognised by name (``t``, ``time``,
   ``timestamp``, ``t[s]``, ``time_s``, ``time_ms`` ...; ``ms``/``us``/``ns`` units are converted
   to s, as are Unix epoch stamps in ms/us/ns under a name without a unit; without such a name,
-  the first column of ISO-8601 times) and a temperature column
-  by a name starting with ``temp``. From a time column the sample rate is the average of its
-  regular intervals (those within half the median interval).
+  the first column of ISO-8601 times) and a temperature column by a name starting with
+  ``temp``. A temperature written on some rows only (its other fields empty) holds its last
+  value; an empty accelerometer or time field is an error. From a time column the sample
+  rate is the average of its regular intervals (those within half the median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
   unless it counts 0, 1, 2, ... (a sample counter); anything else needs ``columns``.
@@ -589,6 +590,8 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         first_line=first_line,
         t0=t0,
         max_rows=_SNIFF_ROWS,
+        # Only to decide the layout: an empty field is an error of the full read, not here.
+        sparse_groups=[0],
     )
     head = np.full((rows, ncols), np.nan)
     if cols:
@@ -814,6 +817,10 @@ def _text_kwargs(lay: _Layout, src: _TextSource) -> dict[str, Any]:
         "first_line": lay.first_line,
         "t0": lay.t0,
     }
+    if lay.temp is not None:
+        # A temperature written on some rows only (a slow channel): empty fields read NaN,
+        # then hold the last value (`_Recording._hold_temperature`).
+        kw["sparse_groups"] = [1 + (lay.time is not None)]
     if src.stdin or src.eof:
         kw.update(prefix=src.head, stdin=src.stdin and not src.eof)
     return kw
@@ -1236,6 +1243,8 @@ class _Recording:
         self.rows = 0
         self.repeats = 0
         self.bytes = 0
+        self._temp_last: float | None = None  # the sparse temperature's last value
+        self._temp_held = 0  # its empty fields filled
         self._last: NDArray[Any] | None = None
 
     # -- what is known before reading
@@ -1323,6 +1332,7 @@ class _Recording:
                 for a in range(0, n, step):
                     b = min(a + step, n)
                     s, t, temp = src.chunk(a, b)
+                    temp = self._hold_temperature(temp, a)
                     if t is None and lay.fs is not None:
                         t = np.arange(a, b, dtype=np.float64) / lay.fs
                     self._count_repeats(s)
@@ -1354,6 +1364,7 @@ class _Recording:
                 self.bytes += nbytes
                 continue
             s, t, temp = _split_groups(lay, arrays)
+            temp = self._hold_temperature(temp, parsed)
             if t is None and lay.fs is not None:
                 t = np.arange(parsed, parsed + rows, dtype=np.float64) / lay.fs
             parsed += rows
@@ -1395,6 +1406,7 @@ class _Recording:
             finally:
                 if src.closer is not None:
                     src.closer()
+            temp = self._hold_temperature(temp, 0)
             if isinstance(src.table, np.memmap):
                 s = np.array(s)
             self._count_repeats(s)
@@ -1415,12 +1427,38 @@ class _Recording:
                 **_text_kwargs(lay, src_t),
             )
         except CalibrationError as e:
-            raise CalibrationError(f"{src_t.path}: {e}") from None
+            raise CalibrationError(_with_file(src_t.path, e)) from None
         self.rows, self.bytes, self.repeats = rows, nbytes, repeats
         s, t, temp = _split_groups(lay, arrays)
+        temp = self._hold_temperature(temp, 0)
         if t is None and lay.fs is not None:
             t = np.arange(rows, dtype=np.float64) / lay.fs
         return s, t, temp
+
+    def _hold_temperature(self, temp: NDArray[np.float64] | None,
+                          row0: int) -> NDArray[np.float64] | None:
+        """Fill the empty (NaN) fields of a sparse temperature column, rows ``row0`` on: each
+        holds the last value before it; rows before the first value take that value."""
+        if temp is None:
+            return None
+        empty = np.isnan(temp)
+        if not empty.any():
+            self._temp_last = float(temp[-1])
+            return temp
+        have = np.flatnonzero(~empty)
+        first = self._temp_last
+        if first is None:
+            if have.size == 0:
+                raise CalibrationError(
+                    f"{self.path}: the temperature column {_label(self.lay, self.lay.temp or 0)}"
+                    f" is empty in data rows {row0 + 1} to {row0 + temp.size}: too sparse to "
+                    "follow; remove the column or fill it in")
+            first = float(temp[have[0]])
+        last_at = np.maximum.accumulate(np.where(empty, -1, np.arange(temp.size)))
+        out = np.where(last_at >= 0, temp[np.maximum(last_at, 0)], first)
+        self._temp_held += int(empty.sum())
+        self._temp_last = float(out[-1])
+        return out
 
     # -- what is known after reading
     def output_rate(self) -> float | None:
@@ -1433,6 +1471,11 @@ class _Recording:
 
     def notes(self) -> list[str]:
         out = list(self.lay.notes)
+        if self._temp_held and self.lay.temp is not None:
+            out.append(
+                f"the temperature column {_label(self.lay, self.lay.temp)} is empty in "
+                f"{self._temp_held} of {self.rows} rows (written on some rows only): each "
+                "empty row holds the last value before it (the first value before that)")
         if self.rows >= 100 and self.repeats >= _REPEAT_FRACTION * self.rows:
             frac = self.repeats / self.rows
             rate = self.output_rate()

@@ -75,6 +75,9 @@ pub struct TextLayout {
     pub names: Option<Vec<String>>,
     /// Line number (1-based) of the first byte handed to the parser (for messages).
     pub first_line: u64,
+    /// Groups whose empty fields read as NaN instead of being an error: a slow channel
+    /// (temperature) written on some rows only.
+    pub sparse_groups: Vec<usize>,
 }
 
 impl TextLayout {
@@ -97,6 +100,12 @@ impl TextLayout {
                     ));
                 }
             }
+        }
+        if let Some(g) = self.sparse_groups.iter().find(|&&g| g >= self.groups.len()) {
+            return invalid(format!(
+                "text layout: sparse group {g} out of range for {} groups",
+                self.groups.len()
+            ));
         }
         if self.decimal_comma && self.delimiter == Delimiter::Byte(b',') {
             return invalid(
@@ -798,15 +807,26 @@ impl<'a, 'o> RowSink<'a, 'o> {
             ColumnKind::Number { scale } => match parse_number(f, self.layout.decimal_comma) {
                 Some(v) if scale == 1.0 => v,
                 Some(v) => v * scale,
-                None => return Err(self.bad(index, f, line)),
+                None => return self.missing(d, index, f, line),
             },
             ColumnKind::Iso8601 { t0_s, t0_ns } => match parse_iso8601(f) {
                 Some((s, ns)) => (s - t0_s) as f64 + (ns - t0_ns) as f64 * 1e-9,
-                None => return Err(self.bad(index, f, line)),
+                None => return self.missing(d, index, f, line),
             },
         };
         self.put(d, v);
         Ok(())
+    }
+
+    /// A wanted field that did not parse: NaN when it is empty and its group is sparse,
+    /// else the error naming it.
+    #[cold]
+    fn missing(&mut self, d: Dest, index: usize, f: &[u8], line: u64) -> RowResult<()> {
+        if trim(f).is_empty() && self.layout.sparse_groups.contains(&d.g) {
+            self.put(d, f64::NAN);
+            return Ok(());
+        }
+        Err(self.bad(index, f, line))
     }
 
     /// Store field `index`, already parsed as the plain decimal `v` (its text `f` is used
@@ -1968,6 +1988,7 @@ mod tests {
             comment: Some(b'#'),
             names: None,
             first_line: 1,
+            sparse_groups: Vec::new(),
         }
     }
 
@@ -2190,6 +2211,47 @@ mod tests {
         let lay = layout(Delimiter::Whitespace, 3, vec![vec![num(0), num(1), num(2)]]);
         let c = all(w, &lay, 1 << 20).unwrap();
         assert_eq!(c.values[0], vec![1., 2., 3., 4., 5., 6.]);
+    }
+
+    #[test]
+    fn sparse_groups_read_empty_fields_as_nan_and_the_others_stay_strict() {
+        // t, ax, ay, az, temperature written every third row; every parser path (plain rows,
+        // the general scan of a row with an empty field, quoted CSV) and several block sizes.
+        let mut s = String::new();
+        let mut want = Vec::new();
+        for i in 0..300 {
+            if i % 3 == 0 {
+                s += &format!("{i},1,2,3,{}.5\n", 20 + i);
+                want.push(20.5 + f64::from(i));
+            } else {
+                s += &format!("{i},1,2,3,\n");
+                want.push(f64::NAN);
+            }
+        }
+        let mut lay = layout(
+            Delimiter::Byte(b','),
+            5,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)], vec![num(4)]],
+        );
+        let e = all(&s, &lay, 64).unwrap_err().to_string();
+        assert_eq!(e, "line 2: column 4 (0-based): is empty (missing value)");
+        lay.sparse_groups = vec![2];
+        let quoted = s.replace("1,2,3", "\"1\",2,3");
+        for (text, block) in [(&s, 64), (&s, 1 << 20), (&quoted, 100)] {
+            let c = all(text, &lay, block).unwrap();
+            assert_eq!(c.rows, 300);
+            let same = c.values[2]
+                .iter()
+                .zip(&want)
+                .all(|(a, b)| a == b || (a.is_nan() && b.is_nan()));
+            assert!(same, "block {block}");
+        }
+        // An empty accelerometer field is still an error.
+        let bad = s.clone() + "300,1,,3,20\n";
+        let e = all(&bad, &lay, 64).unwrap_err().to_string();
+        assert_eq!(e, "line 301: column 2 (0-based): is empty (missing value)");
+        lay.sparse_groups = vec![3];
+        assert!(lay.validate().is_err());
     }
 
     #[test]

@@ -28,6 +28,7 @@ fn layout_from(
     names: Option<Vec<String>>,
     first_line: u64,
     t0: Option<(i64, i64)>,
+    sparse_groups: Vec<usize>,
 ) -> PyResult<TextLayout> {
     let one_byte = |s: &str, what: &str| -> PyResult<u8> {
         match s.as_bytes() {
@@ -73,6 +74,7 @@ fn layout_from(
         comment,
         names,
         first_line,
+        sparse_groups,
     };
     layout.validate()?;
     Ok(layout)
@@ -164,7 +166,7 @@ pub struct TextBlocks {
 #[pymethods]
 impl TextBlocks {
     #[new]
-    #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304))]
+    #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, sparse_groups=Vec::new()))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         path: Option<&str>,
@@ -180,6 +182,7 @@ impl TextBlocks {
         prefix: Option<Vec<u8>>,
         stdin: bool,
         block_bytes: usize,
+        sparse_groups: Vec<usize>,
     ) -> PyResult<Self> {
         let layout = layout_from(
             delimiter,
@@ -190,6 +193,7 @@ impl TextBlocks {
             names,
             first_line,
             t0,
+            sparse_groups,
         )?;
         let src = open_source(path, offset, prefix, stdin)?;
         let opts = StreamOptions {
@@ -230,7 +234,7 @@ impl TextBlocks {
 /// ``progress(rows, bytes)`` is called about every 0.1 s while reading (it may raise to
 /// stop); Ctrl-C stops the read. Returns ``(arrays, rows, bytes, repeats)``.
 #[pyfunction]
-#[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None))]
+#[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None, sparse_groups=Vec::new()))]
 #[allow(clippy::too_many_arguments)]
 pub fn text_read_all<'py>(
     py: Python<'py>,
@@ -249,6 +253,7 @@ pub fn text_read_all<'py>(
     block_bytes: usize,
     rows_hint: usize,
     progress: Option<Bound<'py, PyAny>>,
+    sparse_groups: Vec<usize>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let layout = layout_from(
         delimiter,
@@ -259,6 +264,7 @@ pub fn text_read_all<'py>(
         names,
         first_line,
         t0,
+        sparse_groups,
     )?;
     let src = open_source(path, offset, prefix, stdin)?;
     let opts = StreamOptions {
@@ -329,7 +335,7 @@ pub fn text_read_all<'py>(
 ///
 /// Returns ``(arrays, rows, bytes, lines)``.
 #[pyfunction]
-#[pyo3(signature = (data, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, max_rows=None))]
+#[pyo3(signature = (data, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, max_rows=None, sparse_groups=Vec::new()))]
 #[allow(clippy::too_many_arguments)]
 pub fn text_parse_head<'py>(
     py: Python<'py>,
@@ -343,6 +349,7 @@ pub fn text_parse_head<'py>(
     first_line: u64,
     t0: Option<(i64, i64)>,
     max_rows: Option<usize>,
+    sparse_groups: Vec<usize>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let layout = layout_from(
         delimiter,
@@ -353,6 +360,7 @@ pub fn text_parse_head<'py>(
         names,
         first_line,
         t0,
+        sparse_groups,
     )?;
     let w = widths(&layout);
     let b = py.detach(|| crate::text::parse_block(data, &layout, max_rows))?;
