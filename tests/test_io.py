@@ -476,8 +476,8 @@ def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
         ("2024-01-01 00:00:00 1 2 3\n2024-01-01 00:00:01 1 2 3\n",
          ["line 1", "date and a time separated by a space"]),
         ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n", ["line 5002", '"oops"']),
-        ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,2,3,\n",
-         ["line 3", "is empty (missing value)", "merged log", "dropna"]),
+        ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,,3,\n",
+         ["line 4", 'column "ay": is empty (missing value)']),
     ],
 )
 def test_bad_rows_are_named_by_line(tmp_path: Path, text: str, words: list[str]) -> None:
@@ -684,3 +684,24 @@ def _iter_triples(p: Path, chunk_rows: int) -> Any:
 
     rec = open_recording(p)
     yield from rec.chunks(chunk_rows, None)
+
+
+@pytest.mark.parametrize("gyro_first", [False, True])
+def test_merged_log_rows_of_another_sensor_are_left_out(tmp_path: Path, gyro_first: bool) -> None:
+    # Accelerometer and gyroscope rows interleaved (each leaves the other's fields empty),
+    # both at 100 Hz, 5 ms apart; an event column that is empty but for one row.
+    n = 3000
+    lines = []
+    for i in range(n):
+        acc = f"{i / 100:.3f},{i % 3},{i % 5},9.8,,,,"
+        gyr = f"{i / 100 + 0.005:.3f},,,,0.1,0.2,0.3," + ("tap" if i == 7 else "")
+        lines += [gyr, acc] if gyro_first else [acc, gyr]
+    p = write(tmp_path, "time,ax,ay,az,gx,gy,gz,event\n" + "\n".join(lines) + "\n")
+    s = read_stream(p)
+    assert len(s) == n and s.fs == pytest.approx(100.0)
+    np.testing.assert_array_equal(s.samples[:, 0], np.arange(n) % 3)
+    np.testing.assert_allclose(s.t, np.arange(n) / 100, atol=1e-12)
+    assert any(f"{n} rows with every accelerometer field empty were left out" in x
+               for x in s.notes)
+    streamed = np.concatenate([c for c, _ in iter_stream(p, chunk_rows=700)])
+    np.testing.assert_array_equal(streamed, s.samples)

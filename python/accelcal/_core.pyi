@@ -1017,8 +1017,9 @@ _Groups = list[list[tuple[int, float, bool]]]
 class TextBlocks:
     """Blocks of a text recording, read and parsed ahead on a background thread.
 
-    Iterating yields ``(arrays, rows, bytes, repeats)`` per block in file order, ``arrays``
-    holding one float64 array per column group ((m, k), or (m,) for one column).
+    Iterating yields ``(arrays, rows, bytes, repeats, skipped)`` per block in file order,
+    ``arrays`` holding one float64 array per column group ((m, k), or (m,) for one column);
+    ``skipped`` counts rows left out by ``skip_empty_rows`` (their first group all empty).
     """
 
     def __new__(
@@ -1038,9 +1039,10 @@ class TextBlocks:
         stdin: bool = False,
         block_bytes: int = 4194304,
         sparse_groups: list[int] = ...,
+        skip_empty_rows: bool = False,
     ) -> TextBlocks: ...
     def __iter__(self) -> TextBlocks: ...
-    def __next__(self) -> tuple[list[NDArray[np.float64]], int, int, int]: ...
+    def __next__(self) -> tuple[list[NDArray[np.float64]], int, int, int, int]: ...
 
 def text_read_all(
     path: str | None,
@@ -1060,11 +1062,12 @@ def text_read_all(
     rows_hint: int = 0,
     progress: Callable[[int, int], object] | None = None,
     sparse_groups: list[int] = ...,
-) -> tuple[list[NDArray[np.float64]], int, int, int]:
+    skip_empty_rows: bool = False,
+) -> tuple[list[NDArray[np.float64]], int, int, int, int]:
     """Read a whole text recording into one array per column group: (arrays, rows, bytes,
-    repeats). A regular file is memory-mapped and parsed in parallel chunks straight into the
-    arrays; any other source is read in blocks into arrays presized for ``rows_hint`` rows (an
-    estimate: they grow past it). ``progress(rows, bytes)`` is called about every
+    repeats, skipped). A regular file is memory-mapped and parsed in parallel chunks straight
+    into the arrays; any other source is read in blocks into arrays presized for ``rows_hint``
+    rows (an estimate: they grow past it). ``progress(rows, bytes)`` is called about every
     0.1 s and may raise to stop."""
 
 def text_parse_head(
@@ -1080,11 +1083,14 @@ def text_parse_head(
     t0: tuple[int, int] | None = None,
     max_rows: int | None = None,
     sparse_groups: list[int] = ...,
+    skip_empty_rows: bool = False,
 ) -> tuple[list[NDArray[np.float64]], int, int, int]:
     """Parse at most ``max_rows`` data rows of ``data``: (arrays, rows, bytes, lines).
 
     In the groups listed in ``sparse_groups`` (of every text reader here) an empty field reads
-    as NaN instead of being an error: a slow channel written on some rows only."""
+    as NaN instead of being an error: a slow channel written on some rows only. With
+    ``skip_empty_rows`` a row whose first-group fields are all empty is left out (a row of
+    another sensor in a merged log); some of them empty is still an error."""
 
 def parse_iso8601(text: str) -> tuple[int, int] | None:
     """(seconds, nanoseconds) since 1970-01-01T00:00:00Z of an ISO-8601 date and time."""

@@ -30,7 +30,8 @@ Layout rules for text files
   to s, as are Unix epoch stamps in ms/us/ns under a name without a unit; without such a name,
   the first column of ISO-8601 times) and a temperature column by a name starting with
   ``temp``. A temperature written on some rows only (its other fields empty) holds its last
-  value; an empty accelerometer or time field is an error. From a time column the sample
+  value. A row whose accelerometer fields are all empty (a row of another sensor in a merged
+  log) is left out; some of them empty, or an empty time field, is an error. From a time column the sample
   rate is the average of its regular intervals (those within half the median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
@@ -353,6 +354,24 @@ def _data_row(s: str) -> _RowFormat | None:
     return None
 
 
+def _numeric_columns(data: bytes, delim: str | None, ncols: int, lines: int = 200) -> list[int]:
+    """Columns holding no text (numbers, ISO times or nothing) in the first ``lines`` data
+    rows of ``data``."""
+    text: set[int] = set()
+    seen = 0
+    for raw in data[: 1 << 16].split(b"\n")[:-1]:
+        s = raw.decode("utf-8", "replace").strip()
+        if not s or s.startswith(("#", "%", "//")):
+            continue
+        fields = _split(s, delim)
+        if len(fields) == ncols:
+            text.update(j for j, f in enumerate(fields) if _field_kind(f, delim) is None)
+        seen += 1
+        if seen >= lines:
+            break
+    return [j for j in range(ncols) if j not in text]
+
+
 def _split_datetime_hint(s: str) -> str | None:
     """A message when a line looks like data whose date and time were split by a space."""
     f = s.split()
@@ -571,28 +590,41 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
             raise CalibrationError(
                 f"{path}: header has {len(hf)} names but data rows have {ncols} columns"
             )
-    # Parse the head rows with the reader itself (every column that holds a value in the
-    # first data row): the layout decisions see exactly what the full read will see.
-    cols = [j for j, k in enumerate(fmt.kinds) if k != "empty"]
+    # Parse the head rows with the reader itself: the layout decisions see exactly what the
+    # full read will see. Every column, empty fields reading NaN (the first data row of a
+    # merged log may belong to another sensor); if a column empty in the first row holds
+    # text further down, only those that hold a value in the first row.
     head_bytes = src.head[offset:]
     if not src.eof:
         head_bytes = head_bytes[: head_bytes.rfind(b"\n") + 1]
-    arrays, rows, nbytes, _ = _located(
-        path,
-        None,
-        _core.text_parse_head,
-        head_bytes,
-        ncols,
-        [[(j, 1.0, j in iso) for j in cols]],
-        delimiter=delim,
-        decimal_comma=decimal_comma,
-        names=list(names) if names is not None else None,
-        first_line=first_line,
-        t0=t0,
-        max_rows=_SNIFF_ROWS,
-        # Only to decide the layout: an empty field is an error of the full read, not here.
-        sparse_groups=[0],
-    )
+
+    def parse_head(cols: list[int]) -> tuple[Any, int, int]:
+        arrays, rows, nbytes, _ = _located(
+            path,
+            None,
+            _core.text_parse_head,
+            head_bytes,
+            ncols,
+            [[(j, 1.0, j in iso) for j in cols]],
+            delimiter=delim,
+            decimal_comma=decimal_comma,
+            names=list(names) if names is not None else None,
+            first_line=first_line,
+            t0=t0,
+            max_rows=_SNIFF_ROWS,
+            # Only to decide the layout: an empty field is an error of the full read.
+            sparse_groups=[0],
+        )
+        return arrays, rows, nbytes
+
+    cols = _numeric_columns(head_bytes, delim, ncols)
+    try:
+        arrays, rows, nbytes = parse_head(cols)
+    except CalibrationError:
+        cols = [j for j, k in enumerate(fmt.kinds) if k != "empty"]
+        if len(cols) == ncols:
+            raise
+        arrays, rows, nbytes = parse_head(cols)
     head = np.full((rows, ncols), np.nan)
     if cols:
         head[:, cols] = arrays[0].reshape(rows, len(cols))
@@ -716,8 +748,11 @@ def _decide(
                 break
     fs_meta = _fs_from_meta(meta)
     fs_time = None
-    if tcol is not None and head.shape[0] >= 2:
-        fs_time = _fs_from_time(head[:, tcol] * tscale, path)
+    # Rows of another sensor (every accelerometer field empty, NaN in the head) are left
+    # out of the read, so out of the rate too.
+    own = ~np.all(np.isnan(head[:, acc]), axis=1) if head.shape[1] else np.ones(0, bool)
+    if tcol is not None and own.sum() >= 2:
+        fs_time = _fs_from_time(head[own, tcol] * tscale, path)
     fsv: float | None
     if fs is not None:
         fsv, src = positive(fs, "fs", " (sample rate in Hz)"), "given"
@@ -821,6 +856,8 @@ def _text_kwargs(lay: _Layout, src: _TextSource) -> dict[str, Any]:
         # A temperature written on some rows only (a slow channel): empty fields read NaN,
         # then hold the last value (`_Recording._hold_temperature`).
         kw["sparse_groups"] = [1 + (lay.time is not None)]
+    # Rows with every accelerometer field empty belong to another sensor of a merged log.
+    kw["skip_empty_rows"] = True
     if src.stdin or src.eof:
         kw.update(prefix=src.head, stdin=src.stdin and not src.eof)
     return kw
@@ -1147,26 +1184,15 @@ def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
         try:
             return fn(*a, **kw)
         except CalibrationError as e:
-            raise CalibrationError(_with_file(path, e)) from None
+            raise CalibrationError(f"{path}: {e}") from None
 
     def gen() -> Iterator[Any]:
         try:
             yield from it
         except CalibrationError as e:
-            raise CalibrationError(_with_file(path, e)) from None
+            raise CalibrationError(f"{path}: {e}") from None
 
     return gen()
-
-
-def _with_file(path: str, e: CalibrationError) -> str:
-    msg = f"{path}: {e}"
-    if "is empty (missing value)" in msg:
-        msg += (
-            "; if rows of other sensors are interleaved (a merged log with their fields left "
-            "empty), keep only the accelerometer rows first, e.g. with pandas: "
-            "read_stream(pd.read_csv(path).dropna(subset=[the x, y, z columns]))"
-        )
-    return msg
 
 
 _Chunk = tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]
@@ -1243,6 +1269,7 @@ class _Recording:
         self.rows = 0
         self.repeats = 0
         self.bytes = 0
+        self.skipped = 0  # rows whose accelerometer fields are all empty (merged logs)
         self._temp_last: float | None = None  # the sparse temperature's last value
         self._temp_held = 0  # its empty fields filled
         self._last: NDArray[Any] | None = None
@@ -1359,7 +1386,8 @@ class _Recording:
         pending: list[tuple[Any, Any, Any]] = []
         have = 0
         parsed = 0
-        for arrays, rows, nbytes, repeats in blocks:
+        for arrays, rows, nbytes, repeats, skipped in blocks:
+            self.skipped += skipped
             if rows == 0:
                 self.bytes += nbytes
                 continue
@@ -1417,7 +1445,7 @@ class _Recording:
         assert self.text is not None
         src_t = self.text
         try:
-            arrays, rows, nbytes, repeats = _core.text_read_all(
+            arrays, rows, nbytes, repeats, skipped = _core.text_read_all(
                 None if (src_t.stdin or src_t.eof) else src_t.path,
                 lay.offset,
                 lay.ncols,
@@ -1427,8 +1455,8 @@ class _Recording:
                 **_text_kwargs(lay, src_t),
             )
         except CalibrationError as e:
-            raise CalibrationError(_with_file(src_t.path, e)) from None
-        self.rows, self.bytes, self.repeats = rows, nbytes, repeats
+            raise CalibrationError(f"{src_t.path}: {e}") from None
+        self.rows, self.bytes, self.repeats, self.skipped = rows, nbytes, repeats, skipped
         s, t, temp = _split_groups(lay, arrays)
         temp = self._hold_temperature(temp, 0)
         if t is None and lay.fs is not None:
@@ -1471,6 +1499,10 @@ class _Recording:
 
     def notes(self) -> list[str]:
         out = list(self.lay.notes)
+        if self.skipped:
+            out.append(
+                f"{self.skipped} rows with every accelerometer field empty were left out (rows "
+                "of another sensor in a merged log)")
         if self._temp_held and self.lay.temp is not None:
             out.append(
                 f"the temperature column {_label(self.lay, self.lay.temp)} is empty in "

@@ -78,6 +78,9 @@ pub struct TextLayout {
     /// Groups whose empty fields read as NaN instead of being an error: a slow channel
     /// (temperature) written on some rows only.
     pub sparse_groups: Vec<usize>,
+    /// Skip a row whose first-group fields are all empty (counted in `skipped`): a row of
+    /// another sensor in a merged log. Some of them empty is still an error.
+    pub skip_empty_rows: bool,
 }
 
 impl TextLayout {
@@ -147,6 +150,9 @@ pub struct Block {
     /// Data rows whose first group equals the previous row's (repeated samples: a sensor
     /// read faster than it updates). Counted within the block.
     pub repeats: u64,
+    /// Rows skipped because their first-group fields were all empty
+    /// ([`TextLayout::skip_empty_rows`]).
+    pub skipped: u64,
 }
 
 /// A bad row, located by its line within the block (0-based).
@@ -707,6 +713,11 @@ struct RowSink<'a, 'o> {
     /// When every wanted column is a number: where each goes, for rows stored whole
     /// ([`RowSink::put_row`]).
     plan: Option<Vec<Planned>>,
+    /// Empty first-group fields of the current row, and the first of them.
+    empty0: usize,
+    first_empty0: usize,
+    /// Rows skipped with all their first-group fields empty.
+    skipped: u64,
 }
 
 impl<'a, 'o> RowSink<'a, 'o> {
@@ -751,6 +762,9 @@ impl<'a, 'o> RowSink<'a, 'o> {
             max_rows: max_rows.min(room),
             prev0: vec![0.0; layout.groups.first().map_or(0, Vec::len)],
             plan,
+            empty0: 0,
+            first_empty0: 0,
+            skipped: 0,
         }
     }
 
@@ -822,9 +836,20 @@ impl<'a, 'o> RowSink<'a, 'o> {
     /// else the error naming it.
     #[cold]
     fn missing(&mut self, d: Dest, index: usize, f: &[u8], line: u64) -> RowResult<()> {
-        if trim(f).is_empty() && self.layout.sparse_groups.contains(&d.g) {
-            self.put(d, f64::NAN);
-            return Ok(());
+        if trim(f).is_empty() {
+            if self.layout.sparse_groups.contains(&d.g) {
+                self.put(d, f64::NAN);
+                return Ok(());
+            }
+            if d.g == 0 && self.layout.skip_empty_rows {
+                // Judged at the row's end: all of the first group empty skips the row.
+                if self.empty0 == 0 {
+                    self.first_empty0 = index;
+                }
+                self.empty0 += 1;
+                self.put(d, f64::NAN);
+                return Ok(());
+            }
         }
         Err(self.bad(index, f, line))
     }
@@ -889,6 +914,15 @@ impl<'a, 'o> RowSink<'a, 'o> {
     fn end_row(&mut self, nfields: usize, line: u64) -> RowResult<()> {
         if nfields != self.layout.ncols {
             return Err(self.ragged(nfields, line));
+        }
+        if self.empty0 > 0 {
+            let all = self.empty0 == self.k0;
+            self.empty0 = 0;
+            if !all {
+                return Err(self.bad(self.first_empty0, b"", line));
+            }
+            self.skipped += 1;
+            return Ok(());
         }
         self.count_row();
         Ok(())
@@ -1287,7 +1321,7 @@ fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> 
         cap,
     );
     let (bytes, lines) = parse_rows(buf, bound.quoted, &mut sink)?;
-    let (rows, repeats) = (sink.rows, sink.repeats);
+    let (rows, repeats, skipped) = (sink.rows, sink.repeats, sink.skipped);
     for (v, g) in values.iter_mut().zip(&layout.groups) {
         v.truncate(rows * g.len());
     }
@@ -1297,6 +1331,7 @@ fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> 
         bytes,
         lines,
         repeats,
+        skipped,
     })
 }
 
@@ -1741,6 +1776,8 @@ pub struct Collected {
     pub bytes: usize,
     /// Rows repeating the previous row's first group.
     pub repeats: u64,
+    /// Rows skipped with all their first-group fields empty.
+    pub skipped: u64,
 }
 
 impl Collected {
@@ -1767,6 +1804,7 @@ impl Collected {
         self.rows += b.rows;
         self.bytes += b.bytes;
         self.repeats += b.repeats;
+        self.skipped += b.skipped;
     }
 }
 
@@ -1890,7 +1928,7 @@ fn read_mapped(
             rest = tail;
         }
     }
-    let results: Vec<std::result::Result<(usize, u64), JobError>> = ranges
+    let results: Vec<std::result::Result<(usize, u64, u64), JobError>> = ranges
         .par_iter()
         .zip(windows.into_par_iter())
         .zip(counts.par_iter())
@@ -1914,7 +1952,7 @@ fn read_mapped(
             }
             progress.rows.fetch_add(sink.rows, Ordering::Relaxed);
             progress.bytes.fetch_add(bytes, Ordering::Relaxed);
-            Ok((sink.rows, sink.repeats))
+            Ok((sink.rows, sink.repeats, sink.skipped))
         })
         .collect();
     // The first error in file order, located by line.
@@ -1932,12 +1970,14 @@ fn read_mapped(
     let k0 = widths.first().copied().unwrap_or(0);
     let mut rows = 0usize;
     let mut repeats = 0u64;
+    let mut skipped = 0u64;
     let mut off = 0usize;
     for (res, c) in results.iter().zip(&counts) {
-        let (n, rep) = match res {
+        let (n, rep, skip) = match res {
             Ok(x) => *x,
-            Err(_) => (0, 0),
+            Err(_) => (0, 0, 0),
         };
+        skipped += skip;
         if n > 0 && rows > 0 && k0 > 0 {
             let first = &values[0][off * k0..(off + 1) * k0];
             if *first == values[0][(rows - 1) * k0..rows * k0] {
@@ -1961,6 +2001,7 @@ fn read_mapped(
         rows,
         bytes: data.len(),
         repeats,
+        skipped,
     })
 }
 
@@ -1989,6 +2030,7 @@ mod tests {
             names: None,
             first_line: 1,
             sparse_groups: Vec::new(),
+            skip_empty_rows: false,
         }
     }
 
@@ -2252,6 +2294,37 @@ mod tests {
         assert_eq!(e, "line 301: column 2 (0-based): is empty (missing value)");
         lay.sparse_groups = vec![3];
         assert!(lay.validate().is_err());
+    }
+
+    #[test]
+    fn rows_of_another_sensor_are_skipped_and_counted() {
+        // t, ax, ay, az, gx: accelerometer and gyroscope rows interleaved.
+        let mut s = String::new();
+        for i in 0..400 {
+            s += &format!("{i},{i},2,3,\n{i}.5,,,,7\n");
+        }
+        let mut lay = layout(
+            Delimiter::Byte(b','),
+            5,
+            vec![vec![num(1), num(2), num(3)], vec![num(0)]],
+        );
+        let e = all(&s, &lay, 64).unwrap_err().to_string();
+        assert_eq!(e, "line 2: column 1 (0-based): is empty (missing value)");
+        lay.skip_empty_rows = true;
+        let quoted = s.replace(",2,3,", ",\"2\",3,");
+        for (text, block) in [(&s, 64), (&s, 1 << 20), (&quoted, 100)] {
+            let c = all(text, &lay, block).unwrap();
+            assert_eq!((c.rows, c.skipped), (400, 400), "block {block}");
+            let x: Vec<f64> = c.values[0].chunks(3).map(|r| r[0]).collect();
+            assert_eq!(x, (0..400).map(f64::from).collect::<Vec<_>>());
+            assert_eq!(c.values[1], x);
+        }
+        let b = parse_block(s.as_bytes(), &lay, None).unwrap();
+        assert_eq!((b.rows, b.skipped), (400, 400));
+        // Some of the accelerometer fields empty is still an error, naming the first.
+        let bad = s.clone() + "400,400,,,\n";
+        let e = all(&bad, &lay, 64).unwrap_err().to_string();
+        assert_eq!(e, "line 801: column 2 (0-based): is empty (missing value)");
     }
 
     #[test]

@@ -29,6 +29,7 @@ fn layout_from(
     first_line: u64,
     t0: Option<(i64, i64)>,
     sparse_groups: Vec<usize>,
+    skip_empty_rows: bool,
 ) -> PyResult<TextLayout> {
     let one_byte = |s: &str, what: &str| -> PyResult<u8> {
         match s.as_bytes() {
@@ -75,6 +76,7 @@ fn layout_from(
         names,
         first_line,
         sparse_groups,
+        skip_empty_rows,
     };
     layout.validate()?;
     Ok(layout)
@@ -149,14 +151,15 @@ fn block_to_py<'py>(py: Python<'py>, b: Block, widths: &[usize]) -> PyResult<Bou
             b.rows.into_pyobject(py)?.into_any(),
             b.bytes.into_pyobject(py)?.into_any(),
             b.repeats.into_pyobject(py)?.into_any(),
+            b.skipped.into_pyobject(py)?.into_any(),
         ],
     )
 }
 
 /// Blocks of a text recording, read and parsed ahead on a background thread.
 ///
-/// Iterating yields ``(arrays, rows, bytes, repeats)`` per block in file order, ``arrays``
-/// holding one float64 array per column group.
+/// Iterating yields ``(arrays, rows, bytes, repeats, skipped)`` per block in file order,
+/// ``arrays`` holding one float64 array per column group.
 #[pyclass(name = "TextBlocks", module = "accelcal._core", frozen)]
 pub struct TextBlocks {
     inner: Mutex<TextStream>,
@@ -166,7 +169,7 @@ pub struct TextBlocks {
 #[pymethods]
 impl TextBlocks {
     #[new]
-    #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, sparse_groups=Vec::new()))]
+    #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, sparse_groups=Vec::new(), skip_empty_rows=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         path: Option<&str>,
@@ -183,6 +186,7 @@ impl TextBlocks {
         stdin: bool,
         block_bytes: usize,
         sparse_groups: Vec<usize>,
+        skip_empty_rows: bool,
     ) -> PyResult<Self> {
         let layout = layout_from(
             delimiter,
@@ -194,6 +198,7 @@ impl TextBlocks {
             first_line,
             t0,
             sparse_groups,
+            skip_empty_rows,
         )?;
         let src = open_source(path, offset, prefix, stdin)?;
         let opts = StreamOptions {
@@ -232,9 +237,9 @@ impl TextBlocks {
 /// Read a whole text recording (blocks parsed in parallel) into one array per column group.
 ///
 /// ``progress(rows, bytes)`` is called about every 0.1 s while reading (it may raise to
-/// stop); Ctrl-C stops the read. Returns ``(arrays, rows, bytes, repeats)``.
+/// stop); Ctrl-C stops the read. Returns ``(arrays, rows, bytes, repeats, skipped)``.
 #[pyfunction]
-#[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None, sparse_groups=Vec::new()))]
+#[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None, sparse_groups=Vec::new(), skip_empty_rows=false))]
 #[allow(clippy::too_many_arguments)]
 pub fn text_read_all<'py>(
     py: Python<'py>,
@@ -254,6 +259,7 @@ pub fn text_read_all<'py>(
     rows_hint: usize,
     progress: Option<Bound<'py, PyAny>>,
     sparse_groups: Vec<usize>,
+    skip_empty_rows: bool,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let layout = layout_from(
         delimiter,
@@ -265,6 +271,7 @@ pub fn text_read_all<'py>(
         first_line,
         t0,
         sparse_groups,
+        skip_empty_rows,
     )?;
     let src = open_source(path, offset, prefix, stdin)?;
     let opts = StreamOptions {
@@ -327,6 +334,7 @@ pub fn text_read_all<'py>(
             collected.rows.into_pyobject(py)?.into_any(),
             collected.bytes.into_pyobject(py)?.into_any(),
             collected.repeats.into_pyobject(py)?.into_any(),
+            collected.skipped.into_pyobject(py)?.into_any(),
         ],
     )
 }
@@ -335,7 +343,7 @@ pub fn text_read_all<'py>(
 ///
 /// Returns ``(arrays, rows, bytes, lines)``.
 #[pyfunction]
-#[pyo3(signature = (data, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, max_rows=None, sparse_groups=Vec::new()))]
+#[pyo3(signature = (data, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, max_rows=None, sparse_groups=Vec::new(), skip_empty_rows=false))]
 #[allow(clippy::too_many_arguments)]
 pub fn text_parse_head<'py>(
     py: Python<'py>,
@@ -350,6 +358,7 @@ pub fn text_parse_head<'py>(
     t0: Option<(i64, i64)>,
     max_rows: Option<usize>,
     sparse_groups: Vec<usize>,
+    skip_empty_rows: bool,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let layout = layout_from(
         delimiter,
@@ -361,6 +370,7 @@ pub fn text_parse_head<'py>(
         first_line,
         t0,
         sparse_groups,
+        skip_empty_rows,
     )?;
     let w = widths(&layout);
     let b = py.detach(|| crate::text::parse_block(data, &layout, max_rows))?;
