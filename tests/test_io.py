@@ -705,3 +705,15 @@ def test_merged_log_rows_of_another_sensor_are_left_out(tmp_path: Path, gyro_fir
                for x in s.notes)
     streamed = np.concatenate([c for c, _ in iter_stream(p, chunk_rows=700)])
     np.testing.assert_array_equal(streamed, s.samples)
+
+
+def test_binary_matlab_files_say_how_to_read_them(tmp_path: Path) -> None:
+    from scipy.io import savemat
+
+    p = tmp_path / "acc.mat"
+    savemat(p, {"acc": np.zeros((100, 4))})
+    with pytest.raises(CalibrationError, match="binary MATLAB.*scipy.io.loadmat"):
+        read_stream(p)
+    # An ASCII .mat (imu_tk's test data, MATLAB's save -ascii) is text.
+    q = write(tmp_path, "".join(f"{i / 100} 1 2 9.8\n" for i in range(300)), "ascii.mat")
+    assert read_stream(q).fs == pytest.approx(100.0)

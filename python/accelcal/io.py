@@ -31,8 +31,9 @@ Layout rules for text files
   the first column of ISO-8601 times) and a temperature column by a name starting with
   ``temp``. A temperature written on some rows only (its other fields empty) holds its last
   value. A row whose accelerometer fields are all empty (a row of another sensor in a merged
-  log) is left out; some of them empty, or an empty time field, is an error. From a time column the sample
-  rate is the average of its regular intervals (those within half the median interval).
+  log) is left out; some of them empty, or an empty time field, is an error. From a time
+  column the sample rate is the average of its regular intervals (those within half the
+  median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
   unless it counts 0, 1, 2, ... (a sample counter); anything else needs ``columns``.
@@ -1173,7 +1174,29 @@ def _kind(p: str) -> str:
         return "npz"
     if low.endswith((".h5", ".hdf5", ".hdf")):
         return "h5"
+    if low.endswith(".mat"):
+        _refuse_binary_mat(p)
     return "text"
+
+
+def _refuse_binary_mat(p: str) -> None:
+    """A binary MATLAB file gets an error that says how to read it (ASCII .mat files, as
+    MATLAB's ``save -ascii`` writes them, are text and read as such)."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(520)
+    except OSError:
+        return  # the text reader names the problem
+    if head.startswith(b"MATLAB 5.0 MAT-file"):
+        what = "a binary MATLAB (v5) file"
+    elif head[512:520] == b"\x89HDF\r\n\x1a\n":
+        what = "a MATLAB v7.3 file (HDF5, its matrices stored transposed)"
+    else:
+        return
+    raise CalibrationError(
+        f"{p}: {what}; export the samples to CSV, or load them (scipy.io.loadmat, or h5py and "
+        "a transpose for v7.3) and pass the (N, 3) array or a DataFrame to read_stream"
+    )
 
 
 def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
