@@ -681,3 +681,26 @@ def test_a_marginal_gap_without_structure_is_not_called_unexplained() -> None:
         else:
             assert unexplained and not called_marginal, r.statements
     assert marginal >= 1
+
+
+def test_bic_weights_use_the_known_noise_when_it_is_trusted() -> None:
+    # 14 dwells and 9 parameters: a 3-parameter effect leaves 2 degrees of freedom, where the
+    # sigma-free BIC n ln(RSS/n) would reward any fit. With the noise model trusted each
+    # weight against "none" is exp((score - d ln n) / 2) (BIC = chi2 + k ln n), so it agrees
+    # with the chi2 test: no candidate that the test rejects gets most of the weight.
+    checked = 0
+    for seed in range(30):
+        s = gap_session((), rng=seed, n_dwells=14)
+        r = diagnose(s.dwells, g=s.g, loo=False)
+        if not r.p_value > 0.02:  # the baseline must be consistent with the noise model
+            continue
+        w_none = r.raw["weight_none"]
+        for e in r.effects:
+            if e["status"] != "testable" or e["test"] != "chi2":
+                continue
+            want = math.exp((e["score"] - e["d"] * math.log(14)) / 2)
+            assert e["bic_weight"] / w_none == pytest.approx(want, rel=1e-9)
+            if e["p_value"] > 0.05:
+                assert e["bic_weight"] < 0.5, (seed, e)
+            checked += 1
+    assert checked >= 50
