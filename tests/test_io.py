@@ -478,6 +478,8 @@ def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
         ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n", ["line 5002", '"oops"']),
         ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,,3,\n",
          ["line 4", 'column "ay": is empty (missing value)']),
+        ("timestamp,sensor,x,y,z\n0.00,ACC,0.1,0.2,9.8\n0.00,GYR,0.01,0.02,0.03\n",
+         ["no numeric data rows", "'GYR' looks like a label", "df[df[label] == value]"]),
     ],
 )
 def test_bad_rows_are_named_by_line(tmp_path: Path, text: str, words: list[str]) -> None:
@@ -717,3 +719,12 @@ def test_binary_matlab_files_say_how_to_read_them(tmp_path: Path) -> None:
     # An ASCII .mat (imu_tk's test data, MATLAB's save -ascii) is text.
     q = write(tmp_path, "".join(f"{i / 100} 1 2 9.8\n" for i in range(300)), "ascii.mat")
     assert read_stream(q).fs == pytest.approx(100.0)
+
+
+def test_rows_left_out_may_lack_a_time_and_kept_rows_may_not(tmp_path: Path) -> None:
+    rows = "".join(f"{i / 100},{i % 3},2,9.8,,\n,,,,0.1,0.2\n" for i in range(500))
+    s = read_stream(write(tmp_path, "t,ax,ay,az,gx,gy\n" + rows))
+    assert len(s) == 500 and s.fs == pytest.approx(100.0)
+    bad = write(tmp_path, "t,ax,ay,az,gx,gy\n" + rows + ",1,2,9.8,,\n", "bad.csv")
+    with pytest.raises(CalibrationError, match='line 1002: column "t": is empty'):
+        read_stream(bad)

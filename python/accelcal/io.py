@@ -31,9 +31,9 @@ Layout rules for text files
   the first column of ISO-8601 times) and a temperature column by a name starting with
   ``temp``. A temperature written on some rows only (its other fields empty) holds its last
   value. A row whose accelerometer fields are all empty (a row of another sensor in a merged
-  log) is left out; some of them empty, or an empty time field, is an error. From a time
-  column the sample rate is the average of its regular intervals (those within half the
-  median interval).
+  log) is left out, whatever else it leaves empty; in a row that is kept, an empty
+  accelerometer or time field is an error. From a time column the sample rate is the average
+  of its regular intervals (those within half the median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
   unless it counts 0, 1, 2, ... (a sample counter); anything else needs ``columns``.
@@ -373,6 +373,20 @@ def _numeric_columns(data: bytes, delim: str | None, ncols: int, lines: int = 20
     return [j for j in range(ncols) if j not in text]
 
 
+def _long_format_hint(line: str) -> str:
+    """For a line of numbers with one or two text fields (``0.01,ACC,0.1,0.2,9.8``): the
+    advice for a log that names each row's sensor in a column, else ``""``."""
+    d = _guess_delim(line)
+    fields = _split(line, d)
+    text = [f for f in fields if f and _field_kind(f, d) is None]
+    if 1 <= len(text) <= 2 and len(fields) - len(text) >= 3:
+        return (f"; {text[0]!r} looks like a label: a log that names each row's sensor in a "
+                "column? Keep the accelerometer rows and drop the label first, e.g. with "
+                "pandas: df = pd.read_csv(path); read_stream(df[df[label] == value].drop("
+                "columns=label))")
+    return ""
+
+
 def _split_datetime_hint(s: str) -> str | None:
     """A message when a line looks like data whose date and time were split by a space."""
     f = s.split()
@@ -571,7 +585,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
             )
         raise CalibrationError(
             f"{path}: no numeric data rows found (the last line is {last[:60]!r}); numbers, "
-            "decimal-comma numbers and ISO-8601 times are read"
+            "decimal-comma numbers and ISO-8601 times are read" + _long_format_hint(last)
         )
     delim, ncols = fmt.delim, len(fmt.fields)
     offset, first_line = lines[first][0], first + 1

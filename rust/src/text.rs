@@ -716,6 +716,9 @@ struct RowSink<'a, 'o> {
     /// Empty first-group fields of the current row, and the first of them.
     empty0: usize,
     first_empty0: usize,
+    /// The first empty field of another group in the current row (an error unless the row
+    /// is skipped).
+    empty_other: Option<usize>,
     /// Rows skipped with all their first-group fields empty.
     skipped: u64,
 }
@@ -764,6 +767,7 @@ impl<'a, 'o> RowSink<'a, 'o> {
             plan,
             empty0: 0,
             first_empty0: 0,
+            empty_other: None,
             skipped: 0,
         }
     }
@@ -841,12 +845,17 @@ impl<'a, 'o> RowSink<'a, 'o> {
                 self.put(d, f64::NAN);
                 return Ok(());
             }
-            if d.g == 0 && self.layout.skip_empty_rows {
-                // Judged at the row's end: all of the first group empty skips the row.
-                if self.empty0 == 0 {
-                    self.first_empty0 = index;
+            if self.layout.skip_empty_rows {
+                // Judged at the row's end: all of the first group empty skips the row (and
+                // whatever else it left empty); otherwise an empty field is an error.
+                if d.g == 0 {
+                    if self.empty0 == 0 {
+                        self.first_empty0 = index;
+                    }
+                    self.empty0 += 1;
+                } else {
+                    self.empty_other.get_or_insert(index);
                 }
-                self.empty0 += 1;
                 self.put(d, f64::NAN);
                 return Ok(());
             }
@@ -915,6 +924,7 @@ impl<'a, 'o> RowSink<'a, 'o> {
         if nfields != self.layout.ncols {
             return Err(self.ragged(nfields, line));
         }
+        let other = self.empty_other.take();
         if self.empty0 > 0 {
             let all = self.empty0 == self.k0;
             self.empty0 = 0;
@@ -923,6 +933,9 @@ impl<'a, 'o> RowSink<'a, 'o> {
             }
             self.skipped += 1;
             return Ok(());
+        }
+        if let Some(index) = other {
+            return Err(self.bad(index, b"", line));
         }
         self.count_row();
         Ok(())
@@ -2325,6 +2338,13 @@ mod tests {
         let bad = s.clone() + "400,400,,,\n";
         let e = all(&bad, &lay, 64).unwrap_err().to_string();
         assert_eq!(e, "line 801: column 2 (0-based): is empty (missing value)");
+        // A skipped row may leave its time empty too; a kept row may not.
+        let no_time: String = (0..400).map(|i| format!("{i},{i},2,3,\n,,,,7\n")).collect();
+        let c = all(&no_time, &lay, 64).unwrap();
+        assert_eq!((c.rows, c.skipped), (400, 400));
+        let bad = s.clone() + ",1,2,3,\n";
+        let e = all(&bad, &lay, 64).unwrap_err().to_string();
+        assert_eq!(e, "line 801: column 0 (0-based): is empty (missing value)");
     }
 
     #[test]
