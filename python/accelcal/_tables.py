@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._core import CalibrationError
-from .io import _guess_delim, _norm, _split, _split_unit
+from .io import _field_kind, _guess_delim, _norm, _split, _split_unit
 
 __all__ = ["Col", "read_table"]
 
@@ -58,11 +58,13 @@ class Col:
 
 
 def _number(field: str, delim: str | None) -> float:
-    if delim != "," and "," in field and "." not in field:
-        field = field.replace(",", ".", 1)
-    if "_" in field:
-        raise ValueError(field)
-    return float(field)
+    """The value of a field the text reader calls a number (decimal comma included)."""
+    kind = _field_kind(field, delim)
+    if kind == "num":
+        return float(field)
+    if kind == "dc":
+        return float(field.replace(",", ".", 1))
+    raise ValueError(field)
 
 
 def read_table(path: str | os.PathLike[str], cols: Sequence[Col], what: str

@@ -200,12 +200,6 @@ def _time_name(name: str) -> tuple[float, bool] | None:
     return None if scale is None else (scale, bool(unit))
 
 
-def _time_scale(name: str) -> float | None:
-    """Factor to seconds when ``name`` is a time column, else None."""
-    found = _time_name(name)
-    return None if found is None else found[0]
-
-
 #: Unix epoch times of the years 2000-2100 in s; a time column without a stated unit whose
 #: first value is such a time in ms, us or ns is read in that unit.
 _EPOCH_S = (9.46e8, 4.11e9)

@@ -411,6 +411,17 @@ impl TestCfg {
     pub fn with_estimate(self, estimate: bool) -> Self {
         TestCfg { estimate, ..self }
     }
+
+    /// Whether the noise model is trusted for a residual sum of squares `rss` on `dof`
+    /// degrees of freedom: the chi2 test (and the known-noise BIC) apply, else the sigma-free
+    /// F test (and BIC).
+    pub fn trusts(&self, rss: f64, dof: f64) -> bool {
+        match self.mode {
+            TestMode::F => false,
+            TestMode::Chi2 => true,
+            TestMode::Auto => chi2_sf(rss, dof) > self.trust_level,
+        }
+    }
 }
 
 fn empty_screen(n: usize, dim: usize) -> Screened {
@@ -537,11 +548,7 @@ pub fn screen(
     out.f = (score / d as f64) / (rem / dof2);
     out.p_f = f_sf(out.f, d as f64, dof2);
     out.p_chi2 = chi2_sf(score, d as f64);
-    out.chi2_used = match cfg.mode {
-        TestMode::F => false,
-        TestMode::Chi2 => true,
-        TestMode::Auto => chi2_sf(rem, dof2) > cfg.trust_level,
-    };
+    out.chi2_used = cfg.trusts(rem, dof2);
     out.p = if out.chi2_used { out.p_chi2 } else { out.p_f };
     if cfg.estimate {
         (out.est, out.std) = projected_estimate(c, &b.q, e, rem / dof2, cfg.sine_tol);
@@ -1544,17 +1551,12 @@ pub fn run<M: GapModel>(
     let (cands, unavailable) = availability(m, effects);
     let bf = base_figures(&ctx, &base, &b0)?;
     let sw = stepwise(&ctx, &rows, base, &cands, opt.max_effects, cfg, true)?;
-    let trusted = match cfg.mode {
-        TestMode::F => false,
-        TestMode::Chi2 => true,
-        TestMode::Auto => chi2_sf(bf.chi2, bf.dof as f64) > cfg.trust_level,
-    };
     let reports = candidate_reports(
         m,
         &sw.first,
         &unavailable,
         (bf.chi2, bf.rank, m.n_rows()),
-        trusted,
+        cfg.trusts(bf.chi2, bf.dof as f64),
     );
     let (ho, g_steps, go) = held_out_and_gate(&ctx, &bf, &cands, &sw, cfg)?;
     let selected = sw.effects[..go.k_acc].to_vec();
