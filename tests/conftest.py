@@ -4,6 +4,7 @@
 ``../shared/data`` beside the checkout (CI lays it out that way): it returns the path, or skips
 the calling test with a clear reason when the folder is absent (a bare source checkout).
 ``dask_client`` is a real two-worker Dask cluster (separate processes) for the session.
+``clipped_session`` simulates a recording whose output saturates at the sensor's range.
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
+from accelcal.sim.field import field_session
 from hypothesis import HealthCheck, settings
 
 # Hypothesis profiles: "default" is fast and derandomised (CI gives the same cases every run);
@@ -61,3 +64,24 @@ def dask_client() -> Iterator[Any]:
                                   dashboard_address=":0") as cluster:
         with distributed.Client(cluster) as client:
             yield client
+
+
+COUNTS_PER_MPS2 = 16384 / 9.80665  # an int16 +-2 g sensor
+
+
+def clipped_session(rail_g: float = 0.95, seed: int = 3) -> tuple[Any, np.ndarray, dict[int, str]]:
+    """A simulated field session in int16 counts whose outputs are clipped at +-rail_g g, and
+    the truth: the dwells whose noise-free value lies beyond the rail on some axis (by more
+    than 6 sample deviations; the seed is chosen so that no dwell lies within 6 of it)."""
+    s = field_session(fs=200, n_dwells=24, dwell_s=30, move_s=4, max_tilt_deg=80, sigma=3e-3,
+                      rng=seed)
+    rail = rail_g * 16384
+    sd = 3e-3 * COUNTS_PER_MPS2
+    x = np.clip(np.round(s.samples * COUNTS_PER_MPS2), -rail, rail).astype(np.int16)
+    truth = {}
+    for k, (a, b) in enumerate(s.bounds):
+        clean = s.samples[a:b].mean(axis=0) * COUNTS_PER_MPS2
+        assert not np.any(np.abs(np.abs(clean) - rail) < 6 * sd), (k, clean)
+        if np.any(np.abs(clean) > rail):
+            truth[k] = "saturated_high" if clean[np.argmax(np.abs(clean))] > 0 else "saturated_low"
+    return s, x, truth

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from accelcal.cli import main
 from click.testing import CliRunner
-from conftest import shared_data
+from conftest import clipped_session, shared_data
 
 XSENS = partial(shared_data, 'xsens-mti', 'xsens_acc.txt')
 MPU = partial(shared_data, 'mpu6050-10poses', 'example_data_calibration.csv')
@@ -384,3 +384,32 @@ def test_dwells_line_counts_the_dropouts(tmp_path: Path) -> None:
     assert m and m.group(2) == "3", out
     # Each dropout splits its dwell: no dwell holds it.
     assert int(m.group(1)) == 8 + 3, out
+
+
+def test_saturated_dwells_are_left_out_and_named(tmp_path: Path) -> None:
+    s, x, truth = clipped_session()
+    p = tmp_path / "clipped.csv"
+    np.savetxt(p, np.column_stack([s.t, x]), delimiter=",", header="t,ax,ay,az",
+               comments="", fmt=["%.4f", "%d", "%d", "%d"])
+    n, k = len(truth), len(s.bounds)
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet")
+    assert code == 0, out
+    assert f"note: {n} of {k} dwells left out, {k - n} used" in out
+    named = {int(m.group(1)) for m in re.finditer(
+        r"dwell (\d+) \(t = [\d.]+ s\): [xyz] = -?1556[45] in all \d+ samples .*saturated", out)}
+    assert named == set(truth)
+    assert f"-> {k} dwells" in out and f"{k - n} dwells, g = 9.80665" in out
+    code, js = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet", "--json")
+    fit = json.loads(js)
+    assert code == 0 and fit["n_dwells"] == k - n and fit["chi2_dof"] < 2
+    # The dwell table keeps every dwell and says which are faulty; calibrating from it leaves
+    # the same ones out.
+    table = tmp_path / "dwells.csv"
+    code, out = run("dwells", str(p), "-o", str(table), "--quiet")
+    assert code == 0 and f"{n} of {k} dwells have an output that did not follow" in out, out
+    code, js2 = run("calibrate", "static", str(table), "--g", "9.80665", "--json")
+    assert code == 0 and json.loads(js2)["vector"] == pytest.approx(fit["vector"], rel=1e-9)
+    code, out = run("diagnose", str(p), "--g", "9.80665", "--quiet")
+    assert code == 0 and f"{n} of {k} dwells left out" in out, out
+    chi2 = float(re.search(r"chi2/dof = ([\d.]+)", out).group(1))  # type: ignore[union-attr]
+    assert chi2 < 3, out

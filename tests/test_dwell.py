@@ -16,7 +16,7 @@ import pytest
 from accelcal import CalibrationError, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from accelcal._reference import allan_inflation_sample_stride, dwell_reference, lsb_reference
 from accelcal.io import read_stream
-from conftest import shared_data
+from conftest import COUNTS_PER_MPS2, clipped_session, shared_data
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -945,3 +945,73 @@ def test_corrupted_checkpoints_are_refused() -> None:
         b.push(piecewise_static(2)[500:])
         with contextlib.suppress(CalibrationError):
             b.finish()
+
+
+# ---- output faults: saturated, stuck and frozen dwells ----------------------------------------
+def test_clipped_dwells_are_found_and_left_out_of_the_fit() -> None:
+    s, x, truth = clipped_session()
+    assert len(truth) == 8
+    d = dwell_stats(x, s.bounds)
+    faults = d.faults()
+    assert {f.dwell: f.kind for f in faults} == truth
+    assert all(abs(f.value) == np.float64(np.int16(0.95 * 16384)) for f in faults)
+    # The library refuses them, naming the dwells and the remedy ...
+    for call in (lambda: accelcal.fit_static(d, s.g),
+                 lambda: accelcal.diagnose(d, g=s.g)):
+        with pytest.raises(CalibrationError, match=r"(?s)saturated \(clipped.*drop_faults"):
+            call()
+    # ... and without them the fit finds the simulator's truth (counts per m/s^2), while with
+    # the clipped dwells its error would be hundreds of its std.
+    kept = d.drop_faults()
+    assert len(kept) == len(d) - len(truth)
+    fit = accelcal.fit_static(kept, s.g)
+    want = s.truth * COUNTS_PER_MPS2  # K and b of counts per m/s^2
+    assert np.all(np.abs(fit.vector - want) < 5 * fit.std)
+    assert fit.chi2_dof < 2
+    bad = accelcal.fit_static(d.mean, s.g, observability="ignore")
+    assert np.max(np.abs(bad.vector - want) / fit.std) > 100
+
+
+def test_detected_dwells_find_the_same_faults_as_given_bounds() -> None:
+    s, x, truth = clipped_session()
+    d = detect_dwells(x, s.fs)
+    # Each detected dwell lies inside a simulated one: map it to that one.
+    owner = [int(np.flatnonzero((s.bounds[:, 0] <= a) & (b <= s.bounds[:, 1]))[0])
+             for a, b in zip(d.start, d.stop, strict=True)]
+    assert {owner[f.dwell]: f.kind for f in d.faults()} == truth
+
+
+def test_stuck_and_frozen_outputs() -> None:
+    rng = np.random.default_rng(2)
+    poses = rng.normal(size=(9, 3))
+    poses /= np.linalg.norm(poses, axis=1, keepdims=True)
+    x = np.repeat(poses, 600, axis=0) + 0.01 * rng.standard_normal((9 * 600, 3))
+    bounds = np.array([[i * 600 + 50, i * 600 + 550] for i in range(9)])
+    stuck = 0.5 * (poses[:, 1].max() + poses[:, 1].min())  # not an extreme of y
+    x[bounds[2, 0]:bounds[2, 1], 1] = stuck  # a stuck channel
+    x[bounds[5, 0]:bounds[5, 1]] = x[bounds[5, 0]]  # the logger repeated one row
+    x[bounds[7, 0]:bounds[7, 0] + 29, 0] = 0.3  # 29 equal rows: too few to tell ...
+    bounds[7, 1] = bounds[7, 0] + 29  # ... in a dwell of 29 rows
+    d = dwell_stats(x, bounds)
+    assert [(f.dwell, f.axis, f.kind) for f in d.faults()] == [
+        (2, 1, "stuck"), (5, None, "frozen")]
+    assert d.faults()[0].value == stuck
+    np.testing.assert_allclose(d.faults()[0].typical_var, 1e-4, rtol=0.3)
+    assert list(d.drop_faults().start) == [b for k, b in enumerate(bounds[:, 0]) if k not in (2, 5)]
+    with pytest.raises(CalibrationError, match=r"(?s)stuck channel.*frozen output"):
+        accelcal.fit_static(d, 1.0, check_g=False)
+
+
+def test_quantised_low_noise_and_real_recordings_have_no_faults(real: Any) -> None:
+    # Outputs quantised with a noise well below one LSB: dwells near a whole count are
+    # constant, those near a half count flip between two; that is the sensor's resolution,
+    # not a fault.
+    rng = np.random.default_rng(7)
+    bounds = np.array([[i * 400, i * 400 + 300] for i in range(24)])
+    lvl = np.round(rng.normal(0, 50, (24, 3))) + rng.choice([0.0, 0.5], (24, 3))
+    x = np.round(np.repeat(lvl, 400, axis=0) + rng.normal(0, 0.12, (24 * 400, 3)))
+    d = dwell_stats(x.astype(np.int16), bounds)
+    assert np.sum(d.var == 0) >= 20 and np.sum(d.var > 0.2) >= 20
+    assert d.faults() == [] and d.drop_faults() is d
+    for name, (_, dr) in real.items():
+        assert dr.faults() == [], name

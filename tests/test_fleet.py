@@ -21,6 +21,7 @@ from accelcal.fleet import read_fleet_table
 from accelcal.sim.fleet import CORRUPTIONS, fleet_recordings, random_calibration
 from accelcal.sim.static import G0
 from click.testing import CliRunner
+from conftest import clipped_session
 
 N = 32
 OUTLIER = 3  # this sensor's sx is 12 fleet-sigma high
@@ -481,3 +482,19 @@ def test_progress_bar_counts_recordings_when_asked(fleet: dict[str, Any],
     assert "calibrating" in err and "/3 [" in err  # a bar over the 3 recordings
     ac.calibrate_many(paths, g=G0, workers=1, progress=False)
     assert capsys.readouterr().err == ""
+
+
+def test_saturated_dwells_are_left_out_as_the_single_file_command_does(tmp_path: Path) -> None:
+    s, x, truth = clipped_session()
+    p = tmp_path / "clipped.csv"
+    np.savetxt(p, np.column_stack([s.t, x]), delimiter=",", header="t,ax,ay,az",
+               comments="", fmt=["%.4f", "%d", "%d", "%d"])
+    df = ac.calibrate_many([str(p)], g=s.g, diagnose=True, workers=1, progress=False)
+    row = df.loc[0]
+    assert row["status"] == "ok" and row["n_dwells"] == len(s.bounds) - len(truth)
+    assert re.match(rf"{len(truth)} of {len(s.bounds)} dwells left out: their output did not "
+                    r"follow the sensor \(dwell \d+ .*saturated", row["message"]), row["message"]
+    d = ac.detect_dwells(x, s.fs).drop_faults()
+    fit = ac.fit_static(d, s.g)
+    np.testing.assert_allclose(row[PARAMS].to_numpy(float), fit.vector, rtol=1e-12)
+    assert row["gap_error"] == "" and row["gap_chi2_dof"] < 3

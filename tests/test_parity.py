@@ -5,6 +5,7 @@
 |---------------------------------------|---------------------------------------------------|
 | per-dwell statistics (`dwell_stats`)  | `dwell_reference` (mean, var, half means, Allan)  |
 | output resolution (`DwellSet.lsb`)    | `lsb_reference`                                   |
+| output faults (`DwellSet.faults`)     | `output_faults_reference` (peak-to-peak of samples)|
 | static ML fit (`fit_static`)          | `static_fit_reference` (SciPy LM, numerical Jac.) |
 | static ML residuals (`StaticFit`)     | `static_ml_residuals_reference`                   |
 | batch static fit (`fit_static_batch`) | `static_fit_reference`, session by session        |
@@ -64,6 +65,33 @@ def test_dwell_statistics(layout: str, dtype: Any) -> None:
         assert got.lsb is None
     else:
         np.testing.assert_allclose(got.lsb, lsb, rtol=1e-12)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int16, np.int32])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_output_faults(layout: str, dtype: Any, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    k, m = 16, 300
+    lvl = rng.uniform(-3000, 3000, (k, 3))
+    x = np.repeat(lvl, m, axis=0) + rng.normal(0, 4, (k * m, 3))
+    x = x.astype(dtype) if np.dtype(dtype).kind == "f" else np.round(x).astype(dtype)
+    # Clip some dwells at the axis extremes, freeze one, make one axis stuck, and one short
+    # constant dwell.
+    bounds = np.array([[i * m + 20, (i + 1) * m - 20] for i in range(k)])
+    for i in rng.choice(k, 4, replace=False):
+        a = rng.integers(3)
+        x[bounds[i, 0]:bounds[i, 1], a] = x[:, a].max() if rng.random() < 0.5 else x[:, a].min()
+    i = rng.integers(k)
+    x[bounds[i, 0]:bounds[i, 1]] = x[bounds[i, 0]]
+    i = rng.integers(k)
+    x[bounds[i, 0]:bounds[i, 1], 2] = x[bounds[i, 0], 2]
+    bounds[-1, 1] = bounds[-1, 0] + 25
+    x[bounds[-1, 0]:bounds[-1, 1], 0] = x[bounds[-1, 0], 0]
+    got = ac.dwell_stats(_layout(x, layout), bounds)
+    want = ref.output_faults_reference(x, bounds, got.lsb)
+    assert len(want) >= 3
+    assert [(f.dwell, f.axis, f.kind) for f in got.faults()] == want
 
 
 @pytest.mark.parametrize("model", ["lower", "upper", "diag"])

@@ -40,6 +40,34 @@ class DwellTableRaw:
     @property
     def threshold(self) -> NDArray[np.float64] | None: ...
 
+@final
+class OutputFault:
+    """One dwell whose output did not follow the sensor (``accelcal.DwellSet.faults``)."""
+
+    @property
+    def dwell(self) -> int:
+        """Index of the dwell."""
+    @property
+    def axis(self) -> int | None:
+        """The constant axis (0, 1, 2), or None when every axis is constant (frozen)."""
+    @property
+    def kind(self) -> Literal["saturated_high", "saturated_low", "stuck", "frozen"]:
+        """What the constant output means."""
+    @property
+    def value(self) -> float:
+        """The constant value, input units (x for a frozen dwell)."""
+    @property
+    def typical_var(self) -> float:
+        """The axis's typical dwell variance, squared input units."""
+
+def dwell_output_faults(
+    mean: NDArray[np.float64],
+    var: NDArray[np.float64],
+    count: NDArray[np.int64],
+    lsb: tuple[float, float, float] | list[float] | None = None,
+) -> list[OutputFault]:
+    """Dwells with a saturated, stuck or frozen output (exactly constant axes)."""
+
 def dwell_stats_raw(
     samples: NDArray[Any],
     bounds: NDArray[np.int64],
@@ -1109,7 +1137,9 @@ __all__ = [
     "centrifuge_unit_check_raw",
     "DwellTableRaw",
     "detect_dwells_raw",
+    "dwell_output_faults",
     "dwell_stats_raw",
+    "OutputFault",
     "RawDwellAccumulator",
     "GapCandidate",
     "GapGroup",

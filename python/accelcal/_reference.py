@@ -235,3 +235,40 @@ def lsb_reference(x: ArrayLike, cap: int = 4096) -> NDArray[np.float64] | None:
             return None
         out[ax] = q
     return out
+
+
+def output_faults_reference(
+    x: ArrayLike, bounds: ArrayLike, lsb: ArrayLike | None = None, min_samples: int = 30
+) -> list[tuple[int, int | None, str]]:
+    """Slow reference of ``DwellSet.faults`` from the samples themselves: an axis is constant
+    in a dwell when its samples' peak-to-peak range is zero (not from the variance); it counts
+    where the dwell holds ``min_samples`` or more and the axis's upper-quartile dwell variance
+    (nearest rank, over dwells of ``min_samples`` or more) is positive and at least
+    ``lsb^2``. Constant on every axis: "frozen"; on one axis at the largest / smallest
+    dwell mean of that axis: "saturated_high" / "saturated_low"; otherwise "stuck"."""
+    a = np.asarray(x, dtype=np.float64)
+    b = np.asarray(bounds, dtype=np.int64)
+    segs = [a[s:e] for s, e in b]
+    mean = np.array([s.mean(axis=0) for s in segs])
+    var = np.array([s.var(axis=0, ddof=1) for s in segs])
+    flat = np.array([np.ptp(s, axis=0) == 0 for s in segs])
+    n = np.array([len(s) for s in segs])
+    long = n >= min_samples
+    ok = np.zeros(3, dtype=bool)
+    for ax in range(3):
+        v = np.sort(var[long, ax])
+        if v.size:
+            q = v[-(-3 * (v.size - 1) // 4)]
+            floor = 0.0 if lsb is None else float(np.asarray(lsb)[ax]) ** 2
+            ok[ax] = q > 0 and q >= floor
+    out: list[tuple[int, int | None, str]] = []
+    for k in np.flatnonzero(long):
+        if flat[k].all():
+            if ok.any():
+                out.append((int(k), None, "frozen"))
+            continue
+        for j in np.flatnonzero(flat[k] & ok):
+            kind = ("saturated_high" if mean[k, j] == mean[:, j].max() else
+                    "saturated_low" if mean[k, j] == mean[:, j].min() else "stuck")
+            out.append((int(k), int(j), kind))
+    return out

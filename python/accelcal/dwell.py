@@ -229,6 +229,38 @@ class DwellSet:
             return None
         return np.sqrt(self.var / self.count[:, None])
 
+    # ---- output faults ---------------------------------------------------------------------
+    def faults(self) -> list[_core.OutputFault]:
+        """Dwells whose output did not follow the sensor: an axis exactly constant over a
+        dwell of at least 30 samples, where that axis's noise is otherwise resolvable (its
+        typical dwell std at least one LSB, or positive when the output is not quantised:
+        below one LSB, constant dwells are the sensor's resolution, not a fault).
+
+        ``kind`` says what the constancy means: ``"saturated_high"`` / ``"saturated_low"``
+        (the value is the largest / smallest of that axis in the session: the output is
+        clipped at the sensor's range, and the dwell mean is the rail, not the pose),
+        ``"stuck"`` (constant elsewhere) or ``"frozen"`` (all three axes constant: the
+        logger repeated one sample). Empty without ``var`` and ``count``. Dwells clipped
+        only in part (a pose within a few noise deviations of the rail) are not found.
+        """
+        if self.var is None or self.count is None:
+            return []
+        return _core.dwell_output_faults(
+            self.mean, self.var, self.count, None if self.lsb is None else self.lsb.tolist()
+        )
+
+    def drop_faults(self) -> DwellSet:
+        """The dwells without those :meth:`faults` lists (all of them when there are none)."""
+        bad = {f.dwell for f in self.faults()}
+        if not bad:
+            return self
+        if len(bad) == len(self):
+            raise CalibrationError(
+                "every dwell has a constant (saturated, stuck or frozen) output: "
+                + fault_text(self, self.faults(), limit=3)
+            )
+        return self[np.array([k not in bad for k in range(len(self))])]
+
     # ---- CSV round trip -------------------------------------------------------------------
     def to_csv(self, path: str | os.PathLike[str] | None = None) -> str:
         """Write the table as CSV (atomically when ``path`` is given); return the text.
@@ -395,6 +427,48 @@ class DwellSet:
         if self.dropped:
             lines.append(f"{self.dropped} row(s) with NaN or inf left out of every dwell")
         return "\n".join(lines)
+
+
+_FAULT_MEANING = {
+    "saturated_high": "the largest {a} of the session: saturated (clipped at the sensor's range)",
+    "saturated_low": "the smallest {a} of the session: saturated (clipped at the sensor's range)",
+    "stuck": "not an extreme of {a}: a stuck channel",
+}
+
+
+def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None = 8) -> str:
+    """The faults in words, one line per dwell axis (``limit`` lines, then a count)."""
+    unit = f" {d.units}" if d.units else ""
+    lines = []
+    for f in faults[: len(faults) if limit is None else limit]:
+        n = "" if d.count is None else f"all {int(d.count[f.dwell])} samples"
+        when = "" if d.t is None else f" (t = {d.t[f.dwell]:.1f} s)"
+        std = f"{math.sqrt(f.typical_var):.3g}{unit}"
+        if f.axis is None:
+            lines.append(f"dwell {f.dwell}{when}: x, y and z each the same in {n or 'every sample'}"
+                         f" (elsewhere their std within a dwell is up to {std}): a frozen output, "
+                         "the logger repeated one sample while the sensor sent nothing new")
+            continue
+        a = _AXES[f.axis]
+        lines.append(f"dwell {f.dwell}{when}: {a} = {f.value:.10g}{unit} in {n or 'every sample'} "
+                     f"(elsewhere its std within a dwell is {std}), "
+                     + _FAULT_MEANING[f.kind].format(a=a))
+    if limit is not None and len(faults) > limit:
+        lines.append(f"... {len(faults) - limit} more")
+    return "\n  ".join(lines)
+
+
+def check_faults(d: DwellSet, what: str) -> None:
+    """Refuse dwells whose output did not follow the sensor, naming them and the remedy."""
+    faults = d.faults()
+    if faults:
+        k = len({f.dwell for f in faults})
+        raise CalibrationError(
+            f"{k} of {len(d)} dwells have an output that did not follow the sensor, so their "
+            f"means are not the pose's:\n  {fault_text(d, faults)}\n"
+            f"Leave them out: {what}(d.drop_faults(), ...) (the command line does so and says "
+            "which), or repeat those poses within the sensor's range."
+        )
 
 
 def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str) -> DwellSet:

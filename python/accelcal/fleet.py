@@ -141,7 +141,7 @@ def _structure_verdict(rep: Any) -> str:
 def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
     from . import io as _aio
-    from .dwell import DetectorSettings, detect_dwells
+    from .dwell import DetectorSettings, detect_dwells, fault_text
     from .static import WeakDesignWarning, fit_static
 
     names = _names(job.cli)
@@ -178,6 +178,13 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         return None
     settings = DetectorSettings(**job.detector)
     d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=settings)
+    faults = d.faults()
+    fault_note = []
+    if faults:  # left out, as the single-file commands do
+        n_bad = len({f.dwell for f in faults})
+        fault_note = [f"{n_bad} of {len(d)} dwells left out: their output did not follow the "
+                      f"sensor ({fault_text(d, faults, limit=2)})".replace("\n  ", "; ")]
+        d = d.drop_faults()
     k = len(d)
     row["n_dwells"] = k
     with warnings.catch_warnings(record=True) as caught:
@@ -200,7 +207,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     temp = None if d.temperature is None else float(np.mean(d.temperature))
     row["temperature"] = math.nan if temp is None else temp
     row["status"] = "weak" if (fit.weak or weak) else "ok"
-    row["message"] = "; ".join(weak + notes)
+    row["message"] = "; ".join(fault_note + weak + notes)
     meta = {"source": job.path, "n_dwells": k}
     kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
     if job.date:
@@ -210,7 +217,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         from .gap import diagnose
 
         try:
-            rep = diagnose(st.samples, g=job.g, fs=st.fs, t=st.t, temperature=st.temperature)
+            rep = diagnose(d, g=job.g)
             row.update(
                 gap_best=str(rep.best), gap_selected=",".join(rep.selected),
                 gap_structure=_structure_verdict(rep), gap_chi2_dof=float(rep.chi2_per_dof),

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
 from ._validate import number, real_array, samples_array
-from .dwell import DwellSet, detect_dwells, dwell_stats
+from .dwell import DwellSet, check_faults, detect_dwells, dwell_stats
 
 __all__ = [
     "CENTRIFUGE_EFFECTS",
@@ -939,6 +939,7 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
         if t is not None or temperature is not None:
             raise CalibrationError("t= and temperature= are per-sample arrays for a raw stream; "
                                    "a DwellSet carries its own t and temperature")
+        check_faults(data, "diagnose")
         return data, None, data.fs
     if fs is None:
         raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
@@ -950,6 +951,7 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
         if "no static dwell" not in str(exc):
             raise
         raise DegenerateDataError(f"no static dwells detected in the stream: {exc}") from None
+    check_faults(d, "diagnose")
     return d, samples, fs_v
 
 

@@ -37,7 +37,7 @@ from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
 from ._triad_model import TriadModel
 from ._validate import number, real_array
-from .dwell import DwellSet
+from .dwell import DwellSet, check_faults
 
 __all__ = [
     "PARAM_NAMES",
@@ -137,6 +137,7 @@ def _inputs(
         if len(sh) != 2 or sh[1] != 3:
             raise CalibrationError(f"dwell means must have shape (k, 3); got {sh}")
     elif isinstance(data, DwellSet):
+        check_faults(data, "fit_static")
         means, units = data.mean, data.units
     else:
         means, units = _as_means(data, "dwell means"), ""

@@ -22,8 +22,10 @@ use ndarray::ArrayView2;
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
+mod faults;
 mod simd;
 mod state;
+pub use faults::{output_faults, FaultKind, OutputFault, FAULT_MIN_SAMPLES};
 pub use state::STATE_VERSION;
 
 /// Independent accumulation lanes.

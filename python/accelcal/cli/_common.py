@@ -210,6 +210,21 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
     return d, rec
 
 
+def without_faults(d: Any) -> tuple[Any, list[str]]:
+    """The dwells whose output followed the sensor, and a note naming those left out
+    (saturated, stuck or frozen axes: ``DwellSet.faults``)."""
+    from ..dwell import fault_text
+
+    faults = d.faults()
+    if not faults:
+        return d, []
+    k = len({f.dwell for f in faults})
+    kept = d.drop_faults()
+    return kept, [f"{k} of {len(d)} dwells left out, {len(kept)} used: their output did not "
+                  f"follow the sensor, so their means are not the pose's:\n  "
+                  f"{fault_text(d, faults)}"]
+
+
 def source_line(file: str, rec: Any, d: Any) -> str:
     """``FILE: N samples at F Hz -> k dwells`` (or the dwell table's size)."""
     if rec is None:

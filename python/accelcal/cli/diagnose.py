@@ -20,6 +20,7 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
+    without_faults,
 )
 
 
@@ -69,17 +70,28 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     if no_allan and (rec is None or file == "-"):
         extra.append("the Allan noise model needs the samples (not in a dwell table, and "
                      "standard input cannot be read twice): white noise (variance / count) used")
+    run: tuple[Any, ...] = (d,)
     if no_allan and rec is not None and file != "-":
-        # This build's dwell accumulator does not give the within-dwell Allan statistics:
-        # the Allan noise model needs the samples themselves, so read them (whole file).
+        # A dwell table without the within-dwell Allan statistics: the Allan noise model
+        # needs the samples themselves, so read them (whole file) and detect the dwells again.
+        from ..dwell import detect_dwells
         from ..io import read_stream
 
         st = read_stream(file, columns=columns, fs=fs, time_column=time_column,
                          progress=False if quiet else None)
+        if st.fs is None:
+            raise CalibrationError(f"{file}: the sample rate is unknown; give --fs (Hz)")
+        d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature)
         run = (st.samples,)
         kw.update(fs=st.fs, t=st.t, temperature=st.temperature)
-    else:
+    src = source_line(file, rec, d)
+    d, fault_notes = without_faults(d)
+    if fault_notes:
+        # The dwells that are left (the samples would bring the faulty ones back).
+        extra += fault_notes
         run = (d,)
+        for key in ("fs", "t", "temperature"):
+            kw.pop(key, None)
     try:
         rep = run_diagnose(*run, g=gv, preset=preset, **kw)
     except CalibrationError as e:
@@ -93,7 +105,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         emit_json(out)
         return
     echo_notes(notes)
-    click.echo(f"{source_line(file, rec, d)}, g = {gv:.6f} m/s^2")
+    click.echo(f"{src}, g = {gv:.6f} m/s^2")
     click.echo(rep.summary())
     if plot_path:
         click.echo(f"wrote {plot_path}")

@@ -23,6 +23,7 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
+    without_faults,
 )
 from .fleet import fleet_options, is_fleet_run, run_static_fleet
 
@@ -107,6 +108,9 @@ def calibrate_static(
             "--k, --window and --min-dwell")
     if dwells_out:
         d.to_csv(dwells_out)
+    src = source_line(file, rec, d)
+    d, fault_notes = without_faults(d)
+    read_notes += fault_notes
     notes: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -143,7 +147,7 @@ def calibrate_static(
         emit_json(out)
         return
     echo_notes(read_notes)
-    click.echo(source_line(file, rec, d))
+    click.echo(src)
     click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
     click.echo(_cli(fit.summary()))
     for n in notes:

@@ -115,6 +115,13 @@ def dwells(
             raise CalibrationError(f"{rec.path}: no data rows")
         d = acc.finish()
     notes = [] if rec is None else rec.notes()
+    faults = d.faults()
+    if faults:
+        from ..dwell import fault_text
+
+        notes.append(f"{len({f.dwell for f in faults})} of {len(d)} dwells have an output that "
+                     "did not follow the sensor (calibrate and diagnose leave them out):\n  "
+                     + fault_text(d, faults))
     if output:
         d.to_csv(output)
     if plot_path:

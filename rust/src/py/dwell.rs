@@ -10,9 +10,9 @@ use pyo3::types::{PyBytes, PyTuple};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Mutex, PoisonError};
 
-use super::convert::{bounds_from, opt_slice, with_view, SampleArray};
+use super::convert::{bounds_from, opt_slice, rows3, with_view, SampleArray};
 use super::CalibrationError;
-use crate::dwell::{DetectorSettings, DwellAccumulator, DwellTable};
+use crate::dwell::{output_faults, DetectorSettings, DwellAccumulator, DwellTable, OutputFault};
 
 /// Run `f`, turning a panic (a bug) into a CalibrationError instead of letting it cross the
 /// boundary.
@@ -297,4 +297,51 @@ impl RawDwellAccumulator {
         let state = slf.get().to_state(py);
         PyTuple::new(py, [ctor, PyTuple::new(py, [state])?.into_any()])
     }
+}
+
+/// One dwell whose output did not follow the sensor (`accelcal.DwellSet.faults`).
+#[pyclass(name = "OutputFault", module = "accelcal._core", frozen, get_all)]
+pub struct PyOutputFault {
+    /// Index of the dwell.
+    dwell: usize,
+    /// The constant axis (0, 1, 2), or None when every axis is constant (frozen).
+    axis: Option<usize>,
+    /// "saturated_high", "saturated_low", "stuck" or "frozen".
+    kind: &'static str,
+    /// The constant value, input units (x for a frozen dwell).
+    value: f64,
+    /// The axis's typical dwell variance, squared input units.
+    typical_var: f64,
+}
+
+impl From<&OutputFault> for PyOutputFault {
+    fn from(f: &OutputFault) -> Self {
+        PyOutputFault {
+            dwell: f.dwell,
+            axis: f.axis,
+            kind: f.kind.name(),
+            value: f.value,
+            typical_var: f.typical_var,
+        }
+    }
+}
+
+/// Dwells with a saturated, stuck or frozen output (exactly constant axes).
+#[pyfunction]
+#[pyo3(signature = (mean, var, count, lsb=None))]
+pub fn dwell_output_faults(
+    mean: PyReadonlyArray2<'_, f64>,
+    var: PyReadonlyArray2<'_, f64>,
+    count: PyReadonlyArray1<'_, i64>,
+    lsb: Option<[f64; 3]>,
+) -> PyResult<Vec<PyOutputFault>> {
+    let m = rows3(&mean, "mean")?;
+    let v = rows3(&var, "var")?;
+    let n: Vec<u64> = count
+        .as_array()
+        .iter()
+        .map(|&c| u64::try_from(c).unwrap_or(0))
+        .collect();
+    let f = guarded("DwellSet.faults", || output_faults(&m, &v, &n, lsb))?;
+    Ok(f.iter().map(PyOutputFault::from).collect())
 }

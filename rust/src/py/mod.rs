@@ -41,7 +41,10 @@ mod _core {
         centrifuge_correct_raw, centrifuge_fit_raw, centrifuge_unit_check_raw, PyCentrifugeFit,
     };
     #[pymodule_export]
-    use super::dwell::{detect_dwells_raw, dwell_stats_raw, DwellTableRaw, RawDwellAccumulator};
+    use super::dwell::{
+        detect_dwells_raw, dwell_output_faults, dwell_stats_raw, DwellTableRaw, PyOutputFault,
+        RawDwellAccumulator,
+    };
     #[pymodule_export]
     use super::gap::{
         gap_diagnose_centrifuge, gap_diagnose_gradiometer, gap_diagnose_static, gap_dictionary,
