@@ -1015,3 +1015,35 @@ def test_quantised_low_noise_and_real_recordings_have_no_faults(real: Any) -> No
     assert d.faults() == [] and d.drop_faults() is d
     for name, (_, dr) in real.items():
         assert dr.faults() == [], name
+
+
+def test_a_pose_just_inside_the_rail_is_partly_saturated() -> None:
+    s, x, truth = clipped_session()
+    rail = np.int16(0.95 * 16384)
+    sd = 3e-3 * COUNTS_PER_MPS2
+    # Move an unclipped dwell's x to 0.5 and another's to 5 noise std inside the rail (the same
+    # pose otherwise), clipped as the sensor would.
+    free = [k for k in range(len(s.bounds)) if k not in truth]
+    clean = s.samples * COUNTS_PER_MPS2
+    for k, delta in zip(free[:2], (0.5, 5.0), strict=True):
+        a, b = s.bounds[k]
+        xs = clean[a:b, 0] - clean[a:b, 0].mean() + rail - delta * sd
+        x[a:b, 0] = np.clip(np.round(xs), -rail, rail)
+    d = dwell_stats(x, s.bounds)
+    faults = {f.dwell: f for f in d.faults()}
+    assert {k: f.kind for k, f in faults.items()} == {
+        **truth, free[0]: "partly_saturated_high"}
+    f = faults[free[0]]
+    assert f.axis == 0 and f.rail == rail and rail - f.value < sd
+    with pytest.raises(CalibrationError, match=r"0\.\d+ noise std \(5\.\d+\) inside the rail "
+                       r"15564 at which x saturates in dwell\(s\) \d+.*part of its samples"):
+        accelcal.fit_static(d, s.g)
+
+
+def test_raw_samples_with_saturated_dwells_get_the_detect_then_drop_advice() -> None:
+    s, x, truth = clipped_session()
+    with pytest.raises(CalibrationError, match=r"detect_dwells\(samples, fs\)\.drop_faults\(\); "
+                       r"diagnose\(d, \.\.\.\)"):
+        accelcal.diagnose(x, g=s.g, fs=s.fs)
+    rep = accelcal.diagnose(detect_dwells(x, s.fs).drop_faults(), g=s.g)
+    assert rep.chi2_per_dof < 3

@@ -79,9 +79,16 @@ def test_output_faults(layout: str, dtype: Any, seed: int) -> None:
     # Clip some dwells at the axis extremes, freeze one, make one axis stuck, and one short
     # constant dwell.
     bounds = np.array([[i * m + 20, (i + 1) * m - 20] for i in range(k)])
-    for i in rng.choice(k, 4, replace=False):
+    clip, part = rng.choice(k, 2, replace=False), rng.choice(k, 2, replace=False)
+    for i, i2 in zip(clip, part, strict=True):
+        # Dwell i saturates on axis a; dwell i2 sits 0.3 noise std inside that rail, its
+        # samples beyond the rail clipped (partly saturated), unless i2 is i itself.
         a = rng.integers(3)
-        x[bounds[i, 0]:bounds[i, 1], a] = x[:, a].max() if rng.random() < 0.5 else x[:, a].min()
+        rail = x[:, a].max() if rng.random() < 0.5 else x[:, a].min()
+        x[bounds[i, 0]:bounds[i, 1], a] = rail
+        if i2 != i:
+            near = rail - np.sign(rail - x[:, a].mean()) * 1.2 + rng.normal(0, 4, m - 40)
+            x[bounds[i2, 0]:bounds[i2, 1], a] = np.clip(near, x[:, a].min(), x[:, a].max())
     i = rng.integers(k)
     x[bounds[i, 0]:bounds[i, 1]] = x[bounds[i, 0]]
     i = rng.integers(k)
@@ -90,7 +97,7 @@ def test_output_faults(layout: str, dtype: Any, seed: int) -> None:
     x[bounds[-1, 0]:bounds[-1, 1], 0] = x[bounds[-1, 0], 0]
     got = ac.dwell_stats(_layout(x, layout), bounds)
     want = ref.output_faults_reference(x, bounds, got.lsb)
-    assert len(want) >= 3
+    assert len(want) >= 3 and any(w[2].startswith("partly") for w in want)
     assert [(f.dwell, f.axis, f.kind) for f in got.faults()] == want
 
 

@@ -51,11 +51,23 @@ class OutputFault:
     def axis(self) -> int | None:
         """The constant axis (0, 1, 2), or None when every axis is constant (frozen)."""
     @property
-    def kind(self) -> Literal["saturated_high", "saturated_low", "stuck", "frozen"]:
-        """What the constant output means."""
+    def kind(
+        self,
+    ) -> Literal[
+        "saturated_high",
+        "saturated_low",
+        "partly_saturated_high",
+        "partly_saturated_low",
+        "stuck",
+        "frozen",
+    ]:
+        """What the fault is."""
     @property
     def value(self) -> float:
-        """The constant value, input units (x for a frozen dwell)."""
+        """The dwell mean on that axis, input units (the constant value; x when frozen)."""
+    @property
+    def rail(self) -> float:
+        """The value at which the axis saturates (NaN for stuck and frozen dwells)."""
     @property
     def typical_var(self) -> float:
         """The axis's typical dwell variance, squared input units."""
@@ -66,7 +78,8 @@ def dwell_output_faults(
     count: NDArray[np.int64],
     lsb: tuple[float, float, float] | list[float] | None = None,
 ) -> list[OutputFault]:
-    """Dwells with a saturated, stuck or frozen output (exactly constant axes)."""
+    """Dwells with a saturated, stuck or frozen output (exactly constant axes), and those
+    within reach of a rail that a saturated dwell has shown."""
 
 def dwell_stats_raw(
     samples: NDArray[Any],

@@ -238,14 +238,20 @@ def lsb_reference(x: ArrayLike, cap: int = 4096) -> NDArray[np.float64] | None:
 
 
 def output_faults_reference(
-    x: ArrayLike, bounds: ArrayLike, lsb: ArrayLike | None = None, min_samples: int = 30
+    x: ArrayLike, bounds: ArrayLike, lsb: ArrayLike | None = None, min_samples: int = 30,
+    bias_se: float = 0.5,
 ) -> list[tuple[int, int | None, str]]:
     """Slow reference of ``DwellSet.faults`` from the samples themselves: an axis is constant
     in a dwell when its samples' peak-to-peak range is zero (not from the variance); it counts
     where the dwell holds ``min_samples`` or more and the axis's upper-quartile dwell variance
     (nearest rank, over dwells of ``min_samples`` or more) is positive and at least
     ``lsb^2``. Constant on every axis: "frozen"; on one axis at the largest / smallest
-    dwell mean of that axis: "saturated_high" / "saturated_low"; otherwise "stuck"."""
+    dwell mean of that axis: "saturated_high" / "saturated_low"; otherwise "stuck". A dwell
+    whose mean on an axis with a saturated value r lies delta typical std inside r is
+    "partly_saturated_high" / "_low" when the clipped tail's mean excess, the standard normal
+    pdf(delta) - delta sf(delta) (scipy.stats.norm), exceeds ``bias_se / sqrt(n)``."""
+    from scipy.stats import norm
+
     a = np.asarray(x, dtype=np.float64)
     b = np.asarray(bounds, dtype=np.int64)
     segs = [a[s:e] for s, e in b]
@@ -254,13 +260,15 @@ def output_faults_reference(
     flat = np.array([np.ptp(s, axis=0) == 0 for s in segs])
     n = np.array([len(s) for s in segs])
     long = n >= min_samples
-    ok = np.zeros(3, dtype=bool)
+    typical = np.full(3, np.nan)
     for ax in range(3):
         v = np.sort(var[long, ax])
         if v.size:
             q = v[-(-3 * (v.size - 1) // 4)]
             floor = 0.0 if lsb is None else float(np.asarray(lsb)[ax]) ** 2
-            ok[ax] = q > 0 and q >= floor
+            if q > 0 and q >= floor:
+                typical[ax] = q
+    ok = np.isfinite(typical)
     out: list[tuple[int, int | None, str]] = []
     for k in np.flatnonzero(long):
         if flat[k].all():
@@ -271,4 +279,17 @@ def output_faults_reference(
             kind = ("saturated_high" if mean[k, j] == mean[:, j].max() else
                     "saturated_low" if mean[k, j] == mean[:, j].min() else "stuck")
             out.append((int(k), int(j), kind))
-    return out
+    constant = list(out)
+    for j in np.flatnonzero(ok):
+        s = np.sqrt(typical[j])
+        for side, sign in (("high", 1.0), ("low", -1.0)):
+            rails = [mean[k, j] for k, ax, kind in out if ax == j and kind == f"saturated_{side}"]
+            if not rails:
+                continue
+            for k in np.flatnonzero(long):
+                if any(kk == k and ax in (None, j) for kk, ax, _ in constant):
+                    continue
+                d = max(sign * (rails[0] - mean[k, j]) / s, 0.0)
+                if (norm.pdf(d) - d * norm.sf(d)) * np.sqrt(n[k]) > bias_se:
+                    out.append((int(k), int(j), f"partly_saturated_{side}"))
+    return sorted(out, key=lambda f: (f[0], -1 if f[1] is None else f[1]))

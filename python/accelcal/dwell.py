@@ -240,8 +240,12 @@ class DwellSet:
         (the value is the largest / smallest of that axis in the session: the output is
         clipped at the sensor's range, and the dwell mean is the rail, not the pose),
         ``"stuck"`` (constant elsewhere) or ``"frozen"`` (all three axes constant: the
-        logger repeated one sample). Empty without ``var`` and ``count``. Dwells clipped
-        only in part (a pose within a few noise deviations of the rail) are not found.
+        logger repeated one sample). Once a saturated dwell shows an axis's rail, a dwell whose
+        mean lies within reach of it is ``"partly_saturated_high"`` / ``"_low"``: with the
+        axis's typical noise std s, a pose delta s inside the rail reads a mean short by
+        s (phi(delta) - delta Q(delta)), flagged above half the mean's standard error. Empty
+        without ``var`` and ``count``. In a session where no dwell is saturated throughout, a
+        partly clipped dwell is not found (that needs each dwell's sample extremes).
         """
         if self.var is None or self.count is None:
             return []
@@ -436,6 +440,17 @@ _FAULT_MEANING = {
 }
 
 
+def _partly_text(f: _core.OutputFault, a: str, std: float, unit: str,
+                 faults: list[_core.OutputFault]) -> str:
+    rail_dwells = [g.dwell for g in faults if g.axis == f.axis and g.rail == f.rail
+                   and g.kind.startswith("saturated")]
+    delta = abs(f.rail - f.value) / std
+    return (f"{a} mean {f.value:.10g}{unit}, {delta:.2g} noise std ({std:.3g}{unit}) inside the "
+            f"rail {f.rail:.10g} at which {a} saturates in dwell(s) "
+            f"{', '.join(map(str, rail_dwells[:5]))}{' ...' if len(rail_dwells) > 5 else ''}: "
+            "part of its samples are clipped, so its mean is biased")
+
+
 def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None = 8) -> str:
     """The faults in words, one line per dwell axis (``limit`` lines, then a count)."""
     unit = f" {d.units}" if d.units else ""
@@ -450,6 +465,10 @@ def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None =
                          "the logger repeated one sample while the sensor sent nothing new")
             continue
         a = _AXES[f.axis]
+        if f.kind.startswith("partly"):
+            lines.append(f"dwell {f.dwell}{when}: "
+                         + _partly_text(f, a, math.sqrt(f.typical_var), unit, faults))
+            continue
         lines.append(f"dwell {f.dwell}{when}: {a} = {f.value:.10g}{unit} in {n or 'every sample'} "
                      f"(elsewhere its std within a dwell is {std}), "
                      + _FAULT_MEANING[f.kind].format(a=a))
@@ -458,16 +477,19 @@ def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None =
     return "\n  ".join(lines)
 
 
-def check_faults(d: DwellSet, what: str) -> None:
-    """Refuse dwells whose output did not follow the sensor, naming them and the remedy."""
+def check_faults(d: DwellSet, what: str, detected: bool = False) -> None:
+    """Refuse dwells whose output did not follow the sensor, naming them and the remedy
+    (``detected``: the caller detected ``d`` from raw samples it was given)."""
     faults = d.faults()
     if faults:
         k = len({f.dwell for f in faults})
+        how = (f"{what}(d.drop_faults(), ...)" if not detected else
+               f"d = accelcal.detect_dwells(samples, fs).drop_faults(); {what}(d, ...)")
         raise CalibrationError(
             f"{k} of {len(d)} dwells have an output that did not follow the sensor, so their "
             f"means are not the pose's:\n  {fault_text(d, faults)}\n"
-            f"Leave them out: {what}(d.drop_faults(), ...) (the command line does so and says "
-            "which), or repeat those poses within the sensor's range."
+            f"Leave them out: {how} (the command line does so and says which), or repeat "
+            "those poses within the sensor's range."
         )
 
 

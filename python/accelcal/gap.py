@@ -951,7 +951,7 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
         if "no static dwell" not in str(exc):
             raise
         raise DegenerateDataError(f"no static dwells detected in the stream: {exc}") from None
-    check_faults(d, "diagnose")
+    check_faults(d, "diagnose", detected=True)
     return d, samples, fs_v
 
 

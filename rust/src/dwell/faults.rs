@@ -17,14 +17,24 @@
 //! constant axis elsewhere is *stuck*. All three axes constant is a *frozen* output (the
 //! logger wrote the last sample again while the sensor sent nothing).
 //!
-//! Partly clipped dwells (a pose within a few noise deviations of the rail: some samples at
-//! the rail, the others below) are not found: that needs each dwell's sample extremes, which
-//! the dwell pass does not keep.
+//! Once a saturated dwell has shown where an axis's rail is, a dwell whose mean on that axis
+//! lies within reach of the rail is *partly saturated*: with Gaussian noise of the axis's
+//! typical std `s`, a pose `delta s` inside the rail reads a mean short by
+//! `s (phi(delta) - delta Q(delta))` (the clipped tail), and the dwell is flagged when that
+//! exceeds [`PARTLY_CLIPPED_SE`] of its mean's standard error `s / sqrt(n)`. A session in
+//! which no dwell is saturated throughout gives no rail, and a partly clipped dwell there is
+//! not found (that would need each dwell's sample extremes, which the dwell pass does not
+//! keep).
 
 use crate::error::{invalid, Result};
+use crate::gap::special::chi2_sf;
 
 /// Fewest samples in a dwell for a constant axis to count as a fault.
 pub const FAULT_MIN_SAMPLES: u64 = 30;
+
+/// A dwell near a rail is partly saturated when the clipping would shift its mean by more than
+/// this many standard errors of the mean.
+pub const PARTLY_CLIPPED_SE: f64 = 0.5;
 
 /// What kind of fault a dwell shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -37,6 +47,10 @@ pub enum FaultKind {
     Stuck,
     /// All three axes constant.
     Frozen,
+    /// One axis's mean within reach of the largest value at which that axis saturates.
+    PartlySaturatedHigh,
+    /// One axis's mean within reach of the smallest value at which that axis saturates.
+    PartlySaturatedLow,
 }
 
 impl FaultKind {
@@ -47,6 +61,8 @@ impl FaultKind {
             FaultKind::SaturatedLow => "saturated_low",
             FaultKind::Stuck => "stuck",
             FaultKind::Frozen => "frozen",
+            FaultKind::PartlySaturatedHigh => "partly_saturated_high",
+            FaultKind::PartlySaturatedLow => "partly_saturated_low",
         }
     }
 }
@@ -60,8 +76,10 @@ pub struct OutputFault {
     pub axis: Option<usize>,
     /// What it is.
     pub kind: FaultKind,
-    /// The constant value (the dwell mean on that axis; the x value for a frozen dwell).
+    /// The dwell mean on that axis (the constant value; x for a frozen dwell).
     pub value: f64,
+    /// The rail: the value at which the axis saturates (NaN for stuck and frozen dwells).
+    pub rail: f64,
     /// The axis's typical dwell variance (upper quartile; the largest axis's for a frozen
     /// dwell), squared input units.
     pub typical_var: f64,
@@ -110,6 +128,20 @@ pub fn output_faults(
         ));
     }
     let typical = resolvable(var, count, lsb);
+    let mut out = constant_axes(mean, var, count, lsb, &typical);
+    out.extend(partly_saturated(mean, count, &typical, &out));
+    out.sort_by_key(|f| (f.dwell, f.axis.map_or(0, |a| a + 1)));
+    Ok(out)
+}
+
+/// The dwells with exactly constant axes: saturated, stuck or frozen.
+fn constant_axes(
+    mean: &[[f64; 3]],
+    var: &[[f64; 3]],
+    count: &[u64],
+    lsb: Option<[f64; 3]>,
+    typical: &[Option<f64>; 3],
+) -> Vec<OutputFault> {
     let ext: [(f64, f64); 3] = std::array::from_fn(|a| {
         mean.iter()
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), m| {
@@ -133,6 +165,7 @@ pub fn output_faults(
                     axis: None,
                     kind: FaultKind::Frozen,
                     value: m[0],
+                    rail: f64::NAN,
                     typical_var: q,
                 });
             }
@@ -145,23 +178,89 @@ pub fn output_faults(
             }
             let (lo, hi) = ext[a];
             let tol = lsb.map_or(0.0, |l| 0.5 * l[a]).max(1e-12 * m[a].abs());
-            let kind = if m[a] >= hi - tol {
-                FaultKind::SaturatedHigh
+            let (kind, rail) = if m[a] >= hi - tol {
+                (FaultKind::SaturatedHigh, m[a])
             } else if m[a] <= lo + tol {
-                FaultKind::SaturatedLow
+                (FaultKind::SaturatedLow, m[a])
             } else {
-                FaultKind::Stuck
+                (FaultKind::Stuck, f64::NAN)
             };
             out.push(OutputFault {
                 dwell: k,
                 axis: Some(a),
                 kind,
                 value: m[a],
+                rail,
                 typical_var: q,
             });
         }
     }
-    Ok(out)
+    out
+}
+
+/// Mean shortfall, in noise standard deviations, of a Gaussian sample clipped `delta`
+/// deviations above its mean: `phi(delta) - delta Q(delta)` (the clipped tail's mean excess).
+pub fn clip_shortfall(delta: f64) -> f64 {
+    let d = delta.max(0.0);
+    let q = 0.5 * chi2_sf(d * d, 1.0);
+    (-0.5 * d * d).exp() / (2.0 * std::f64::consts::PI).sqrt() - d * q
+}
+
+/// The dwells within reach of a rail that a saturated dwell has shown (module docs).
+fn partly_saturated(
+    mean: &[[f64; 3]],
+    count: &[u64],
+    typical: &[Option<f64>; 3],
+    found: &[OutputFault],
+) -> Vec<OutputFault> {
+    let mut out = Vec::new();
+    for a in 0..3 {
+        let Some(q) = typical[a] else { continue };
+        let s = q.sqrt();
+        let flagged = |k: usize| {
+            found
+                .iter()
+                .any(|f| f.dwell == k && f.axis.is_none_or(|x| x == a))
+        };
+        let rail = |kind| {
+            found
+                .iter()
+                .find(|f| f.axis == Some(a) && f.kind == kind)
+                .map(|f| f.rail)
+        };
+        let sides = [
+            (
+                rail(FaultKind::SaturatedHigh),
+                1.0,
+                FaultKind::PartlySaturatedHigh,
+            ),
+            (
+                rail(FaultKind::SaturatedLow),
+                -1.0,
+                FaultKind::PartlySaturatedLow,
+            ),
+        ];
+        for (r, sign, kind) in sides {
+            let Some(r) = r else { continue };
+            for (k, (m, &n)) in mean.iter().zip(count).enumerate() {
+                if n < FAULT_MIN_SAMPLES || flagged(k) {
+                    continue;
+                }
+                let delta = sign * (r - m[a]) / s;
+                if clip_shortfall(delta) * (n as f64).sqrt() > PARTLY_CLIPPED_SE {
+                    out.push(OutputFault {
+                        dwell: k,
+                        axis: Some(a),
+                        kind,
+                        value: m[a],
+                        rail: r,
+                        typical_var: q,
+                    });
+                }
+            }
+        }
+    }
+    out
 }
 
 #[cfg(test)]
@@ -262,5 +361,57 @@ mod tests {
         assert_eq!(f.len(), 1);
         assert_eq!((f[0].dwell, f[0].kind), (3, FaultKind::SaturatedHigh));
         assert!(output_faults(&m, &v, &n[..3], None).is_err());
+    }
+
+    #[test]
+    fn clip_shortfall_is_the_mean_excess_of_the_tail() {
+        // E[max(X - d, 0)] for X ~ N(0, 1), by the midpoint rule over the tail.
+        for d in [0.0, 0.5, 1.0, 2.0, 3.5] {
+            let h = 1e-4;
+            let num: f64 = (0..200_000)
+                .map(|i| {
+                    let x = d + (i as f64 + 0.5) * h;
+                    (x - d) * (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt() * h
+                })
+                .sum();
+            assert!((clip_shortfall(d) - num).abs() < 1e-9, "{d}: {num}");
+        }
+        assert_eq!(clip_shortfall(-1.0), clip_shortfall(0.0));
+    }
+
+    #[test]
+    fn dwells_within_reach_of_a_rail_are_partly_saturated() {
+        let (mut m, mut v, n) = session(24);
+        // x saturates at 900 (dwells beyond it read 900 exactly); then put three dwells at
+        // 0.5, 2 and 4 noise std (2) inside that rail.
+        for (r, s) in m.iter_mut().zip(v.iter_mut()) {
+            if r[0] > 900.0 {
+                r[0] = 900.0;
+                s[0] = 0.0;
+            }
+        }
+        let free: Vec<usize> = (0..24)
+            .filter(|&k| v[k][0] > 0.0 && m[k][0] > 0.0)
+            .collect();
+        for (&k, d) in free.iter().zip([0.5, 2.0, 4.0]) {
+            m[k][0] = 900.0 - 2.0 * d;
+        }
+        let f = output_faults(&m, &v, &n, None).unwrap();
+        let partly: Vec<&OutputFault> = f
+            .iter()
+            .filter(|x| x.kind == FaultKind::PartlySaturatedHigh)
+            .collect();
+        // With 6000 samples the bias threshold is 0.5 / sqrt(6000) = 0.0065 std: delta 0.5 and
+        // 2 are flagged (shortfall 0.198 and 0.0085), delta 4 is not (7e-6).
+        assert_eq!(
+            partly.iter().map(|x| x.dwell).collect::<Vec<_>>(),
+            free[..2].to_vec()
+        );
+        assert!(partly.iter().all(|x| x.rail == 900.0 && x.axis == Some(0)));
+        // Without a saturated dwell there is no rail, and nothing is partly saturated.
+        let (m2, v2, n2) = session(24);
+        assert!(output_faults(&m2, &v2, &n2, None).unwrap().is_empty());
+        // The faults come in dwell order.
+        assert!(f.windows(2).all(|w| w[0].dwell <= w[1].dwell));
     }
 }

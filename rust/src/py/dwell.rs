@@ -306,10 +306,13 @@ pub struct PyOutputFault {
     dwell: usize,
     /// The constant axis (0, 1, 2), or None when every axis is constant (frozen).
     axis: Option<usize>,
-    /// "saturated_high", "saturated_low", "stuck" or "frozen".
+    /// "saturated_high", "saturated_low", "partly_saturated_high", "partly_saturated_low",
+    /// "stuck" or "frozen".
     kind: &'static str,
-    /// The constant value, input units (x for a frozen dwell).
+    /// The dwell mean on that axis, input units (the constant value; x for a frozen dwell).
     value: f64,
+    /// The value at which the axis saturates (NaN for stuck and frozen dwells).
+    rail: f64,
     /// The axis's typical dwell variance, squared input units.
     typical_var: f64,
 }
@@ -321,12 +324,14 @@ impl From<&OutputFault> for PyOutputFault {
             axis: f.axis,
             kind: f.kind.name(),
             value: f.value,
+            rail: f.rail,
             typical_var: f.typical_var,
         }
     }
 }
 
-/// Dwells with a saturated, stuck or frozen output (exactly constant axes).
+/// Dwells with a saturated, stuck or frozen output (exactly constant axes), and those within
+/// reach of a rail that a saturated dwell has shown.
 #[pyfunction]
 #[pyo3(signature = (mean, var, count, lsb=None))]
 pub fn dwell_output_faults(
