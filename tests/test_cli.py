@@ -409,6 +409,10 @@ def test_saturated_dwells_are_left_out_and_named(tmp_path: Path) -> None:
     assert code == 0 and f"{n} of {k} dwells have an output that did not follow" in out, out
     code, js2 = run("calibrate", "static", str(table), "--g", "9.80665", "--json")
     assert code == 0 and json.loads(js2)["vector"] == pytest.approx(fit["vector"], rel=1e-9)
+    code, js3 = run("dwells", str(p), "--quiet", "--json")
+    listed = json.loads(js3)["faults"]
+    assert code == 0 and {f["dwell"]: f["kind"] for f in listed} == truth
+    assert all(f["value"] == f["rail"] and abs(f["rail"]) == 15564 for f in listed)
     code, out = run("diagnose", str(p), "--g", "9.80665", "--quiet")
     assert code == 0 and f"{n} of {k} dwells left out" in out, out
     chi2 = float(re.search(r"chi2/dof = ([\d.]+)", out).group(1))  # type: ignore[union-attr]

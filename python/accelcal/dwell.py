@@ -387,7 +387,7 @@ class DwellSet:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict of lists (a NaN inflation becomes None)."""
+        """JSON-ready dict of lists (a NaN inflation becomes None), with the :meth:`faults`."""
         out: dict[str, Any] = {"n_dwells": len(self), "units": self.units, "fs_hz": self.fs}
         for name in (
             "start", "stop", "count", "t", "temperature", "mean", "var", "half_mean",
@@ -401,6 +401,11 @@ class DwellSet:
             else [[None if math.isnan(x) else x for x in r] for r in self.inflation.tolist()]
         )
         out["dropped"] = self.dropped
+        out["faults"] = [
+            {"dwell": f.dwell, "axis": None if f.axis is None else _AXES[f.axis],
+             "kind": f.kind, "value": f.value, "rail": None if math.isnan(f.rail) else f.rail}
+            for f in self.faults()
+        ]
         return out
 
     def table(self, max_rows: int | None = None) -> str:
