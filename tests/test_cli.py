@@ -382,8 +382,8 @@ def test_dwells_line_counts_the_dropouts(tmp_path: Path) -> None:
     assert code == 0, out
     m = re.search(r"-> (\d+) dwells \((\d+) rows with NaN or inf samples: dropouts", out)
     assert m and m.group(2) == "3", out
-    # Each dropout splits its dwell: no dwell holds it.
-    assert int(m.group(1)) == 8 + 3, out
+    # The dropouts are left out of the statistics: no dwell is split around them.
+    assert int(m.group(1)) == 8, out
 
 
 def test_saturated_dwells_are_left_out_and_named(tmp_path: Path) -> None:

@@ -455,12 +455,20 @@ def test_detection_drops_non_finite_rows_and_counts_them(case: str) -> None:
     x, _ = BAD_SAMPLES[case]  # row 100 holds the bad value
     d = detect_dwells(x, 100.0)
     assert d.dropped == 1
-    assert d.start is not None and d.stop is not None
-    assert not np.any((d.start <= 100) & (100 < d.stop))
+    assert d.start is not None and d.stop is not None and d.count is not None
     assert np.all(np.isfinite(d.mean)) and d.var is not None and np.all(np.isfinite(d.var))
+    # The detector saw the stream without row 100: the same dwells, their bounds counted in
+    # the stream as given (a dwell that spans row 100 holds one row fewer than its bounds).
+    e = detect_dwells(np.delete(x, 100, axis=0), 100.0)
+    shift = (e.start >= 100).astype(np.int64)
+    assert np.array_equal(d.start, e.start + shift)
+    assert np.array_equal(d.stop, e.stop + (e.stop > 100))
+    assert np.array_equal(d.count, e.count) and np.array_equal(d.mean, e.mean)
+    assert np.array_equal(d.stop - d.start - d.count, ((d.start <= 100) & (100 < d.stop)) * 1)
     acc = DwellAccumulator(fs=100.0)
     push_in_chunks(acc, [50, 100, 101, 1000], x)
     assert_same(acc.finish(), d)
+    assert acc.position == x.shape[0]
 
 
 @pytest.mark.parametrize("case", sorted(set(BAD_SAMPLES) - {"nan", "inf"}))
@@ -929,7 +937,7 @@ def test_corrupted_checkpoints_are_refused() -> None:
     with clear_error("not a dwellaccumulator state"):
         DwellAccumulator.from_state(b"junk")
     with clear_error("version"):
-        DwellAccumulator.from_state(state.replace(b'"version": 1', b'"version": 9'))
+        DwellAccumulator.from_state(state.replace(b'"version": 2', b'"version": 9'))
     head = state.index(b"\n", state.index(b"{")) + 1
     for cut in [head, head + 5, head + 13, len(state) - 1, *rng.integers(head, len(state), 20)]:
         with clear_error("state"):
@@ -1047,3 +1055,59 @@ def test_raw_samples_with_saturated_dwells_get_the_detect_then_drop_advice() -> 
         accelcal.diagnose(x, g=s.g, fs=s.fs)
     rep = accelcal.diagnose(detect_dwells(x, s.fs).drop_faults(), g=s.g)
     assert rep.chi2_per_dof < 3
+
+
+def test_a_logger_writing_nan_for_every_missed_sample_still_gives_whole_dwells() -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=20.0, move_s=4.0, rng=6)
+    x, t = s.samples.copy(), s.t
+    rng = np.random.default_rng(1)
+    gone = np.sort(rng.choice(x.shape[0], x.shape[0] // 50, replace=False))  # 2 % of rows
+    x[gone] = np.nan
+    x[gone[::7], 1] = 0.0  # some rows with one NaN axis only
+    d = detect_dwells(x, s.fs, t=t)
+    assert d.dropped == gone.size
+    assert len(d) == len(s.bounds)  # one dwell per pose, none split
+    assert d.start is not None and d.stop is not None and d.count is not None
+    for k, (a, b) in enumerate(zip(d.start, d.stop, strict=True)):
+        seg = x[a:b]
+        seg = seg[np.isfinite(seg).all(axis=1)]
+        assert d.count[k] == seg.shape[0]
+        np.testing.assert_allclose(d.mean[k], seg.mean(axis=0), rtol=1e-12)
+        assert np.all((s.bounds[:, 0] <= a) & (b <= s.bounds[:, 1]) | (b <= s.bounds[:, 0])
+                      | (s.bounds[:, 1] <= a))  # inside one pose
+    # The mid times come from the stream's own rows.
+    np.testing.assert_allclose(d.t, 0.5 * (t[d.start] + t[d.stop - 1]))
+    # Streaming, with a checkpoint in the middle, gives the same table.
+    acc = DwellAccumulator(fs=s.fs)
+    cut = x.shape[0] // 2 + 3
+    acc.push(x[:cut], t=t[:cut])
+    acc = DwellAccumulator.from_state(acc.to_state())
+    acc.push(x[cut:], t=t[cut:])
+    assert_same(acc.finish(), d)
+    # The fit from these dwells is what the fit of the clean stream's dwells gives.
+    clean = detect_dwells(s.samples, s.fs, t=t)
+    assert len(clean) == len(d)
+    f1 = accelcal.fit_static(d, s.g, observability="ignore")
+    f2 = accelcal.fit_static(clean, s.g, observability="ignore")
+    assert np.all(np.abs(f1.vector - f2.vector) < 0.5 * f2.std)
+
+
+def test_version_1_checkpoints_are_still_read() -> None:
+    acc = DwellAccumulator(fs=100.0)
+    x = piecewise_static(3)
+    acc.push(x[:500])
+    state = acc.to_state()
+    head, raw = state[len(b"ACCELCAL-DWELL-ACCUMULATOR\n"):].split(b"\n", 1)
+    meta = json.loads(head)
+    del meta["dropouts"]
+    meta["version"] = 1
+    old = b"ACCELCAL-DWELL-ACCUMULATOR\n" + json.dumps(meta).encode() + b"\n" + raw
+    back = DwellAccumulator.from_state(old)
+    back.push(x[500:])
+    acc.push(x[500:])
+    assert_same(back.finish(), acc.finish())
+    bad = state.replace(b'"dropouts": []', b'"dropouts": [[1, -2]]')
+    with pytest.raises(CalibrationError, match="bad header"):
+        DwellAccumulator.from_state(bad)

@@ -3,18 +3,22 @@
 Non-finite samples (NaN or inf)
     With explicit bounds (:func:`dwell_stats`, ``DwellAccumulator(bounds)``) a dwell that
     contains one is refused: the error names the dwell, how many rows are bad and the first
-    one. Automatic detection (:func:`detect_dwells`, ``DwellAccumulator(fs=...)``) treats them
-    as dropouts: the detector blocks that hold them are never static, so no dwell contains
-    them, and ``DwellSet.dropped`` counts the rows left out. Time and temperature channels must
-    be finite everywhere.
+    one. Automatic detection (:func:`detect_dwells`, ``DwellAccumulator(fs=...)``) treats a
+    row with one as a dropout: the row is left out of the stream the detector and the dwell
+    statistics see (a dropout inside a dwell neither splits it nor enters its mean; a logger
+    that writes NaN for each missed sample still gives whole dwells), ``DwellSet.start`` and
+    ``stop`` still count the rows of the stream as given, and ``DwellSet.dropped`` counts the
+    rows left out. The time and temperature channels of the rows kept must be finite.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
 import os
+import threading
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -37,7 +41,7 @@ __all__ = [
 _CSV_MAGIC = "# accelcal dwell table v1"
 _AXES = ("x", "y", "z")
 _STATE_MAGIC = b"ACCELCAL-DWELL-ACCUMULATOR\n"
-_STATE_VERSION = 1
+_STATE_VERSION = 2  # 2: the dropout runs of detection (1 is read too)
 
 
 def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> NDArray[np.float64]:
@@ -103,7 +107,8 @@ class DwellSet:
         the values are not quantised. Estimated from a bounded subsample (at most 4096 rows at
         a power-of-two stride) of the whole stream.
     dropped : int
-        Rows with NaN or inf that no dwell contains (automatic detection; 0 otherwise).
+        Rows with NaN or inf left out of the dwell statistics (automatic detection; 0
+        otherwise). A dwell's ``[start, stop)`` may span some: ``count`` is the rows used.
     threshold, noise_std : (3,) float64 or None
         For detected dwells: the per-axis variance threshold and the noise std the detector
         estimated from the data (input units).
@@ -434,7 +439,7 @@ class DwellSet:
         if max_rows is not None and k > max_rows:
             lines.append(f"... {k - max_rows} more")
         if self.dropped:
-            lines.append(f"{self.dropped} row(s) with NaN or inf left out of every dwell")
+            lines.append(f"{self.dropped} row(s) with NaN or inf left out of the statistics")
         return "\n".join(lines)
 
 
@@ -498,10 +503,60 @@ def check_faults(d: DwellSet, what: str, detected: bool = False) -> None:
         )
 
 
-def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str) -> DwellSet:
+class _Dropouts:
+    """Rows with NaN or inf that automatic detection leaves out of the statistics, as runs
+    ``[first row, length]`` of the stream as given, so that the dwell bounds can refer to it.
+
+    The detector then sees the stream without those rows: a dropout inside a dwell no longer
+    splits it (nor, when dropouts are frequent, leaves no window free of them)."""
+
+    def __init__(self, runs: list[list[int]] | None = None) -> None:
+        self.runs: list[list[int]] = runs if runs is not None else []
+        self.n = sum(r[1] for r in self.runs)
+
+    @staticmethod
+    def finite_rows(a: NDArray[Any]) -> NDArray[np.bool_] | None:
+        """Mask of the rows without NaN or inf, or None when every row is finite (checked
+        with one sum when the values are floats; integers are always finite)."""
+        if a.dtype.kind != "f" or math.isfinite(float(np.add.reduce(a, axis=None))):
+            return None
+        ok = np.isfinite(a).all(axis=1)
+        return None if bool(ok.all()) else ok
+
+    def add(self, ok: NDArray[np.bool_], offset: int) -> None:
+        """Record the rows of a chunk starting at stream row ``offset`` that ``ok`` leaves out."""
+        bad = np.flatnonzero(~ok) + offset
+        if bad.size == 0:
+            return
+        cut = np.flatnonzero(np.diff(bad) != 1) + 1
+        for r in np.split(bad, cut):
+            first, length = int(r[0]), int(r.size)
+            if self.runs and sum(self.runs[-1]) == first:
+                self.runs[-1][1] += length
+            else:
+                self.runs.append([first, length])
+            self.n += length
+
+    def to_stream(self, i: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Row indices of the compacted stream (without the dropouts) as rows of the stream."""
+        if not self.runs:
+            return i
+        r = np.asarray(self.runs, dtype=np.int64)
+        lengths = np.cumsum(r[:, 1])
+        at = r[:, 0] - (lengths - r[:, 1])  # where each run sits in the compacted stream
+        k = np.searchsorted(at, i, side="right")
+        return i + np.where(k > 0, lengths[np.maximum(k - 1, 0)], 0)
+
+
+def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
+              drops: _Dropouts | None = None) -> DwellSet:
+    start, stop, dropped = d.start, d.stop, int(d.dropped)
+    if drops is not None and drops.n:
+        start, stop = drops.to_stream(start), drops.to_stream(stop - 1) + 1
+        dropped += drops.n
     t: NDArray[Any] | None = d.t
     if t is None and fs is not None:
-        t = 0.5 * (d.start + d.stop - 1) / fs
+        t = 0.5 * (start + stop - 1) / fs
     nv = d.noise_var
     return DwellSet(
         d.mean,
@@ -509,8 +564,8 @@ def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str) -> DwellSet:
         d.count,
         t,
         d.temperature,
-        start=d.start,
-        stop=d.stop,
+        start=start,
+        stop=stop,
         fs=fs,
         threshold=d.threshold,
         noise_std=None if nv is None else np.sqrt(nv),
@@ -518,7 +573,7 @@ def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str) -> DwellSet:
         half_mean=d.half_mean,
         inflation=d.inflation,
         lsb=d.lsb,
-        dropped=d.dropped,
+        dropped=dropped,
     )
 
 
@@ -650,8 +705,9 @@ def detect_dwells(
     itself (a low quantile of all window variances, i.e. the quiet parts of the recording).
     Static runs are trimmed by ``trim_s`` at both ends (settling) and kept when at least
     ``min_dwell_s`` long. The threshold used is returned as ``DwellSet.threshold`` (variance,
-    squared input units) with the noise estimate ``DwellSet.noise_std``. NaN or inf samples are
-    dropouts that no dwell contains (counted in ``DwellSet.dropped``).
+    squared input units) with the noise estimate ``DwellSet.noise_std``. Rows with NaN or inf
+    samples are dropouts, left out of the stream the detector and the statistics see (counted
+    in ``DwellSet.dropped``; a dwell may span them).
 
     Keyword arguments override :class:`DetectorSettings` fields (``window_s=0.5`` ...).
 
@@ -664,14 +720,23 @@ def detect_dwells(
     fsv = positive(fs, "fs", " (Hz)")
     st = DetectorSettings.merged(settings, kw)
     n = s.shape[0]
-    d = _core.detect_dwells_raw(
-        s,
-        fsv,
-        t=channel(t, n, "t"),
-        temperature=channel(temperature, n, "temperature"),
-        **st.raw_kwargs(),
-    )
-    return _from_raw(d, fsv, units)
+    tc, temp = channel(t, n, "t"), channel(temperature, n, "temperature")
+    drops = _Dropouts()
+    if s.dtype.kind == "f":
+        # The core counts the rows with NaN or inf as it goes (no extra pass over clean data);
+        # when there are some, detect again on the stream without them.
+        with contextlib.suppress(CalibrationError):
+            d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
+            if d.dropped == 0:
+                return _from_raw(d, fsv, units)
+        ok = _Dropouts.finite_rows(s)
+        if ok is not None:
+            drops.add(ok, 0)
+            s = s[ok]
+            tc = None if tc is None else tc[ok]
+            temp = None if temp is None else temp[ok]
+    d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
+    return _from_raw(d, fsv, units, drops)
 
 
 class DwellAccumulator:
@@ -703,6 +768,8 @@ class DwellAccumulator:
         if not isinstance(units, str):
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
+        self._drops = _Dropouts()
+        self._lock = threading.Lock()
         if bounds is not None:
             self._raw = _core.RawDwellAccumulator(bounds=bounds_array(bounds))
             self.mode = "bounds"
@@ -715,8 +782,9 @@ class DwellAccumulator:
 
     @property
     def position(self) -> int:
-        """Samples pushed so far."""
-        return int(self._raw.position)
+        """Samples pushed so far (with the dropouts that detection leaves out)."""
+        with self._lock:
+            return int(self._raw.position) + self._drops.n
 
     def push(
         self,
@@ -735,7 +803,18 @@ class DwellAccumulator:
                 return
             c = samples_array(a, "chunk")
             m = c.shape[0]
-            self._raw.push(c, channel(t, m, "t"), channel(temperature, m, "temperature"))
+            tc, temp = channel(t, m, "t"), channel(temperature, m, "temperature")
+            ok = _Dropouts.finite_rows(c) if self.mode == "detect" else None
+            if ok is not None:  # dropouts: left out of the stream the detector sees
+                c = c[ok]
+                tc = None if tc is None else tc[ok]
+                temp = None if temp is None else temp[ok]
+            with self._lock:
+                at = int(self._raw.position) + self._drops.n
+                if c.shape[0]:
+                    self._raw.push(c, tc, temp)
+                if ok is not None:
+                    self._drops.add(ok, at)
         except CalibrationError as e:
             raise type(e)(
                 f"{e} (nothing of this chunk was kept: the accumulator still holds the "
@@ -744,15 +823,19 @@ class DwellAccumulator:
 
     def finish(self) -> DwellSet:
         """The dwell table of everything pushed so far (the accumulator stays usable)."""
-        return _from_raw(self._raw.finish(), self.fs, self.units)
+        with self._lock:
+            raw, drops = self._raw.finish(), _Dropouts([list(r) for r in self._drops.runs])
+        return _from_raw(raw, self.fs, self.units, drops)
 
     # ---- checkpoints ----------------------------------------------------------------------
     def to_state(self) -> bytes:
         """The complete state as bytes (versioned; the core's state plus ``fs`` and units)."""
-        head = json.dumps(
-            {"version": _STATE_VERSION, "fs": self.fs, "units": self.units, "mode": self.mode}
-        ).encode()
-        return _STATE_MAGIC + head + b"\n" + self._raw.to_state()
+        with self._lock:
+            head = json.dumps(
+                {"version": _STATE_VERSION, "fs": self.fs, "units": self.units,
+                 "mode": self.mode, "dropouts": self._drops.runs}
+            ).encode()
+            return _STATE_MAGIC + head + b"\n" + self._raw.to_state()
 
     @classmethod
     def from_state(cls, state: bytes) -> DwellAccumulator:
@@ -767,19 +850,26 @@ class DwellAccumulator:
         try:
             meta = json.loads(head)
             version, fs, units, mode = meta["version"], meta["fs"], meta["units"], meta["mode"]
-        except (ValueError, KeyError, TypeError):
+            runs = meta.get("dropouts", []) if version >= 2 else []
+        except (ValueError, KeyError, TypeError, AttributeError):
             raise CalibrationError("not a DwellAccumulator state (bad header)") from None
-        if version != _STATE_VERSION:
+        if version not in (1, _STATE_VERSION):
             raise CalibrationError(
                 f"DwellAccumulator state version {version!r} is not supported "
-                f"(this version reads {_STATE_VERSION})"
+                f"(this version reads 1 to {_STATE_VERSION})"
             )
-        if mode not in ("bounds", "detect") or not isinstance(units, str):
+        if mode not in ("bounds", "detect") or not isinstance(units, str) or not (
+            isinstance(runs, list) and all(
+                isinstance(r, list) and len(r) == 2 and all(
+                    type(v) is int and v >= 0 for v in r) for r in runs)
+        ):
             raise CalibrationError("not a DwellAccumulator state (bad header)")
         self = cls.__new__(cls)
         self.fs = None if fs is None else positive(fs, "fs", " (Hz)")
         self.units = units
         self.mode = mode
+        self._drops = _Dropouts(runs)
+        self._lock = threading.Lock()
         self._raw = _core.RawDwellAccumulator.from_state(raw)
         return self
 

@@ -1021,6 +1021,8 @@ def _noise_curves(samples: NDArray[Any] | None, d: DwellSet, fs: float | None,
         L = int(np.max(d.stop - d.start))
         j = int(np.argmax(d.stop - d.start))
         seg = samples[int(d.start[j]) : int(d.stop[j])]
+        if d.dropped:  # the dropouts inside the dwell, which its statistics leave out
+            seg = seg[np.isfinite(seg).all(axis=1)]
         if L >= 8:
             tau, ad = allan_deviation(seg, fs)
             out["tau"], out["adev"] = tau, ad

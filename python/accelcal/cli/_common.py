@@ -232,8 +232,8 @@ def source_line(file: str, rec: Any, d: Any) -> str:
         return f"{file}: dwell table with {len(d)} dwells{fs}"
     line = f"{file}: {rec.rows} samples at {rec.fs:.6g} Hz -> {len(d)} dwells"
     if getattr(d, "dropped", 0):
-        line += (f" ({d.dropped} rows with NaN or inf samples: dropouts, left out of every "
-                 "dwell)")
+        line += (f" ({d.dropped} rows with NaN or inf samples: dropouts, left out of the "
+                 "dwell statistics)")
     return line
 
 
