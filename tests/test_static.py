@@ -589,3 +589,15 @@ def test_common_call_fast_path_equals_the_general_coercion():
     bad_shape = np.zeros((20, 4))
     with pytest.raises(ac.CalibrationError, match=r"shape \(k, 3\)"):
         ac.fit_static(bad_shape, g)
+
+
+def test_a_dead_channel_is_named_not_blamed_on_the_poses() -> None:
+    s = ac.sim.field_session(fs=200, n_dwells=24, dwell_s=20, move_s=4, max_tilt_deg=80,
+                             sigma=3e-3, rng=5)
+    y = s.samples.copy()
+    y[:, 2] = 0.0  # z disconnected: reads 0 throughout
+    d = ac.detect_dwells(y, s.fs)
+    with pytest.raises(ac.DegenerateDataError,
+                       match=r"the z output reads 0 in every one of the \d+ dwells: a dead or "
+                             "disconnected channel"):
+        ac.fit_static(d, s.g)

@@ -379,6 +379,21 @@ pub fn validate(means: &[[f64; 3]], g: f64, noise: &Noise<'_>, model: Model) -> 
             return invalid(format!("dwell {k} has {what} mean"));
         }
     }
+    if let Some(m0) = means.first().filter(|_| means.len() > 1) {
+        // One or two axes the same in every dwell (all three: identical dwells, said later).
+        let flat: [bool; 3] = std::array::from_fn(|a| means.iter().all(|m| m[a] == m0[a]));
+        let first = flat.iter().position(|&f| f);
+        if let Some(a) = first.filter(|_| !flat.iter().all(|&f| f)) {
+            return degenerate(format!(
+                "the {} output reads {} in every one of the {} dwells: a dead or disconnected \
+                 channel (a static calibration needs each axis to see gravity change between \
+                 poses)",
+                ["x", "y", "z"][a],
+                m0[a],
+                means.len()
+            ));
+        }
+    }
     let p = model.n_params();
     if means.len() < p {
         return degenerate(format!(
@@ -841,6 +856,18 @@ mod tests {
 
     fn settings(method: Method) -> FitSettings {
         FitSettings::new(Model::Lower, method)
+    }
+
+    #[test]
+    fn a_dead_channel_is_named() {
+        let mut m = simulate(Model::Lower, &TRUTH, 20, 60.0, 1);
+        m.iter_mut().for_each(|r| r[1] = 0.0);
+        let e = fit_static(&m, G, &Noise::Estimated, &settings(Method::Lm)).unwrap_err();
+        assert!(
+            matches!(&e, CoreError::Degenerate(t) if t.contains("the y output reads 0 in every \
+                one of the 20 dwells: a dead or disconnected channel")),
+            "{e:?}"
+        );
     }
 
     #[test]
