@@ -8,6 +8,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import accelcal as ac
 import numpy as np
 import pytest
 from accelcal import CalibrationError, detect_dwells, dwell_stats
@@ -728,3 +729,68 @@ def test_rows_left_out_may_lack_a_time_and_kept_rows_may_not(tmp_path: Path) -> 
     bad = write(tmp_path, "t,ax,ay,az,gx,gy\n" + rows + ",1,2,9.8,,\n", "bad.csv")
     with pytest.raises(CalibrationError, match='line 1002: column "t": is empty'):
         read_stream(bad)
+
+
+def _wrapping_log(tmp_path: Path, unit: str, width: int, at_s: float) -> tuple[Path, Any]:
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=16, dwell_s=20.0, move_s=4.0, max_tilt_deg=80,
+                      sigma=3e-3, rng=5)
+    per_s = {"us": 1e6, "ms": 1e3}[unit]
+    m = 2**width
+    stamp = (np.round(s.t * per_s).astype(np.int64) + m - int(at_s * per_s)) % m
+    p = tmp_path / f"wrap_{unit}.csv"
+    np.savetxt(p, np.column_stack([stamp, s.samples]), delimiter=",",
+               header=f"time_{unit},ax,ay,az", comments="", fmt=["%d", "%.6f", "%.6f", "%.6f"])
+    return p, s
+
+
+@pytest.mark.parametrize(("unit", "width", "at_s"), [("us", 32, 200.0), ("ms", 16, 30.0)])
+def test_a_wrapping_time_counter_is_unwrapped(tmp_path: Path, unit: str, width: int,
+                                              at_s: float) -> None:
+    p, s = _wrapping_log(tmp_path, unit, width, at_s)
+    st = read_stream(p)
+    assert st.t is not None and np.all(np.diff(st.t) > 0)
+    np.testing.assert_allclose(np.diff(st.t), np.diff(s.t), atol=1e-9)
+    wraps = int((s.t[-1] - s.t[0] + (2**width / {"us": 1e6, "ms": 1e3}[unit] - at_s))
+                // (2**width / {"us": 1e6, "ms": 1e3}[unit]))
+    assert any(f"wraps around {wraps} time(s) (a {width}-bit counter of 1 {unit}" in n
+               for n in st.notes), st.notes
+    # Streaming in blocks (a wrap may fall on a block's first row) gives the same times ...
+    chunks = [t for _, t in iter_stream(p, chunk_rows=997)]
+    np.testing.assert_array_equal(np.concatenate(chunks), st.t)
+    # ... and so do the dwells' times, which now follow the pose order.
+    d, _rec = ac.io._stream_dwells(p)
+    assert d.t is not None and np.all(np.diff(d.t) > 0)
+
+
+def test_a_clock_reset_is_kept_and_said(tmp_path: Path) -> None:
+    t = np.r_[np.arange(0, 50, 0.01), np.arange(0, 50, 0.01)] + 1000.0
+    t[5000:] -= 600.0  # the logger's clock was set back 10 min
+    x = np.random.default_rng(1).normal(0, 0.01, (t.size, 3)) + [0, 0, 9.81]
+    p = tmp_path / "reset.csv"
+    np.savetxt(p, np.column_stack([t, x]), delimiter=",", header="t,ax,ay,az", comments="")
+    st = read_stream(p)
+    assert st.t is not None and np.array_equal(st.t, np.loadtxt(p, delimiter=",",
+                                                                skiprows=1)[:, 0])
+    assert any("steps back 1 time(s) (the first at data row 5000, by 649.99 s)" in n
+               for n in st.notes), st.notes
+
+
+def test_unwrap_is_the_same_whatever_the_chunking() -> None:
+    from accelcal.io import _TimeUnwrap
+
+    raw = (np.arange(0, 300_000) * 1000 + 2**32 - 5_000_000) % 2**32 * 1e-6  # 1 kHz, us
+    whole = _TimeUnwrap(1e-6, 1000.0)(raw.copy(), 0)
+    assert np.allclose(np.diff(whole), 1e-3)
+    for cuts in ([5000], [4999, 5001], [1, 5000, 5001, 250_000], list(range(0, 300_000, 777))):
+        u = _TimeUnwrap(1e-6, 1000.0)
+        parts = [u(c.copy(), int(a)) for a, c in zip([0, *cuts], np.split(raw, cuts),
+                                                     strict=True)]
+        np.testing.assert_array_equal(np.concatenate(parts), whole)
+        assert u.wraps == [(5000, 32)] and u.back == []
+    # A whole read of more rows than one slice gives the same times too.
+    big = (np.arange(0, 3_000_000) * 1000 + 2**32 - 2_000_000_000) % 2**32 * 1e-6
+    u = _TimeUnwrap(1e-6, 1000.0)
+    out = u(big, 0)
+    assert np.allclose(np.diff(out), 1e-3) and u.wraps == [(2_000_000, 32)]

@@ -1258,6 +1258,74 @@ def _take(
     return out, pending, have - n
 
 
+class _TimeUnwrap:
+    """A time column read chunk by chunk, made monotonic where a counter wrapped around.
+
+    A backward step of about ``2^w`` units of the column (w = 16, 24, 31 or 32: a 32-bit
+    microsecond counter wraps every 71.6 min, a 16-bit millisecond one every 65.5 s), less one
+    sample interval, is a counter wrap: every later time gets ``2^w`` units added. Another
+    backward step (a clock reset, files joined) is left as it is and counted for a note.
+    """
+
+    WIDTHS = (16, 24, 31, 32)
+    SLICE = 1 << 16
+
+    def __init__(self, unit_s: float, fs: float | None) -> None:
+        self.unit_s, self.fs = unit_s, fs
+        self.offset = 0.0
+        self.prev: float | None = None  # the last time of the previous chunk, as read
+        self.wraps: list[tuple[int, int]] = []  # (row, counter width)
+        self.back: list[tuple[int, float]] = []  # (row, step back in s)
+
+    def __call__(self, t: NDArray[np.float64], row0: int) -> NDArray[np.float64]:
+        if t.size > self.SLICE:  # bounded temporaries for a whole file read at once
+            cuts = range(0, t.size, self.SLICE)
+            views = [t[a:a + self.SLICE] for a in cuts]
+            parts = [self(v, row0 + a) for v, a in zip(views, cuts, strict=True)]
+            unchanged = all(p is v for p, v in zip(parts, views, strict=True))
+            return t if unchanged else np.concatenate(parts)
+        if t.size == 0:
+            return t
+        first = t[0] if self.prev is None else self.prev
+        self.prev = float(t[-1])
+        if t[0] >= first and not np.less(t[1:], t[:-1]).any():  # no step back: one cheap pass
+            return t if self.offset == 0.0 else t + self.offset
+        steps = np.flatnonzero(np.diff(t, prepend=first) < 0)
+        add = np.full(t.shape, self.offset)
+        dt = 1.0 / self.fs if self.fs else float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        for i in steps:
+            before = t[i - 1] if i > 0 else first
+            jump = float(before - t[i]) + dt
+            width = next((w for w in self.WIDTHS if abs(jump - 2.0**w * self.unit_s)
+                          <= max(10 * dt, 1e-6 * 2.0**w * self.unit_s)), None)
+            if width is None:
+                self.back.append((row0 + int(i), jump - dt))
+                continue
+            self.wraps.append((row0 + int(i), width))
+            self.offset += 2.0**width * self.unit_s
+            add[i:] = self.offset
+        return t + add
+
+    def notes(self, label: str) -> list[str]:
+        out = []
+        if self.wraps:
+            w = self.wraps[0][1]
+            unit = {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}.get(self.unit_s,
+                                                                      f"{self.unit_s:g} s")
+            out.append(
+                f"the time column {label} wraps around {len(self.wraps)} time(s) (a {w}-bit "
+                f"counter of 1 {unit}: every {2.0**w * self.unit_s:.6g} s; the first at data "
+                f"row {self.wraps[0][0]}): unwrapped, so times keep increasing")
+        if self.back:
+            r, j = self.back[0]
+            out.append(
+                f"the time column {label} steps back {len(self.back)} time(s) (the first at "
+                f"data row {r}, by {j:.6g} s) by no counter width: a clock reset or joined "
+                "files? The dwell times after it are on the new clock (the time and drift "
+                "tests of diagnose assume one clock)")
+        return out
+
+
 class _Recording:
     """An opened recording: its layout, and its rows as chunks (one pass)."""
 
@@ -1304,6 +1372,11 @@ class _Recording:
         self._temp_last: float | None = None  # the sparse temperature's last value
         self._temp_held = 0  # its empty fields filled
         self._last: NDArray[Any] | None = None
+        lay = self.lay
+        iso = lay.time is not None and lay.time in lay.iso
+        from_file = lay.time is not None or (self.arrays is not None and self.arrays.t is not None)
+        self._unwrap = _TimeUnwrap(lay.time_scale if lay.time is not None else 1.0,
+                                   lay.fs) if from_file and not iso else None
 
     # -- what is known before reading
     def no_rate(self) -> str:
@@ -1393,6 +1466,8 @@ class _Recording:
                     temp = self._hold_temperature(temp, a)
                     if t is None and lay.fs is not None:
                         t = np.arange(a, b, dtype=np.float64) / lay.fs
+                    elif self._unwrap is not None and t is not None:
+                        t = self._unwrap(t, a)
                     self._count_repeats(s)
                     self.rows = b
                     if progress is not None:
@@ -1426,6 +1501,8 @@ class _Recording:
             temp = self._hold_temperature(temp, parsed)
             if t is None and lay.fs is not None:
                 t = np.arange(parsed, parsed + rows, dtype=np.float64) / lay.fs
+            elif self._unwrap is not None and t is not None:
+                t = self._unwrap(t, parsed)
             parsed += rows
             if self._last is not None and np.array_equal(self._last, s[0]):
                 repeats += 1
@@ -1472,6 +1549,8 @@ class _Recording:
             self.rows = n
             if t is None and lay.fs is not None:
                 t = np.arange(n, dtype=np.float64) / lay.fs
+            elif self._unwrap is not None and t is not None:
+                t = self._unwrap(t, 0)
             return s, t, temp
         assert self.text is not None
         src_t = self.text
@@ -1492,6 +1571,8 @@ class _Recording:
         temp = self._hold_temperature(temp, 0)
         if t is None and lay.fs is not None:
             t = np.arange(rows, dtype=np.float64) / lay.fs
+        elif self._unwrap is not None and t is not None:
+            t = self._unwrap(t, 0)
         return s, t, temp
 
     def _hold_temperature(self, temp: NDArray[np.float64] | None,
@@ -1530,6 +1611,10 @@ class _Recording:
 
     def notes(self) -> list[str]:
         out = list(self.lay.notes)
+        if self._unwrap is not None and self.lay.time is not None:
+            out += self._unwrap.notes(_label(self.lay, self.lay.time))
+        elif self._unwrap is not None:
+            out += self._unwrap.notes("t")
         if self.skipped:
             out.append(
                 f"{self.skipped} rows with every accelerometer field empty were left out (rows "
