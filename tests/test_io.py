@@ -794,3 +794,20 @@ def test_unwrap_is_the_same_whatever_the_chunking() -> None:
     u = _TimeUnwrap(1e-6, 1000.0)
     out = u(big, 0)
     assert np.allclose(np.diff(out), 1e-3) and u.wraps == [(2_000_000, 32)]
+
+
+def test_time_stamps_coarser_than_the_sample_interval_give_the_rate_from_their_span(
+        tmp_path: Path) -> None:
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=5000.0, n_dwells=6, dwell_s=4.0, move_s=2.0, max_tilt_deg=80,
+                      sigma=3e-3, rng=5)
+    p = tmp_path / "ms_stamps.csv"  # a 5 kHz stream stamped in whole ms: 4 of 5 intervals 0
+    np.savetxt(p, np.column_stack([np.round(s.t * 1e3), s.samples]), delimiter=",",
+               header="time_ms,ax,ay,az", comments="", fmt=["%d", "%.6f", "%.6f", "%.6f"])
+    st = read_stream(p)
+    assert st.fs == pytest.approx(5000.0, rel=1e-3) and st.fs_source == "time column"
+    assert any("resolution (0.001 s) is coarser than the sample interval" in n
+               for n in st.notes), st.notes
+    d, _rec = ac.io._stream_dwells(p)
+    assert len(d) == len(s.bounds)

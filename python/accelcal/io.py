@@ -761,7 +761,7 @@ def _decide(
     # out of the read, so out of the rate too.
     own = ~np.all(np.isnan(head[:, acc]), axis=1) if head.shape[1] else np.ones(0, bool)
     if tcol is not None and own.sum() >= 2:
-        fs_time = _fs_from_time(head[own, tcol] * tscale, path)
+        fs_time = _fs_from_time(head[own, tcol] * tscale, path, notes)
     fsv: float | None
     if fs is not None:
         fsv, src = positive(fs, "fs", " (sample rate in Hz)"), "given"
@@ -814,13 +814,14 @@ def _increasing(x: NDArray[Any]) -> bool:
     return bool(x.shape[0] >= 2 and np.all(np.isfinite(x)) and np.all(np.diff(x) > 0))
 
 
-def _fs_from_time(t: NDArray[Any], path: str) -> float | None:
+def _fs_from_time(t: NDArray[Any], path: str, notes: list[str] | None = None) -> float | None:
     """Sample rate from (the first rows of) a time column.
 
     The intervals within half the median interval of it (no dropouts, no repeated stamps) are
     averaged: their sum telescopes, so time stamps rounded to a fixed resolution (e.g. epoch
     seconds, whose float64 spacing is 2.4e-7 s) give the rate without the rounding of each
-    interval.
+    interval. Stamps coarser than the sample interval (a 5 kHz stream stamped in ms: most
+    intervals are 0) give the rows over their span instead, with a note in ``notes``.
     """
     if t.shape[0] < 2:
         return None
@@ -829,6 +830,15 @@ def _fs_from_time(t: NDArray[Any], path: str) -> float | None:
     if d.size == 0:
         return None
     med = float(np.median(d))
+    if med == 0 and np.all(d >= 0) and d.sum() > 0:
+        step = float(np.min(d[d > 0]))
+        span = float(d.sum())
+        if notes is not None:
+            notes.append(
+                f"the time column's resolution ({step:.3g} s) is coarser than the sample "
+                f"interval: the rate is from its span, {d.size} intervals in {span:.6g} s "
+                f"(+-{step / span:.1%})")
+        return float(d.size / span)
     if not med > 0:
         raise CalibrationError(
             f"{path}: the time column is not increasing (median interval {med!r}); "
@@ -1093,7 +1103,7 @@ def _array_source(
             src.t = data[tk]
             tt = np.asarray(data[tk][:_SNIFF_ROWS], dtype=np.float64)
             lay.notes = [x for x in lay.notes if "not in the file" not in x]
-            fs_t = _fs_from_time(tt, path)
+            fs_t = _fs_from_time(tt, path, lay.notes)
             if fsv is None and meta_fs is None and fs_t is not None:
                 lay.fs, lay.fs_source = fs_t, "time column"
     if fsv is None and meta_fs is not None:
