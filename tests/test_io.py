@@ -811,3 +811,38 @@ def test_time_stamps_coarser_than_the_sample_interval_give_the_rate_from_their_s
                for n in st.notes), st.notes
     d, _rec = ac.io._stream_dwells(p)
     assert len(d) == len(s.bounds)
+
+
+def _daq_text(kind: str) -> str:
+    """A recording as a DAQ export of ``kind`` would write it."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=6, dwell_s=5.0, move_s=2.0, max_tilt_deg=80,
+                      sigma=3e-3, rng=5)
+    if kind == "units_row_ms_g":  # names, then units; time in ms, outputs in g
+        rows = np.column_stack([s.t * 1e3, s.samples / 9.80665])
+        return "time,ax,ay,az\nms,g,g,g\n" + "\n".join(
+            ",".join(f"{v:.6f}" for v in r) for r in rows) + "\n"
+    rows = np.column_stack([s.t, s.samples])
+    body = "\n".join("\t".join(f"{v:.6f}" for v in r) + "\t" for r in rows) + "\n"
+    if kind == "trailing_tab":  # every line ends in a tab (an empty last field)
+        return "time\tax\tay\taz\t\n" + body
+    # LabVIEW .lvm: a header block, then X_Value (the time) and a Comment column
+    return ("LabVIEW Measurement\t\nWriter_Version\t2\nSeparator\tTab\n***End_of_Header***\t\n"
+            "\nX_Value\tax\tay\taz\tComment\n" + body)
+
+
+@pytest.mark.parametrize(("kind", "skip"), [("units_row_ms_g", 2), ("trailing_tab", 1),
+                                            ("labview", 6)])
+def test_daq_exports(tmp_path: Path, kind: str, skip: int) -> None:
+    text = _daq_text(kind)
+    p = tmp_path / f"{kind}.txt"
+    p.write_text(text)
+    st = read_stream(p)
+    want = np.loadtxt(p, delimiter="\t" if "\t" in text else ",", skiprows=skip,
+                      usecols=(0, 1, 2, 3))
+    np.testing.assert_array_equal(st.samples, want[:, 1:])
+    assert st.fs == pytest.approx(100.0, rel=1e-9) and st.t is not None
+    np.testing.assert_allclose(st.t, want[:, 0] * (1e-3 if kind == "units_row_ms_g" else 1.0))
+    if kind == "units_row_ms_g":
+        assert st.names == ("ax [g]", "ay [g]", "az [g]")

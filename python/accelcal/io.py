@@ -84,6 +84,7 @@ _FS_KEYS = {
 _TIME_BASES = {
     "t", "time", "timestamp", "timestamps", "tstamp", "elapsed", "elapsedtime", "datetime",
     "unixtime", "epoch", "epochtime", "posixtime", "timeutc", "utc", "sec", "secs", "seconds",
+    "xvalue",  # LabVIEW .lvm
 }
 #: Names that are a time with their unit in the name (Arduino's millis() and micros()).
 _TIME_IMPLICIT = {"millis": 1e-3, "micros": 1e-6}
@@ -310,6 +311,24 @@ def _split(line: str, delim: str | None) -> list[str]:
     return [f.strip().strip('"').strip() for f in line.split(delim)]
 
 
+#: Units a units row under a header may hold (besides the time units), lower case.
+_ROW_UNITS = {
+    "g", "mg", "ug", "µg", "m/s^2", "m/s2", "m/s²", "m/s/s", "ms^-2", "ms-2", "mps2", "counts",
+    "count", "lsb", "digits", "adc", "raw", "v", "mv", "c", "°c", "degc", "deg c", "k", "°f",
+    "-", "1",
+}
+
+
+def _units_row(fields: list[str]) -> list[str] | None:
+    """The units of a second header row (``s, m/s^2, m/s^2, m/s^2`` under the names, as DAQ
+    exports write them), brackets removed; None when the row is not one."""
+    units = [f.strip().strip("[]()").strip() for f in fields]
+    known = [u.lower() in _ROW_UNITS or u.lower() in _TIME_UNITS for u in units if u]
+    if len(known) >= 2 and all(known):
+        return units
+    return None
+
+
 def _guess_delim(line: str) -> str | None:
     for d in ("\t", ";", ","):
         if d in line:
@@ -532,6 +551,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     lines: list[tuple[int, str]] = []  # the lines up to the first data row
     meta: dict[str, str] = {}
     header: str | None = None
+    header_units: list[str] | None = None
     first: int | None = None
     fmt: _RowFormat | None = None
     for i, (pos, line) in enumerate(_head_lines(src)):
@@ -539,8 +559,10 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         s = line.strip()
         if not s:
             continue
+        # Tabs are kept at the ends: a trailing tab is an (empty) field to the parser too.
+        kept = line.strip(" \r\n")
         if not s.startswith(("#", "%", "//")):
-            fmt = _data_row(s)
+            fmt = _data_row(kept if "\t" in kept else s)
             if fmt is not None:
                 first = i
                 break
@@ -554,11 +576,18 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
                 "are read"
             )
         body = s.lstrip("#%/").strip()
+        if "\t" in kept and not kept.startswith(("#", "%", "//")):
+            body = kept
         bf = _split(body, _guess_delim(body))
         if len(bf) >= 3 and not any(_is_number(f) for f in bf if f) and "=" not in body:
-            header = body
+            units = _units_row(bf)
+            if header is not None and units is not None and header_units is None and len(
+                    _split(header, _guess_delim(header))) == len(bf):
+                header_units = units  # a units row under the names
+                continue
+            header, header_units = body, None
             continue
-        header = None
+        header, header_units = None, None
         kv = _meta_pair(s)
         if kv:
             meta[kv[0]] = kv[1]
@@ -593,6 +622,9 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     names: tuple[str, ...] | None = None
     if header is not None:
         hf = _split(header, delim)
+        if header_units is not None and len(header_units) == len(hf):
+            hf = [f"{h} [{u}]" if u and not _split_unit(h)[1] else h
+                  for h, u in zip(hf, header_units, strict=True)]
         if len(hf) == ncols:
             names = tuple(h.strip().strip("\"'") for h in hf)
         else:
