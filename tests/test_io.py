@@ -439,6 +439,10 @@ def test_epoch_stamps_without_a_unit_are_read_in_theirs(tmp_path: Path, unit: st
         ("time_usec,imu.acc.x,imu.acc.y,imu.acc.z", 1e-6),
         ("seconds,acc_x_mps2,acc_y_mps2,acc_z_mps2", 1.0),
         ("micros,accel_x_raw,accel_y_raw,accel_z_raw", 1e-6),
+        ("time,gFx,gFy,gFz", 1.0),  # Physics Toolbox (g-force)
+        ("Time since start in ms ,ACCELEROMETER X (m/s²),ACCELEROMETER Y (m/s²),"
+         "ACCELEROMETER Z (m/s²)", 1e-3),  # AndroSensor
+        ("X_Value,ax,ay,az", 1.0),  # LabVIEW
     ],
 )
 def test_logger_column_names(tmp_path: Path, names: str, time_scale: float) -> None:

@@ -85,6 +85,7 @@ _TIME_BASES = {
     "t", "time", "timestamp", "timestamps", "tstamp", "elapsed", "elapsedtime", "datetime",
     "unixtime", "epoch", "epochtime", "posixtime", "timeutc", "utc", "sec", "secs", "seconds",
     "xvalue",  # LabVIEW .lvm
+    "timesincestart", "timeelapsed", "relativetime", "reltime",  # AndroSensor and others
 }
 #: Names that are a time with their unit in the name (Arduino's millis() and micros()).
 _TIME_IMPLICIT = {"millis": 1e-3, "micros": 1e-6}
@@ -106,7 +107,7 @@ _TIME_UNITS = {
 #: optional unit or kind suffix (``imu.acc.x``, ``Ax_g``, ``acc_x_mps2``, ``accel_x_raw``).
 _ACC_NAME = re.compile(
     r"^(?:imu|sensor|device|phone)?"
-    r"(?:a|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw)([xyz])"
+    r"(?:a|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw|gf|gforce)([xyz])"
     r"(?:g|mg|ms2|mps2|mss|si|raw|counts|lsb|adc)?$"
 )
 _SAMPLE_KEYS = ("samples", "acc", "accel", "acceleration", "a", "data", "x")
@@ -189,7 +190,8 @@ def _time_name(name: str) -> tuple[float, bool] | None:
     base, unit = _split_unit(name)
     b = base.lower().strip()
     if not unit:
-        m = re.match(r"^(.*?)[_\s-]+(s|sec|secs|seconds|ms|msec|us|usec|µs|ns|nsec)$", b)
+        m = re.match(r"^(.*?)(?:[_\s-]+in)?[_\s-]+(s|sec|secs|seconds|ms|msec|us|usec|µs|ns|nsec)$",
+                     b)
         if m:
             b, unit = m.group(1), m.group(2)
     b = re.sub(r"[^0-9a-z]", "", b)
