@@ -3,6 +3,7 @@ reading and streaming into the dwell accumulator."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -850,3 +851,23 @@ def test_daq_exports(tmp_path: Path, kind: str, skip: int) -> None:
     np.testing.assert_allclose(st.t, want[:, 0] * (1e-3 if kind == "units_row_ms_g" else 1.0))
     if kind == "units_row_ms_g":
         assert st.names == ("ax [g]", "ay [g]", "az [g]")
+
+
+@pytest.mark.parametrize("style", ["ax{}", "acc{}_x", "imu{}.acc.x"])
+def test_numbered_triads(tmp_path: Path, style: str) -> None:
+    def names(k: int) -> list[str]:
+        return [style.format(k).replace("x", a) if "acc" in style else
+                style.format(k).replace("ax", "a" + a) for a in "xyz"]
+
+    rows = "".join(f"{i / 100},{i % 3},{i % 5},9.8,{i % 7},{i % 2},9.7\n" for i in range(300))
+    two = write(tmp_path, ",".join(["t", *names(1), *names(2)]) + "\n" + rows)
+    listed = re.escape(",".join(names(1)) + "; " + ",".join(names(2)))
+    with pytest.raises(CalibrationError,
+                       match=rf"2 accelerometer triads \({listed}\): a recording of several"):
+        read_stream(two)
+    s = read_stream(two, columns=",".join(names(2)))
+    np.testing.assert_array_equal(s.samples[:, 0], np.arange(300) % 7)
+    # One numbered triad is simply the accelerometer.
+    rows1 = "".join(f"{i / 100},{i % 3},{i % 5},9.8\n" for i in range(300))
+    s1 = read_stream(write(tmp_path, ",".join(["t", *names(0)]) + "\n" + rows1))
+    assert s1.names == tuple(names(0))

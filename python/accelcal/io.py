@@ -239,7 +239,32 @@ def _auto_acc(names: Sequence[str], path: str) -> list[int] | None:
             f"{path}: cannot tell which columns are the accelerometer x, y, z among {list(names)}; "
             "give columns=[...] (3 names or 0-based indices)"
         )
+    triads = _numbered_triads(names)
+    if len(triads) == 1:  # one sensor with a number in its names (acc1_x, ...)
+        return [list(names).index(n) for n in triads[0]]
+    if len(triads) > 1:
+        listed = "; ".join(",".join(t) for t in triads)
+        raise CalibrationError(
+            f"{path}: {len(triads)} accelerometer triads ({listed}): a recording of several "
+            f"sensors; calibrate one at a time with columns= (--columns), e.g. "
+            f"columns={','.join(triads[0])!r}"
+        )
     return None
+
+
+def _numbered_triads(names: Sequence[str]) -> list[tuple[str, str, str]]:
+    """Accelerometer triads told apart by a number in their names (``ax1..az1, ax2..az2``,
+    ``acc1_x``, ``imu0.acc.x``), in the order of the file."""
+    groups: dict[str, dict[str, str]] = {}
+    for n in names:
+        base = _norm(n)
+        digits = "".join(re.findall(r"\d+", base))
+        if not digits:
+            continue
+        m = _ACC_NAME.match(re.sub(r"\d+", "", base))
+        if m:
+            groups.setdefault(digits, {})[m.group(1)] = n
+    return [(g["x"], g["y"], g["z"]) for g in groups.values() if len(g) == 3]
 
 
 def _time_spec(c: Any, names: Sequence[str] | None) -> tuple[Any, float | None]:
