@@ -484,8 +484,9 @@ def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
         ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n", ["line 5002", '"oops"']),
         ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,,3,\n",
          ["line 4", 'column "ay": is empty (missing value)']),
-        ("timestamp,sensor,x,y,z\n0.00,ACC,0.1,0.2,9.8\n0.00,GYR,0.01,0.02,0.03\n",
-         ["no numeric data rows", "'GYR' looks like a label", "df[df[label] == value]"]),
+        ("timestamp,sensor,x,y,z\n0.00,MAG,0.1,0.2,9.8\n0.00,GYR,0.01,0.02,0.03\n",
+         ["long-format log", "{'sensor': ['GYR', 'MAG']}", "no label that names an "
+          "accelerometer", "df[df[label] == value]"]),
     ],
 )
 def test_bad_rows_are_named_by_line(tmp_path: Path, text: str, words: list[str]) -> None:
@@ -871,3 +872,43 @@ def test_numbered_triads(tmp_path: Path, style: str) -> None:
     rows1 = "".join(f"{i / 100},{i % 3},{i % 5},9.8\n" for i in range(300))
     s1 = read_stream(write(tmp_path, ",".join(["t", *names(0)]) + "\n" + rows1))
     assert s1.names == tuple(names(0))
+
+
+def _long_log(tmp_path: Path, header: bool) -> tuple[Path, Path]:
+    """The same field session as a wide file and as a long-format log: ACC rows interleaved
+    with GYR rows and a slower MAG channel, each row naming its sensor."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=16, dwell_s=10.0, move_s=3.0, max_tilt_deg=80,
+                      sigma=3e-3, rng=5)
+    rng = np.random.default_rng(0)
+    wide, long = ["t,ax,ay,az"], ["t,sensor,x,y,z"] if header else []
+    for i, (t, r) in enumerate(zip(s.t, s.samples, strict=True)):
+        xyz = ",".join(f"{v:.6f}" for v in r)
+        wide.append(f"{t:.4f},{xyz}")
+        long.append(f"{t:.4f},ACC,{xyz}" if header else f"ACC,{t:.4f},{xyz}")
+        g = ",".join(f"{v:.6f}" for v in rng.normal(size=3))
+        long.append(f"{t + 0.002:.4f},GYR,{g}" if header else f"GYR,{t + 0.002:.4f},{g}")
+        if i % 10 == 0:
+            long.append(f"{t + 0.004:.4f},MAG,{g}" if header else f"MAG,{t + 0.004:.4f},{g}")
+    pw, pl = tmp_path / "wide.csv", tmp_path / "long.csv"
+    pw.write_text("\n".join(wide) + "\n")
+    pl.write_text("\n".join(long) + "\n")
+    return pw, pl
+
+
+@pytest.mark.parametrize("header", [True, False])
+def test_long_format_logs_read_their_accelerometer_rows(tmp_path: Path, header: bool) -> None:
+    pw, pl = _long_log(tmp_path, header)
+    w, lg = read_stream(pw), read_stream(pl)
+    np.testing.assert_array_equal(lg.samples, w.samples)
+    np.testing.assert_allclose(lg.t, w.t)
+    assert lg.fs == pytest.approx(w.fs, rel=1e-9)
+    col = "sensor" if header else "0"
+    assert any(f"the {len(w)} rows labelled 'ACC' in column '{col}' are the accelerometer's"
+               f" (of {2 * len(w) + len(w) // 10} rows; the others: GYR {len(w)}, MAG "
+               f"{len(w) // 10})" in n for n in lg.notes), lg.notes
+    dw, _ = ac.io._stream_dwells(pw)
+    dl, _ = ac.io._stream_dwells(pl)
+    assert len(dl) == len(dw) == 16
+    np.testing.assert_array_equal(dl.mean, dw.mean)

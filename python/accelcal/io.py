@@ -413,6 +413,68 @@ def _numeric_columns(data: bytes, delim: str | None, ncols: int, lines: int = 20
     return [j for j in range(ncols) if j not in text]
 
 
+class _LongFormat(CalibrationError):
+    """Data rows with a text label: a long-format log (one row per sensor reading)."""
+
+
+#: Labels of accelerometer rows in a long-format log (lower case).
+_ACC_LABELS = {
+    "acc", "accel", "acceleration", "accelerometer", "a", "imu_acc", "acc_raw", "accraw",
+    "android.sensor.accelerometer", "type_accelerometer", "accelerometer_uncalibrated",
+}
+
+
+def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+    """A long-format log (``0.01,ACC,0.1,0.2,9.8``: a text column names each row's sensor):
+    the rows whose label names an accelerometer, read through pandas (in memory), the label
+    column dropped."""
+    import pandas as pd
+
+    src = _read_head(p)
+    first = next((ln.strip() for _, ln in _head_lines(src)
+                  if ln.strip() and not ln.strip().startswith(("#", "%", "//"))), "")
+    delim = _guess_delim(first)
+    has_header = not any(_field_kind(f, delim) in ("num", "dc") for f in _split(first, delim))
+    try:
+        df = pd.read_csv(p, sep=delim if delim else r"\s+", header=0 if has_header else None,
+                         comment="#", skipinitialspace=True, low_memory=False)
+    except (ValueError, pd.errors.ParserError) as e:
+        raise CalibrationError(f"{p}: a long-format log (a text label in each row) that pandas "
+                               f"cannot read: {e}") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    text = [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c])
+            and not pd.api.types.is_datetime64_any_dtype(df[c])]
+    labels = text
+    for c in labels:
+        val = df[c].astype(str).str.strip()
+        found = sorted({v for v in val.unique()[:1000] if v.lower() in _ACC_LABELS})
+        if len(found) != 1:
+            continue
+        keep = (val == found[0]).to_numpy()
+        sub = df.loc[keep].drop(columns=[c])
+        for k in list(sub.columns):
+            if k in text:
+                num = pd.to_numeric(sub[k], errors="coerce")
+                if num.notna().sum() >= 0.9 * max(sub[k].notna().sum(), 1):
+                    sub[k] = num
+                else:
+                    sub = sub.drop(columns=[k])
+        counts = val.value_counts()
+        others = ", ".join(f"{k} {v}" for k, v in counts.items() if k != found[0])
+        out = _dataframe_source(sub.reset_index(drop=True), columns, fs, time_column, path=p,
+                                named=has_header)
+        out.lay.notes.append(
+            f"a long-format log: the {int(keep.sum())} rows labelled {found[0]!r} in column "
+            f"{c!r} are the accelerometer's (of {len(df)} rows; the others: {others or 'none'})")
+        return out
+    seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in labels}
+    raise CalibrationError(
+        f"{p}: a long-format log (a text label in each row: {seen}) with no label that names "
+        "an accelerometer (ACC, accel, accelerometer, ...); select its rows first, e.g. with "
+        "pandas: df = pd.read_csv(path); read_stream(df[df[label] == value].drop("
+        "columns=label))")
+
+
 def _long_format_hint(line: str) -> str:
     """For a line of numbers with one or two text fields (``0.01,ACC,0.1,0.2,9.8``): the
     advice for a log that names each row's sensor in a column, else ``""``."""
@@ -633,9 +695,10 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
                 f"{path}: lines end in a carriage return alone (classic Mac text); convert "
                 "them to \\n (e.g. tr '\\r' '\\n')"
             )
-        raise CalibrationError(
+        hint = _long_format_hint(last)
+        raise (_LongFormat if hint else CalibrationError)(
             f"{path}: no numeric data rows found (the last line is {last[:60]!r}); numbers, "
-            "decimal-comma numbers and ISO-8601 times are read" + _long_format_hint(last)
+            "decimal-comma numbers and ISO-8601 times are read" + hint
         )
     delim, ncols = fmt.delim, len(fmt.fields)
     offset, first_line = lines[first][0], first + 1
@@ -1186,7 +1249,8 @@ def _table_like(obj: Any) -> bool:
     )
 
 
-def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any,
+                      path: str = "<table>", named: bool = True) -> _ArraySource:
     """A DataFrame (pandas, polars, or anything with the interchange protocol): columns by
     name, as with a text header."""
     df = obj
@@ -1214,12 +1278,13 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
         cols[str(name)] = a
     if not cols:
         raise CalibrationError("the table has no numeric columns")
-    table = _Columns("<table>", cols)
+    table = _Columns(path, cols)
     head = table.rows(0, min(table.n, _SNIFF_ROWS), range(len(table.names))).astype(np.float64)
     if table.n == 0:
         raise CalibrationError("the table is empty (0 rows)")
-    lay = _decide("<table>", table.names, len(table.names), head, {}, columns, fs, time_column)
-    return _ArraySource("<table>", table, lay)
+    lay = _decide(path, table.names if named else None, len(table.names), head, {}, columns,
+                  fs, time_column)
+    return _ArraySource(path, table, lay)
 
 
 def _plain_array_source(
@@ -1406,7 +1471,13 @@ class _Recording:
             kind = _kind(p)
             if kind == "text":
                 self.text = _read_head(p)
-                self.lay = _sniff(self.text, columns, fs, time_column)
+                try:
+                    self.lay = _sniff(self.text, columns, fs, time_column)
+                except _LongFormat:
+                    if self.text.stdin:
+                        raise
+                    self.text = None
+                    self.arrays = _long_format_source(p, columns, fs, time_column)
             elif kind == "npy":
                 arr = _np_load(p, mmap=True)
                 if not isinstance(arr, np.ndarray):
