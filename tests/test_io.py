@@ -444,6 +444,7 @@ def test_epoch_stamps_without_a_unit_are_read_in_theirs(tmp_path: Path, unit: st
         ("Time since start in ms ,ACCELEROMETER X (m/s²),ACCELEROMETER Y (m/s²),"
          "ACCELEROMETER Z (m/s²)", 1e-3),  # AndroSensor
         ("X_Value,ax,ay,az", 1.0),  # LabVIEW
+        ("SampleTimeFine,Acc_X,Acc_Y,Acc_Z", 1e-4),  # Xsens MT Manager (100 us ticks)
     ],
 )
 def test_logger_column_names(tmp_path: Path, names: str, time_scale: float) -> None:

@@ -87,8 +87,9 @@ _TIME_BASES = {
     "xvalue",  # LabVIEW .lvm
     "timesincestart", "timeelapsed", "relativetime", "reltime",  # AndroSensor and others
 }
-#: Names that are a time with their unit in the name (Arduino's millis() and micros()).
-_TIME_IMPLICIT = {"millis": 1e-3, "micros": 1e-6}
+#: Names that are a time with their unit in the name (Arduino's millis() and micros(), Xsens's
+#: SampleTimeFine in ticks of 100 us).
+_TIME_IMPLICIT = {"millis": 1e-3, "micros": 1e-6, "sampletimefine": 1e-4}  # Xsens: 100 us
 _TIME_UNITS = {
     "": 1.0,
     "s": 1.0,
