@@ -875,7 +875,7 @@ def test_numbered_triads(tmp_path: Path, style: str) -> None:
     assert s1.names == tuple(names(0))
 
 
-def _long_log(tmp_path: Path, header: bool) -> tuple[Path, Path]:
+def _long_log(tmp_path: Path, header: bool, iso: bool = False) -> tuple[Path, Path]:
     """The same field session as a wide file and as a long-format log: ACC rows interleaved
     with GYR rows and a slower MAG channel, each row naming its sensor."""
     from accelcal.sim.field import field_session
@@ -884,23 +884,28 @@ def _long_log(tmp_path: Path, header: bool) -> tuple[Path, Path]:
                       sigma=3e-3, rng=5)
     rng = np.random.default_rng(0)
     wide, long = ["t,ax,ay,az"], ["t,sensor,x,y,z"] if header else []
+    def stamp(t: float) -> str:  # ISO-8601 (a file over the 2 MB head) or s
+        return f"2026-11-26T10:{int(t) // 60:02d}:{t % 60:09.6f}" if iso else f"{t:.4f}"
+
     for i, (t, r) in enumerate(zip(s.t, s.samples, strict=True)):
         xyz = ",".join(f"{v:.6f}" for v in r)
         wide.append(f"{t:.4f},{xyz}")
-        long.append(f"{t:.4f},ACC,{xyz}" if header else f"ACC,{t:.4f},{xyz}")
+        long.append(f"{stamp(t)},ACC,{xyz}" if header else f"ACC,{stamp(t)},{xyz}")
         g = ",".join(f"{v:.6f}" for v in rng.normal(size=3))
-        long.append(f"{t + 0.002:.4f},GYR,{g}" if header else f"GYR,{t + 0.002:.4f},{g}")
+        long.append(f"{stamp(t + 0.002)},GYR,{g}" if header else f"GYR,{stamp(t + 0.002)},{g}")
         if i % 10 == 0:
-            long.append(f"{t + 0.004:.4f},MAG,{g}" if header else f"MAG,{t + 0.004:.4f},{g}")
+            long.append(f"{stamp(t + 0.004)},MAG,{g}" if header else
+                        f"MAG,{stamp(t + 0.004)},{g}")
     pw, pl = tmp_path / "wide.csv", tmp_path / "long.csv"
     pw.write_text("\n".join(wide) + "\n")
     pl.write_text("\n".join(long) + "\n")
     return pw, pl
 
 
-@pytest.mark.parametrize("header", [True, False])
-def test_long_format_logs_read_their_accelerometer_rows(tmp_path: Path, header: bool) -> None:
-    pw, pl = _long_log(tmp_path, header)
+@pytest.mark.parametrize(("header", "iso"), [(True, False), (False, False), (True, True)])
+def test_long_format_logs_read_their_accelerometer_rows(tmp_path: Path, header: bool,
+                                                        iso: bool) -> None:
+    pw, pl = _long_log(tmp_path, header, iso)
     w, lg = read_stream(pw), read_stream(pl)
     np.testing.assert_array_equal(lg.samples, w.samples)
     np.testing.assert_allclose(lg.t, w.t)

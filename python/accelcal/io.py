@@ -429,8 +429,12 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
     """A long-format log (``0.01,ACC,0.1,0.2,9.8``: a text column names each row's sensor):
     the rows whose label names an accelerometer, read through pandas (in memory), the label
     column dropped."""
-    import pandas as pd
-
+    try:
+        import pandas as pd
+    except ImportError:
+        raise CalibrationError(
+            f"{p}: a long-format log (a text label in each row names its sensor); reading it "
+            "needs pandas: pip install pandas") from None
     src = _read_head(p)
     first = next((ln.strip() for _, ln in _head_lines(src)
                   if ln.strip() and not ln.strip().startswith(("#", "%", "//"))), "")
@@ -445,8 +449,7 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
     df.columns = [str(c).strip() for c in df.columns]
     text = [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c])
             and not pd.api.types.is_datetime64_any_dtype(df[c])]
-    labels = text
-    for c in labels:
+    for c in text:
         val = df[c].astype(str).str.strip()
         found = sorted({v for v in val.unique()[:1000] if v.lower() in _ACC_LABELS})
         if len(found) != 1:
@@ -458,6 +461,10 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
                 num = pd.to_numeric(sub[k], errors="coerce")
                 if num.notna().sum() >= 0.9 * max(sub[k].notna().sum(), 1):
                     sub[k] = num
+                    continue
+                when = pd.to_datetime(sub[k], format="ISO8601", errors="coerce")
+                if when.notna().all() and when.size:
+                    sub[k] = when  # ISO-8601 times: s since the first row
                 else:
                     sub = sub.drop(columns=[k])
         counts = val.value_counts()
@@ -468,7 +475,7 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
             f"a long-format log: the {int(keep.sum())} rows labelled {found[0]!r} in column "
             f"{c!r} are the accelerometer's (of {len(df)} rows; the others: {others or 'none'})")
         return out
-    seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in labels}
+    seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in text}
     raise CalibrationError(
         f"{p}: a long-format log (a text label in each row: {seen}) with no label that names "
         "an accelerometer (ACC, accel, accelerometer, ...); select its rows first, e.g. with "
@@ -686,11 +693,12 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
             raise CalibrationError(f"{path}: file is empty")
         if all(not ln.strip() for _, ln in lines):
             raise CalibrationError(f"{path}: no numeric data rows (only blank lines)")
-        if not src.eof and len(lines) <= _MAX_PREAMBLE:
-            raise CalibrationError(
-                f"{path}: no numeric data row in the first {len(src.head)} bytes"
-            )
         last = next(ln.strip() for _, ln in reversed(lines) if ln.strip())
+        if not src.eof and len(lines) <= _MAX_PREAMBLE:
+            hint = _long_format_hint(last)
+            raise (_LongFormat if hint else CalibrationError)(
+                f"{path}: no numeric data row in the first {len(src.head)} bytes" + hint
+            )
         if "\r" in last:
             raise CalibrationError(
                 f"{path}: lines end in a carriage return alone (classic Mac text); convert "
