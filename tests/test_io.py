@@ -717,16 +717,40 @@ def test_merged_log_rows_of_another_sensor_are_left_out(tmp_path: Path, gyro_fir
     np.testing.assert_array_equal(streamed, s.samples)
 
 
-def test_binary_matlab_files_say_how_to_read_them(tmp_path: Path) -> None:
+def test_binary_matlab_files_are_read(tmp_path: Path) -> None:
+    import h5py
     from scipy.io import savemat
 
+    rng = np.random.default_rng(3)
+    acc = rng.normal(0, 0.01, (600, 3)) + [0.1, -0.2, 9.8]
+    t = np.arange(600) / 200.0
+    # v5 (scipy.io.savemat writes what MATLAB's save does): the (N, 3) matrix, a time vector
+    # stored as a 1 x N row and the rate as a scalar.
     p = tmp_path / "acc.mat"
-    savemat(p, {"acc": np.zeros((100, 4))})
-    with pytest.raises(CalibrationError, match="binary MATLAB.*scipy.io.loadmat"):
-        read_stream(p)
+    savemat(p, {"acc": acc, "t": t[None, :], "fs": 200.0})
+    s = read_stream(p)
+    np.testing.assert_array_equal(s.samples, acc)
+    np.testing.assert_array_equal(s.t, t)
+    assert s.fs == 200.0 and s.fs_source == "metadata"
+    # v7.3 (HDF5 after a 512-byte header): MATLAB stores an N x 3 matrix as 3 x N.
+    q = tmp_path / "acc73.mat"
+    with h5py.File(q, "w", userblock_size=512) as f:
+        f["acc"] = acc.T
+        f["t"] = t[None, :]
+    with open(q, "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Thu Nov 26 2026 HDF5 "
+                 b"schema 1.00 .")
+    s73 = read_stream(q)
+    np.testing.assert_array_equal(s73.samples, acc)
+    assert s73.fs == pytest.approx(200.0)
+    # A file with no numeric matrix says so.
+    e = tmp_path / "empty.mat"
+    savemat(e, {"name": "session 1"})
+    with pytest.raises(CalibrationError, match="holds no numeric matrix or vector"):
+        read_stream(e)
     # An ASCII .mat (imu_tk's test data, MATLAB's save -ascii) is text.
-    q = write(tmp_path, "".join(f"{i / 100} 1 2 9.8\n" for i in range(300)), "ascii.mat")
-    assert read_stream(q).fs == pytest.approx(100.0)
+    r = write(tmp_path, "".join(f"{i / 100} 1 2 9.8\n" for i in range(300)), "ascii.mat")
+    assert read_stream(r).fs == pytest.approx(100.0)
 
 
 def test_rows_left_out_may_lack_a_time_and_kept_rows_may_not(tmp_path: Path) -> None:

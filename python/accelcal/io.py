@@ -1,7 +1,8 @@
 """Readers for accelerometer recordings: delimited text (with or without header and metadata
-lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, and tables already
-in memory (a pandas or polars DataFrame, anything with ``__array__``); plus chunked reading
-that streams large files into :class:`~accelcal.DwellAccumulator` in one pass.
+lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, MATLAB ``.mat`` (v5
+and v7.3), and tables already in memory (a pandas or polars DataFrame, anything with
+``__array__``); plus chunked reading that streams large files into
+:class:`~accelcal.DwellAccumulator` in one pass.
 
 Text is parsed by the Rust core in blocks of whole lines, in parallel and with the
 interpreter released: reading is faster than ``pandas.read_csv`` and streaming keeps memory
@@ -1326,28 +1327,58 @@ def _kind(p: str) -> str:
     if low.endswith((".h5", ".hdf5", ".hdf")):
         return "h5"
     if low.endswith(".mat"):
-        _refuse_binary_mat(p)
+        return _mat_kind(p)
     return "text"
 
 
-def _refuse_binary_mat(p: str) -> None:
-    """A binary MATLAB file gets an error that says how to read it (ASCII .mat files, as
-    MATLAB's ``save -ascii`` writes them, are text and read as such)."""
+def _mat_kind(p: str) -> str:
+    """"mat5" or "mat73" for a binary MATLAB file, "text" for an ASCII one (as MATLAB's
+    ``save -ascii`` writes them)."""
     try:
         with open(p, "rb") as fh:
             head = fh.read(520)
     except OSError:
-        return  # the text reader names the problem
+        return "text"  # the text reader names the problem
     if head.startswith(b"MATLAB 5.0 MAT-file"):
-        what = "a binary MATLAB (v5) file"
-    elif head[512:520] == b"\x89HDF\r\n\x1a\n":
-        what = "a MATLAB v7.3 file (HDF5, its matrices stored transposed)"
+        return "mat5"
+    if head[512:520] == b"\x89HDF\r\n\x1a\n":
+        return "mat73"
+    return "text"
+
+
+def _mat_arrays(p: str, kind: str) -> dict[str, Any]:
+    """The numeric variables of a binary MATLAB file as a ``.npz``-like mapping: matrices as
+    MATLAB shows them (v7.3 stores them transposed), vectors 1-D, scalars 0-D."""
+    out: dict[str, Any] = {}
+    if kind == "mat5":
+        try:
+            from scipy.io import loadmat
+        except ImportError:
+            raise CalibrationError(
+                f"{p}: a binary MATLAB (v5) file; reading it needs scipy (pip install scipy), "
+                "or export the samples to CSV") from None
+        try:
+            raw = loadmat(p, squeeze_me=True)
+        except (ValueError, TypeError, OSError, NotImplementedError) as e:
+            raise CalibrationError(f"{p}: cannot read the MATLAB file: {e}") from None
+        items = [(k, v) for k, v in raw.items() if not k.startswith("__")]
     else:
-        return
-    raise CalibrationError(
-        f"{p}: {what}; export the samples to CSV, or load them (scipy.io.loadmat, or h5py and "
-        "a transpose for v7.3) and pass the (N, 3) array or a DataFrame to read_stream"
-    )
+        try:
+            import h5py
+        except ImportError:
+            raise CalibrationError(
+                f"{p}: a MATLAB v7.3 file (HDF5); reading it needs h5py (pip install h5py), "
+                "or export the samples to CSV") from None
+        with h5py.File(p, "r") as f:
+            items = [(k, np.asarray(v).T) for k, v in f.items()
+                     if isinstance(v, h5py.Dataset) and v.dtype.kind in "fiu"]
+    for k, v in items:
+        a = np.asarray(v)
+        if a.dtype.kind in "fiu" and a.ndim <= 2:
+            out[k] = np.squeeze(a) if a.ndim == 2 and 1 in a.shape else a
+    if not out:
+        raise CalibrationError(f"{p}: the MATLAB file holds no numeric matrix or vector")
+    return out
 
 
 def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
@@ -1495,6 +1526,8 @@ class _Recording:
                                                                {}))
             elif kind == "npz":
                 self.arrays = _array_source(p, _npz_arrays(p), columns, fs, time_column)
+            elif kind in ("mat5", "mat73"):
+                self.arrays = _array_source(p, _mat_arrays(p, kind), columns, fs, time_column)
             else:
                 f, data, attrs = _h5_tree(p)
                 try:
