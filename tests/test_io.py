@@ -942,3 +942,12 @@ def test_long_format_logs_read_their_accelerometer_rows(tmp_path: Path, header: 
     dl, _ = ac.io._stream_dwells(pl)
     assert len(dl) == len(dw) == 16
     np.testing.assert_array_equal(dl.mean, dw.mean)
+
+
+def test_a_repeated_header_says_files_were_joined(tmp_path: Path) -> None:
+    part = "".join(f"{i / 100:.2f},{i % 3},{i % 5},9.8\n" for i in range(500))
+    p = write(tmp_path, "t,ax,ay,az\n" + part + "t,ax,ay,az\n" + part)
+    for read in (read_stream, lambda q: stream_dwells(q)):
+        with pytest.raises(CalibrationError, match=r'line 502: column "t": "t" is not a number; '
+                           r"the line repeats the header: files joined"):
+            read(p)

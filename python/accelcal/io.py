@@ -1389,15 +1389,25 @@ def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
         try:
             return fn(*a, **kw)
         except CalibrationError as e:
-            raise CalibrationError(f"{path}: {e}") from None
+            raise CalibrationError(f"{path}: {e}{_repeated_header_hint(str(e))}") from None
 
     def gen() -> Iterator[Any]:
         try:
             yield from it
         except CalibrationError as e:
-            raise CalibrationError(f"{path}: {e}") from None
+            raise CalibrationError(f"{path}: {e}{_repeated_header_hint(str(e))}") from None
 
     return gen()
+
+
+def _repeated_header_hint(msg: str) -> str:
+    """For a data field that reads its own column's name: the header again (files joined)."""
+    m = re.search(r'column "([^"]*)": "([^"]*)" is not a number', msg)
+    if m and m.group(1) == m.group(2):
+        return ("; the line repeats the header: files joined one after the other? Remove the "
+                "repeated header lines (e.g. awk 'NR == 1 || $0 != h {print} NR == 1 {h = $0}'),"
+                " or read the parts separately")
+    return ""
 
 
 _Chunk = tuple[NDArray[Any], NDArray[np.float64] | None, NDArray[np.float64] | None]
@@ -1747,7 +1757,7 @@ class _Recording:
                 **_text_kwargs(lay, src_t),
             )
         except CalibrationError as e:
-            raise CalibrationError(f"{src_t.path}: {e}") from None
+            raise CalibrationError(f"{src_t.path}: {e}{_repeated_header_hint(str(e))}") from None
         self.rows, self.bytes, self.repeats, self.skipped = rows, nbytes, repeats, skipped
         s, t, temp = _split_groups(lay, arrays)
         temp = self._hold_temperature(temp, 0)
