@@ -417,3 +417,22 @@ def test_saturated_dwells_are_left_out_and_named(tmp_path: Path) -> None:
     assert code == 0 and f"{n} of {k} dwells left out" in out, out
     chi2 = float(re.search(r"chi2/dof = ([\d.]+)", out).group(1))  # type: ignore[union-attr]
     assert chi2 < 3, out
+
+
+def test_vibrating_poses_are_named_when_too_few_dwells_remain(tmp_path: Path) -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=16, dwell_s=20.0, move_s=4.0, max_tilt_deg=80,
+                      sigma=1e-3, rng=5)
+    t = np.arange(s.samples.shape[0]) / s.fs
+    x = s.samples + (t > 0.5 * t[-1])[:, None] * 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None]
+    p = tmp_path / "pump.csv"
+    np.savetxt(p, np.column_stack([t, x]), delimiter=",", header="t,ax,ay,az", comments="",
+               fmt="%.7f")
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet")
+    assert code != 0 and "8 dwells found" in out, out
+    m = re.search(r"Note: 8 stretch\(es\) \([\d.]+ s in all, the first at [\d.]+ s\) look still "
+                  r".* --k (\d+) would take them", out)
+    assert m, out
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet", "--k", m.group(1))
+    assert code == 0 and "-> 16 dwells" in out, out

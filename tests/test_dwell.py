@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
@@ -1111,3 +1112,40 @@ def test_version_1_checkpoints_are_still_read() -> None:
     bad = state.replace(b'"dropouts": []', b'"dropouts": [[1, -2]]')
     with pytest.raises(CalibrationError, match="bad header"):
         DwellAccumulator.from_state(bad)
+
+
+def _vibrating_session() -> tuple[Any, np.ndarray]:
+    """A field session in which a pump vibrates the sensor at 30 Hz, 5 times its noise std,
+    through the second half (8 of the 16 poses)."""
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=16, dwell_s=20.0, move_s=4.0, max_tilt_deg=80,
+                      sigma=1e-3, rng=5)
+    t = np.arange(s.samples.shape[0]) / s.fs
+    on = t > 0.5 * t[-1]
+    vib = 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None] * np.array([1.0, 0.5, 0.3])
+    return s, s.samples + on[:, None] * vib
+
+
+def test_vibrating_poses_are_reported_with_the_k_that_takes_them() -> None:
+    s, x = _vibrating_session()
+    d = detect_dwells(x, s.fs)
+    assert len(d) == 8 and d.vibrating is not None and d.vibrating_std is not None
+    # One stretch inside each vibrating pose, none elsewhere.
+    late = s.bounds[8:]
+    assert len(d.vibrating) == 8
+    for (a, b), (p, q) in zip(d.vibrating, late, strict=True):
+        assert p <= a < b <= q and b - a > 0.8 * (q - p)
+    np.testing.assert_allclose(d.vibrating_std[:, 0], np.hypot(1e-3, 5e-3 / np.sqrt(2)),
+                               rtol=0.05)
+    # Streaming gives the same stretches; a clean session gives none.
+    acc = DwellAccumulator(fs=s.fs)
+    push_in_chunks(acc, [12_345, 100_000], x)
+    np.testing.assert_array_equal(acc.finish().vibrating, d.vibrating)
+    assert len(detect_dwells(s.samples, s.fs).vibrating) == 0
+    # The k the note suggests takes all 16 poses.
+    from accelcal.cli._common import vibrating_notes
+
+    note = vibrating_notes(d)[0]
+    k = int(re.search(r"--k (\d+) would take them", note).group(1))  # type: ignore[union-attr]
+    assert len(detect_dwells(x, s.fs, k=k)) == 16

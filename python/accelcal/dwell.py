@@ -112,6 +112,13 @@ class DwellSet:
     threshold, noise_std : (3,) float64 or None
         For detected dwells: the per-axis variance threshold and the noise std the detector
         estimated from the data (input units).
+    vibrating : (m, 2) int64 or None
+        For detected dwells: ``[start, stop)`` of the stretches (at least ``min_dwell_s``)
+        left out although the sensor looks still in them: their variance is above the
+        threshold, but the means of each window's two halves agree within 4 standard errors
+        (vibration, not motion). ``vibrating_std`` (m, 3) is their sample std per axis. Raise
+        the detector's ``k`` above (std / noise_std)^2 to use them as dwells. Not kept by
+        :meth:`to_csv`.
     fs : float or None
         Sample rate of the stream, Hz.
     """
@@ -134,6 +141,8 @@ class DwellSet:
         inflation: ArrayLike | None = None,
         lsb: ArrayLike | None = None,
         dropped: int = 0,
+        vibrating: ArrayLike | None = None,
+        vibrating_std: ArrayLike | None = None,
     ) -> None:
         m = numeric_array(mean, "mean").astype(np.float64, copy=True)
         if m.ndim == 1 and m.size == 3:
@@ -179,6 +188,13 @@ class DwellSet:
                 raise CalibrationError(f"lsb must be positive; got {q.tolist()}")
             self.lsb = q
         self.dropped = int(number(dropped, "dropped", lo=0))
+        self.vibrating: NDArray[np.int64] | None = None
+        self.vibrating_std: NDArray[np.float64] | None = None
+        if vibrating is not None:
+            vb = np.asarray(vibrating, dtype=np.int64).reshape(-1, 2)
+            vs = _arr(np.asarray(vibrating_std, dtype=np.float64).reshape(-1, 3),
+                      "vibrating_std", (vb.shape[0], 3))
+            self.vibrating, self.vibrating_std = vb, vs
         if not isinstance(units, str):
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
@@ -218,6 +234,8 @@ class DwellSet:
             inflation=take(self.inflation),
             lsb=self.lsb,
             dropped=self.dropped,
+            vibrating=self.vibrating,
+            vibrating_std=self.vibrating_std,
         )
 
     @property
@@ -551,8 +569,10 @@ class _Dropouts:
 def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
               drops: _Dropouts | None = None) -> DwellSet:
     start, stop, dropped = d.start, d.stop, int(d.dropped)
+    vib = d.vibrating_bounds
     if drops is not None and drops.n:
         start, stop = drops.to_stream(start), drops.to_stream(stop - 1) + 1
+        vib = np.stack([drops.to_stream(vib[:, 0]), drops.to_stream(vib[:, 1] - 1) + 1], axis=1)
         dropped += drops.n
     t: NDArray[Any] | None = d.t
     if t is None and fs is not None:
@@ -574,6 +594,8 @@ def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
         inflation=d.inflation,
         lsb=d.lsb,
         dropped=dropped,
+        vibrating=vib if d.threshold is not None else None,
+        vibrating_std=d.vibrating_std if d.threshold is not None else None,
     )
 
 

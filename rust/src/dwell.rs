@@ -1341,6 +1341,68 @@ pub struct Detection {
     pub noise_var: [f64; 3],
     /// Threshold on the window variance per axis, in squared input units.
     pub threshold: [f64; 3],
+    /// Stretches left out although the sensor looks still in them: the window variance is
+    /// above the threshold, but the means of the window's two halves agree as well as in a
+    /// static window (vibration, not motion); `[start, stop)` sample bounds, at least
+    /// `min_dwell_s` long after the trim.
+    pub vibrating: Vec<Vibrating>,
+}
+
+/// A stretch that vibrates above the detector's threshold while its mean stays put.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Vibrating {
+    /// `[start, stop)` sample bounds.
+    pub bounds: [usize; 2],
+    /// Sample std per axis over the stretch, input units.
+    pub std: [f64; 3],
+}
+
+/// Half-window means differing by more than this many standard errors mean motion.
+const STILL_SE: f64 = 4.0;
+
+/// The window of `w` blocks from `i` is still: the means of its two halves agree within
+/// [`STILL_SE`] standard errors of white noise of the threshold variance `v` (as well as
+/// they would in a window the detector takes as static), on every axis: vibration that the
+/// halves average out passes, motion (a mean that moves) does not, however large.
+fn still_window(blocks: &[Moments], i: usize, w: usize, v: &[f64; 3]) -> bool {
+    let h = w / 2;
+    if h == 0 {
+        return false;
+    }
+    let a = fold_stats(&blocks[i..i + h]);
+    let b = fold_stats(&blocks[i + h..i + w]);
+    let inv = 1.0 / a.n.max(1) as f64 + 1.0 / b.n.max(1) as f64;
+    (0..3).all(|k| {
+        let d = a.mean[k] - b.mean[k];
+        d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
+    })
+}
+
+fn fold_stats(segs: &[Moments]) -> Moments {
+    segs.iter()
+        .fold(Moments::EMPTY, |acc, x| acc.merge_stats(x))
+}
+
+/// Runs of blocks flagged in `mark` (window centres), trimmed by `trim` blocks at both ends
+/// and kept when at least `min_blocks` long, as block ranges.
+fn runs(mark: &[bool], trim: usize, min_blocks: usize) -> Vec<[usize; 2]> {
+    let mut out = Vec::new();
+    let mut j = 0;
+    while j < mark.len() {
+        if !mark[j] {
+            j += 1;
+            continue;
+        }
+        let start = j;
+        while j < mark.len() && mark[j] {
+            j += 1;
+        }
+        let (a, z) = (start.saturating_add(trim), j.saturating_sub(trim));
+        if z > a && z - a >= min_blocks {
+            out.push([a, z]);
+        }
+    }
+    out
 }
 
 /// Detect static intervals from compressed block statistics.
@@ -1407,30 +1469,33 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
     let thr = [s.k * noise_var[0], s.k * noise_var[1], s.k * noise_var[2]];
     let h = w / 2;
     let mut is_static = vec![false; blocks.len()];
+    let mut is_still = vec![false; blocks.len()];
     for (i, v) in var.iter().enumerate() {
         is_static[i + h] = (0..3).all(|a| v[a] < thr[a]);
+        is_still[i + h] = !is_static[i + h]
+            && v.iter().all(|x| x.is_finite())
+            && still_window(blocks, i, w, &thr);
     }
     let trim = s.trim_blocks();
     let min_blocks = s.min_blocks();
     let mut bounds = Vec::new();
     let mut stats = Vec::new();
-    let mut j = 0;
-    while j < blocks.len() {
-        if !is_static[j] {
-            j += 1;
-            continue;
-        }
-        let start = j;
-        while j < blocks.len() && is_static[j] {
-            j += 1;
-        }
-        let (a, z) = (start.saturating_add(trim), j.saturating_sub(trim));
-        if z > a && z - a >= min_blocks {
-            let segs = &blocks[a..z];
-            bounds.push([a * b, z * b]);
-            stats.push(DwellStat::from_segments(segs, segs.len() / 2));
-        }
+    for [a, z] in runs(&is_static, trim, min_blocks) {
+        let segs = &blocks[a..z];
+        bounds.push([a * b, z * b]);
+        stats.push(DwellStat::from_segments(segs, segs.len() / 2));
     }
+    let vibrating = runs(&is_still, trim, min_blocks)
+        .into_iter()
+        .map(|[a, z]| {
+            let m = fold_stats(&blocks[a..z]);
+            let v = m.var();
+            Vibrating {
+                bounds: [a * b, z * b],
+                std: [v[0].sqrt(), v[1].sqrt(), v[2].sqrt()],
+            }
+        })
+        .collect();
     if bounds.is_empty() {
         let n = blocks.len() * b;
         return degenerate(format!(
@@ -1451,6 +1516,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         stats,
         noise_var,
         threshold: thr,
+        vibrating,
     })
 }
 
@@ -1476,6 +1542,8 @@ pub struct DwellTable {
     /// Rows with a NaN or inf value that were left out of every dwell (detection only;
     /// dwells given by bounds refuse them).
     pub dropped: u64,
+    /// Stretches that look still but vibrate above the detection threshold (detection only).
+    pub vibrating: Vec<Vibrating>,
 }
 
 impl DwellTable {
@@ -1535,6 +1603,7 @@ pub fn dwell_table<T: Sample>(
         threshold: None,
         lsb: lsb.estimate(),
         dropped: 0,
+        vibrating: Vec::new(),
     })
 }
 
@@ -1802,6 +1871,7 @@ impl BoundsAcc {
             threshold: None,
             lsb: self.lsb.estimate(),
             dropped: 0,
+            vibrating: Vec::new(),
         })
     }
 }
@@ -1890,6 +1960,7 @@ impl DetectAcc {
             threshold: Some(det.threshold),
             lsb: self.lsb.estimate(),
             dropped: self.dropped,
+            vibrating: det.vibrating,
         })
     }
 }
@@ -2300,6 +2371,29 @@ mod tests {
         }
         assert_eq!(t.dropped, 0);
         assert_eq!(t.lsb, None);
+    }
+
+    #[test]
+    fn a_vibrating_pose_is_reported_not_taken() {
+        let levels = [0.0, 1.0, -1.0, 2.0, 0.5];
+        let mut x = piecewise(5, &levels, 0.01);
+        // The fourth pose (samples 2100..2600) vibrates at 30 Hz, 6 times the noise std.
+        for i in 2100..2600 {
+            let v = 0.06 * (std::f64::consts::TAU * 30.0 * i as f64 / 100.0 + 0.3).sin();
+            x[[i, 0]] += v;
+            x[[i, 2]] -= 0.5 * v;
+        }
+        let t = detect_table(&x.view(), DetectorSettings::new(100.0), None, None).unwrap();
+        assert_eq!(t.bounds.len(), 4);
+        assert!(t.bounds.iter().all(|&[a, b]| b <= 2100 || a >= 2600));
+        assert_eq!(t.vibrating.len(), 1, "{:?}", t.vibrating);
+        let v = t.vibrating[0];
+        assert!(v.bounds[0] >= 2100 && v.bounds[1] <= 2600 && v.bounds[1] - v.bounds[0] >= 300);
+        assert!(v.std[0] > 0.03 && v.std[1] < 0.01, "{:?}", v.std);
+        // The ramps between poses move the mean: none of them is reported.
+        let clean = piecewise(5, &levels, 0.01);
+        let c = detect_table(&clean.view(), DetectorSettings::new(100.0), None, None).unwrap();
+        assert!(c.vibrating.is_empty(), "{:?}", c.vibrating);
     }
 
     #[test]

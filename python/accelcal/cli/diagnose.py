@@ -20,6 +20,7 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
+    vibrating_notes,
     without_faults,
 )
 
@@ -85,6 +86,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         run = (st.samples,)
         kw.update(fs=st.fs, t=st.t, temperature=st.temperature)
     src = source_line(file, rec, d)
+    extra += vibrating_notes(d)
     d, fault_notes = without_faults(d)
     if fault_notes:
         # The dwells that are left (the samples would bring the faulty ones back).

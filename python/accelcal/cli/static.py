@@ -23,6 +23,7 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
+    vibrating_notes,
     without_faults,
 )
 from .fleet import fleet_options, is_fleet_run, run_static_fleet
@@ -109,6 +110,8 @@ def calibrate_static(
     if dwells_out:
         d.to_csv(dwells_out)
     src = source_line(file, rec, d)
+    undropped = d
+    read_notes += vibrating_notes(d)
     d, fault_notes = without_faults(d)
     read_notes += fault_notes
     notes: list[str] = []
@@ -121,6 +124,7 @@ def calibrate_static(
             hint = ""
             if model != "diag" and "diag" not in str(e):
                 hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
+            hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped))
             raise CalibrationError(_cli(
                 f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
                 f"model: {e}.{hint}"

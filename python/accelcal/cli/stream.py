@@ -29,6 +29,7 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
+    vibrating_notes,
 )
 
 
@@ -114,7 +115,7 @@ def dwells(
         if rec.rows == 0:
             raise CalibrationError(f"{rec.path}: no data rows")
         d = acc.finish()
-    notes = [] if rec is None else rec.notes()
+    notes = ([] if rec is None else rec.notes()) + vibrating_notes(d)
     faults = d.faults()
     if faults:
         from ..dwell import fault_text

@@ -61,6 +61,10 @@ pub struct DwellTableRaw {
     noise_var: Option<Py<PyArray1<f64>>>,
     /// (3,) the detector's variance threshold.
     threshold: Option<Py<PyArray1<f64>>>,
+    /// (m, 2) int64 bounds of the stretches that look still but vibrate above the threshold.
+    vibrating_bounds: Py<PyArray2<i64>>,
+    /// (m, 3) their sample std per axis.
+    vibrating_std: Py<PyArray2<f64>>,
 }
 
 impl DwellTableRaw {
@@ -94,6 +98,16 @@ impl DwellTableRaw {
             temperature: t.aux_mean.as_deref().map(v1),
             noise_var: o3(t.noise_var),
             threshold: o3(t.threshold),
+            vibrating_bounds: ndarray::Array2::from_shape_fn((t.vibrating.len(), 2), |(i, j)| {
+                t.vibrating[i].bounds[j] as i64
+            })
+            .to_pyarray(py)
+            .unbind(),
+            vibrating_std: ndarray::Array2::from_shape_fn((t.vibrating.len(), 3), |(i, j)| {
+                t.vibrating[i].std[j]
+            })
+            .to_pyarray(py)
+            .unbind(),
         }
     }
 }
