@@ -1360,22 +1360,59 @@ pub struct Vibrating {
 /// Half-window means differing by more than this many standard errors mean motion.
 const STILL_SE: f64 = 4.0;
 
-/// The window of `w` blocks from `i` is still: the means of its two halves agree within
-/// [`STILL_SE`] standard errors of white noise of the threshold variance `v` (as well as
-/// they would in a window the detector takes as static), on every axis: vibration that the
-/// halves average out passes, motion (a mean that moves) does not, however large.
-fn still_window(blocks: &[Moments], i: usize, w: usize, v: &[f64; 3]) -> bool {
-    let h = w / 2;
-    if h == 0 {
-        return false;
+/// Prefix sums of the block counts and of `n * (mean - ref)` per axis, for the mean of any
+/// run of blocks in O(1) (a block that is not finite adds nothing: every window holding one
+/// has an infinite variance and is never tested).
+struct MeanPrefix {
+    n: Vec<f64>,
+    s: Vec<[f64; 3]>,
+}
+
+impl MeanPrefix {
+    fn new(blocks: &[Moments]) -> Self {
+        let r = blocks
+            .iter()
+            .find(|m| m.is_finite())
+            .map_or([0.0; 3], |m| m.mean);
+        let (mut n, mut s) = (vec![0.0], vec![[0.0; 3]]);
+        for m in blocks {
+            let ok = m.is_finite();
+            let c = if ok { m.n as f64 } else { 0.0 };
+            let last = s[s.len() - 1];
+            n.push(n[n.len() - 1] + c);
+            s.push(std::array::from_fn(|a| {
+                last[a] + if ok { c * (m.mean[a] - r[a]) } else { 0.0 }
+            }));
+        }
+        MeanPrefix { n, s }
     }
-    let a = fold_stats(&blocks[i..i + h]);
-    let b = fold_stats(&blocks[i + h..i + w]);
-    let inv = 1.0 / a.n.max(1) as f64 + 1.0 / b.n.max(1) as f64;
-    (0..3).all(|k| {
-        let d = a.mean[k] - b.mean[k];
-        d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
-    })
+
+    /// Mean (less the reference) and count of blocks `[a, b)`.
+    fn mean(&self, a: usize, b: usize) -> ([f64; 3], f64) {
+        let c = self.n[b] - self.n[a];
+        (
+            std::array::from_fn(|k| (self.s[b][k] - self.s[a][k]) / c.max(1.0)),
+            c,
+        )
+    }
+
+    /// The window of `w` blocks from `i` is still: the means of its two halves agree within
+    /// [`STILL_SE`] standard errors of white noise of the threshold variance `v` (as well as
+    /// they would in a window the detector takes as static), on every axis: vibration that
+    /// the halves average out passes, motion (a mean that moves) does not, however large.
+    fn still(&self, i: usize, w: usize, v: &[f64; 3]) -> bool {
+        let h = w / 2;
+        if h == 0 {
+            return false;
+        }
+        let (ma, na) = self.mean(i, i + h);
+        let (mb, nb) = self.mean(i + h, i + w);
+        let inv = 1.0 / na.max(1.0) + 1.0 / nb.max(1.0);
+        (0..3).all(|k| {
+            let d = ma[k] - mb[k];
+            d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
+        })
+    }
 }
 
 fn fold_stats(segs: &[Moments]) -> Moments {
@@ -1470,11 +1507,11 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
     let h = w / 2;
     let mut is_static = vec![false; blocks.len()];
     let mut is_still = vec![false; blocks.len()];
+    let prefix = MeanPrefix::new(blocks);
     for (i, v) in var.iter().enumerate() {
         is_static[i + h] = (0..3).all(|a| v[a] < thr[a]);
-        is_still[i + h] = !is_static[i + h]
-            && v.iter().all(|x| x.is_finite())
-            && still_window(blocks, i, w, &thr);
+        is_still[i + h] =
+            !is_static[i + h] && v.iter().all(|x| x.is_finite()) && prefix.still(i, w, &thr);
     }
     let trim = s.trim_blocks();
     let min_blocks = s.min_blocks();

@@ -366,6 +366,24 @@ impl StaticFit {
 // ------------------------------------------------------------------------------------------
 // Stages
 
+/// One or two axes that read the same in every dwell (all three: identical dwells, said
+/// later): a dead or disconnected channel.
+#[cold]
+fn dead_channel(means: &[[f64; 3]]) -> Result<()> {
+    let m0 = means[0];
+    let flat: [bool; 3] = std::array::from_fn(|a| means.iter().all(|m| m[a] == m0[a]));
+    match flat.iter().position(|&f| f) {
+        Some(a) if !flat.iter().all(|&f| f) => degenerate(format!(
+            "the {} output reads {} in every one of the {} dwells: a dead or disconnected \
+             channel (a static calibration needs each axis to see gravity change between poses)",
+            ["x", "y", "z"][a],
+            m0[a],
+            means.len()
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Check the dwell means, `g` and the noise model.
 pub fn validate(means: &[[f64; 3]], g: f64, noise: &Noise<'_>, model: Model) -> Result<()> {
     if !(g > 0.0) || !g.is_finite() {
@@ -379,20 +397,10 @@ pub fn validate(means: &[[f64; 3]], g: f64, noise: &Noise<'_>, model: Model) -> 
             return invalid(format!("dwell {k} has {what} mean"));
         }
     }
-    if let Some(m0) = means.first().filter(|_| means.len() > 1) {
-        // One or two axes the same in every dwell (all three: identical dwells, said later).
-        let flat: [bool; 3] = std::array::from_fn(|a| means.iter().all(|m| m[a] == m0[a]));
-        let first = flat.iter().position(|&f| f);
-        if let Some(a) = first.filter(|_| !flat.iter().all(|&f| f)) {
-            return degenerate(format!(
-                "the {} output reads {} in every one of the {} dwells: a dead or disconnected \
-                 channel (a static calibration needs each axis to see gravity change between \
-                 poses)",
-                ["x", "y", "z"][a],
-                m0[a],
-                means.len()
-            ));
-        }
+    // The second dwell differs from the first on every axis in any real session: only then
+    // is the scan for a channel that never changes skipped.
+    if means.len() > 1 && (0..3).any(|a| means[1][a] == means[0][a]) {
+        dead_channel(means)?;
     }
     let p = model.n_params();
     if means.len() < p {
