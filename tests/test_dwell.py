@@ -1149,3 +1149,5 @@ def test_vibrating_poses_are_reported_with_the_k_that_takes_them() -> None:
     note = vibrating_notes(d)[0]
     k = int(re.search(r"--k (\d+) would take them", note).group(1))  # type: ignore[union-attr]
     assert len(detect_dwells(x, s.fs, k=k)) == 16
+    listed = d.to_dict()["vibrating"]
+    assert [[v["start"], v["stop"]] for v in listed] == d.vibrating.tolist()

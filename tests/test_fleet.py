@@ -498,3 +498,23 @@ def test_saturated_dwells_are_left_out_as_the_single_file_command_does(tmp_path:
     fit = ac.fit_static(d, s.g)
     np.testing.assert_allclose(row[PARAMS].to_numpy(float), fit.vector, rtol=1e-12)
     assert row["gap_error"] == "" and row["gap_chi2_dof"] < 3
+
+
+def test_vibrating_poses_are_named_in_the_fleet_row(tmp_path: Path) -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=24, dwell_s=10.0, move_s=3.0, max_tilt_deg=80,
+                      sigma=1e-3, rng=5)
+    t = np.arange(s.samples.shape[0]) / s.fs
+    x = s.samples + (t > 0.75 * t[-1])[:, None] * 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None]
+    p = tmp_path / "pump.csv"
+    np.savetxt(p, np.column_stack([t, x]), delimiter=",", header="t,ax,ay,az", comments="",
+               fmt="%.7f")
+    row = ac.calibrate_many([str(p)], g=s.g, workers=1, progress=False).loc[0]
+    assert row["status"] in ("ok", "weak") and row["n_dwells"] < 24
+    m = re.search(r"(\d+) stretch\(es\) .* look still .* k=(\d+) would take them",
+                  row["message"])
+    assert m and int(m.group(1)) == 24 - row["n_dwells"], row["message"]
+    again = ac.calibrate_many([str(p)], g=s.g, workers=1, progress=False,
+                              detector=ac.DetectorSettings(k=float(m.group(2)))).loc[0]
+    assert again["n_dwells"] == 24

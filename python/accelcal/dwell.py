@@ -410,7 +410,8 @@ class DwellSet:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict of lists (a NaN inflation becomes None), with the :meth:`faults`."""
+        """JSON-ready dict of lists (a NaN inflation becomes None), with the :meth:`faults` and
+        the ``vibrating`` stretches."""
         out: dict[str, Any] = {"n_dwells": len(self), "units": self.units, "fs_hz": self.fs}
         for name in (
             "start", "stop", "count", "t", "temperature", "mean", "var", "half_mean",
@@ -424,6 +425,10 @@ class DwellSet:
             else [[None if math.isnan(x) else x for x in r] for r in self.inflation.tolist()]
         )
         out["dropped"] = self.dropped
+        out["vibrating"] = None if self.vibrating is None or self.vibrating_std is None else [
+            {"start": int(a), "stop": int(b), "std": sd.tolist()}
+            for (a, b), sd in zip(self.vibrating, self.vibrating_std, strict=True)
+        ]
         out["faults"] = [
             {"dwell": f.dwell, "axis": None if f.axis is None else _AXES[f.axis],
              "kind": f.kind, "value": f.value, "rail": None if math.isnan(f.rail) else f.rail}
@@ -503,6 +508,26 @@ def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None =
     if limit is not None and len(faults) > limit:
         lines.append(f"... {len(faults) - limit} more")
     return "\n  ".join(lines)
+
+
+def vibrating_text(d: DwellSet, option: str = "k=") -> list[str]:
+    """A note on the stretches the detector left out although they look still (vibration
+    above its threshold), with the detector ``k`` that would take them (``option`` names it:
+    ``"k="`` for Python, ``"--k "`` for the command line)."""
+    vb, vs = d.vibrating, d.vibrating_std
+    if vb is None or vs is None or len(vb) == 0 or d.noise_std is None or d.threshold is None:
+        return []
+    noise = np.asarray(d.noise_std)
+    k_now = float(np.max(np.asarray(d.threshold) / noise**2))
+    ratio = float(np.max(vs / noise))
+    k_need = math.ceil(1.1 * ratio**2)
+    span = int((vb[:, 1] - vb[:, 0]).sum())
+    when = "" if not d.fs else (f" ({span / d.fs:.3g} s in all, the first at "
+                                f"{vb[0, 0] / d.fs:.1f} s)")
+    return [f"{len(vb)} stretch(es){when} look still (their mean stays put) but vibrate above "
+            f"the detector's threshold (std up to {ratio:.2g}x the noise): not used as dwells; "
+            f"{option}{k_need} would take them (the threshold is k x the noise variance; k = "
+            f"{k_now:.3g} now)"]
 
 
 def check_faults(d: DwellSet, what: str, detected: bool = False) -> None:

@@ -141,7 +141,7 @@ def _structure_verdict(rep: Any) -> str:
 def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
     from . import io as _aio
-    from .dwell import DetectorSettings, detect_dwells, fault_text
+    from .dwell import DetectorSettings, detect_dwells, fault_text, vibrating_text
     from .static import WeakDesignWarning, fit_static
 
     names = _names(job.cli)
@@ -179,12 +179,13 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     settings = DetectorSettings(**job.detector)
     d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=settings)
     faults = d.faults()
-    fault_note = []
+    fault_note: list[str] = []
     if faults:  # left out, as the single-file commands do
         n_bad = len({f.dwell for f in faults})
-        fault_note = [f"{n_bad} of {len(d)} dwells left out: their output did not follow the "
-                      f"sensor ({fault_text(d, faults, limit=2)})".replace("\n  ", "; ")]
+        fault_note.append(f"{n_bad} of {len(d)} dwells left out: their output did not follow "
+                          f"the sensor ({fault_text(d, faults, limit=2)})".replace("\n  ", "; "))
         d = d.drop_faults()
+    fault_note += vibrating_text(d)
     k = len(d)
     row["n_dwells"] = k
     with warnings.catch_warnings(record=True) as caught:

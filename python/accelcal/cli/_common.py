@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import os
 import re
 import sys
@@ -227,22 +226,10 @@ def without_faults(d: Any) -> tuple[Any, list[str]]:
 
 
 def vibrating_notes(d: Any) -> list[str]:
-    """A note on the stretches the detector left out although they look still (vibration
-    above its threshold), with the ``--k`` that would take them."""
-    vb, vs = getattr(d, "vibrating", None), getattr(d, "vibrating_std", None)
-    if vb is None or vs is None or len(vb) == 0 or d.noise_std is None or d.threshold is None:
-        return []
-    noise = np.asarray(d.noise_std)
-    k_now = float(np.max(np.asarray(d.threshold) / noise**2))
-    ratio = float(np.max(vs / noise))
-    k_need = math.ceil(1.1 * ratio**2)
-    span = (vb[:, 1] - vb[:, 0]).sum()
-    when = "" if not d.fs else (f" ({span / d.fs:.3g} s in all, the first at "
-                                f"{vb[0, 0] / d.fs:.1f} s)")
-    return [f"{len(vb)} stretch(es){when} look still (their mean stays put) but vibrate above "
-            f"the detector's threshold (std up to {ratio:.2g}x the noise): not used as dwells; "
-            f"--k {k_need} would take them (the threshold is k x the noise variance; k = "
-            f"{k_now:.3g} now)"]
+    """:func:`~accelcal.dwell.vibrating_text` in the terms of the command line."""
+    from ..dwell import vibrating_text
+
+    return vibrating_text(d, option="--k ")
 
 
 def source_line(file: str, rec: Any, d: Any) -> str:
