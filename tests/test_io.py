@@ -951,3 +951,35 @@ def test_a_repeated_header_says_files_were_joined(tmp_path: Path) -> None:
         with pytest.raises(CalibrationError, match=r'line 502: column "t": "t" is not a number; '
                            r"the line repeats the header: files joined"):
             read(p)
+
+
+@pytest.mark.parametrize("kind", ["gzip", "bz2", "xz"])
+def test_compressed_text_is_read(tmp_path: Path, kind: str) -> None:
+    import bz2
+    import gc
+    import glob
+    import gzip
+    import lzma
+    import tempfile
+
+    x = _table(3000, 4)
+    text = "t,ax,ay,az,temp\n" + "\n".join(",".join(r) for r in _fmt(x)) + "\n"
+    plain = write(tmp_path, text)
+    opener = {"gzip": gzip.open, "bz2": bz2.open, "xz": lzma.open}[kind]
+    p = tmp_path / f"rec.csv.{kind}"
+    with opener(p, "wt") as fh:
+        fh.write(text)
+    before = set(glob.glob(f"{tempfile.gettempdir()}/accelcal-*.txt"))
+    s, ref = read_stream(p), read_stream(plain)
+    np.testing.assert_array_equal(s.samples, ref.samples)
+    assert s.fs == ref.fs and s.path == str(p)
+    assert any(f"{kind}-compressed text" in n for n in s.notes)
+    np.testing.assert_array_equal(np.concatenate([c for c, _ in iter_stream(p, chunk_rows=777)]),
+                                  ref.samples)
+    gc.collect()
+    assert set(glob.glob(f"{tempfile.gettempdir()}/accelcal-*.txt")) == before  # cleaned up
+    # A damaged archive is a clear error.
+    bad = tmp_path / f"bad.csv.{kind}"
+    bad.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2])
+    with pytest.raises(CalibrationError, match=rf"cannot decompress it \({kind}\)"):
+        read_stream(bad)

@@ -42,10 +42,12 @@ Layout rules for text files
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
 import sys
+import weakref
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -426,15 +428,17 @@ _ACC_LABELS = {
 }
 
 
-def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any,
+                        shown: str | None = None) -> _ArraySource:
     """A long-format log (``0.01,ACC,0.1,0.2,9.8``: a text column names each row's sensor):
     the rows whose label names an accelerometer, read through pandas (in memory), the label
-    column dropped."""
+    column dropped. ``shown`` names the file in messages when ``p`` is a decompressed copy."""
+    name = shown or p
     try:
         import pandas as pd
     except ImportError:
         raise CalibrationError(
-            f"{p}: a long-format log (a text label in each row names its sensor); reading it "
+            f"{name}: a long-format log (a text label in each row names its sensor); reading it "
             "needs pandas: pip install pandas") from None
     src = _read_head(p)
     first = next((ln.strip() for _, ln in _head_lines(src)
@@ -445,7 +449,7 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
         df = pd.read_csv(p, sep=delim if delim else r"\s+", header=0 if has_header else None,
                          comment="#", skipinitialspace=True, low_memory=False)
     except (ValueError, pd.errors.ParserError) as e:
-        raise CalibrationError(f"{p}: a long-format log (a text label in each row) that pandas "
+        raise CalibrationError(f"{name}: a long-format log (a text label in each row) that pandas "
                                f"cannot read: {e}") from None
     df.columns = [str(c).strip() for c in df.columns]
     text = [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c])
@@ -470,7 +474,7 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
                     sub = sub.drop(columns=[k])
         counts = val.value_counts()
         others = ", ".join(f"{k} {v}" for k, v in counts.items() if k != found[0])
-        out = _dataframe_source(sub.reset_index(drop=True), columns, fs, time_column, path=p,
+        out = _dataframe_source(sub.reset_index(drop=True), columns, fs, time_column, path=name,
                                 named=has_header)
         out.lay.notes.append(
             f"a long-format log: the {int(keep.sum())} rows labelled {found[0]!r} in column "
@@ -478,7 +482,7 @@ def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any
         return out
     seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in text}
     raise CalibrationError(
-        f"{p}: a long-format log (a text label in each row: {seen}) with no label that names "
+        f"{name}: a long-format log (a text label in each row: {seen}) with no label that names "
         "an accelerometer (ACC, accel, accelerometer, ...); select its rows first, e.g. with "
         "pandas: df = pd.read_csv(path); read_stream(df[df[label] == value].drop("
         "columns=label))")
@@ -569,6 +573,11 @@ class _TextSource:
     head: bytes
     eof: bool  # head holds everything
     size: int | None  # bytes, None for a pipe
+    file: str | None = None  # the file the reader opens, when not `path` (decompressed text)
+
+    @property
+    def opened(self) -> str:
+        return self.file or self.path
 
     @property
     def stdin(self) -> bool:
@@ -584,6 +593,48 @@ def _open_bytes(path: str) -> Any:
         raise CalibrationError(f"{path}: is a directory, not a recording file") from None
     except OSError as e:
         raise CalibrationError(f"{path}: cannot read file ({e.strerror})") from None
+
+
+#: Magic bytes of the compressed text files that are read (through a temporary file).
+_COMPRESSED = ((b"\x1f\x8b", "gzip"), (b"BZh", "bz2"), (b"\xfd7zXZ\x00", "xz"))
+
+
+def _compression(path: str) -> str | None:
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(6)
+    except OSError:
+        return None  # the reader names the problem
+    return next((kind for m, kind in _COMPRESSED if magic.startswith(m)), None)
+
+
+def _decompressed(path: str, kind: str) -> str:
+    """Decompress ``path`` (gzip, bz2 or xz) into a temporary file; returns its name. The
+    parser reads files in place (memory-mapped), so a compressed file is expanded first."""
+    import bz2
+    import gzip
+    import lzma
+    import shutil
+    import tempfile
+
+    openers: dict[str, Any] = {"gzip": gzip.open, "bz2": bz2.open, "xz": lzma.open}
+    opener = openers[kind]
+    fd, tmp = tempfile.mkstemp(prefix="accelcal-", suffix=".txt")
+    try:
+        with opener(path, "rb") as src, os.fdopen(fd, "wb") as dst:
+            shutil.copyfileobj(src, dst, 1 << 20)
+    except (OSError, EOFError, lzma.LZMAError) as e:
+        os.unlink(tmp)
+        raise CalibrationError(f"{path}: cannot decompress it ({kind}): {e}") from None
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return tmp
+
+
+def _unlink_quiet(path: str) -> None:
+    with contextlib.suppress(OSError):
+        os.unlink(path)
 
 
 def _read_head(path: str) -> _TextSource:
@@ -626,6 +677,10 @@ def _head_lines(src: _TextSource) -> Iterator[tuple[int, str]]:
                 f"{src.path}: the text is UTF-16 (as Windows' 'Unicode text' saves it); save "
                 "it as UTF-8 or plain ASCII (e.g. iconv -f UTF-16 -t UTF-8)"
             )
+        comp = next((kind for m, kind in _COMPRESSED if data.startswith(m)), None)
+        if comp is not None:  # only standard input gets here: files are expanded first
+            raise CalibrationError(f"{src.path}: {comp}-compressed text on standard input: "
+                                   "give the file's name instead, or decompress it first")
         raise CalibrationError(f"{src.path}: not a text file (it contains NUL bytes)")
     start = 3 if data.startswith(b"\xef\xbb\xbf") else 0
     pos = start
@@ -1519,7 +1574,21 @@ class _Recording:
         if isinstance(path, (str, os.PathLike)):
             p = _path(path)
             kind = _kind(p)
-            if kind == "text":
+            comp = _compression(p) if kind == "text" else None
+            if comp is not None:
+                tmp = _decompressed(p, comp)
+                self._tmp = weakref.finalize(self, _unlink_quiet, tmp)
+                src = _read_head(tmp)
+                self.text = _TextSource(p, src.head, src.eof, src.size, file=tmp)
+                try:
+                    self.lay = _sniff(self.text, columns, fs, time_column)
+                except _LongFormat:
+                    self.text = None
+                    self.arrays = _long_format_source(tmp, columns, fs, time_column, shown=p)
+                    self.lay = self.arrays.lay
+                self.lay.notes.append(f"{comp}-compressed text: read through a temporary "
+                                      f"file of {src.size or 0} bytes")
+            elif kind == "text":
                 self.text = _read_head(p)
                 try:
                     self.lay = _sniff(self.text, columns, fs, time_column)
@@ -1674,7 +1743,7 @@ class _Recording:
         bpr = lay.bytes_per_row
         block = int(min(max((chunk_rows or 10**9) * bpr, 1 << 16), 4 << 20))
         blocks = _located(src_t.path, _core.TextBlocks(
-            None if (src_t.stdin or src_t.eof) else src_t.path,
+            None if (src_t.stdin or src_t.eof) else src_t.opened,
             lay.offset,
             lay.ncols,
             _text_groups(lay),
@@ -1748,7 +1817,7 @@ class _Recording:
         src_t = self.text
         try:
             arrays, rows, nbytes, repeats, skipped = _core.text_read_all(
-                None if (src_t.stdin or src_t.eof) else src_t.path,
+                None if (src_t.stdin or src_t.eof) else src_t.opened,
                 lay.offset,
                 lay.ncols,
                 _text_groups(lay),
