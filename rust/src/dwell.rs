@@ -21,8 +21,8 @@ use crate::error::{degenerate, invalid, Result};
 use ndarray::ArrayView2;
 use rayon::prelude::*;
 
-#[cfg(target_arch = "x86_64")]
 mod faults;
+#[cfg(target_arch = "x86_64")]
 mod simd;
 mod state;
 pub use faults::{output_faults, FaultKind, OutputFault, FAULT_MIN_SAMPLES};
