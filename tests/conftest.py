@@ -4,7 +4,9 @@
 ``../shared/data`` beside the checkout (CI lays it out that way): it returns the path, or skips
 the calling test with a clear reason when the folder is absent (a bare source checkout).
 ``dask_client`` is a real two-worker Dask cluster (separate processes) for the session.
-``clipped_session`` simulates a recording whose output saturates at the sensor's range.
+``clipped_session`` simulates a recording whose output saturates at the sensor's range,
+``vibrating_session`` one in which a pump vibrates the sensor for part of the session, and
+``write_csv`` writes a recording as ``t,ax,ay,az`` text.
 """
 
 from __future__ import annotations
@@ -85,3 +87,21 @@ def clipped_session(rail_g: float = 0.95, seed: int = 3) -> tuple[Any, np.ndarra
         if np.any(np.abs(clean) > rail):
             truth[k] = "saturated_high" if clean[np.argmax(np.abs(clean))] > 0 else "saturated_low"
     return s, x, truth
+
+
+def vibrating_session(n_dwells: int = 16, dwell_s: float = 20.0, move_s: float = 4.0,
+                      after: float = 0.5, axes: Any = (1.0, 0.5, 0.3)) -> tuple[Any, np.ndarray]:
+    """A 500 Hz field session (noise 1e-3 m/s^2) and its samples with a 30 Hz vibration of
+    5e-3 m/s^2 (times ``axes``) from the fraction ``after`` of the session on."""
+    s = field_session(fs=500.0, n_dwells=n_dwells, dwell_s=dwell_s, move_s=move_s,
+                      max_tilt_deg=80, sigma=1e-3, rng=5)
+    t = s.t
+    vib = 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None] * np.asarray(axes, dtype=np.float64)
+    return s, s.samples + (t > after * t[-1])[:, None] * vib
+
+
+def write_csv(path: Path, t: np.ndarray, x: np.ndarray, fmt: Any = "%.7f") -> Path:
+    """``t,ax,ay,az`` text with a header line."""
+    np.savetxt(path, np.column_stack([t, x]), delimiter=",", header="t,ax,ay,az", comments="",
+               fmt=fmt)
+    return path

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from accelcal.cli import main
 from click.testing import CliRunner
-from conftest import clipped_session, shared_data
+from conftest import clipped_session, shared_data, vibrating_session, write_csv
 
 XSENS = partial(shared_data, 'xsens-mti', 'xsens_acc.txt')
 MPU = partial(shared_data, 'mpu6050-10poses', 'example_data_calibration.csv')
@@ -388,9 +388,7 @@ def test_dwells_line_counts_the_dropouts(tmp_path: Path) -> None:
 
 def test_saturated_dwells_are_left_out_and_named(tmp_path: Path) -> None:
     s, x, truth = clipped_session()
-    p = tmp_path / "clipped.csv"
-    np.savetxt(p, np.column_stack([s.t, x]), delimiter=",", header="t,ax,ay,az",
-               comments="", fmt=["%.4f", "%d", "%d", "%d"])
+    p = write_csv(tmp_path / "clipped.csv", s.t, x, fmt=["%.4f", "%d", "%d", "%d"])
     n, k = len(truth), len(s.bounds)
     code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet")
     assert code == 0, out
@@ -420,15 +418,8 @@ def test_saturated_dwells_are_left_out_and_named(tmp_path: Path) -> None:
 
 
 def test_vibrating_poses_are_named_when_too_few_dwells_remain(tmp_path: Path) -> None:
-    from accelcal.sim import field_session
-
-    s = field_session(fs=500.0, n_dwells=16, dwell_s=20.0, move_s=4.0, max_tilt_deg=80,
-                      sigma=1e-3, rng=5)
-    t = np.arange(s.samples.shape[0]) / s.fs
-    x = s.samples + (t > 0.5 * t[-1])[:, None] * 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None]
-    p = tmp_path / "pump.csv"
-    np.savetxt(p, np.column_stack([t, x]), delimiter=",", header="t,ax,ay,az", comments="",
-               fmt="%.7f")
+    s, x = vibrating_session(axes=(1.0, 1.0, 1.0))
+    p = write_csv(tmp_path / "pump.csv", s.t, x)
     code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet")
     assert code != 0 and "8 dwells found" in out, out
     m = re.search(r"Note: 8 stretch\(es\) \([\d.]+ s in all, the first at [\d.]+ s\) look still "

@@ -17,7 +17,7 @@ import pytest
 from accelcal import CalibrationError, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from accelcal._reference import allan_inflation_sample_stride, dwell_reference, lsb_reference
 from accelcal.io import read_stream
-from conftest import COUNTS_PER_MPS2, clipped_session, shared_data
+from conftest import COUNTS_PER_MPS2, clipped_session, shared_data, vibrating_session
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -1114,21 +1114,8 @@ def test_version_1_checkpoints_are_still_read() -> None:
         DwellAccumulator.from_state(bad)
 
 
-def _vibrating_session() -> tuple[Any, np.ndarray]:
-    """A field session in which a pump vibrates the sensor at 30 Hz, 5 times its noise std,
-    through the second half (8 of the 16 poses)."""
-    from accelcal.sim import field_session
-
-    s = field_session(fs=500.0, n_dwells=16, dwell_s=20.0, move_s=4.0, max_tilt_deg=80,
-                      sigma=1e-3, rng=5)
-    t = np.arange(s.samples.shape[0]) / s.fs
-    on = t > 0.5 * t[-1]
-    vib = 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None] * np.array([1.0, 0.5, 0.3])
-    return s, s.samples + on[:, None] * vib
-
-
 def test_vibrating_poses_are_reported_with_the_k_that_takes_them() -> None:
-    s, x = _vibrating_session()
+    s, x = vibrating_session()  # 8 of the 16 poses vibrate
     d = detect_dwells(x, s.fs)
     assert len(d) == 8 and d.vibrating is not None and d.vibrating_std is not None
     # One stretch inside each vibrating pose, none elsewhere.

@@ -21,7 +21,7 @@ from accelcal.fleet import read_fleet_table
 from accelcal.sim.fleet import CORRUPTIONS, fleet_recordings, random_calibration
 from accelcal.sim.static import G0
 from click.testing import CliRunner
-from conftest import clipped_session
+from conftest import clipped_session, vibrating_session, write_csv
 
 N = 32
 OUTLIER = 3  # this sensor's sx is 12 fleet-sigma high
@@ -486,9 +486,7 @@ def test_progress_bar_counts_recordings_when_asked(fleet: dict[str, Any],
 
 def test_saturated_dwells_are_left_out_as_the_single_file_command_does(tmp_path: Path) -> None:
     s, x, truth = clipped_session()
-    p = tmp_path / "clipped.csv"
-    np.savetxt(p, np.column_stack([s.t, x]), delimiter=",", header="t,ax,ay,az",
-               comments="", fmt=["%.4f", "%d", "%d", "%d"])
+    p = write_csv(tmp_path / "clipped.csv", s.t, x, fmt=["%.4f", "%d", "%d", "%d"])
     df = ac.calibrate_many([str(p)], g=s.g, diagnose=True, workers=1, progress=False)
     row = df.loc[0]
     assert row["status"] == "ok" and row["n_dwells"] == len(s.bounds) - len(truth)
@@ -501,15 +499,9 @@ def test_saturated_dwells_are_left_out_as_the_single_file_command_does(tmp_path:
 
 
 def test_vibrating_poses_are_named_in_the_fleet_row(tmp_path: Path) -> None:
-    from accelcal.sim import field_session
-
-    s = field_session(fs=500.0, n_dwells=24, dwell_s=10.0, move_s=3.0, max_tilt_deg=80,
-                      sigma=1e-3, rng=5)
-    t = np.arange(s.samples.shape[0]) / s.fs
-    x = s.samples + (t > 0.75 * t[-1])[:, None] * 5e-3 * np.sin(2 * np.pi * 30 * t)[:, None]
-    p = tmp_path / "pump.csv"
-    np.savetxt(p, np.column_stack([t, x]), delimiter=",", header="t,ax,ay,az", comments="",
-               fmt="%.7f")
+    s, x = vibrating_session(n_dwells=24, dwell_s=10.0, move_s=3.0, after=0.75,
+                             axes=(1.0, 1.0, 1.0))
+    p = write_csv(tmp_path / "pump.csv", s.t, x)
     row = ac.calibrate_many([str(p)], g=s.g, workers=1, progress=False).loc[0]
     assert row["status"] in ("ok", "weak") and row["n_dwells"] < 24
     m = re.search(r"(\d+) stretch\(es\) .* look still .* k=(\d+) would take them",

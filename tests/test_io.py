@@ -942,6 +942,14 @@ def test_long_format_logs_read_their_accelerometer_rows(tmp_path: Path, header: 
     dl, _ = ac.io._stream_dwells(pl)
     assert len(dl) == len(dw) == 16
     np.testing.assert_array_equal(dl.mean, dw.mean)
+    # Compressed, the same log reads the same, under its own name.
+    import gzip
+
+    pz = tmp_path / "long.csv.gz"
+    pz.write_bytes(gzip.compress(pl.read_bytes()))
+    lz = read_stream(pz)
+    np.testing.assert_array_equal(lz.samples, w.samples)
+    assert lz.path == str(pz) and any("gzip-compressed" in n for n in lz.notes)
 
 
 def test_a_repeated_header_says_files_were_joined(tmp_path: Path) -> None:

@@ -276,15 +276,17 @@ class DwellSet:
             self.mean, self.var, self.count, None if self.lsb is None else self.lsb.tolist()
         )
 
-    def drop_faults(self) -> DwellSet:
-        """The dwells without those :meth:`faults` lists (all of them when there are none)."""
-        bad = {f.dwell for f in self.faults()}
+    def drop_faults(self, faults: list[_core.OutputFault] | None = None) -> DwellSet:
+        """The dwells without those :meth:`faults` lists (all of them when there are none);
+        ``faults`` is that list when the caller already has it."""
+        faults = self.faults() if faults is None else faults
+        bad = {f.dwell for f in faults}
         if not bad:
             return self
         if len(bad) == len(self):
             raise CalibrationError(
                 "every dwell has a constant (saturated, stuck or frozen) output: "
-                + fault_text(self, self.faults(), limit=3)
+                + fault_text(self, faults, limit=3)
             )
         return self[np.array([k not in bad for k in range(len(self))])]
 

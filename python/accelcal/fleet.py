@@ -184,7 +184,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         n_bad = len({f.dwell for f in faults})
         fault_note.append(f"{n_bad} of {len(d)} dwells left out: their output did not follow "
                           f"the sensor ({fault_text(d, faults, limit=2)})".replace("\n  ", "; "))
-        d = d.drop_faults()
+        d = d.drop_faults(faults)
     fault_note += vibrating_text(d)
     k = len(d)
     row["n_dwells"] = k

@@ -428,26 +428,27 @@ _ACC_LABELS = {
 }
 
 
-def _long_format_source(p: str, columns: Any, fs: float | None, time_column: Any,
-                        shown: str | None = None) -> _ArraySource:
+def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
+                        time_column: Any) -> _ArraySource:
     """A long-format log (``0.01,ACC,0.1,0.2,9.8``: a text column names each row's sensor):
     the rows whose label names an accelerometer, read through pandas (in memory), the label
-    column dropped. ``shown`` names the file in messages when ``p`` is a decompressed copy."""
-    name = shown or p
+    column dropped. ``src`` is the text whose head was read (its file may be a decompressed
+    copy; messages name ``src.path``)."""
+    name = src.path
     try:
         import pandas as pd
     except ImportError:
         raise CalibrationError(
             f"{name}: a long-format log (a text label in each row names its sensor); reading it "
             "needs pandas: pip install pandas") from None
-    src = _read_head(p)
     first = next((ln.strip() for _, ln in _head_lines(src)
                   if ln.strip() and not ln.strip().startswith(("#", "%", "//"))), "")
     delim = _guess_delim(first)
     has_header = not any(_field_kind(f, delim) in ("num", "dc") for f in _split(first, delim))
     try:
-        df = pd.read_csv(p, sep=delim if delim else r"\s+", header=0 if has_header else None,
-                         comment="#", skipinitialspace=True, low_memory=False)
+        df = pd.read_csv(src.opened, sep=delim if delim else r"\s+",
+                         header=0 if has_header else None, comment="#",
+                         skipinitialspace=True, low_memory=False)
     except (ValueError, pd.errors.ParserError) as e:
         raise CalibrationError(f"{name}: a long-format log (a text label in each row) that pandas "
                                f"cannot read: {e}") from None
@@ -599,13 +600,9 @@ def _open_bytes(path: str) -> Any:
 _COMPRESSED = ((b"\x1f\x8b", "gzip"), (b"BZh", "bz2"), (b"\xfd7zXZ\x00", "xz"))
 
 
-def _compression(path: str) -> str | None:
-    try:
-        with open(path, "rb") as fh:
-            magic = fh.read(6)
-    except OSError:
-        return None  # the reader names the problem
-    return next((kind for m, kind in _COMPRESSED if magic.startswith(m)), None)
+def _compression(head: bytes) -> str | None:
+    """"gzip", "bz2" or "xz" when the first bytes of a file are that format's, else None."""
+    return next((kind for m, kind in _COMPRESSED if head.startswith(m)), None)
 
 
 def _decompressed(path: str, kind: str) -> str:
@@ -677,7 +674,7 @@ def _head_lines(src: _TextSource) -> Iterator[tuple[int, str]]:
                 f"{src.path}: the text is UTF-16 (as Windows' 'Unicode text' saves it); save "
                 "it as UTF-8 or plain ASCII (e.g. iconv -f UTF-16 -t UTF-8)"
             )
-        comp = next((kind for m, kind in _COMPRESSED if data.startswith(m)), None)
+        comp = _compression(data)
         if comp is not None:  # only standard input gets here: files are expanded first
             raise CalibrationError(f"{src.path}: {comp}-compressed text on standard input: "
                                    "give the file's name instead, or decompress it first")
@@ -1574,29 +1571,26 @@ class _Recording:
         if isinstance(path, (str, os.PathLike)):
             p = _path(path)
             kind = _kind(p)
-            comp = _compression(p) if kind == "text" else None
-            if comp is not None:
-                tmp = _decompressed(p, comp)
-                self._tmp = weakref.finalize(self, _unlink_quiet, tmp)
-                src = _read_head(tmp)
-                self.text = _TextSource(p, src.head, src.eof, src.size, file=tmp)
-                try:
-                    self.lay = _sniff(self.text, columns, fs, time_column)
-                except _LongFormat:
-                    self.text = None
-                    self.arrays = _long_format_source(tmp, columns, fs, time_column, shown=p)
-                    self.lay = self.arrays.lay
-                self.lay.notes.append(f"{comp}-compressed text: read through a temporary "
-                                      f"file of {src.size or 0} bytes")
-            elif kind == "text":
+            if kind == "text":
                 self.text = _read_head(p)
+                comp = None if self.text.stdin else _compression(self.text.head)
+                if comp is not None:  # expanded first: the parser reads files in place
+                    tmp = _decompressed(p, comp)
+                    self._tmp = weakref.finalize(self, _unlink_quiet, tmp)
+                    src = _read_head(tmp)
+                    self.text = _TextSource(p, src.head, src.eof, src.size, file=tmp)
+                text = self.text
                 try:
-                    self.lay = _sniff(self.text, columns, fs, time_column)
+                    self.lay = _sniff(text, columns, fs, time_column)
                 except _LongFormat:
-                    if self.text.stdin:
+                    if text.stdin:
                         raise
                     self.text = None
-                    self.arrays = _long_format_source(p, columns, fs, time_column)
+                    self.arrays = _long_format_source(text, columns, fs, time_column)
+                    self.lay = self.arrays.lay
+                if comp is not None:
+                    self.lay.notes.append(f"{comp}-compressed text: read through a temporary "
+                                          f"file of {text.size or 0} bytes")
             elif kind == "npy":
                 arr = _np_load(p, mmap=True)
                 if not isinstance(arr, np.ndarray):

@@ -1415,6 +1415,7 @@ impl MeanPrefix {
     }
 }
 
+/// [`fold`] without the first differences: moments only (the detector's windows).
 fn fold_stats(segs: &[Moments]) -> Moments {
     segs.iter()
         .fold(Moments::EMPTY, |acc, x| acc.merge_stats(x))
@@ -1469,9 +1470,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
             if win.iter().any(|m| !m.is_finite()) {
                 return [f64::INFINITY; 3];
             }
-            win.iter()
-                .fold(Moments::EMPTY, |acc, x| acc.merge_stats(x))
-                .var()
+            fold_stats(win).var()
         })
         .collect();
     let noise_var = match s.noise_var {

@@ -219,7 +219,7 @@ def without_faults(d: Any) -> tuple[Any, list[str]]:
     if not faults:
         return d, []
     k = len({f.dwell for f in faults})
-    kept = d.drop_faults()
+    kept = d.drop_faults(faults)
     return kept, [f"{k} of {len(d)} dwells left out, {len(kept)} used: their output did not "
                   f"follow the sensor, so their means are not the pose's:\n  "
                   f"{fault_text(d, faults)}"]

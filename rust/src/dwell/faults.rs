@@ -278,6 +278,17 @@ mod tests {
         (mean, vec![[4.0; 3]; k], vec![6000; k])
     }
 
+    /// Clip axis `a` at `rail` as a saturating sensor would (above it when `high`, else
+    /// below): those dwells read the rail exactly, with no variance.
+    fn clip(m: &mut [[f64; 3]], v: &mut [[f64; 3]], a: usize, rail: f64, high: bool) {
+        for (r, s) in m.iter_mut().zip(v.iter_mut()) {
+            if (high && r[a] > rail) || (!high && r[a] < rail) {
+                r[a] = rail;
+                s[a] = 0.0;
+            }
+        }
+    }
+
     #[test]
     fn clean_session_has_no_fault() {
         let (m, v, n) = session(24);
@@ -291,16 +302,8 @@ mod tests {
     fn clipped_dwells_are_saturated_at_their_end() {
         let (mut m, mut v, n) = session(24);
         // x clipped at 900 in every dwell beyond it; y clipped at -950 in the same way.
-        for (r, s) in m.iter_mut().zip(v.iter_mut()) {
-            if r[0] > 900.0 {
-                r[0] = 900.0;
-                s[0] = 0.0;
-            }
-            if r[1] < -950.0 {
-                r[1] = -950.0;
-                s[1] = 0.0;
-            }
-        }
+        clip(&mut m, &mut v, 0, 900.0, true);
+        clip(&mut m, &mut v, 1, -950.0, false);
         let f = output_faults(&m, &v, &n, Some([1.0; 3])).unwrap();
         let hi: Vec<usize> = (0..24).filter(|&k| m[k][0] == 900.0).collect();
         let lo: Vec<usize> = (0..24).filter(|&k| m[k][1] == -950.0).collect();
@@ -384,12 +387,7 @@ mod tests {
         let (mut m, mut v, n) = session(24);
         // x saturates at 900 (dwells beyond it read 900 exactly); then put three dwells at
         // 0.5, 2 and 4 noise std (2) inside that rail.
-        for (r, s) in m.iter_mut().zip(v.iter_mut()) {
-            if r[0] > 900.0 {
-                r[0] = 900.0;
-                s[0] = 0.0;
-            }
-        }
+        clip(&mut m, &mut v, 0, 900.0, true);
         let free: Vec<usize> = (0..24)
             .filter(|&k| v[k][0] > 0.0 && m[k][0] > 0.0)
             .collect();
