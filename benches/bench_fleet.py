@@ -15,7 +15,8 @@ Four ways over the same files, in one process:
   ``LocalCluster(processes=True, threads_per_worker=1)`` with 1 and 2 worker processes
   (cluster start-up and the workers' first import excluded).
 
-Each run must report every corrupted file (status not ok) and lose none (one row per path).
+Each run must report every corrupted file (status not ok; for NaN rows, which are dropouts
+left out of the dwell statistics, status ok with a note) and lose none (one row per path).
 The script prints recordings/s, CPU time per recording, the cores used (CPU time of this
 process, the pool's workers and the Dask workers over the wall time: about 1 or 2 on an idle
 machine, less when other jobs take the cores), the 1 -> 2 worker scaling of the pool and of
@@ -66,18 +67,26 @@ def plain_loop(paths: list[str]) -> list[str]:
     return status
 
 
+# Corruptions that still give a calibration: dropout rows are left out, with a note.
+CALIBRATED = {"nan_rows"}
+
+
 def _missed(recs: list[FleetRecording], status: list[str]) -> int:
-    """Corrupted recordings the plain loop calibrated without complaint."""
-    return sum(bool(r.corruption) and s == "ok" for r, s in zip(recs, status, strict=True))
+    """Corrupted recordings the plain loop calibrated without complaint (dropouts aside)."""
+    return sum(bool(r.corruption) and r.corruption not in CALIBRATED and s == "ok"
+               for r, s in zip(recs, status, strict=True))
 
 
 def check(recs: list[FleetRecording], df: Any) -> None:
-    """Every corrupted file reported, none lost, every good one calibrated."""
+    """Every corrupted file reported, none lost, every good one (and every one with dropout
+    rows) calibrated."""
     assert list(df["path"]) == [r.path for r in recs], "rows lost or out of order"
     bad = {r.path for r in recs if r.corruption}
-    reported = set(df.loc[df["status"] != "ok", "path"])
+    reported = set(df.loc[(df["status"] != "ok") | (df["message"] != ""), "path"])
     assert reported == bad, (sorted(bad - reported), sorted(reported - bad))
     assert (df.loc[df["status"] != "ok", "message"] != "").all()
+    ok = set(df.loc[df["status"] == "ok", "path"])
+    assert {r.path for r in recs if r.corruption in CALIBRATED} <= ok
 
 
 def _cpu_s() -> float:

@@ -104,9 +104,12 @@ class _Job:
     check_g: bool = True
 
 
+_INT_COLUMNS = ("n_dwells", "n_samples", "dropped_rows", "dof", "iterations")
+
+
 def _columns(diagnose: bool) -> list[str]:
-    cols = ["sensor_id", "path", "status", "message", "n_dwells", "n_samples", "duration_s",
-            "fs_hz", "g_mps2", "g_source", "model", "method"]
+    cols = ["sensor_id", "path", "status", "message", "n_dwells", "n_samples", "dropped_rows",
+            "duration_s", "fs_hz", "g_mps2", "g_source", "model", "method"]
     for p in PARAM_NAMES:
         cols += [p, f"{p}_std"]
     cols += ["chi2_dof", "dof", "rms_mps2", "noise_model", "iterations", "temperature"]
@@ -121,7 +124,8 @@ def _blank_row(job: _Job) -> dict[str, Any]:
     row: dict[str, Any] = {c: math.nan for c in _columns(job.diagnose)}
     row.update(
         sensor_id=job.sensor_id, path=job.path, status="error", message="", n_dwells=None,
-        n_samples=None, dof=None, iterations=None, g_mps2=math.nan if job.g is None else job.g,
+        n_samples=None, dropped_rows=None, dof=None, iterations=None,
+        g_mps2=math.nan if job.g is None else job.g,
         g_source=job.g_source, model=job.model, method=job.method, noise_model="",
         cal_file="", worker=f"{socket.gethostname()}:{os.getpid()}",
     )
@@ -168,18 +172,14 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         return None
     row["fs_hz"] = float(st.fs)
     row["duration_s"] = n / float(st.fs)
-    bad = ~np.all(np.isfinite(np.asarray(st.samples, dtype=np.float64)), axis=1)
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        row["message"] = (
-            f"{int(bad.sum())} of {n} data rows hold NaN or inf samples (the first is data row "
-            f"{first}, counting from 0); the recording is damaged"
-        )
-        return None
     settings = DetectorSettings(**job.detector)
     d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=settings)
-    faults = d.faults()
+    row["dropped_rows"] = int(d.dropped)
     fault_note: list[str] = []
+    if d.dropped:  # dropouts: left out of the statistics, as the single-file commands do
+        fault_note.append(f"{d.dropped} of {n} data rows hold NaN or inf samples (dropouts), "
+                          "left out of the dwell statistics")
+    faults = d.faults()
     if faults:  # left out, as the single-file commands do
         n_bad = len({f.dwell for f in faults})
         fault_note.append(f"{n_bad} of {len(d)} dwells left out: their output did not follow "
@@ -602,14 +602,14 @@ def _frame(results: list[Result], jobs: list[_Job], diagnose: bool) -> Any:
         recs.append(r)
     df = pd.DataFrame.from_records(recs, columns=cols + [
         k if k not in cols else f"manifest_{k}" for k in extra_keys])
-    for c in ("n_dwells", "n_samples", "dof", "iterations"):
+    for c in _INT_COLUMNS:
         df[c] = df[c].astype("Int64")
     str_cols = ["sensor_id", "path", "status", "message", "g_source", "model", "method",
                 "noise_model", "cal_file", "worker"]
     if diagnose:
         str_cols += ["gap_best", "gap_selected", "gap_structure", "gap_error"]
     float_cols = [c for c in cols if c not in str_cols
-                  and c not in ("n_dwells", "n_samples", "dof", "iterations")]
+                  and c not in _INT_COLUMNS]
     for c in float_cols:
         df[c] = df[c].astype("float64")
     df.attrs["units"] = dict(COLUMN_UNITS)
@@ -689,7 +689,7 @@ def read_fleet_table(path: str | os.PathLike[str]) -> Any:
         raise CalibrationError(f"table not found: {p}") from None
     except (ValueError, OSError) as e:
         raise CalibrationError(f"cannot read the table {p}: {e}") from None
-    for c in ("n_dwells", "n_samples", "dof", "iterations"):
+    for c in _INT_COLUMNS:
         if c in df.columns:
             df[c] = df[c].astype("Int64")
     for c in df.columns:
@@ -867,6 +867,9 @@ class FleetReport:
     failed : one dict per recording with status degenerate or error: ``sensor_id``, ``path``,
         ``status``, ``message``.  weak : the same for status weak.
     z_limit : the outlier threshold on the robust z.
+    noted : the same for ``ok`` recordings whose message says what was left out or noticed
+        (dropout rows, dwells whose output did not follow the sensor, vibrating stretches):
+        calibrated, but worth a look on a production line.
     """
 
     n: int
@@ -877,6 +880,7 @@ class FleetReport:
     weak: list[dict[str, Any]]
     z_limit: float
     table: Any = field(repr=False, default=None)
+    noted: list[dict[str, Any]] = field(default_factory=list)
 
     def summary(self) -> str:
         """The report as text."""
@@ -903,6 +907,9 @@ class FleetReport:
         if self.weak:
             L.append(f"weakly determined ({len(self.weak)}):")
             L += [f"  {f['sensor_id']} ({f['path']}): {f['message']}" for f in self.weak]
+        if self.noted:
+            L.append(f"calibrated, with notes ({len(self.noted)}):")
+            L += [f"  {f['sensor_id']} ({f['path']}): {f['message']}" for f in self.noted]
         if self.failed:
             L.append(f"failed recordings ({len(self.failed)}):")
             L += [f"  {f['sensor_id']} ({f['path']}): {f['status']}: {f['message']}"
@@ -916,7 +923,7 @@ class FleetReport:
         return {
             "n": self.n, "counts": dict(self.counts), "distributions": self.distributions,
             "outliers": self.outliers, "failed": self.failed, "weak": self.weak,
-            "z_limit": self.z_limit,
+            "noted": self.noted, "z_limit": self.z_limit,
         }
 
     def plot(self, fig: Any = None) -> Any:
@@ -1000,10 +1007,12 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
                                  "z": float(zz[i])})
     outliers.sort(key=lambda o: (str(o["sensor_id"]), -abs(float(o["z"]))))
 
-    def rows(status: Sequence[str]) -> list[dict[str, Any]]:
+    def rows(status: Sequence[str], noted: bool = False) -> list[dict[str, Any]]:
         sel = df[df["status"].isin(status)]
+        if noted:
+            sel = sel[sel["message"].fillna("").astype(str) != ""]
         return [{"sensor_id": str(r.sensor_id), "path": str(r.path), "status": str(r.status),
                  "message": str(r.message)} for r in sel.itertuples()]
 
     return FleetReport(len(df), counts, dists, outliers, rows(("degenerate", "error")),
-                       rows(("weak",)), zl, df)
+                       rows(("weak",)), zl, df, noted=rows(("ok",), noted=True))

@@ -111,7 +111,9 @@ def run_static_fleet(
         if diagnose_gap:
             cols += ["gap_best", "gap_structure", "gap_chi2_dof"]
         click.echo(df[cols].to_string(index=False, na_rep="-"))
-    bad = df[df["status"] != "ok"]
+    # every recording that failed or is weak, and every ok one with a note (dropouts, dwells
+    # left out)
+    bad = df[(df["status"] != "ok") | (df["message"] != "")]
     for r in bad.itertuples():
         click.echo(f"  {r.sensor_id} ({r.path}): {r.status}: {r.message}")
     if out_dir:
