@@ -1095,6 +1095,38 @@ def test_a_logger_writing_nan_for_every_missed_sample_still_gives_whole_dwells()
     assert np.all(np.abs(f1.vector - f2.vector) < 0.5 * f2.std)
 
 
+def test_a_dead_channel_or_heavy_dropouts_give_errors_that_say_so() -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=50.0, n_dwells=24, dwell_s=3.0, move_s=1.0, rng=1)
+    dead = s.samples.copy()
+    dead[:, 2] = np.nan  # an unconnected z channel: every row is a dropout
+    with pytest.raises(CalibrationError, match=r"every one of the 4750 rows holds NaN or inf "
+                       r"samples \(axis z is NaN or inf in every row: a dead or unconnected"):
+        detect_dwells(dead, s.fs)
+    acc = DwellAccumulator(fs=s.fs)
+    acc.push(dead)
+    with pytest.raises(CalibrationError, match="every one of the 4750 rows holds NaN or inf"):
+        acc.finish()
+    # Every other row lost: the 3 s dwells hold half their samples, too few for the default
+    # window and minimum dwell; the error says why and what to change.
+    half = s.samples.copy()
+    half[::2] = np.nan
+    for run in (lambda: detect_dwells(half, s.fs), lambda: _pushed(half, s.fs).finish()):
+        with pytest.raises(accelcal.DegenerateDataError,
+                           match=r"no static dwell found.*Note: 2375 of "
+                           r"4750 rows \(50 %\) held NaN.*lower window_s and min_dwell_s"):
+            run()
+    d = detect_dwells(half, s.fs, window_s=0.5, min_dwell_s=0.5)
+    assert len(d) == 24 and d.dropped == 2375
+
+
+def _pushed(x: np.ndarray, fs: float) -> DwellAccumulator:
+    acc = DwellAccumulator(fs=fs)
+    push_in_chunks(acc, [777], x)
+    return acc
+
+
 def test_version_1_checkpoints_are_still_read() -> None:
     acc = DwellAccumulator(fs=100.0)
     x = piecewise_static(3)

@@ -582,6 +582,30 @@ class _Dropouts:
                 self.runs.append([first, length])
             self.n += length
 
+    def explain(self, e: CalibrationError, n: int,
+                samples: NDArray[Any] | None = None) -> CalibrationError:
+        """``e`` (detection found nothing, or nothing was left) with what the dropouts did;
+        ``samples`` (the stream as given) names the axes that are never finite."""
+        if not self.n:
+            return e
+        if self.n >= n:
+            dead = [] if samples is None else [
+                "xyz"[a] for a in range(3) if not np.isfinite(samples[:, a]).any()]
+            which = (f"axis {dead[0]} is NaN or inf in every row: a dead or unconnected "
+                     "channel" if len(dead) == 1 else
+                     f"axes {', '.join(dead)} are NaN or inf in every row" if dead else
+                     "a dead or unconnected channel, or a logger that wrote no data")
+            return type(e)(
+                f"every one of the {n} rows holds NaN or inf samples ({which}): nothing is "
+                "left to detect dwells in"
+            )
+        return type(e)(
+            f"{e}. Note: {self.n} of {n} rows ({100.0 * self.n / n:.3g} %) held NaN or inf "
+            "samples (dropouts) and were left out; the detector counts the rows that remain "
+            "at fs, so every dwell is shorter in samples by about that fraction: with many "
+            "dropouts, lower window_s and min_dwell_s"
+        )
+
     def to_stream(self, i: NDArray[np.int64]) -> NDArray[np.int64]:
         """Row indices of the compacted stream (without the dropouts) as rows of the stream."""
         if not self.runs:
@@ -784,7 +808,10 @@ def detect_dwells(
             s = s[ok]
             tc = None if tc is None else tc[ok]
             temp = None if temp is None else temp[ok]
-    d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
+    try:
+        d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
+    except CalibrationError as e:
+        raise drops.explain(e, n, samples_array(samples)) from None
     return _from_raw(d, fsv, units, drops)
 
 
@@ -873,7 +900,12 @@ class DwellAccumulator:
     def finish(self) -> DwellSet:
         """The dwell table of everything pushed so far (the accumulator stays usable)."""
         with self._lock:
-            raw, drops = self._raw.finish(), _Dropouts([list(r) for r in self._drops.runs])
+            drops = _Dropouts([list(r) for r in self._drops.runs])
+            n = int(self._raw.position) + drops.n
+            try:
+                raw = self._raw.finish()
+            except CalibrationError as e:
+                raise drops.explain(e, n) from None
         return _from_raw(raw, self.fs, self.units, drops)
 
     # ---- checkpoints ----------------------------------------------------------------------
