@@ -445,6 +445,7 @@ def test_epoch_stamps_without_a_unit_are_read_in_theirs(tmp_path: Path, unit: st
          "ACCELEROMETER Z (m/s²)", 1e-3),  # AndroSensor
         ("X_Value,ax,ay,az", 1.0),  # LabVIEW
         ("SampleTimeFine,Acc_X,Acc_Y,Acc_Z", 1e-4),  # Xsens MT Manager (100 us ticks)
+        ("millis,AcX,AcY,AcZ", 1e-3),  # the MPU-6050 Arduino sketch
     ],
 )
 def test_logger_column_names(tmp_path: Path, names: str, time_scale: float) -> None:
@@ -452,6 +453,14 @@ def test_logger_column_names(tmp_path: Path, names: str, time_scale: float) -> N
     s = read_stream(write(tmp_path, names + "\n" + rows))
     np.testing.assert_array_equal(s.samples[:, 0], np.arange(400) % 3)
     assert s.fs == pytest.approx(1.0 / (5 * time_scale))
+
+
+def test_mpu6050_sketch_log_with_gyro_and_temperature_registers(tmp_path: Path) -> None:
+    rows = "".join(f"{i * 10};{i % 3};{i % 5};16384;{-1200 + i};3;-2;1\n" for i in range(400))
+    s = read_stream(write(tmp_path, "millis;AcX;AcY;AcZ;Tmp;GyX;GyY;GyZ\n" + rows))
+    assert s.names == ("AcX", "AcY", "AcZ") and s.fs == pytest.approx(100.0)
+    assert s.temperature is not None
+    np.testing.assert_array_equal(s.temperature, -1200.0 + np.arange(400))
 
 
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:

@@ -108,10 +108,11 @@ _TIME_UNITS = {
     "nsec": 1e-9,
 }
 #: Accelerometer column names after `_norm`: an optional device prefix, the axis, and an
-#: optional unit or kind suffix (``imu.acc.x``, ``Ax_g``, ``acc_x_mps2``, ``accel_x_raw``).
+#: optional unit or kind suffix (``imu.acc.x``, ``Ax_g``, ``acc_x_mps2``, ``accel_x_raw``,
+#: and ``AcX`` of the common MPU-6050 Arduino sketch).
 _ACC_NAME = re.compile(
     r"^(?:imu|sensor|device|phone)?"
-    r"(?:a|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw|gf|gforce)([xyz])"
+    r"(?:a|ac|acc|accl|accel|acceleration|accelerometer|linacc|rawacc|accraw|gf|gforce)([xyz])"
     r"(?:g|mg|ms2|mps2|mss|si|raw|counts|lsb|adc)?$"
 )
 _SAMPLE_KEYS = ("samples", "acc", "accel", "acceleration", "a", "data", "x")
@@ -220,7 +221,8 @@ def _epoch_unit(v0: float) -> tuple[str, float] | None:
 
 
 def _is_temperature(name: str) -> bool:
-    return _norm(name).startswith("temp")
+    n = _norm(name)
+    return n.startswith("temp") or n == "tmp"  # Tmp: the MPU-6050 sketch's temperature
 
 
 def _auto_acc(names: Sequence[str], path: str) -> list[int] | None:
