@@ -463,6 +463,53 @@ def test_mpu6050_sketch_log_with_gyro_and_temperature_registers(tmp_path: Path) 
     np.testing.assert_array_equal(s.temperature, -1200.0 + np.arange(400))
 
 
+def test_phyphox_workbook_reads_the_raw_data_sheet(tmp_path: Path) -> None:
+    import pandas as pd
+
+    x = np.random.default_rng(4).normal(size=(500, 3)) + [0.0, 0.0, 9.8]
+    t = np.arange(500) / 200.0
+    raw = pd.DataFrame({"Time (s)": t, "Acceleration x (m/s^2)": x[:, 0],
+                        "Acceleration y (m/s^2)": x[:, 1], "Acceleration z (m/s^2)": x[:, 2],
+                        "Absolute acceleration (m/s^2)": np.linalg.norm(x, axis=1)})
+    p = tmp_path / "phyphox.xlsx"
+    with pd.ExcelWriter(p) as w:  # a metadata sheet first: the reader must look further
+        pd.DataFrame({"event": ["START", "PAUSE"], "experiment time": [0.0, 2.5]}).to_excel(
+            w, sheet_name="Metadata Time", index=False)
+        raw.to_excel(w, sheet_name="Raw Data", index=False)
+    s = read_stream(p)
+    ref = pd.read_excel(p, sheet_name="Raw Data").to_numpy()
+    np.testing.assert_array_equal(s.samples, ref[:, 1:4])
+    np.testing.assert_array_equal(s.t, ref[:, 0])
+    np.testing.assert_allclose(s.samples, x, rtol=1e-15)  # the workbook's own rounding
+    assert s.fs == pytest.approx(200.0) and s.names[0] == "Acceleration x (m/s^2)"
+    assert any("sheet 'Raw Data'" in n for n in s.notes)
+    # columns= picks the sheet that holds them.
+    s2 = read_stream(p, columns=["Acceleration z (m/s^2)", "Acceleration y (m/s^2)",
+                                 "Acceleration x (m/s^2)"])
+    np.testing.assert_array_equal(s2.samples, ref[:, 3:0:-1])
+    # Not a workbook, or no reader for it: clear errors.
+    bad = tmp_path / "bad.xlsx"
+    bad.write_text("ax,ay,az\n1,2,3\n")
+    with pytest.raises(CalibrationError, match="bad.xlsx: cannot read the spreadsheet"):
+        read_stream(bad)
+
+
+def test_spreadsheet_without_its_reader_says_what_to_install(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import pandas as pd
+
+    def missing(*a: Any, **k: Any) -> Any:
+        raise ImportError("Missing optional dependency 'odfpy'.  Use pip or conda to install "
+                          "odfpy.")
+
+    monkeypatch.setattr(pd, "read_excel", missing)
+    p = tmp_path / "log.ods"
+    p.write_bytes(b"PK")
+    with pytest.raises(CalibrationError, match=r"log\.ods: Missing optional dependency 'odfpy'.*"
+                       r"or export the sheet as CSV"):
+        read_stream(p)
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -1,6 +1,7 @@
 """Readers for accelerometer recordings: delimited text (with or without header and metadata
 lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, MATLAB ``.mat`` (v5
-and v7.3), and tables already in memory (a pandas or polars DataFrame, anything with
+and v7.3), spreadsheets (``.xlsx``, ``.xls``, ``.ods``: phyphox's default export; through
+pandas), and tables already in memory (a pandas or polars DataFrame, anything with
 ``__array__``); plus chunked reading that streams large files into
 :class:`~accelcal.DwellAccumulator` in one pass.
 
@@ -1382,7 +1383,46 @@ def _kind(p: str) -> str:
         return "h5"
     if low.endswith(".mat"):
         return _mat_kind(p)
+    if low.endswith((".xlsx", ".xlsm", ".xls", ".ods")):
+        return "sheet"
     return "text"
+
+
+def _spreadsheet_source(p: str, columns: Any, fs: float | None,
+                        time_column: Any) -> _ArraySource:
+    """A workbook read through pandas (openpyxl, xlrd or odfpy): the first sheet whose column
+    names hold an accelerometer triad, or hold ``columns`` when given (phyphox puts its
+    samples in "Raw Data" beside metadata sheets); with neither, the first sheet."""
+    try:
+        import pandas as pd
+    except ImportError:
+        raise CalibrationError(
+            f"{p}: a spreadsheet; reading it needs pandas and openpyxl (pip install pandas "
+            "openpyxl), or export the sheet as CSV") from None
+    try:
+        sheets = pd.read_excel(p, sheet_name=None)
+    except ImportError as e:
+        raise CalibrationError(f"{p}: {e} (or export the sheet as CSV)") from None
+    except (ValueError, OSError, KeyError, zipfile.BadZipFile) as e:
+        raise CalibrationError(f"{p}: cannot read the spreadsheet: {e}") from None
+    if not sheets:
+        raise CalibrationError(f"{p}: the workbook has no sheets")
+
+    def fits(df: Any) -> bool:
+        names = [str(c) for c in df.columns]
+        if columns is None:
+            with contextlib.suppress(CalibrationError):
+                return _auto_acc(names, p) is not None
+            return False
+        want = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else columns
+        return all(isinstance(c, int) or str(c) in names for c in want)
+
+    name, df = next(((k, v) for k, v in sheets.items() if fits(v)), next(iter(sheets.items())))
+    src = _dataframe_source(df, columns, fs, time_column, path=p)
+    if len(sheets) > 1:
+        src.lay.notes.append(f"the samples were read from the sheet {name!r} (of "
+                             f"{', '.join(repr(k) for k in sheets)})")
+    return src
 
 
 def _mat_kind(p: str) -> str:
@@ -1603,6 +1643,8 @@ class _Recording:
                 self.arrays = _array_source(p, _npz_arrays(p), columns, fs, time_column)
             elif kind in ("mat5", "mat73"):
                 self.arrays = _array_source(p, _mat_arrays(p, kind), columns, fs, time_column)
+            elif kind == "sheet":
+                self.arrays = _spreadsheet_source(p, columns, fs, time_column)
             else:
                 f, data, attrs = _h5_tree(p)
                 try:
