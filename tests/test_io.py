@@ -510,6 +510,66 @@ def test_spreadsheet_without_its_reader_says_what_to_install(
         read_stream(p)
 
 
+def _rows(n: int, fmt: Any) -> str:
+    return "".join(fmt(i) for i in range(n))
+
+
+def test_witmotion_log_with_a_device_column_and_unpadded_dates(tmp_path: Path) -> None:
+    # WitMotion's export: tab-separated, the device name in every row, dates without zero
+    # padding (which the text reader's ISO-8601 parser refuses), a second time column.
+    head = ("Time\tDevice name\tChip Time()\tAcceleration X(g)\tAcceleration Y(g)\t"
+            "Acceleration Z(g)\tAngular velocity X(°/s)\tTemperature(°C)\n")
+    body = _rows(300, lambda i: (
+        f"2023-10-9 16:14:{27 + i // 100:02d}.{(i % 100) * 10:03d}\tWT5300001234(e1:2f)\t"
+        f"2023-10-09 16:14:{27 + i // 100:02d}.{(i % 100) * 10:03d}\t0.{i % 7}\t-0.{i % 3}\t"
+        f"0.98\t0.061\t24.5{i % 2}\n"))
+    s = read_stream(write(tmp_path, head + body, "wit.txt"))
+    assert s.names == ("Acceleration X(g)", "Acceleration Y(g)", "Acceleration Z(g)")
+    np.testing.assert_allclose(s.samples[:, 0], (np.arange(300) % 7) / 10)
+    np.testing.assert_allclose(s.t, np.arange(300) / 100.0, atol=1e-9)
+    assert s.fs == pytest.approx(100.0) and s.t0 == "2023-10-09T16:14:27.000000"
+    assert s.temperature is not None and s.temperature[1] == pytest.approx(24.51)
+    assert any("'Device name' holds 'WT5300001234(e1:2f)' in every row" in n for n in s.notes)
+    # A text column that varies and names no sensor is still refused, with the advice.
+    mixed = head + body.replace("WT5300001234(e1:2f)", "WT5300005678(aa:bb)", 5)
+    with pytest.raises(CalibrationError, match="no label that names an accelerometer"):
+        read_stream(write(tmp_path, mixed, "mixed.txt"))
+
+
+def test_shimmer_export_kind_and_units_rows_two_ranges(tmp_path: Path) -> None:
+    names = ["Shimmer_9A2F_Timestamp_Unix_CAL"] + [
+        f"Shimmer_9A2F_Accel_{r}_{a}_CAL" for r in ("LN", "WR") for a in "XYZ"]
+
+    def header(names: list[str]) -> str:
+        return ('"sep=,"\n' + ",".join(names) + ",\n" + "CAL," * 7 + "\n"
+                + "ms," + "m/(s^2)," * 6 + "\n")
+
+    head = header(names)
+    body = _rows(400, lambda i: f"{1.7e12 + 5 * i:.3f},0.{i % 7},0.{i % 3},9.8,1.{i % 7},2,3,\n")
+    p = write(tmp_path, head + body, "shimmer.csv")
+    with pytest.raises(CalibrationError, match=r"2 accelerometer triads \(Shimmer_9A2F_Accel_LN_X"
+                       r"_CAL,.*; Shimmer_9A2F_Accel_WR_X_CAL.*several sensors or ranges"):
+        read_stream(p)
+    s = read_stream(p, columns=names[4:7])  # the wide-range triad, named without its unit
+    np.testing.assert_allclose(s.samples[:, 0], 1 + (np.arange(400) % 7) / 10)
+    assert s.names[0] == "Shimmer_9A2F_Accel_WR_X_CAL [m/s^2]"
+    assert s.fs == pytest.approx(200.0) and s.t is not None  # the ms time stamp
+    gyro = header(names[:4] + [f"Shimmer_9A2F_Gyro_{a}_CAL" for a in "XYZ"])
+    s = read_stream(write(tmp_path, gyro + body, "ln.csv"))  # one triad: found by itself
+    assert s.names[0] == "Shimmer_9A2F_Accel_LN_X_CAL [m/s^2]"
+
+
+def test_dataframe_with_zoned_date_times(tmp_path: Path) -> None:
+    import pandas as pd
+
+    df = pd.DataFrame({"time": pd.date_range("2024-01-01", periods=50, freq="10ms",
+                                             tz="Europe/Berlin"),
+                       "ax": np.arange(50.0), "ay": 1.0, "az": 9.8})
+    s = read_stream(df)
+    np.testing.assert_allclose(s.t, np.arange(50) / 100.0, atol=1e-12)
+    assert s.fs == pytest.approx(100.0) and s.t0 == "2023-12-31T23:00:00.000000"  # UTC
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -200,10 +200,14 @@ def _time_name(name: str) -> tuple[float, bool] | None:
                      b)
         if m:
             b, unit = m.group(1), m.group(2)
-    b = re.sub(r"[^0-9a-z]", "", b)
+    words = [w for w in re.split(r"[^0-9a-z]+", b) if w]
+    b = "".join(words)
     if b in _TIME_IMPLICIT and not unit:
         return _TIME_IMPLICIT[b], True
-    if b not in _TIME_BASES:
+    # A time stamp among other words (Shimmer's ``Shimmer_9A2F_Timestamp_Unix_CAL``).
+    if b not in _TIME_BASES and not (
+            {"time", "timestamp"}.intersection(words) and not {"x", "y", "z"}.intersection(words)
+            and len(words) > 1):
         return None
     scale = _TIME_UNITS.get(unit.lower().strip())
     return None if scale is None else (scale, bool(unit))
@@ -246,17 +250,37 @@ def _auto_acc(names: Sequence[str], path: str) -> list[int] | None:
             f"{path}: cannot tell which columns are the accelerometer x, y, z among {list(names)}; "
             "give columns=[...] (3 names or 0-based indices)"
         )
-    triads = _numbered_triads(names)
+    triads = _numbered_triads(names) or _worded_triads(names)
     if len(triads) == 1:  # one sensor with a number in its names (acc1_x, ...)
         return [list(names).index(n) for n in triads[0]]
     if len(triads) > 1:
-        listed = "; ".join(",".join(t) for t in triads)
+        bare = [[_split_unit(n)[0] for n in t] for t in triads]
+        listed = "; ".join(",".join(t) for t in bare)
         raise CalibrationError(
             f"{path}: {len(triads)} accelerometer triads ({listed}): a recording of several "
-            f"sensors; calibrate one at a time with columns= (--columns), e.g. "
-            f"columns={','.join(triads[0])!r}"
+            f"sensors or ranges; calibrate one at a time, giving its three names with "
+            f"columns=, e.g. {','.join(bare[0])!r}"
         )
     return None
+
+
+#: Words that make a name an accelerometer's when it also has an axis word of its own.
+_ACC_WORDS = {"acc", "accl", "accel", "acceleration", "accelerometer", "linacc", "gforce"}
+
+
+def _worded_triads(names: Sequence[str]) -> list[tuple[str, str, str]]:
+    """Accelerometer triads in names made of words, with the axis a word of its own among
+    others (Shimmer's ``Shimmer_9A2F_Accel_LN_X_CAL``): names equal but for the axis form a
+    triad, in the order of the file."""
+    groups: dict[tuple[str, ...], dict[str, str]] = {}
+    for n in names:
+        words = [w for w in re.split(r"[^0-9a-z]+", _split_unit(n)[0].lower()) if w]
+        axes = [i for i, w in enumerate(words) if w in ("x", "y", "z")]
+        if len(axes) != 1 or not _ACC_WORDS.intersection(words):
+            continue
+        i = axes[0]
+        groups.setdefault((*words[:i], "*", *words[i + 1:]), {})[words[i]] = n
+    return [(g["x"], g["y"], g["z"]) for g in groups.values() if len(g) == 3]
 
 
 def _numbered_triads(names: Sequence[str]) -> list[tuple[str, str, str]]:
@@ -355,12 +379,22 @@ _ROW_UNITS = {
 
 def _units_row(fields: list[str]) -> list[str] | None:
     """The units of a second header row (``s, m/s^2, m/s^2, m/s^2`` under the names, as DAQ
-    exports write them), brackets removed; None when the row is not one."""
-    units = [f.strip().strip("[]()").strip() for f in fields]
+    exports write them; Shimmer writes ``m/(s^2)``), brackets removed; None when the row is
+    not one."""
+    units = [f.strip().strip("[]()").replace("(", "").replace(")", "").strip() for f in fields]
     known = [u.lower() in _ROW_UNITS or u.lower() in _TIME_UNITS for u in units if u]
     if len(known) >= 2 and all(known):
         return units
     return None
+
+
+#: A row under the names that says whether each column is calibrated (Shimmer's ``CAL``).
+_KIND_ROW = {"cal", "raw", "uncal", "calibrated", "uncalibrated"}
+
+
+def _kind_row(fields: list[str]) -> bool:
+    kinds = [f.strip().lower() for f in fields if f.strip()]
+    return len(kinds) >= 2 and all(k in _KIND_ROW for k in kinds)
 
 
 def _guess_delim(line: str) -> str | None:
@@ -484,12 +518,39 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
             f"a long-format log: the {int(keep.sum())} rows labelled {found[0]!r} in column "
             f"{c!r} are the accelerometer's (of {len(df)} rows; the others: {others or 'none'})")
         return out
+    wide = _wide_with_text(df, text)
+    if wide is not None:  # no label: a wide table after all
+        sub, notes = wide
+        out = _dataframe_source(sub, columns, fs, time_column, path=name, named=has_header)
+        out.lay.notes += notes
+        return out
     seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in text}
     raise CalibrationError(
         f"{name}: a long-format log (a text label in each row: {seen}) with no label that names "
         "an accelerometer (ACC, accel, accelerometer, ...); select its rows first, e.g. with "
         "pandas: df = pd.read_csv(path); read_stream(df[df[label] == value].drop("
         "columns=label))")
+
+
+def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str]] | None:
+    """A table whose text columns are all date-times (WitMotion's ``2023-10-9 16:14:27.564``,
+    which the text reader's ISO-8601 parser does not take: its fields are not zero-padded) or
+    one value repeated in every row (a device name): the table with the times read as such and
+    the constants left out, and notes saying so; None when a text column is neither."""
+    import pandas as pd
+
+    notes: list[str] = []
+    for c in text:
+        when = pd.to_datetime(df[c], format="ISO8601", errors="coerce")
+        if when.size and bool(when.notna().all()):
+            df = df.assign(**{c: when})
+            continue
+        vals = df[c].astype(str).str.strip().unique()
+        if len(vals) != 1:
+            return None
+        df = df.drop(columns=[c])
+        notes.append(f"column {c!r} holds {vals[0]!r} in every row (a device name?): left out")
+    return df, notes
 
 
 def _long_format_hint(line: str) -> str:
@@ -734,10 +795,13 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         bf = _split(body, _guess_delim(body))
         if len(bf) >= 3 and not any(_is_number(f) for f in bf if f) and "=" not in body:
             units = _units_row(bf)
-            if header is not None and units is not None and header_units is None and len(
-                    _split(header, _guess_delim(header))) == len(bf):
+            under = header is not None and len(_split(header, _guess_delim(header))) == len(bf)
+            if under and units is not None and header_units is None:
                 header_units = units  # a units row under the names
                 continue
+            if under and _kind_row(bf):
+                continue  # CAL / RAW under the names: not the names themselves
+
             header, header_units = body, None
             continue
         header, header_units = None, None
@@ -1333,10 +1397,15 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
             warnings.simplefilter("ignore")
             df = pd.api.interchange.from_dataframe(obj)
     cols: dict[str, Any] = {}
+    starts: dict[str, str] = {}  # the first date-time of each date-time column
     for name in df.columns:
         c = df[name]
+        if getattr(getattr(c, "dt", None), "tz", None) is not None:  # pandas, with a zone
+            c = c.dt.tz_convert("UTC").dt.tz_localize(None)
         a = c.to_numpy() if hasattr(c, "to_numpy") else np.asarray(c)
         if a.dtype.kind == "M":  # datetimes: seconds since the first row
+            if a.size:
+                starts[str(name)] = str(np.datetime_as_string(a[0]))
             a = (a - a[0]).astype("timedelta64[ns]").astype(np.int64) * 1e-9
         elif a.dtype.kind not in "fiub":
             continue  # text, categories: not a sample column
@@ -1349,6 +1418,8 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
         raise CalibrationError("the table is empty (0 rows)")
     lay = _decide(path, table.names if named else None, len(table.names), head, {}, columns,
                   fs, time_column)
+    if lay.time is not None:
+        lay.t0_text = starts.get(table.names[lay.time])
     return _ArraySource(path, table, lay)
 
 
