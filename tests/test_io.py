@@ -570,6 +570,59 @@ def test_dataframe_with_zoned_date_times(tmp_path: Path) -> None:
     assert s.fs == pytest.approx(100.0) and s.t0 == "2023-12-31T23:00:00.000000"  # UTC
 
 
+def _write_tdms(p: Path, x: np.ndarray, names: tuple[str, ...] = ("Acc X", "Acc Y", "Acc Z"),
+                group: str = "Accelerometer") -> None:
+    from nptdms import ChannelObject, TdmsWriter
+
+    props = {"wf_increment": 0.004, "wf_start_time": np.datetime64("2026-11-20T10:00:00"),
+             "unit_string": "m/s^2"}
+    with TdmsWriter(str(p)) as w:
+        w.write_segment(
+            [ChannelObject("Settings", "Gain", np.array([1.0, 2.0]))]
+            + [ChannelObject(group, n, x[:, i], props) for i, n in enumerate(names)]
+            + [ChannelObject(group, "Temperature", np.full(len(x), 22.5),
+                             {"unit_string": "degC"}),
+               ChannelObject(group, "Slow channel", np.arange(3.0))])
+
+
+def test_labview_tdms_file(tmp_path: Path) -> None:
+    x = np.random.default_rng(5).normal(size=(1000, 3)) + [0.0, 0.0, 9.8]
+    p = tmp_path / "run.tdms"
+    _write_tdms(p, x)
+    s = read_stream(p)
+    np.testing.assert_array_equal(s.samples, x)
+    assert s.names == ("Acc X [m/s^2]", "Acc Y [m/s^2]", "Acc Z [m/s^2]")
+    assert s.fs == pytest.approx(250.0) and s.fs_source == "metadata"
+    assert s.t0 == "2026-11-20T10:00:00.000000"
+    np.testing.assert_allclose(s.t, np.arange(1000) / 250.0)
+    assert s.temperature is not None and s.temperature[0] == 22.5
+    assert any("TDMS group 'Accelerometer'" in n for n in s.notes)
+    # Channels named otherwise: columns= names them (without their unit), or the error lists
+    # every group's channels.
+    q = tmp_path / "daq.tdms"
+    _write_tdms(q, x, names=("AI0", "AI1", "AI2"), group="DAQ")
+    with pytest.raises(CalibrationError, match=r"no TDMS group holds an accelerometer triad.*"
+                       r"'DAQ': 'AI0 \[m/s\^2\]', 'AI1"):
+        read_stream(q)
+    np.testing.assert_array_equal(read_stream(q, columns="AI2,AI1,AI0").samples, x[:, ::-1])
+    bad = tmp_path / "bad.tdms"
+    bad.write_bytes(b"not a TDMS file at all")
+    with pytest.raises(CalibrationError, match="bad.tdms: cannot read the TDMS file"):
+        read_stream(bad)
+
+
+def test_tdms_without_nptdms_says_what_to_install(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "nptdms", None)  # import nptdms now fails
+    p = tmp_path / "run.tdms"
+    p.write_bytes(b"TDSm")
+    with pytest.raises(CalibrationError, match=r"reading it needs npTDMS: pip install "
+                       r"'accelcal\[tdms\]'"):
+        read_stream(p)
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -1,9 +1,9 @@
 """Readers for accelerometer recordings: delimited text (with or without header and metadata
 lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, MATLAB ``.mat`` (v5
 and v7.3), spreadsheets (``.xlsx``, ``.xls``, ``.ods``: phyphox's default export; through
-pandas), and tables already in memory (a pandas or polars DataFrame, anything with
-``__array__``); plus chunked reading that streams large files into
-:class:`~accelcal.DwellAccumulator` in one pass.
+pandas), National Instruments TDMS (LabVIEW; through npTDMS), and tables already in memory
+(a pandas or polars DataFrame, anything with ``__array__``); plus chunked reading that
+streams large files into :class:`~accelcal.DwellAccumulator` in one pass.
 
 Text is parsed by the Rust core in blocks of whole lines, in parallel and with the
 interpreter released: reading is faster than ``pandas.read_csv`` and streaming keeps memory
@@ -1456,7 +1456,85 @@ def _kind(p: str) -> str:
         return _mat_kind(p)
     if low.endswith((".xlsx", ".xlsm", ".xls", ".ods")):
         return "sheet"
+    if low.endswith(".tdms"):
+        return "tdms"
     return "text"
+
+
+def _holds_triad(names: list[str], columns: Any, p: str) -> bool:
+    """Whether a table (a sheet, a TDMS group) with these column names holds the
+    accelerometer: the ``columns`` given, or a triad found by name."""
+    with contextlib.suppress(CalibrationError):
+        if columns is None:
+            return _auto_acc(names, p) is not None
+        _resolve_columns(columns, names, len(names), p)
+        return True
+    return False
+
+
+def _tdms_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+    """A National Instruments TDMS file (LabVIEW's own format) through npTDMS: the first
+    group whose channel names hold an accelerometer triad (or the ``columns`` given), its
+    channels of the triad's length as columns (``unit_string`` as their unit), the rate from
+    the channels' ``wf_increment`` and ``wf_start_time`` as ``t0``."""
+    try:
+        from nptdms import TdmsFile
+    except ImportError:
+        raise CalibrationError(
+            f"{p}: a TDMS file (NI LabVIEW); reading it needs npTDMS: pip install "
+            "'accelcal[tdms]' (or npTDMS), or export the channels as text") from None
+    try:
+        f = TdmsFile.read(p)
+    except Exception as e:  # noqa: BLE001 - npTDMS has no error type of its own
+        raise CalibrationError(f"{p}: cannot read the TDMS file: {type(e).__name__}: {e}") from None
+    groups: list[tuple[str, dict[str, Any], list[Any]]] = []
+    for g in f.groups():
+        chans = [c for c in g.channels() if len(c) and np.asarray(c[:1]).dtype.kind in "fiuM"]
+        names = []
+        for c in chans:
+            unit = str(c.properties.get("unit_string", "") or "").strip()
+            names.append(f"{c.name} [{unit}]" if unit and not _split_unit(c.name)[1] else c.name)
+        groups.append((g.name, dict(zip(names, chans, strict=True)), chans))
+    if not groups:
+        raise CalibrationError(f"{p}: cannot read the TDMS file: it holds no channels of "
+                               "numbers (not a TDMS file, or an empty one)")
+    pick = next((x for x in groups if _holds_triad(list(x[1]), columns, p)), None)
+    if pick is None:
+        listed = "; ".join(f"{g!r}: {', '.join(repr(n) for n in cs)}" for g, cs, _ in groups)
+        raise CalibrationError(
+            f"{p}: no TDMS group holds an accelerometer triad by name (groups and channels: "
+            f"{listed or 'none'}); give columns=[...] (3 channel names)")
+    gname, by_name, _ = pick
+    names = list(by_name)
+    acc = (_auto_acc(names, p) if columns is None
+           else _resolve_columns(columns, names, len(names), p)) or [0, 1, 2]
+    n = len(by_name[names[acc[0]]])
+    table = {k: np.asarray(c[:]) for k, c in by_name.items() if len(c) == n}
+    src = _dataframe_source(_DictTable(table), columns, fs, time_column, path=p)
+    lay = src.lay
+    first = by_name[names[acc[0]]].properties
+    inc = first.get("wf_increment")
+    if fs is None and lay.time is None and inc:
+        lay.fs, lay.fs_source = 1.0 / float(inc), "metadata"
+        lay.notes = [x for x in lay.notes if "not in the file" not in x]
+        start = first.get("wf_start_time")
+        if start is not None:
+            lay.t0_text = str(np.datetime_as_string(np.datetime64(start, "us")))
+    if len(groups) > 1:
+        lay.notes.append(f"the samples were read from the TDMS group {gname!r} (of "
+                         f"{', '.join(repr(g) for g, _, _ in groups)})")
+    return src
+
+
+class _DictTable:
+    """Named 1-D arrays of one length, as a table for :func:`_dataframe_source`."""
+
+    def __init__(self, cols: dict[str, NDArray[Any]]) -> None:
+        self.cols = cols
+        self.columns = list(cols)
+
+    def __getitem__(self, k: str) -> NDArray[Any]:
+        return self.cols[k]
 
 
 def _spreadsheet_source(p: str, columns: Any, fs: float | None,
@@ -1479,16 +1557,9 @@ def _spreadsheet_source(p: str, columns: Any, fs: float | None,
     if not sheets:
         raise CalibrationError(f"{p}: the workbook has no sheets")
 
-    def fits(df: Any) -> bool:
-        names = [str(c) for c in df.columns]
-        if columns is None:
-            with contextlib.suppress(CalibrationError):
-                return _auto_acc(names, p) is not None
-            return False
-        want = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else columns
-        return all(isinstance(c, int) or str(c) in names for c in want)
-
-    name, df = next(((k, v) for k, v in sheets.items() if fits(v)), next(iter(sheets.items())))
+    name, df = next(((k, v) for k, v in sheets.items()
+                     if _holds_triad([str(c) for c in v.columns], columns, p)),
+                    next(iter(sheets.items())))
     src = _dataframe_source(df, columns, fs, time_column, path=p)
     if len(sheets) > 1:
         src.lay.notes.append(f"the samples were read from the sheet {name!r} (of "
@@ -1716,6 +1787,8 @@ class _Recording:
                 self.arrays = _array_source(p, _mat_arrays(p, kind), columns, fs, time_column)
             elif kind == "sheet":
                 self.arrays = _spreadsheet_source(p, columns, fs, time_column)
+            elif kind == "tdms":
+                self.arrays = _tdms_source(p, columns, fs, time_column)
             else:
                 f, data, attrs = _h5_tree(p)
                 try:
