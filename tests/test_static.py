@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
+import math
 import os
 import pickle
 import subprocess
@@ -475,6 +476,34 @@ def test_summary_says_units_and_prints_the_stored_uncertainty(tmp_path):
     np.testing.assert_allclose(raw["covariance_scaled"], fit.covariance_scaled, rtol=1e-12)
     assert abs(raw["metadata"]["chi2_dof"] - fit.chi2_dof) < 1e-9
     assert raw["date"].endswith("Z") and len(raw["date"]) == 20
+
+
+def test_chi2_p_matches_scipy_and_words_the_note():
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(3)
+    truth = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
+    seen = set()
+    for sigma_true in (1e-4, 1e-4, 1e-4, 1e-4, 3e-4):
+        sess = static_dwell_means(sphere_attitudes(20, rng=rng), truth=truth, sigma=sigma_true,
+                                  sigma_g=0.0, rng=rng)
+        fit = ac.fit_static(sess.means, sess.g_measured, sigma=1e-4)
+        p = chi2.sf(fit.chi2_dof * fit.dof, fit.dof)
+        assert fit.chi2_p == pytest.approx(p, rel=1e-9, abs=1e-300)
+        assert fit.to_dict()["chi2_p"] == fit.chi2_p
+        txt = fit.summary()
+        if fit.chi2_dof > 1 and p < 0.05:
+            assert f"residuals exceed the noise model (chi2/dof {fit.chi2_dof:.3g}, p = " in txt
+            seen.add("exceed")
+        elif fit.chi2_dof > 1:
+            assert "is above 1 but within what the noise model allows (p = " in txt
+            assert "residuals exceed" not in txt
+            seen.add("within")
+        else:
+            assert "note:" not in txt
+    assert seen == {"exceed", "within"}
+    # Estimated noise: no test of the noise model, so no p.
+    assert math.isnan(ac.fit_static(sess.means, sess.g_measured).chi2_p)
 
 
 # ---- real data -----------------------------------------------------------------------------

@@ -867,6 +867,9 @@ class StaticFit:
     def chi2_dof(self) -> float:
         """chi2/dof (known noise) or the estimated variance of a dwell mean per axis."""
     @property
+    def chi2_p(self) -> float:
+        """P(chi2(dof) >= chi2_dof * dof) under the noise model; NaN when it is estimated."""
+    @property
     def iterations(self) -> int:
         """GN/LM iterations."""
     @property

@@ -227,7 +227,8 @@ class StaticFit(_core.StaticFit):
     Fields computed in Rust (see ``accelcal._core.StaticFit``): ``vector`` (p,)
     ``[sx, sy, sz, bx, by, bz, m1, m2, m3]`` (p = 6 for ``model="diag"``), ``start``,
     ``covariance_unscaled`` ``(J^T W J)^-1``, ``residuals`` ``|a_k| - g`` per dwell,
-    ``sigma_residual`` (predicted std of each residual), ``chi2_dof``, ``dof``, ``cost``,
+    ``sigma_residual`` (predicted std of each residual), ``chi2_dof``, ``chi2_p`` (its
+    upper-tail probability under the noise model), ``dof``, ``cost``,
     ``iterations``, ``converged``, ``noise_known``, ``weak``, ``degenerate``,
     ``predicted_std_relative``, ``means``, ``var``, ``g``, ``model``, ``method``,
     ``noise_model``, ``input_units``, ``nominal``.
@@ -443,6 +444,7 @@ class StaticFit(_core.StaticFit):
             "rms": self.rms,
             "units": units_of_g(self.g),
             "chi2_dof": self.chi2_dof,
+            "chi2_p": self.chi2_p,
             "dof": self.dof,
             "noise_model": self.noise_model,
             "iterations": self.iterations,
@@ -476,10 +478,17 @@ class StaticFit(_core.StaticFit):
             f"{'' if self.converged else ' (NOT converged)'}",
         ]
         if self.realistic == "scaled" and self.noise_known:
-            lines.append(
-                f"  note: residuals exceed the noise model (chi2/dof {self.chi2_dof:.3g}); std "
-                "below is scaled by chi2/dof (covariance_scaled, the realistic one)"
-            )
+            p = self.chi2_p
+            if p < 0.05:
+                lines.append(
+                    f"  note: residuals exceed the noise model (chi2/dof {self.chi2_dof:.3g}, "
+                    f"p = {p:.2g}); std below is scaled by chi2/dof (covariance_scaled, the "
+                    "realistic one)")
+            else:
+                lines.append(
+                    f"  note: chi2/dof {self.chi2_dof:.3g} is above 1 but within what the noise "
+                    f"model allows (p = {p:.2g}); std below is scaled by it all the same "
+                    "(covariance_scaled: the Birge-ratio convention)")
         src = "scaled by chi2/dof" if self.realistic == "scaled" else "from the noise model"
         lines.append(f"  std: {src}; K in {self.input_units or 'output units'} per {u}")
         hdr = f"  {'param':<6} {'value':>14} {'std':>11}"

@@ -632,6 +632,17 @@ impl PyStaticFit {
             .clone()
     }
 
+    /// Upper-tail probability of the residual chi2 under the noise model: `P(X >= chi2_dof *
+    /// dof)`, `X ~ chi2(dof)`. NaN when the noise is estimated or `dof == 0`.
+    #[getter]
+    fn chi2_p(&self) -> f64 {
+        if !self.noise_known || self.dof == 0 || !self.chi2_dof.is_finite() {
+            return f64::NAN;
+        }
+        let k = self.dof as f64;
+        crate::gap::special::chi2_sf(self.chi2_dof * k, k)
+    }
+
     /// `|a_k| - g` per dwell (units of g).
     #[getter]
     fn residuals<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
