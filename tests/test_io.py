@@ -623,6 +623,75 @@ def test_tdms_without_nptdms_says_what_to_install(
         read_stream(p)
 
 
+def _mseed(path: Path, counts: np.ndarray, *, locs: tuple[str, ...] = ("00",),
+           inst: str = "N", seismometer: bool = True, gap: bool = False) -> None:
+    from obspy import Stream, Trace, UTCDateTime
+
+    t0 = UTCDateTime("2026-11-20T10:00:00")
+    st = Stream()
+    for loc in locs:
+        for j, ch in enumerate("ENZ"):
+            st.append(Trace(counts[:, j].copy(), header={
+                "network": "XX", "station": "GRAV", "location": loc, "channel": f"H{inst}{ch}",
+                "sampling_rate": 200.0, "starttime": t0}))
+    if seismometer:  # a velocity seismometer beside it
+        for ch in "ENZ":
+            st.append(Trace(np.zeros(500, np.int32), header={
+                "network": "XX", "station": "GRAV", "location": "10", "channel": f"HH{ch}",
+                "sampling_rate": 200.0, "starttime": t0}))
+    if gap:  # 0.5 s missing from the Z trace
+        z = st.select(location=locs[0], channel=f"H{inst}Z")[0]
+        st.remove(z)
+        st += Stream([z.slice(t0, t0 + 2.0), z.slice(t0 + 2.5, z.stats.endtime)])
+    st.write(str(path), format="MSEED")
+
+
+def test_miniseed_accelerometer_channels(tmp_path: Path) -> None:
+    c = (np.random.default_rng(6).normal(size=(2000, 3)) * 50 + [0, 0, 2**20]).astype(np.int32)
+    p = tmp_path / "station.mseed"
+    _mseed(p, c)
+    s = read_stream(p)
+    assert s.names == ("XX.GRAV.00.HNE", "XX.GRAV.00.HNN", "XX.GRAV.00.HNZ")
+    np.testing.assert_array_equal(s.samples, c)
+    assert s.fs == 200.0 and s.fs_source == "metadata" and s.t0 == "2026-11-20T10:00:00"
+    np.testing.assert_allclose(s.t, np.arange(2000) / 200.0)
+    # Traces by channel code, in any order; a file named otherwise is told by its header.
+    q = tmp_path / "logger.dat"
+    _mseed(q, c, gap=True)
+    s = read_stream(q, columns="HNZ,HNN,HNE")
+    np.testing.assert_array_equal(s.samples[:, 1:], c[:, 1::-1])
+    gone = np.isnan(s.samples[:, 0])
+    assert gone.sum() == 99 and not gone[:400].any()  # the 0.5 s gap: dropouts
+    assert any("99 samples in gaps read as NaN (dropouts)" in n for n in s.notes)
+    d = ac.detect_dwells(s.samples, s.fs)
+    assert d.dropped == 99
+
+
+def test_miniseed_without_one_accelerometer_triad(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    c = np.zeros((500, 3), np.int32)
+    p = tmp_path / "vel.mseed"
+    _mseed(p, c, inst="H", seismometer=False)
+    with pytest.raises(CalibrationError, match=r"no accelerometer triad among the traces.*"
+                       r"not accelerometer channels - SEED instrument code N - and a "
+                       r"seismometer's velocity output does not see gravity"):
+        read_stream(p)
+    q = tmp_path / "two.mseed"
+    _mseed(q, c, locs=("00", "01"), seismometer=False)
+    with pytest.raises(CalibrationError, match=r"2 accelerometer triads .*giving.*columns=, e.g. "
+                       r"'XX.GRAV.00.HNE,XX.GRAV.00.HNN,XX.GRAV.00.HNZ'"):
+        read_stream(q)
+    with pytest.raises(CalibrationError, match=r"more than one trace named 'HNE'"):
+        read_stream(q, columns="HNE,HNN,HNZ")
+    assert read_stream(q, columns="XX.GRAV.01.HNE,XX.GRAV.01.HNN,XX.GRAV.01.HNZ").names[0] == (
+        "XX.GRAV.01.HNE")
+    monkeypatch.setitem(sys.modules, "obspy", None)
+    with pytest.raises(CalibrationError, match=r"needs ObsPy: pip install 'accelcal\[seismic\]'"):
+        read_stream(q)
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -1,9 +1,10 @@
 """Readers for accelerometer recordings: delimited text (with or without header and metadata
 lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, MATLAB ``.mat`` (v5
 and v7.3), spreadsheets (``.xlsx``, ``.xls``, ``.ods``: phyphox's default export; through
-pandas), National Instruments TDMS (LabVIEW; through npTDMS), and tables already in memory
-(a pandas or polars DataFrame, anything with ``__array__``); plus chunked reading that
-streams large files into :class:`~accelcal.DwellAccumulator` in one pass.
+pandas), National Instruments TDMS (LabVIEW; through npTDMS), miniSEED (seismic loggers;
+through ObsPy), and tables already in memory (a pandas or polars DataFrame, anything with
+``__array__``); plus chunked reading that streams large files into
+:class:`~accelcal.DwellAccumulator` in one pass.
 
 Text is parsed by the Rust core in blocks of whole lines, in parallel and with the
 interpreter released: reading is faster than ``pandas.read_csv`` and streaming keeps memory
@@ -1458,7 +1459,123 @@ def _kind(p: str) -> str:
         return "sheet"
     if low.endswith(".tdms"):
         return "tdms"
+    if low.endswith((".mseed", ".miniseed", ".msd", ".seed")) or _looks_like_mseed(p):
+        return "mseed"
     return "text"
+
+
+def _looks_like_mseed(p: str) -> bool:
+    """A miniSEED record header (v2: six digits of sequence number and a quality code D, R,
+    Q or M; v3: ``MS3``), whatever the file is named."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        return False  # the text reader names the problem
+    return head.startswith(b"MS3") or (
+        len(head) == 8 and head[:6].isdigit() and head[6:7] in b"DRQM" and head[7:8] in b" \0")
+
+
+#: SEED orientation codes of a triad, in the x, y, z order read (east, north, up first).
+_SEED_TRIADS = ("ENZ", "12Z", "123", "UVW", "XYZ")
+
+
+def _mseed_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+    """A miniSEED file (seismic digitisers and data loggers) through ObsPy: the three
+    components of one accelerometer channel (SEED instrument code ``N``: ``HNE, HNN, HNZ``
+    read as x, y, z), or the traces named in ``columns`` (ids ``NET.STA.LOC.CHA`` or channel
+    codes). Segments of a trace are joined, gaps read as NaN (dropouts), and the components
+    cut to their common span; the rate and ``t0`` come from the record headers."""
+    try:
+        import warnings
+
+        with warnings.catch_warnings():
+            # ObsPy's import reads entry points through an interface that importlib.metadata
+            # deprecates (Python 3.10-3.11): not the caller's concern.
+            warnings.simplefilter("ignore", DeprecationWarning)
+            import obspy
+    except ImportError:
+        raise CalibrationError(
+            f"{p}: a miniSEED file; reading it needs ObsPy: pip install 'accelcal[seismic]' "
+            "(or obspy)") from None
+    try:
+        st = obspy.read(p)
+        st.merge(method=0, fill_value=None)  # gaps and disagreeing overlaps: masked
+    except Exception as e:  # noqa: BLE001 - ObsPy raises many types
+        raise CalibrationError(
+            f"{p}: cannot read the miniSEED file: {type(e).__name__}: {e}") from None
+    traces = {tr.id: tr for tr in st}
+    if len(traces) < len(st):
+        each = sorted(f"{tr.id} ({tr.stats.sampling_rate:g} Hz)" for tr in st)
+        raise CalibrationError(f"{p}: traces of one id at different sample rates: {each}")
+    ids = _mseed_triad(p, traces, columns)
+    chosen = [traces[i] for i in ids]
+    rates = {float(tr.stats.sampling_rate) for tr in chosen}
+    if len(rates) != 1:
+        raise CalibrationError(f"{p}: the traces {ids} have different sample rates "
+                               f"({sorted(rates)} Hz): resample them to one rate first")
+    rate = rates.pop()
+    start = max(tr.stats.starttime for tr in chosen)
+    end = min(tr.stats.endtime for tr in chosen)
+    if end < start:
+        raise CalibrationError(f"{p}: the traces {ids} do not overlap in time")
+    n = int(round((end - start) * rate)) + 1
+    cols: dict[str, NDArray[Any]] = {}
+    for tr in chosen:
+        i0 = int(round((start - tr.stats.starttime) * rate))
+        a = np.ma.asarray(tr.data[i0:i0 + n]).astype(np.float64)
+        cols[tr.id] = np.ma.filled(a, np.nan)
+    src = _dataframe_source(_DictTable(cols), ids, fs, time_column, path=p)
+    lay = src.lay
+    if fs is None and lay.time is None:
+        lay.fs, lay.fs_source = rate, "metadata"
+        lay.notes = [x for x in lay.notes if "not in the file" not in x]
+    lay.t0_text = str(start.isoformat())
+    gaps = sum(int(np.isnan(a).sum()) for a in cols.values())
+    lay.notes.append(
+        f"miniSEED traces {', '.join(ids)} (as x, y, z; counts unless the logger wrote physical "
+        f"units), their common span from {start} to {end}"
+        + (f"; {gaps} samples in gaps read as NaN (dropouts)" if gaps else ""))
+    return src
+
+
+def _mseed_triad(p: str, traces: dict[str, Any], columns: Any) -> list[str]:
+    """The ids of the three traces to read: ``columns`` (ids or channel codes), else the one
+    accelerometer triad (instrument code N) of the file."""
+    if columns is not None:
+        want = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else columns
+        out = []
+        for c in want:
+            hits = [i for i in traces if i == str(c) or traces[i].stats.channel == str(c)]
+            if len(hits) != 1:
+                raise CalibrationError(
+                    f"{p}: {'no' if not hits else 'more than one'} trace named {c!r} "
+                    f"(columns); the traces are {sorted(traces)}")
+            out.append(hits[0])
+        if len(out) != 3:
+            raise CalibrationError(f"columns must name exactly 3 traces (x, y, z); got {want!r}")
+        return out
+    groups: dict[str, dict[str, str]] = {}
+    for i in traces:
+        groups.setdefault(i[:-1], {})[i[-1]] = i
+    triads = [(k, [g[c] for c in order]) for k, g in groups.items() for order in _SEED_TRIADS
+              if set(order) <= set(g)]
+    acc = [t for t in triads if len(t[0]) >= 1 and t[0][-1] == "N"]  # ...HN? : accelerometer
+    if len(acc) == 1:
+        return acc[0][1]
+    listed = sorted(traces)
+    if len(acc) > 1:
+        raise CalibrationError(
+            f"{p}: {len(acc)} accelerometer triads ({'; '.join(','.join(t) for _, t in acc)}): "
+            "calibrate one at a time, giving its three traces with columns=, e.g. "
+            f"{','.join(acc[0][1])!r}")
+    other = f" ({', '.join(','.join(t) for _, t in triads)}: not accelerometer channels - " \
+        "SEED instrument code N - and a seismometer's velocity output does not see gravity)" \
+        if triads else ""
+    raise CalibrationError(
+        f"{p}: no accelerometer triad among the traces {listed}{other}; give columns= (3 "
+        "trace ids or channel codes) if three of them are an accelerometer's")
+
 
 
 def _holds_triad(names: list[str], columns: Any, p: str) -> bool:
@@ -1789,6 +1906,8 @@ class _Recording:
                 self.arrays = _spreadsheet_source(p, columns, fs, time_column)
             elif kind == "tdms":
                 self.arrays = _tdms_source(p, columns, fs, time_column)
+            elif kind == "mseed":
+                self.arrays = _mseed_source(p, columns, fs, time_column)
             else:
                 f, data, attrs = _h5_tree(p)
                 try:
