@@ -257,7 +257,12 @@ def _resolve_g(g: float | None, lat: float | None, height: float) -> tuple[float
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="accelcal")
 def main() -> None:
-    """Calibrate accelerometers from the norm of what they measure."""
+    """Calibrate accelerometers from the norm of what they measure.
+
+    Recordings: delimited text (with or without a header; also gzip, bzip2 or xz), .npy,
+    .npz, HDF5, MATLAB .mat, spreadsheets (.xlsx), LabVIEW TDMS and miniSEED; columns are
+    found by name or given with --columns.
+    """
 
 
 @main.group()
