@@ -514,6 +514,15 @@ def _rows(n: int, fmt: Any) -> str:
     return "".join(fmt(i) for i in range(n))
 
 
+def test_linear_acceleration_columns_get_a_note(tmp_path: Path) -> None:
+    rows = "".join(f"{i / 100},0.0{i % 3},0.0{i % 5},0.01\n" for i in range(300))
+    s = read_stream(write(tmp_path, '"Time (s)","Linear Acceleration x (m/s^2)","Linear '
+                          'Acceleration y (m/s^2)","Linear Acceleration z (m/s^2)"\n' + rows))
+    assert any("look like a linear (user) acceleration" in n for n in s.notes)
+    raw = read_stream(write(tmp_path, "t,ax,ay,az\n" + rows, "raw.csv"))
+    assert not any("linear" in n for n in raw.notes)
+
+
 def test_witmotion_log_with_a_device_column_and_unpadded_dates(tmp_path: Path) -> None:
     # WitMotion's export: tab-separated, the device name in every row, dates without zero
     # padding (which the text reader's ISO-8601 parser refuses), a second time column.

@@ -478,6 +478,27 @@ def test_summary_says_units_and_prints_the_stored_uncertainty(tmp_path):
     assert raw["date"].endswith("Z") and len(raw["date"]) == 20
 
 
+def test_outputs_that_do_not_see_gravity_get_the_hint_a_real_degenerate_session_does_not():
+    refused = 0
+    for seed in range(20):  # a phone's linear acceleration: near zero at rest, any pose
+        rng = np.random.default_rng(seed)
+        n = int(rng.integers(12, 40))
+        m = rng.normal(scale=0.03, size=(n, 3)) + rng.normal(scale=0.01, size=3)
+        try:
+            fit_quiet(m, G0, sigma=1e-3)
+        except CalibrationError as e:  # degenerate, or the fit ran away: say why
+            refused += 1
+            assert "norms differ by" in str(e) and "may not see gravity" in str(e), str(e)
+    assert refused >= 18  # a few points can lie on some ellipsoid by chance
+    # A real sensor with too few poses: degenerate, its norms all about |g| - no such hint.
+    rng = np.random.default_rng(1)
+    att = np.column_stack([rng.normal(0, 0.01, 12), rng.normal(0, 0.01, 12)])
+    sess = static_dwell_means(att, truth=UPPER_TRUTH, sigma=1e-4, sigma_g=0.0, rng=rng)
+    with pytest.raises(DegenerateDataError) as e:
+        ac.fit_static(sess.means, G0, sigma=1e-4)
+    assert "may not see gravity" not in str(e.value) and "norms differ" not in str(e.value)
+
+
 def test_chi2_p_matches_scipy_and_words_the_note():
     from scipy.stats import chi2
 

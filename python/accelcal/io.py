@@ -226,6 +226,13 @@ def _epoch_unit(v0: float) -> tuple[str, float] | None:
     return None
 
 
+def _gravity_removed(name: str) -> bool:
+    """A name of a gravity-free acceleration (phyphox's "Linear Acceleration x", Android's
+    linear_acceleration, Core Motion's userAcceleration)."""
+    n = _norm(name)
+    return any(k in n for k in ("linear", "linacc", "useracc", "withoutg", "nogravity"))
+
+
 def _is_temperature(name: str) -> bool:
     n = _norm(name)
     return n.startswith("temp") or n == "tmp"  # Tmp: the MPU-6050 sketch's temperature
@@ -1007,6 +1014,11 @@ def _decide(
             if i not in acc and i != tcol and _is_temperature(n):
                 temp = i
                 break
+    if names is not None and any(_gravity_removed(names[i]) for i in acc):
+        notes.append(f"columns {', '.join(repr(names[i]) for i in acc)} look like a linear "
+                     "(user) acceleration, from which the device's sensor fusion removed "
+                     "gravity: a static calibration needs the raw accelerometer output, which "
+                     "sees gravity")
     fs_meta = _fs_from_meta(meta)
     fs_time = None
     # Rows of another sensor (every accelerometer field empty, NaN in the head) are left

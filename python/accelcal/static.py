@@ -602,10 +602,18 @@ def fit_static(
         means, var, noise_model, units = _inputs(data, sigma)
         if start is not None:
             st = np.asarray(start, dtype=np.float64).reshape(-1).tolist()
-    fit = StaticFit(  # positional: the fastest call into the constructor
-        means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
-        observability == "raise", degenerate_std, weak_std, check_g, noise_model, units, nominal,
-    )
+    try:
+        fit = StaticFit(  # positional: the fastest call into the constructor
+            means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
+            observability == "raise", degenerate_std, weak_std, check_g, noise_model, units,
+            nominal,
+        )
+    except CalibrationError as e:  # dwells that cannot determine a calibration: why?
+        indeterminate = isinstance(e, _core.DegenerateDataError) or "ran away" in str(e)
+        hint = _gravity_free_hint(means) if indeterminate else ""
+        if not hint:
+            raise
+        raise type(e)(f"{e}. {hint}") from None
     attention = fit._attention  # one read: bit 0 not converged, bit 1 weak or degenerate
     if attention & 1:
         raise CalibrationError(
@@ -617,6 +625,25 @@ def fit_static(
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit
             warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
+
+
+def _gravity_free_hint(means: Any) -> str:
+    """For dwells that cannot determine a calibration: when their norms differ by a quarter
+    of their mean or more, the outputs may not see gravity at all (a sensor at rest reads
+    about the same |g| in every pose); ``""`` otherwise."""
+    try:
+        m = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    except (TypeError, ValueError):
+        return ""
+    r = np.linalg.norm(m, axis=1)
+    mu = float(np.mean(r)) if r.size else 0.0
+    if not (math.isfinite(mu) and mu > 0) or float(np.std(r)) < 0.25 * mu:
+        return ""
+    return (f"The dwell means' norms differ by {float(np.std(r)) / mu:.0%} of their mean "
+            "from dwell to dwell, while a sensor at rest reads about the same |g| in every "
+            "pose: these outputs may not see gravity (a 'linear' or 'user' acceleration, from "
+            "which a phone's or an AHRS's sensor fusion removed gravity, or not an "
+            "accelerometer); calibrate the raw accelerometer output")
 
 
 # ------------------------------------------------------------------------------------------
