@@ -248,6 +248,15 @@ def test_manifest_rows_override_the_defaults(fleet: dict[str, Any], tmp_path: Pa
         assert np.all(np.abs(est - expect) < 5 * df.loc[i, ["sx_std", "sy_std", "sz_std"]]
                       .to_numpy(float) + 1e-4)
     assert df.loc[3, "fs_hz"] == 50.0
+    # The same manifest kept in a workbook (as production lines often keep them).
+    man.to_excel(tmp_path / "manifest.xlsx", index=False)
+    code, out = _cli("calibrate", "static", "--manifest", str(tmp_path / "manifest.xlsx"),
+                     "--g", str(G0), "--workers", "1", "--json", "--quiet")
+    assert code == 0, out
+    from_xlsx = pd.DataFrame(json.loads(out))
+    assert list(from_xlsx["sensor_id"]) == ["A-1", "A-2", "A-3", "A-4"]
+    assert list(from_xlsx["line"]) == [7, 7, 8, 8]
+    np.testing.assert_array_equal(from_xlsx[PARAMS].to_numpy(float), df[PARAMS].to_numpy(float))
     # without the fs column that recording has no sample rate: an error row naming fs
     man.loc[3, "fs"] = None
     df2 = ac.calibrate_many(man.assign(path=[str(tmp_path / p) for p in man["path"]]),

@@ -288,10 +288,21 @@ def _need_pandas() -> Any:
     return pd
 
 
+_SHEETS = (".xlsx", ".xlsm", ".xls", ".ods")
+
+
 def _is_manifest_file(p: str) -> bool:
     low = p.lower()
     if low.endswith((".parquet", ".pq")):
         return True
+    if low.endswith(_SHEETS) and os.path.isfile(p):
+        # A workbook is a manifest when its first sheet has a path column (a recording in a
+        # workbook has accelerometer columns instead).
+        try:
+            head = _need_pandas().read_excel(p, nrows=0)
+        except Exception:  # noqa: BLE001 - not readable here: the recording reader says why
+            return False
+        return "path" in {str(c).strip().lower() for c in head.columns}
     if not low.endswith((".csv", ".tsv", ".txt")) or not os.path.isfile(p):
         return False
     with open(p, encoding="utf-8", errors="replace") as fh:
@@ -308,16 +319,18 @@ def _read_table(path: str) -> Any:
     pd = _need_pandas()
     low = path.lower()
     try:
+        text_columns = {"sensor_id": str, "path": str, "columns": str}
         if low.endswith((".parquet", ".pq")):
             return pd.read_parquet(path)
-        return pd.read_csv(path, comment="#", sep=None, engine="python",
-                           dtype={"sensor_id": str, "path": str, "columns": str})
+        if low.endswith(_SHEETS):
+            return pd.read_excel(path, dtype=text_columns)
+        return pd.read_csv(path, comment="#", sep=None, engine="python", dtype=text_columns)
     except FileNotFoundError:
         raise CalibrationError(f"table not found: {path}") from None
     except ImportError as e:
-        raise CalibrationError(
-            f"reading {path} needs pyarrow (Parquet): pip install 'accelcal[fleet]' ({e})"
-        ) from None
+        what = ("openpyxl (a workbook): pip install 'accelcal[excel]'" if low.endswith(_SHEETS)
+                else "pyarrow (Parquet): pip install 'accelcal[fleet]'")
+        raise CalibrationError(f"reading {path} needs {what} ({e})") from None
     except (ValueError, OSError) as e:
         raise CalibrationError(f"cannot read the table {path}: {e}") from None
 

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Any
 
@@ -100,7 +99,8 @@ def run_static_fleet(
     )
     dt = time.perf_counter() - t0
     if as_json:
-        emit_json(json.loads(df.to_json(orient="records")))
+        # Full precision (DataFrame.to_json keeps 10 digits); missing values as null.
+        emit_json(df.astype(object).where(df.notna(), None).to_dict(orient="records"))
         return
     counts = {s: int((df["status"] == s).sum()) for s in STATUSES}
     where = f"the Dask cluster at {scheduler}" if scheduler else "local processes"
