@@ -809,7 +809,6 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
                 continue
             if under and _kind_row(bf):
                 continue  # CAL / RAW under the names: not the names themselves
-
             header, header_units = body, None
             continue
         header, header_units = None, None
@@ -1471,229 +1470,13 @@ def _kind(p: str) -> str:
         return "sheet"
     if low.endswith(".tdms"):
         return "tdms"
-    if low.endswith((".mseed", ".miniseed", ".msd", ".seed")) or _looks_like_mseed(p):
+    if low.endswith((".mseed", ".miniseed", ".msd", ".seed")):
+        return "mseed"
+    from ._formats import looks_like_mseed
+
+    if looks_like_mseed(p):
         return "mseed"
     return "text"
-
-
-def _looks_like_mseed(p: str) -> bool:
-    """A miniSEED record header (v2: six digits of sequence number and a quality code D, R,
-    Q or M; v3: ``MS3``), whatever the file is named."""
-    try:
-        with open(p, "rb") as fh:
-            head = fh.read(8)
-    except OSError:
-        return False  # the text reader names the problem
-    return head.startswith(b"MS3") or (
-        len(head) == 8 and head[:6].isdigit() and head[6:7] in b"DRQM" and head[7:8] in b" \0")
-
-
-#: SEED orientation codes of a triad, in the x, y, z order read (east, north, up first).
-_SEED_TRIADS = ("ENZ", "12Z", "123", "UVW", "XYZ")
-
-
-def _mseed_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
-    """A miniSEED file (seismic digitisers and data loggers) through ObsPy: the three
-    components of one accelerometer channel (SEED instrument code ``N``: ``HNE, HNN, HNZ``
-    read as x, y, z), or the traces named in ``columns`` (ids ``NET.STA.LOC.CHA`` or channel
-    codes). Segments of a trace are joined, gaps read as NaN (dropouts), and the components
-    cut to their common span; the rate and ``t0`` come from the record headers."""
-    try:
-        import warnings
-
-        with warnings.catch_warnings():
-            # ObsPy's import reads entry points through an interface that importlib.metadata
-            # deprecates (Python 3.10-3.11): not the caller's concern.
-            warnings.simplefilter("ignore", DeprecationWarning)
-            import obspy
-    except ImportError:
-        raise CalibrationError(
-            f"{p}: a miniSEED file; reading it needs ObsPy: pip install 'accelcal[seismic]' "
-            "(or obspy)") from None
-    try:
-        st = obspy.read(p)
-        st.merge(method=0, fill_value=None)  # gaps and disagreeing overlaps: masked
-    except Exception as e:  # noqa: BLE001 - ObsPy raises many types
-        raise CalibrationError(
-            f"{p}: cannot read the miniSEED file: {type(e).__name__}: {e}") from None
-    traces = {tr.id: tr for tr in st}
-    if len(traces) < len(st):
-        each = sorted(f"{tr.id} ({tr.stats.sampling_rate:g} Hz)" for tr in st)
-        raise CalibrationError(f"{p}: traces of one id at different sample rates: {each}")
-    ids = _mseed_triad(p, traces, columns)
-    chosen = [traces[i] for i in ids]
-    rates = {float(tr.stats.sampling_rate) for tr in chosen}
-    if len(rates) != 1:
-        raise CalibrationError(f"{p}: the traces {ids} have different sample rates "
-                               f"({sorted(rates)} Hz): resample them to one rate first")
-    rate = rates.pop()
-    start = max(tr.stats.starttime for tr in chosen)
-    end = min(tr.stats.endtime for tr in chosen)
-    if end < start:
-        raise CalibrationError(f"{p}: the traces {ids} do not overlap in time")
-    n = int(round((end - start) * rate)) + 1
-    cols: dict[str, NDArray[Any]] = {}
-    for tr in chosen:
-        i0 = int(round((start - tr.stats.starttime) * rate))
-        a = np.ma.asarray(tr.data[i0:i0 + n]).astype(np.float64)
-        cols[tr.id] = np.ma.filled(a, np.nan)
-    src = _dataframe_source(_DictTable(cols), ids, fs, time_column, path=p)
-    lay = src.lay
-    if fs is None and lay.time is None:
-        lay.fs, lay.fs_source = rate, "metadata"
-        lay.notes = [x for x in lay.notes if "not in the file" not in x]
-    lay.t0_text = str(start.isoformat())
-    gaps = sum(int(np.isnan(a).sum()) for a in cols.values())
-    lay.notes.append(
-        f"miniSEED traces {', '.join(ids)} (as x, y, z; counts unless the logger wrote physical "
-        f"units), their common span from {start} to {end}"
-        + (f"; {gaps} samples in gaps read as NaN (dropouts)" if gaps else ""))
-    return src
-
-
-def _mseed_triad(p: str, traces: dict[str, Any], columns: Any) -> list[str]:
-    """The ids of the three traces to read: ``columns`` (ids or channel codes), else the one
-    accelerometer triad (instrument code N) of the file."""
-    if columns is not None:
-        want = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else columns
-        out = []
-        for c in want:
-            hits = [i for i in traces if i == str(c) or traces[i].stats.channel == str(c)]
-            if len(hits) != 1:
-                raise CalibrationError(
-                    f"{p}: {'no' if not hits else 'more than one'} trace named {c!r} "
-                    f"(columns); the traces are {sorted(traces)}")
-            out.append(hits[0])
-        if len(out) != 3:
-            raise CalibrationError(f"columns must name exactly 3 traces (x, y, z); got {want!r}")
-        return out
-    groups: dict[str, dict[str, str]] = {}
-    for i in traces:
-        groups.setdefault(i[:-1], {})[i[-1]] = i
-    triads = [(k, [g[c] for c in order]) for k, g in groups.items() for order in _SEED_TRIADS
-              if set(order) <= set(g)]
-    acc = [t for t in triads if len(t[0]) >= 1 and t[0][-1] == "N"]  # ...HN? : accelerometer
-    if len(acc) == 1:
-        return acc[0][1]
-    listed = sorted(traces)
-    if len(acc) > 1:
-        raise CalibrationError(
-            f"{p}: {len(acc)} accelerometer triads ({'; '.join(','.join(t) for _, t in acc)}): "
-            "calibrate one at a time, giving its three traces with columns=, e.g. "
-            f"{','.join(acc[0][1])!r}")
-    other = f" ({', '.join(','.join(t) for _, t in triads)}: not accelerometer channels - " \
-        "SEED instrument code N - and a seismometer's velocity output does not see gravity)" \
-        if triads else ""
-    raise CalibrationError(
-        f"{p}: no accelerometer triad among the traces {listed}{other}; give columns= (3 "
-        "trace ids or channel codes) if three of them are an accelerometer's")
-
-
-
-def _holds_triad(names: list[str], columns: Any, p: str) -> bool:
-    """Whether a table (a sheet, a TDMS group) with these column names holds the
-    accelerometer: the ``columns`` given, or a triad found by name."""
-    with contextlib.suppress(CalibrationError):
-        if columns is None:
-            return _auto_acc(names, p) is not None
-        _resolve_columns(columns, names, len(names), p)
-        return True
-    return False
-
-
-def _tdms_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
-    """A National Instruments TDMS file (LabVIEW's own format) through npTDMS: the first
-    group whose channel names hold an accelerometer triad (or the ``columns`` given), its
-    channels of the triad's length as columns (``unit_string`` as their unit), the rate from
-    the channels' ``wf_increment`` and ``wf_start_time`` as ``t0``."""
-    try:
-        from nptdms import TdmsFile
-    except ImportError:
-        raise CalibrationError(
-            f"{p}: a TDMS file (NI LabVIEW); reading it needs npTDMS: pip install "
-            "'accelcal[tdms]' (or npTDMS), or export the channels as text") from None
-    try:
-        f = TdmsFile.read(p)
-    except Exception as e:  # noqa: BLE001 - npTDMS has no error type of its own
-        raise CalibrationError(f"{p}: cannot read the TDMS file: {type(e).__name__}: {e}") from None
-    groups: list[tuple[str, dict[str, Any], list[Any]]] = []
-    for g in f.groups():
-        chans = [c for c in g.channels() if len(c) and np.asarray(c[:1]).dtype.kind in "fiuM"]
-        names = []
-        for c in chans:
-            unit = str(c.properties.get("unit_string", "") or "").strip()
-            names.append(f"{c.name} [{unit}]" if unit and not _split_unit(c.name)[1] else c.name)
-        groups.append((g.name, dict(zip(names, chans, strict=True)), chans))
-    if not groups:
-        raise CalibrationError(f"{p}: cannot read the TDMS file: it holds no channels of "
-                               "numbers (not a TDMS file, or an empty one)")
-    pick = next((x for x in groups if _holds_triad(list(x[1]), columns, p)), None)
-    if pick is None:
-        listed = "; ".join(f"{g!r}: {', '.join(repr(n) for n in cs)}" for g, cs, _ in groups)
-        raise CalibrationError(
-            f"{p}: no TDMS group holds an accelerometer triad by name (groups and channels: "
-            f"{listed or 'none'}); give columns=[...] (3 channel names)")
-    gname, by_name, _ = pick
-    names = list(by_name)
-    acc = (_auto_acc(names, p) if columns is None
-           else _resolve_columns(columns, names, len(names), p)) or [0, 1, 2]
-    n = len(by_name[names[acc[0]]])
-    table = {k: np.asarray(c[:]) for k, c in by_name.items() if len(c) == n}
-    src = _dataframe_source(_DictTable(table), columns, fs, time_column, path=p)
-    lay = src.lay
-    first = by_name[names[acc[0]]].properties
-    inc = first.get("wf_increment")
-    if fs is None and lay.time is None and inc:
-        lay.fs, lay.fs_source = 1.0 / float(inc), "metadata"
-        lay.notes = [x for x in lay.notes if "not in the file" not in x]
-        start = first.get("wf_start_time")
-        if start is not None:
-            lay.t0_text = str(np.datetime_as_string(np.datetime64(start, "us")))
-    if len(groups) > 1:
-        lay.notes.append(f"the samples were read from the TDMS group {gname!r} (of "
-                         f"{', '.join(repr(g) for g, _, _ in groups)})")
-    return src
-
-
-class _DictTable:
-    """Named 1-D arrays of one length, as a table for :func:`_dataframe_source`."""
-
-    def __init__(self, cols: dict[str, NDArray[Any]]) -> None:
-        self.cols = cols
-        self.columns = list(cols)
-
-    def __getitem__(self, k: str) -> NDArray[Any]:
-        return self.cols[k]
-
-
-def _spreadsheet_source(p: str, columns: Any, fs: float | None,
-                        time_column: Any) -> _ArraySource:
-    """A workbook read through pandas (openpyxl, xlrd or odfpy): the first sheet whose column
-    names hold an accelerometer triad, or hold ``columns`` when given (phyphox puts its
-    samples in "Raw Data" beside metadata sheets); with neither, the first sheet."""
-    try:
-        import pandas as pd
-    except ImportError:
-        raise CalibrationError(
-            f"{p}: a spreadsheet; reading it needs pandas and openpyxl (pip install pandas "
-            "openpyxl), or export the sheet as CSV") from None
-    try:
-        sheets = pd.read_excel(p, sheet_name=None)
-    except ImportError as e:
-        raise CalibrationError(f"{p}: {e} (or export the sheet as CSV)") from None
-    except (ValueError, OSError, KeyError, zipfile.BadZipFile) as e:
-        raise CalibrationError(f"{p}: cannot read the spreadsheet: {e}") from None
-    if not sheets:
-        raise CalibrationError(f"{p}: the workbook has no sheets")
-
-    name, df = next(((k, v) for k, v in sheets.items()
-                     if _holds_triad([str(c) for c in v.columns], columns, p)),
-                    next(iter(sheets.items())))
-    src = _dataframe_source(df, columns, fs, time_column, path=p)
-    if len(sheets) > 1:
-        src.lay.notes.append(f"the samples were read from the sheet {name!r} (of "
-                             f"{', '.join(repr(k) for k in sheets)})")
-    return src
 
 
 def _mat_kind(p: str) -> str:
@@ -1914,12 +1697,10 @@ class _Recording:
                 self.arrays = _array_source(p, _npz_arrays(p), columns, fs, time_column)
             elif kind in ("mat5", "mat73"):
                 self.arrays = _array_source(p, _mat_arrays(p, kind), columns, fs, time_column)
-            elif kind == "sheet":
-                self.arrays = _spreadsheet_source(p, columns, fs, time_column)
-            elif kind == "tdms":
-                self.arrays = _tdms_source(p, columns, fs, time_column)
-            elif kind == "mseed":
-                self.arrays = _mseed_source(p, columns, fs, time_column)
+            elif kind in ("sheet", "tdms", "mseed"):
+                from . import _formats
+
+                self.arrays = _formats.SOURCES[kind](p, columns, fs, time_column)
             else:
                 f, data, attrs = _h5_tree(p)
                 try:
