@@ -427,3 +427,33 @@ def test_vibrating_poses_are_named_when_too_few_dwells_remain(tmp_path: Path) ->
     assert m, out
     code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--quiet", "--k", m.group(1))
     assert code == 0 and "-> 16 dwells" in out, out
+
+
+def test_bounds_file_replaces_detection(tmp_path: Path) -> None:
+    js = str(shared_data("imucal", "example_ferraris_session_list.json"))
+    code, out = run("dwells", str(IMUCAL()), "--fs", "102.4", "--bounds", js, "--json")
+    assert code == 0, out
+    rep = json.loads(out)
+    assert rep["count"] == [731, 741, 484, 412, 453, 607] and rep["start"][0] == 540
+    assert any("x_rot, y_rot, z_rot" in n for n in rep["notes"])
+    code, out = run("dwells", str(IMUCAL()), "--fs", "102.4", "--bounds", js, "--plot",
+                    str(tmp_path / "d.png"))
+    assert code == 0 and (tmp_path / "d.png").stat().st_size > 10_000, out
+    code, out = run("calibrate", "static", str(IMUCAL()), "--fs", "102.4", "--g", "9.81",
+                    "--model", "diag", "--bounds", js, "--json")
+    assert code == 0, out
+    assert json.loads(out[out.index("{"):])["dof"] == 0  # six faces, six parameters
+    # Seconds from the first sample, in a CSV (a sequencer's log).
+    secs = tmp_path / "log.csv"
+    secs.write_text("face,start_s,stop_s\n" + "".join(
+        f"f{i},{a / 102.4!r},{b / 102.4!r}\n" for i, (a, b) in enumerate(
+            [(540, 1271), (1620, 2361), (2814, 3298), (3740, 4152), (4522, 4975),
+             (5376, 5983)])))
+    code, out2 = run("dwells", str(IMUCAL()), "--fs", "102.4", "--bounds", str(secs), "--json")
+    assert code == 0 and json.loads(out2)["count"] == rep["count"], out2
+    code, out = run("diagnose", str(IMUCAL()), "--fs", "102.4", "--g", "9.81", "--bounds", js)
+    assert code == 2 and "needs at least 10 dwells" in out  # 6 faces, 9 parameters
+    code, out = run("calibrate", "static", str(IMUCAL()), str(XSENS()), "--g", "9.81",
+                    "--bounds", js)
+    assert code == 2 and "--bounds takes one recording" in out
+

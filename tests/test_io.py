@@ -701,6 +701,61 @@ def test_miniseed_without_one_accelerometer_triad(tmp_path: Path,
         read_stream(q)
 
 
+def test_read_bounds_formats(tmp_path: Path) -> None:
+    from accelcal.io import read_bounds
+
+    imu = read_bounds(shared_data("imucal", "example_ferraris_session_list.json"))
+    assert imu.names == ["x_p", "x_a", "y_p", "y_a", "z_p", "z_a"] and not imu.seconds
+    np.testing.assert_array_equal(imu.rows(None)[0], [540, 1271])
+    assert "left out as motions, not static: x_rot, y_rot, z_rot" in imu.notes[0]
+    cases = {
+        "pairs.json": ("[[10, 50], [80, 120]]", [[10, 50], [80, 120]], False),
+        "obj.json": ('{"bounds": [{"name": "up", "start_s": 0.1, "stop_s": 0.5}]}',
+                     [[0.1, 0.5]], True),
+        "named.csv": ("# sequencer log\npose,start,end\nup,10,50\ndown,80,120\n",
+                      [[10, 50], [80, 120]], False),
+        "plain.tsv": ("10\t50\n80\t120\n", [[10, 50], [80, 120]], False),
+        "secs.csv": ("start_s;stop_s;what\n0.1;0.5;tilt 1\n1.0;1.4;move 1\n",
+                     [[0.1, 0.5]], True),
+    }
+    for name, (text, want, seconds) in cases.items():
+        b = read_bounds(write(tmp_path, text, name))
+        np.testing.assert_allclose(b.values, want, err_msg=name)
+        assert b.seconds == seconds, name
+    b = read_bounds(tmp_path / "secs.csv")
+    np.testing.assert_array_equal(b.rows(100.0), [[10, 50]])
+    with pytest.raises(CalibrationError, match=r"in seconds, so the sample rate is needed"):
+        b.rows(None)
+    bad = {
+        '{"a": {"begin_s": 1}}': r"section 'a' has no start and stop",
+        "[[1.5, 4]]": r"rows must be whole numbers.*start_s and stop_s",
+        '{"x_rot": [1, 5]}': r"no static sections in the bounds file \(left out as motions: "
+                             r"x_rot\)",
+        "first,second\n1,2\n": r"names no start and stop",
+        '[{"start": 1, "stop": 4}, {"start_s": 1.0, "stop_s": 2.0}]': r"some bounds are in "
+                                                                    r"rows and some in seconds",
+        "[[1, 2, 3]]": r"entry 0 is not a \[start, stop\] pair",
+    }
+    for i, (text, msg) in enumerate(bad.items()):
+        with pytest.raises(CalibrationError, match=msg):
+            read_bounds(write(tmp_path, text, f"bad{i}.json" if text[0] in "[{" else
+                              f"bad{i}.csv"))
+    with pytest.raises(CalibrationError, match="bounds file not found"):
+        read_bounds(tmp_path / "none.json")
+
+
+def test_stream_dwells_with_a_bounds_file_equals_dwell_stats() -> None:
+    from accelcal.io import read_bounds, stream_dwells
+
+    csv = shared_data("imucal", "example_ferraris_session.csv")
+    js = shared_data("imucal", "example_ferraris_session_list.json")
+    d = stream_dwells(csv, fs=102.4, bounds=js)
+    st = read_stream(csv, fs=102.4)
+    ref = ac.dwell_stats(st.samples, read_bounds(js).rows(st.fs), fs=st.fs)
+    np.testing.assert_array_equal(d.mean, ref.mean)
+    np.testing.assert_array_equal(d.count, [731, 741, 484, 412, 453, 607])
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -62,7 +62,7 @@ from . import _core
 from ._core import CalibrationError
 from ._validate import positive
 
-__all__ = ["Stream", "iter_stream", "read_stream", "stream_dwells"]
+__all__ = ["Bounds", "Stream", "iter_stream", "read_bounds", "read_stream", "stream_dwells"]
 
 #: Rows sniffed at the start of a text file (layout, time-column check, fs estimate).
 _SNIFF_ROWS = 10_000
@@ -2153,7 +2153,8 @@ def stream_dwells(
     ``progress``: show a progress bar of rows read (True), only when stderr is a terminal
     (None), or never (False, the default for library use).
 
-    With ``bounds`` (k, 2) the given ``[start, stop)`` dwells are accumulated; otherwise the
+    With ``bounds`` (k, 2), or the path of a bounds file (:func:`read_bounds`: JSON or CSV,
+    imucal's session list too), the given ``[start, stop)`` dwells are accumulated; otherwise the
     static intervals are detected (needs ``fs`` from the argument, the file's metadata or its
     time column; ``detector_kw`` are :class:`~accelcal.DetectorSettings` fields). Memory use is
     a few blocks of text plus compressed block statistics. The result equals
@@ -2168,6 +2169,169 @@ def stream_dwells(
                              time_column=time_column, chunk_rows=chunk_rows, units=units,
                              progress=progress, **detector_kw)
     return d
+
+
+# ---- known dwells ------------------------------------------------------------------------------
+#: Section names that are not static (imucal's x_rot ...; moves between poses).
+_MOVING = re.compile(r"(?:^|[^a-z])(?:rot|rotation|rotations|move|moving|transition)(?:$|[^a-z])")
+_START_KEYS = ("start", "begin", "from", "first")
+_STOP_KEYS = ("stop", "end", "to", "last")
+
+
+@dataclass
+class Bounds:
+    """Known dwells read by :func:`read_bounds`: ``values`` (k, 2) ``[start, stop)`` in rows
+    of the stream, or in seconds from its first sample when ``seconds``; ``names`` of the
+    sections when the file names them; ``notes`` on what was left out."""
+
+    values: NDArray[np.float64]
+    seconds: bool = False
+    names: list[str] | None = None
+    notes: list[str] = field(default_factory=list)
+    path: str = ""
+
+    def rows(self, fs: float | None) -> NDArray[np.int64]:
+        """``[start, stop)`` as rows (seconds times the sample rate, rounded)."""
+        if not self.seconds:
+            return self.values.astype(np.int64)
+        if fs is None:
+            raise CalibrationError(f"{self.path}: the dwell bounds are in seconds, so the "
+                                   "sample rate is needed: give fs= (Hz)")
+        return np.rint(self.values * fs).astype(np.int64)
+
+
+def read_bounds(path: str | os.PathLike[str]) -> Bounds:
+    """Known dwells from a file, for when a test sequencer or a marker log says where the
+    static poses are (instead of detecting them).
+
+    - JSON: a list of ``[start, stop]`` pairs, or of objects; or an object whose entries are
+      named sections ``{"x_p": {"start": 540, "end": 1271}, ...}`` (imucal's session list) or
+      pairs. ``start``/``stop`` (or ``end``) are rows of the stream (``[start, stop)``);
+      ``start_s``/``stop_s`` are seconds from its first sample.
+    - CSV (comma, semicolon, tab or spaces; ``#`` comments): columns named ``start`` and
+      ``stop``/``end`` (rows) or ``start_s`` and ``stop_s``/``end_s`` (seconds), and any
+      text column as the section name; without a header, the first two columns are rows.
+
+    Sections named as motions (``x_rot``, ``rotation``, ``move``, ``transition``) are left
+    out, with a note: they are not static.
+    """
+    import json
+
+    p = os.fspath(path)
+    try:
+        with open(p, encoding="utf-8-sig") as fh:
+            text = fh.read()
+    except FileNotFoundError:
+        raise CalibrationError(f"bounds file not found: {p}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CalibrationError(f"cannot read the bounds file {p}: {e}") from None
+    if text.lstrip().startswith(("{", "[")):
+        try:
+            obj = json.loads(text)
+        except ValueError as e:
+            raise CalibrationError(f"{p}: not valid JSON: {e}") from None
+        entries = _bounds_json_entries(obj, p)
+    else:
+        entries = _bounds_csv_entries(text, p)
+    return _bounds_from_entries(entries, p)
+
+
+def _pair(d: dict[str, Any], p: str, where: str) -> tuple[Any, Any, bool]:
+    """``(start, stop, seconds)`` of one JSON object."""
+    low = {str(k).strip().lower(): v for k, v in d.items()}
+    for suffix, seconds in (("", False), ("_s", True)):
+        a = next((low[k + suffix] for k in _START_KEYS if k + suffix in low), None)
+        b = next((low[k + suffix] for k in _STOP_KEYS if k + suffix in low), None)
+        if a is not None and b is not None:
+            return a, b, seconds
+    raise CalibrationError(f"{p}: {where} has no start and stop (or end): keys {sorted(low)}")
+
+
+def _bounds_json_entries(obj: Any, p: str) -> list[tuple[str | None, Any, Any, bool]]:
+    if isinstance(obj, dict) and isinstance(obj.get("bounds"), (list, dict)):
+        obj = obj["bounds"]
+    items = list(obj.items()) if isinstance(obj, dict) else (
+        [(None, v) for v in obj] if isinstance(obj, list) else None)
+    if items is None:
+        raise CalibrationError(f"{p}: dwell bounds must be a list or an object of sections")
+    out: list[tuple[str | None, Any, Any, bool]] = []
+    for i, (name, v) in enumerate(items):
+        where = f"section {name!r}" if name is not None else f"entry {i}"
+        if isinstance(v, dict):
+            a, b, sec = _pair(v, p, where)
+            out.append((name if name is not None else v.get("name"), a, b, sec))
+        elif isinstance(v, (list, tuple)) and len(v) == 2:
+            out.append((name, v[0], v[1], False))
+        else:
+            raise CalibrationError(f"{p}: {where} is not a [start, stop] pair or an object "
+                                   f"with start and stop: {v!r}")
+    return out
+
+
+def _bounds_csv_entries(text: str, p: str) -> list[tuple[str | None, Any, Any, bool]]:
+    import csv
+
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise CalibrationError(f"{p}: no dwell bounds in the file")
+    delim = _guess_delim(lines[0])
+    rows = ([r for r in csv.reader(lines, delimiter=delim)] if delim else
+            [ln.split() for ln in lines])
+    rows = [[f.strip() for f in r] for r in rows]
+    head = [f.lower() for f in rows[0]]
+    if all(_is_number(f) for f in rows[0] if f):
+        ia, ib, iname, sec, body = 0, 1, None, False, rows
+    else:
+        body = rows[1:]
+        found = None
+        for suffix, unit_s in (("", False), ("_s", True)):
+            a = next((head.index(k + suffix) for k in _START_KEYS if k + suffix in head), None)
+            b = next((head.index(k + suffix) for k in _STOP_KEYS if k + suffix in head), None)
+            if a is not None and b is not None:
+                found = (a, b, unit_s)
+                break
+        if found is None:
+            raise CalibrationError(f"{p}: the header {rows[0]} names no start and stop (or "
+                                   "end) columns (rows), nor start_s and stop_s (seconds)")
+        ia, ib, sec = found
+        iname = next((j for j, f in enumerate(body[0] if body else []) if j not in (ia, ib)
+                      and f and not _is_number(f)), None)
+    out: list[tuple[str | None, Any, Any, bool]] = []
+    for r in body:
+        if max(ia, ib) >= len(r):
+            raise CalibrationError(f"{p}: the row {r} has no start and stop")
+        out.append((r[iname] if iname is not None and iname < len(r) else None,
+                    r[ia], r[ib], sec))
+    return out
+
+
+def _bounds_from_entries(entries: list[tuple[str | None, Any, Any, bool]], p: str) -> Bounds:
+    kept, names, moving = [], [], []
+    secs = {e[3] for e in entries}
+    if len(secs) > 1:
+        raise CalibrationError(f"{p}: some bounds are in rows and some in seconds")
+    for name, a, b, sec in entries:
+        if name is not None and _MOVING.search(str(name).lower()):
+            moving.append(str(name))
+            continue
+        try:
+            va, vb = float(a), float(b)
+        except (TypeError, ValueError):
+            raise CalibrationError(f"{p}: section {name!r}: start and stop must be numbers; "
+                                   f"got {a!r}, {b!r}") from None
+        if not sec and not (va.is_integer() and vb.is_integer()):
+            raise CalibrationError(f"{p}: section {name!r}: rows must be whole numbers; got "
+                                   f"{a!r}, {b!r} (for seconds, name them start_s and stop_s)")
+        kept.append((va, vb))
+        names.append(None if name is None else str(name))
+    if not kept:
+        raise CalibrationError(f"{p}: no static sections in the bounds file"
+                               + (f" (left out as motions: {', '.join(moving)})" if moving else ""))
+    notes = [f"dwell bounds from {os.path.basename(p)}: {len(kept)} sections"
+             + (f"; left out as motions, not static: {', '.join(moving)}" if moving else "")]
+    named = [n or "" for n in names] if any(n is not None for n in names) else None
+    return Bounds(np.array(kept, dtype=np.float64), seconds=secs == {True}, names=named,
+                  notes=notes, path=p)
 
 
 def _stream_dwells(
@@ -2186,6 +2350,11 @@ def _stream_dwells(
     """:func:`stream_dwells` that also returns the opened recording (rows, notes)."""
     cr = None if chunk_rows is None else _chunk_rows(chunk_rows)
     rec = _Recording(path, columns, fs, time_column)
+    if isinstance(bounds, (str, os.PathLike)):
+        bounds = read_bounds(bounds)
+    if isinstance(bounds, Bounds):
+        rec.lay.notes += bounds.notes
+        bounds = bounds.rows(rec.fs)
     if rec.text is not None:
         # Text arrives in blocks of a few MB already: pushed as they come (the result does
         # not depend on the chunking), with no copy into chunks of exactly chunk_rows rows.

@@ -193,21 +193,35 @@ def is_dwell_table(file: str) -> bool:
 
 
 def stream_dwells(file: str, fs: float | None, columns: str | None, time_column: str | None,
-                  quiet: bool, desc: str, **detector: Any) -> tuple[Any, Any]:
-    """Detect the dwells of a recording in one streaming pass (bounded memory, progress bar).
+                  quiet: bool, desc: str, bounds: str | None = None,
+                  **detector: Any) -> tuple[Any, Any]:
+    """Detect the dwells of a recording in one streaming pass (bounded memory, progress bar),
+    or take them from a ``--bounds`` file.
 
     Returns the DwellSet and the opened recording (rows read, notes), or, for a dwell table
     written by ``accelcal dwells -o``, the table and None.
     """
     if is_dwell_table(file):
+        if bounds:
+            raise CalibrationError(f"--bounds: {file} is a dwell table already")
         from ..dwell import DwellSet
 
         return DwellSet.from_csv(file), None
     from ..io import _stream_dwells
 
     d, rec = _stream_dwells(file, fs=fs, columns=columns, time_column=time_column,
-                            progress=False if quiet else None, desc=desc, **detector)
+                            bounds=bounds, progress=False if quiet else None, desc=desc,
+                            **({} if bounds else detector))
     return d, rec
+
+
+def bounds_option(fn: F) -> F:
+    """``--bounds FILE``: known dwells instead of detection."""
+    return click.option(  # type: ignore[no-any-return]
+        "--bounds", "bounds", type=click.Path(dir_okay=False), default=None,
+        help="Known dwells instead of detection: a JSON or CSV file of [start, stop) rows "
+             "(or start_s, stop_s in seconds from the first sample); imucal's session list "
+             "works as it is (its rotation sections are left out).")(fn)
 
 
 def without_faults(d: Any) -> tuple[Any, list[str]]:

@@ -11,6 +11,7 @@ from ._common import (
     _need_plot,
     _resolve_g,
     _save_fig,
+    bounds_option,
     cli_words,
     echo_notes,
     emit_json,
@@ -41,6 +42,7 @@ from ._common import (
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="The gap figure: residuals against time, temperature or pose (sphere map), "
                    "tilt, and the noise panel (Allan deviation and the noise models).")
+@bounds_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
               help="Accept a reference gravity outside Earth's range (deliberate other units).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
@@ -48,7 +50,7 @@ from ._common import (
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
              columns: str | None, time_column: str | None, quiet: bool, noise: str,
              preset: str, calibration: str | None, plot_path: str | None,
-             no_check_g: bool, as_json: bool) -> None:
+             bounds: str | None, no_check_g: bool, as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
@@ -60,7 +62,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     # One streaming pass: the dwell accumulator keeps what the diagnosis needs from inside
     # the dwells (means, variances and, where the accumulator provides them, within-dwell
     # noise statistics), so memory stays bounded whatever the recording's length.
-    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose")
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds)
     if len(d) == 0:
         raise CalibrationError(f"{file}: no static dwells detected in the recording")
     kw: dict[str, Any] = {"fit": fit, "check_g": not no_check_g}
@@ -68,11 +70,11 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         kw["noise_model"] = "white"
     extra: list[str] = []
     no_allan = noise == "allan" and getattr(d, "inflation", None) is None
-    if no_allan and (rec is None or file == "-"):
+    if no_allan and (rec is None or file == "-" or bounds):
         extra.append("the Allan noise model needs the samples (not in a dwell table, and "
                      "standard input cannot be read twice): white noise (variance / count) used")
     run: tuple[Any, ...] = (d,)
-    if no_allan and rec is not None and file != "-":
+    if no_allan and rec is not None and file != "-" and not bounds:
         # A dwell table without the within-dwell Allan statistics: the Allan noise model
         # needs the samples themselves, so read them (whole file) and detect the dwells again.
         from ..dwell import detect_dwells

@@ -13,6 +13,7 @@ from ._common import (
     _need_plot,
     _resolve_g,
     _save_fig,
+    bounds_option,
     calibrate,
     cli_words,
     echo_notes,
@@ -56,6 +57,7 @@ def _cli(msg: str) -> str:
               help="Dwell detector threshold factor (x noise variance).")
 @click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
               help="Shortest dwell kept, s.")
+@bounds_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
               help="Accept a --g that is not a plausible local gravity (m/s^2, g or cm/s^2).")
 @click.option("--nominal", "nominal_path", type=click.Path(dir_okay=False), default=None,
@@ -73,7 +75,8 @@ def _cli(msg: str) -> str:
 def calibrate_static(
     files: tuple[str, ...], g: float | None, lat: float | None, height: float,
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
-    method: str, window_s: float, k_thr: float, min_dwell_s: float, no_check_g: bool,
+    method: str, window_s: float, k_thr: float, min_dwell_s: float, bounds: str | None,
+    no_check_g: bool,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
     plot_path: str | None, as_json: bool, **fleet: Any,
 ) -> None:
@@ -85,6 +88,9 @@ def calibrate_static(
     calibration file per sensor, on all local cores or a Dask cluster; see `accelcal fleet
     report`."""
     if is_fleet_run(files, fleet):
+        if bounds:
+            raise CalibrationError("--bounds takes one recording (its dwells are that "
+                                   "recording's rows)")
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns,
             time_column=time_column, quiet=quiet, model=model, method=method,
@@ -100,7 +106,7 @@ def calibrate_static(
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height)
     nominal = TriadModel.load(nominal_path) if nominal_path else None
-    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate",
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds,
                            window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
     read_notes = [] if rec is None else rec.notes()
     if len(d) == 0:

@@ -21,6 +21,7 @@ from .._files import atomic_open
 from ._common import (
     _need_plot,
     _save_fig,
+    bounds_option,
     echo_notes,
     emit_json,
     friendly,
@@ -77,6 +78,7 @@ def _units_of(names: tuple[str, ...]) -> str:
               help="Threshold factor (x noise variance).")
 @click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
               help="Shortest dwell kept, s.")
+@bounds_option
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the dwell table as CSV (calibrate static reads it back).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
@@ -92,21 +94,30 @@ def dwells(
     window_s: float,
     k: float,
     min_dwell_s: float,
+    bounds: str | None,
     output: str | None,
     plot_path: str | None,
     as_json: bool,
 ) -> None:
-    """Detect the static dwells of a recording and print their statistics."""
+    """Detect the static dwells of a recording (or take them from --bounds) and print their
+    statistics."""
     from ..io import _progress_bar
 
     _need_plot(plot_path)
     if not plot_path:
-        d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells",
+        d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells", bounds,
                                window_s=window_s, k=k, min_dwell_s=min_dwell_s)
     else:
         # The same single pass, also keeping a decimated picture of the stream.
         rec = open_recording(file, fs, columns, time_column)
-        acc = rec.dwell_accumulator(window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        if bounds:
+            from ..io import read_bounds
+
+            known = read_bounds(bounds)
+            rec.lay.notes += known.notes
+            acc = rec.dwell_accumulator(known.rows(rec.fs))
+        else:
+            acc = rec.dwell_accumulator(window_s=window_s, k=k, min_dwell_s=min_dwell_s)
         env = _Envelope((rec.rows_estimate() or 100_000) // 4000)
         with _progress_bar(rec, "dwells", False if quiet else None) as cb:
             for s, t, temp in rec.chunks(None, cb):
