@@ -265,6 +265,32 @@ def test_manifest_rows_override_the_defaults(fleet: dict[str, Any], tmp_path: Pa
     assert "fs= (Hz)" in df2.loc[3, "message"]
 
 
+def test_manifest_bounds_column_gives_known_dwells(fleet: dict[str, Any],
+                                                   tmp_path: Path) -> None:
+    from accelcal.io import read_stream
+
+    r = next(r for r in fleet["recs"] if not r.corruption)
+    st = read_stream(r.path)
+    d = ac.detect_dwells(st.samples, st.fs, t=st.t)
+    # A sequencer's log of the first 20 dwells, in seconds from the first sample.
+    log = tmp_path / "seq.csv"
+    log.write_text("pose,start_s,stop_s\n" + "".join(
+        f"p{i},{float(a / st.fs)!r},{float(b / st.fs)!r}\n" for i, (a, b) in enumerate(
+            zip(d.start[:20], d.stop[:20], strict=True))))
+    man = pd.DataFrame({"path": [r.path, r.path], "sensor_id": ["known", "detected"],
+                        "bounds": ["seq.csv", None]})
+    man.to_csv(tmp_path / "m.csv", index=False)
+    df = ac.calibrate_many(str(tmp_path / "m.csv"), g=G0, workers=1, progress=False)
+    assert list(df["status"]) == ["ok", "ok"], list(df["message"])
+    assert list(df["n_dwells"]) == [20, 24]
+    ref = ac.fit_static(ac.dwell_stats(st.samples, np.column_stack([d.start, d.stop])[:20],
+                                       t=st.t, fs=st.fs), G0)
+    np.testing.assert_allclose(df.loc[0, PARAMS].to_numpy(float), ref.vector, rtol=1e-12)
+    bad = man.assign(bounds=["none.json", None])
+    df = ac.calibrate_many(bad.assign(path=[r.path] * 2), g=G0, workers=1, progress=False)
+    assert df.loc[0, "status"] == "error" and "bounds file not found" in df.loc[0, "message"]
+
+
 def test_missing_files_folders_and_fifos_are_error_rows(fleet: dict[str, Any],
                                                         tmp_path: Path) -> None:
     fifo = tmp_path / "fifo.csv"

@@ -47,7 +47,7 @@ STATUSES = ("ok", "weak", "degenerate", "error")
 
 _METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
 _MANIFEST_COLUMNS = ("path", "sensor_id", "g", "lat", "height", "fs", "columns", "time_column",
-                     "date")
+                     "date", "bounds")
 
 #: Units of the table's columns (the parameters are in the recording's own output units).
 COLUMN_UNITS: dict[str, str] = {
@@ -102,6 +102,7 @@ class _Job:
     cli: bool
     extra: dict[str, Any] = field(default_factory=dict)
     check_g: bool = True
+    bounds: str | None = None  # a file of known dwells (absolute), else detection
 
 
 _INT_COLUMNS = ("n_dwells", "n_samples", "dropped_rows", "dof", "iterations")
@@ -145,7 +146,7 @@ def _structure_verdict(rep: Any) -> str:
 def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
     from . import io as _aio
-    from .dwell import DetectorSettings, detect_dwells, fault_text, vibrating_text
+    from .dwell import DetectorSettings, detect_dwells, dwell_stats, fault_text, vibrating_text
     from .static import WeakDesignWarning, fit_static
 
     names = _names(job.cli)
@@ -172,8 +173,14 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         return None
     row["fs_hz"] = float(st.fs)
     row["duration_s"] = n / float(st.fs)
-    settings = DetectorSettings(**job.detector)
-    d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=settings)
+    if job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
+        known = _aio.read_bounds(job.bounds)
+        d = dwell_stats(st.samples, known.rows(st.fs), t=st.t, temperature=st.temperature,
+                        fs=st.fs)
+    else:
+        settings = DetectorSettings(**job.detector)
+        d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature,
+                          settings=settings)
     row["dropped_rows"] = int(d.dropped)
     fault_note: list[str] = []
     if d.dropped:  # dropouts: left out of the statistics, as the single-file commands do
@@ -449,6 +456,9 @@ def _make_jobs(
             gv, src = None, ""
         cols = r.get("columns")
         date = r.get("date")
+        rb = r.get("bounds")
+        bounds = None if _missing(rb) else str(base / str(rb)) if not os.path.isabs(
+            str(rb)) else str(rb)
         extra = {k: v for k, v in r.items() if k not in _MANIFEST_COLUMNS}
         jobs.append(_Job(
             index=i, path=path, read_path=os.path.abspath(read_path), sensor_id=sensor_id,
@@ -458,7 +468,7 @@ def _make_jobs(
             model=model, method=method,
             detector=detector, diagnose=diagnose,
             date=None if _missing(date) else str(date), cli=cli, extra=extra,
-            check_g=check_g,
+            check_g=check_g, bounds=bounds,
         ))
     if all(j.g is None for j in jobs):
         raise CalibrationError(
@@ -755,12 +765,13 @@ def calibrate_many(
     Parameters
     ----------
     sources : list of paths, a glob (``"rec/*.csv"``), or a manifest
-        A manifest is a DataFrame or a CSV/Parquet file with a ``path`` column and optional
-        ``sensor_id``, ``g`` (m/s^2) or ``lat`` (deg) / ``height`` (m), ``fs`` (Hz),
-        ``columns`` ("ax,ay,az"), ``time_column`` and ``date`` columns; a value in a row
-        overrides the keyword default, an empty cell uses it. Relative paths in a manifest
-        file are relative to the manifest's folder. Other manifest columns are carried into
-        the result.
+        A manifest is a DataFrame or a CSV/Parquet/workbook file with a ``path`` column and
+        optional ``sensor_id``, ``g`` (m/s^2) or ``lat`` (deg) / ``height`` (m), ``fs`` (Hz),
+        ``columns`` ("ax,ay,az"), ``time_column``, ``date`` and ``bounds`` (a file of known
+        dwells, :func:`accelcal.io.read_bounds`, used instead of detection) columns; a value
+        in a row overrides the keyword default, an empty cell uses it. Relative paths in a
+        manifest file are relative to the manifest's folder. Other manifest columns are
+        carried into the result.
     g : reference gravity, m/s^2 (or ``lat``, deg, and ``height``, m: WGS84 normal gravity).
     fs : sample rate, Hz, when the files do not give it.  columns, time_column : the
         accelerometer columns and the time column, as for :func:`accelcal.io.read_stream`.
