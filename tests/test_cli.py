@@ -457,3 +457,17 @@ def test_bounds_file_replaces_detection(tmp_path: Path) -> None:
                     "--bounds", js)
     assert code == 2 and "--bounds takes one recording" in out
 
+
+def test_a_named_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    fifo = str(tmp_path / "rec.csv")
+    os.mkfifo(fifo)  # nobody writes: opening it for reading would block for ever
+    exe = str(Path(sys.executable).with_name("accelcal"))
+    for args in (["dwells", fifo], ["calibrate", "static", fifo, "--g", "9.81"],
+                 ["diagnose", fifo, "--g", "9.81"]):
+        r = subprocess.run([exe, *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, (args, r.stderr)
+        assert "is not a regular file (a pipe or a device)" in r.stderr, r.stderr

@@ -7,6 +7,7 @@ imports this module only when it meets one of these files."""
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 import zipfile
 from collections.abc import Callable
@@ -22,6 +23,8 @@ from .io import _ArraySource, _auto_acc, _dataframe_source, _resolve_columns, _s
 def looks_like_mseed(p: str) -> bool:
     """A miniSEED record header (v2: six digits of sequence number and a quality code D, R,
     Q or M; v3: ``MS3``), whatever the file is named."""
+    if not os.path.isfile(p):  # a pipe (<(zcat rec.gz)) must not lose its first bytes here
+        return False
     try:
         with open(p, "rb") as fh:
             head = fh.read(8)

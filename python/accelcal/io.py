@@ -48,6 +48,7 @@ import contextlib
 import math
 import os
 import re
+import stat
 import sys
 import weakref
 import zipfile
@@ -1456,6 +1457,22 @@ def _path(path: Any) -> str:
         ) from None
 
 
+def _refuse_pipe(p: str) -> None:
+    """A named pipe or a device would block or lose data: the reader opens a file twice (its
+    head for the layout, then the whole), which a pipe cannot give."""
+    if p == "-":
+        return
+    try:
+        mode = os.stat(p).st_mode
+    except OSError:
+        return  # missing or unreadable: the reader says which
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise CalibrationError(
+            f"{p} is not a regular file (a pipe or a device), which the reader would have to "
+            "read twice: write it to a file first, or send it to standard input and give '-' "
+            "as the file (e.g. zcat rec.csv.gz | accelcal dwells -)")
+
+
 def _kind(p: str) -> str:
     low = p.lower()
     if low.endswith(".npy"):
@@ -1666,6 +1683,7 @@ class _Recording:
         self.arrays: _ArraySource | None = None
         if isinstance(path, (str, os.PathLike)):
             p = _path(path)
+            _refuse_pipe(p)
             kind = _kind(p)
             if kind == "text":
                 self.text = _read_head(p)

@@ -183,7 +183,7 @@ def open_recording(file: str, fs: float | None, columns: str | None,
 
 def is_dwell_table(file: str) -> bool:
     """True for a dwell table written by ``accelcal dwells -o`` (or ``--dwells-out``)."""
-    if file == "-":
+    if file == "-" or not os.path.isfile(file):  # a pipe must not be read here
         return False
     try:
         with open(file, "rb") as fh:
