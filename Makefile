@@ -8,8 +8,8 @@ export CARGO_TERM_COLOR := never
 # Development and test dependencies (the package's own come from pyproject.toml).
 DEV_DEPS := "maturin>=1.9.4,<2" "numpy>=1.24" "click>=8.1" "tqdm>=4.60" "jsonschema>=4.18" \
   "pytest>=8" "hypothesis>=6.90" "scipy>=1.11" "pytest-benchmark>=4" "mypy>=1.10" \
-  "matplotlib>=3.7" "h5py>=3.8" "openpyxl>=3.1" "npTDMS>=1.7" "obspy>=1.4" "pandas>=2.0" \
-  "pyarrow>=14" "dask[distributed]>=2024.1" ruff
+  "matplotlib>=3.7" "h5py>=3.8" "openpyxl>=3.1" "npTDMS>=1.7" "obspy>=1.4" "rosbags>=0.10" \
+  "pandas>=2.0" "pyarrow>=14" "dask[distributed]>=2024.1" ruff
 
 .PHONY: test venv build cargo-test pytest stubtest lint wheel wheel-check bench bench-bigfile clean
 

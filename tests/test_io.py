@@ -756,6 +756,69 @@ def test_stream_dwells_with_a_bounds_file_equals_dwell_stats() -> None:
     np.testing.assert_array_equal(d.count, [731, 741, 484, 412, 453, 607])
 
 
+def _imu_msg(ts: Any, i: int, acc: np.ndarray, stamped: bool, ros1: bool = False) -> Any:
+    t = ts.types["builtin_interfaces/msg/Time"]
+    head = {"stamp": t(sec=100 + i // 200, nanosec=(i % 200) * 5_000_000) if stamped
+            else t(sec=0, nanosec=0), "frame_id": "imu"}
+    if ros1:
+        head["seq"] = i
+    v, q = ts.types["geometry_msgs/msg/Vector3"], ts.types["geometry_msgs/msg/Quaternion"]
+    return ts.types["sensor_msgs/msg/Imu"](
+        header=ts.types["std_msgs/msg/Header"](**head), orientation=q(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.zeros(9), angular_velocity=v(x=0.0, y=0.0, z=0.0),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=v(x=acc[i, 0], y=acc[i, 1], z=acc[i, 2]),
+        linear_acceleration_covariance=np.zeros(9))
+
+
+def test_ros_bags_imu_topics(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    acc = np.random.default_rng(7).normal(size=(400, 3)) + [0.0, 0.0, 9.8]
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    imu, string = "sensor_msgs/msg/Imu", "std_msgs/msg/String"
+    bag = tmp_path / "bag2"
+    with Writer(bag, version=8) as w:
+        a = w.add_connection("/imu/data", imu, typestore=ts)
+        b = w.add_connection("/imu/raw", imu, typestore=ts)
+        c = w.add_connection("/log", string, typestore=ts)
+        for i in range(400):
+            w.write(a, 10**11 + i * 5_000_000, ts.serialize_cdr(_imu_msg(ts, i, acc, True), imu))
+            w.write(b, 10**11 + i * 5_000_000 + 1000,
+                    ts.serialize_cdr(_imu_msg(ts, i, acc[::-1], False), imu))
+        w.write(c, 10**11, ts.serialize_cdr(ts.types[string](data="start"), string))
+    with pytest.raises(CalibrationError, match=r"2 IMU topics \(/imu/data \(400 messages\), "
+                       r"/imu/raw \(400 messages\)\): give the one to calibrate with columns="):
+        read_stream(bag)
+    s = read_stream(bag, columns="/imu/data")
+    np.testing.assert_array_equal(s.samples, acc)
+    np.testing.assert_allclose(s.t, np.arange(400) * 0.005, atol=1e-9)
+    assert s.fs == pytest.approx(200.0) and s.t0 == "1970-01-01T00:01:40.000000"
+    assert "linear_acceleration (which includes gravity, REP 145)" in s.notes[0]
+    raw = read_stream(next(bag.glob("*.db3")), columns="/imu/raw")  # the storage file itself
+    np.testing.assert_array_equal(raw.samples, acc[::-1])
+    assert any("header stamps do not increase" in n for n in raw.notes)
+    assert raw.fs == pytest.approx(200.0)  # from the receive times
+    with pytest.raises(CalibrationError, match=r"no sensor_msgs/Imu topic '/imu' in the bag"):
+        read_stream(bag, columns="/imu")
+    # ROS 1: one topic, found by itself.
+    ts1 = get_typestore(Stores.ROS1_NOETIC)
+    one = tmp_path / "run.bag"
+    with Writer1(one) as w1:
+        a = w1.add_connection("/imu", imu, typestore=ts1)
+        for i in range(400):
+            w1.write(a, 10**11 + i * 5_000_000,
+                     ts1.serialize_ros1(_imu_msg(ts1, i, acc, True, ros1=True), imu))
+    np.testing.assert_array_equal(read_stream(one).samples, acc)
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
+    with pytest.raises(CalibrationError, match=r"needs rosbags: pip install 'accelcal\[ros\]'"):
+        read_stream(one)
+
+
 def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     import pandas as pd
 

@@ -1,8 +1,8 @@
 """Readers of formats that need a third-party library (installed with an extra): workbooks
-(pandas with openpyxl, xlrd or odfpy), National Instruments TDMS (npTDMS) and miniSEED
-(ObsPy). Each gives an :class:`~accelcal.io._ArraySource` built by the same layout rules as a
-DataFrame, so names, units, time and temperature columns are chosen as for text; ``io``
-imports this module only when it meets one of these files."""
+(pandas with openpyxl, xlrd or odfpy), National Instruments TDMS (npTDMS), miniSEED (ObsPy)
+and ROS bags (rosbags). Each gives an :class:`~accelcal.io._ArraySource` built by the same
+layout rules as a DataFrame, so names, units, time and temperature columns are chosen as for
+text; ``io`` imports this module only when it meets one of these files."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import os
 import warnings
 import zipfile
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -239,9 +240,105 @@ def _spreadsheet_source(p: str, columns: Any, fs: float | None,
     return src
 
 
+def is_rosbag(p: str) -> bool:
+    """A ROS 1 ``.bag`` file, a ROS 2 bag folder (``metadata.yaml`` beside its storage) or
+    that folder's ``.db3`` / ``.mcap`` file."""
+    low = p.lower()
+    if low.endswith(".bag"):
+        return True
+    if os.path.isdir(p):
+        return os.path.isfile(os.path.join(p, "metadata.yaml"))
+    return low.endswith((".db3", ".mcap")) and os.path.isfile(
+        os.path.join(os.path.dirname(os.path.abspath(p)), "metadata.yaml"))
+
+
+_IMU = "sensor_msgs/msg/Imu"
+
+
+def _rosbag_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+    """A ROS bag through rosbags (no ROS installation needed): the ``sensor_msgs/Imu``
+    messages of one topic, their ``linear_acceleration`` (which includes gravity: REP 145)
+    as x, y, z in m/s^2 and their header stamps as the time (the bag's own receive times when
+    the driver leaves the stamps unset). ``columns="/topic"`` picks the topic when the bag
+    holds several."""
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise CalibrationError(
+            f"{p}: a ROS bag; reading it needs rosbags: pip install 'accelcal[ros]' (or "
+            "rosbags)") from None
+    path = os.path.abspath(p)
+    if os.path.isfile(path) and not path.lower().endswith(".bag"):
+        path = os.path.dirname(path)  # a ROS 2 bag's storage file: its folder
+    try:
+        with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as r:
+            imu = [c for c in r.connections if c.msgtype == _IMU]
+            counts: dict[str, int] = {}
+            for c in imu:
+                counts[c.topic] = counts.get(c.topic, 0) + int(c.msgcount)
+            topic = _ros_topic(p, counts, columns, {c.topic: c.msgtype for c in r.connections})
+            conns = [c for c in imu if c.topic == topic]
+            n = counts[topic]
+            acc = np.empty((n, 3))
+            stamp = np.empty(n)
+            received = np.empty(n)
+            i = 0
+            for conn, t_ns, raw in r.messages(connections=conns):
+                m: Any = r.deserialize(raw, conn.msgtype)
+                la, hs = m.linear_acceleration, m.header.stamp
+                acc[i] = (la.x, la.y, la.z)
+                stamp[i] = hs.sec + 1e-9 * hs.nanosec
+                received[i] = 1e-9 * t_ns
+                i += 1
+    except CalibrationError:
+        raise
+    except Exception as e:  # noqa: BLE001 - rosbags raises many types
+        raise CalibrationError(f"{p}: cannot read the ROS bag: {type(e).__name__}: {e}") from None
+    acc, stamp, received = acc[:i], stamp[:i], received[:i]
+    if i == 0:
+        raise CalibrationError(f"{p}: the topic {topic} holds no messages")
+    notes = [f"ROS topic {topic}: {i} sensor_msgs/Imu messages; linear_acceleration (which "
+             "includes gravity, REP 145) read as x, y, z in m/s^2"]
+    t = stamp
+    if i > 1 and not bool(np.all(np.diff(stamp) > 0)):
+        t = received
+        notes.append("the header stamps do not increase (unset by the driver?): the bag's "
+                     "receive times are the time")
+    cols = {"t [s]": t - t[0], "ax [m/s^2]": acc[:, 0], "ay [m/s^2]": acc[:, 1],
+            "az [m/s^2]": acc[:, 2]}
+    src = _dataframe_source(_DictTable(cols), None, fs, time_column, path=p)
+    src.lay.notes = notes + src.lay.notes
+    src.lay.t0_text = str(np.datetime_as_string(np.datetime64(int(round(t[0] * 1e6)), "us")))
+    return src
+
+
+def _ros_topic(p: str, counts: dict[str, int], columns: Any, types: dict[str, str]) -> str:
+    """The IMU topic to read: ``columns`` when it names one, else the only one."""
+    listed = ", ".join(f"{k} ({v} messages)" for k, v in sorted(counts.items()))
+    if isinstance(columns, str) and columns.startswith("/"):
+        if columns not in counts:
+            raise CalibrationError(
+                f"{p}: no sensor_msgs/Imu topic {columns!r} in the bag (its IMU topics: "
+                f"{listed or 'none'})")
+        return columns
+    if columns is not None:
+        raise CalibrationError(f"{p}: in a ROS bag, columns= names the IMU topic (e.g. "
+                               f"'/imu/data'); got {columns!r}")
+    if len(counts) == 1:
+        return next(iter(counts))
+    if not counts:
+        others = ", ".join(f"{k} ({v})" for k, v in sorted(types.items()))
+        raise CalibrationError(f"{p}: no sensor_msgs/Imu topic in the bag (its topics: "
+                               f"{others or 'none'})")
+    raise CalibrationError(f"{p}: {len(counts)} IMU topics ({listed}): give the one to "
+                           "calibrate with columns=, e.g. " + repr(min(counts)))
+
+
 #: kind (as ``io._kind`` names it) -> reader.
 SOURCES: dict[str, Callable[[str, Any, float | None, Any], _ArraySource]] = {
     "sheet": _spreadsheet_source,
     "tdms": _tdms_source,
     "mseed": _mseed_source,
+    "rosbag": _rosbag_source,
 }

@@ -2,8 +2,8 @@
 lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, MATLAB ``.mat`` (v5
 and v7.3), spreadsheets (``.xlsx``, ``.xls``, ``.ods``: phyphox's default export; through
 pandas), National Instruments TDMS (LabVIEW; through npTDMS), miniSEED (seismic loggers;
-through ObsPy), and tables already in memory (a pandas or polars DataFrame, anything with
-``__array__``); plus chunked reading that streams large files into
+through ObsPy), ROS bags (through rosbags), and tables already in memory (a pandas or polars
+DataFrame, anything with ``__array__``); plus chunked reading that streams large files into
 :class:`~accelcal.DwellAccumulator` in one pass.
 
 Text is parsed by the Rust core in blocks of whole lines, in parallel and with the
@@ -1489,8 +1489,10 @@ def _kind(p: str) -> str:
         return "tdms"
     if low.endswith((".mseed", ".miniseed", ".msd", ".seed")):
         return "mseed"
-    from ._formats import looks_like_mseed
+    from ._formats import is_rosbag, looks_like_mseed
 
+    if is_rosbag(p):
+        return "rosbag"
     if looks_like_mseed(p):
         return "mseed"
     return "text"
@@ -1715,7 +1717,7 @@ class _Recording:
                 self.arrays = _array_source(p, _npz_arrays(p), columns, fs, time_column)
             elif kind in ("mat5", "mat73"):
                 self.arrays = _array_source(p, _mat_arrays(p, kind), columns, fs, time_column)
-            elif kind in ("sheet", "tdms", "mseed"):
+            elif kind in ("sheet", "tdms", "mseed", "rosbag"):
                 from . import _formats
 
                 self.arrays = _formats.SOURCES[kind](p, columns, fs, time_column)
