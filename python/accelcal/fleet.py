@@ -156,8 +156,11 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
             f"{names['latlon']}, or a g or lat column in the manifest"
         )
         return None
+    from ._formats import is_rosbag
+
     mode = os.stat(job.read_path).st_mode
-    if not stat.S_ISREG(mode):  # a FIFO or a device would block the worker for ever
+    if not stat.S_ISREG(mode) and not (stat.S_ISDIR(mode) and is_rosbag(job.read_path)):
+        # a FIFO or a device would block the worker for ever (a ROS 2 bag is a folder)
         kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
         row["message"] = f"{job.path} is {kind}, not a recording"
         return None
