@@ -456,6 +456,13 @@ def test_bounds_file_replaces_detection(tmp_path: Path) -> None:
     code, out = run("calibrate", "static", str(IMUCAL()), str(XSENS()), "--g", "9.81",
                     "--bounds", js)
     assert code == 2 and "--bounds takes one recording" in out
+    far = tmp_path / "far.json"
+    far.write_text("[[0, 100], [500, 99999999]]")
+    code, out = run("dwells", str(IMUCAL()), "--fs", "102.4", "--bounds", str(far))
+    assert code == 2 and f"{far} (dwell bounds of " in out and "out of range" in out, out
+    far.write_text("[[100, 50]]")
+    code, out = run("dwells", str(IMUCAL()), "--fs", "102.4", "--bounds", str(far))
+    assert code == 2 and "empty or reversed" in out and "time column" not in out, out
 
 
 def test_a_named_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:

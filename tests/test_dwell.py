@@ -1115,7 +1115,7 @@ def test_a_dead_channel_or_heavy_dropouts_give_errors_that_say_so() -> None:
     for run in (lambda: detect_dwells(half, s.fs), lambda: _pushed(half, s.fs).finish()):
         with pytest.raises(accelcal.DegenerateDataError,
                            match=r"no static dwell found.*Note: 2375 of "
-                           r"4750 rows \(50 %\) held NaN.*lower window_s and min_dwell_s"):
+                           r"4750 rows \(50 %\) held NaN.*lower window_s= and min_dwell_s="):
             run()
     d = detect_dwells(half, s.fs, window_s=0.5, min_dwell_s=0.5)
     assert len(d) == 24 and d.dropped == 2375

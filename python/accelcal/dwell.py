@@ -603,7 +603,7 @@ class _Dropouts:
             f"{e}. Note: {self.n} of {n} rows ({100.0 * self.n / n:.3g} %) held NaN or inf "
             "samples (dropouts) and were left out; the detector counts the rows that remain "
             "at fs, so every dwell is shorter in samples by about that fraction: with many "
-            "dropouts, lower window_s and min_dwell_s"
+            "dropouts, lower window_s= and min_dwell_s="
         )
 
     def to_stream(self, i: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -1790,7 +1790,7 @@ class _Recording:
             return DwellAccumulator(bounds, fs=self.fs, units=units,
                                     **({} if bounds is not None else detector))
         except CalibrationError as exc:
-            hint = self.rate_hint()
+            hint = self.rate_hint() if bounds is None else ""  # the rate sizes detection only
             if not hint:
                 raise
             raise CalibrationError(f"{exc}; {hint}") from None
@@ -2372,6 +2372,7 @@ def _stream_dwells(
     rec = _Recording(path, columns, fs, time_column)
     if isinstance(bounds, (str, os.PathLike)):
         bounds = read_bounds(bounds)
+    known = bounds.path if isinstance(bounds, Bounds) else None
     if isinstance(bounds, Bounds):
         rec.lay.notes += bounds.notes
         bounds = bounds.rows(rec.fs)
@@ -2379,13 +2380,18 @@ def _stream_dwells(
         # Text arrives in blocks of a few MB already: pushed as they come (the result does
         # not depend on the chunking), with no copy into chunks of exactly chunk_rows rows.
         cr = None
-    acc = rec.dwell_accumulator(bounds, units, **detector_kw)
-    with _progress_bar(rec, desc, progress) as cb:
-        for s, t, temp in rec.chunks(cr, cb):
-            acc.push(s, t, temp)
-    if rec.rows == 0:
-        raise CalibrationError(f"{rec.path}: no data rows")
-    return acc.finish(), rec
+    try:
+        acc = rec.dwell_accumulator(bounds, units, **detector_kw)
+        with _progress_bar(rec, desc, progress) as cb:
+            for s, t, temp in rec.chunks(cr, cb):
+                acc.push(s, t, temp)
+        if rec.rows == 0:
+            raise CalibrationError(f"{rec.path}: no data rows")
+        return acc.finish(), rec
+    except CalibrationError as e:
+        if known is None or str(e).startswith(rec.path):
+            raise  # not about the bounds
+        raise type(e)(f"{known} (dwell bounds of {rec.path}): {e}") from None
 
 
 def open_recording(
