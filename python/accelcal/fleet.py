@@ -460,8 +460,7 @@ def _make_jobs(
         cols = r.get("columns")
         date = r.get("date")
         rb = r.get("bounds")
-        bounds = None if _missing(rb) else str(base / str(rb)) if not os.path.isabs(
-            str(rb)) else str(rb)
+        bounds = None if _missing(rb) else str(base / str(rb))  # an absolute one stays
         extra = {k: v for k, v in r.items() if k not in _MANIFEST_COLUMNS}
         jobs.append(_Job(
             index=i, path=path, read_path=os.path.abspath(read_path), sensor_id=sensor_id,
