@@ -20,21 +20,6 @@ from numpy.typing import NDArray
 from ._core import CalibrationError
 from .io import _ArraySource, _auto_acc, _dataframe_source, _resolve_columns, _split_unit
 
-
-def looks_like_mseed(p: str) -> bool:
-    """A miniSEED record header (v2: six digits of sequence number and a quality code D, R,
-    Q or M; v3: ``MS3``), whatever the file is named."""
-    if not os.path.isfile(p):  # a pipe (<(zcat rec.gz)) must not lose its first bytes here
-        return False
-    try:
-        with open(p, "rb") as fh:
-            head = fh.read(8)
-    except OSError:
-        return False  # the text reader names the problem
-    return head.startswith(b"MS3") or (
-        len(head) == 8 and head[:6].isdigit() and head[6:7] in b"DRQM" and head[7:8] in b" \0")
-
-
 #: SEED orientation codes of a triad, in the x, y, z order read (east, north, up first).
 _SEED_TRIADS = ("ENZ", "12Z", "123", "UVW", "XYZ")
 
@@ -82,11 +67,9 @@ def _mseed_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _
         i0 = int(round((start - tr.stats.starttime) * rate))
         a = np.ma.asarray(tr.data[i0:i0 + n]).astype(np.float64)
         cols[tr.id] = np.ma.filled(a, np.nan)
-    src = _dataframe_source(_DictTable(cols), ids, fs, time_column, path=p)
+    src = _dataframe_source(_DictTable(cols), ids, fs, time_column, path=p,
+                            meta={"sampling_rate": repr(rate)})
     lay = src.lay
-    if fs is None and lay.time is None:
-        lay.fs, lay.fs_source = rate, "metadata"
-        lay.notes = [x for x in lay.notes if "not in the file" not in x]
     lay.t0_text = str(start.isoformat())
     gaps = sum(int(np.isnan(a).sum()) for a in cols.values())
     lay.notes.append(
@@ -183,16 +166,15 @@ def _tdms_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _A
            else _resolve_columns(columns, names, len(names), p)) or [0, 1, 2]
     n = len(by_name[names[acc[0]]])
     table = {k: np.asarray(c[:]) for k, c in by_name.items() if len(c) == n}
-    src = _dataframe_source(_DictTable(table), columns, fs, time_column, path=p)
-    lay = src.lay
     first = by_name[names[acc[0]]].properties
     inc = first.get("wf_increment")
-    if fs is None and lay.time is None and inc:
-        lay.fs, lay.fs_source = 1.0 / float(inc), "metadata"
-        lay.notes = [x for x in lay.notes if "not in the file" not in x]
-        start = first.get("wf_start_time")
-        if start is not None:
-            lay.t0_text = str(np.datetime_as_string(np.datetime64(start, "us")))
+    src = _dataframe_source(_DictTable(table), columns, fs, time_column, path=p,
+                            meta={"wf_increment": repr(float(inc)),
+                                  "sample_rate": repr(1.0 / float(inc))} if inc else None)
+    lay = src.lay
+    start = first.get("wf_start_time")
+    if lay.time is None and start is not None:
+        lay.t0_text = str(np.datetime_as_string(np.datetime64(start, "us")))
     if len(groups) > 1:
         lay.notes.append(f"the samples were read from the TDMS group {gname!r} (of "
                          f"{', '.join(repr(g) for g, _ in groups)})")

@@ -678,6 +678,13 @@ def _compression(head: bytes) -> str | None:
     return next((kind for m, kind in _COMPRESSED if head.startswith(m)), None)
 
 
+def _is_mseed(head: bytes) -> bool:
+    """The first bytes of a file are a miniSEED record header (v2: six digits of sequence
+    number and a quality code D, R, Q or M; v3: ``MS3``): read as such whatever its name."""
+    return head.startswith(b"MS3") or (
+        len(head) >= 8 and head[:6].isdigit() and head[6:7] in b"DRQM" and head[7:8] in b" \0")
+
+
 def _decompressed(path: str, kind: str) -> str:
     """Decompress ``path`` (gzip, bz2 or xz) into a temporary file; returns its name. The
     parser reads files in place (memory-mapped), so a compressed file is expanded first."""
@@ -1392,9 +1399,12 @@ def _table_like(obj: Any) -> bool:
 
 
 def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any,
-                      path: str = "<table>", named: bool = True) -> _ArraySource:
+                      path: str = "<table>", named: bool = True,
+                      meta: dict[str, str] | None = None) -> _ArraySource:
     """A DataFrame (pandas, polars, or anything with the interchange protocol): columns by
-    name, as with a text header."""
+    name, as with a text header. ``meta``: what the file says about itself, as a text
+    file's metadata lines (a rate in it ranks as in a text file: given > metadata > time
+    column)."""
     df = obj
     if not (hasattr(df, "columns") and hasattr(df, "__getitem__")):
         try:
@@ -1429,8 +1439,8 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
     head = table.rows(0, min(table.n, _SNIFF_ROWS), range(len(table.names))).astype(np.float64)
     if table.n == 0:
         raise CalibrationError("the table is empty (0 rows)")
-    lay = _decide(path, table.names if named else None, len(table.names), head, {}, columns,
-                  fs, time_column)
+    lay = _decide(path, table.names if named else None, len(table.names), head, meta or {},
+                  columns, fs, time_column)
     if lay.time is not None:
         lay.t0_text = starts.get(table.names[lay.time])
     return _ArraySource(path, table, lay)
@@ -1489,13 +1499,9 @@ def _kind(p: str) -> str:
         return "tdms"
     if low.endswith((".mseed", ".miniseed", ".msd", ".seed")):
         return "mseed"
-    from ._formats import is_rosbag, looks_like_mseed
+    from ._formats import is_rosbag
 
-    if is_rosbag(p):
-        return "rosbag"
-    if looks_like_mseed(p):
-        return "mseed"
-    return "text"
+    return "rosbag" if is_rosbag(p) else "text"
 
 
 def _mat_kind(p: str) -> str:
@@ -1689,6 +1695,9 @@ class _Recording:
             kind = _kind(p)
             if kind == "text":
                 self.text = _read_head(p)
+                if not self.text.stdin and _is_mseed(self.text.head):
+                    kind, self.text = "mseed", None  # a miniSEED file named otherwise
+            if kind == "text" and self.text is not None:
                 comp = None if self.text.stdin else _compression(self.text.head)
                 if comp is not None:  # expanded first: the parser reads files in place
                     tmp = _decompressed(p, comp)
