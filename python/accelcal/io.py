@@ -1790,8 +1790,15 @@ class _Recording:
     def dwell_accumulator(self, bounds: Any = None, units: str = "",
                           **detector: Any) -> Any:
         """A :class:`~accelcal.DwellAccumulator` for this recording's rate, with the error
-        explained when the rate came from a time column of the wrong unit."""
+        explained when the rate came from a time column of the wrong unit. ``bounds``: (k, 2)
+        rows, or a bounds file or :class:`Bounds` (its notes join the recording's)."""
         from .dwell import DwellAccumulator
+
+        if isinstance(bounds, (str, os.PathLike)):
+            bounds = read_bounds(bounds)
+        if isinstance(bounds, Bounds):
+            self.lay.notes += bounds.notes
+            bounds = bounds.rows(self.fs)
 
         if bounds is None and self.fs is None:
             raise CalibrationError(self.no_rate())
@@ -2381,10 +2388,7 @@ def _stream_dwells(
     rec = _Recording(path, columns, fs, time_column)
     if isinstance(bounds, (str, os.PathLike)):
         bounds = read_bounds(bounds)
-    known = bounds.path if isinstance(bounds, Bounds) else None
-    if isinstance(bounds, Bounds):
-        rec.lay.notes += bounds.notes
-        bounds = bounds.rows(rec.fs)
+    known = bounds.path if isinstance(bounds, Bounds) else None  # named in its errors
     if rec.text is not None:
         # Text arrives in blocks of a few MB already: pushed as they come (the result does
         # not depend on the chunking), with no copy into chunks of exactly chunk_rows rows.

@@ -110,14 +110,7 @@ def dwells(
     else:
         # The same single pass, also keeping a decimated picture of the stream.
         rec = open_recording(file, fs, columns, time_column)
-        if bounds:
-            from ..io import read_bounds
-
-            known = read_bounds(bounds)
-            rec.lay.notes += known.notes
-            acc = rec.dwell_accumulator(known.rows(rec.fs))
-        else:
-            acc = rec.dwell_accumulator(window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        acc = rec.dwell_accumulator(bounds, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
         env = _Envelope((rec.rows_estimate() or 100_000) // 4000)
         with _progress_bar(rec, "dwells", False if quiet else None) as cb:
             for s, t, temp in rec.chunks(None, cb):
