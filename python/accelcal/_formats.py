@@ -18,7 +18,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._core import CalibrationError
-from .io import _ArraySource, _auto_acc, _dataframe_source, _resolve_columns, _split_unit
+from .io import (
+    _ArraySource,
+    _auto_acc,
+    _dataframe_source,
+    _resolve_columns,
+    _split_unit,
+    _three,
+)
 
 #: SEED orientation codes of a triad, in the x, y, z order read (east, north, up first).
 _SEED_TRIADS = ("ENZ", "12Z", "123", "UVW", "XYZ")
@@ -83,17 +90,14 @@ def _mseed_triad(p: str, traces: dict[str, Any], columns: Any) -> list[str]:
     """The ids of the three traces to read: ``columns`` (ids or channel codes), else the one
     accelerometer triad (instrument code N) of the file."""
     if columns is not None:
-        want = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else columns
         out = []
-        for c in want:
+        for c in _three(columns, "traces"):
             hits = [i for i in traces if i == str(c) or traces[i].stats.channel == str(c)]
             if len(hits) != 1:
                 raise CalibrationError(
                     f"{p}: {'no' if not hits else 'more than one'} trace named {c!r} "
                     f"(columns); the traces are {sorted(traces)}")
             out.append(hits[0])
-        if len(out) != 3:
-            raise CalibrationError(f"columns must name exactly 3 traces (x, y, z); got {want!r}")
         return out
     groups: dict[str, dict[str, str]] = {}
     for i in traces:

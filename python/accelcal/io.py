@@ -324,8 +324,8 @@ def _time_spec(c: Any, names: Sequence[str] | None) -> tuple[Any, float | None]:
     return base, scale
 
 
-def _resolve_columns(columns: Any, names: Sequence[str] | None, ncols: int, path: str) -> list[int]:
-    """User ``columns`` (3 names/indices or "a,b,c") to 0-based indices."""
+def _three(columns: Any, what: str = "columns") -> list[Any]:
+    """User ``columns`` (3 names/indices, or "a,b,c") as a list of three."""
     if isinstance(columns, str):
         columns = [c.strip() for c in columns.split(",")]
     try:
@@ -335,8 +335,13 @@ def _resolve_columns(columns: Any, names: Sequence[str] | None, ncols: int, path
             f"columns must be 3 names or 0-based indices; got {columns!r}"
         ) from None
     if len(cols) != 3:
-        raise CalibrationError(f"columns must name exactly 3 columns (x, y, z); got {cols!r}")
-    return [_resolve_one(c, names, ncols, path, "columns") for c in cols]
+        raise CalibrationError(f"columns must name exactly 3 {what} (x, y, z); got {cols!r}")
+    return cols
+
+
+def _resolve_columns(columns: Any, names: Sequence[str] | None, ncols: int, path: str) -> list[int]:
+    """User ``columns`` (3 names/indices or "a,b,c") to 0-based indices."""
+    return [_resolve_one(c, names, ncols, path, "columns") for c in _three(columns)]
 
 
 def _resolve_one(c: Any, names: Sequence[str] | None, ncols: int, path: str, what: str) -> int:
