@@ -61,9 +61,12 @@ from numpy.typing import NDArray
 
 from . import _core
 from ._core import CalibrationError
+from ._pose_table import MEAN_NAME, POSE_TABLE_ROWS
 from ._validate import positive
 
-__all__ = ["Bounds", "Stream", "iter_stream", "read_bounds", "read_stream", "stream_dwells"]
+__all__ = [
+    "Bounds", "Stream", "iter_stream", "read_bounds", "read_means", "read_stream", "stream_dwells",
+]
 
 #: Rows sniffed at the start of a text file (layout, time-column check, fs estimate).
 _SNIFF_ROWS = 10_000
@@ -242,13 +245,17 @@ def _is_temperature(name: str) -> bool:
 def _auto_acc(names: Sequence[str], path: str) -> list[int] | None:
     """Indices of the x, y, z accelerometer columns chosen by name, or None."""
     norm = [_norm(n) for n in names]
-    for tier in ("acc", "plain"):
+    for tier in ("acc", "plain", "mean"):
         found: dict[str, list[int]] = {"x": [], "y": [], "z": []}
         for i, n in enumerate(norm):
             if tier == "acc":
                 m = _ACC_NAME.match(n)
                 if m:
                     found[m.group(1)].append(i)
+            elif tier == "mean":  # a table of dwell means (x_mean, mean_ax ...)
+                m = MEAN_NAME.match(n)
+                if m:
+                    found[next(g for g in m.groups() if g)].append(i)
             elif n in found:
                 found[n].append(i)
         if not any(found.values()):
@@ -1757,6 +1764,7 @@ class _Recording:
         self.rows = 0
         self.repeats = 0
         self.bytes = 0
+        self.pose_table = False  # read as a table of dwell means (one row per pose)
         self.skipped = 0  # rows whose accelerometer fields are all empty (merged logs)
         self._temp_last: float | None = None  # the sparse temperature's last value
         self._temp_held = 0  # its empty fields filled
@@ -1771,8 +1779,11 @@ class _Recording:
     def no_rate(self) -> str:
         """The error for a recording whose sample rate is unknown."""
         lay = self.lay
+        est = self.rows_estimate()
+        poses = ("; or, if each row is already a pose's mean (a table of dwell means), read "
+                 "it with means=True" if est is not None and est <= POSE_TABLE_ROWS else "")
         return (f"{lay.path}: the sample rate is unknown (no rate metadata or time column); "
-                f"give fs= (Hz){_time_hint(lay.names, lay.acc, lay.head)}")
+                f"give fs= (Hz){_time_hint(lay.names, lay.acc, lay.head)}{poses}")
 
     def rate_hint(self) -> str:
         """For a sample rate taken from the time column: which unit of it gives a plausible
@@ -2187,6 +2198,7 @@ def stream_dwells(
     chunk_rows: int = 500_000,
     units: str = "",
     progress: bool | None = False,
+    means: bool | None = False,
     **detector_kw: Any,
 ) -> Any:
     """Dwell statistics of a (large) recording, streamed chunk by chunk in one pass.
@@ -2202,13 +2214,35 @@ def stream_dwells(
     :func:`~accelcal.dwell_stats` / :func:`~accelcal.detect_dwells` on ``read_stream(path)``
     with the same ``t`` and ``temperature`` channels.
 
+    ``means=True`` reads a table of dwell means instead (:func:`read_means`: one pose per
+    row); ``means=None`` does so only when the rate is unknown and the rows look like poses
+    (what the command line does, with a note), and reads samples otherwise.
+
     Returns
     -------
     DwellSet
     """
     d, _rec = _stream_dwells(path, fs=fs, bounds=bounds, columns=columns,
                              time_column=time_column, chunk_rows=chunk_rows, units=units,
-                             progress=progress, **detector_kw)
+                             progress=progress, means=means, **detector_kw)
+    return d
+
+
+def read_means(path: Any, *, columns: Any = None, units: str = "") -> Any:
+    """A table of dwell means, one pose per row, as a :class:`~accelcal.DwellSet` (what a
+    logger or firmware that averages each pose writes, or a spreadsheet of pose means): any
+    format :func:`read_stream` reads, columns by name as for samples, or ``x_mean`` /
+    ``mean_x`` / ``acc_x_avg``... (a column of the reference attitude, ``x_true``, is not
+    taken). Per-pose sample std columns (``x_std``...) with a count column (``n``,
+    ``count``) give each mean its noise (std / sqrt(count)); otherwise the fit estimates
+    the noise level from the residuals. A time column, if any, gives each dwell's time and a
+    ``temp...`` column its temperature. Rows with NaN are refused, naming them.
+    """
+    from ._pose_table import pose_table
+
+    rec = _Recording(path, columns, None, None)
+    d = pose_table(rec, units, forced=True)
+    assert d is not None
     return d
 
 
@@ -2386,11 +2420,24 @@ def _stream_dwells(
     units: str = "",
     progress: bool | None = False,
     desc: str = "dwells",
+    means: bool | None = False,
     **detector_kw: Any,
 ) -> tuple[Any, _Recording]:
     """:func:`stream_dwells` that also returns the opened recording (rows, notes)."""
     cr = None if chunk_rows is None else _chunk_rows(chunk_rows)
+    if means and bounds is not None:
+        raise CalibrationError("give dwell bounds or read the file as a table of dwell means "
+                               "(one pose per row), not both")
     rec = _Recording(path, columns, fs, time_column)
+    if means or (means is None and bounds is None and rec.fs is None):
+        from ._pose_table import pose_table
+
+        d = pose_table(rec, units, forced=bool(means))
+        if d is not None:
+            rec.pose_table = True
+            return d, rec
+        if rec.rows:  # read, and not poses: the rate is unknown
+            raise CalibrationError(rec.no_rate())
     if isinstance(bounds, (str, os.PathLike)):
         bounds = read_bounds(bounds)
     known = bounds.path if isinstance(bounds, Bounds) else None  # named in its errors

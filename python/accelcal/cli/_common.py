@@ -36,6 +36,8 @@ CLI_WORDS: dict[str, str] = {
     "chunk_rows": "--chunk-rows",
     "g": "--g",
 }
+#: Library phrases that are a flag on the command line.
+CLI_PHRASES: dict[str, str] = {"means=True": "--means"}
 
 
 def cli_words(
@@ -50,7 +52,7 @@ def cli_words(
     ``radius (...)``, ``radius looks ...``), then the shared ``keyword=`` spellings of
     :data:`CLI_WORDS` (``give fs= (Hz)`` -> ``give --fs (Hz)``, ``columns=[...]``).
     """
-    for py, cli in (phrases or {}).items():
+    for py, cli in {**(phrases or {}), **CLI_PHRASES}.items():
         msg = msg.replace(py, cli)
     for kw, opt in (names or {}).items():
         msg = re.sub(rf"(^|\s){re.escape(kw)}(?= must| \(| looks| =)", rf"\g<1>{opt}", msg)
@@ -193,17 +195,19 @@ def is_dwell_table(file: str) -> bool:
 
 
 def stream_dwells(file: str, fs: float | None, columns: str | None, time_column: str | None,
-                  quiet: bool, desc: str, bounds: str | None = None,
+                  quiet: bool, desc: str, bounds: str | None = None, means: bool = False,
                   **detector: Any) -> tuple[Any, Any]:
     """Detect the dwells of a recording in one streaming pass (bounded memory, progress bar),
-    or take them from a ``--bounds`` file.
+    or take them from a ``--bounds`` file; or read a table of dwell means (``--means``, or
+    a file of unknown rate whose rows look like poses, with a note).
 
     Returns the DwellSet and the opened recording (rows read, notes), or, for a dwell table
     written by ``accelcal dwells -o``, the table and None.
     """
     if is_dwell_table(file):
-        if bounds:
-            raise CalibrationError(f"--bounds: {file} is a dwell table already")
+        if bounds or means:
+            raise CalibrationError(f"--{'bounds' if bounds else 'means'}: {file} is a dwell "
+                                   "table already")
         from ..dwell import DwellSet
 
         return DwellSet.from_csv(file), None
@@ -211,8 +215,17 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
 
     d, rec = _stream_dwells(file, fs=fs, columns=columns, time_column=time_column,
                             bounds=bounds, progress=False if quiet else None, desc=desc,
-                            **({} if bounds else detector))
+                            means=True if means else None, **({} if bounds else detector))
     return d, rec
+
+
+def means_option(fn: F) -> F:
+    """``--means``: the file is a table of dwell means (one pose per row)."""
+    return click.option(  # type: ignore[no-any-return]
+        "--means", "means", is_flag=True,
+        help="FILE is a table of dwell means, one pose per row (per-pose x_std... and n "
+             "columns give their noise). A file of unknown rate whose rows step from pose to "
+             "pose is read so without it, with a note.")(fn)
 
 
 def bounds_option(fn: F) -> F:
@@ -251,6 +264,8 @@ def source_line(file: str, rec: Any, d: Any) -> str:
     if rec is None:
         fs = "" if d.fs is None else f" (recorded at {d.fs:.6g} Hz)"
         return f"{file}: dwell table with {len(d)} dwells{fs}"
+    if rec.pose_table:
+        return f"{file}: table of dwell means, {len(d)} poses"
     line = f"{file}: {rec.rows} samples at {rec.fs:.6g} Hz -> {len(d)} dwells"
     if getattr(d, "dropped", 0):
         line += (f" ({d.dropped} rows with NaN or inf samples: dropouts, left out of the "

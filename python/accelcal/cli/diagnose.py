@@ -18,6 +18,7 @@ from ._common import (
     friendly,
     gravity_options,
     main,
+    means_option,
     recording_options,
     source_line,
     stream_dwells,
@@ -43,6 +44,7 @@ from ._common import (
               help="The gap figure: residuals against time, temperature or pose (sphere map), "
                    "tilt, and the noise panel (Allan deviation and the noise models).")
 @bounds_option
+@means_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
               help="Accept a reference gravity outside Earth's range (deliberate other units).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
@@ -50,7 +52,7 @@ from ._common import (
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
              columns: str | None, time_column: str | None, quiet: bool, noise: str,
              preset: str, calibration: str | None, plot_path: str | None,
-             bounds: str | None, no_check_g: bool, as_json: bool) -> None:
+             bounds: str | None, means: bool, no_check_g: bool, as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
@@ -62,7 +64,9 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     # One streaming pass: the dwell accumulator keeps what the diagnosis needs from inside
     # the dwells (means, variances and, where the accumulator provides them, within-dwell
     # noise statistics), so memory stays bounded whatever the recording's length.
-    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds)
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds, means)
+    # A dwell table, or a table of dwell means: no samples to read again.
+    tabled = rec is None or rec.pose_table
     if len(d) == 0:
         raise CalibrationError(f"{file}: no static dwells detected in the recording")
     kw: dict[str, Any] = {"fit": fit, "check_g": not no_check_g}
@@ -70,11 +74,11 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         kw["noise_model"] = "white"
     extra: list[str] = []
     no_allan = noise == "allan" and getattr(d, "inflation", None) is None
-    if no_allan and (rec is None or file == "-" or bounds):
+    if no_allan and (tabled or file == "-" or bounds):
         extra.append("the Allan noise model needs the samples (not in a dwell table, and "
                      "standard input cannot be read twice): white noise (variance / count) used")
     run: tuple[Any, ...] = (d,)
-    if no_allan and rec is not None and file != "-" and not bounds:
+    if no_allan and not tabled and file != "-" and not bounds:
         # A dwell table without the within-dwell Allan statistics: the Allan noise model
         # needs the samples themselves, so read them (whole file) and detect the dwells again.
         from ..dwell import detect_dwells

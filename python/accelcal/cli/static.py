@@ -21,6 +21,7 @@ from ._common import (
     friendly,
     gravity_options,
     main,
+    means_option,
     recording_options,
     source_line,
     stream_dwells,
@@ -58,6 +59,7 @@ def _cli(msg: str) -> str:
 @click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
               help="Shortest dwell kept, s.")
 @bounds_option
+@means_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
               help="Accept a --g that is not a plausible local gravity (m/s^2, g or cm/s^2).")
 @click.option("--nominal", "nominal_path", type=click.Path(dir_okay=False), default=None,
@@ -76,7 +78,7 @@ def calibrate_static(
     files: tuple[str, ...], g: float | None, lat: float | None, height: float,
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
     method: str, window_s: float, k_thr: float, min_dwell_s: float, bounds: str | None,
-    no_check_g: bool,
+    means: bool, no_check_g: bool,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
     plot_path: str | None, as_json: bool, **fleet: Any,
 ) -> None:
@@ -91,6 +93,8 @@ def calibrate_static(
         if bounds:
             raise CalibrationError("--bounds takes one recording (its dwells are that "
                                    "recording's rows)")
+        if means:
+            raise CalibrationError("--means takes one table of dwell means, not a fleet run")
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns,
             time_column=time_column, quiet=quiet, model=model, method=method,
@@ -106,7 +110,7 @@ def calibrate_static(
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height)
     nominal = TriadModel.load(nominal_path) if nominal_path else None
-    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds,
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds, means,
                            window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
     read_notes = [] if rec is None else rec.notes()
     if len(d) == 0:

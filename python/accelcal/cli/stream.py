@@ -26,6 +26,7 @@ from ._common import (
     emit_json,
     friendly,
     main,
+    means_option,
     open_recording,
     recording_options,
     source_line,
@@ -79,6 +80,7 @@ def _units_of(names: tuple[str, ...]) -> str:
 @click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
               help="Shortest dwell kept, s.")
 @bounds_option
+@means_option
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the dwell table as CSV (calibrate static reads it back).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
@@ -95,6 +97,7 @@ def dwells(
     k: float,
     min_dwell_s: float,
     bounds: str | None,
+    means: bool,
     output: str | None,
     plot_path: str | None,
     as_json: bool,
@@ -104,8 +107,11 @@ def dwells(
     from ..io import _progress_bar
 
     _need_plot(plot_path)
+    if plot_path and means:
+        raise CalibrationError("--plot draws the stream of samples; a table of dwell means "
+                               "(--means) has none")
     if not plot_path:
-        d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells", bounds,
+        d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells", bounds, means,
                                window_s=window_s, k=k, min_dwell_s=min_dwell_s)
     else:
         # The same single pass, also keeping a decimated picture of the stream.

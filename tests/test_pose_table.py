@@ -1,0 +1,138 @@
+"""Tables of dwell means (one pose per row, no sample rate): ``accelcal.io.read_means``, the
+command line's ``--means`` and its recognition of such a file when the rate is unknown, and the
+samples it must not take for one. Checked against the simulator's truth and against the fit
+of the same means given as an array."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import accelcal as ac
+import numpy as np
+import pytest
+from accelcal import CalibrationError
+from accelcal._pose_table import looks_like_poses
+from accelcal.cli import main
+from accelcal.io import read_means, stream_dwells
+from accelcal.sim.field import field_session
+from accelcal.sim.static import static_dwell_means
+from click.testing import CliRunner
+
+G = 9.80665
+# Raw int16-like counts: 1670 counts per m/s^2, offsets of a few hundred counts.
+TRUTH = [1670.0, 1668.0, 1675.0, 120.0, -340.0, 560.0, 3.0, -5.0, 8.0]
+
+
+def run(*args: str) -> tuple[int, str]:
+    r = CliRunner().invoke(main, list(args))
+    assert "Traceback" not in r.output
+    return r.exit_code, r.output
+
+
+def session(n: int = 24, tilt: float | None = None, seed: int = 5) -> np.ndarray:
+    return static_dwell_means(n, TRUTH, G, sigma=0.5, sigma_g=0.0, max_tilt_deg=tilt,
+                              rng=seed).means
+
+
+def test_headerless_table_is_read_as_poses_and_fits_like_the_array(tmp_path: Path) -> None:
+    m = session()
+    p = tmp_path / "poses.txt"
+    np.savetxt(p, m, fmt="%.4f", delimiter=",")
+    d = read_means(p)
+    assert len(d) == 24 and d.var is None and d.fs is None
+    np.testing.assert_allclose(d.mean, np.round(m, 4), rtol=0, atol=1e-9)
+    fit = ac.fit_static(d, G, observability="ignore")
+    ref = ac.fit_static(np.round(m, 4), G, observability="ignore")
+    np.testing.assert_allclose(fit.vector, ref.vector, rtol=1e-12)
+    # Within 5 std of the simulator's truth.
+    assert np.all(np.abs(fit.vector - TRUTH) < 5 * fit.std + 1e-9)
+
+
+@pytest.mark.parametrize("tilt", [None, 30.0])
+def test_cli_takes_a_file_of_unknown_rate_whose_rows_are_poses(tmp_path: Path,
+                                                               tilt: float | None) -> None:
+    m = session(20, tilt, seed=7)
+    p = tmp_path / "poses.csv"
+    np.savetxt(p, m, fmt="%.4f", delimiter=",", header="ax,ay,az", comments="")
+    code, out = run("calibrate", "static", str(p), "--g", str(G), "--json")
+    assert code == 0, out
+    res = json.loads(out[out.index("{"):])
+    ref = ac.fit_static(np.round(m, 4), G, observability="ignore")
+    np.testing.assert_allclose(res["vector"], ref.vector, rtol=1e-9)
+    code, out = run("calibrate", "static", str(p), "--g", str(G))
+    assert code == 0, out
+    assert "read as a table of dwell means, one pose per row (20 rows" in out
+    assert "table of dwell means, 20 poses" in out
+    assert "sample rate is not in the file" not in out  # no rate is needed
+
+
+def test_named_mean_std_and_count_columns_give_each_mean_its_noise(tmp_path: Path) -> None:
+    m = session(18, seed=9)
+    rng = np.random.default_rng(0)
+    std = rng.uniform(2.0, 4.0, size=m.shape)
+    n = rng.integers(200, 600, size=len(m))
+    truth_dir = np.round(m / np.linalg.norm(m, axis=1)[:, None], 1)
+    cols = {"x_true (g)": truth_dir[:, 0], "x_mean": m[:, 0], "x_std": std[:, 0],
+            "y_true (g)": truth_dir[:, 1], "y_mean": m[:, 1], "y_std": std[:, 1],
+            "z_true (g)": truth_dir[:, 2], "z_mean": m[:, 2], "z_std": std[:, 2], "n": n}
+    p = tmp_path / "poses.csv"
+    p.write_text(",".join(cols) + "\n" + "\n".join(
+        ",".join(repr(float(cols[c][i])) for c in cols) for i in range(len(m))) + "\n")
+    d = read_means(p)
+    np.testing.assert_array_equal(d.mean, m)  # the mean columns, not the reference ones
+    np.testing.assert_allclose(d.var, std**2, rtol=1e-15)
+    np.testing.assert_array_equal(d.count, n)
+    np.testing.assert_allclose(d.sem, std / np.sqrt(n)[:, None], rtol=1e-14)
+    # Without the count the std columns are left out, with a note saying why.
+    p2 = tmp_path / "no_count.csv"
+    p2.write_text("\n".join(",".join(ln.split(",")[:-1])
+                            for ln in p.read_text().splitlines()) + "\n")
+    code, out = run("calibrate", "static", str(p2), "--g", str(G))
+    assert code == 0, out
+    assert "per-pose std columns (x_std, y_std, z_std) are not used" in out
+
+
+def test_samples_of_unknown_rate_are_not_taken_for_poses(tmp_path: Path) -> None:
+    # One pose at rest: rows that differ by the noise only.
+    rng = np.random.default_rng(3)
+    rest = np.array([120.0, -340.0, 16900.0]) + 3.0 * rng.standard_normal((500, 3))
+    p = tmp_path / "rest.csv"
+    np.savetxt(p, rest, fmt="%.3f", delimiter=",", header="ax,ay,az", comments="")
+    assert not looks_like_poses(rest)
+    with pytest.raises(CalibrationError, match=r"sample rate is unknown.*means=True"):
+        stream_dwells(p, means=None)
+    code, out = run("calibrate", "static", str(p), "--g", str(G))
+    assert code != 0 and "give --fs (Hz)" in out and "read it with --means" in out
+    # A real session's stream (poses held for seconds, moves between them), decimated to
+    # 2000 rows: consecutive rows are mostly the same pose.
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=12.0, move_s=3.0, rng=1).samples
+    assert not looks_like_poses(s[:2000])
+    # Poses in one plane only (turned about one axis): not a calibration table.
+    ang = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    planar = G * np.column_stack([np.cos(ang), np.zeros(12), np.sin(ang)])
+    assert not looks_like_poses(planar)
+    assert looks_like_poses(session(12))
+
+
+def test_bad_tables_and_conflicting_options_are_refused(tmp_path: Path) -> None:
+    m = session(12)
+    p = tmp_path / "nan.csv"
+    text = "\n".join(",".join(f"{v:.3f}" for v in r) for r in m).splitlines()
+    text[4] = "1.0,nan,2.0"
+    p.write_text("ax,ay,az\n" + "\n".join(text) + "\n")
+    with pytest.raises(CalibrationError, match=r"data row\(s\) 5 \(1-based\) hold NaN"):
+        read_means(p)
+    good = tmp_path / "good.csv"
+    np.savetxt(good, m, fmt="%.3f", delimiter=",")
+    bounds = tmp_path / "b.json"
+    bounds.write_text("[[0, 3]]")
+    code, out = run("calibrate", "static", str(good), "--g", str(G), "--means",
+                    "--bounds", str(bounds))
+    assert code != 0 and "not both" in out
+    code, out = run("dwells", str(good), "--means", "--plot", str(tmp_path / "x.png"))
+    assert code != 0 and "--plot draws the stream" in out
+    # A table given as one asked for (--means) even with a rate: one dwell per row.
+    code, out = run("dwells", str(good), "--means", "--fs", "100")
+    assert code == 0, out
+    assert "table of dwell means, 12 poses" in out and "as asked" in out
