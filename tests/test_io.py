@@ -1356,3 +1356,44 @@ def test_compressed_text_is_read(tmp_path: Path, kind: str) -> None:
     bad.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2])
     with pytest.raises(CalibrationError, match=rf"cannot decompress it \({kind}\)"):
         read_stream(bad)
+
+
+def test_headerless_table_of_many_channels_finds_the_accelerometer_by_its_norm(
+        tmp_path: Path) -> None:
+    """A logger's headerless export: time, accelerometer (m/s^2), gyroscope, magnetometer and
+    pressure. The accelerometer is the only three adjacent columns whose norm stays at 1 g,
+    and it is taken with a note; the fit equals the one with the columns given."""
+    from accelcal.sim.field import field_session
+
+    truth = [1.002, 0.998, 1.001, 0.05, -0.03, 0.08, 0.001, 0.002, -0.001]
+    s = field_session(fs=50.0, n_dwells=14, dwell_s=6.0, move_s=2.0, max_tilt_deg=80.0,
+                      truth=truth, sigma=0.01, rng=4)
+    rng = np.random.default_rng(0)
+    n = len(s.t)
+    gyro = 0.01 * rng.standard_normal((n, 3))
+    mag = np.array([30.0, 5.0, -40.0]) + 0.5 * rng.standard_normal((n, 3))
+    table = np.column_stack([s.t, s.samples, gyro, mag, np.full(n, 97.5)])
+    p = tmp_path / "log.txt"
+    np.savetxt(p, table, fmt="%.6f", delimiter="\t")
+    st = read_stream(p)
+    np.testing.assert_allclose(st.samples, np.round(s.samples, 6), atol=1e-9)
+    assert st.fs == pytest.approx(50.0)
+    assert any("columns 1, 2, 3 (0-based) taken as the accelerometer" in x and "m/s^2" in x
+               for x in st.notes)
+    auto = ac.fit_static(stream_dwells(p), s.g, observability="ignore")
+    given = ac.fit_static(stream_dwells(p, columns=[1, 2, 3], time_column=0), s.g,
+                          observability="ignore")
+    np.testing.assert_array_equal(auto.vector, given.vector)
+    assert np.all(np.abs(auto.vector - truth) < 5 * auto.std + 1e-12)
+    # A head at rest with the z axis up: (ax, ay, az), (ay, az, gx) and (az, gx, gy) all
+    # keep a norm of 1 g, so none is chosen, and the error names them.
+    rest = np.column_stack([np.arange(300) / 50.0,
+                            [0.02, -0.01, 9.81] + 0.01 * rng.standard_normal((300, 3)),
+                            0.01 * rng.standard_normal((300, 3)), np.full(300, 97.5)])
+    p2 = tmp_path / "rest.txt"
+    np.savetxt(p2, rest, fmt="%.6f", delimiter="\t")
+    with pytest.raises(CalibrationError, match=r"8 columns and no header row: cannot tell "
+                       r"which are the accelerometer x, y, z \(each of the adjacent columns "
+                       r"1,2,3; 2,3,4; 3,4,5 keeps a norm of about 1 g: 9\.81\d? m/s\^2\); "
+                       r"give columns="):
+        read_stream(p2)

@@ -39,7 +39,10 @@ Layout rules for text files
   of its regular intervals (those within half the median interval).
 * Without a header, three columns are ``x, y, z``; with ``columns`` given or four columns,
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
-  unless it counts 0, 1, 2, ... (a sample counter); anything else needs ``columns``.
+  unless it counts 0, 1, 2, ... (a sample counter). Among more columns, the only three
+  adjacent ones whose row norm stays at 1 g (m/s^2, g, mg or int16 counts, within 5 % in
+  90 % of the head rows) are the accelerometer, with a note; anything else needs
+  ``columns``.
 """
 
 from __future__ import annotations
@@ -996,11 +999,25 @@ def _decide(
         elif ncols == 4 and tcol is None and _increasing(head[:, 0]):
             tcol, acc = 0, [1, 2, 3]
         else:
-            raise CalibrationError(
-                f"{path}: {ncols} columns and no header row: cannot tell which are the "
-                "accelerometer x, y, z; give columns=[...] (0-based indices) and, if there is "
-                "one, time_column="
-            )
+            found = _triads_by_norm(head, tcol)
+            if len(found) == 1:
+                (acc, level, unit), = found
+                notes.append(
+                    f"no header: columns {', '.join(map(str, acc))} (0-based) taken as the "
+                    f"accelerometer x, y, z: the only three adjacent columns whose norm stays "
+                    f"near 1 g ({level:.4g}, {unit}) over the first {head.shape[0]} rows; give "
+                    "columns= to choose others")
+            else:
+                seen = "" if not found else (
+                    " (each of the adjacent columns "
+                    + "; ".join(",".join(map(str, c)) for c, _, _ in found)
+                    + " keeps a norm of about 1 g: "
+                    + ", ".join(sorted({f"{lv:.4g} {u}" for _, lv, u in found})) + ")")
+                raise CalibrationError(
+                    f"{path}: {ncols} columns and no header row: cannot tell which are the "
+                    f"accelerometer x, y, z{seen}; give columns=[...] (0-based indices) and, "
+                    "if there is one, time_column="
+                )
     if tcol is not None and tcol in acc:
         tcol = None
     if tcol is None and time_column is None:
@@ -1091,6 +1108,37 @@ def _time_hint(names: tuple[str, ...] | None, acc: list[int], head: NDArray[Any]
             return (f", or, if column {names[i]!r} (it increases steadily) is the time in s, "
                     "name it with time_column=")
     return ""
+
+
+#: The norm of an accelerometer at rest (1 g) in the units it is written in: m/s^2, g, mg,
+#: and the counts of an int16 output at +-2, 4, 8 and 16 g full scale.
+_ONE_G = ((9.80665, "m/s^2"), (1.0, "g"), (1000.0, "mg"), (16384.0, "counts at 16384/g"),
+          (8192.0, "counts at 8192/g"), (4096.0, "counts at 4096/g"),
+          (2048.0, "counts at 2048/g"))
+
+
+def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int], float, str]]:
+    """Adjacent column triples of a headerless table whose row norm stays within 5 % of 1 g
+    in some unit (:data:`_ONE_G`) in 90 % of the head rows: an accelerometer among other
+    channels (gyroscope, magnetometer, pressure). With the triple, its median norm and the
+    unit it suggests."""
+    out: list[tuple[list[int], float, str]] = []
+    if head.shape[0] < 10:
+        return out
+    for j in range(head.shape[1] - 2):
+        cols = [j, j + 1, j + 2]
+        if tcol in cols:
+            continue
+        x = head[:, cols]
+        x = x[np.all(np.isfinite(x), axis=1)]
+        if x.shape[0] < 10:
+            continue
+        norm = np.linalg.norm(x, axis=1)
+        level = float(np.median(norm))
+        unit = next((u for v, u in _ONE_G if abs(level / v - 1.0) < 0.05), None)
+        if unit is not None and float(np.quantile(np.abs(norm / level - 1.0), 0.9)) < 0.05:
+            out.append((cols, level, unit))
+    return out
 
 
 def _increasing(x: NDArray[Any]) -> bool:
