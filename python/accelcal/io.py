@@ -999,20 +999,20 @@ def _decide(
         elif ncols == 4 and tcol is None and _increasing(head[:, 0]):
             tcol, acc = 0, [1, 2, 3]
         else:
-            found = _triads_by_norm(head, tcol)
-            if len(found) == 1:
-                (acc, level, unit), = found
+            triads = _triads_by_norm(head, tcol)
+            if len(triads) == 1:
+                (acc, level, unit), = triads
                 notes.append(
                     f"no header: columns {', '.join(map(str, acc))} (0-based) taken as the "
                     f"accelerometer x, y, z: the only three adjacent columns whose norm stays "
                     f"near 1 g ({level:.4g}, {unit}) over the first {head.shape[0]} rows; give "
                     "columns= to choose others")
             else:
-                seen = "" if not found else (
+                seen = "" if not triads else (
                     " (each of the adjacent columns "
-                    + "; ".join(",".join(map(str, c)) for c, _, _ in found)
+                    + "; ".join(",".join(map(str, c)) for c, _, _ in triads)
                     + " keeps a norm of about 1 g: "
-                    + ", ".join(sorted({f"{lv:.4g} {u}" for _, lv, u in found})) + ")")
+                    + ", ".join(sorted({f"{lv:.4g} {u}" for _, lv, u in triads})) + ")")
                 raise CalibrationError(
                     f"{path}: {ncols} columns and no header row: cannot tell which are the "
                     f"accelerometer x, y, z{seen}; give columns=[...] (0-based indices) and, "
