@@ -34,6 +34,8 @@ def test_strong_effect_is_attributed_and_gap_closes(effect: str) -> None:
     assert s.lam > 100
     r = diagnose(s.dwells, g=s.g)
     assert r.best == effect
+    # The structure line says it reads what the selected effects leave.
+    assert f"\nStructure (of what remains after {', '.join(r.selected)}): " in r.summary()
     assert r.held_out_gap > 3.0
     assert 0.7 < r.held_out_gap_after < 1.3
     assert r.shrink < 0.4

@@ -887,7 +887,9 @@ def _summary(r: GapReport) -> str:
              f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining "
              f"{r.excess_remaining:.2f}); held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} "
              f"{r.units}")
-    L.append(f"Structure: {r.structure.summary()}")
+    # The structure tests see the residuals left after the selected effects.
+    after = f" (of what remains after {', '.join(r.selected)})" if r.selected else ""
+    L.append(f"Structure{after}: {r.structure.summary()}")
     ne = r.structure.noise_empirical
     if ne is not None:
         parts = [f"{ne.ratio_model:.2f}x the model"]
