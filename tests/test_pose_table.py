@@ -136,3 +136,28 @@ def test_bad_tables_and_conflicting_options_are_refused(tmp_path: Path) -> None:
     code, out = run("dwells", str(good), "--means", "--fs", "100")
     assert code == 0, out
     assert "table of dwell means, 12 poses" in out and "as asked" in out
+
+
+def test_a_fleet_of_pose_tables_is_calibrated_as_the_single_file_command_does(
+        tmp_path: Path) -> None:
+    paths, means = [], []
+    for i in range(3):
+        m = session(20, seed=20 + i)
+        p = tmp_path / f"board{i}.txt"
+        np.savetxt(p, m, fmt="%.4f", delimiter=",")
+        paths.append(str(p))
+        means.append(np.round(m, 4))
+    rest = tmp_path / "rest.txt"  # samples of one pose, rate unknown: refused, as before
+    np.savetxt(rest, [120.0, -340.0, 16900.0] + np.random.default_rng(2).normal(
+        0, 3, (400, 3)), fmt="%.3f", delimiter=",")
+    df = ac.calibrate_many([*paths, str(rest)], g=G, workers=1, progress=False)
+    rows = df.set_index("path")
+    for p, m in zip(paths, means, strict=True):
+        r = rows.loc[p]
+        assert r["status"] in ("ok", "weak") and r["n_dwells"] == 20
+        assert "read as a table of dwell means" in r["message"]
+        ref = ac.fit_static(m, G, observability="ignore")
+        names = ("sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3")
+        np.testing.assert_allclose([r[n] for n in names], ref.vector, rtol=1e-10)
+    bad = rows.loc[str(rest)]
+    assert bad["status"] == "error" and "sample rate is not in the file" in bad["message"]

@@ -168,15 +168,21 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
                           time_column=job.time_column)
     n = len(st)
     row["n_samples"] = n
+    fault_note: list[str] = []
     if st.fs is None:
-        row["message"] = (
-            f"the sample rate is not in the file (no fs metadata or time column): give "
-            f"{names['fs']}" + ("" if job.cli else " or an fs column in the manifest")
-        )
-        return None
-    row["fs_hz"] = float(st.fs)
-    row["duration_s"] = n / float(st.fs)
-    if job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
+        from ._pose_table import looks_like_poses
+
+        if job.bounds is not None or not looks_like_poses(np.asarray(st.samples, np.float64)):
+            row["message"] = (
+                f"the sample rate is not in the file (no fs metadata or time column): give "
+                f"{names['fs']}" + ("" if job.cli else " or an fs column in the manifest")
+            )
+            return None
+        # A table of dwell means (one pose per row), as the single-file commands read it.
+        d = _aio.read_means(job.read_path, columns=job.columns)
+        fault_note.append(f"read as a table of dwell means, one pose per row ({n} rows: the "
+                          "rate is unknown and the rows step from attitude to attitude)")
+    elif job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
         known = _aio.read_bounds(job.bounds)
         d = dwell_stats(st.samples, known.rows(st.fs), t=st.t, temperature=st.temperature,
                         fs=st.fs)
@@ -184,8 +190,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         settings = DetectorSettings(**job.detector)
         d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature,
                           settings=settings)
+    if st.fs is not None:
+        row["fs_hz"] = float(st.fs)
+        row["duration_s"] = n / float(st.fs)
     row["dropped_rows"] = int(d.dropped)
-    fault_note: list[str] = []
     if d.dropped:  # dropouts: left out of the statistics, as the single-file commands do
         fault_note.append(f"{d.dropped} of {n} data rows hold NaN or inf samples (dropouts), "
                           "left out of the dwell statistics")
