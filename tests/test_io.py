@@ -1397,3 +1397,36 @@ def test_headerless_table_of_many_channels_finds_the_accelerometer_by_its_norm(
                        r"1,2,3; 2,3,4; 3,4,5 keeps a norm of about 1 g: 9\.81\d? m/s\^2\); "
                        r"give columns="):
         read_stream(p2)
+
+
+def test_unnamed_accelerometer_columns_are_found_by_their_norm(tmp_path: Path) -> None:
+    """A header whose names do not say accelerometer (``# time tx ty tz wx wy wz mx my mz qx
+    qy qz qw``, a research IMU's log): the one adjacent triple at 1 g is taken, with a note;
+    the unit quaternion's components (norm near 1) are not candidates."""
+    from accelcal.sim.field import field_session
+
+    truth = [1.001, 0.999, 1.002, 0.02, -0.04, 0.03, 0.001, -0.002, 0.001]
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=4.0, move_s=1.5, max_tilt_deg=70.0,
+                      truth=truth, sigma=0.01, rng=6)
+    rng = np.random.default_rng(1)
+    n = len(s.t)
+    gyro = 0.005 * rng.standard_normal((n, 3))
+    mag = [0.2, -0.05, 0.4] + 0.01 * rng.standard_normal((n, 3))
+    q = np.column_stack([0.02 * rng.standard_normal((n, 2)), 0.1 * rng.standard_normal(n),
+                         np.ones(n)])
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    p = tmp_path / "imu.txt"
+    np.savetxt(p, np.column_stack([s.t, s.samples, gyro, mag, q]), fmt="%.6f",
+               header="time tx ty tz wx wy wz mx my mz qx qy qz qw")
+    st = read_stream(p)
+    np.testing.assert_allclose(st.samples, np.round(s.samples, 6), atol=1e-9)
+    assert st.fs == pytest.approx(100.0)
+    assert any("columns 'tx', 'ty', 'tz' taken as the accelerometer x, y, z: no name says so"
+               in x for x in st.notes)
+    # Without a triple at 1 g the error stays, and names what it saw.
+    p2 = tmp_path / "none.csv"
+    np.savetxt(p2, np.column_stack([s.t, 0.5 * s.samples]), fmt="%.6f", delimiter=",",
+               header="time,u,v,w", comments="")
+    with pytest.raises(CalibrationError, match=r"no accelerometer columns recognised among "
+                       r"\['time', 'u', 'v', 'w'\]; give columns="):
+        read_stream(p2)

@@ -987,10 +987,22 @@ def _decide(
     elif names is not None:
         by_name = _auto_acc(names, path)
         if by_name is None:
-            raise CalibrationError(
-                f"{path}: no accelerometer columns recognised among {list(names)}; "
-                "give columns=[...] (3 names or 0-based indices)"
-            )
+            # No name says accelerometer (``tx ty tz``, ``ch1 ch2 ch3``): the only three
+            # adjacent columns whose norm stays at 1 g, as in a headerless file.
+            quat = {i for i, n in enumerate(names) if _QUATERNION.match(_norm(n))}
+            triads = [t for t in _triads_by_norm(head, tcol) if not quat.intersection(t[0])]
+            if len(triads) != 1:
+                raise CalibrationError(
+                    f"{path}: no accelerometer columns recognised among {list(names)}"
+                    f"{_triads_text(triads, names)}; give columns=[...] (3 names or 0-based "
+                    "indices)"
+                )
+            (by_name, level, unit), = triads
+            notes.append(
+                f"columns {', '.join(repr(names[i]) for i in by_name)} taken as the "
+                f"accelerometer x, y, z: no name says so, but they are the only three adjacent "
+                f"columns whose norm stays near 1 g ({level:.4g}, {unit}) over the first "
+                f"{head.shape[0]} rows; give columns= to choose others")
         acc = by_name
     else:
         rest = [i for i in range(ncols) if i != tcol]
@@ -1008,15 +1020,10 @@ def _decide(
                     f"near 1 g ({level:.4g}, {unit}) over the first {head.shape[0]} rows; give "
                     "columns= to choose others")
             else:
-                seen = "" if not triads else (
-                    " (each of the adjacent columns "
-                    + "; ".join(",".join(map(str, c)) for c, _, _ in triads)
-                    + " keeps a norm of about 1 g: "
-                    + ", ".join(sorted({f"{lv:.4g} {u}" for _, lv, u in triads})) + ")")
                 raise CalibrationError(
                     f"{path}: {ncols} columns and no header row: cannot tell which are the "
-                    f"accelerometer x, y, z{seen}; give columns=[...] (0-based indices) and, "
-                    "if there is one, time_column="
+                    f"accelerometer x, y, z{_triads_text(triads, None)}; give columns=[...] "
+                    "(0-based indices) and, if there is one, time_column="
                 )
     if tcol is not None and tcol in acc:
         tcol = None
@@ -1139,6 +1146,23 @@ def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int
         if unit is not None and float(np.quantile(np.abs(norm / level - 1.0), 0.9)) < 0.05:
             out.append((cols, level, unit))
     return out
+
+
+#: Names of quaternion components (``qx``, ``q0``, ``quat_w``): a unit quaternion's three
+#: components can keep a norm near 1 (one "g").
+_QUATERNION = re.compile(r"^(?:q|quat|quaternion|orientation)_?[wxyz0-3]$")
+
+
+def _triads_text(triads: list[tuple[list[int], float, str]],
+                 names: tuple[str, ...] | None) -> str:
+    """`` (each of the adjacent columns 1,2,3; 4,5,6 keeps a norm of about 1 g: ...)``, or
+    ``""`` without candidates."""
+    if not triads:
+        return ""
+    cols = "; ".join(",".join(map(str, c)) if names is None else ",".join(names[i] for i in c)
+                     for c, _, _ in triads)
+    levels = ", ".join(sorted({f"{lv:.4g} {u}" for _, lv, u in triads}))
+    return f" (each of the adjacent columns {cols} keeps a norm of about 1 g: {levels})"
 
 
 def _increasing(x: NDArray[Any]) -> bool:
