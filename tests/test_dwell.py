@@ -1170,3 +1170,43 @@ def test_vibrating_poses_are_reported_with_the_k_that_takes_them() -> None:
     assert len(detect_dwells(x, s.fs, k=k)) == 16
     listed = d.to_dict()["vibrating"]
     assert [[v["start"], v["stop"]] for v in listed] == d.vibrating.tolist()
+
+
+def test_named_dwells_keep_their_names_through_subsets_csv_and_the_gap_report(
+        tmp_path: Path) -> None:
+    """Dwells from a bounds file that names its sections carry the names: the table, the
+    CSV round trip (a name with a comma and a quote too), subsets, and the gap report's list
+    of flagged dwells."""
+    from accelcal.gap import diagnose
+    from accelcal.io import stream_dwells
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=200.0, n_dwells=14, dwell_s=3.0, move_s=1.0, max_tilt_deg=80.0,
+                      rng=3)
+    x = s.samples.copy()
+    x[s.bounds[6, 0]:s.bounds[6, 1]] += 0.02  # one dwell knocked: flagged by the diagnosis
+    names = [f"pose {i}" for i in range(14)]
+    names[6] = 'knocked, "twice"'
+    rec = tmp_path / "rec.csv"
+    np.savetxt(rec, np.column_stack([s.t, x]), fmt="%.7f", delimiter=",",
+               header="t,ax,ay,az", comments="")
+    b = tmp_path / "bounds.csv"
+    b.write_text("name,start,stop\n" + "".join(
+        f'"{n.replace(chr(34), chr(34) * 2)}",{a},{e}\n'
+        for n, (a, e) in zip(names, s.bounds, strict=True)))
+    d = stream_dwells(rec, bounds=b)
+    assert d.names == names
+    np.testing.assert_array_equal(d.start, s.bounds[:, 0])
+    assert d[[2, 6]].names == ["pose 2", 'knocked, "twice"'] and d.label(6) == \
+        '6 (knocked, "twice")'
+    assert 'knocked, "twice"' in d.table().splitlines()[7]
+    back = DwellSet.from_csv(d.to_csv())
+    assert back.names == names
+    np.testing.assert_array_equal(back.mean, d.mean)
+    assert d.to_dict()["names"] == names
+    with pytest.raises(CalibrationError, match="names must be 14 strings"):
+        DwellSet(d.mean, names=names[:3])
+    r = diagnose(d, g=s.g)
+    assert 6 in r.where["flagged"]
+    assert '6 (knocked, "twice")' in r.summary()
+    assert r.dwells["name"].tolist() == names  # in time order, which is the file's here

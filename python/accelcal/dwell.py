@@ -14,11 +14,13 @@ Non-finite samples (NaN or inf)
 from __future__ import annotations
 
 import contextlib
+import csv
 import io
 import json
 import math
 import os
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -39,6 +41,13 @@ __all__ = [
 ]
 
 _CSV_MAGIC = "# accelcal dwell table v1"
+
+
+def _csv_text(v: str) -> str:
+    """A text cell of the dwell table, quoted as CSV quotes text when it needs it."""
+    if any(c in v for c in ',"\n\r') or v != v.strip():
+        return '"' + v.replace('"', '""') + '"'
+    return v
 _AXES = ("x", "y", "z")
 _STATE_MAGIC = b"ACCELCAL-DWELL-ACCUMULATOR\n"
 _STATE_VERSION = 2  # 2: the dropout runs of detection (1 is read too)
@@ -121,6 +130,10 @@ class DwellSet:
         :meth:`to_csv`.
     fs : float or None
         Sample rate of the stream, Hz.
+    names : list of str or None
+        A name per dwell, when the dwells come from a file that names them (a bounds file's
+        sections, imucal's ``x_p``, ``y_a`` ...): shown in :meth:`table`, kept by
+        :meth:`to_csv` and used in the gap report's list of flagged dwells.
     """
 
     def __init__(
@@ -143,6 +156,7 @@ class DwellSet:
         dropped: int = 0,
         vibrating: ArrayLike | None = None,
         vibrating_std: ArrayLike | None = None,
+        names: Sequence[str] | None = None,
     ) -> None:
         m = numeric_array(mean, "mean").astype(np.float64, copy=True)
         if m.ndim == 1 and m.size == 3:
@@ -198,6 +212,12 @@ class DwellSet:
         if not isinstance(units, str):
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
+        self.names: list[str] | None = None
+        if names is not None:
+            nm = list(names)
+            if len(nm) != k or not all(isinstance(x, str) for x in nm):
+                raise CalibrationError(f"names must be {k} strings (one per dwell); got {nm!r}")
+            self.names = nm
 
     def __len__(self) -> int:
         return int(self.mean.shape[0])
@@ -236,7 +256,12 @@ class DwellSet:
             dropped=self.dropped,
             vibrating=self.vibrating,
             vibrating_std=self.vibrating_std,
+            names=None if self.names is None else [self.names[i] for i in sel],
         )
+
+    def label(self, k: int) -> str:
+        """``"3"``, or ``"3 (y_a)"`` when the dwells are named."""
+        return str(k) if self.names is None else f"{k} ({self.names[k]})"
 
     @property
     def duration(self) -> NDArray[np.float64] | None:
@@ -298,6 +323,8 @@ class DwellSet:
         """
         k = len(self)
         cols: list[tuple[str, NDArray[Any]]] = []
+        if self.names is not None:
+            cols.append(("name", np.array(self.names, dtype=object)))
         if self.start is not None and self.stop is not None:
             cols += [("start", self.start), ("stop", self.stop)]
         if self.count is not None:
@@ -331,7 +358,10 @@ class DwellSet:
             cells = []
             for _, c in cols:
                 v = c[r]
-                cells.append(str(int(v)) if c.dtype.kind in "iu" else f"{float(v):.17g}")
+                if c.dtype.kind == "O":  # a name: quoted as CSV quotes text
+                    cells.append(_csv_text(str(v)))
+                else:
+                    cells.append(str(int(v)) if c.dtype.kind in "iu" else f"{float(v):.17g}")
             buf.write(",".join(cells) + "\n")
         text = buf.getvalue()
         if path is not None:
@@ -364,10 +394,11 @@ class DwellSet:
                 body.append(ln)
         if not body:
             raise CalibrationError("dwell table has no header row")
-        names = [c.strip() for c in body[0].split(",")]
+        parsed = list(csv.reader(body))
+        names = [c.strip() for c in parsed[0]]
         if not all(f"mean_{a}" in names for a in _AXES):
             raise CalibrationError(f"dwell table needs columns mean_x, mean_y, mean_z; got {names}")
-        rows = [r.split(",") for r in body[1:]]
+        rows = parsed[1:]
         if any(len(r) != len(names) for r in rows):
             raise CalibrationError("dwell table rows do not all have the header's column count")
         data = {n: [r[i] for r in rows] for i, n in enumerate(names)}
@@ -409,12 +440,14 @@ class DwellSet:
             inflation=cols("inflation"),
             lsb=vec("lsb"),
             dropped=int(meta.get("dropped", "0")),
+            names=data.get("name"),
         )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of lists (a NaN inflation becomes None), with the :meth:`faults` and
         the ``vibrating`` stretches."""
-        out: dict[str, Any] = {"n_dwells": len(self), "units": self.units, "fs_hz": self.fs}
+        out: dict[str, Any] = {"n_dwells": len(self), "units": self.units, "fs_hz": self.fs,
+                               "names": self.names}
         for name in (
             "start", "stop", "count", "t", "temperature", "mean", "var", "half_mean",
             "threshold", "noise_std", "lsb",
@@ -440,7 +473,9 @@ class DwellSet:
 
     def table(self, max_rows: int | None = None) -> str:
         """A readable fixed-width table."""
-        hdr = f"{'#':>3} {'start':>9} {'stop':>9} {'dur_s':>7} "
+        wn = 0 if self.names is None else max(4, *(len(x) for x in self.names))
+        hdr = f"{'#':>3} " + (f"{'name':<{wn}} " if wn else "")
+        hdr += f"{'start':>9} {'stop':>9} {'dur_s':>7} "
         hdr += " ".join(f"{'mean_' + a:>14}" for a in _AXES) + " "
         hdr += " ".join(f"{'std_' + a:>10}" for a in _AXES)
         if self.temperature is not None:
@@ -454,7 +489,8 @@ class DwellSet:
             dur = ""
             if self.count is not None and self.fs:
                 dur = f"{self.count[r] / self.fs:.2f}"
-            ln = f"{r:>3} {st:>9} {sp:>9} {dur:>7} "
+            ln = f"{r:>3} " + (f"{self.names[r]:<{wn}} " if self.names is not None else "")
+            ln += f"{st:>9} {sp:>9} {dur:>7} "
             ln += " ".join(f"{v:>14.6f}" for v in self.mean[r]) + " "
             if self.var is not None:
                 ln += " ".join(f"{np.sqrt(v):>10.3g}" for v in self.var[r])

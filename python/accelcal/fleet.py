@@ -184,8 +184,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
                           "rate is unknown and the rows step from attitude to attitude)")
     elif job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
         known = _aio.read_bounds(job.bounds)
-        d = dwell_stats(st.samples, known.rows(st.fs), t=st.t, temperature=st.temperature,
-                        fs=st.fs)
+        d = _aio._named_dwells(dwell_stats(st.samples, known.rows(st.fs), t=st.t,
+                                           temperature=st.temperature, fs=st.fs), known)
     else:
         settings = DetectorSettings(**job.detector)
         d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature,

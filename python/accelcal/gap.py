@@ -843,8 +843,14 @@ def _summary(r: GapReport) -> str:
         "gradiometer": ("residual(s) (2 per azimuth dwell: inline, cross)", "by channel",
                         "by group"),
     }.get(r.system, ("dwell(s)", "by pose axis", "by time third"))
+    names = r.dwells.get("name")
+    if names is not None and fl:  # named dwells: "4 (z_p)"
+        lab = dict(zip((int(i) for i in r.dwells["index"]), names, strict=True))
+        fl_txt = "[" + ", ".join(f"{k} ({lab[k]})" for k in fl) + "]"
+    else:
+        fl_txt = f"{fl}"
     L.append("Where: " + (f"{len(fl)} {row} beyond the Bonferroni limit {w['threshold']:.2f}: "
-                          f"{fl}" if fl else f"no single {row.split('(s)')[0]} beyond the "
+                          f"{fl_txt}" if fl else f"no single {row.split('(s)')[0]} beyond the "
                           f"Bonferroni limit {w['threshold']:.2f}"))
     if w.get("axes"):
         L.append(f"  {ax_lab}: " + "; ".join(
@@ -1180,6 +1186,8 @@ def diagnose(
             "resid_mps2": np.asarray(raw.resid), "resid_after_mps2": np.asarray(raw.resid_after),
             "pose_angle_deg": np.asarray(raw.pose_angle_deg),
             "direction": np.asarray(raw.direction, dtype=np.float64).reshape(-1, 3)}
+    if d.names is not None:  # the sections of a bounds file (imucal's x_p ...)
+        rows["name"] = np.array([d.names[i] for i in order], dtype=str)
     curves = _noise_curves(samples, d, fs_v, var, white, allan, hm)
     return _build_report(raw, _STATIC, g=g_v, alpha=float(settings.alpha),
                          noise_model=nm_text, statements=statements, rows=rows,

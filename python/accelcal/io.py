@@ -2524,11 +2524,18 @@ def _stream_dwells(
                 acc.push(s, t, temp)
         if rec.rows == 0:
             raise CalibrationError(f"{rec.path}: no data rows")
-        return acc.finish(), rec
+        return _named_dwells(acc.finish(), bounds), rec
     except CalibrationError as e:
         if known is None or str(e).startswith(rec.path):
             raise  # not about the bounds
         raise type(e)(f"{known} (dwell bounds of {rec.path}): {e}") from None
+
+
+def _named_dwells(d: Any, bounds: Any) -> Any:
+    """``d`` with the names of a bounds file's sections (one per dwell, in its order)."""
+    if isinstance(bounds, Bounds) and bounds.names is not None and len(bounds.names) == len(d):
+        d.names = list(bounds.names)
+    return d
 
 
 def open_recording(

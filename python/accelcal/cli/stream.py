@@ -115,8 +115,11 @@ def dwells(
                                window_s=window_s, k=k, min_dwell_s=min_dwell_s)
     else:
         # The same single pass, also keeping a decimated picture of the stream.
+        from ..io import _named_dwells, read_bounds
+
         rec = open_recording(file, fs, columns, time_column)
-        acc = rec.dwell_accumulator(bounds, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        known = read_bounds(bounds) if bounds else None
+        acc = rec.dwell_accumulator(known, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
         env = _Envelope((rec.rows_estimate() or 100_000) // 4000)
         with _progress_bar(rec, "dwells", False if quiet else None) as cb:
             for s, t, temp in rec.chunks(None, cb):
@@ -124,7 +127,7 @@ def dwells(
                 env.push(s)
         if rec.rows == 0:
             raise CalibrationError(f"{rec.path}: no data rows")
-        d = acc.finish()
+        d = _named_dwells(acc.finish(), known)
     notes = ([] if rec is None else rec.notes()) + vibrating_notes(d)
     faults = d.faults()
     if faults:
