@@ -706,3 +706,30 @@ def test_bic_weights_use_the_known_noise_when_it_is_trusted() -> None:
                 assert e["bic_weight"] < 0.5, (seed, e)
             checked += 1
     assert checked >= 50
+
+
+def test_fixed_pose_order_cannot_test_pose_history_and_says_so() -> None:
+    """Six faces in the same order seven times over, a warm-up offset on the first dwell:
+    the first dwell has no previous pose and is left out of the pose-history test, which is
+    then blind (every other dwell's previous pose follows from its own), and the summary
+    says to shuffle the order instead of reporting hysteresis."""
+    from accelcal.sim.static import static_dwell_means
+
+    faces = np.array([[0, 0, 1], [0, 0, -1], [0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0]],
+                     dtype=float)
+    tilt = np.array([[0.03, -0.02, 0.0], [0.01, 0.02, 0.0], [-0.02, 0.0, 0.03],
+                     [0.02, 0.0, -0.01], [0.0, 0.03, 0.02], [0.0, -0.01, -0.03]])
+    rng = np.random.default_rng(4)
+    u = np.tile(faces + tilt, (7, 1)) + 0.001 * rng.standard_normal((42, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    s = static_dwell_means(u, sigma=1e-4, sigma_g=0.0, rng=5)
+    m = s.means.copy()
+    m[0] += 2e-3 * u[0]  # warm-up: the first dwell alone
+    d = DwellSet(m, var=np.full((42, 3), 1e-8 * 400), count=np.full(42, 400),
+                 t=60.0 * np.arange(42))
+    r = diagnose(d, g=s.g_measured, effects=[])
+    ph = r.structure.test("pose_history")
+    assert ph.status == "blind"
+    assert r.structure.verdict != "pose_history"
+    assert "pose_history (each pose follows the same pose every time: shuffle the pose " \
+           "order to test it)" in r.summary()

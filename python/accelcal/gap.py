@@ -827,6 +827,14 @@ def _structure_text(s: GapStructure) -> str:
         txt += "; not testable (too few dwells): " + ", ".join(
             f"{t.name} ({t.n_columns} columns need > {t.n_columns + 9} dwells)"
             for t in untestable)
+    blind = [t for t in tested if t.status == "blind"]
+    if blind:
+        why = {"pose_history": "each pose follows the same pose every time: shuffle the pose "
+                               "order to test it",
+               "attitude": "too few distinct attitudes: add poses between the axes"}
+        txt += "; not separable from the calibration: " + ", ".join(
+            f"{t.name} ({why.get(t.name, 'its pattern is one the calibration absorbs')})"
+            for t in blind)
     return txt
 
 

@@ -755,7 +755,9 @@ fn smooth_tests(
             prev[(k, i)] = u[k - 1][i];
         }
     }
-    tests.push(SmoothTest::ready("pose_history", prev));
+    // The first dwell has no previous pose: left out of the test (an offset of the first
+    // dwell alone, a warm-up say, is no dependence on the previous pose).
+    tests.push(SmoothTest::ready_without("pose_history", prev, vec![0]));
     tests
 }
 
