@@ -824,8 +824,10 @@ def _structure_text(s: GapStructure) -> str:
                    "model misses; record half-dwell means (the dwell pass keeps them) to tell "
                    "them apart")
     if untestable:
+        # pose_history leaves out the first dwell, which has no previous pose.
         txt += "; not testable (too few dwells): " + ", ".join(
-            f"{t.name} ({t.n_columns} columns need > {t.n_columns + 9} dwells)"
+            f"{t.name} ({t.n_columns} columns need > "
+            f"{t.n_columns + 9 + (t.name == 'pose_history')} dwells)"
             for t in untestable)
     blind = [t for t in tested if t.status == "blind"]
     if blind:
