@@ -41,7 +41,7 @@ Layout rules for text files
   a remaining column that increases strictly (over the first 10 000 rows) is the time in s,
   unless it counts 0, 1, 2, ... (a sample counter). Among more columns, the only three
   adjacent ones whose row norm stays at 1 g (m/s^2, g, mg or int16 counts, within 5 % in
-  90 % of the head rows) are the accelerometer, with a note; anything else needs
+  75 % of the head rows) are the accelerometer, with a note; anything else needs
   ``columns``.
 """
 
@@ -1125,10 +1125,10 @@ _ONE_G = ((9.80665, "m/s^2"), (1.0, "g"), (1000.0, "mg"), (16384.0, "counts at 1
 
 
 def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int], float, str]]:
-    """Adjacent column triples of a headerless table whose row norm stays within 5 % of 1 g
-    in some unit (:data:`_ONE_G`) in 90 % of the head rows: an accelerometer among other
-    channels (gyroscope, magnetometer, pressure). With the triple, its median norm and the
-    unit it suggests."""
+    """Adjacent column triples of a table whose median row norm is within 5 % of 1 g in
+    some unit (:data:`_ONE_G`) and stays within 5 % of that in 75 % of the head rows (the rest
+    may be motion between poses): an accelerometer among other channels (gyroscope,
+    magnetometer, pressure). With the triple, its median norm and the unit it suggests."""
     out: list[tuple[list[int], float, str]] = []
     if head.shape[0] < 10:
         return out
@@ -1143,7 +1143,7 @@ def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int
         norm = np.linalg.norm(x, axis=1)
         level = float(np.median(norm))
         unit = next((u for v, u in _ONE_G if abs(level / v - 1.0) < 0.05), None)
-        if unit is not None and float(np.quantile(np.abs(norm / level - 1.0), 0.9)) < 0.05:
+        if unit is not None and float(np.quantile(np.abs(norm / level - 1.0), 0.75)) < 0.05:
             out.append((cols, level, unit))
     return out
 
