@@ -1174,7 +1174,9 @@ def diagnose(
     if k < need:
         raise DegenerateDataError(
             f"{k} dwells: the 9-parameter model needs at least 10 dwells for any gap test"
-            + (" (at least 2 to check a fixed calibration)" if need == 2 else ""))
+            + (" (at least 2 to check a fixed calibration)" if need == 2 else
+               "; record more poses, or check a calibration made on another session against "
+               "this one with fit= (2 dwells suffice)"))
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)
     tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None

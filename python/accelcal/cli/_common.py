@@ -35,6 +35,7 @@ CLI_WORDS: dict[str, str] = {
     "k": "--k",
     "chunk_rows": "--chunk-rows",
     "g": "--g",
+    "fit": "--calibration",
 }
 #: Library phrases that are a flag on the command line.
 CLI_PHRASES: dict[str, str] = {"means=True": "--means"}
