@@ -59,6 +59,7 @@ def test_report_text_dict_and_plot() -> None:
     matplotlib.use("Agg")
     fig = r.plot()
     assert len(fig.axes) == 4  # time, temperature, pose angle, noise
+    assert "after + drift" in fig.axes[0].get_legend_handles_labels()[1]
 
 
 def test_blind_spots_without_temperature_and_on_faces() -> None:

@@ -142,7 +142,8 @@ def _residual_panel(axis: Any, x: Any, rep: Any, label: str) -> None:
     flag = np.asarray(d["flag"], dtype=bool)
     axis.plot(x, d["t_stud"], "o", ms=4, color="C0", label="baseline (studentised)")
     axis.plot(x, d["e_after"], "x", ms=5, color="C1",
-              label=f"+ {', '.join(rep.selected) or 'none'}")
+              label=(f"after + {', '.join(rep.selected)}" if rep.selected
+                     else "whitened (no effect selected)"))
     if flag.any():
         axis.plot(np.asarray(x)[flag], np.asarray(d["t_stud"])[flag], "o", ms=10, mfc="none",
                   mec="C3", label="flagged")
