@@ -161,3 +161,26 @@ def test_a_fleet_of_pose_tables_is_calibrated_as_the_single_file_command_does(
         np.testing.assert_allclose([r[n] for n in names], ref.vector, rtol=1e-10)
     bad = rows.loc[str(rest)]
     assert bad["status"] == "error" and "sample rate is not in the file" in bad["message"]
+
+
+def test_a_table_with_a_time_per_pose_is_read_as_poses_with_their_times(tmp_path: Path) -> None:
+    """One row per pose with the time of each (every 30 s): a rate of 1/30 Hz is far too low
+    for the detector's window, so the rows are taken for dwell means, and their times reach
+    the gap diagnosis (drift becomes testable)."""
+    m = session(20, seed=11)
+    t = 30.0 * np.arange(20)
+    p = tmp_path / "poses_t.csv"
+    np.savetxt(p, np.column_stack([t, m]), fmt="%.6f", delimiter=",", header="t,ax,ay,az",
+               comments="")
+    d = stream_dwells(p, means=None)
+    np.testing.assert_array_equal(d.t, t)
+    np.testing.assert_allclose(d.mean, np.round(m, 6), atol=1e-9)
+    code, out = run("calibrate", "static", str(p), "--g", str(G))
+    assert code == 0, out
+    assert "its rate, 0.03333 Hz, is too low for a stream of samples" in out
+    r = ac.diagnose(d, g=G)
+    assert next(e for e in r.effects if e["effect"] == "drift")["status"] in (
+        "testable", "selected", "not_confirmed")
+    # Asked for plainly (stream_dwells' default), the detector's own error stands.
+    with pytest.raises(CalibrationError, match="samples per window"):
+        stream_dwells(p)

@@ -142,9 +142,12 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
     notes = rec.lay.notes
     # Each row is a dwell: no rate is needed, so the reader's note asking for one goes.
     notes[:] = [n for n in notes if not n.startswith("the sample rate is not in the file")]
+    fs = rec.fs
     how = "as asked" if forced else (
-        "its rate is unknown and its rows step from attitude to attitude; give the sample "
-        "rate (fs) to read it as samples instead")
+        ("its rate is unknown" if fs is None else
+         f"its rate, {fs:.4g} Hz, is too low for a stream of samples")
+        + " and its rows step from attitude to attitude; give the sample rate (fs) to read "
+        "it as samples instead")
     notes.append(f"read as a table of dwell means, one pose per row ({n} rows; {how})")
     var = count = None
     label = [names[j] for j in std_cols] if names is not None and std_cols else []

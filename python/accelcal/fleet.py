@@ -169,24 +169,32 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     n = len(st)
     row["n_samples"] = n
     fault_note: list[str] = []
-    if st.fs is None:
+    # Too slow a rate for the detector's window: a row per pose, at best.
+    slow = st.fs is not None and st.fs * float(job.detector.get("window_s", 1.0)) < 8
+    if st.fs is None or slow:
         from ._pose_table import looks_like_poses
 
-        if job.bounds is not None or not looks_like_poses(np.asarray(st.samples, np.float64)):
+        poses = job.bounds is None and looks_like_poses(np.asarray(st.samples, np.float64))
+        if st.fs is None and not poses:
             row["message"] = (
                 f"the sample rate is not in the file (no fs metadata or time column): give "
                 f"{names['fs']}" + ("" if job.cli else " or an fs column in the manifest")
             )
             return None
+    else:
+        poses = False
+    if poses:
         # A table of dwell means (one pose per row), as the single-file commands read it.
         d = _aio.read_means(job.read_path, columns=job.columns)
+        why = "unknown" if st.fs is None else f"{st.fs:.4g} Hz, too low for samples"
         fault_note.append(f"read as a table of dwell means, one pose per row ({n} rows: the "
-                          "rate is unknown and the rows step from attitude to attitude)")
+                          f"rate is {why}, and the rows step from attitude to attitude)")
     elif job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
         known = _aio.read_bounds(job.bounds)
         d = _aio._named_dwells(dwell_stats(st.samples, known.rows(st.fs), t=st.t,
                                            temperature=st.temperature, fs=st.fs), known)
     else:
+        assert st.fs is not None  # no rate: returned above, or read as poses
         settings = DetectorSettings(**job.detector)
         d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature,
                           settings=settings)

@@ -2501,15 +2501,20 @@ def _stream_dwells(
         raise CalibrationError("give dwell bounds or read the file as a table of dwell means "
                                "(one pose per row), not both")
     rec = _Recording(path, columns, fs, time_column)
-    if means or (means is None and bounds is None and rec.fs is None):
+    # Too slow a rate for the detector's window (8 samples at least): a row per pose, at
+    # best (a table of dwell means with a time column).
+    slow = rec.fs is not None and rec.fs * float(detector_kw.get("window_s", 1.0)) < 8
+    if means or (means is None and bounds is None and (rec.fs is None or slow)):
         from ._pose_table import pose_table
 
         d = pose_table(rec, units, forced=bool(means))
         if d is not None:
             rec.pose_table = True
             return d, rec
-        if rec.rows:  # read, and not poses: the rate is unknown
+        if rec.rows and not slow:  # read, and not poses: the rate is unknown
             raise CalibrationError(rec.no_rate())
+        if rec.rows:  # read, and not poses: the detector's own error, from a fresh reader
+            rec = _Recording(path, columns, fs, time_column)
     if isinstance(bounds, (str, os.PathLike)):
         bounds = read_bounds(bounds)
     known = bounds.path if isinstance(bounds, Bounds) else None  # named in its errors
