@@ -184,3 +184,27 @@ def test_a_table_with_a_time_per_pose_is_read_as_poses_with_their_times(tmp_path
     # Asked for plainly (stream_dwells' default), the detector's own error stands.
     with pytest.raises(CalibrationError, match="samples per window"):
         stream_dwells(p)
+
+
+def test_a_label_column_names_the_poses(tmp_path: Path) -> None:
+    """A lab's table of pose means with a text label per row (``position, ax, ay, az`` with
+    ``+X up`` ...): the labels become the dwells' names instead of making the file look like
+    a long-format log; labels that name sensors still make it one (and are refused)."""
+    m = session(12, seed=13)
+    labels = [f"{s}{a} {w}" for s, a, w in zip("+-" * 6, "XXYYZZXXYYZZ", ["up", "down"] * 6,
+                                                strict=True)]
+    labels = [f"{lab} #{i}" for i, lab in enumerate(labels)]
+    p = tmp_path / "lab.csv"
+    p.write_text("position,ax,ay,az\n" + "".join(
+        f"{lab},{r[0]:.5f},{r[1]:.5f},{r[2]:.5f}\n" for lab, r in zip(labels, m, strict=True)))
+    d = read_means(p)
+    assert d.names == labels
+    np.testing.assert_allclose(d.mean, np.round(m, 5), atol=1e-9)
+    code, out = run("dwells", str(p))
+    assert code == 0, out
+    assert "column 'position' holds a text label per row" in out and "+X up #0" in out
+    bad = tmp_path / "sensors.csv"
+    bad.write_text("t,sensor,x,y,z\n" + "".join(
+        f"{i * 0.01:.2f},{'GYR' if i % 2 else 'MAG'},0.1,0.2,0.3\n" for i in range(20)))
+    with pytest.raises(CalibrationError, match="no label that names an accelerometer"):
+        read_means(bad)

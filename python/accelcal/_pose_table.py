@@ -166,7 +166,10 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
         notes.append(f"the per-pose std columns ({', '.join(label)}) are not used: without a "
                      "sample count (a column n or count) they give no standard error of the "
                      "means; the noise level is estimated from the fit")
-    return DwellSet(s, var, count, t=t, temperature=temp, units=units)
+    labels = None if rec.arrays is None else rec.arrays.labels
+    if labels is not None and len(labels) != n:
+        labels = None
+    return DwellSet(s, var, count, t=t, temperature=temp, units=units, names=labels)
 
 
 def _norm_name(name: str) -> str:

@@ -57,6 +57,7 @@ import weakref
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from io import StringIO
 from typing import Any
 
 import numpy as np
@@ -506,9 +507,16 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
                   if ln.strip() and not ln.strip().startswith(("#", "%", "//"))), "")
     delim = _guess_delim(first)
     has_header = not any(_field_kind(f, delim) in ("num", "dc") for f in _split(first, delim))
+    # Comment lines left out here: pandas' comment= would also cut a '#' inside a field
+    # (a label such as 'pose #3').
     try:
-        df = pd.read_csv(src.opened, sep=delim if delim else r"\s+",
-                         header=0 if has_header else None, comment="#",
+        with open(src.opened, encoding="utf-8-sig", errors="replace") as fh:
+            body = "".join(ln for ln in fh if not ln.lstrip().startswith(("#", "%", "//")))
+    except OSError as e:
+        raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
+    try:
+        df = pd.read_csv(StringIO(body), sep=delim if delim else r"\s+",
+                         header=0 if has_header else None,
                          skipinitialspace=True, low_memory=False)
     except (ValueError, pd.errors.ParserError) as e:
         raise CalibrationError(f"{name}: a long-format log (a text label in each row) that pandas "
@@ -544,9 +552,10 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
         return out
     wide = _wide_with_text(df, text)
     if wide is not None:  # no label: a wide table after all
-        sub, notes = wide
+        sub, notes, labels = wide
         out = _dataframe_source(sub, columns, fs, time_column, path=name, named=has_header)
         out.lay.notes += notes
+        out.labels = labels
         return out
     seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in text}
     raise CalibrationError(
@@ -556,25 +565,57 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
         "columns=label))")
 
 
-def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str]] | None:
+#: Words of a label that names a sensor (a long-format log's rows), not a pose.
+_SENSOR_WORDS = {
+    "acc", "accel", "acceleration", "accelerometer", "gyr", "gyro", "gyroscope", "mag",
+    "magnetometer", "baro", "barometer", "pressure", "temp", "temperature", "gps", "imu",
+    "quat", "quaternion", "orientation", "rotation", "gravity", "linacc", "light", "proximity",
+}
+
+
+def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str], list[str] | None] | None:
     """A table whose text columns are all date-times (WitMotion's ``2023-10-9 16:14:27.564``,
-    which the text reader's ISO-8601 parser does not take: its fields are not zero-padded) or
-    one value repeated in every row (a device name): the table with the times read as such and
-    the constants left out, and notes saying so; None when a text column is neither."""
+    which the text reader's ISO-8601 parser does not take: its fields are not zero-padded),
+    one value repeated in every row (a device name), or one column of row labels beside
+    columns named as an accelerometer's (a lab's table of pose means: ``position, ax, ay,
+    az`` with ``+X up`` ...). Returns the table with the times read as such and the
+    constants and labels left out, notes saying so, and the labels (None without); None
+    when a text column is none of these."""
     import pandas as pd
 
     notes: list[str] = []
+    labels: list[str] | None = None
     for c in text:
         when = pd.to_datetime(df[c], format="ISO8601", errors="coerce")
         if when.size and bool(when.notna().all()):
             df = df.assign(**{c: when})
             continue
-        vals = df[c].astype(str).str.strip().unique()
-        if len(vals) != 1:
-            return None
+        vals = df[c].astype(str).str.strip()
+        uniq = vals.unique()
+        if len(uniq) != 1:
+            # Row labels, not a sensor per row: a small table, labels mostly distinct, none
+            # naming a sensor, and columns named as an accelerometer's beside them.
+            if (labels is not None or len(vals) > POSE_TABLE_ROWS or 2 * len(uniq) < len(vals)
+                    or any(_SENSOR_WORDS.intersection(re.split(r"[^a-z]+", v.lower()))
+                           for v in uniq)):
+                return None
+            rest = [str(k) for k in df.columns if k not in text]
+            try:
+                acc = _auto_acc(rest, "")
+            except CalibrationError:
+                acc = None
+            if acc is None:
+                return None
+            labels = vals.tolist()
+            df = df.drop(columns=[c])
+            notes.append(f"column {c!r} holds a text label per row ({', '.join(labels[:3])}"
+                         f"{' ...' if len(labels) > 3 else ''}): kept as the rows' names, not "
+                         "read as data")
+            continue
         df = df.drop(columns=[c])
-        notes.append(f"column {c!r} holds {vals[0]!r} in every row (a device name?): left out")
-    return df, notes
+        notes.append(f"column {c!r} holds {vals.iloc[0]!r} in every row (a device name?): "
+                     "left out")
+    return df, notes, labels
 
 
 def _long_format_hint(line: str) -> str:
@@ -1385,6 +1426,7 @@ class _ArraySource:
     t: Any = None  # separate (N,) time array, s
     temp: Any = None
     closer: Callable[[], None] | None = None
+    labels: list[str] | None = None  # a text label per row (a table of pose means' names)
 
     def chunk(self, a: int, b: int) -> tuple[NDArray[Any], Any, Any]:
         lay = self.lay
