@@ -24,15 +24,14 @@ if TYPE_CHECKING:
 #: (a session of more poses than this is not hand-placed).
 POSE_TABLE_ROWS = 2000
 #: Consecutive rows of a pose table differ by about the radius of the sphere the poses lie
-#: on; consecutive samples of a stream differ by the noise. A file is taken for poses when
-#: the median step between consecutive rows is above this fraction of the median distance of
-#: the rows from their centroid, and that distance is well above the step a stream at rest
-#: makes (the median absolute step is not mostly zero).
+#: on; consecutive samples of a stream mostly differ by the noise. A file is taken for poses
+#: when the median step between consecutive rows is above this fraction of the rows' median
+#: distance from their median point.
 POSE_STEP = 0.5
 #: At least this many rows make a pose table.
 POSE_MIN_ROWS = 6
-#: The rows' median distance from their centroid must exceed this fraction of the centroid's
-#: distance from zero (poses spread by about g; a raw ADC's offset is a few g at most, while
+#: The rows' median distance from their median point must exceed this fraction of that
+#: point's distance from zero (poses spread by about g; a raw ADC's offset is a few g at most, while
 #: the noise of one pose is a per cent of g or less).
 POSE_SPREAD = 0.03
 
@@ -53,7 +52,8 @@ def looks_like_poses(s: NDArray[np.float64]) -> bool:
     """Whether the rows ``s`` (n, 3) read as one mean per pose rather than as samples: a
     few (``POSE_MIN_ROWS`` to ``POSE_TABLE_ROWS``) finite rows, nearly every one a step to
     another attitude (median step between consecutive rows above ``POSE_STEP`` times the
-    median distance from the centroid), spread over at least three directions."""
+    median distance from the median point), spread over three directions by about g
+    (``POSE_SPREAD``)."""
     n = s.shape[0]
     if not POSE_MIN_ROWS <= n <= POSE_TABLE_ROWS or not np.all(np.isfinite(s)):
         return False
