@@ -363,7 +363,11 @@ fn smooth_stage(
         let crowded = sc.status == Status::Blind && wc.nrows() < b_t.rank + wc.ncols() + 1;
         let mut t = StructureTest::new(
             st.name,
-            if crowded { Status::TooFewRows } else { sc.status },
+            if crowded {
+                Status::TooFewRows
+            } else {
+                sc.status
+            },
         );
         t.n_columns = cols.ncols();
         t.d = sc.d;
