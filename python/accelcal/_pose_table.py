@@ -9,7 +9,7 @@ and says so.
 from __future__ import annotations
 
 import re
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +46,17 @@ STD_NAME = re.compile(rf"^(?:{_STD}{_AXIS}|{_AXIS}{_STD}){_UNIT}$")
 #: A per-dwell sample count's column.
 COUNT_NAMES = {"n", "count", "nsamples", "numsamples", "samplecount", "samples", "npoints",
                "npts", "nsample", "num"}
+
+
+def too_slow_for_detection(fs: float | None, window_s: float | None = None) -> bool:
+    """Whether a rate ``fs`` (Hz) gives the dwell detector's window (``window_s``, default
+    :class:`~accelcal.DetectorSettings`'s) fewer than the 8 samples the detector needs
+    (``MIN_WINDOW_SAMPLES`` of the Rust core): a time column with one row per pose, at
+    best."""
+    from .dwell import DetectorSettings
+
+    w = DetectorSettings().window_s if window_s is None else float(window_s)
+    return fs is not None and fs * w < 8
 
 
 def looks_like_poses(s: NDArray[np.float64]) -> bool:
@@ -113,6 +124,7 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
     give no standard error without the count).
     """
     from .dwell import DwellSet
+    from .io import _norm
 
     if not forced:
         est = rec.rows_estimate()
@@ -121,7 +133,7 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
     names = rec.lay.names
     std_cols = _named(names, STD_NAME)
     count_col = None if names is None else next(
-        (i for i, n in enumerate(names) if _norm_name(n) in COUNT_NAMES), None)
+        (i for i, n in enumerate(names) if _norm(n) in COUNT_NAMES), None)
     extra_idx = (std_cols or []) + ([count_col] if count_col is not None else [])
     extra = _whole_columns(rec, extra_idx) if extra_idx and rec.arrays is not None else None
     s, t, temp = rec.read_all()
@@ -170,14 +182,3 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
     if labels is not None and len(labels) != n:
         labels = None
     return DwellSet(s, var, count, t=t, temperature=temp, units=units, names=labels)
-
-
-def _norm_name(name: str) -> str:
-    from .io import _norm
-
-    return _norm(name)
-
-
-def mean_columns(names: Any) -> list[int] | None:
-    """The x, y, z dwell-mean columns by name (``x_mean``, ``mean_ax`` ...), or None."""
-    return _named(tuple(names), MEAN_NAME)

@@ -169,10 +169,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     n = len(st)
     row["n_samples"] = n
     fault_note: list[str] = []
-    # Too slow a rate for the detector's window: a row per pose, at best.
-    slow = st.fs is not None and st.fs * float(job.detector.get("window_s", 1.0)) < 8
+    from ._pose_table import looks_like_poses, too_slow_for_detection
+
+    slow = too_slow_for_detection(st.fs, job.detector.get("window_s"))
     if st.fs is None or slow:
-        from ._pose_table import looks_like_poses
 
         poses = job.bounds is None and looks_like_poses(np.asarray(st.samples, np.float64))
         if st.fs is None and not poses:

@@ -65,7 +65,7 @@ from numpy.typing import NDArray
 
 from . import _core
 from ._core import CalibrationError
-from ._pose_table import MEAN_NAME, POSE_TABLE_ROWS
+from ._pose_table import MEAN_NAME, POSE_TABLE_ROWS, pose_table, too_slow_for_detection
 from ._validate import positive
 
 __all__ = [
@@ -2352,8 +2352,6 @@ def read_means(path: Any, *, columns: Any = None, units: str = "") -> Any:
     the noise level from the residuals. A time column, if any, gives each dwell's time and a
     ``temp...`` column its temperature. Rows with NaN are refused, naming them.
     """
-    from ._pose_table import pose_table
-
     rec = _Recording(path, columns, None, None)
     d = pose_table(rec, units, forced=True)
     assert d is not None
@@ -2543,11 +2541,8 @@ def _stream_dwells(
         raise CalibrationError("give dwell bounds or read the file as a table of dwell means "
                                "(one pose per row), not both")
     rec = _Recording(path, columns, fs, time_column)
-    # Too slow a rate for the detector's window (8 samples at least): a row per pose, at
-    # best (a table of dwell means with a time column).
-    slow = rec.fs is not None and rec.fs * float(detector_kw.get("window_s", 1.0)) < 8
+    slow = too_slow_for_detection(rec.fs, detector_kw.get("window_s"))
     if means or (means is None and bounds is None and (rec.fs is None or slow)):
-        from ._pose_table import pose_table
 
         d = pose_table(rec, units, forced=bool(means))
         if d is not None:
