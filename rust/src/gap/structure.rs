@@ -813,6 +813,28 @@ mod tests {
     }
 
     #[test]
+    fn without_rows_adds_an_indicator_to_the_null_model() {
+        // A line fitted to 8 rows; leaving row 0 out adds its indicator to the basis, and the
+        // residual loses its row-0 component (and stays orthogonal to the line).
+        let j = DMatrix::from_fn(8, 2, |k, c| if c == 0 { 1.0 } else { k as f64 });
+        let e = DVector::from_fn(8, |k, _| [3.0, -1.0, 0.5, 0.2, -0.4, 0.1, 0.3, -0.2][k]);
+        assert!(without_rows(&j, &e, &[]).unwrap().is_none());
+        let (b, e2) = without_rows(&j, &e, &[0]).unwrap().unwrap();
+        assert_eq!(b.rank, 3);
+        assert!(e2[0].abs() < 1e-12, "{}", e2[0]);
+        assert!((j.transpose() * &e2).norm() < 1e-12);
+        // What is left is the residual of the same line fitted to rows 1..8 alone.
+        let j7 = j.rows(1, 7).into_owned();
+        let e7 = e.rows(1, 7).into_owned();
+        let p = (j7.transpose() * &j7)
+            .lu()
+            .solve(&(j7.transpose() * &e7))
+            .unwrap();
+        let r7 = &e7 - &j7 * p;
+        assert!((e2.rows(1, 7) - r7).norm() < 1e-12);
+    }
+
+    #[test]
     fn trend_columns_span_bias_and_scale_trends() {
         let x: Vec<f64> = (0..10).map(|k| k as f64).collect();
         let w = vec![[1.0, 0.5, -0.2]; 10];
