@@ -734,3 +734,24 @@ def test_fixed_pose_order_cannot_test_pose_history_and_says_so() -> None:
     assert r.structure.verdict != "pose_history"
     assert "pose_history (each pose follows the same pose every time: shuffle the pose " \
            "order to test it)" in r.summary()
+
+
+def test_a_session_in_units_of_g_is_reported_in_g() -> None:
+    """The same session in m/s^2 and in g (means / 9.80665, g = 1): the same statistics, and
+    every magnitude in the units of g (mg, not mm/s^2), as the fit and its calibration file
+    give them."""
+    s = gap_session(("drift",), rng=3, amplitudes=[20.0], sigma=1e-3)
+    d, c = s.dwells, 1.0 / 9.80665
+    in_g = DwellSet(d.mean * c, d.var * c * c, d.count, t=d.t, temperature=d.temperature,
+                    half_mean=None if d.half_mean is None else d.half_mean * c)
+    a, b = diagnose(d, g=9.80665), diagnose(in_g, g=1.0)
+    assert (a.units, b.units) == ("m/s^2", "g")
+    assert b.chi2 == pytest.approx(a.chi2, rel=1e-6) and b.best == a.best
+    assert b.rms_after == pytest.approx(a.rms_after * c, rel=1e-6)
+    if math.isfinite(a.structure.per_dwell_rms):
+        assert b.structure.per_dwell_rms == pytest.approx(a.structure.per_dwell_rms * c,
+                                                          rel=1e-6)
+    text = b.summary()
+    assert "m/s^2" not in text and "mm/s" not in text
+    assert accelcal.fit_static(in_g, 1.0).to_model().units == "g"
+    assert accelcal.fit_static(d, 9.80665).to_model().units == "m/s^2"

@@ -1430,3 +1430,55 @@ def test_unnamed_accelerometer_columns_are_found_by_their_norm(tmp_path: Path) -
     with pytest.raises(CalibrationError, match=r"no accelerometer columns recognised among "
                        r"\['time', 'u', 'v', 'w'\]; give columns="):
         read_stream(p2)
+
+
+def test_signed_16_bit_values_stored_as_unsigned_are_read_as_signed(tmp_path: Path) -> None:
+    """A flight computer's older log keeps the int16 registers as uint16 (65404 for -132).
+    The accelerometer is found by its norm once read as signed, with a note, in a headerless
+    file, under names and as a uint16 ``.npy``; the fit equals the one on the signed values.
+    A 16-bit ADC that is unsigned by design (mid-scale 32768) is left as it is."""
+    from accelcal.sim.field import field_session
+
+    truth = [1.003, 0.997, 1.001, 0.04, -0.06, 0.02, 0.001, 0.002, -0.001]
+    s = field_session(fs=100.0, n_dwells=14, dwell_s=4.0, move_s=1.5, max_tilt_deg=85.0,
+                      truth=truth, sigma=0.02, rng=9)
+    counts = np.round(s.samples / s.g * 2048.0).astype(np.int64)
+    rng = np.random.default_rng(2)
+    gyro = np.round(30.0 * rng.standard_normal((len(s.t), 3))).astype(np.int64)
+    stored = np.column_stack([counts, gyro]) & 0xFFFF
+    assert stored.min() >= 0 and stored.max() > 60000
+    plain = tmp_path / "signed.txt"
+    np.savetxt(plain, np.column_stack([s.t, counts]), fmt=["%.2f", "%d", "%d", "%d"])
+    p = tmp_path / "unsigned.txt"
+    np.savetxt(p, np.column_stack([s.t, stored]), fmt=["%.2f"] + ["%d"] * 6)
+    st = read_stream(p)
+    np.testing.assert_array_equal(st.samples, counts)
+    assert any("columns 1, 2, 3 (0-based) hold signed 16-bit values stored as unsigned" in x
+               and "counts at 2048/g" in x for x in st.notes)
+    ref = ac.fit_static(stream_dwells(plain), 2048.0, observability="ignore", check_g=False)
+    got = ac.fit_static(stream_dwells(p), 2048.0, observability="ignore", check_g=False)
+    np.testing.assert_array_equal(got.vector, ref.vector)
+    # Named columns, and an explicit choice of them, get the same reading.
+    named = tmp_path / "named.csv"
+    np.savetxt(named, np.column_stack([s.t, stored[:, :3]]), fmt=["%.2f", "%d", "%d", "%d"],
+               delimiter=",", header="t,ax,ay,az", comments="")
+    for kw in ({}, {"columns": ["ax", "ay", "az"]}):
+        sn = read_stream(named, **kw)
+        np.testing.assert_array_equal(sn.samples, counts)
+        assert any("'ax', 'ay', 'az' hold signed 16-bit values stored as unsigned" in x
+                   for x in sn.notes)
+    # A uint16 array (a binary dump) is viewed as int16, without a copy of the file.
+    npy = tmp_path / "raw.npy"
+    np.save(npy, stored[:, :3].astype(np.uint16))
+    sa = read_stream(npy, fs=100.0)
+    assert sa.samples.dtype == np.int16
+    np.testing.assert_array_equal(sa.samples, counts)
+    # An ADC that is unsigned by design: 1 g is 2048 counts about mid-scale. Its norm is not
+    # 1 g either way, so nothing is reinterpreted.
+    adc = 32768 + counts
+    p3 = tmp_path / "adc.csv"
+    np.savetxt(p3, np.column_stack([s.t, adc]), fmt=["%.2f", "%d", "%d", "%d"],
+               delimiter=",", header="t,ax,ay,az", comments="")
+    s3 = read_stream(p3)
+    np.testing.assert_array_equal(s3.samples, adc)
+    assert not any("stored as unsigned" in x for x in s3.notes)

@@ -91,6 +91,33 @@ def test_named_mean_std_and_count_columns_give_each_mean_its_noise(tmp_path: Pat
     code, out = run("calibrate", "static", str(p2), "--g", str(G))
     assert code == 0, out
     assert "per-pose std columns (x_std, y_std, z_std) are not used" in out
+    assert "or --count for all poses" in out
+    # A logger that averages a fixed number of samples per pose: count= / --count gives
+    # each mean its noise, std / sqrt(count), and the fit then knows the noise.
+    d2 = read_means(p2, count=400)
+    np.testing.assert_array_equal(d2.count, np.full(len(m), 400))
+    np.testing.assert_allclose(d2.sem, std / 20.0, rtol=1e-14)
+    ref = ac.fit_static(m, G, sigma=std / 20.0)
+    np.testing.assert_allclose(ac.fit_static(d2, G).vector, ref.vector, rtol=1e-12)
+    code, out = run("calibrate", "static", str(p2), "--g", str(G), "--count", "400",
+                    "--json")
+    assert code == 0, out
+    res = json.loads(out)
+    np.testing.assert_allclose(res["vector"], ref.vector, rtol=1e-10)
+    code, out = run("calibrate", "static", str(p2), "--g", str(G), "--count", "400")
+    assert code == 0 and "the 400 samples per pose given by --count: std / sqrt" in out
+    # ... but not with the table's own count column, without std columns, or for samples.
+    with pytest.raises(CalibrationError, match=r"count= conflicts with the table's own count "
+                       r"column 'n'"):
+        read_means(p, count=400)
+    plain = tmp_path / "plain.csv"
+    np.savetxt(plain, m, delimiter=",", header="ax,ay,az", comments="")
+    with pytest.raises(CalibrationError, match=r"has no per-pose std columns"):
+        read_means(plain, count=10)
+    with pytest.raises(CalibrationError, match=r"give means=True too"):
+        stream_dwells(plain, fs=100.0, count=10)
+    code, out = run("dwells", str(p2), "--count", "0")
+    assert code == 2 and "--count" in out
 
 
 def test_samples_of_unknown_rate_are_not_taken_for_poses(tmp_path: Path) -> None:
@@ -208,3 +235,29 @@ def test_a_label_column_names_the_poses(tmp_path: Path) -> None:
         f"{i * 0.01:.2f},{'GYR' if i % 2 else 'MAG'},0.1,0.2,0.3\n" for i in range(20)))
     with pytest.raises(CalibrationError, match="no label that names an accelerometer"):
         read_means(bad)
+
+
+@pytest.mark.parametrize("layout", ["fortran", "strided", "column_view", "float32", "int16",
+                                    "uint16_stored", "dataframe"])
+def test_pose_means_in_any_memory_layout_fit_as_the_c_array(layout: str) -> None:
+    """The same means as Fortran-ordered, strided, a column view, float32, int16 counts, int16
+    stored as uint16 (65404 for -132) or a DataFrame: the same fit as the C-ordered float64
+    array (to float32 rounding for float32), through read_means and stream_dwells."""
+    import pandas as pd
+
+    counts = np.round(session(n=30))
+    ref = ac.fit_static(counts, G)
+    arr: object = {
+        "fortran": lambda: np.asfortranarray(counts),
+        "strided": lambda: np.repeat(counts, 2, axis=0)[::2],
+        "column_view": lambda: np.column_stack([counts, counts])[:, 3:],
+        "float32": lambda: counts.astype(np.float32),
+        "int16": lambda: counts.astype(np.int16),
+        "uint16_stored": lambda: (counts.astype(np.int64) & 0xFFFF).astype(np.uint16),
+        "dataframe": lambda: pd.DataFrame(counts, columns=["ax", "ay", "az"]),
+    }[layout]()
+    for d in (read_means(arr), stream_dwells(arr, means=True)):
+        np.testing.assert_array_equal(d.mean, counts)
+        fit = ac.fit_static(d, G)
+        np.testing.assert_array_equal(fit.vector, ref.vector)
+        assert np.all(np.abs(fit.vector - TRUTH) < 5 * fit.std)

@@ -114,14 +114,16 @@ def _whole_columns(rec: _Recording, idx: list[int]) -> NDArray[np.float64] | Non
     return None
 
 
-def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSet | None:
+def pose_table(rec: _Recording, units: str = "", forced: bool = True,
+               count: int | None = None) -> DwellSet | None:
     """The rows of ``rec`` as dwell means (a :class:`~accelcal.DwellSet` with one dwell per
     row), with a note saying so. Unless ``forced``, only when the rows look like poses
     (:func:`looks_like_poses`); None otherwise (the recording is then read).
 
     Per-pose std columns (``x_std`` ...) with a sample-count column (``n``, ``count``) give
     each mean its white-noise variance; std columns alone are left out with a note (they
-    give no standard error without the count).
+    give no standard error without the count), unless ``count`` gives the samples behind
+    every mean.
     """
     from .dwell import DwellSet
     from .io import _norm
@@ -134,6 +136,17 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
     std_cols = _named(names, STD_NAME)
     count_col = None if names is None else next(
         (i for i, n in enumerate(names) if _norm(n) in COUNT_NAMES), None)
+    given = count
+    if given is not None:
+        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+            raise CalibrationError(f"count must be a whole number of samples >= 1; got "
+                                   f"{count!r}")
+        if not std_cols:
+            raise CalibrationError(f"{rec.path}: count= gives the samples behind each mean's "
+                                   "std, but the table has no per-pose std columns (x_std...)")
+        if count_col is not None:
+            raise CalibrationError(f"{rec.path}: count= conflicts with the table's own count "
+                                   f"column {names[count_col]!r}")  # type: ignore[index]
     extra_idx = (std_cols or []) + ([count_col] if count_col is not None else [])
     extra = _whole_columns(rec, extra_idx) if extra_idx and rec.arrays is not None else None
     s, t, temp = rec.read_all()
@@ -161,24 +174,29 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True) -> DwellSe
         + " and its rows step from attitude to attitude; give the sample rate (fs) to read "
         "it as samples instead")
     notes.append(f"read as a table of dwell means, one pose per row ({n} rows; {how})")
-    var = count = None
+    var = counts = None
     label = [names[j] for j in std_cols] if names is not None and std_cols else []
-    if std_cols and count_col is not None and extra is not None:
+    if std_cols and given is not None and extra is not None:
+        extra = np.column_stack([extra[:, :3], np.full(n, float(given))])
+    if std_cols and (count_col is not None or given is not None) and extra is not None:
         std, cnt = extra[:, :3], extra[:, 3]
+        said = (f"count ({names[count_col]!r})" if count_col is not None  # type: ignore[index]
+                else f"the {given} samples per pose given by count=")
         if np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(cnt >= 1) and np.all(
                 cnt == np.round(cnt)):
-            var, count = std * std, cnt.astype(np.int64)
-            notes.append(f"each mean's noise from its sample std ({', '.join(label)}) and count "
-                         f"({names[count_col]!r}): std / sqrt(count)")  # type: ignore[index]
+            var, counts = std * std, cnt.astype(np.int64)
+            notes.append(f"each mean's noise from its sample std ({', '.join(label)}) and "
+                         f"{said}: std / sqrt(count)")
         else:
-            notes.append(f"the std and count columns ({', '.join(label)}, "
-                         f"{names[count_col]!r}) are not all valid (std >= 0, "  # type: ignore[index]
-                         "whole counts >= 1): not used; the noise is estimated from the fit")
+            notes.append(f"the std columns ({', '.join(label)}) with {said} are not all valid "
+                         "(std >= 0, whole counts >= 1): not used; the noise is estimated "
+                         "from the fit")
     elif std_cols:
         notes.append(f"the per-pose std columns ({', '.join(label)}) are not used: without a "
-                     "sample count (a column n or count) they give no standard error of the "
-                     "means; the noise level is estimated from the fit")
+                     "sample count (a column n or count, or count= for all poses) they give "
+                     "no standard error of the means; the noise level is estimated from the "
+                     "fit")
     labels = None if rec.arrays is None else rec.arrays.labels
     if labels is not None and len(labels) != n:
         labels = None
-    return DwellSet(s, var, count, t=t, temperature=temp, units=units, names=labels)
+    return DwellSet(s, var, counts, t=t, temperature=temp, units=units, names=labels)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -756,6 +756,8 @@ def _smooth_phrase(name: str) -> str:
 def _mag(v: float, units: str) -> str:
     if units == "m/s^2" and math.isfinite(v):
         return f"{1e3 * v:.2g} mm/s^2"
+    if units == "g" and math.isfinite(v):
+        return f"{1e3 * v:.2g} mg"
     return f"{v:.3g} {units}"
 
 
@@ -1201,7 +1203,12 @@ def diagnose(
     if d.names is not None:  # the sections of a bounds file (imucal's x_p ...)
         rows["name"] = np.array([d.names[i] for i in order], dtype=str)
     curves = _noise_curves(samples, d, fs_v, var, white, allan, hm)
-    return _build_report(raw, _STATIC, g=g_v, alpha=float(settings.alpha),
+    # The report speaks in the units of g (m/s^2, g or cm/s^2), as the fit does.
+    from .static import units_of_g
+
+    unit = units_of_g(g_v) or "units of g"
+    sysw = _STATIC if unit == _STATIC.units else replace(_STATIC, units=unit)
+    return _build_report(raw, sysw, g=g_v, alpha=float(settings.alpha),
                          noise_model=nm_text, statements=statements, rows=rows,
                          noise_curves=curves)
 

@@ -695,7 +695,7 @@ class _Layout:
     t0: tuple[int, int] | None = None
     t0_text: str | None = None
     bytes_per_row: float = 40.0
-
+    signed16: bool = False  # the accelerometer's int16 values are stored as uint16
 
 @dataclass
 class _TextSource:
@@ -980,6 +980,13 @@ def _label_of(names: tuple[str, ...] | None, j: int) -> str:
     return repr(names[j]) if names is not None else f"{j} (0-based)"
 
 
+def _columns_text(names: tuple[str, ...] | None, cols: Sequence[int]) -> str:
+    """``'ax', 'ay', 'az'``, or ``1, 2, 3 (0-based)`` without names."""
+    if names is not None:
+        return ", ".join(repr(names[i]) for i in cols)
+    return f"{', '.join(map(str, cols))} (0-based)"
+
+
 def _label(lay: _Layout, j: int) -> str:
     return _label_of(lay.names, j)
 
@@ -1068,6 +1075,12 @@ def _decide(
                 )
     if tcol is not None and tcol in acc:
         tcol = None
+    unsigned = _stored_unsigned(head[:, acc]) if head.shape[0] else None
+    if unsigned is not None:
+        notes.append(
+            f"columns {_columns_text(names, acc)} hold signed 16-bit "
+            f"values stored as unsigned (65404 for -132): read as signed, their norm is "
+            f"{unsigned[0]:.5g} ({unsigned[1]})")
     if tcol is None and time_column is None:
         dated = [j for j in sorted(iso or ()) if j not in acc]
         if dated:
@@ -1143,6 +1156,7 @@ def _decide(
         fs_source=src,
         notes=notes,
         head=head,
+        signed16=unsigned is not None,
     )
 
 
@@ -1165,27 +1179,60 @@ _ONE_G = ((9.80665, "m/s^2"), (1.0, "g"), (1000.0, "mg"), (16384.0, "counts at 1
           (2048.0, "counts at 2048/g"))
 
 
+def _one_g(x: NDArray[Any]) -> tuple[float, str] | None:
+    """The median row norm of (n, 3) samples and the unit it suggests, when it is within 5 %
+    of 1 g in some unit (:data:`_ONE_G`) and stays within 5 % of that in 75 % of the rows
+    (the rest may be motion between poses); else None."""
+    x = x[np.all(np.isfinite(x), axis=1)]
+    if x.shape[0] < 10:
+        return None
+    norm = np.linalg.norm(x, axis=1)
+    level = float(np.median(norm))
+    unit = next((u for v, u in _ONE_G if level > 0 and abs(level / v - 1.0) < 0.05), None)
+    if unit is None or float(np.quantile(np.abs(norm / level - 1.0), 0.75)) >= 0.05:
+        return None
+    return level, unit
+
+
+def _signed16(x: NDArray[Any]) -> NDArray[Any]:
+    """Signed 16-bit values stored as unsigned (65404 for -132) read as signed: a view for
+    uint16 arrays, ``v - 65536`` for ``v >= 32768`` otherwise."""
+    if x.dtype == np.uint16:
+        return x.view(np.int16)
+    return np.where(x >= 32768, x - 65536, x)
+
+
+def _stored_unsigned(x: NDArray[Any]) -> tuple[float, str] | None:
+    """(level, unit) of :func:`_one_g` for samples whose rows keep a norm of 1 g only when
+    read as signed 16-bit integers (every value a whole number in 0..65535, some above 32767,
+    and their norm not steady as stored); else None."""
+    x = x[np.all(np.isfinite(x), axis=1)]
+    if x.shape[0] < 10 or np.issubdtype(x.dtype, np.signedinteger) and x.dtype.itemsize <= 2:
+        return None
+    lo, hi = float(x.min()), float(x.max())
+    if lo < 0 or hi > 65535 or hi < 32768 or not np.all(x == np.round(x)):
+        return None
+    if _one_g(x) is not None:
+        return None
+    return _one_g(_signed16(x).astype(np.float64))
+
+
 def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int], float, str]]:
-    """Adjacent column triples of a table whose median row norm is within 5 % of 1 g in
-    some unit (:data:`_ONE_G`) and stays within 5 % of that in 75 % of the head rows (the rest
-    may be motion between poses): an accelerometer among other channels (gyroscope,
-    magnetometer, pressure). With the triple, its median norm and the unit it suggests."""
+    """Adjacent column triples of a table whose rows keep a norm of 1 g (:func:`_one_g`),
+    as stored or as signed 16-bit values stored unsigned (the unit then says so): an
+    accelerometer among other channels (gyroscope, magnetometer, pressure). With the triple,
+    its median norm and the unit it suggests."""
     out: list[tuple[list[int], float, str]] = []
-    if head.shape[0] < 10:
-        return out
     for j in range(head.shape[1] - 2):
         cols = [j, j + 1, j + 2]
         if tcol in cols:
             continue
-        x = head[:, cols]
-        x = x[np.all(np.isfinite(x), axis=1)]
-        if x.shape[0] < 10:
-            continue
-        norm = np.linalg.norm(x, axis=1)
-        level = float(np.median(norm))
-        unit = next((u for v, u in _ONE_G if abs(level / v - 1.0) < 0.05), None)
-        if unit is not None and float(np.quantile(np.abs(norm / level - 1.0), 0.75)) < 0.05:
-            out.append((cols, level, unit))
+        found = _one_g(head[:, cols])
+        if found is None:
+            wrapped = _stored_unsigned(head[:, cols])
+            found = None if wrapped is None else (wrapped[0], f"{wrapped[1]}, stored unsigned")
+        if found is not None:
+            out.append((cols, *found))
     return out
 
 
@@ -1281,7 +1328,7 @@ def _text_kwargs(lay: _Layout, src: _TextSource) -> dict[str, Any]:
 def _split_groups(
     lay: _Layout, arrays: list[NDArray[np.float64]]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64] | None]:
-    samples = arrays[0]
+    samples = _signed16(arrays[0]) if lay.signed16 else arrays[0]
     i = 1
     t = temp = None
     if lay.time is not None:
@@ -1445,6 +1492,8 @@ class _ArraySource:
                 lay.time_scale
             )
             temp = None if lay.temp is None else np.asarray(raw[:, lay.temp], np.float64)
+        if lay.signed16:
+            samples = _signed16(samples)
         if t is None and self.t is not None:
             t = np.asarray(self.t[a:b], dtype=np.float64)
         if temp is None and self.temp is not None:
@@ -2313,6 +2362,7 @@ def stream_dwells(
     units: str = "",
     progress: bool | None = False,
     means: bool | None = False,
+    count: int | None = None,
     **detector_kw: Any,
 ) -> Any:
     """Dwell statistics of a (large) recording, streamed chunk by chunk in one pass.
@@ -2330,7 +2380,8 @@ def stream_dwells(
 
     ``means=True`` reads a table of dwell means instead (:func:`read_means`: one pose per
     row); ``means=None`` does so only when the rate is unknown and the rows look like poses
-    (what the command line does, with a note), and reads samples otherwise.
+    (what the command line does, with a note), and reads samples otherwise. ``count``: the
+    samples behind each mean, for a table with per-pose std columns but no count column.
 
     Returns
     -------
@@ -2338,11 +2389,12 @@ def stream_dwells(
     """
     d, _rec = _stream_dwells(path, fs=fs, bounds=bounds, columns=columns,
                              time_column=time_column, chunk_rows=chunk_rows, units=units,
-                             progress=progress, means=means, **detector_kw)
+                             progress=progress, means=means, count=count, **detector_kw)
     return d
 
 
-def read_means(path: Any, *, columns: Any = None, units: str = "") -> Any:
+def read_means(path: Any, *, columns: Any = None, units: str = "",
+               count: int | None = None) -> Any:
     """A table of dwell means, one pose per row, as a :class:`~accelcal.DwellSet` (what a
     logger or firmware that averages each pose writes, or a spreadsheet of pose means): any
     format :func:`read_stream` reads, columns by name as for samples, or ``x_mean`` /
@@ -2351,9 +2403,12 @@ def read_means(path: Any, *, columns: Any = None, units: str = "") -> Any:
     ``count``) give each mean its noise (std / sqrt(count)); otherwise the fit estimates
     the noise level from the residuals. A time column, if any, gives each dwell's time and a
     ``temp...`` column its temperature. Rows with NaN are refused, naming them.
+
+    ``count``: the samples averaged into each mean, for a table whose std columns come without
+    a count column (a logger that averages a fixed number of samples per pose).
     """
     rec = _Recording(path, columns, None, None)
-    d = pose_table(rec, units, forced=True)
+    d = pose_table(rec, units, forced=True, count=count)
     assert d is not None
     return d
 
@@ -2533,6 +2588,7 @@ def _stream_dwells(
     progress: bool | None = False,
     desc: str = "dwells",
     means: bool | None = False,
+    count: int | None = None,
     **detector_kw: Any,
 ) -> tuple[Any, _Recording]:
     """:func:`stream_dwells` that also returns the opened recording (rows, notes)."""
@@ -2541,10 +2597,13 @@ def _stream_dwells(
         raise CalibrationError("give dwell bounds or read the file as a table of dwell means "
                                "(one pose per row), not both")
     rec = _Recording(path, columns, fs, time_column)
+    if count is not None and means is False:
+        raise CalibrationError("count= (samples per pose's mean) is for a table of dwell "
+                               "means: give means=True too")
     slow = too_slow_for_detection(rec.fs, detector_kw.get("window_s"))
     if means or (means is None and bounds is None and (rec.fs is None or slow)):
 
-        d = pose_table(rec, units, forced=bool(means))
+        d = pose_table(rec, units, forced=bool(means), count=count)
         if d is not None:
             rec.pose_table = True
             return d, rec
@@ -2552,6 +2611,9 @@ def _stream_dwells(
             raise CalibrationError(rec.no_rate())
         if rec.rows:  # read, and not poses: the detector's own error, from a fresh reader
             rec = _Recording(path, columns, fs, time_column)
+    if count is not None:
+        raise CalibrationError(f"{rec.path}: count= is for a table of dwell means, and this "
+                               "file is read as samples (give means=True to read it as one)")
     if isinstance(bounds, (str, os.PathLike)):
         bounds = read_bounds(bounds)
     known = bounds.path if isinstance(bounds, Bounds) else None  # named in its errors

@@ -416,6 +416,8 @@ class StaticFit(_core.StaticFit):
         )
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units
+        # The calibrated output is in the units of g (a fit to g = 1 calibrates to g).
+        meta.setdefault("units", units_of_g(self.g) or "units of g")
         scaled = self.covariance_scaled
         return TriadModel(
             self.K,

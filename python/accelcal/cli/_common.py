@@ -28,6 +28,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 #: them. `friendly` rewrites messages with it, so the command line speaks its own language.
 CLI_WORDS: dict[str, str] = {
     "fs": "--fs",
+    "count": "--count",
     "columns": "--columns",
     "time_column": "--time-column",
     "window_s": "--window",
@@ -144,7 +145,8 @@ def gravity_options(fn: F) -> F:
     fn = click.option("--lat", type=float, default=None,
                       help="Latitude, deg (when --g is not known).")(fn)
     return click.option("--g", "g", type=float, default=None,
-                        help="Reference gravity, m/s^2.")(fn)  # type: ignore[no-any-return]
+                        help="Reference gravity, in the units the calibrated output should "
+                             "have: m/s^2 (9.78-9.84), g (1) or cm/s^2.")(fn)  # type: ignore[no-any-return]
 
 
 def _tqdm_disable(quiet: bool) -> bool | None:
@@ -197,7 +199,7 @@ def is_dwell_table(file: str) -> bool:
 
 def stream_dwells(file: str, fs: float | None, columns: str | None, time_column: str | None,
                   quiet: bool, desc: str, bounds: str | None = None, means: bool = False,
-                  **detector: Any) -> tuple[Any, Any]:
+                  count: int | None = None, **detector: Any) -> tuple[Any, Any]:
     """Detect the dwells of a recording in one streaming pass (bounded memory, progress bar),
     or take them from a ``--bounds`` file; or read a table of dwell means (``--means``, or
     a file of unknown rate whose rows look like poses, with a note).
@@ -206,9 +208,9 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
     written by ``accelcal dwells -o``, the table and None.
     """
     if is_dwell_table(file):
-        if bounds or means:
-            raise CalibrationError(f"--{'bounds' if bounds else 'means'}: {file} is a dwell "
-                                   "table already")
+        if bounds or means or count:
+            opt = "bounds" if bounds else "means" if means else "count"
+            raise CalibrationError(f"--{opt}: {file} is a dwell table already")
         from ..dwell import DwellSet
 
         return DwellSet.from_csv(file), None
@@ -216,12 +218,19 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
 
     d, rec = _stream_dwells(file, fs=fs, columns=columns, time_column=time_column,
                             bounds=bounds, progress=False if quiet else None, desc=desc,
-                            means=True if means else None, **({} if bounds else detector))
+                            means=True if means else None, count=count,
+                            **({} if bounds else detector))
     return d, rec
 
 
 def means_option(fn: F) -> F:
-    """``--means``: the file is a table of dwell means (one pose per row)."""
+    """``--means``: the file is a table of dwell means (one pose per row); ``--count N``: the
+    samples behind each of its means, for per-pose std columns without a count column."""
+    fn = click.option(
+        "--count", "count", type=click.IntRange(min=1), default=None,
+        help="Samples averaged into each pose's mean, for a table of dwell means with "
+             "per-pose std columns (x_std...) but no count column: each mean's noise is then "
+             "std / sqrt(N).")(fn)
     return click.option(  # type: ignore[no-any-return]
         "--means", "means", is_flag=True,
         help="FILE is a table of dwell means, one pose per row (per-pose x_std... and n "

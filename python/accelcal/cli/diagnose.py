@@ -52,11 +52,12 @@ from ._common import (
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
              columns: str | None, time_column: str | None, quiet: bool, noise: str,
              preset: str, calibration: str | None, plot_path: str | None,
-             bounds: str | None, means: bool, no_check_g: bool, as_json: bool) -> None:
+             bounds: str | None, means: bool, count: int | None, no_check_g: bool,
+             as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
-    from ..static import TriadModel
+    from ..static import TriadModel, units_of_g
 
     _need_plot(plot_path)
     fit = TriadModel.load(calibration) if calibration else None
@@ -64,7 +65,8 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     # One streaming pass: the dwell accumulator keeps what the diagnosis needs from inside
     # the dwells (means, variances and, where the accumulator provides them, within-dwell
     # noise statistics), so memory stays bounded whatever the recording's length.
-    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds, means)
+    d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds, means,
+                           count=count)
     # A dwell table, or a table of dwell means: no samples to read again.
     tabled = rec is None or rec.pose_table
     if len(d) == 0:
@@ -113,7 +115,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         emit_json(out)
         return
     echo_notes(notes)
-    click.echo(f"{src}, g = {gv:.6f} m/s^2")
+    click.echo(f"{src}, g = {gv:.6f} {units_of_g(gv) or 'units of g'}")
     click.echo(rep.summary())
     if plot_path:
         click.echo(f"wrote {plot_path}")

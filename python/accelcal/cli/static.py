@@ -78,7 +78,7 @@ def calibrate_static(
     files: tuple[str, ...], g: float | None, lat: float | None, height: float,
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
     method: str, window_s: float, k_thr: float, min_dwell_s: float, bounds: str | None,
-    means: bool, no_check_g: bool,
+    means: bool, count: int | None, no_check_g: bool,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
     plot_path: str | None, as_json: bool, **fleet: Any,
 ) -> None:
@@ -93,8 +93,9 @@ def calibrate_static(
         if bounds:
             raise CalibrationError("--bounds takes one recording (its dwells are that "
                                    "recording's rows)")
-        if means:
-            raise CalibrationError("--means takes one table of dwell means, not a fleet run")
+        if means or count:
+            raise CalibrationError(f"--{'means' if means else 'count'} takes one table of "
+                                   "dwell means, not a fleet run")
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns,
             time_column=time_column, quiet=quiet, model=model, method=method,
@@ -105,12 +106,13 @@ def calibrate_static(
     import warnings
 
     from .._core import DegenerateDataError
-    from ..static import TriadModel, WeakDesignWarning, fit_static
+    from ..static import TriadModel, WeakDesignWarning, fit_static, units_of_g
 
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height)
     nominal = TriadModel.load(nominal_path) if nominal_path else None
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds, means,
+                           count=count,
                            window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
     read_notes = [] if rec is None else rec.notes()
     if len(d) == 0:
@@ -162,7 +164,7 @@ def calibrate_static(
         return
     echo_notes(read_notes)
     click.echo(src)
-    click.echo(f"reference gravity g = {gv:.6f} m/s^2 ({g_src})")
+    click.echo(f"reference gravity g = {gv:.6f} {units_of_g(gv) or 'units of g'} ({g_src})")
     click.echo(_cli(fit.summary()))
     for n in notes:
         click.echo(f"warning: {n}")

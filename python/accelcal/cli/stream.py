@@ -98,6 +98,7 @@ def dwells(
     min_dwell_s: float,
     bounds: str | None,
     means: bool,
+    count: int | None,
     output: str | None,
     plot_path: str | None,
     as_json: bool,
@@ -112,7 +113,7 @@ def dwells(
                                "(--means) has none")
     if not plot_path:
         d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells", bounds, means,
-                               window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+                               count=count, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
     else:
         # The same single pass, also keeping a decimated picture of the stream.
         from ..io import _named_dwells, read_bounds
@@ -315,8 +316,9 @@ class _Output:
 @click.argument("cal", type=click.Path())
 @click.argument("file", type=click.Path(allow_dash=True))
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
-              help="Calibrated stream in m/s^2: .csv (t_s, ax, ay, az), .npy ((N, 4) t_s, "
-                   "ax, ay, az), .npz (samples, t) or .h5 (samples, t; needs h5py).")
+              help="Calibrated stream, in the units of the calibration's g (m/s^2 or g): "
+                   ".csv (t_s, ax, ay, az), .npy ((N, 4) t_s, ax, ay, az), .npz (samples, t) "
+                   "or .h5 (samples, t; needs h5py).")
 @recording_options
 @click.option("--chunk-rows", type=click.IntRange(min=1), default=500_000, show_default=True,
               help="Rows calibrated at a time (memory use is about 100 bytes per row).")
@@ -334,12 +336,13 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     rec = open_recording(file, fs, columns, time_column)
     has_t = rec.lay.time is not None or rec.fs is not None or (
         rec.arrays is not None and rec.arrays.t is not None)
-    header = [f"calibrated by accelcal from {cal}", f"source: {file}", "units: m/s^2"]
+    assert isinstance(model, TriadModel)
+    unit = model.units or "units of g"  # the calibrated output is in the units of its g
+    header = [f"calibrated by accelcal from {cal}", f"source: {file}", f"units: {unit}"]
     if rec.lay.t0_text:
         header.append(f"t0: {rec.lay.t0_text}")
     if rec.fs is not None:
         header.append(f"fs_hz: {rec.fs!r}")
-    assert isinstance(model, TriadModel)
     with _Output(output, has_t, header) as out, \
             _progress_bar(rec, "apply", False if quiet else None) as cb:
         for chunk, t, _temp in rec.chunks(chunk_rows, cb):
@@ -349,10 +352,10 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     notes = rec.notes()
     if as_json:
         emit_json({"output": output, "format": out.kind, "rows": out.rows, "time_column": has_t,
-                   "units": "m/s^2", "calibration": cal, "file": file, "notes": notes})
+                   "units": unit, "calibration": cal, "file": file, "notes": notes})
         return
     echo_notes(notes)
-    click.echo(f"wrote {out.rows} calibrated samples (m/s^2{', with t_s' if has_t else ''}) "
+    click.echo(f"wrote {out.rows} calibrated samples ({unit}{', with t_s' if has_t else ''}) "
                f"to {output}")
 
 
