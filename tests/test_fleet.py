@@ -276,13 +276,16 @@ def test_manifest_bounds_column_gives_known_dwells(fleet: dict[str, Any],
     log = tmp_path / "seq.csv"
     log.write_text("pose,start_s,stop_s\n" + "".join(
         f"p{i},{float(a / st.fs)!r},{float(b / st.fs)!r}\n" for i, (a, b) in enumerate(
-            zip(d.start[:20], d.stop[:20], strict=True))))
+            zip(d.start[:20], d.stop[:20], strict=True)))
+        + f"x_rot,{float(d.stop[0] / st.fs)!r},{float(d.start[1] / st.fs)!r}\n")
     man = pd.DataFrame({"path": [r.path, r.path], "sensor_id": ["known", "detected"],
                         "bounds": ["seq.csv", None]})
     man.to_csv(tmp_path / "m.csv", index=False)
     df = ac.calibrate_many(str(tmp_path / "m.csv"), g=G0, workers=1, progress=False)
     assert list(df["status"]) == ["ok", "ok"], list(df["message"])
     assert list(df["n_dwells"]) == [20, 24]
+    # The bounds file's own note (a motion left out) reaches the row, as on the command line.
+    assert "left out as motions, not static: x_rot" in df.loc[0, "message"]
     ref = ac.fit_static(ac.dwell_stats(st.samples, np.column_stack([d.start, d.stop])[:20],
                                        t=st.t, fs=st.fs), G0)
     np.testing.assert_allclose(df.loc[0, PARAMS].to_numpy(float), ref.vector, rtol=1e-12)

@@ -261,3 +261,28 @@ def test_pose_means_in_any_memory_layout_fit_as_the_c_array(layout: str) -> None
         fit = ac.fit_static(d, G)
         np.testing.assert_array_equal(fit.vector, ref.vector)
         assert np.all(np.abs(fit.vector - TRUTH) < 5 * fit.std)
+
+
+def test_the_fleet_row_carries_the_readers_notes(tmp_path: Path) -> None:
+    """What the reader decided reaches the fleet's message, as the single-file commands
+    print it: a pose table's std columns left out (no count), and int16 values stored as
+    uint16 read as signed; the fits equal the single-file ones."""
+    m = session(20, seed=31)
+    std = np.full_like(m, 3.0)
+    p1 = tmp_path / "poses.csv"
+    cols = {"x_mean": m[:, 0], "x_std": std[:, 0], "y_mean": m[:, 1], "y_std": std[:, 1],
+            "z_mean": m[:, 2], "z_std": std[:, 2]}
+    p1.write_text(",".join(cols) + "\n" + "\n".join(
+        ",".join(repr(float(cols[c][i])) for c in cols) for i in range(len(m))) + "\n")
+    counts = np.round(m).astype(np.int64)
+    p2 = tmp_path / "stored_unsigned.txt"
+    np.savetxt(p2, counts & 0xFFFF, fmt="%d")
+    df = ac.calibrate_many([str(p1), str(p2)], g=G, workers=1, progress=False)
+    rows = df.set_index("path")
+    r1, r2 = rows.loc[str(p1)], rows.loc[str(p2)]
+    assert "per-pose std columns (x_std, y_std, z_std) are not used" in r1["message"]
+    assert "hold signed 16-bit values stored as unsigned" in r2["message"]
+    names = ("sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3")
+    np.testing.assert_allclose([r2[n] for n in names],
+                               ac.fit_static(counts.astype(float), G,
+                                             observability="ignore").vector, rtol=1e-10)

@@ -168,7 +168,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
                           time_column=job.time_column)
     n = len(st)
     row["n_samples"] = n
-    fault_note: list[str] = []
+    # What the reader decided (columns found by their norm, int16 stored unsigned, a rate
+    # that disagrees with the time column ...), as the single-file commands print it.
+    fault_note: list[str] = [x for x in st.notes
+                             if not x.startswith("the sample rate is not in the file")]
     from ._pose_table import looks_like_poses, too_slow_for_detection
 
     slow = too_slow_for_detection(st.fs, job.detector.get("window_s"))
@@ -184,13 +187,16 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     else:
         poses = False
     if poses:
-        # A table of dwell means (one pose per row), as the single-file commands read it.
-        d = _aio.read_means(job.read_path, columns=job.columns)
+        # A table of dwell means (one pose per row), as the single-file commands read it,
+        # with their notes (std columns used or not ...) in place of the stream's.
+        d, rec = _aio._stream_dwells(job.read_path, columns=job.columns, means=True)
         why = "unknown" if st.fs is None else f"{st.fs:.4g} Hz, too low for samples"
+        fault_note = [x for x in rec.notes() if not x.startswith("read as a table of dwell")]
         fault_note.append(f"read as a table of dwell means, one pose per row ({n} rows: the "
                           f"rate is {why}, and the rows step from attitude to attitude)")
     elif job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
         known = _aio.read_bounds(job.bounds)
+        fault_note += known.notes
         d = _aio._named_dwells(dwell_stats(st.samples, known.rows(st.fs), t=st.t,
                                            temperature=st.temperature, fs=st.fs), known)
     else:
