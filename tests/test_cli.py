@@ -480,3 +480,22 @@ def test_a_named_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:
         r = subprocess.run([exe, *args], capture_output=True, text=True, timeout=60)
         assert r.returncode == 2, (args, r.stderr)
         assert "is not a regular file (a pipe or a device)" in r.stderr, r.stderr
+
+
+def test_diagnose_takes_the_detector_settings_of_a_low_rate_log(tmp_path: Path) -> None:
+    """A logger at 4 Hz: the default 1 s window is too short (the error names --window and
+    the shortest one that works); diagnose takes --window as calibrate does, with the same
+    dwells, and runs the Allan noise model on the samples with those settings."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=4.0, n_dwells=16, dwell_s=30.0, move_s=8.0, max_tilt_deg=80.0,
+                      sigma=0.01, rng=8)
+    p = write_csv(tmp_path / "slow.csv", s.t, s.samples)
+    code, out = run("diagnose", str(p), "--g", str(s.g))
+    assert code == 2 and "give --window 2 s or more" in out, out
+    code, out = run("diagnose", str(p), "--g", str(s.g), "--window", "3")
+    assert code == 0, out
+    m = re.search(r"(\d+) samples at 4 Hz -> (\d+) dwells", out)
+    assert m and int(m.group(2)) == 16, out
+    code, cal = run("calibrate", "static", str(p), "--g", str(s.g), "--window", "3", "--json")
+    assert code == 0 and json.loads(cal)["n_dwells"] == 16

@@ -1170,6 +1170,16 @@ def test_vibrating_poses_are_reported_with_the_k_that_takes_them() -> None:
     assert len(detect_dwells(x, s.fs, k=k)) == 16
     listed = d.to_dict()["vibrating"]
     assert [[v["start"], v["stop"]] for v in listed] == d.vibrating.tolist()
+    # A stretch 12x the noise (a turntable creeping at 3.5 Hz, as a real tumble log showed):
+    # the k that takes it would take slow motion too, and the note says so instead.
+    from accelcal.dwell import vibrating_text
+
+    big = DwellSet(d.mean, d.var, d.count, start=d.start, stop=d.stop, fs=d.fs,
+                   threshold=d.threshold, noise_std=d.noise_std, vibrating=d.vibrating[:1],
+                   vibrating_std=12 * d.noise_std[None, :])
+    (text,) = vibrating_text(big)
+    assert "would take them" not in text and "would also take slow motion" in text
+    assert "(k=159, against k = 6 now)" in text
 
 
 def test_named_dwells_keep_their_names_through_subsets_csv_and_the_gap_report(

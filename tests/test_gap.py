@@ -755,3 +755,28 @@ def test_a_session_in_units_of_g_is_reported_in_g() -> None:
     assert "m/s^2" not in text and "mm/s" not in text
     assert accelcal.fit_static(in_g, 1.0).to_model().units == "g"
     assert accelcal.fit_static(d, 9.80665).to_model().units == "m/s^2"
+
+
+def test_a_session_that_cannot_determine_the_calibration_is_refused_as_the_fit_does() -> None:
+    """Six faces only (a tumble test): the 9-parameter calibration the diagnosis fits is not
+    determined, so the diagnosis refuses, naming the combination and the two ways on; with
+    a bias + scale calibration of the same session held fixed it runs."""
+    from accelcal.sim.static import static_dwell_means
+
+    faces = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
+                     dtype=float)
+    truth = [1.01, 0.99, 1.02, 0.05, -0.03, 0.08, 0.0, 0.0, 0.0]
+    s = static_dwell_means(np.repeat(faces, 3, axis=0), truth, 9.80665, sigma=1e-3,
+                           sigma_g=0.0, rng=4)
+    d = DwellSet(s.means, np.full((18, 3), 1e-6) * 100, np.full(18, 100))
+    with pytest.raises(DegenerateDataError) as exc:
+        diagnose(d, g=9.80665)
+    msg = str(exc.value)
+    assert "determine m1" in msg and "The gap diagnosis fits that 9-parameter" in msg
+    assert msg.count("add poses") == 1
+    assert 'calibrate with model "diag"' in msg and "fit=" in msg
+    with pytest.raises(DegenerateDataError):
+        accelcal.fit_static(d, 9.80665)  # the fit refuses it too
+    cal = accelcal.fit_static(d, 9.80665, model="diag").to_model()
+    rep = diagnose(d, g=9.80665, fit=cal)
+    assert rep.best == "none" and rep.chi2_per_dof < 3

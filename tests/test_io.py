@@ -1473,6 +1473,15 @@ def test_signed_16_bit_values_stored_as_unsigned_are_read_as_signed(tmp_path: Pa
     sa = read_stream(npy, fs=100.0)
     assert sa.samples.dtype == np.int16
     np.testing.assert_array_equal(sa.samples, counts)
+    # A z offset of half a g (SunDevil's Rev1 board: 24384 counts at z up, 16384/g): the norm
+    # is not steady, so the columns are given, and the wrap is still seen and undone.
+    big = np.round(s.samples / s.g * 16384.0 + [-132.0, 196.0, 8000.0]).astype(np.int64)
+    p4 = tmp_path / "rev1.txt"
+    np.savetxt(p4, np.column_stack([s.t, big & 0xFFFF, np.zeros(len(s.t))]),
+               fmt=["%.3f", "%d", "%d", "%d", "%d"], delimiter="\t")
+    s4 = read_stream(p4, columns=[1, 2, 3], time_column=0)
+    np.testing.assert_array_equal(s4.samples, big)
+    assert any("hold signed 16-bit values stored as unsigned" in x for x in s4.notes)
     # An ADC that is unsigned by design: 1 g is 2048 counts about mid-scale. Its norm is not
     # 1 g either way, so nothing is reinterpreted.
     adc = 32768 + counts
@@ -1482,3 +1491,38 @@ def test_signed_16_bit_values_stored_as_unsigned_are_read_as_signed(tmp_path: Pa
     s3 = read_stream(p3)
     np.testing.assert_array_equal(s3.samples, adc)
     assert not any("stored as unsigned" in x for x in s3.notes)
+
+
+def test_a_named_time_column_that_does_not_count_time_is_not_the_time(tmp_path: Path) -> None:
+    """A ground station's log names a GPS clock ``UTC`` that was never set (all zeros): it is
+    not taken as the time (a note says why), so fs= gives the rate; ``time_column="none"``
+    drops a time column on request (the CLI's ``--time-column none``)."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=20.0, n_dwells=12, dwell_s=6.0, move_s=2.0, max_tilt_deg=80.0,
+                      sigma=0.01, rng=3)
+    n = len(s.t)
+    p = tmp_path / "gs.csv"
+    np.savetxt(p, np.column_stack([np.full(n, 68.0), np.zeros(n), s.samples]),
+               fmt="%.6f", delimiter=",", header="movement,UTC,accelX,accelY,accelZ",
+               comments="")
+    st = read_stream(p, fs=20.0)
+    assert st.fs == 20.0 and st.t is not None
+    np.testing.assert_allclose(st.t, np.arange(n) / 20.0)
+    assert any("column 'UTC' is named as a time but holds 0 in every one of the first" in x
+               for x in st.notes)
+    with pytest.raises(CalibrationError, match="the sample rate is unknown"):
+        stream_dwells(p)
+    # A clock that runs backwards is refused when named, and dropped with "none".
+    p2 = tmp_path / "back.csv"
+    np.savetxt(p2, np.column_stack([s.t[::-1], s.samples]), fmt="%.6f", delimiter=",",
+               header="time,ax,ay,az", comments="")
+    with pytest.raises(CalibrationError, match=r"time_column= none"):
+        read_stream(p2, time_column="time")
+    st2 = read_stream(p2, fs=20.0, time_column="none")
+    np.testing.assert_allclose(st2.t, np.arange(n) / 20.0)
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(main, ["dwells", str(p2), "--fs", "20", "--time-column", "none"])
+    assert r.exit_code == 0 and "12 dwells" in r.output, r.output

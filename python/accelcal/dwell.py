@@ -562,10 +562,16 @@ def vibrating_text(d: DwellSet, option: str = "k=") -> list[str]:
     span = int((vb[:, 1] - vb[:, 0]).sum())
     when = "" if not d.fs else (f" ({span / d.fs:.3g} s in all, the first at "
                                 f"{vb[0, 0] / d.fs:.1f} s)")
+    take = (f"{option}{k_need} would take them (the threshold is k x the noise variance; k = "
+            f"{k_now:.3g} now)")
+    if k_need > 4 * k_now:
+        # A threshold that high also takes slow motion (a turntable, a low sample rate):
+        # the halves of a window agree while the attitude creeps.
+        take = (f"a threshold that takes them ({option}{k_need}, against k = {k_now:.3g} now) "
+                "would also take slow motion, so look at them first (the dwells plot)")
     return [f"{len(vb)} stretch(es){when} look still (their mean stays put) but vibrate above "
             f"the detector's threshold (std up to {ratio:.2g}x the noise): not used as dwells; "
-            f"{option}{k_need} would take them (the threshold is k x the noise variance; k = "
-            f"{k_now:.3g} now)"]
+            f"{take}"]
 
 
 def check_faults(d: DwellSet, what: str, detected: bool = False) -> None:

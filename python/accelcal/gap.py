@@ -14,6 +14,7 @@ but does not lower the held-out gap is reported as "not_confirmed", not as the e
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
@@ -24,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
 from ._validate import number, real_array, samples_array
-from .dwell import DwellSet, check_faults, detect_dwells, dwell_stats
+from .dwell import DetectorSettings, DwellSet, check_faults, detect_dwells, dwell_stats
 
 __all__ = [
     "CENTRIFUGE_EFFECTS",
@@ -952,9 +953,10 @@ def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bo
     return k9, v[3:6].tolist(), False
 
 
-def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
+def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any, detector: Any = None
                ) -> tuple[DwellSet, NDArray[Any] | None, float | None]:
-    """The DwellSet (detected from a raw stream when needed), the samples and fs."""
+    """The DwellSet (detected from a raw stream when needed, with the ``detector`` settings:
+    a DetectorSettings or a dict of its fields), the samples and fs."""
     if isinstance(data, DwellSet):
         if t is not None or temperature is not None:
             raise CalibrationError("t= and temperature= are per-sample arrays for a raw stream; "
@@ -965,14 +967,40 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any
         raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
     fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     samples = samples_array(data, "samples")
+    settings = detector if isinstance(detector, DetectorSettings) else DetectorSettings(
+        **(detector or {}))
     try:
-        d = detect_dwells(samples, fs_v, t=t, temperature=temperature)
+        d = detect_dwells(samples, fs_v, t=t, temperature=temperature, settings=settings)
     except DegenerateDataError as exc:
         if "no static dwell" not in str(exc):
             raise
         raise DegenerateDataError(f"no static dwells detected in the stream: {exc}") from None
     check_faults(d, "diagnose", detected=True)
     return d, samples, fs_v
+
+
+def _determined(d: DwellSet, g: float) -> None:
+    """Refuse a session whose dwells cannot determine the 9-parameter calibration the
+    diagnosis fits (six faces only, say), as the fit itself refuses it: residuals and pose
+    directions from an undetermined calibration would be arbitrary."""
+    import warnings
+
+    from .static import fit_static
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a weak design is the report's to word
+            fit_static(d, g, check_g=False)
+    except DegenerateDataError as e:
+        what = re.split(r"[.;] [Aa]dd poses", str(e))[0]
+        raise DegenerateDataError(
+            f"{what}. The gap diagnosis fits that 9-parameter calibration, so it needs dwells "
+            "that determine it: add poses with different gravity directions (tilts in both "
+            "axes at once, larger angles); or calibrate with model \"diag\" (bias and scale) "
+            "and check that calibration against this session with fit= (held fixed; 2 dwells "
+            "suffice)") from None
+    except CalibrationError:
+        pass  # the diagnosis reports its own errors
 
 
 def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
@@ -1091,6 +1119,7 @@ def diagnose(
     noise_model: Literal["auto", "white", "allan"] = "auto",
     check_g: bool = True,
     random_offset: bool = False,
+    detector: Any = None,
 ) -> GapReport:
     """Diagnose the sim-to-real gap of a static session.
 
@@ -1153,6 +1182,9 @@ def diagnose(
         least squares with weights ``1 / (sigma_k^2 + s^2)``. Off by default: it adds power when
         the excess is independent from dwell to dwell, but on a real session whose excess is
         smooth in time it raises the false attributions (docs/gap-validation.md).
+    detector : the dwell detector's settings for a raw stream (a
+        :class:`~accelcal.DetectorSettings`, or a dict of its fields: ``window_s``, ``k``,
+        ``min_dwell_s`` ...); the defaults otherwise.
 
     Returns
     -------
@@ -1165,7 +1197,7 @@ def diagnose(
     eff = _names(effects, list(EFFECTS))
     cal = _calibration(fit, g_v)
     nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))
-    d, samples, fs_v = _dwells_of(data, fs, t, temperature)
+    d, samples, fs_v = _dwells_of(data, fs, t, temperature, detector)
     inflation = None if d.inflation is None else _pool_inflation(d.inflation)
     half, lsb = d.half_mean, d.lsb
     k = len(d)
@@ -1179,6 +1211,8 @@ def diagnose(
             + (" (at least 2 to check a fixed calibration)" if need == 2 else
                "; record more poses, or check a calibration made on another session against "
                "this one with fit= (2 dwells suffice)"))
+    if not (cal is not None and cal[2]):
+        _determined(d, g_v)
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)
     tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None

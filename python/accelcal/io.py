@@ -991,6 +991,26 @@ def _label(lay: _Layout, j: int) -> str:
     return _label_of(lay.names, j)
 
 
+def _no_time(time_column: Any, names: Sequence[str] | None) -> bool:
+    """``time_column=False`` or ``"none"`` (unless a column is named so): no time column."""
+    if time_column is False:
+        return True
+    return (isinstance(time_column, str) and time_column.strip().lower() == "none"
+            and (names is None or time_column not in names))
+
+
+def _not_a_clock(t: NDArray[Any]) -> str | None:
+    """Why the head of a time column cannot be a clock (``"holds 0 in every one of the
+    first 500 rows"``: a GPS clock never set), or None when it moves."""
+    x = np.asarray(t, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.shape[0] < 2:
+        return None
+    if np.all(x == x[0]):
+        return f"holds {x[0]:.6g} in every one of the first {x.shape[0]} rows"
+    return None  # it moves: a clock, perhaps wrapping or reset (read as such later)
+
+
 def _is_counter(x: NDArray[Any]) -> bool:
     """0, 1, 2, ... (or any start, step 1): a sample counter, not a time in s."""
     return bool(x.shape[0] >= 2 and np.all(np.diff(x) == 1.0) and np.all(x == np.round(x)))
@@ -1016,7 +1036,10 @@ def _decide(
     tcol: int | None = None
     tscale = 1.0
     stated = False  # the time unit is stated (by the column's name or with time_column=)
-    if time_column is not None:
+    no_time = _no_time(time_column, names)
+    if no_time:
+        pass  # the file's time column, if any, is not used (time_column="none")
+    elif time_column is not None:
         spec, unit_scale = _time_spec(time_column, names)
         tcol = _resolve_one(spec, names, ncols, path, "time_column")
         found = None if names is None else _time_name(names[tcol])
@@ -1030,6 +1053,13 @@ def _decide(
             if found is not None:
                 tcol, (tscale, stated) = i, found
                 break
+        why = None if tcol is None else _not_a_clock(head[:, tcol])
+        if why is not None and tcol is not None:
+            # A column named as a time that does not count time (a GPS clock never set, all
+            # zeros): not the time; the rate must then come from fs= or the metadata.
+            notes.append(f"column {names[tcol]!r} is named as a time but {why}: not used as "
+                         "the time")
+            tcol = None
     if columns is not None:
         acc = _resolve_columns(columns, names, ncols, path)
     elif names is not None:
@@ -1068,26 +1098,29 @@ def _decide(
                     f"near 1 g ({level:.4g}, {unit}) over the first {head.shape[0]} rows; give "
                     "columns= to choose others")
             else:
+                used = int(np.sum(np.any(np.isfinite(head), axis=0))) if head.size else ncols
                 raise CalibrationError(
-                    f"{path}: {ncols} columns and no header row: cannot tell which are the "
+                    f"{path}: {used} columns and no header row: cannot tell which are the "
                     f"accelerometer x, y, z{_triads_text(triads, None)}; give columns=[...] "
                     "(0-based indices) and, if there is one, time_column="
                 )
     if tcol is not None and tcol in acc:
         tcol = None
-    unsigned = _stored_unsigned(head[:, acc]) if head.shape[0] else None
-    if unsigned is not None:
+    unsigned = bool(head.shape[0]) and _stored_unsigned(head[:, acc])
+    if unsigned:
+        lv = _one_g(_signed16(head[:, acc]).astype(np.float64))
         notes.append(
-            f"columns {_columns_text(names, acc)} hold signed 16-bit "
-            f"values stored as unsigned (65404 for -132): read as signed, their norm is "
-            f"{unsigned[0]:.5g} ({unsigned[1]})")
-    if tcol is None and time_column is None:
+            f"columns {_columns_text(names, acc)} hold signed 16-bit values stored as "
+            "unsigned (65404 for -132; read as signed they stay near zero where stored they "
+            "jump between the ends of 0..65535): read as signed"
+            + ("" if lv is None else f", their norm is {lv[0]:.5g} ({lv[1]})"))
+    if tcol is None and time_column is None and not no_time:
         dated = [j for j in sorted(iso or ()) if j not in acc]
         if dated:
             tcol, tscale = dated[0], 1.0
             if names is not None:
                 notes.append(f"column {names[tcol]!r} holds dates and times: read as the time")
-    if tcol is None and names is None and time_column is None:
+    if tcol is None and names is None and time_column is None and not no_time:
         # Without a header, a remaining strictly increasing column is the time in s.
         for i in range(ncols):
             if i not in acc and _increasing(head[:, i]):
@@ -1156,7 +1189,7 @@ def _decide(
         fs_source=src,
         notes=notes,
         head=head,
-        signed16=unsigned is not None,
+        signed16=unsigned,
     )
 
 
@@ -1202,19 +1235,21 @@ def _signed16(x: NDArray[Any]) -> NDArray[Any]:
     return np.where(x >= 32768, x - 65536, x)
 
 
-def _stored_unsigned(x: NDArray[Any]) -> tuple[float, str] | None:
-    """(level, unit) of :func:`_one_g` for samples whose rows keep a norm of 1 g only when
-    read as signed 16-bit integers (every value a whole number in 0..65535, some above 32767,
-    and their norm not steady as stored); else None."""
+def _stored_unsigned(x: NDArray[Any]) -> bool:
+    """Signed 16-bit samples stored as unsigned (65404 for -132): every value a whole number
+    in 0..65535, and read as signed the values of some axis spread less than half as much
+    as stored (an axis that crosses zero jumps between the two ends of the range), of none
+    more. A 16-bit ADC that is unsigned by design (mid-scale 32768) spreads more when read as
+    signed, so it is left as it is."""
     x = x[np.all(np.isfinite(x), axis=1)]
     if x.shape[0] < 10 or np.issubdtype(x.dtype, np.signedinteger) and x.dtype.itemsize <= 2:
-        return None
+        return False
     lo, hi = float(x.min()), float(x.max())
     if lo < 0 or hi > 65535 or hi < 32768 or not np.all(x == np.round(x)):
-        return None
-    if _one_g(x) is not None:
-        return None
-    return _one_g(_signed16(x).astype(np.float64))
+        return False
+    raw = np.std(x.astype(np.float64), axis=0)
+    signed = np.std(_signed16(x).astype(np.float64), axis=0)
+    return bool(np.any(signed < 0.5 * raw) and np.all(signed <= raw))
 
 
 def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int], float, str]]:
@@ -1228,8 +1263,8 @@ def _triads_by_norm(head: NDArray[Any], tcol: int | None) -> list[tuple[list[int
         if tcol in cols:
             continue
         found = _one_g(head[:, cols])
-        if found is None:
-            wrapped = _stored_unsigned(head[:, cols])
+        if found is None and _stored_unsigned(head[:, cols]):
+            wrapped = _one_g(_signed16(head[:, cols]).astype(np.float64))
             found = None if wrapped is None else (wrapped[0], f"{wrapped[1]}, stored unsigned")
         if found is not None:
             out.append((cols, *found))
@@ -1285,7 +1320,8 @@ def _fs_from_time(t: NDArray[Any], path: str, notes: list[str] | None = None) ->
     if not med > 0:
         raise CalibrationError(
             f"{path}: the time column is not increasing (median interval {med!r}); "
-            "give fs= or time_column="
+            "name the right one with time_column=, or give fs= and time_column= none (no "
+            "time column)"
         )
     regular = d[np.abs(d - med) <= 0.5 * med]
     return float(regular.size / regular.sum())

@@ -511,9 +511,13 @@ class StaticFit(_core.StaticFit):
         if ns["std_reduction_percent"] is not None:
             lines.append(f"  std(|a| - g) reduced by {ns['std_reduction_percent']:.1f} %")
         if self.dof <= 0:
+            src = ("the std above comes from the noise model alone"
+                   if np.all(np.isfinite(std)) else
+                   "and without a known noise model (sigma, or dwell variances) there is no "
+                   "std either (nan above)")
             lines.append(
                 "  no redundancy (as many dwells as parameters): the residuals cannot test the "
-                "model; the std above comes from the noise model alone"
+                f"model; {src}"
             )
         if self.weak:
             lines.append("  WEAK design: " + self.weak_text())

@@ -1287,8 +1287,10 @@ impl DetectorSettings {
             return invalid(format!(
                 "window_s = {} s at fs = {} Hz spans {wn} sample(s); the detector needs at least \
                  {MIN_WINDOW_SAMPLES} samples per window (is fs the sample rate in Hz? else \
-                 raise window_s)",
-                self.window_s, self.fs
+                 give window_s= {} s or more)",
+                self.window_s,
+                self.fs,
+                (MIN_WINDOW_SAMPLES / self.fs * 100.0).ceil() / 100.0
             ));
         }
         if let Some(v) = self.noise_var {

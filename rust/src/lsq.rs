@@ -1566,6 +1566,9 @@ impl Solved<DMatrix<f64>> {
     }
 }
 
+/// The error of a start at which the model cannot be evaluated.
+pub const START_NOT_EVALUABLE: &str = "the model cannot be evaluated at the start values";
+
 /// Predicted cost reduction `-(g^T s + s^T A s / 2)` of the local quadratic model.
 #[inline(always)]
 fn predicted_gain<M: Mat, V: IndexMut<usize, Output = f64> + ?Sized>(a: &M, g: &V, s: &V) -> f64 {
@@ -1595,7 +1598,7 @@ fn lm_core<M: Dense, E: Evaluate<M>>(
     lambda0: f64,
     flavor: Flavor,
 ) -> Result<Solved<M>> {
-    const START: &str = "the model cannot be evaluated at the start values";
+    const START: &str = START_NOT_EVALUABLE;
     let n = M::slice(&p).len();
     let mut jtj = M::zeros(n);
     let mut g = M::zeros_vector(n);

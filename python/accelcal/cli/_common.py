@@ -131,7 +131,8 @@ def recording_options(fn: F) -> F:
                       help="No progress bar (none is shown off a terminal either).")(fn)
     fn = click.option("--time-column", "time_column", default=None,
                       help="Time column (name or 0-based index; s, or ms/us/ns when the name "
-                           "says so or when given as 'NAME [ms]'), else recognised by name.")(fn)
+                           "says so or when given as 'NAME [ms]'), else recognised by name; "
+                           "'none': use no time column (then give --fs).")(fn)
     fn = click.option("--columns", default=None,
                       help="Accelerometer columns, e.g. ax,ay,az or 1,2,3 (0-based).")(fn)
     return click.option("--fs", type=float, default=None,
@@ -223,6 +224,17 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
     return d, rec
 
 
+def detector_options(fn: F) -> F:
+    """``--window``, ``--k`` and ``--min-dwell``: the dwell detector's settings."""
+    fn = click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
+                      help="Shortest dwell kept, s.")(fn)
+    fn = click.option("--k", "k", type=float, default=6.0, show_default=True,
+                      help="Dwell detector threshold factor (x noise variance).")(fn)
+    return click.option(  # type: ignore[no-any-return]
+        "--window", "window_s", type=float, default=1.0, show_default=True,
+        help="Dwell detector window, s (at least 8 samples).")(fn)
+
+
 def means_option(fn: F) -> F:
     """``--means``: the file is a table of dwell means (one pose per row); ``--count N``: the
     samples behind each of its means, for per-pose std columns without a count column."""
@@ -283,14 +295,22 @@ def source_line(file: str, rec: Any, d: Any) -> str:
     return line
 
 
-def _resolve_g(g: float | None, lat: float | None, height: float) -> tuple[float, str]:
+def _resolve_g(g: float | None, lat: float | None, height: float,
+               file: str | None = None, fs: float | None = None, columns: str | None = None,
+               time_column: str | None = None) -> tuple[float, str]:
+    """The reference gravity and where it came from. Without one, a recording ``file`` is
+    opened first, so that a problem with reading it is reported in the same run."""
     from ..static import local_gravity
 
     if g is not None:
         return g, "given"
     if lat is not None:
         return local_gravity(lat, height), f"WGS84 normal gravity at {lat:g} deg, {height:g} m"
-    raise CalibrationError("give the reference gravity with --g (m/s^2) or --lat/--height")
+    if file is not None and file != "-" and not is_dwell_table(file):
+        open_recording(file, fs, columns, time_column)
+    raise CalibrationError("give the reference gravity with --g (local gravity in m/s^2, e.g. "
+                           "9.81; 1 for an output in g) or --lat/--height (WGS84 normal "
+                           "gravity)")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

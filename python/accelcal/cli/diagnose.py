@@ -13,6 +13,7 @@ from ._common import (
     _save_fig,
     bounds_option,
     cli_words,
+    detector_options,
     echo_notes,
     emit_json,
     friendly,
@@ -43,6 +44,7 @@ from ._common import (
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="The gap figure: residuals against time, temperature or pose (sphere map), "
                    "tilt, and the noise panel (Allan deviation and the noise models).")
+@detector_options
 @bounds_option
 @means_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
@@ -52,8 +54,8 @@ from ._common import (
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
              columns: str | None, time_column: str | None, quiet: bool, noise: str,
              preset: str, calibration: str | None, plot_path: str | None,
-             bounds: str | None, means: bool, count: int | None, no_check_g: bool,
-             as_json: bool) -> None:
+             window_s: float, k: float, min_dwell_s: float, bounds: str | None, means: bool,
+             count: int | None, no_check_g: bool, as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
@@ -61,12 +63,12 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
 
     _need_plot(plot_path)
     fit = TriadModel.load(calibration) if calibration else None
-    gv, _ = _resolve_g(g, lat, height)
+    gv, _ = _resolve_g(g, lat, height, file, fs, columns, time_column)
     # One streaming pass: the dwell accumulator keeps what the diagnosis needs from inside
     # the dwells (means, variances and, where the accumulator provides them, within-dwell
     # noise statistics), so memory stays bounded whatever the recording's length.
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds, means,
-                           count=count)
+                           count=count, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
     # A dwell table, or a table of dwell means: no samples to read again.
     tabled = rec is None or rec.pose_table
     if len(d) == 0:
@@ -90,9 +92,12 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
                          progress=False if quiet else None)
         if st.fs is None:
             raise CalibrationError(f"{file}: the sample rate is unknown; give --fs (Hz)")
-        d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature)
+        from ..dwell import DetectorSettings
+
+        det = DetectorSettings(window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=det)
         run = (st.samples,)
-        kw.update(fs=st.fs, t=st.t, temperature=st.temperature)
+        kw.update(fs=st.fs, t=st.t, temperature=st.temperature, detector=det)
     src = source_line(file, rec, d)
     extra += vibrating_notes(d)
     d, fault_notes = without_faults(d)
@@ -100,12 +105,13 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         # The dwells that are left (the samples would bring the faulty ones back).
         extra += fault_notes
         run = (d,)
-        for key in ("fs", "t", "temperature"):
+        for key in ("fs", "t", "temperature", "detector"):
             kw.pop(key, None)
     try:
         rep = run_diagnose(*run, g=gv, preset=preset, **kw)
     except CalibrationError as e:
-        raise type(e)(cli_words(str(e), {"check_g=False": "--no-check-g"})) from None
+        raise type(e)(cli_words(str(e), {"check_g=False": "--no-check-g",
+                                         'model "diag"': "--model diag"})) from None
     notes = ([] if rec is None else rec.notes()) + extra
     if plot_path:
         _save_fig(rep.plot(), plot_path)

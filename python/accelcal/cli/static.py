@@ -16,6 +16,7 @@ from ._common import (
     bounds_option,
     calibrate,
     cli_words,
+    detector_options,
     echo_notes,
     emit_json,
     friendly,
@@ -52,12 +53,7 @@ def _cli(msg: str) -> str:
               show_default=True, help="9-parameter triangle or 6-parameter bias + scale.")
 @click.option("--method", type=click.Choice(["lm", "gauss-newton", "quadric", "linear-paper"]),
               default="lm", show_default=True, help="Fit method (lm = maximum likelihood).")
-@click.option("--window", "window_s", type=float, default=1.0, show_default=True,
-              help="Dwell detector window, s.")
-@click.option("--k", "k_thr", type=float, default=6.0, show_default=True,
-              help="Dwell detector threshold factor (x noise variance).")
-@click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
-              help="Shortest dwell kept, s.")
+@detector_options
 @bounds_option
 @means_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
@@ -77,7 +73,7 @@ def _cli(msg: str) -> str:
 def calibrate_static(
     files: tuple[str, ...], g: float | None, lat: float | None, height: float,
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
-    method: str, window_s: float, k_thr: float, min_dwell_s: float, bounds: str | None,
+    method: str, window_s: float, k: float, min_dwell_s: float, bounds: str | None,
     means: bool, count: int | None, no_check_g: bool,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
     plot_path: str | None, as_json: bool, **fleet: Any,
@@ -99,7 +95,7 @@ def calibrate_static(
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns,
             time_column=time_column, quiet=quiet, model=model, method=method,
-            window_s=window_s, k_thr=k_thr, min_dwell_s=min_dwell_s, sensor_id=sensor_id,
+            window_s=window_s, k_thr=k, min_dwell_s=min_dwell_s, sensor_id=sensor_id,
             output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
             check_g=not no_check_g, nominal_path=nominal_path, **fleet)
     file = files[0]
@@ -109,11 +105,11 @@ def calibrate_static(
     from ..static import TriadModel, WeakDesignWarning, fit_static, units_of_g
 
     _need_plot(plot_path)
-    gv, g_src = _resolve_g(g, lat, height)
+    gv, g_src = _resolve_g(g, lat, height, file, fs, columns, time_column)
     nominal = TriadModel.load(nominal_path) if nominal_path else None
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds, means,
                            count=count,
-                           window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
+                           window_s=window_s, k=k, min_dwell_s=min_dwell_s)
     read_notes = [] if rec is None else rec.notes()
     if len(d) == 0:
         raise CalibrationError(

@@ -22,6 +22,7 @@ from ._common import (
     _need_plot,
     _save_fig,
     bounds_option,
+    detector_options,
     echo_notes,
     emit_json,
     friendly,
@@ -73,12 +74,7 @@ def _units_of(names: tuple[str, ...]) -> str:
 @main.command()
 @click.argument("file", type=click.Path(allow_dash=True))
 @recording_options
-@click.option("--window", "window_s", type=float, default=1.0, show_default=True,
-              help="Detector window, s.")
-@click.option("--k", type=float, default=6.0, show_default=True,
-              help="Threshold factor (x noise variance).")
-@click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
-              help="Shortest dwell kept, s.")
+@detector_options
 @bounds_option
 @means_option
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,

@@ -549,8 +549,27 @@ pub fn solve<const N: usize>(
     set: &FitSettings,
     pts: &mut Vec<[f64; 3]>,
 ) -> Result<Solved> {
+    validate(means, g, noise, set.model)?;
+    solve_valid::<N>(means, g, noise, set, pts).map_err(|e| match e {
+        // An iteration that failed because no pose turned an axis towards gravity: say so
+        // (a failed linear solution says so itself; a degenerate design names its own cause).
+        CoreError::NotConverged(_) => start::unexcited_axes(means).unwrap_or(e),
+        CoreError::InvalidInput(ref m) if m == crate::lsq::START_NOT_EVALUABLE => {
+            start::unexcited_axes(means).unwrap_or(e)
+        }
+        e => e,
+    })
+}
+
+/// [`solve`] on validated input.
+fn solve_valid<const N: usize>(
+    means: &[[f64; 3]],
+    g: f64,
+    noise: &Noise<'_>,
+    set: &FitSettings,
+    pts: &mut Vec<[f64; 3]>,
+) -> Result<Solved> {
     let model = set.model;
-    validate(means, g, noise, model)?;
     let f0 = Frame::centroid(means, g)?;
     let start = start_stage_checked(means, g, set, f0)?;
     let f1 = Frame::from_params(model, &start.params, f0);
@@ -574,6 +593,9 @@ pub fn solve<const N: usize>(
         1e-8
     };
     let keep = |e: CoreError| start.error.clone().unwrap_or(e);
+    if failed {
+        undetermined_by_design::<N>(&prob, means, g, noise, set, f0, f1)?;
+    }
     let ml = ml_stage::<N>(&prob, &p0, set, iterate, gauss_newton, lambda0).map_err(keep)?;
     if iterate {
         runaway_guard(&ml.params, f0, f1, means.len()).map_err(keep)?;
@@ -609,6 +631,74 @@ impl Solved {
             kmax: f64::INFINITY,
         }
     }
+}
+
+/// After a failed linear solution: when the bias + scale model ("diag") fits the dwells but
+/// the full model's design is degenerate there (six faces only: the misalignments are not
+/// seen), the design is the cause, and the error is the observability message rather than
+/// the linear solution's ("not an ellipsoid").
+#[cold]
+fn undetermined_by_design<const N: usize>(
+    prob: &NormProblem<'_>,
+    means: &[[f64; 3]],
+    g: f64,
+    noise: &Noise<'_>,
+    set: &FitSettings,
+    f0: Frame,
+    f1: Frame,
+) -> Result<()> {
+    if set.model == Model::Diag {
+        return Ok(());
+    }
+    let Ok(diag) = start::quadric_fit(means, f0, g, Model::Diag, false) else {
+        return Ok(());
+    };
+    let p = f1.to_frame(&f0.unframe(&diag));
+    let Ok(at) = ml_stage::<N>(prob, &p, set, false, false, 0.0) else {
+        return Ok(());
+    };
+    let cov = covariance_stage::<N>(&at, means.len(), g, noise.known(), set);
+    let n = means.len();
+    if !cov.summary.degenerate {
+        if !cov.summary.weak {
+            return Ok(());
+        }
+        // Weakly determined there: the linear solution's failure ("not an ellipsoid") comes
+        // from parameters the poses barely see, which the message names.
+        let weak: Vec<String> = (0..N)
+            .filter(|&i| !(cov.summary.std_comparable[i] <= set.weak_std))
+            .map(|i| {
+                let unit = if (3..6).contains(&i) { " g" } else { "" };
+                let name = PARAM_NAMES[i];
+                format!(
+                    "{name} (predicted std {:.1e}{unit})",
+                    cov.summary.std_comparable[i]
+                )
+            })
+            .collect();
+        return degenerate(format!(
+            "the {n} dwells barely determine {} of model \"{}\" (relative units), so its \
+             linear solution fails (the fitted quadric is not an ellipsoid) while the bias + \
+             scale model fits them; add poses between the axes (tilts of 35-55 deg in both \
+             axes at once), or fit model \"diag\"",
+            weak.join(", "),
+            set.model.name()
+        ));
+    }
+    let mut jc = DMatrix::<f64>::zeros(n, N);
+    per_dwell(prob, &at.params, |k, _, row| {
+        for j in 0..N {
+            jc[(k, j)] = row[j];
+        }
+    })?;
+    let o = observe::obs_report(&jc, cov.obs_scale, set)?;
+    degenerate(degenerate_message(
+        &o,
+        set.model,
+        n,
+        &cov.summary,
+        set.degenerate_std,
+    ))
 }
 
 fn start_stage_checked(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> Result<Start> {

@@ -447,9 +447,63 @@ pub fn start_stage(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> 
         Err(e) => Ok(Start {
             params: fallback_start(means, g, f0),
             source: StartSource::Fallback,
-            error: Some(e),
+            error: Some(unexcited_axes(means).unwrap_or(e)),
         }),
     }
+}
+
+/// An axis's dwell means spanning less than this fraction of their typical norm: no pose
+/// turned that axis towards gravity.
+const UNEXCITED_SPAN: f64 = 0.2;
+
+/// Why a linear solution failed, when the cause is an axis that no pose turned towards
+/// gravity (its dwell means span under [`UNEXCITED_SPAN`] of the norm): its scale and bias
+/// cannot be told apart. `None` when every axis moves, or when none does (a single pose).
+pub fn unexcited_axes(means: &[[f64; 3]]) -> Option<CoreError> {
+    if means.len() < 2 {
+        return None;
+    }
+    let mut norms: Vec<f64> = means
+        .iter()
+        .map(|m| (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt())
+        .collect();
+    norms.sort_by(f64::total_cmp);
+    let scale = norms[norms.len() / 2];
+    if !(scale > 0.0) || !scale.is_finite() {
+        return None;
+    }
+    let mut parts = Vec::new();
+    let mut names = Vec::new();
+    for (a, name) in ["x", "y", "z"].iter().enumerate() {
+        let (lo, hi) = means
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), m| {
+                (lo.min(m[a]), hi.max(m[a]))
+            });
+        let span = hi - lo;
+        if span < UNEXCITED_SPAN * scale {
+            parts.push(format!(
+                "the {name} output spans only {span:.3e} ({:.1} % of the norm, {scale:.4e})",
+                100.0 * span / scale
+            ));
+            names.push(*name);
+        }
+    }
+    if parts.is_empty() || parts.len() == 3 {
+        return None; // every axis moves, or none does (one pose: said elsewhere)
+    }
+    let axes = names.join(" and ");
+    Some(CoreError::Degenerate(format!(
+        "{} over the {} dwells: no pose turned the {axes} axis towards gravity, so its scale \
+         and bias cannot be told apart; add poses with {} (or tilted by 30 deg or more)",
+        parts.join(", "),
+        means.len(),
+        names
+            .iter()
+            .map(|n| format!("{n} up and {n} down"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    )))
 }
 
 #[cfg(test)]
@@ -525,5 +579,34 @@ mod tests {
         assert_eq!(s.source, StartSource::Fallback);
         assert!(matches!(s.error, Some(CoreError::Degenerate(_))));
         assert!(s.params[6..].iter().all(|v| *v == 0.0));
+    }
+
+    /// A tumble that never turns x towards gravity (a table that rolls about x only): the
+    /// failed linear solution is explained by the axis, not as "no ellipsoid".
+    #[test]
+    fn an_axis_no_pose_excites_is_named() {
+        let m: Vec<[f64; 3]> = (0..12)
+            .map(|i| {
+                let r = i as f64 * std::f64::consts::PI / 6.0 + 0.1;
+                let x = -0.03 + 1e-3 * (i % 3) as f64;
+                [x, 1.02 * r.sin() + 0.05, 0.98 * r.cos() - 0.03]
+            })
+            .collect();
+        let e = unexcited_axes(&m).unwrap().to_string();
+        assert!(e.contains("the x output spans only 2.000e-3"), "{e}");
+        assert!(
+            e.contains("no pose turned the x axis towards gravity"),
+            "{e}"
+        );
+        assert!(e.contains("add poses with x up and x down"), "{e}");
+        let every: Vec<[f64; 3]> = simulate(Model::Lower, &TRUTH, 20, 60.0, 2);
+        assert!(unexcited_axes(&every).is_none());
+        // The fit says so too, whatever failed first (here the quadric start lies where the
+        // model cannot be evaluated).
+        let set = FitSettings::new(Model::Diag, Method::Lm);
+        let e = crate::static_fit::fit_static(&m, 1.0, &crate::static_fit::Noise::Estimated, &set)
+            .unwrap_err();
+        assert!(matches!(e, CoreError::Degenerate(_)));
+        assert!(e.to_string().contains("no pose turned the x axis"), "{e}");
     }
 }
