@@ -132,6 +132,17 @@ def calibrate_static(
             hint = ""
             if model != "diag" and "diag" not in str(e):
                 hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
+            detected = rec is not None and not rec.pose_table and not bounds and rec.rows
+            still = float(np.sum(undropped.count)) / rec.rows if detected else 1.0
+            if still < 0.25:
+                # A session mostly in motion: shorter rests than the detector keeps?
+                hint += (f" Only {100 * still:.0f} % of the recording was taken as still "
+                         f"(dwells of at least --min-dwell {min_dwell_s:g} s, window "
+                         f"{window_s:g} s): ")
+                hint += ("if the sensor rested more often, shorter --min-dwell and --window "
+                         "(0.5, say) find shorter rests." if max(min_dwell_s, window_s) > 0.5
+                         else "the sensor moved most of the time; hold it still for a few "
+                         "seconds in each pose.")
             hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped))
             raise CalibrationError(_cli(
                 f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
