@@ -1220,3 +1220,19 @@ def test_named_dwells_keep_their_names_through_subsets_csv_and_the_gap_report(
     assert 6 in r.where["flagged"]
     assert '6 (knocked, "twice")' in r.summary()
     assert r.dwells["name"].tolist() == names  # in time order, which is the file's here
+
+
+def test_a_session_mostly_in_motion_gets_the_noise_of_its_still_windows() -> None:
+    """Brief pauses between long moves (under a fifth of the windows still): the noise level
+    comes from the still windows, within 15 % of the simulator's, not from the moves (the
+    plain quantile lands among them); a static session's level is unchanged."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=14, dwell_s=1.4, move_s=9.0, max_tilt_deg=80.0,
+                      sigma=0.01, rng=2)
+    d = detect_dwells(s.samples, s.fs)
+    np.testing.assert_allclose(d.noise_std, 0.01, rtol=0.15)
+    plain = detect_dwells(s.samples, s.fs, noise_quantile=0.05)  # no moving majority at 5 %
+    np.testing.assert_allclose(d.noise_std, plain.noise_std, rtol=0.15)
+    calm = field_session(fs=100.0, n_dwells=14, dwell_s=8.0, move_s=2.0, sigma=0.01, rng=2)
+    assert np.all(np.abs(detect_dwells(calm.samples, calm.fs).noise_std / 0.01 - 1) < 0.15)

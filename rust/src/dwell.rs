@@ -18,6 +18,7 @@
 //!   chunking-independent subsample ([`LsbSampler`]).
 
 use crate::error::{degenerate, invalid, Result};
+use crate::gap::special::chi2_isf;
 use ndarray::ArrayView2;
 use rayon::prelude::*;
 
@@ -1417,6 +1418,41 @@ impl MeanPrefix {
     }
 }
 
+/// A window variance at quantile `q` of the (finite) window variances `col`.
+fn quantile_of(col: &mut [f64], q: f64) -> f64 {
+    let i = ((col.len() - 1) as f64 * q).round() as usize;
+    let (_, val, _) = col.select_nth_unstable_by(i, |x, y| x.total_cmp(y));
+    *val
+}
+
+/// The noise variance of one axis from its window variances `col` (windows of `m`
+/// samples): their quantile `q`, which assumes that at least that fraction of the windows
+/// is static. When the session moves most of the time (a hand-waved sensor with brief
+/// pauses), that quantile lies among moving windows, far above the still ones. When it
+/// exceeds [`MOVING_RATIO`] times the quantile `q / 4`, the still windows are taken as those
+/// within the spread of a static window's variance above that stiller quantile (chi-square
+/// with `m - 1` degrees of freedom: its 99.9 % point over its `q / 4` point), and the noise
+/// is the quantile `q` of those, as in a static session.
+fn noise_level(col: &mut [f64], q: f64, m: usize) -> f64 {
+    let v = quantile_of(col, q);
+    let low = quantile_of(col, q / 4.0);
+    if !(v > MOVING_RATIO * low) {
+        return v;
+    }
+    let dof = (m.max(2) - 1) as f64;
+    let spread = chi2_isf(1e-3, dof) / chi2_isf(1.0 - q / 4.0, dof);
+    if !(spread.is_finite() && spread > 1.0) {
+        return v;
+    }
+    let cut = low * spread;
+    let still = col.iter().filter(|x| **x <= cut).count() as f64 / col.len() as f64;
+    quantile_of(col, q * still)
+}
+
+/// The quantile of the window variances exceeding this many times their quarter quantile
+/// means most windows move (see [`noise_level`]).
+const MOVING_RATIO: f64 = 4.0;
+
 /// [`fold`] without the first differences: moments only (the detector's windows).
 fn fold_stats(segs: &[Moments]) -> Moments {
     segs.iter()
@@ -1489,9 +1525,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
                         s.window_s
                     ));
                 }
-                let q = ((col.len() - 1) as f64 * s.noise_quantile).round() as usize;
-                let (_, val, _) = col.select_nth_unstable_by(q, |x, y| x.total_cmp(y));
-                *slot = *val;
+                *slot = noise_level(&mut col, s.noise_quantile, w * b);
             }
             // A perfectly constant axis (e.g. clipped or simulated noise-free) must not make
             // every tiny change look like motion, nor divide by zero.
@@ -2409,6 +2443,38 @@ mod tests {
         }
         assert_eq!(t.dropped, 0);
         assert_eq!(t.lsb, None);
+    }
+
+    /// The noise level of a session that moves most of the time comes from its stillest
+    /// windows; a static session keeps the plain quantile.
+    #[test]
+    fn a_session_mostly_in_motion_takes_its_noise_from_the_still_windows() {
+        let mut seed = 11u64;
+        // 100-sample windows: static ones scatter as chi2(99)/99 about 1.
+        let mut still = |_| {
+            let mut v: f64 = 0.0;
+            for _ in 0..99 {
+                // Box-Muller from the tests' uniform numbers.
+                let (u1, u2) = (
+                    crate::test_rng::unit(&mut seed).max(1e-300),
+                    crate::test_rng::unit(&mut seed),
+                );
+                let z = (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
+                v += z * z;
+            }
+            v / 99.0
+        };
+        let stat: Vec<f64> = (0..1000).map(&mut still).collect();
+        let mut a = stat.clone();
+        let plain = quantile_of(&mut a.clone(), 0.2);
+        assert_eq!(noise_level(&mut a, 0.2, 100), plain);
+        // 12 % still, the rest moving with variances 50-500 times the noise.
+        let mut mixed: Vec<f64> = stat[..120].to_vec();
+        mixed.extend((0..880).map(|i| 50.0 + 0.5 * i as f64));
+        let q20 = quantile_of(&mut mixed.clone(), 0.2);
+        assert!(q20 > 40.0);
+        let v = noise_level(&mut mixed, 0.2, 100);
+        assert!((v / plain - 1.0).abs() < 0.05, "{v} against {plain}");
     }
 
     #[test]
