@@ -1436,7 +1436,8 @@ fn quantile_of(col: &mut [f64], q: f64) -> f64 {
 fn noise_level(col: &mut [f64], q: f64, m: usize) -> f64 {
     let v = quantile_of(col, q);
     let low = quantile_of(col, q / 4.0);
-    if !(v > MOVING_RATIO * low) {
+    let moving = v > MOVING_RATIO * low; // false for NaN too
+    if !moving {
         return v;
     }
     let dof = (m.max(2) - 1) as f64;
