@@ -717,6 +717,10 @@ def test_read_bounds_formats(tmp_path: Path) -> None:
         "plain.tsv": ("10\t50\n80\t120\n", [[10, 50], [80, 120]], False),
         "secs.csv": ("start_s;stop_s;what\n0.1;0.5;tilt 1\n1.0;1.4;move 1\n",
                      [[0.1, 0.5]], True),
+        # A (2, k) array saved as it is (tomisuarez2/ImuCalibration's static_intervals.csv):
+        # the starts, then the stops, one dwell per column.
+        "starts_stops.csv": ("1.5e+02,4.297e+03,4.934e+03\n3.613e+03,4.299e+03,4.946e+03\n",
+                             [[150, 3613], [4297, 4299], [4934, 4946]], False),
     }
     for name, (text, want, seconds) in cases.items():
         b = read_bounds(write(tmp_path, text, name))

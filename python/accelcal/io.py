@@ -2559,6 +2559,10 @@ def _bounds_csv_entries(text: str, p: str) -> list[tuple[str | None, Any, Any, b
     head = [f.lower() for f in rows[0]]
     if all(_is_number(f) for f in rows[0] if f):
         ia, ib, iname, sec, body = 0, 1, None, False, rows
+        if len(rows) == 2 and len(rows[0]) >= 3 and len(rows[1]) == len(rows[0]):
+            # Two rows of k >= 3 numbers: the starts, then the stops (a (2, k) array saved
+            # as it is, as numpy's savetxt writes it), one dwell per column.
+            body = [list(c) for c in zip(rows[0], rows[1], strict=True)]
     else:
         body = rows[1:]
         found = None
