@@ -1530,3 +1530,52 @@ def test_a_named_time_column_that_does_not_count_time_is_not_the_time(tmp_path: 
 
     r = CliRunner().invoke(main, ["dwells", str(p2), "--fs", "20", "--time-column", "none"])
     assert r.exit_code == 0 and "12 dwells" in r.output, r.output
+
+
+@pytest.mark.parametrize("layout", ["imucal", "flags"])
+def test_an_annotated_session_gives_its_labelled_sections_as_dwells(tmp_path: Path,
+                                                                    layout: str) -> None:
+    """imucal's annotated Ferraris session (``part,samples,acc_x,...``, rows grouped by part,
+    so out of time order; rotations ``x_rot`` between the faces), or a static/moving flag per
+    row: the static runs are the dwells, named by their label, in time order; the motions are
+    left out with a note; the statistics equal dwell_stats on the same rows."""
+    rng = np.random.default_rng(5)
+    faces = {"x_p": [1, 0, 0], "x_a": [-1, 0, 0], "y_p": [0, 1, 0], "y_a": [0, -1, 0],
+             "z_p": [0, 0, 1], "z_a": [0, 0, -1]}
+    parts, blocks = [], []
+    for name, f in faces.items():
+        n = int(rng.integers(300, 600))
+        blocks.append(np.round(2048 * np.array(f) + [12, -40, 25] + 6 * rng.standard_normal(
+            (n, 3))))
+        parts += [name] * n
+        blocks.append(np.round(2048 * rng.uniform(-1, 1, (200, 3))))  # the turn after it
+        parts += [f"{name[0]}_rot"] * 200
+    acc = np.concatenate(blocks)
+    n = len(acc)
+    gyr = np.round(5 * rng.standard_normal((n, 3)))
+    if layout == "imucal":
+        label = np.array(parts)
+        order = np.argsort(label, kind="stable")  # grouped by part, as imucal writes it
+        text = "part,samples,acc_x,acc_y,acc_z,gyr_x,gyr_y,gyr_z\n" + "".join(
+            f"{label[i]},{i},{acc[i, 0]:.1f},{acc[i, 1]:.1f},{acc[i, 2]:.1f},"
+            f"{gyr[i, 0]:.1f},{gyr[i, 1]:.1f},{gyr[i, 2]:.1f}\n" for i in order)
+        names = list(faces)
+    else:
+        label = np.array(["moving" if p.endswith("rot") else "static" for p in parts])
+        text = "state,ax,ay,az\n" + "".join(
+            f"{label[i]},{acc[i, 0]:.1f},{acc[i, 1]:.1f},{acc[i, 2]:.1f}\n" for i in range(n))
+        names = ["static"] * 6
+    p = write(tmp_path, text, "annotated.csv")
+    d = stream_dwells(p)
+    assert d.names == names
+    cut = np.r_[0, np.flatnonzero(label[1:] != label[:-1]) + 1, n]
+    bounds = [[a, b] for a, b in zip(cut[:-1], cut[1:], strict=True)
+              if not label[a].endswith("rot") and label[a] != "moving"]
+    ref = ac.dwell_stats(acc, bounds)
+    np.testing.assert_array_equal(d.mean, ref.mean)
+    np.testing.assert_allclose(d.var, ref.var, rtol=1e-12)
+    st = read_stream(p)
+    assert any("labels the session's sections" in x and "left out as motions" in x
+               for x in st.notes)
+    fit = ac.fit_static(d, 9.81, model="diag")
+    np.testing.assert_allclose(fit.vector[:3], 2048 / 9.81, rtol=2e-3)

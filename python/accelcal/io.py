@@ -557,12 +557,69 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
         out.lay.notes += notes
         out.labels = labels
         return out
+    annotated = _annotated_session(df, text, columns, fs, time_column, name, has_header)
+    if annotated is not None:
+        return annotated
     seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in text}
     raise CalibrationError(
         f"{name}: a long-format log (a text label in each row: {seen}) with no label that names "
         "an accelerometer (ACC, accel, accelerometer, ...); select its rows first, e.g. with "
         "pandas: df = pd.read_csv(path); read_stream(df[df[label] == value].drop("
         "columns=label))")
+
+
+#: Names of a column that counts samples, by which an annotated session's rows are ordered.
+_SAMPLE_INDEX = {"sample", "samples", "nsamples", "sampleindex", "index", "idx", "n", "counter",
+                 "count"}
+
+
+def _annotated_session(df: Any, text: list[str], columns: Any, fs: float | None,
+                       time_column: Any, name: str, has_header: bool) -> _ArraySource | None:
+    """A session whose rows carry the section they belong to (imucal's annotated Ferraris
+    session: ``part,samples,acc_x,...`` with parts ``x_p``, ``x_a``, ``x_rot`` ...; a
+    ``static``/``moving`` flag): the samples, in the order of a sample-index or time column
+    when there is one, with the runs of each static label as known dwells named by it
+    (labels of motions, ``x_rot`` ..., left out). None when no text column reads so: one
+    label column, at most 64 labels, none naming a sensor, at least two static runs of 8 rows
+    or more."""
+    import pandas as pd
+
+    if len(text) != 1:
+        return None
+    c = text[0]
+    val = df[c].astype(str).str.strip()
+    uniq = val.unique()
+    if len(uniq) > 64 or any(set(re.split(r"[^a-z]+", str(u).lower())) & _SENSOR_WORDS
+                             for u in uniq):
+        return None
+    sub = df.drop(columns=[c])
+    order_by = next((k for k in sub.columns if _norm(str(k)) in _SAMPLE_INDEX
+                     or _time_name(str(k)) is not None), None)
+    if order_by is not None and pd.api.types.is_numeric_dtype(sub[order_by]):
+        idx = np.argsort(sub[order_by].to_numpy(), kind="stable")
+        sub, val = sub.iloc[idx].reset_index(drop=True), val.iloc[idx].reset_index(drop=True)
+    lab = val.to_numpy()
+    cut = np.flatnonzero(lab[1:] != lab[:-1]) + 1
+    starts, stops = np.r_[0, cut], np.r_[cut, len(lab)]
+    runs = [(str(lab[a]), int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
+    moving = sorted({r for r, _, _ in runs if _MOVING.search(r.lower())})
+    static = [(r, a, b) for r, a, b in runs if r not in moving and b - a >= 8]
+    if len(static) < 2 or len(runs) > 5000:
+        return None
+    out = _dataframe_source(sub, columns, fs, time_column, path=name, named=has_header)
+    short = len([1 for r, a, b in runs if r not in moving]) - len(static)
+    how = f", ordered by {order_by!r}" if order_by is not None else ""
+    note = (f"column {c!r} labels the session's sections{how}: its {len(static)} static "
+            f"runs are the dwells ({', '.join(r for r, _, _ in static[:8])}"
+            f"{' ...' if len(static) > 8 else ''})")
+    if moving:
+        note += f"; left out as motions: {', '.join(moving)}"
+    if short:
+        note += f"; {short} run(s) under 8 rows left out"
+    out.lay.notes.append(note)
+    out.sections = Bounds(np.array([[a, b] for _, a, b in static], dtype=np.float64),
+                          names=[r for r, _, _ in static], path=name)
+    return out
 
 
 #: Words of a label that names a sensor (a long-format log's rows), not a pose.
@@ -1510,6 +1567,7 @@ class _ArraySource:
     temp: Any = None
     closer: Callable[[], None] | None = None
     labels: list[str] | None = None  # a text label per row (a table of pose means' names)
+    sections: Any = None  # Bounds of the labelled static sections of an annotated session
 
     def chunk(self, a: int, b: int) -> tuple[NDArray[Any], Any, Any]:
         lay = self.lay
@@ -2656,6 +2714,11 @@ def _stream_dwells(
                                "file is read as samples (give means=True to read it as one)")
     if isinstance(bounds, (str, os.PathLike)):
         bounds = read_bounds(bounds)
+    if bounds is None and rec.arrays is not None and rec.arrays.sections is not None:
+        bounds = rec.arrays.sections  # an annotated session's labelled static sections
+        rec.lay.notes[:] = [n.replace("dwell detection and sample times need it",
+                                      "the dwells' times need it (the time tests of diagnose)")
+                            for n in rec.lay.notes]
     known = bounds.path if isinstance(bounds, Bounds) else None  # named in its errors
     if rec.text is not None:
         # Text arrives in blocks of a few MB already: pushed as they come (the result does

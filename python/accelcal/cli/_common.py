@@ -288,7 +288,8 @@ def source_line(file: str, rec: Any, d: Any) -> str:
         return f"{file}: dwell table with {len(d)} dwells{fs}"
     if rec.pose_table:
         return f"{file}: table of dwell means, {len(d)} poses"
-    line = f"{file}: {rec.rows} samples at {rec.fs:.6g} Hz -> {len(d)} dwells"
+    rate = "rate unknown" if rec.fs is None else f"at {rec.fs:.6g} Hz"
+    line = f"{file}: {rec.rows} samples {rate} -> {len(d)} dwells"
     if getattr(d, "dropped", 0):
         line += (f" ({d.dropped} rows with NaN or inf samples: dropouts, left out of the "
                  "dwell statistics)")
