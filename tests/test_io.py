@@ -1579,3 +1579,8 @@ def test_an_annotated_session_gives_its_labelled_sections_as_dwells(tmp_path: Pa
                for x in st.notes)
     fit = ac.fit_static(d, 9.81, model="diag")
     np.testing.assert_allclose(fit.vector[:3], 2048 / 9.81, rtol=2e-3)
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(main, ["dwells", str(p)])  # no rate: said, not a crash
+    assert r.exit_code == 0 and f"{n} samples rate unknown -> 6 dwells" in r.output, r.output
