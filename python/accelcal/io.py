@@ -2699,7 +2699,9 @@ def _stream_dwells(
         raise CalibrationError("count= (samples per pose's mean) is for a table of dwell "
                                "means: give means=True too")
     slow = too_slow_for_detection(rec.fs, detector_kw.get("window_s"))
-    if means or (means is None and bounds is None and (rec.fs is None or slow)):
+    annotated = rec.arrays is not None and rec.arrays.sections is not None
+    if means or (means is None and bounds is None and not annotated
+                 and (rec.fs is None or slow)):
 
         d = pose_table(rec, units, forced=bool(means), count=count)
         if d is not None:
