@@ -1584,3 +1584,7 @@ def test_an_annotated_session_gives_its_labelled_sections_as_dwells(tmp_path: Pa
 
     r = CliRunner().invoke(main, ["dwells", str(p)])  # no rate: said, not a crash
     assert r.exit_code == 0 and f"{n} samples rate unknown -> 6 dwells" in r.output, r.output
+    # The fleet reads it the same way.
+    row = ac.calibrate_many([str(p)], g=9.81, model="diag", workers=1, progress=False).iloc[0]
+    assert row["n_dwells"] == 6 and "labels the session's sections" in row["message"]
+    np.testing.assert_allclose([row["sx"], row["sy"], row["sz"]], fit.vector[:3], rtol=1e-12)

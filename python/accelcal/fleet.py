@@ -175,10 +175,12 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     from ._pose_table import looks_like_poses, too_slow_for_detection
 
     slow = too_slow_for_detection(st.fs, job.detector.get("window_s"))
-    if st.fs is None or slow:
+    if st.sections is not None:  # an annotated session: its labelled sections are the dwells
+        poses = False
+    elif st.fs is None or slow:
 
         poses = job.bounds is None and looks_like_poses(np.asarray(st.samples, np.float64))
-        if st.fs is None and not poses:
+        if st.fs is None and not poses and job.bounds is None:
             row["message"] = (
                 f"the sample rate is not in the file (no fs metadata or time column): give "
                 f"{names['fs']}" + ("" if job.cli else " or an fs column in the manifest")
@@ -194,8 +196,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         fault_note = [x for x in rec.notes() if not x.startswith("read as a table of dwell")]
         fault_note.append(f"read as a table of dwell means, one pose per row ({n} rows: the "
                           f"rate is {why}, and the rows step from attitude to attitude)")
-    elif job.bounds is not None:  # known dwells: a dropout inside one is an error, as ever
-        known = _aio.read_bounds(job.bounds)
+    elif job.bounds is not None or st.sections is not None:
+        # Known dwells (a bounds file, or an annotated session's labelled sections): a
+        # dropout inside one is an error, as ever.
+        known = _aio.read_bounds(job.bounds) if job.bounds is not None else st.sections
         fault_note += known.notes
         d = _aio._named_dwells(dwell_stats(st.samples, known.rows(st.fs), t=st.t,
                                            temperature=st.temperature, fs=st.fs), known)

@@ -165,6 +165,9 @@ class Stream:
     output_rate_hz : float or None
         The sensor's own output rate estimated from repeated rows when it is read faster
         than it updates (``fs * distinct rows / rows``); None when the rows rarely repeat.
+    sections : Bounds or None
+        The labelled static sections of an annotated session (a text column naming each
+        row's section, ``x_p``, ``x_rot`` ...), as known dwells; None otherwise.
     """
 
     samples: NDArray[Any]
@@ -179,6 +182,7 @@ class Stream:
     notes: list[str] = field(default_factory=list)
     repeats: int = 0
     output_rate_hz: float | None = None
+    sections: Any = None
 
     def __len__(self) -> int:
         return int(self.samples.shape[0])
@@ -2314,6 +2318,7 @@ class _Recording:
             s, t, lay.fs, dict(lay.metadata), _names_of(lay), self.path, temp,
             t0=lay.t0_text, fs_source=lay.fs_source, notes=self.notes(),
             repeats=self.repeats, output_rate_hz=self.output_rate(),
+            sections=None if self.arrays is None else self.arrays.sections,
         )
 
 
