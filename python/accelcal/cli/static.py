@@ -45,6 +45,22 @@ def _cli(msg: str) -> str:
     return cli_words(msg, _PHRASES)
 
 
+def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
+    """For a session mostly in motion: how much was still, and the trade-off of a shorter
+    window (pauses found, but also the slow ends of moves: a simulated session with 1.4 s
+    pauses gives 16 "dwells" at a 0.2 s window, most of them partly in the moves, chi2/dof
+    3750, where the 1 s window gives the 8 longest pauses exactly)."""
+    text = (f" Only {100 * still:.0f} % of the recording was taken as still (dwells of at "
+            f"least --min-dwell {min_dwell_s:g} s, window {window_s:g} s)")
+    if max(window_s, min_dwell_s) > 0.25:
+        return (f"{text}: if the sensor rested in shorter pauses, a shorter --window and "
+                "--min-dwell find them, but also take the slow ends of moves; check the "
+                "dwells plot and the fit's chi2/dof, or hold the sensor still for a few "
+                "seconds in each pose.")
+    return (f"{text}: the sensor moved most of the time; hold it still for a few seconds in "
+            "each pose.")
+
+
 @calibrate.command("static")
 @click.argument("files", metavar="FILE...", nargs=-1, type=click.Path(allow_dash=True))
 @gravity_options
@@ -131,18 +147,13 @@ def calibrate_static(
         except DegenerateDataError as e:
             hint = ""
             if model != "diag" and "diag" not in str(e):
-                hint = " Try --model diag (bias + scale: 6 parameters) or add attitudes."
+                hint = (" Try --model diag (bias + scale: 6 parameters) or add attitudes."
+                        if len(d) >= 6 else " Add attitudes: even --model diag (bias + scale) "
+                        "needs 6 dwells.")
             detected = rec is not None and not rec.pose_table and not bounds and rec.rows
             still = float(np.sum(undropped.count)) / rec.rows if detected else 1.0
             if still < 0.25:
-                # A session mostly in motion: shorter rests than the detector keeps?
-                hint += (f" Only {100 * still:.0f} % of the recording was taken as still "
-                         f"(dwells of at least --min-dwell {min_dwell_s:g} s, window "
-                         f"{window_s:g} s): ")
-                hint += ("if the sensor rested more often, shorter --min-dwell and --window "
-                         "(0.5, say) find shorter rests." if max(min_dwell_s, window_s) > 0.5
-                         else "the sensor moved most of the time; hold it still for a few "
-                         "seconds in each pose.")
+                hint += _shorter_rests(window_s, min_dwell_s, still)
             hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped))
             raise CalibrationError(_cli(
                 f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
