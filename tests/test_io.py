@@ -726,6 +726,19 @@ def test_read_bounds_formats(tmp_path: Path) -> None:
         b = read_bounds(write(tmp_path, text, name))
         np.testing.assert_allclose(b.values, want, err_msg=name)
         assert b.seconds == seconds, name
+    # Given dwells of a few samples are said to be so (their variances tell little).
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=10, dwell_s=3.0, move_s=1.0, sigma=0.01, rng=1)
+    rec = write(tmp_path, "t,ax,ay,az\n" + "".join(
+        f"{t:.2f},{x:.5f},{y:.5f},{z:.5f}\n" for t, (x, y, z) in zip(s.t, s.samples,
+                                                                    strict=True)), "rec.csv")
+    tiny = write(tmp_path, "[[10, 12], [400, 412], [800, 1000]]", "tiny.json")
+    from accelcal.io import _stream_dwells
+
+    _, r = _stream_dwells(rec, bounds=tiny)
+    assert any("2 of the given dwells hold fewer than 30 samples (dwell 0: 2 samples, "
+               "dwell 1: 12 samples)" in x for x in r.notes())
     b = read_bounds(tmp_path / "secs.csv")
     np.testing.assert_array_equal(b.rows(100.0), [[10, 50]])
     with pytest.raises(CalibrationError, match=r"in seconds, so the sample rate is needed"):
@@ -855,7 +868,7 @@ def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
         ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,,3,\n",
          ["line 4", 'column "ay": is empty (missing value)']),
         ("timestamp,sensor,x,y,z\n0.00,MAG,0.1,0.2,9.8\n0.00,GYR,0.01,0.02,0.03\n",
-         ["long-format log", "{'sensor': ['GYR', 'MAG']}", "no label that names an "
+         ["long-format log", "'sensor': GYR, MAG", "no label that names an "
           "accelerometer", "df[df[label] == value]"]),
     ],
 )

@@ -902,10 +902,15 @@ def _summary(r: GapReport) -> str:
                  f"separate them: {a['experiment']}")
     for b in r.blind_spots:
         L.append(f"Blind spot: {b['effect']}: {b['reason']}")
-    L.append(f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
-             f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining "
-             f"{r.excess_remaining:.2f}); held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} "
-             f"{r.units}")
+    if math.isfinite(r.held_out_gap):
+        rem = (f"{r.excess_remaining:.2f}" if math.isfinite(r.excess_remaining)
+               else "n/a: no excess to remain")
+        L.append(f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
+                 f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining "
+                 f"{rem}); held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} {r.units}")
+    else:
+        L.append("How far it shrinks: not computed (no held-out fits: loo=False, or too few "
+                 "dwells to leave one out)")
     # The structure tests see the residuals left after the selected effects.
     after = f" (of what remains after {', '.join(r.selected)})" if r.selected else ""
     L.append(f"Structure{after}: {r.structure.summary()}")

@@ -564,12 +564,17 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
     annotated = _annotated_session(df, text, columns, fs, time_column, name, has_header)
     if annotated is not None:
         return annotated
-    seen = {c: sorted(df[c].astype(str).str.strip().unique()[:8].tolist()) for c in text}
+    seen = {}
+    for c in text:
+        u = sorted(df[c].astype(str).str.strip().unique().tolist())
+        seen[c] = ", ".join(u[:8]) + (f" ... ({len(u)} labels)" if len(u) > 8 else "")
+    said = "; ".join(f"{c!r}: {v}" for c, v in seen.items())
     raise CalibrationError(
-        f"{name}: a long-format log (a text label in each row: {seen}) with no label that names "
-        "an accelerometer (ACC, accel, accelerometer, ...); select its rows first, e.g. with "
-        "pandas: df = pd.read_csv(path); read_stream(df[df[label] == value].drop("
-        "columns=label))")
+        f"{name}: a long-format log (a text label in each row, {said}) with no label that "
+        "names an accelerometer (ACC, accel, accelerometer, ...) and no sections to take as "
+        "dwells; write the accelerometer's rows to a file of their own, or select them in "
+        "Python: df = pandas.read_csv(path); accelcal.io.read_stream(df[df[label] == "
+        "value].drop(columns=label))")
 
 
 #: Names of a column that counts samples, by which an annotated session's rows are ordered.
@@ -2738,11 +2743,26 @@ def _stream_dwells(
                 acc.push(s, t, temp)
         if rec.rows == 0:
             raise CalibrationError(f"{rec.path}: no data rows")
-        return _named_dwells(acc.finish(), bounds), rec
+        d = _named_dwells(acc.finish(), bounds)
+        if bounds is not None:
+            rec.lay.notes += _short_dwells(d)
+        return d, rec
     except CalibrationError as e:
         if known is None or str(e).startswith(rec.path):
             raise  # not about the bounds
         raise type(e)(f"{known} (dwell bounds of {rec.path}): {e}") from None
+
+
+def _short_dwells(d: Any) -> list[str]:
+    """A note on given dwells of fewer than 30 samples: their variances say little about the
+    noise (a variance from 2 samples is off by a factor of 10 one time in 6)."""
+    short = [i for i, c in enumerate(np.asarray(d.count)) if c < 30]
+    if not short:
+        return []
+    which = ", ".join(f"dwell {d.label(i)}: {int(d.count[i])} samples" for i in short[:6])
+    return [f"{len(short)} of the given dwells hold fewer than 30 samples ({which}"
+            f"{' ...' if len(short) > 6 else ''}): their variances say little about the "
+            "noise, so a chi2 against them says little either"]
 
 
 def _named_dwells(d: Any, bounds: Any) -> Any:

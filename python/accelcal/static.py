@@ -466,7 +466,8 @@ class StaticFit(_core.StaticFit):
         tv = None if truth is None else np.asarray(truth, dtype=np.float64).reshape(-1)
         u = units_of_g(self.g) or "units of g"
         chi = (
-            f"chi2/dof = {self.chi2_dof:.3g}"
+            "chi2/dof n/a (no redundancy)" if self.dof <= 0
+            else f"chi2/dof = {self.chi2_dof:.3g}"
             if self.noise_known
             else f"estimated noise of a dwell mean {math.sqrt(self.chi2_dof):.3g} "
             f"{self.input_units or 'output units'} per axis"
@@ -509,7 +510,10 @@ class StaticFit(_core.StaticFit):
             lines.append(f"  norm before ({ns['before_source']}): " + ns["before"].line())
         lines.append("  norm after:  " + ns["after"].line())
         if ns["std_reduction_percent"] is not None:
-            lines.append(f"  std(|a| - g) reduced by {ns['std_reduction_percent']:.1f} %")
+            red = float(ns["std_reduction_percent"])
+            lines.append(f"  std(|a| - g) reduced by {red:.1f} %" if red >= 0.05 else
+                         f"  std(|a| - g) increased by {-red:.1f} %" if red <= -0.05 else
+                         "  std(|a| - g) unchanged (within 0.05 %)")
         if self.dof <= 0:
             src = ("the std above comes from the noise model alone"
                    if np.all(np.isfinite(std)) else
@@ -622,10 +626,14 @@ def fit_static(
         raise type(e)(f"{e}. {hint}") from None
     attention = fit._attention  # one read: bit 0 not converged, bit 1 weak or degenerate
     if attention & 1:
+        src = fit.start_source
+        advice = ("use the default start (the exact quadric solution) or more iterations"
+                  if src == "user" else
+                  "the dwells may barely determine the model: check their attitudes (fit "
+                  "observability()), or give more iterations (max_iter=)")
         raise CalibrationError(
             f"{method} did not reach the minimum in {fit.max_iter} iterations (start "
-            f"{fit.start.tolist()}); use the default start (the exact quadric solution) or "
-            "more iterations"
+            f"{fit.start.tolist()}, {src}); {advice}"
         )
     if attention and observability != "ignore":
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit

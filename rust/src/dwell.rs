@@ -1574,7 +1574,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         return degenerate(format!(
             "no static dwell found in {n} samples ({:.4} s at {} Hz): no run of at least \
              min_dwell_s = {} s stayed below k = {} x the noise variance (noise std {:.3e}, \
-             {:.3e}, {:.3e}); check fs, or lower min_dwell_s, raise k or give noise_std",
+             {:.3e}, {:.3e}); check fs, or lower min_dwell_s=, or raise k= (or give noise_std=)",
             n as f64 / s.fs,
             s.fs,
             s.min_dwell_s,

@@ -39,7 +39,8 @@ CLI_WORDS: dict[str, str] = {
     "fit": "--calibration",
 }
 #: Library phrases that are a flag on the command line.
-CLI_PHRASES: dict[str, str] = {"means=True": "--means"}
+CLI_PHRASES: dict[str, str] = {"means=True": "--means",
+                               " (or give noise_std=)": ""}  # no such option
 
 
 def cli_words(
@@ -64,7 +65,14 @@ def cli_words(
         return opt + (" ..." if m.group(2) else "")
 
     keys = "|".join(sorted(map(re.escape, CLI_WORDS), key=len, reverse=True))
-    return re.sub(rf"(?<![\w-])({keys})=(\[\.\.\.\])?(?![\w\d.+-])", repl, msg)
+    msg = re.sub(rf"(?<![\w-])({keys})=(\[\.\.\.\])?(?![\w\d.+-])", repl, msg)
+    # A setting quoted with its value (``min_dwell_s = 1 s``, ``window_s = 0.5 s``): the
+    # option with its value. (One-letter names other than k stay: ``g = 9.81`` may be a
+    # statement about gravity, not the option.)
+    long_keys = "|".join(sorted((re.escape(k) for k in CLI_WORDS if len(k) > 2 or k == "k"),
+                                key=len, reverse=True))
+    return re.sub(rf"(?<![\w-])({long_keys}) = (?=[-+\d.])",
+                  lambda m: CLI_WORDS[m.group(1)] + " ", msg)
 
 
 def _fail(msg: str) -> None:

@@ -79,8 +79,11 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     extra: list[str] = []
     no_allan = noise == "allan" and getattr(d, "inflation", None) is None
     if no_allan and (tabled or file == "-" or bounds):
-        extra.append("the Allan noise model needs the samples (not in a dwell table, and "
-                     "standard input cannot be read twice): white noise (variance / count) used")
+        why = ("standard input cannot be read twice" if file == "-" else
+               "a table of dwells or of pose means has none" if tabled else
+               "the given dwells are read in one pass")
+        extra.append(f"the Allan noise model needs the samples ({why}): white noise "
+                     "(variance / count) used")
     run: tuple[Any, ...] = (d,)
     if no_allan and not tabled and file != "-" and not bounds:
         # A dwell table without the within-dwell Allan statistics: the Allan noise model

@@ -129,10 +129,12 @@ fn fit_one<const N: usize>(
         Err(e) => return BatchRow::failed(n, i, &e),
     };
     if !s.converged {
-        let e = CoreError::NotConverged(format!(
-            "the fit did not converge in {} iterations",
-            set.max_iter
-        ));
+        let e = super::start::unexcited_axes(means).unwrap_or_else(|| {
+            CoreError::NotConverged(format!(
+                "the fit did not converge in {} iterations",
+                set.max_iter
+            ))
+        });
         return BatchRow::failed(n, i, &e);
     }
     // RMS of the norm residuals: one light pass (the frame leaves |a| unchanged).

@@ -800,6 +800,13 @@ fn fit_static_n<const N: usize>(
         Ok(jc)
     };
     check_solved(&s, set, n, jc)?;
+    if !s.converged && !s.cov.summary.degenerate {
+        // An iteration that wanders because no pose turned an axis towards gravity (and the
+        // design check above did not already say what is undetermined): say so.
+        if let Some(e) = start::unexcited_axes(means) {
+            return Err(e);
+        }
+    }
     let known = noise.known();
     // With the noise estimated, costs are in frame units squared: report output units.
     let s2 = s.f1.s * s.f1.s;

@@ -456,9 +456,10 @@ pub fn start_stage(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> 
 /// turned that axis towards gravity.
 const UNEXCITED_SPAN: f64 = 0.2;
 
-/// Why a linear solution failed, when the cause is an axis that no pose turned towards
-/// gravity (its dwell means span under [`UNEXCITED_SPAN`] of the norm): its scale and bias
-/// cannot be told apart. `None` when every axis moves, or when none does (a single pose).
+/// Why a fit failed, when the cause is an axis that no pose turned towards gravity (its
+/// dwell means span under [`UNEXCITED_SPAN`] of the norm): its scale and bias cannot be told
+/// apart; or, when no axis moves, that the dwells are one pose. `None` when every axis moves,
+/// or for identical dwells (said elsewhere, as such).
 pub fn unexcited_axes(means: &[[f64; 3]]) -> Option<CoreError> {
     if means.len() < 2 {
         return None;
@@ -472,38 +473,56 @@ pub fn unexcited_axes(means: &[[f64; 3]]) -> Option<CoreError> {
     if !(scale > 0.0) || !scale.is_finite() {
         return None;
     }
-    let mut parts = Vec::new();
-    let mut names = Vec::new();
-    for (a, name) in ["x", "y", "z"].iter().enumerate() {
-        let (lo, hi) = means
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), m| {
-                (lo.min(m[a]), hi.max(m[a]))
-            });
-        let span = hi - lo;
-        if span < UNEXCITED_SPAN * scale {
-            parts.push(format!(
-                "the {name} output spans only {span:.3e} ({:.1} % of the norm, {scale:.4e})",
-                100.0 * span / scale
-            ));
-            names.push(*name);
+    // (axis, span) of the axes that barely move.
+    let flat: Vec<(&str, f64)> = ["x", "y", "z"]
+        .iter()
+        .enumerate()
+        .filter_map(|(a, name)| {
+            let (lo, hi) = means
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), m| {
+                    (lo.min(m[a]), hi.max(m[a]))
+                });
+            (hi - lo < UNEXCITED_SPAN * scale).then_some((*name, hi - lo))
+        })
+        .collect();
+    let n = means.len();
+    let pct = |span: f64| 100.0 * span / scale;
+    match flat.len() {
+        0 => None,
+        3 if means.iter().all(|m| m == &means[0]) => None,
+        3 => Some(CoreError::Degenerate(format!(
+            "the {n} dwells are one pose: every output spans under {:.0} % of the norm \
+             ({scale:.4e}) over them ({}); a calibration needs poses in different attitudes \
+             (each axis up and down, or tilted by 30 deg or more)",
+            100.0 * UNEXCITED_SPAN,
+            flat.iter()
+                .map(|(a, s)| format!("{a} {:.1} %", pct(*s)))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ))),
+        _ => {
+            let names: Vec<&str> = flat.iter().map(|(a, _)| *a).collect();
+            Some(CoreError::Degenerate(format!(
+                "{} over the {n} dwells: no pose turned the {} axis towards gravity, so its \
+                 scale and bias cannot be told apart; add poses with {} (or tilted by 30 deg \
+                 or more)",
+                flat.iter()
+                    .map(|(a, s)| format!(
+                        "the {a} output spans only {s:.3e} ({:.1} % of the norm, {scale:.4e})",
+                        pct(*s)
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                names.join(" and "),
+                names
+                    .iter()
+                    .map(|a| format!("{a} up and {a} down"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )))
         }
     }
-    if parts.is_empty() || parts.len() == 3 {
-        return None; // every axis moves, or none does (one pose: said elsewhere)
-    }
-    let axes = names.join(" and ");
-    Some(CoreError::Degenerate(format!(
-        "{} over the {} dwells: no pose turned the {axes} axis towards gravity, so its scale \
-         and bias cannot be told apart; add poses with {} (or tilted by 30 deg or more)",
-        parts.join(", "),
-        means.len(),
-        names
-            .iter()
-            .map(|n| format!("{n} up and {n} down"))
-            .collect::<Vec<_>>()
-            .join(", ")
-    )))
 }
 
 #[cfg(test)]
@@ -601,6 +620,16 @@ mod tests {
         assert!(e.contains("add poses with x up and x down"), "{e}");
         let every: Vec<[f64; 3]> = simulate(Model::Lower, &TRUTH, 20, 60.0, 2);
         assert!(unexcited_axes(&every).is_none());
+        // One pose, with noise: said as such; identical dwells are left to their own message.
+        let one: Vec<[f64; 3]> = (0..8)
+            .map(|i| [0.01 * (i % 2) as f64, -0.02, 9.8 + 0.01 * (i % 3) as f64])
+            .collect();
+        let e = unexcited_axes(&one).unwrap().to_string();
+        assert!(
+            e.starts_with("the 8 dwells are one pose: every output spans under 20 %"),
+            "{e}"
+        );
+        assert!(unexcited_axes(&[[0.0, 0.0, 9.8]; 8]).is_none());
         // The fit says so too, whatever failed first (here the quadric start lies where the
         // model cannot be evaluated).
         let set = FitSettings::new(Model::Diag, Method::Lm);
