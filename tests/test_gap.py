@@ -780,3 +780,37 @@ def test_a_session_that_cannot_determine_the_calibration_is_refused_as_the_fit_d
     cal = accelcal.fit_static(d, 9.80665, model="diag").to_model()
     rep = diagnose(d, g=9.80665, fit=cal)
     assert rep.best == "none" and rep.chi2_per_dof < 3
+
+
+def test_a_checked_calibration_brings_its_own_uncertainty() -> None:
+    """A calibration from a weak session (12 dwells within +-30 deg) checked against a new
+    session over the whole sphere: taken as exact, its weakly determined terms look like a gap
+    in every seed; with its covariance propagated to each dwell's norm (the TriadModel's
+    realistic covariance), far fewer false alarms (the correlation across dwells is left out,
+    so not down to alpha), and the report says how much it added."""
+    from accelcal.sim.static import static_dwell_means
+
+    truth = [1.01, 0.99, 1.02, 0.05, -0.03, 0.08, 0.004, -0.003, 0.002]
+    var = np.full((12, 3), 1e-6) * 100
+
+    def dwells(m: np.ndarray) -> DwellSet:
+        return DwellSet(m, np.full(m.shape, 1e-4), np.full(len(m), 100))
+
+    alarms_with = alarms_without = 0
+    for seed in range(12):
+        s1 = static_dwell_means(12, truth, 9.80665, sigma=1e-3, sigma_g=0.0, max_tilt_deg=30,
+                                rng=seed)
+        with pytest.warns(accelcal.WeakDesignWarning):
+            m = accelcal.fit_static(DwellSet(s1.means, var, np.full(12, 100)),
+                                    9.80665).to_model()
+        s2 = static_dwell_means(24, truth, 9.80665, sigma=1e-3, sigma_g=0.0,
+                                max_tilt_deg=None, rng=1000 + seed)
+        rep = diagnose(dwells(s2.means), g=9.80665, fit=m, loo=False)
+        exact = diagnose(dwells(s2.means), g=9.80665,
+                         fit=accelcal.TriadModel(m.K, m.bias, model=m.model), loo=False)
+        alarms_with += rep.p_value < 0.05
+        alarms_without += exact.p_value < 0.05
+        assert rep.chi2 < exact.chi2
+        assert any("the calibration's own uncertainty" in x for x in rep.statements)
+        assert any("taken as exact" in x for x in exact.statements)
+    assert alarms_without >= 11 and alarms_with <= 5, (alarms_with, alarms_without)

@@ -846,8 +846,10 @@ def _structure_text(s: GapStructure) -> str:
 def _summary(r: GapReport) -> str:
     L = []
     p = "n/a (noise unknown)" if not math.isfinite(r.p_value) else f"{r.p_value:.2g}"
+    held = (f"{r.held_out_gap:.2f} (1 = adequate)" if math.isfinite(r.held_out_gap)
+            else "n/a (not computed)")
     L.append(f"Gap: chi2/dof = {r.chi2_per_dof:.2f} ({r.chi2:.1f} on {r.dof} dof, p = {p}); "
-             f"held-out gap G = {r.held_out_gap:.2f} (1 = adequate)")
+             f"held-out gap G = {held}")
     L.append(f"Noise model: {r.noise_model}")
     w = r.where
     fl = w.get("flagged", [])
@@ -1006,6 +1008,41 @@ def _determined(d: DwellSet, g: float) -> None:
             "suffice)") from None
     except CalibrationError:
         pass  # the diagnosis reports its own errors
+
+
+def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """Per dwell, the variance its norm residual inherits from a held-fixed calibration's own
+    uncertainty: the TriadModel's realistic covariance ``C`` propagated to
+    ``r_k = |K^-1 (m_k - b)|`` by its gradient ``j_k`` (central differences), ``j_k^T C j_k``;
+    returned as the isotropic variance of the dwell mean (raw units) that gives the same norm
+    variance, ``j_k^T C j_k / |K^-T u_k|^2``. None for a calibration without a covariance."""
+    from ._triad import k_matrix
+    from .static import TriadModel
+
+    if not isinstance(fit, TriadModel) or fit.covariance is None:
+        return None
+    cov = np.asarray(fit.covariance, dtype=np.float64)
+    v = np.asarray(fit.vector, dtype=np.float64)
+    if cov.shape != (v.size, v.size) or not np.all(np.isfinite(cov)):
+        return None
+    c = g if fit.units == "g" else 1.0  # the model's output unit in the session's
+
+    def norms(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        a = np.linalg.solve(k_matrix(p, fit.model), (mean - p[3:6]).T).T
+        return np.asarray(c * np.linalg.norm(a, axis=1))
+
+    jac = np.empty((mean.shape[0], v.size))
+    for j in range(v.size):
+        h = 1e-6 * max(abs(v[j]), float(np.sqrt(cov[j, j])), 1e-12)
+        dp = np.zeros(v.size)
+        dp[j] = h
+        jac[:, j] = (norms(v + dp) - norms(v - dp)) / (2 * h)
+    var_r = np.einsum("ki,ij,kj->k", jac, cov, jac)
+    k_inv_t = np.linalg.inv(k_matrix(v, fit.model)).T
+    a = np.linalg.solve(k_matrix(v, fit.model), (mean - v[3:6]).T).T
+    u = a / np.linalg.norm(a, axis=1)[:, None]
+    w = np.sum((c * u @ k_inv_t.T) ** 2, axis=1)  # |dr/dm|^2, (output / raw)^2
+    return np.asarray(np.maximum(var_r, 0.0) / w)
 
 
 def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
@@ -1223,6 +1260,15 @@ def diagnose(
     temp = (None if d.temperature is None
             else np.ascontiguousarray(d.temperature[order], dtype=np.float64))
     var, nm_text, white, allan = _noise(d, noise, inflation, nm_choice, order, lsb)
+    cal_var = None if var is None or cal is None or not cal[2] else _calibration_var(
+        fit, g_v, mean)
+    share = None
+    if cal_var is not None and var is not None:
+        # The checked calibration is itself uncertain: its covariance, propagated to each
+        # dwell's norm, joins the noise (the correlation it brings across dwells is left out).
+        u = mean / np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
+        share = cal_var / np.maximum(np.sum(u * u * var, axis=1), 1e-300)  # of the norm's
+        var = var + cal_var[:, None]
     hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]
@@ -1235,6 +1281,15 @@ def diagnose(
     if cal is not None and cal[2]:
         statements.append("calibration held fixed (an existing TriadModel checked against "
                           "this session): no calibration parameter was fitted")
+        if share is not None:
+            statements.append(
+                "the calibration's own uncertainty (its covariance, propagated to each "
+                "dwell's norm) is part of each dwell's noise: from "
+                f"{float(np.min(share)):.2g}x to {float(np.max(share)):.2g}x the dwell noise "
+                f"in variance (median {float(np.median(share)):.2g}x; its correlation across "
+                "dwells left out)")
+        elif var is not None:
+            statements.append("the calibration carries no covariance: it is taken as exact")
     rows = {"index": order, "t": tt, "temperature": temp,
             "resid_mps2": np.asarray(raw.resid), "resid_after_mps2": np.asarray(raw.resid_after),
             "pose_angle_deg": np.asarray(raw.pose_angle_deg),
