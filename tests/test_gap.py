@@ -814,3 +814,24 @@ def test_a_checked_calibration_brings_its_own_uncertainty() -> None:
         assert any("the calibration's own uncertainty" in x for x in rep.statements)
         assert any("taken as exact" in x for x in exact.statements)
     assert alarms_without >= 11 and alarms_with <= 5, (alarms_with, alarms_without)
+
+
+def test_the_allan_inflation_is_read_at_each_dwells_length() -> None:
+    """Dwells of one length share the median inflation; dwells of different lengths get a
+    power law in the length (flicker noise: inflation ~ L^0.5), so a short dwell does not take
+    the drift of a long one (a 14 s and a 75 s dwell, as a real two-pose recording had)."""
+    from accelcal.gap import _pool_inflation
+
+    rng = np.random.default_rng(3)
+    same = np.exp(0.2 * rng.standard_normal((20, 3))) * [1.0, 2.0, 3.0]
+    np.testing.assert_allclose(_pool_inflation(same, np.full(20, 1000)),
+                               np.tile(np.maximum(np.median(same, axis=0), 1), (20, 1)))
+    length = np.exp(rng.uniform(np.log(300), np.log(30000), 40))
+    truth = 2.0 * (length / 1000.0) ** 0.5
+    noisy = truth[:, None] * np.exp(0.15 * rng.standard_normal((40, 3)))
+    pooled = _pool_inflation(noisy, length)
+    assert np.all(np.abs(np.log(np.maximum(pooled, 1) / np.maximum(truth, 1)[:, None])) < 0.3)
+    two = _pool_inflation(np.array([[1.3, 1.0, 1.3], [30.7, 1.0, 30.7]]), [1400, 7500])
+    assert two[0, 0] < 5 < two[1, 0]  # not 16 for both, as the median gave
+    np.testing.assert_allclose(_pool_inflation(same), np.tile(np.maximum(
+        np.median(same, axis=0), 1), (20, 1)))  # without lengths: the median, as before

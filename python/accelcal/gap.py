@@ -219,17 +219,45 @@ def allan_deviation(
     return tau, (out[:, 0] if one else out)
 
 
-def _pool_inflation(per_dwell: _F64) -> _F64:
-    """The median over dwells per axis (>= 1), used for every dwell (one dwell's ratio is
-    noisy); NaN entries (dwells too short to estimate) are left out."""
+def _pool_inflation(per_dwell: _F64, length: Any = None) -> _F64:
+    """Per axis, each dwell's inflation from all of them (one dwell's ratio is noisy); NaN
+    entries (dwells too short to estimate) are left out; at least 1.
+
+    Without ``length`` (samples per dwell), or when the lengths differ by less than 1.5x,
+    the median over dwells is used for every dwell. Otherwise the inflation of 1/f and
+    random-walk noise grows with the dwell length, so a power law ``L^s`` is fitted robustly
+    (Theil-Sen slope of log inflation on log length, clamped to ``0 <= s <= 1``: white noise
+    to random walk; intercept the median) and read at each dwell's length: a short dwell does
+    not take the drift of a long one."""
     k = per_dwell.shape[0]
-    f = np.ones(3)
+    out = np.ones((k, 3))
+    lv = None if length is None else np.asarray(length, dtype=np.float64).reshape(-1)
     for i in range(3):
         col = per_dwell[:, i]
-        col = col[np.isfinite(col)]
-        if col.size:
-            f[i] = max(float(np.median(col)), 1.0)
-    return np.tile(f, (k, 1))
+        ok = np.isfinite(col)
+        if lv is not None:
+            ok &= np.isfinite(lv) & (lv > 0)
+        if not ok.any():
+            continue
+        med = max(float(np.median(col[ok])), 1.0)
+        out[:, i] = med
+        if lv is None or ok.sum() < 2:
+            continue
+        x, y = np.log(lv[ok]), np.log(np.maximum(col[ok], 1.0))
+        if np.ptp(x) < np.log(1.5):
+            continue  # dwells of about one length: the median
+        idx = np.flatnonzero(ok)[:400]  # the pairwise slopes of at most 400 dwells
+        xs, ys = np.log(lv[idx]), np.log(np.maximum(col[idx], 1.0))
+        dx = xs[None, :] - xs[:, None]
+        far = np.triu(np.abs(dx) > np.log(1.2), 1)
+        if not far.any():
+            continue
+        s = float(np.clip(np.median(((ys[None, :] - ys[:, None]) / np.where(far, dx, 1.0))[
+            far]), 0.0, 1.0))
+        b = float(np.median(y - s * x))
+        with np.errstate(divide="ignore"):
+            out[:, i] = np.maximum(np.exp(b + s * np.log(np.maximum(lv, 1.0))), 1.0)
+    return out
 
 
 def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[np.float64]:
@@ -247,7 +275,7 @@ def noise_inflation(samples: ArrayLike, dwells: DwellSet, fs: float) -> NDArray[
     per = dwell_stats(samples, np.column_stack([dwells.start, dwells.stop])).inflation
     if per is None:
         return np.ones((len(dwells), 3))
-    return _pool_inflation(np.asarray(per, dtype=np.float64))
+    return _pool_inflation(np.asarray(per, dtype=np.float64), dwells.count)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -767,13 +795,16 @@ def _structure_text(s: GapStructure) -> str:
     tested = [t for t in s.tests if t.name in ("attitude", "time", "temperature", "pose_history")]
     smooth_ok = [t for t in tested if t.status == "testable"]
     untestable = [t for t in tested if t.status == "too_few_dwells"]
-    not_smooth = ", ".join(_smooth_phrase(t.name) for t in smooth_ok) or "nothing tested"
+    not_smooth = ("not smooth in " + ", ".join(_smooth_phrase(t.name) for t in smooth_ok)
+                  if smooth_ok else "smoothness not testable")
     pers = (f"half-dwell residual correlation {s.persistence:.2f}" if s.persistence_testable
             else "persistence untestable (no half-dwell means)")
     v = s.verdict
     if v == "none":
+        tried = (", ".join(_smooth_phrase(t.name) for t in smooth_ok) if smooth_ok
+                 else "nothing testable")
         txt = ("none: the residuals are consistent with the noise model and show no structure "
-               f"(smooth in {not_smooth}: none significant)")
+               f"(smooth in {tried}: none significant)")
     elif v == "noise_model":
         ne = s.noise_empirical
         pt = next((x for x in s.tests if x.name == "persistence"), None)
@@ -819,10 +850,10 @@ def _structure_text(s: GapStructure) -> str:
         mag = _mag(s.per_dwell_rms, s.units) if math.isfinite(s.per_dwell_rms) else "n/a"
         if s.persistence_testable:
             txt = (f"per_dwell: per-dwell offsets of {mag} RMS, persistent within dwells "
-                   f"({pers}), not smooth in {not_smooth}: suspect handling or mounting "
+                   f"({pers}), {not_smooth}: suspect handling or mounting "
                    "(each placement seats differently); repeat three poses to measure it")
         else:
-            txt = (f"per_dwell: a per-dwell excess of {mag} RMS, not smooth in {not_smooth}; "
+            txt = (f"per_dwell: a per-dwell excess of {mag} RMS, {not_smooth}; "
                    f"{pers}: it is either per-dwell offsets (handling, mounting) or noise the "
                    "model misses; record half-dwell means (the dwell pass keeps them) to tell "
                    "them apart")
@@ -1000,6 +1031,16 @@ def _determined(d: DwellSet, g: float) -> None:
             fit_static(d, g, check_g=False)
     except DegenerateDataError as e:
         what = re.split(r"[.;] [Aa]dd poses", str(e))[0]
+        m = np.asarray(d.mean, dtype=np.float64)
+        tol = 0.05 * float(np.median(np.linalg.norm(m, axis=1)))  # about 3 deg
+        centres: list[NDArray[np.float64]] = []
+        for x in m:
+            if not any(float(np.linalg.norm(x - c)) < tol for c in centres):
+                centres.append(x)
+        if len(centres) < 9:
+            what = (f"the {len(m)} dwells are at only {len(centres)} distinct poses: the "
+                    "9-parameter norm model needs at least 9 (tilted poses between the axes, "
+                    f"not only the faces); {what}")
         raise DegenerateDataError(
             f"{what}. The gap diagnosis fits that 9-parameter calibration, so it needs dwells "
             "that determine it: add poses with different gravity directions (tilts in both "
@@ -1240,7 +1281,7 @@ def diagnose(
     cal = _calibration(fit, g_v)
     nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))
     d, samples, fs_v = _dwells_of(data, fs, t, temperature, detector)
-    inflation = None if d.inflation is None else _pool_inflation(d.inflation)
+    inflation = None if d.inflation is None else _pool_inflation(d.inflation, d.count)
     half, lsb = d.half_mean, d.lsb
     k = len(d)
     order = np.arange(k)
@@ -1280,7 +1321,9 @@ def diagnose(
         sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
     if cal is not None and cal[2]:
         statements.append("calibration held fixed (an existing TriadModel checked against "
-                          "this session): no calibration parameter was fitted")
+                          "this session): no calibration parameter was fitted; a gap may "
+                          "also be the calibration no longer holding (a bias or scale that "
+                          "moved since it was made, another temperature, another mount)")
         if share is not None:
             statements.append(
                 "the calibration's own uncertainty (its covariance, propagated to each "
