@@ -835,3 +835,21 @@ def test_the_allan_inflation_is_read_at_each_dwells_length() -> None:
     assert two[0, 0] < 5 < two[1, 0]  # not 16 for both, as the median gave
     np.testing.assert_allclose(_pool_inflation(same), np.tile(np.maximum(
         np.median(same, axis=0), 1), (20, 1)))  # without lengths: the median, as before
+
+
+def test_two_dwells_checking_a_fixed_calibration_are_too_few_not_blind() -> None:
+    """Two dwells against a held-fixed calibration: the effects have no direction left to
+    test, which is too few dwells (said so, with the count), not a pattern the calibration
+    absorbs (no parameter is fitted)."""
+    from accelcal.sim.field import FIELD_TRUTH
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(2, FIELD_TRUTH, 9.80665, sigma=1e-3, sigma_g=0.0, rng=3)
+    model = accelcal.TriadModel.from_vector(FIELD_TRUTH)
+    rep = diagnose(DwellSet(s.means, np.full((2, 3), 1e-4), np.full(2, 100)), g=9.80665,
+                   fit=model)
+    drift = next(e for e in rep.effects if e["effect"] == "drift")
+    assert drift["status"] in ("too_few_dwells", "no_time")
+    text = rep.summary()
+    assert "absorbed by the calibration parameters" not in text
+    assert "too few dwells (2)" in text or "no dwell times" in text

@@ -597,6 +597,11 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
     selected = list(raw.selected)
     for c in raw.candidates:
         st, nm = c.status, c.name
+        if st == "blind" and not list(c.sines):
+            # No direction of it left to test at all (a session of as many dwells as the
+            # calibration's parameters, or a couple of dwells checking a fixed calibration):
+            # too few dwells, not a pattern the calibration absorbs.
+            st = "too_few_dwells"
         effects.append({
             "effect": nm, "unit": c.unit,
             "status": "selected" if nm in selected else st,
