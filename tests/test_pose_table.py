@@ -104,6 +104,7 @@ def test_named_mean_std_and_count_columns_give_each_mean_its_noise(tmp_path: Pat
     assert code == 0, out
     res = json.loads(out)
     np.testing.assert_allclose(res["vector"], ref.vector, rtol=1e-10)
+    assert any("the 400 samples per pose given by --count" in x for x in res["notes"])
     code, out = run("calibrate", "static", str(p2), "--g", str(G), "--count", "400")
     assert code == 0 and "the 400 samples per pose given by --count: std / sqrt" in out
     # ... but not with the table's own count column, without std columns, or for samples.

@@ -184,8 +184,14 @@ def _save_fig(fig: Any, path: str) -> None:
 
 def echo_notes(notes: list[str]) -> None:
     """What a person should know about how the recording was read (stderr, one line each)."""
-    for n in notes:
-        click.echo(f"note: {cli_words(n)}", err=True)
+    for n in cli_notes(notes):
+        click.echo(f"note: {n}", err=True)
+
+
+def cli_notes(notes: list[str]) -> list[str]:
+    """The notes in the command line's words (``--count``, not ``count=``), for the text
+    output and the JSON alike."""
+    return [cli_words(n) for n in notes]
 
 
 def open_recording(file: str, fs: float | None, columns: str | None,

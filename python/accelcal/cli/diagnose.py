@@ -12,6 +12,7 @@ from ._common import (
     _resolve_g,
     _save_fig,
     bounds_option,
+    cli_notes,
     cli_words,
     detector_options,
     echo_notes,
@@ -120,7 +121,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         _save_fig(rep.plot(), plot_path)
     if as_json:
         out = rep.to_dict()
-        out["notes"] = notes
+        out["notes"] = cli_notes(notes)
         emit_json(out)
         return
     echo_notes(notes)

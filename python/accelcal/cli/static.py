@@ -15,6 +15,7 @@ from ._common import (
     _save_fig,
     bounds_option,
     calibrate,
+    cli_notes,
     cli_words,
     detector_options,
     echo_notes,
@@ -177,7 +178,7 @@ def calibrate_static(
     if as_json:
         out = fit.to_dict()
         out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file),
-                   samples=None if rec is None else rec.rows, notes=read_notes)
+                   samples=None if rec is None else rec.rows, notes=cli_notes(read_notes))
         emit_json(out)
         return
     echo_notes(read_notes)

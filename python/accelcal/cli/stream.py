@@ -22,6 +22,7 @@ from ._common import (
     _need_plot,
     _save_fig,
     bounds_option,
+    cli_notes,
     detector_options,
     echo_notes,
     emit_json,
@@ -144,7 +145,8 @@ def dwells(
         _save_fig(fig, plot_path)
     if as_json:
         out = d.to_dict()
-        out.update(file=file, samples=None if rec is None else rec.rows, notes=notes)
+        out.update(file=file, samples=None if rec is None else rec.rows,
+                   notes=cli_notes(notes))
         emit_json(out)
         return
     echo_notes(notes)
@@ -348,7 +350,8 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     notes = rec.notes()
     if as_json:
         emit_json({"output": output, "format": out.kind, "rows": out.rows, "time_column": has_t,
-                   "units": unit, "calibration": cal, "file": file, "notes": notes})
+                   "units": unit, "calibration": cal, "file": file,
+                   "notes": cli_notes(notes)})
         return
     echo_notes(notes)
     click.echo(f"wrote {out.rows} calibrated samples ({unit}{', with t_s' if has_t else ''}) "
