@@ -189,6 +189,11 @@ def test_a_fleet_of_pose_tables_is_calibrated_as_the_single_file_command_does(
         np.testing.assert_allclose([r[n] for n in names], ref.vector, rtol=1e-10)
     bad = rows.loc[str(rest)]
     assert bad["status"] == "error" and "sample rate is not in the file" in bad["message"]
+    # A g given in g: the columns named for m/s^2 are in g in that row, and it says so.
+    in_g = ac.calibrate_many([paths[0]], g=1.0, workers=1, progress=False).iloc[0]
+    assert "g = 1 is in g: g_mps2, rms_mps2 and gap_rms_after_mps2 are in those units" in (
+        in_g["message"])
+    assert "is in g" not in rows.loc[paths[0]]["message"]
 
 
 def test_a_table_with_a_time_per_pose_is_read_as_poses_with_their_times(tmp_path: Path) -> None:

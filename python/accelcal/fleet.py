@@ -147,7 +147,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
     from . import io as _aio
     from .dwell import DetectorSettings, detect_dwells, dwell_stats, fault_text, vibrating_text
-    from .static import WeakDesignWarning, fit_static
+    from .static import WeakDesignWarning, fit_static, units_of_g
 
     names = _names(job.cli)
     if job.g is None:
@@ -244,6 +244,11 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     temp = None if d.temperature is None else float(np.mean(d.temperature))
     row["temperature"] = math.nan if temp is None else temp
     row["status"] = "weak" if (fit.weak or weak) else "ok"
+    unit = units_of_g(job.g)
+    if unit != "m/s^2":
+        # The columns are named for m/s^2; a g given in g (or cm/s^2) puts them in its units.
+        notes.append(f"g = {job.g:g} is in {unit or 'other units than m/s^2'}: g_mps2, "
+                     "rms_mps2 and gap_rms_after_mps2 are in those units in this row")
     row["message"] = "; ".join(fault_note + weak + notes)
     meta = {"source": job.path, "n_dwells": k}
     kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
