@@ -814,6 +814,16 @@ def test_a_checked_calibration_brings_its_own_uncertainty() -> None:
         assert any("the calibration's own uncertainty" in x for x in rep.statements)
         assert any("taken as exact" in x for x in exact.statements)
     assert alarms_without >= 11 and alarms_with <= 5, (alarms_with, alarms_without)
+    # A calibration the poses determine (40 dwells over the sphere): about alpha.
+    alarms = 0
+    for seed in range(12):
+        s1 = static_dwell_means(40, truth, 9.80665, sigma=1e-3, sigma_g=0.0,
+                                max_tilt_deg=None, rng=50 + seed)
+        m = accelcal.fit_static(dwells(s1.means), 9.80665).to_model()
+        s2 = static_dwell_means(24, truth, 9.80665, sigma=1e-3, sigma_g=0.0,
+                                max_tilt_deg=None, rng=2000 + seed)
+        alarms += diagnose(dwells(s2.means), g=9.80665, fit=m, loo=False).p_value < 0.05
+    assert alarms <= 2
 
 
 def test_the_allan_inflation_is_read_at_each_dwells_length() -> None:

@@ -1056,18 +1056,52 @@ def _determined(d: DwellSet, g: float) -> None:
         pass  # the diagnosis reports its own errors
 
 
-def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> NDArray[np.float64] | None:
-    """Per dwell, the variance its norm residual inherits from a held-fixed calibration's own
-    uncertainty: the TriadModel's realistic covariance ``C`` propagated to
-    ``r_k = |K^-1 (m_k - b)|`` by its gradient ``j_k`` (central differences), ``j_k^T C j_k``;
-    returned as the isotropic variance of the dwell mean (raw units) that gives the same norm
-    variance, ``j_k^T C j_k / |K^-T u_k|^2``. None for a calibration without a covariance."""
+@dataclass
+class _CalUncertainty:
+    """What a held-fixed calibration's covariance does to the dwells' norm residuals."""
+
+    iso_var: NDArray[np.float64]  # (k,) isotropic raw variance giving each norm's share
+    shift: NDArray[np.float64]  # (k,) mean norm error of the calibration's draws
+    spread: NDArray[np.float64]  # (k, k) covariance of the norms over those draws
+    grad_m: NDArray[np.float64]  # (k, 3) d r_k / d m_k, output per raw unit
+
+    def chi2(self, resid: NDArray[np.float64], var0: NDArray[np.float64]) -> float:
+        """``(r + mu)^T (D + S)^-1 (r + mu)``: the norm residuals against the dwells' own
+        noise ``D`` (from the per-axis variances ``var0``) and the calibration's draws (mean
+        error ``mu``, covariance ``S``, correlation across dwells included)."""
+        d = np.sum(self.grad_m**2 * var0, axis=1)
+        r = resid + self.shift
+        try:
+            return float(r @ np.linalg.solve(np.diag(d) + self.spread, r))
+        except np.linalg.LinAlgError:
+            return math.nan
+
+
+#: Draws of a held-fixed calibration's parameters (fixed seed: reproducible reports).
+_CAL_DRAWS = 400
+
+
+def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncertainty | None:
+    """What the dwells' norms inherit from a held-fixed calibration's own uncertainty: its
+    parameters drawn from N(theta, C) (C its noise-model covariance, inflated by its Birge
+    ratio when that exceeds 1, never deflated), the norms ``|K^-1 (m_k - b)|`` of every draw
+    less those at theta: their mean (the norm's nonlinearity) and covariance (a linear
+    propagation ``J C J^T`` is optimistic for a weak calibration far from its own poses).
+    The per-dwell share is the isotropic raw variance giving each norm's variance. None for a
+    calibration without a covariance."""
     from ._triad import k_matrix
     from .static import TriadModel
 
     if not isinstance(fit, TriadModel) or fit.covariance is None:
         return None
     cov = np.asarray(fit.covariance, dtype=np.float64)
+    nm, sc = fit.covariance_noise_model, fit.covariance_scaled
+    if nm is not None and sc is not None:
+        # The Birge ratio inflates, never deflates: a calibration whose residuals came out
+        # below its noise model by chance (chi2/dof of a few dof) is no surer for it.
+        nm = np.asarray(nm, dtype=np.float64)
+        ratio = float(np.trace(np.asarray(sc, dtype=np.float64)) / max(np.trace(nm), 1e-300))
+        cov = nm * max(ratio, 1.0)
     v = np.asarray(fit.vector, dtype=np.float64)
     if cov.shape != (v.size, v.size) or not np.all(np.isfinite(cov)):
         return None
@@ -1077,18 +1111,26 @@ def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> NDArray[n
         a = np.linalg.solve(k_matrix(p, fit.model), (mean - p[3:6]).T).T
         return np.asarray(c * np.linalg.norm(a, axis=1))
 
-    jac = np.empty((mean.shape[0], v.size))
-    for j in range(v.size):
-        h = 1e-6 * max(abs(v[j]), float(np.sqrt(cov[j, j])), 1e-12)
-        dp = np.zeros(v.size)
-        dp[j] = h
-        jac[:, j] = (norms(v + dp) - norms(v - dp)) / (2 * h)
-    var_r = np.einsum("ki,ij,kj->k", jac, cov, jac)
+    base = norms(v)
+    draws = np.random.default_rng(0).multivariate_normal(
+        np.zeros(v.size), cov, _CAL_DRAWS, method="eigh")
+    dev = np.empty((_CAL_DRAWS, mean.shape[0]))
+    for i, x in enumerate(draws):
+        try:
+            dev[i] = norms(v + x) - base
+        except np.linalg.LinAlgError:
+            dev[i] = np.nan
+    dev = dev[np.all(np.isfinite(dev), axis=1)]
+    if dev.shape[0] < _CAL_DRAWS // 2:
+        return None
+    spread = np.atleast_2d(np.cov(dev.T))
     k_inv_t = np.linalg.inv(k_matrix(v, fit.model)).T
     a = np.linalg.solve(k_matrix(v, fit.model), (mean - v[3:6]).T).T
     u = a / np.linalg.norm(a, axis=1)[:, None]
-    w = np.sum((c * u @ k_inv_t.T) ** 2, axis=1)  # |dr/dm|^2, (output / raw)^2
-    return np.asarray(np.maximum(var_r, 0.0) / w)
+    grad_m = c * u @ k_inv_t.T  # d r / d m, output per raw unit
+    w = np.sum(grad_m**2, axis=1)
+    return _CalUncertainty(np.asarray(np.maximum(np.diag(spread), 0.0) / w),
+                           np.asarray(dev.mean(axis=0)), spread, grad_m)
 
 
 def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
@@ -1306,15 +1348,17 @@ def diagnose(
     temp = (None if d.temperature is None
             else np.ascontiguousarray(d.temperature[order], dtype=np.float64))
     var, nm_text, white, allan = _noise(d, noise, inflation, nm_choice, order, lsb)
-    cal_var = None if var is None or cal is None or not cal[2] else _calibration_var(
+    unc = None if var is None or cal is None or not cal[2] else _calibration_var(
         fit, g_v, mean)
     share = None
-    if cal_var is not None and var is not None:
+    var0 = var
+    if unc is not None and var is not None:
         # The checked calibration is itself uncertain: its covariance, propagated to each
-        # dwell's norm, joins the noise (the correlation it brings across dwells is left out).
-        u = mean / np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
-        share = cal_var / np.maximum(np.sum(u * u * var, axis=1), 1e-300)  # of the norm's
-        var = var + cal_var[:, None]
+        # dwell's norm, joins the noise (in full in the headline chi2, below; on the
+        # diagonal, each dwell's own share, everywhere else).
+        share = unc.iso_var / np.maximum(
+            np.sum(unc.grad_m**2 * var, axis=1) / np.sum(unc.grad_m**2, axis=1), 1e-300)
+        var = var + unc.iso_var[:, None]
     hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]
@@ -1331,11 +1375,12 @@ def diagnose(
                           "moved since it was made, another temperature, another mount)")
         if share is not None:
             statements.append(
-                "the calibration's own uncertainty (its covariance, propagated to each "
-                "dwell's norm) is part of each dwell's noise: from "
-                f"{float(np.min(share)):.2g}x to {float(np.max(share)):.2g}x the dwell noise "
-                f"in variance (median {float(np.median(share)):.2g}x; its correlation across "
-                "dwells left out)")
+                "the calibration's own uncertainty (its parameters drawn 400 times from their "
+                "covariance, each draw's norms compared) is part of the noise: from "
+                f"{float(np.min(share)):.2g}x to {float(np.max(share)):.2g}x a dwell's own "
+                f"noise in variance (median {float(np.median(share)):.2g}x); the gap's chi2 "
+                "takes it in full, with the correlation it brings across dwells, the per-dwell "
+                "figures its diagonal")
         elif var is not None:
             statements.append("the calibration carries no covariance: it is taken as exact")
     rows = {"index": order, "t": tt, "temperature": temp,
@@ -1350,9 +1395,17 @@ def diagnose(
 
     unit = units_of_g(g_v) or "units of g"
     sysw = _STATIC if unit == _STATIC.units else replace(_STATIC, units=unit)
-    return _build_report(raw, sysw, g=g_v, alpha=float(settings.alpha),
-                         noise_model=nm_text, statements=statements, rows=rows,
-                         noise_curves=curves)
+    rep = _build_report(raw, sysw, g=g_v, alpha=float(settings.alpha),
+                        noise_model=nm_text, statements=statements, rows=rows,
+                        noise_curves=curves)
+    if unc is not None and var0 is not None and rep.dof > 0:
+        from scipy.stats import chi2 as chi2_dist
+
+        c2 = unc.chi2(np.asarray(raw.resid, dtype=np.float64), var0)
+        if math.isfinite(c2):
+            rep = replace(rep, chi2=c2, chi2_per_dof=c2 / rep.dof,
+                          p_value=float(chi2_dist.sf(c2, rep.dof)))
+    return rep
 
 
 # ----------------------------------------------------------------------------------------------
