@@ -2,10 +2,9 @@
 //! fixed-size types and one point buffer per worker thread (no allocation per fit, except
 //! to word an error).
 
-use super::observe::per_dwell;
-use super::{check_solved, output_cov_entry, solve, FitSettings, Model, Noise, Solved};
+use super::observe::comparable_jacobian;
+use super::{check_solved, output_cov_entry, solve, FitSettings, Model, Noise};
 use crate::error::{invalid, CoreError, Result};
-use nalgebra::DMatrix;
 use rayon::prelude::*;
 
 /// The outcome of one session of a batch.
@@ -91,24 +90,6 @@ impl BatchRow {
     }
 }
 
-/// The comparable Jacobian of a solved fit (for a degenerate fit's message).
-fn comparable_jacobian<const N: usize>(
-    s: &Solved,
-    pts: &[[f64; 3]],
-    g: f64,
-    noise: &Noise<'_>,
-    set: &FitSettings,
-) -> Result<DMatrix<f64>> {
-    let prob = s.problem(pts, g, noise, set.model);
-    let mut jc = DMatrix::<f64>::zeros(pts.len(), N);
-    per_dwell(&prob, &s.ml.params, |k, _, row| {
-        for j in 0..N {
-            jc[(k, j)] = row[j];
-        }
-    })?;
-    Ok(jc)
-}
-
 fn fit_one<const N: usize>(
     i: usize,
     means: &[[f64; 3]],
@@ -120,7 +101,7 @@ fn fit_one<const N: usize>(
     let n = means.len();
     let solved = solve::<N>(means, g, noise, set, pts).and_then(|s| {
         check_solved(&s, set, n, || {
-            comparable_jacobian::<N>(&s, pts, g, noise, set)
+            comparable_jacobian(&s.problem(pts, g, noise, set.model), &s.ml.params, N)
         })?;
         Ok(s)
     });

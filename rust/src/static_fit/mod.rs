@@ -48,7 +48,7 @@ use crate::lsq::{inverse3, solve_normal_fixed, NlsOptions, NormalEquationsFixed}
 use frame::Frame;
 use nalgebra::{DMatrix, Matrix3, Vector3};
 use ndarray::ArrayView2;
-use observe::{covariance_stage, degenerate_message, per_dwell, CovStage};
+use observe::{comparable_jacobian, covariance_stage, degenerate_message, CovStage};
 use rayon::prelude::*;
 
 /// Names of the parameters in vector order.
@@ -353,12 +353,7 @@ impl StaticFit {
             model: self.model,
             kmax: f64::INFINITY,
         };
-        let mut jc = DMatrix::<f64>::zeros(self.pts.len(), np);
-        per_dwell(&prob, &self.frame.1, |k, _, row| {
-            for j in 0..np {
-                jc[(k, j)] = row[j];
-            }
-        })?;
+        let jc = comparable_jacobian(&prob, &self.frame.1, np)?;
         obs_report(&jc, self.obs_scale, set)
     }
 }
@@ -685,12 +680,7 @@ fn undetermined_by_design<const N: usize>(
             set.model.name()
         ));
     }
-    let mut jc = DMatrix::<f64>::zeros(n, N);
-    per_dwell(prob, &at.params, |k, _, row| {
-        for j in 0..N {
-            jc[(k, j)] = row[j];
-        }
-    })?;
+    let jc = comparable_jacobian(prob, &at.params, N)?;
     let o = observe::obs_report(&jc, cov.obs_scale, set)?;
     degenerate(degenerate_message(
         &o,
@@ -790,16 +780,7 @@ fn fit_static_n<const N: usize>(
     if let Err(e) = pass {
         return Err(s.start.error.clone().unwrap_or(e));
     }
-    let jc = || -> Result<DMatrix<f64>> {
-        let mut jc = DMatrix::<f64>::zeros(n, N);
-        per_dwell(&prob, &s.ml.params, |k, _, row| {
-            for j in 0..N {
-                jc[(k, j)] = row[j];
-            }
-        })?;
-        Ok(jc)
-    };
-    check_solved(&s, set, n, jc)?;
+    check_solved(&s, set, n, || comparable_jacobian(&prob, &s.ml.params, N))?;
     if !s.converged && !s.cov.summary.degenerate {
         // An iteration that wanders because no pose turned an axis towards gravity (and the
         // design check above did not already say what is undetermined): say so.

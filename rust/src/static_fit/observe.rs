@@ -230,6 +230,22 @@ pub fn covariance_stage<const N: usize>(
     }
 }
 
+/// The comparable whitened Jacobian (`n x np`, bias columns times `g`) of every dwell at
+/// the frame parameters `p`: what the observability report decomposes.
+pub fn comparable_jacobian(
+    prob: &NormProblem<'_>,
+    p: &[f64; 9],
+    np: usize,
+) -> Result<DMatrix<f64>> {
+    let mut jc = DMatrix::<f64>::zeros(prob.pts.len(), np);
+    per_dwell(prob, p, |k, _, row| {
+        for j in 0..np {
+            jc[(k, j)] = row[j];
+        }
+    })?;
+    Ok(jc)
+}
+
 /// Every dwell at the frame parameters `p`: `f(k, eval, row)` with the whitened Jacobian row
 /// in comparable units (bias columns times `g`).
 pub fn per_dwell(
