@@ -605,6 +605,10 @@ def gap_dictionary(
 ) -> list[tuple[str, str, int]]:
     """The effect dictionary of a system: (name, unit, number of parameters)."""
 
+def gap_distinct_poses(mean: NDArray[np.float64], tol: float) -> int:
+    """Number of distinct poses among dwell means (k, 3): means closer than ``tol`` (raw
+    units) count once."""
+
 def gap_diagnose_static(
     mean: NDArray[np.float64],
     var: NDArray[np.float64] | None,
@@ -1174,6 +1178,7 @@ __all__ = [
     "gap_diagnose_gradiometer",
     "gap_diagnose_static",
     "gap_dictionary",
+    "gap_distinct_poses",
     "DemodulatedCore",
     "StartupBiasCore",
     "StartupPredictionCore",

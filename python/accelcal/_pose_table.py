@@ -126,7 +126,7 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True,
     every mean.
     """
     from .dwell import DwellSet
-    from .io import _norm
+    from .io import NO_RATE_NOTE, _norm
 
     if not forced:
         est = rec.rows_estimate()
@@ -166,7 +166,7 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True,
         extra = _whole_columns(rec, extra_idx)
     notes = rec.lay.notes
     # Each row is a dwell: no rate is needed, so the reader's note asking for one goes.
-    notes[:] = [n for n in notes if not n.startswith("the sample rate is not in the file")]
+    notes[:] = [n for n in notes if not n.startswith(NO_RATE_NOTE)]
     fs = rec.fs
     how = "as asked" if forced else (
         ("its rate is unknown" if fs is None else

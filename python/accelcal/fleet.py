@@ -170,8 +170,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     row["n_samples"] = n
     # What the reader decided (columns found by their norm, int16 stored unsigned, a rate
     # that disagrees with the time column ...), as the single-file commands print it.
-    fault_note: list[str] = [x for x in st.notes
-                             if not x.startswith("the sample rate is not in the file")]
+    fault_note: list[str] = [x for x in st.notes if not x.startswith(_aio.NO_RATE_NOTE)]
     from ._pose_table import looks_like_poses, too_slow_for_detection
 
     slow = too_slow_for_detection(st.fs, job.detector.get("window_s"))

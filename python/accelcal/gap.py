@@ -246,8 +246,7 @@ def _pool_inflation(per_dwell: _F64, length: Any = None) -> _F64:
         x, y = np.log(lv[ok]), np.log(np.maximum(col[ok], 1.0))
         if np.ptp(x) < np.log(1.5):
             continue  # dwells of about one length: the median
-        idx = np.flatnonzero(ok)[:400]  # the pairwise slopes of at most 400 dwells
-        xs, ys = np.log(lv[idx]), np.log(np.maximum(col[idx], 1.0))
+        xs, ys = x[:400], y[:400]  # the pairwise slopes of at most 400 dwells
         dx = xs[None, :] - xs[:, None]
         far = np.triu(np.abs(dx) > np.log(1.2), 1)
         if not far.any():
@@ -1036,14 +1035,11 @@ def _determined(d: DwellSet, g: float) -> None:
             fit_static(d, g, check_g=False)
     except DegenerateDataError as e:
         what = re.split(r"[.;] [Aa]dd poses", str(e))[0]
-        m = np.asarray(d.mean, dtype=np.float64)
+        m = np.ascontiguousarray(d.mean, dtype=np.float64)
         tol = 0.05 * float(np.median(np.linalg.norm(m, axis=1)))  # about 3 deg
-        centres: list[NDArray[np.float64]] = []
-        for x in m:
-            if not any(float(np.linalg.norm(x - c)) < tol for c in centres):
-                centres.append(x)
-        if len(centres) < 9:
-            what = (f"the {len(m)} dwells are at only {len(centres)} distinct poses: the "
+        poses = _core.gap_distinct_poses(m, tol)
+        if poses < 9:
+            what = (f"the {len(m)} dwells are at only {poses} distinct poses: the "
                     "9-parameter norm model needs at least 9 (tilted poses between the axes, "
                     f"not only the faces); {what}")
         raise DegenerateDataError(
@@ -1065,11 +1061,16 @@ class _CalUncertainty:
     spread: NDArray[np.float64]  # (k, k) covariance of the norms over those draws
     grad_m: NDArray[np.float64]  # (k, 3) d r_k / d m_k, output per raw unit
 
+    def norm_var(self, var: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(k,) variance of each dwell's norm from the per-axis variances ``var`` of its
+        mean (raw units), in output units squared."""
+        return np.asarray(np.sum(self.grad_m**2 * var, axis=1))
+
     def chi2(self, resid: NDArray[np.float64], var0: NDArray[np.float64]) -> float:
         """``(r + mu)^T (D + S)^-1 (r + mu)``: the norm residuals against the dwells' own
         noise ``D`` (from the per-axis variances ``var0``) and the calibration's draws (mean
         error ``mu``, covariance ``S``, correlation across dwells included)."""
-        d = np.sum(self.grad_m**2 * var0, axis=1)
+        d = self.norm_var(var0)
         r = resid + self.shift
         try:
             return float(r @ np.linalg.solve(np.diag(d) + self.spread, r))
@@ -1107,11 +1108,14 @@ def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncer
         return None
     c = g if fit.units == "g" else 1.0  # the model's output unit in the session's
 
-    def norms(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        a = np.linalg.solve(k_matrix(p, fit.model), (mean - p[3:6]).T).T
-        return np.asarray(c * np.linalg.norm(a, axis=1))
+    def forces(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(np.linalg.solve(k_matrix(p, fit.model), (mean - p[3:6]).T).T)
 
-    base = norms(v)
+    def norms(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(c * np.linalg.norm(forces(p), axis=1))
+
+    a = forces(v)
+    base = c * np.linalg.norm(a, axis=1)
     draws = np.random.default_rng(0).multivariate_normal(
         np.zeros(v.size), cov, _CAL_DRAWS, method="eigh")
     dev = np.empty((_CAL_DRAWS, mean.shape[0]))
@@ -1124,10 +1128,8 @@ def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncer
     if dev.shape[0] < _CAL_DRAWS // 2:
         return None
     spread = np.atleast_2d(np.cov(dev.T))
-    k_inv_t = np.linalg.inv(k_matrix(v, fit.model)).T
-    a = np.linalg.solve(k_matrix(v, fit.model), (mean - v[3:6]).T).T
     u = a / np.linalg.norm(a, axis=1)[:, None]
-    grad_m = c * u @ k_inv_t.T  # d r / d m, output per raw unit
+    grad_m = c * u @ np.linalg.inv(k_matrix(v, fit.model))  # d r / d m = c K^-T u, per row
     w = np.sum(grad_m**2, axis=1)
     return _CalUncertainty(np.asarray(np.maximum(np.diag(spread), 0.0) / w),
                            np.asarray(dev.mean(axis=0)), spread, grad_m)
@@ -1356,8 +1358,7 @@ def diagnose(
         # The checked calibration is itself uncertain: its covariance, propagated to each
         # dwell's norm, joins the noise (in full in the headline chi2, below; on the
         # diagonal, each dwell's own share, everywhere else).
-        share = unc.iso_var / np.maximum(
-            np.sum(unc.grad_m**2 * var, axis=1) / np.sum(unc.grad_m**2, axis=1), 1e-300)
+        share = np.diag(unc.spread) / np.maximum(unc.norm_var(var), 1e-300)
         var = var + unc.iso_var[:, None]
     hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
     statements = [] if var is not None else [

@@ -598,8 +598,7 @@ def _annotated_session(df: Any, text: list[str], columns: Any, fs: float | None,
     c = text[0]
     val = df[c].astype(str).str.strip()
     uniq = val.unique()
-    if len(uniq) > 64 or any(set(re.split(r"[^a-z]+", str(u).lower())) & _SENSOR_WORDS
-                             for u in uniq):
+    if len(uniq) > 64 or any(_names_a_sensor(str(u)) for u in uniq):
         return None
     sub = df.drop(columns=[c])
     order_by = next((k for k in sub.columns if _norm(str(k)) in _SAMPLE_INDEX
@@ -639,6 +638,12 @@ _SENSOR_WORDS = {
 }
 
 
+def _names_a_sensor(label: str) -> bool:
+    """A row label with a word of :data:`_SENSOR_WORDS` (``ACC``, ``gyro_z``): it names the
+    sensor of its row, not a pose or a section."""
+    return bool(_SENSOR_WORDS.intersection(re.split(r"[^a-z]+", label.lower())))
+
+
 def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str], list[str] | None] | None:
     """A table whose text columns are all date-times (WitMotion's ``2023-10-9 16:14:27.564``,
     which the text reader's ISO-8601 parser does not take: its fields are not zero-padded),
@@ -662,8 +667,7 @@ def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str], list[str]
             # Row labels, not a sensor per row: a small table, labels mostly distinct, none
             # naming a sensor, and columns named as an accelerometer's beside them.
             if (labels is not None or len(vals) > POSE_TABLE_ROWS or 2 * len(uniq) < len(vals)
-                    or any(_SENSOR_WORDS.intersection(re.split(r"[^a-z]+", v.lower()))
-                           for v in uniq)):
+                    or any(_names_a_sensor(v) for v in uniq)):
                 return None
             rest = [str(k) for k in df.columns if k not in text]
             try:
@@ -1057,6 +1061,11 @@ def _label(lay: _Layout, j: int) -> str:
     return _label_of(lay.names, j)
 
 
+#: How the reader's note on a missing sample rate begins (readers of a table of pose means,
+#: and the fleet, which words its own, leave it out).
+NO_RATE_NOTE = "the sample rate is not in the file"
+
+
 def _no_time(time_column: Any, names: Sequence[str] | None) -> bool:
     """``time_column=False`` or ``"none"`` (unless a column is named so): no time column."""
     if time_column is False:
@@ -1239,7 +1248,7 @@ def _decide(
                 f"{fsv:.6g} Hz; {fsv:.6g} Hz is used (the detected dwells depend on it)"
             )
     if fsv is None:
-        notes.append("the sample rate is not in the file (no rate metadata or time column); "
+        notes.append(f"{NO_RATE_NOTE} (no rate metadata or time column); "
                      f"give fs= (Hz){_time_hint(names, acc, head)}: dwell detection and "
                      "sample times need it")
     return _Layout(

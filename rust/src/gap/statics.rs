@@ -268,7 +268,7 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
 }
 
 /// Number of distinct poses among dwell means: clusters closer than `tol` (raw units).
-fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
+pub fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
     let mut centres: Vec<[f64; 3]> = vec![];
     for m in mean {
         let near = centres

@@ -470,6 +470,13 @@ fn raw_from(r: &GapResult, names: &[(&str, &str)]) -> GapRaw {
     }
 }
 
+/// Number of distinct poses among dwell means `mean` (k, 3): clusters of means closer than
+/// `tol` (raw units) count once.
+#[pyfunction]
+pub fn gap_distinct_poses(mean: PyReadonlyArray2<'_, f64>, tol: f64) -> PyResult<usize> {
+    Ok(statics::distinct_poses(&rows3(&mean, "mean")?, tol))
+}
+
 /// The effect dictionary of a system: `(name, unit, number of parameters)` (the
 /// gradiometer's azimuth_error has one parameter per dwell: 0 here).
 #[pyfunction]
