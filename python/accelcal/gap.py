@@ -1392,9 +1392,9 @@ def diagnose(
         rows["name"] = np.array([d.names[i] for i in order], dtype=str)
     curves = _noise_curves(samples, d, fs_v, var, white, allan, hm)
     # The report speaks in the units of g (m/s^2, g or cm/s^2), as the fit does.
-    from .static import units_of_g
+    from .static import unit_label
 
-    unit = units_of_g(g_v) or "units of g"
+    unit = unit_label(g_v)
     sysw = _STATIC if unit == _STATIC.units else replace(_STATIC, units=unit)
     rep = _build_report(raw, sysw, g=g_v, alpha=float(settings.alpha),
                         noise_model=nm_text, statements=statements, rows=rows,

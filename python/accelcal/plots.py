@@ -39,13 +39,13 @@ def static_norm_figure(fit: Any, dwells: Any = None) -> Any:
     ``dwells`` is accepted for the caller's convenience (the fit carries its means)."""
     from matplotlib.ticker import MaxNLocator
 
-    from .static import units_of_g
+    from .static import unit_label
 
     plt = _plt()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     k = np.arange(1, len(fit.residuals) + 1)
     g = fit.g
-    u = units_of_g(g) or "units of g"
+    u = unit_label(g)
     nb = fit.norms_before()
     if nb is not None:
         ax1.plot(k, nb[0] / g, "o-", label=f"before ({nb[1]})")

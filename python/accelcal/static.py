@@ -83,6 +83,11 @@ def units_of_g(g: float) -> str:
     return ""
 
 
+def unit_label(g: float) -> str:
+    """:func:`units_of_g` for text: ``"units of g"`` when ``g`` is in none of the three."""
+    return units_of_g(g) or "units of g"
+
+
 # ------------------------------------------------------------------------------------------
 def _as_means(x: Any, name: str) -> NDArray[np.float64]:
     """(k, 3) float64 (any layout; boolean, complex, text and object refused)."""
@@ -417,7 +422,7 @@ class StaticFit(_core.StaticFit):
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units
         # The calibrated output is in the units of g (a fit to g = 1 calibrates to g).
-        meta.setdefault("units", units_of_g(self.g) or "units of g")
+        meta.setdefault("units", unit_label(self.g))
         scaled = self.covariance_scaled
         return TriadModel(
             self.K,
@@ -464,7 +469,7 @@ class StaticFit(_core.StaticFit):
         """Readable table of parameters with their realistic std (and truth), plus norm
         statistics with units."""
         tv = None if truth is None else np.asarray(truth, dtype=np.float64).reshape(-1)
-        u = units_of_g(self.g) or "units of g"
+        u = unit_label(self.g)
         chi = (
             "chi2/dof n/a (no redundancy)" if self.dof <= 0
             else f"chi2/dof = {self.chi2_dof:.3g}"

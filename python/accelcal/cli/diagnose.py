@@ -60,7 +60,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
-    from ..static import TriadModel, units_of_g
+    from ..static import TriadModel, unit_label
 
     _need_plot(plot_path)
     fit = TriadModel.load(calibration) if calibration else None
@@ -125,7 +125,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         emit_json(out)
         return
     echo_notes(notes)
-    click.echo(f"{src}, g = {gv:.6f} {units_of_g(gv) or 'units of g'}")
+    click.echo(f"{src}, g = {gv:.6f} {unit_label(gv)}")
     click.echo(rep.summary())
     if plot_path:
         click.echo(f"wrote {plot_path}")

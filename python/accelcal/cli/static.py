@@ -119,7 +119,7 @@ def calibrate_static(
     import warnings
 
     from .._core import DegenerateDataError
-    from ..static import TriadModel, WeakDesignWarning, fit_static, units_of_g
+    from ..static import TriadModel, WeakDesignWarning, fit_static, unit_label
 
     _need_plot(plot_path)
     gv, g_src = _resolve_g(g, lat, height, file, fs, columns, time_column)
@@ -183,7 +183,7 @@ def calibrate_static(
         return
     echo_notes(read_notes)
     click.echo(src)
-    click.echo(f"reference gravity g = {gv:.6f} {units_of_g(gv) or 'units of g'} ({g_src})")
+    click.echo(f"reference gravity g = {gv:.6f} {unit_label(gv)} ({g_src})")
     click.echo(_cli(fit.summary()))
     for n in notes:
         click.echo(f"warning: {n}")
