@@ -1590,6 +1590,9 @@ def test_an_annotated_session_gives_its_labelled_sections_as_dwells(tmp_path: Pa
     st = read_stream(p)
     assert any("labels the session's sections" in x and "left out as motions" in x
                for x in st.notes)
+    # The labels give the dwells, so a missing rate costs only their times.
+    no_rate = [x for x in st.notes if x.startswith("the sample rate is not in the file")]
+    assert len(no_rate) == 1 and "the dwells' times need it" in no_rate[0], st.notes
     fit = ac.fit_static(d, 9.81, model="diag")
     np.testing.assert_allclose(fit.vector[:3], 2048 / 9.81, rtol=2e-3)
     from accelcal.cli import main

@@ -1,6 +1,6 @@
 # Type stub of the compiled module (checked by `python -m mypy.stubtest accelcal._core`).
 from collections.abc import Callable
-from typing import Any, Literal, final
+from typing import Any, Final, Literal, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -8,6 +8,11 @@ from typing_extensions import Self, disjoint_base
 
 class CalibrationError(ValueError): ...
 class DegenerateDataError(CalibrationError): ...
+
+#: The fewest samples the dwell detector's window may hold.
+MIN_WINDOW_SAMPLES: Final[float]
+#: The fewest samples a dwell needs for its variance to count in the output-fault checks.
+FAULT_MIN_SAMPLES: Final[int]
 
 @final
 class DwellTableRaw:
@@ -1200,4 +1205,6 @@ __all__ = [
     "text_read_all",
     "CalibrationError",
     "DegenerateDataError",
+    "MIN_WINDOW_SAMPLES",
+    "FAULT_MIN_SAMPLES",
 ]

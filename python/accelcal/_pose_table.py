@@ -53,10 +53,11 @@ def too_slow_for_detection(fs: float | None, window_s: float | None = None) -> b
     :class:`~accelcal.DetectorSettings`'s) fewer than the 8 samples the detector needs
     (``MIN_WINDOW_SAMPLES`` of the Rust core): a time column with one row per pose, at
     best."""
+    from . import _core
     from .dwell import DetectorSettings
 
     w = DetectorSettings().window_s if window_s is None else float(window_s)
-    return fs is not None and fs * w < 8
+    return fs is not None and fs * w < _core.MIN_WINDOW_SAMPLES
 
 
 def looks_like_poses(s: NDArray[np.float64]) -> bool:

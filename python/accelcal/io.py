@@ -614,7 +614,8 @@ def _annotated_session(df: Any, text: list[str], columns: Any, fs: float | None,
     static = [(r, a, b) for r, a, b in runs if r not in moving and b - a >= 8]
     if len(static) < 2 or len(runs) > 5000:
         return None
-    out = _dataframe_source(sub, columns, fs, time_column, path=name, named=has_header)
+    out = _dataframe_source(sub, columns, fs, time_column, path=name, named=has_header,
+                            dwells_known=True)
     short = len([1 for r, a, b in runs if r not in moving]) - len(static)
     how = f", ordered by {order_by!r}" if order_by is not None else ""
     note = (f"column {c!r} labels the session's sections{how}: its {len(static)} static "
@@ -1101,11 +1102,14 @@ def _decide(
     fs: float | None,
     time_column: Any,
     iso: set[int] | None = None,
+    dwells_known: bool = False,
 ) -> _Layout:
     """Choose accelerometer, time and temperature columns and the sample rate.
 
     ``iso`` : columns that hold ISO-8601 times (text files); the first of them not among the
     accelerometer columns is the time when no column is named as one.
+    ``dwells_known`` : the file marks its dwells itself (an annotated session), so a missing
+    rate only costs the dwells' times, not their detection.
     """
     notes: list[str] = []
     tcol: int | None = None
@@ -1248,9 +1252,10 @@ def _decide(
                 f"{fsv:.6g} Hz; {fsv:.6g} Hz is used (the detected dwells depend on it)"
             )
     if fsv is None:
+        need = ("the dwells' times need it (the time tests of diagnose)" if dwells_known
+                else "dwell detection and sample times need it")
         notes.append(f"{NO_RATE_NOTE} (no rate metadata or time column); "
-                     f"give fs= (Hz){_time_hint(names, acc, head)}: dwell detection and "
-                     "sample times need it")
+                     f"give fs= (Hz){_time_hint(names, acc, head)}: {need}")
     return _Layout(
         path=path,
         ncols=ncols,
@@ -1687,11 +1692,12 @@ def _table_like(obj: Any) -> bool:
 
 def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any,
                       path: str = "<table>", named: bool = True,
-                      meta: dict[str, str] | None = None) -> _ArraySource:
+                      meta: dict[str, str] | None = None,
+                      dwells_known: bool = False) -> _ArraySource:
     """A DataFrame (pandas, polars, or anything with the interchange protocol): columns by
     name, as with a text header. ``meta``: what the file says about itself, as a text
     file's metadata lines (a rate in it ranks as in a text file: given > metadata > time
-    column)."""
+    column). ``dwells_known``: the table's own labels give the dwells (see ``_decide``)."""
     df = obj
     if not (hasattr(df, "columns") and hasattr(df, "__getitem__")):
         try:
@@ -1727,7 +1733,7 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
     if table.n == 0:
         raise CalibrationError("the table is empty (0 rows)")
     lay = _decide(path, table.names if named else None, len(table.names), head, meta or {},
-                  columns, fs, time_column)
+                  columns, fs, time_column, dwells_known=dwells_known)
     if lay.time is not None:
         lay.t0_text = starts.get(table.names[lay.time])
     return _ArraySource(path, table, lay)
@@ -2737,9 +2743,6 @@ def _stream_dwells(
         bounds = read_bounds(bounds)
     if bounds is None and rec.arrays is not None and rec.arrays.sections is not None:
         bounds = rec.arrays.sections  # an annotated session's labelled static sections
-        rec.lay.notes[:] = [n.replace("dwell detection and sample times need it",
-                                      "the dwells' times need it (the time tests of diagnose)")
-                            for n in rec.lay.notes]
     known = bounds.path if isinstance(bounds, Bounds) else None  # named in its errors
     if rec.text is not None:
         # Text arrives in blocks of a few MB already: pushed as they come (the result does
@@ -2763,13 +2766,15 @@ def _stream_dwells(
 
 
 def _short_dwells(d: Any) -> list[str]:
-    """A note on given dwells of fewer than 30 samples: their variances say little about the
-    noise (a variance from 2 samples is off by a factor of 10 one time in 6)."""
-    short = [i for i, c in enumerate(np.asarray(d.count)) if c < 30]
+    """A note on given dwells of fewer than ``FAULT_MIN_SAMPLES`` (30, the Rust core's
+    fewest for a variance the output-fault checks trust): their variances say little about
+    the noise (a variance from 2 samples is off by a factor of 10 one time in 6)."""
+    least = _core.FAULT_MIN_SAMPLES
+    short = [i for i, c in enumerate(np.asarray(d.count)) if c < least]
     if not short:
         return []
     which = ", ".join(f"dwell {d.label(i)}: {int(d.count[i])} samples" for i in short[:6])
-    return [f"{len(short)} of the given dwells hold fewer than 30 samples ({which}"
+    return [f"{len(short)} of the given dwells hold fewer than {least} samples ({which}"
             f"{' ...' if len(short) > 6 else ''}): their variances say little about the "
             "noise, so a chi2 against them says little either"]
 

@@ -65,4 +65,10 @@ mod _core {
     use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};
     #[pymodule_export]
     use super::{CalibrationError, DegenerateDataError};
+    /// The fewest samples the dwell detector's window may hold.
+    #[pymodule_export]
+    const MIN_WINDOW_SAMPLES: f64 = crate::dwell::MIN_WINDOW_SAMPLES;
+    /// The fewest samples a dwell needs for its variance to count in the output-fault checks.
+    #[pymodule_export]
+    const FAULT_MIN_SAMPLES: u64 = crate::dwell::FAULT_MIN_SAMPLES;
 }
