@@ -481,6 +481,52 @@ def test_existing_calibration_is_checked_not_refitted(tmp_path: Any) -> None:
     assert rep["dof"] == rep["n"] and "held fixed" in " ".join(rep["statements"])
 
 
+def test_a_calibration_checked_against_its_own_dwells_is_told_so(tmp_path: Any) -> None:
+    """Checking a calibration against the dwells it was fitted to double-counts its
+    uncertainty (chi2/dof far below 1 on the shared MPU-6050): the model records a hash of
+    each dwell mean, and the check says how many of the session's dwells are its own, in
+    Python, through a saved file, and in the CLI (also when other detector settings give
+    other dwells of the same recording)."""
+    from accelcal import TriadModel, fit_static
+
+    s = gap_session((), rng=32, n_dwells=20)
+    own = "ones the calibration was fitted to"
+    model = fit_static(s.dwells, g=s.g).to_model()
+    path = tmp_path / "cal.json"
+    model.save(path)
+    loaded = TriadModel.load(path)
+    assert loaded.own_dwells(s.dwells.mean) == 20
+    same = diagnose(s.dwells, g=s.g, fit=loaded)
+    assert any(x.startswith(f"20 of the 20 dwells are {own}") for x in same.statements)
+    assert same.chi2_per_dof < 0.7  # the double count it warns of
+    other = gap_session((), rng=33, n_dwells=20)
+    assert loaded.own_dwells(other.dwells.mean) == 0
+    assert not any(own in x for x in diagnose(other.dwells, g=s.g, fit=loaded).statements)
+    # A hand-made model records nothing: never claimed.
+    assert TriadModel(model.K, model.bias).own_dwells(s.dwells.mean) == 0
+    # The CLI: calibrate -o, then diagnose --calibration on the same file.
+    from accelcal.cli import main
+    from accelcal.sim import field_session
+    from click.testing import CliRunner
+
+    fs_ = field_session(fs=100.0, n_dwells=16, dwell_s=4.0, move_s=2.0, max_tilt_deg=80.0,
+                        sigma=1e-3, rng=6)
+    rec = tmp_path / "rec.csv"
+    np.savetxt(rec, np.column_stack([fs_.t, fs_.samples]), delimiter=",",
+               header="t,ax,ay,az", comments="")
+    cal = tmp_path / "own.json"
+    r = CliRunner().invoke(main, ["calibrate", "static", str(rec), "--g", f"{fs_.g}", "-o",
+                                  str(cal)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["diagnose", str(rec), "--g", f"{fs_.g}", "--calibration",
+                                  str(cal)])
+    assert r.exit_code == 0 and f"16 of the 16 dwells are {own}" in r.output, r.output
+    r = CliRunner().invoke(main, ["diagnose", str(rec), "--g", f"{fs_.g}", "--calibration",
+                                  str(cal), "--window", "0.7"])
+    assert r.exit_code == 0 and "made from this same recording" in r.output, r.output
+    assert own not in r.output
+
+
 def test_centrifuge_and_gradiometer_run_the_same_engine() -> None:
     s = _cf(lever_arm=np.diag([4e-5, -3e-5, 2e-5]))
     r = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, g=s.g,

@@ -4,6 +4,7 @@ look-up of the calibration valid at a time."""
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import math
 import os
@@ -21,7 +22,15 @@ from ._files import atomic_write
 from ._triad import PARAM_NAMES, k_matrix, n_params, vector_from_k
 from ._validate import samples_array
 
-__all__ = ["TriadModel", "iso_utc"]
+__all__ = ["TriadModel", "dwell_fingerprints", "iso_utc"]
+
+def dwell_fingerprints(means: ArrayLike) -> list[str]:
+    """A short hash (12 hex digits of SHA-256) of each dwell mean's three float64 values, in
+    order: what a calibration records of the dwells it was fitted to, so that checking it
+    against a session can tell when that session is its own."""
+    m = np.ascontiguousarray(np.asarray(means, dtype=np.float64).reshape(-1, 3))
+    return [hashlib.sha256(r.tobytes()).hexdigest()[:12] for r in m]
+
 
 #: Largest condition number of a triad's K (a triad's scale factors differ by a few per cent
 #: and its misalignments are small: cond(K) is close to 1).
@@ -251,6 +260,13 @@ class TriadModel:
         if v.size != n_params(model):
             raise CalibrationError(f"model {model!r} needs {n_params(model)} values; got {v.size}")
         return cls(k_matrix(v, model), v[3:6], model=model, **kw)
+
+    def own_dwells(self, means: ArrayLike) -> int:
+        """How many of the dwell means ``means`` (k, 3) are ones this calibration was fitted
+        to (``metadata["fit_dwells"]``, written by :meth:`StaticFit.to_model`; 0 when the
+        model does not record them). A check against its own dwells is not independent."""
+        own = set(self.metadata.get("fit_dwells") or ())
+        return sum(f in own for f in dwell_fingerprints(means)) if own else 0
 
     # -- use -----------------------------------------------------------------------------
     def apply(self, raw: ArrayLike) -> NDArray[np.float64]:

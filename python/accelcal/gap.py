@@ -1374,6 +1374,14 @@ def diagnose(
                           "this session): no calibration parameter was fitted; a gap may "
                           "also be the calibration no longer holding (a bias or scale that "
                           "moved since it was made, another temperature, another mount)")
+        own = fit.own_dwells(d.mean)
+        if own:
+            statements.append(
+                f"{own} of the {k} dwells are ones the calibration was fitted to: against its "
+                "own dwells the check is not independent (the fit already minimised their "
+                "residuals, so the chi2 counts the calibration's uncertainty twice and comes "
+                "out too small); check it against another session, or diagnose this one "
+                "without a calibration to refit it")
         if share is not None:
             statements.append(
                 "the calibration's own uncertainty (its parameters drawn 400 times from their "

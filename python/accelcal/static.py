@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
-from ._triad_model import TriadModel
+from ._triad_model import TriadModel, dwell_fingerprints
 from ._validate import number, real_array
 from .dwell import DwellSet, check_faults
 
@@ -409,7 +409,9 @@ class StaticFit(_core.StaticFit):
 
         It stores both covariances, labelled, and which one is realistic (the one
         :meth:`summary` prints; ``TriadModel.covariance``); the metadata records chi2/dof,
-        the degrees of freedom, the noise model, the residual RMS and the dwell count.
+        the degrees of freedom, the noise model, the residual RMS, the dwell count and a short
+        hash of each dwell mean (``fit_dwells``: :meth:`TriadModel.own_dwells` tells a check
+        against the same dwells).
         """
         md = dict(meta.pop("metadata", None) or {})
         md.update(
@@ -418,6 +420,7 @@ class StaticFit(_core.StaticFit):
             noise_model=self.noise_model,
             residual_rms=float(self.rms),
             n_dwells=int(len(self.residuals)),
+            fit_dwells=dwell_fingerprints(self.means),
         )
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units

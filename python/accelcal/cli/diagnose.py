@@ -103,6 +103,11 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         run = (st.samples,)
         kw.update(fs=st.fs, t=st.t, temperature=st.temperature, detector=det)
     src = source_line(file, rec, d)
+    if fit is not None and not fit.own_dwells(d.mean) and _same_file(
+            fit.metadata.get("source"), file):
+        extra.append(f"the calibration was made from this same recording ({calibration} names "
+                     "it as its source), from other dwells: the check is not independent of "
+                     "it; check it against another session")
     extra += vibrating_notes(d)
     d, fault_notes = without_faults(d)
     if fault_notes:
@@ -129,3 +134,15 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     click.echo(rep.summary())
     if plot_path:
         click.echo(f"wrote {plot_path}")
+
+
+def _same_file(source: Any, file: str) -> bool:
+    """Whether a calibration's recorded source names ``file`` (standard input never does)."""
+    import os
+
+    if not isinstance(source, str) or file == "-" or source == "-":
+        return False
+    try:
+        return os.path.samefile(source, file)
+    except OSError:
+        return False
