@@ -507,11 +507,11 @@ def test_a_session_mostly_in_motion_is_told_how_to_find_shorter_rests(tmp_path: 
     trade-off of a shorter window (here a 0.2 s window takes the slow ends of the moves)."""
     from accelcal.sim.field import field_session
 
-    s = field_session(fs=100.0, n_dwells=11, dwell_s=1.4, move_s=9.0, max_tilt_deg=80.0,
+    s = field_session(fs=100.0, n_dwells=14, dwell_s=1.4, move_s=9.0, max_tilt_deg=80.0,
                       sigma=0.01, rng=2)
     p = write_csv(tmp_path / "waved.csv", s.t, s.samples)
     code, out = run("calibrate", "static", str(p), "--g", str(s.g))
-    assert code == 2 and "7 dwells found" in out, out
+    assert code == 2 and "8 dwells found" in out, out
     m = re.search(r"Only (\d+) % of the recording was taken as still \(dwells of at least "
                   r"--min-dwell 1 s, window 1 s\): if the sensor rested in shorter pauses, a "
                   r"shorter --window and --min-dwell find them, but also take the slow ends "

@@ -1460,20 +1460,6 @@ fn fold_stats(segs: &[Moments]) -> Moments {
         .fold(Moments::EMPTY, |acc, x| acc.merge_stats(x))
 }
 
-/// Blocks before the first window centre (`h` of them) and after the last (window `nw - 1`)
-/// take the flag of the window that covers them: at the stream's ends no window is centred
-/// on them, but the first and last windows hold them, so a stream that starts or ends at
-/// rest keeps that rest whole (a fully static stream is one dwell, not one shortened by a
-/// window).
-fn extend_to_edges(mark: &mut [bool], h: usize, nw: usize) {
-    if nw == 0 || mark.len() < h + nw {
-        return;
-    }
-    let (first, last) = (mark[h], mark[h + nw - 1]);
-    mark[..h].iter_mut().for_each(|m| *m = first);
-    mark[h + nw..].iter_mut().for_each(|m| *m = last);
-}
-
 /// Runs of blocks flagged in `mark` (window centres), trimmed by `trim` blocks at both ends
 /// and kept when at least `min_blocks` long, as block ranges.
 fn runs(mark: &[bool], trim: usize, min_blocks: usize) -> Vec<[usize; 2]> {
@@ -1563,8 +1549,6 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         is_still[i + h] =
             !is_static[i + h] && v.iter().all(|x| x.is_finite()) && prefix.still(i, w, &thr);
     }
-    extend_to_edges(&mut is_static, h, nw);
-    extend_to_edges(&mut is_still, h, nw);
     let trim = s.trim_blocks();
     let min_blocks = s.min_blocks();
     let mut bounds = Vec::new();
@@ -1587,15 +1571,23 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         .collect();
     if bounds.is_empty() {
         let n = blocks.len() * b;
-        if is_static.iter().all(|&x| x) {
+        if is_static[h..h + nw].iter().all(|&x| x) {
+            // Static throughout: only the length is missing. No window is centred on the
+            // stream's first and last half window, so they are not used (a recording's first
+            // samples often carry a start-up transient: on a real MPU-9150 log the first
+            // 0.5 s read 0.06 m/s^2 off the rest of the dwell, 7 standard errors).
             return degenerate(format!(
                 "the whole stream is static but too short for a dwell: {n} samples ({:.4} s at \
-                 {} Hz), and a dwell needs min_dwell_s = {} s after a trim of trim_s = {} s at \
-                 each end; record longer, or lower min_dwell_s=",
+                 {} Hz); a dwell needs min_dwell_s = {} s after a trim of trim_s = {} s at each \
+                 end, and half a window (window_s = {} s) at each end of the stream is not \
+                 used: about {:.2} s in all. Record longer, or lower min_dwell_s= or \
+                 window_s=",
                 n as f64 / s.fs,
                 s.fs,
                 s.min_dwell_s,
-                s.trim_s
+                s.trim_s,
+                s.window_s,
+                s.window_s + s.min_dwell_s + 2.0 * s.trim_s
             ));
         }
         return degenerate(format!(
@@ -2549,26 +2541,17 @@ mod tests {
     }
 
     #[test]
-    fn rests_at_the_stream_ends_are_kept_whole() {
-        // The first dwell starts at sample 0 and the last ends at the last sample: with no
-        // window centred on their outer halves, they used to lose half a window each.
-        let x = piecewise(7, &[0.0, 1.0, -1.0], 0.01);
-        let n = x.nrows();
-        let st = DetectorSettings::new(100.0);
-        let trim = (st.trim_s * 100.0).round() as usize;
-        let t = detect_table(&x.view(), st, None, None).unwrap();
-        assert_eq!(t.bounds.len(), 3, "{:?}", t.bounds);
-        assert_eq!(t.bounds[0][0], trim, "{:?}", t.bounds);
-        assert_eq!(t.bounds[2][1], n - trim, "{:?}", t.bounds);
-        // A stream at rest throughout, 1.5 s: one dwell of all but the trims (it used to
-        // give none, with advice to raise k that could not help).
+    fn a_static_stream_too_short_is_told_its_length_not_to_raise_k() {
+        // At rest throughout: 2.5 s is one dwell, without the stream's first and last half
+        // window (start-up transients) and the trims.
         let mut s = 3u64;
-        let y = Array2::from_shape_fn((150, 3), |(_, a)| [0.0, 0.0, 9.8][a] + 0.01 * lcg(&mut s));
-        let t = detect_table(&y.view(), DetectorSettings::new(100.0), None, None).unwrap();
-        assert_eq!(t.bounds, vec![[trim, 150 - trim]]);
-        // Shorter than min_dwell_s after the trims: the error says so, not "raise k".
+        let y = Array2::from_shape_fn((250, 3), |(_, a)| [0.0, 0.0, 9.8][a] + 0.01 * lcg(&mut s));
+        let st = DetectorSettings::new(100.0);
+        let t = detect_table(&y.view(), st, None, None).unwrap();
+        assert_eq!(t.bounds, vec![[60, 192]]);
+        // 1.5 s: too short. The error gives the length needed, not "raise k" (it used to).
         let e = detect_table(
-            &y.slice(ndarray::s![..110, ..]),
+            &y.slice(ndarray::s![..150, ..]),
             DetectorSettings::new(100.0),
             None,
             None,
@@ -2576,7 +2559,11 @@ mod tests {
         .unwrap_err();
         assert!(matches!(e, CoreError::Degenerate(_)));
         let m = e.to_string();
-        assert!(m.contains("whole stream is static but too short") && !m.contains("raise k"));
+        assert!(m.contains("whole stream is static but too short"), "{m}");
+        assert!(
+            m.contains("about 2.20 s in all") && !m.contains("raise k"),
+            "{m}"
+        );
     }
 
     #[test]
