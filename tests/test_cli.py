@@ -501,6 +501,22 @@ def test_diagnose_takes_the_detector_settings_of_a_low_rate_log(tmp_path: Path) 
     assert code == 0 and json.loads(cal)["n_dwells"] == 16
 
 
+def test_a_static_recording_too_short_is_told_the_length_it_needs(tmp_path: Path) -> None:
+    """1.5 s at rest: no dwell, because the stream's outer half windows and the trims leave
+    under --min-dwell. The error gives the length needed in CLI words (it used to advise a
+    larger k, which cannot help); 2.5 s gives one dwell."""
+    rng = np.random.default_rng(1)
+    t = np.arange(250) / 100.0
+    s = np.array([0.0, 0.0, 9.81]) + 0.01 * rng.standard_normal((250, 3))
+    short = write_csv(tmp_path / "short.csv", t[:150], s[:150])
+    code, out = run("dwells", str(short))
+    assert code == 2 and "the whole stream is static but too short" in out, out
+    assert "about 2.20 s in all. Record longer, or lower --min-dwell or --window" in out, out
+    assert "--k" not in out and "raise k" not in out
+    code, out = run("dwells", str(write_csv(tmp_path / "long.csv", t, s)))
+    assert code == 0 and "250 samples at 100 Hz -> 1 dwells" in out, out
+
+
 def test_a_session_mostly_in_motion_is_told_how_to_find_shorter_rests(tmp_path: Path) -> None:
     """Brief pauses (1.4 s) between long moves (a hand-waved sensor, as an imu_tk fork's data
     showed): too few dwells for the model, and the error says how little was still and the

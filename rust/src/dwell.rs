@@ -1578,7 +1578,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
             // 0.5 s read 0.06 m/s^2 off the rest of the dwell, 7 standard errors).
             return degenerate(format!(
                 "the whole stream is static but too short for a dwell: {n} samples ({:.4} s at \
-                 {} Hz); a dwell needs min_dwell_s = {} s after a trim of trim_s = {} s at each \
+                 {} Hz); a dwell needs min_dwell_s = {} s after {} s trimmed at each \
                  end, and half a window (window_s = {} s) at each end of the stream is not \
                  used: about {:.2} s in all. Record longer, or lower min_dwell_s= or \
                  window_s=",
