@@ -3,6 +3,7 @@ reading and streaming into the dwell accumulator."""
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable
 from functools import partial
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 from accelcal import CalibrationError, detect_dwells, dwell_stats
 from accelcal.io import Stream, iter_stream, read_stream, stream_dwells
-from conftest import shared_data
+from conftest import shared_data, write_csv
 
 XSENS = partial(shared_data, 'xsens-mti', 'xsens_acc.txt')
 MPU = partial(shared_data, 'mpu6050-10poses', 'example_data_calibration.csv')
@@ -1604,3 +1605,74 @@ def test_an_annotated_session_gives_its_labelled_sections_as_dwells(tmp_path: Pa
     row = ac.calibrate_many([str(p)], g=9.81, model="diag", workers=1, progress=False).iloc[0]
     assert row["n_dwells"] == 6 and "labels the session's sections" in row["message"]
     np.testing.assert_allclose([row["sx"], row["sy"], row["sz"]], fit.vector[:3], rtol=1e-12)
+
+
+def _rests_log(rng: np.random.Generator, poses: int = 40, block: int = 100,
+               same: tuple[int, ...] = (7, 21)) -> tuple[np.ndarray, np.ndarray]:
+    """A logger that stores ``block`` samples per pose in g (int16 steps of 1/16384 g) and
+    nothing while the sensor is turned; the poses after those in ``same`` repeat them (no
+    jump between the two blocks). Returns the samples and the true poses."""
+    v = rng.standard_normal((poses, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for k in same:
+        v[k + 1] = v[k]
+    truth = v * [1.01, 0.99, 1.02] + [0.02, -0.01, 0.015]  # raw = K a + b, in g
+    s = np.repeat(truth, block, axis=0) + 3e-3 * rng.standard_normal((poses * block, 3))
+    return np.round(s * 16384) / 16384, truth
+
+
+def test_a_log_that_holds_only_the_rests_gives_one_dwell_per_block(tmp_path: Path) -> None:
+    """CK-Explorer's acc_log.csv (ax,ay,az in g, no time, 160 blocks of 100 samples, nothing
+    recorded between poses): the window detector saw a rest no longer than its window and
+    found no dwell ("raise --k", which could not help). The blocks are now the dwells, with
+    no rate needed, and two poses with no jump between them are cut on the logger's grid.
+    The fleet reads it the same way; a recording with its moves is left to the detector."""
+    rng = np.random.default_rng(11)
+    s, truth = _rests_log(rng)
+    p = tmp_path / "acc_log.csv"
+    np.savetxt(p, s, delimiter=",", header="ax,ay,az", comments="", fmt="%.7g")
+    d, rec = ac.io._stream_dwells(p)
+    assert len(d) == 40
+    np.testing.assert_array_equal(np.column_stack([d.start, d.stop]),
+                                  [[100 * k, 100 * (k + 1)] for k in range(40)])
+    ref = dwell_stats(np.loadtxt(p, delimiter=",", skiprows=1), [[100 * k, 100 * k + 100]
+                                                                 for k in range(40)])
+    np.testing.assert_allclose(d.mean, ref.mean, rtol=0, atol=1e-15)
+    notes = rec.notes()
+    assert any("holds only the rests: 37 jumps" in n and "100 samples per pose" in n
+               and "2 of them cut on the logger's grid" in n for n in notes), notes
+    assert any("the dwells do not need it here" in n for n in notes), notes
+    fit = ac.fit_static(d, 1.0)
+    np.testing.assert_allclose(fit.vector[:6], [1.01, 0.99, 1.02, 0.02, -0.01, 0.015],
+                               atol=3e-3)
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(main, ["calibrate", "static", str(p), "--g", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["n_dwells"] == 40
+    row = ac.calibrate_many([str(p)], g=1.0, workers=1, progress=False).iloc[0]
+    assert row["n_dwells"] == 40 and "holds only the rests" in row["message"]
+    np.testing.assert_allclose([row["sx"], row["sy"], row["sz"]], fit.vector[:3], rtol=1e-12)
+    # The same poses with 2 s turns recorded between them: not a log of rests.
+    from accelcal.sim.field import field_session
+
+    f = field_session(fs=100.0, n_dwells=12, dwell_s=4.0, move_s=2.0, sigma=1e-3, rng=3)
+    q = write_csv(tmp_path / "moves.csv", f.t, f.samples)
+    d2, rec2 = ac.io._stream_dwells(q)
+    assert not any("holds only the rests" in n for n in rec2.notes())
+    assert len(d2) == len(detect_dwells(f.samples, f.fs))
+
+
+def test_calibrate_given_a_recording_instead_of_a_system_says_which_command(
+        tmp_path: Path) -> None:
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    p = write(tmp_path, "t,ax,ay,az\n0,0,0,9.8\n")
+    r = CliRunner().invoke(main, ["calibrate", str(p), "--g", "9.81"])
+    assert r.exit_code == 2
+    assert (f"is a recording, not a system: name the system first, `accelcal calibrate static "
+            f"{p} --g 9.81`") in r.output, r.output
+    r = CliRunner().invoke(main, ["calibrate", "statc"])  # a typo is click's own error
+    assert r.exit_code == 2 and "No such command 'statc'" in r.output

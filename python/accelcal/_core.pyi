@@ -15,6 +15,28 @@ MIN_WINDOW_SAMPLES: Final[float]
 FAULT_MIN_SAMPLES: Final[int]
 
 @final
+class StepLog:
+    """A recording that holds only the rests (a block of samples per pose, nothing recorded
+    while the sensor was turned): its runs between jumps."""
+
+    @property
+    def runs(self) -> NDArray[np.int64]:
+        """``[start, stop)`` sample bounds of each run, (k, 2)."""
+    @property
+    def jumps(self) -> int:
+        """Jumps found."""
+    @property
+    def period(self) -> int | None:
+        """The run length shared by at least half of the runs, or None."""
+    @property
+    def motion_fraction(self) -> float:
+        """Share of the samples in recorded motion."""
+
+def dwell_step_log(samples: Any) -> StepLog | None:
+    """The stream read as a log of rests, or None when it does not read as one (its moves
+    are recorded, or it has too few jumps)."""
+
+@final
 class DwellTableRaw:
     """A finished dwell table (see ``accelcal.DwellSet`` for each field)."""
 
@@ -1168,6 +1190,8 @@ __all__ = [
     "detect_dwells_raw",
     "dwell_output_faults",
     "dwell_stats_raw",
+    "dwell_step_log",
+    "StepLog",
     "OutputFault",
     "RawDwellAccumulator",
     "GapCandidate",

@@ -174,7 +174,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     from ._pose_table import looks_like_poses, too_slow_for_detection
 
     slow = too_slow_for_detection(st.fs, job.detector.get("window_s"))
-    if st.sections is not None:  # an annotated session: its labelled sections are the dwells
+    rests = None if job.bounds is not None or st.sections is not None else (
+        _aio.step_log_dwells(st.samples, st.t, st.temperature, st.fs))
+    if st.sections is not None or rests is not None:
+        # An annotated session's labelled sections, or a log of rests' runs: the dwells.
         poses = False
     elif st.fs is None or slow:
 
@@ -195,6 +198,9 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         fault_note = [x for x in rec.notes() if not x.startswith("read as a table of dwell")]
         fault_note.append(f"read as a table of dwell means, one pose per row ({n} rows: the "
                           f"rate is {why}, and the rows step from attitude to attitude)")
+    elif rests is not None:
+        d, note = rests
+        fault_note.append(note)
     elif job.bounds is not None or st.sections is not None:
         # Known dwells (a bounds file, or an annotated session's labelled sections): a
         # dropout inside one is an error, as ever.

@@ -2725,6 +2725,22 @@ def _stream_dwells(
                                "means: give means=True too")
     slow = too_slow_for_detection(rec.fs, detector_kw.get("window_s"))
     annotated = rec.arrays is not None and rec.arrays.sections is not None
+    if bounds is None and not annotated and not means and count is None and _rests_only(rec):
+        # A log that holds only the rests (a block of samples per pose): its runs between
+        # jumps are the dwells, whatever the window and the rate (read whole: such logs are
+        # small).
+        with _progress_bar(rec, desc, progress) as cb:
+            s, t, temp = rec.read_all(cb)
+        got = step_log_dwells(s, t, temp, rec.fs, units)
+        if got is not None:
+            d, note = got
+            rec.lay.notes[:] = [n for n in rec.lay.notes if not n.startswith(NO_RATE_NOTE)]
+            rec.lay.notes.append(note)
+            if rec.fs is None:
+                rec.lay.notes.append(f"{NO_RATE_NOTE}: the dwells do not need it here, their "
+                                     "times do (the time tests of diagnose): give fs= (Hz)")
+            return d, rec
+        rec = _Recording(path, columns, fs, time_column)  # its head only: detect as ever
     if means or (means is None and bounds is None and not annotated
                  and (rec.fs is None or slow)):
 
@@ -2763,6 +2779,47 @@ def _stream_dwells(
         if known is None or str(e).startswith(rec.path):
             raise  # not about the bounds
         raise type(e)(f"{known} (dwell bounds of {rec.path}): {e}") from None
+
+
+#: Largest recording read whole to test it as a log of rests (rows).
+_STEP_LOG_MAX_ROWS = 20_000_000
+
+
+def _rests_only(rec: _Recording) -> bool:
+    """Whether the head of ``rec`` reads as a log that holds only the rests (see
+    :func:`step_log_dwells`), and the recording is small enough to read whole."""
+    lay = rec.lay
+    est = rec.rows_estimate()
+    if len(lay.acc) != 3 or lay.head.shape[0] == 0 or (est or 0) > _STEP_LOG_MAX_ROWS:
+        return False
+    h = lay.head[:, list(lay.acc)]
+    h = _signed16(h) if lay.signed16 else h
+    return _core.dwell_step_log(np.ascontiguousarray(h, dtype=np.float64)) is not None
+
+
+def step_log_dwells(samples: Any, t: Any, temperature: Any, fs: float | None, units: str = ""
+                    ) -> tuple[Any, str] | None:
+    """A recording that holds only the rests - a logger that stores a block of samples per
+    pose and nothing while the sensor is turned, so consecutive poses meet in a jump between
+    two samples - as dwells: the runs between its jumps (``_core.dwell_step_log``), with the
+    note that says so. None when it does not read as such a log (its moves are recorded, or
+    it has fewer than 5 jumps)."""
+    from .dwell import dwell_stats
+
+    log = _core.dwell_step_log(samples)
+    if log is None:
+        return None
+    d = dwell_stats(samples, log.runs, t=t, temperature=temperature, fs=fs, units=units)
+    k = len(log.runs)
+    block = "a block of" if log.period is None else f"{log.period}"
+    cut = k - log.jumps - 1
+    note = (f"the recording holds only the rests: {log.jumps} jumps between runs of still "
+            f"samples, with no motion recorded between them (a logger that stores {block} "
+            f"samples per pose); its {k} runs are the dwells")
+    if cut > 0:
+        note += (f", {cut} of them cut on the logger's grid of blocks (poses too close for a "
+                 "jump between them)")
+    return d, note
 
 
 def _short_dwells(d: Any) -> list[str]:

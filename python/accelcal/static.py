@@ -501,7 +501,7 @@ class StaticFit(_core.StaticFit):
                     f"model allows (p = {p:.2g}); std below is scaled by it all the same "
                     "(covariance_scaled: the Birge-ratio convention)")
         src = "scaled by chi2/dof" if self.realistic == "scaled" else "from the noise model"
-        lines.append(f"  std: {src}; K in {self.input_units or 'output units'} per {u}")
+        lines.append(f"  std: {src}; K in {self.input_units or 'raw (input) units'} per {u}")
         hdr = f"  {'param':<6} {'value':>14} {'std':>11}"
         if tv is not None:
             hdr += f" {'truth':>14} {'error/std':>10}"

@@ -26,8 +26,10 @@ mod faults;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 mod state;
+mod steps;
 pub use faults::{output_faults, FaultKind, OutputFault, FAULT_MIN_SAMPLES};
 pub use state::STATE_VERSION;
+pub use steps::{step_log, StepLog};
 
 /// Independent accumulation lanes.
 pub const LANES: usize = 4;
@@ -1593,7 +1595,8 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         return degenerate(format!(
             "no static dwell found in {n} samples ({:.4} s at {} Hz): no run of at least \
              min_dwell_s = {} s stayed below k = {} x the noise variance (noise std {:.3e}, \
-             {:.3e}, {:.3e}); check fs, or lower min_dwell_s=, or raise k= (or give noise_std=)",
+             {:.3e}, {:.3e}); check fs, or lower min_dwell_s= or window_s= (a rest shorter than \
+             the window is not seen), or raise k= (or give noise_std=)",
             n as f64 / s.fs,
             s.fs,
             s.min_dwell_s,

@@ -339,7 +339,22 @@ def main() -> None:
     """
 
 
-@main.group()
+class _SystemGroup(click.Group):
+    """``calibrate``: a recording given where the system belongs gets the command to run."""
+
+    def resolve_command(self, ctx: click.Context, args: list[str]) -> Any:
+        name = args[0] if args else ""
+        if name and self.get_command(ctx, name) is None and (
+                os.path.exists(name) or name == "-" or os.sep in name or "." in name):
+            systems = ", ".join(f"{c} {'FILE' if c == 'static' else 'TABLE'}"
+                                for c in self.list_commands(ctx))
+            ctx.fail(f"{name!r} is a recording, not a system: name the system first, "
+                     f"`accelcal calibrate static {' '.join(args)}` for static dwells "
+                     f"(the systems: {systems})")
+        return super().resolve_command(ctx, args)
+
+
+@main.group(cls=_SystemGroup)
 def calibrate() -> None:
     """Calibrate from a recording (static), a centrifuge table or a gradiometer table."""
 

@@ -12,7 +12,9 @@ use std::sync::{Mutex, PoisonError};
 
 use super::convert::{bounds_from, opt_slice, rows3, with_view, SampleArray};
 use super::CalibrationError;
-use crate::dwell::{output_faults, DetectorSettings, DwellAccumulator, DwellTable, OutputFault};
+use crate::dwell::{
+    output_faults, step_log, DetectorSettings, DwellAccumulator, DwellTable, OutputFault, StepLog,
+};
 
 /// Run `f`, turning a panic (a bug) into a CalibrationError instead of letting it cross the
 /// boundary.
@@ -363,4 +365,50 @@ pub fn dwell_output_faults(
         .collect();
     let f = guarded("DwellSet.faults", || output_faults(&m, &v, &n, lsb))?;
     Ok(f.iter().map(PyOutputFault::from).collect())
+}
+
+/// A recording that holds only the rests (a block of samples per pose, nothing recorded
+/// while the sensor was turned): its runs between jumps.
+#[pyclass(name = "StepLog", module = "accelcal._core", frozen, get_all)]
+pub struct PyStepLog {
+    /// `[start, stop)` sample bounds of each run, (k, 2) int64.
+    runs: Py<PyArray2<i64>>,
+    /// Jumps found.
+    jumps: usize,
+    /// The run length shared by at least half of the runs, or None.
+    period: Option<usize>,
+    /// Share of the samples in recorded motion.
+    motion_fraction: f64,
+}
+
+impl PyStepLog {
+    fn new(py: Python<'_>, log: &StepLog) -> PyStepLog {
+        let flat: Vec<i64> = log
+            .runs
+            .iter()
+            .flat_map(|r| r.iter().map(|&v| i64::try_from(v).unwrap_or(i64::MAX)))
+            .collect();
+        let runs = numpy::ndarray::Array2::from_shape_vec((log.runs.len(), 2), flat)
+            .unwrap_or_else(|_| numpy::ndarray::Array2::zeros((0, 2)))
+            .to_pyarray(py)
+            .unbind();
+        PyStepLog {
+            runs,
+            jumps: log.jumps,
+            period: log.period,
+            motion_fraction: log.motion_fraction,
+        }
+    }
+}
+
+/// The stream read as a log of rests, or None when it does not read as one (its moves are
+/// recorded, or it has too few jumps).
+#[pyfunction]
+pub fn dwell_step_log<'py>(
+    py: Python<'py>,
+    samples: &Bound<'py, PyAny>,
+) -> PyResult<Option<PyStepLog>> {
+    let arr = SampleArray::extract(samples)?;
+    let log = with_view!(&arr, v => py.detach(|| guarded("step_log", || Ok(step_log(&v)))))?;
+    Ok(log.map(|l| PyStepLog::new(py, &l)))
 }

@@ -42,8 +42,8 @@ mod _core {
     };
     #[pymodule_export]
     use super::dwell::{
-        detect_dwells_raw, dwell_output_faults, dwell_stats_raw, DwellTableRaw, PyOutputFault,
-        RawDwellAccumulator,
+        detect_dwells_raw, dwell_output_faults, dwell_stats_raw, dwell_step_log, DwellTableRaw,
+        PyOutputFault, PyStepLog, RawDwellAccumulator,
     };
     #[pymodule_export]
     use super::gap::{
