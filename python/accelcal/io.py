@@ -2781,8 +2781,9 @@ def _stream_dwells(
         raise type(e)(f"{known} (dwell bounds of {rec.path}): {e}") from None
 
 
-#: Largest recording read whole to test it as a log of rests (rows).
-_STEP_LOG_MAX_ROWS = 20_000_000
+#: Largest recording read whole to test it as a log of rests (rows; the test's scratch
+#: memory is about 40 bytes a row).
+_STEP_LOG_MAX_ROWS = 5_000_000
 
 
 def _rests_only(rec: _Recording) -> bool:
@@ -2803,9 +2804,13 @@ def step_log_dwells(samples: Any, t: Any, temperature: Any, fs: float | None, un
     pose and nothing while the sensor is turned, so consecutive poses meet in a jump between
     two samples - as dwells: the runs between its jumps (``_core.dwell_step_log``), with the
     note that says so. None when it does not read as such a log (its moves are recorded, or
-    it has fewer than 5 jumps)."""
+    it has fewer than 5 jumps; a recording longer than 5 million rows is not tested)."""
     from .dwell import dwell_stats
 
+    n = len(samples)
+    if n > _STEP_LOG_MAX_ROWS or (
+            n > _SNIFF_ROWS and _core.dwell_step_log(samples[:_SNIFF_ROWS]) is None):
+        return None  # its head says no (or too long for such a log): no pass over it all
     log = _core.dwell_step_log(samples)
     if log is None:
         return None
