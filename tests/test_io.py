@@ -1654,6 +1654,12 @@ def test_a_log_that_holds_only_the_rests_gives_one_dwell_per_block(tmp_path: Pat
     row = ac.calibrate_many([str(p)], g=1.0, workers=1, progress=False).iloc[0]
     assert row["n_dwells"] == 40 and "holds only the rests" in row["message"]
     np.testing.assert_allclose([row["sx"], row["sy"], row["sz"]], fit.vector[:3], rtol=1e-12)
+    # detect_dwells (the window detector) finds none in it, and says where to turn.
+    with pytest.raises(ac.DegenerateDataError, match=r"no static dwell found.*reads as a log "
+                       r"that holds only the rests.*accelcal\.io\.step_log_dwells"):
+        detect_dwells(s, 100.0)
+    got = ac.io.step_log_dwells(s, None, None, None)
+    assert got is not None and len(got[0]) == 40
     # The same poses with 2 s turns recorded between them: not a log of rests.
     from accelcal.sim.field import field_session
 

@@ -853,7 +853,13 @@ def detect_dwells(
     try:
         d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
     except CalibrationError as e:
-        raise drops.explain(e, n, samples_array(samples)) from None
+        e = drops.explain(e, n, samples_array(samples))
+        if "no static dwell found" in str(e) and _core.dwell_step_log(s) is not None:
+            e = type(e)(f"{e}. Note: the stream reads as a log that holds only the rests (a "
+                        "block of samples per pose, jumps between them, no motion recorded): "
+                        "accelcal.io.step_log_dwells(samples, t, temperature, fs) takes its "
+                        "blocks as the dwells")
+        raise e from None
     return _from_raw(d, fsv, units, drops)
 
 
