@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
@@ -1060,6 +1061,7 @@ class _CalUncertainty:
     shift: NDArray[np.float64]  # (k,) mean norm error of the calibration's draws
     spread: NDArray[np.float64]  # (k, k) covariance of the norms over those draws
     grad_m: NDArray[np.float64]  # (k, 3) d r_k / d m_k, output per raw unit
+    bootstrap: bool = False  # the draws refit the calibration's own session
 
     def norm_var(self, var: NDArray[np.float64]) -> NDArray[np.float64]:
         """(k,) variance of each dwell's norm from the per-axis variances ``var`` of its
@@ -1082,10 +1084,58 @@ class _CalUncertainty:
 _CAL_DRAWS = 400
 
 
+def _session_draws(fit: Any, v: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """A parametric bootstrap of a calibration's uncertainty, when its model carries the
+    session it was fitted to (``metadata["fit_session"]``, written by ``to_model``): that
+    session's dwell means moved onto the calibration's ellipsoid, fresh noise of its
+    variances added (inflated by its Birge ratio when its noise was known and chi2/dof
+    exceeds 1), refitted ``_CAL_DRAWS`` times with a fixed seed; the parameter deviations
+    from ``v``. This is the calibration's own sampling distribution, which a weak design
+    (few, small tilts) makes far from the Gaussian of its covariance. None without a usable
+    session (the covariance draws are used then)."""
+    from ._triad import k_matrix
+    from .static import fit_static
+
+    ses = fit.metadata.get("fit_session")
+    if not isinstance(ses, dict) or fit.g is None:
+        return None
+    try:
+        m = np.asarray(ses["means"], dtype=np.float64)
+        var = np.asarray(ses["var"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return None
+    if (m.ndim != 2 or m.shape[1] != 3 or var.shape != m.shape or not np.all(np.isfinite(m))
+            or not np.all(np.isfinite(var)) or not np.all(var > 0)):
+        return None
+    chi2 = fit.metadata.get("chi2_dof")
+    if ses.get("noise_known") and isinstance(chi2, (int, float)) and chi2 > 1:
+        var = var * float(chi2)
+    K, b, g = k_matrix(v, fit.model), v[3:6], float(fit.g)
+    a = np.linalg.solve(K, (m - b).T).T
+    clean = (K @ (g * a / np.linalg.norm(a, axis=1)[:, None]).T).T + b
+    rng = np.random.default_rng(0)
+    sd = np.sqrt(var)
+    out = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for _ in range(_CAL_DRAWS):
+            ms = clean + sd * rng.standard_normal(clean.shape)
+            try:
+                f = fit_static(ms, g, model=fit.model, sigma=sd, observability="ignore",
+                               check_g=False)
+            except CalibrationError:
+                continue
+            out.append(f.vector - v)
+    if len(out) < _CAL_DRAWS // 2:
+        return None
+    return np.asarray(out)
+
+
 def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncertainty | None:
     """What the dwells' norms inherit from a held-fixed calibration's own uncertainty: its
-    parameters drawn from N(theta, C) (C its noise-model covariance, inflated by its Birge
-    ratio when that exceeds 1, never deflated), the norms ``|K^-1 (m_k - b)|`` of every draw
+    parameters drawn by refitting its own session (:func:`_session_draws`, when the model
+    carries it) or else from N(theta, C) (C its noise-model covariance, inflated by its
+    Birge ratio when that exceeds 1, never deflated), the norms ``|K^-1 (m_k - b)|`` of every draw
     less those at theta: their mean (the norm's nonlinearity) and covariance (a linear
     propagation ``J C J^T`` is optimistic for a weak calibration far from its own poses).
     The per-dwell share is the isotropic raw variance giving each norm's variance. None for a
@@ -1116,9 +1166,12 @@ def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncer
 
     a = forces(v)
     base = c * np.linalg.norm(a, axis=1)
-    draws = np.random.default_rng(0).multivariate_normal(
-        np.zeros(v.size), cov, _CAL_DRAWS, method="eigh")
-    dev = np.empty((_CAL_DRAWS, mean.shape[0]))
+    draws = _session_draws(fit, v)
+    boot = draws is not None
+    if draws is None:
+        draws = np.random.default_rng(0).multivariate_normal(
+            np.zeros(v.size), cov, _CAL_DRAWS, method="eigh")
+    dev = np.empty((draws.shape[0], mean.shape[0]))
     for i, x in enumerate(draws):
         try:
             dev[i] = norms(v + x) - base
@@ -1132,7 +1185,7 @@ def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncer
     grad_m = c * u @ np.linalg.inv(k_matrix(v, fit.model))  # d r / d m = c K^-T u, per row
     w = np.sum(grad_m**2, axis=1)
     return _CalUncertainty(np.asarray(np.maximum(np.diag(spread), 0.0) / w),
-                           np.asarray(dev.mean(axis=0)), spread, grad_m)
+                           np.asarray(dev.mean(axis=0)), spread, grad_m, boot)
 
 
 def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
@@ -1383,9 +1436,12 @@ def diagnose(
                 "out too small); check it against another session, or diagnose this one "
                 "without a calibration to refit it")
         if share is not None:
+            how = ("its session refitted 400 times with fresh noise, a parametric "
+                   "bootstrap" if unc is not None and unc.bootstrap else
+                   "its parameters drawn 400 times from their covariance")
             statements.append(
-                "the calibration's own uncertainty (its parameters drawn 400 times from their "
-                "covariance, each draw's norms compared) is part of the noise: from "
+                f"the calibration's own uncertainty ({how}, each draw's norms compared) is "
+                "part of the noise: from "
                 f"{float(np.min(share)):.2g}x to {float(np.max(share)):.2g}x a dwell's own "
                 f"noise in variance (median {float(np.median(share)):.2g}x); the gap's chi2 "
                 "takes it in full, with the correlation it brings across dwells, the per-dwell "

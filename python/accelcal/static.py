@@ -409,9 +409,10 @@ class StaticFit(_core.StaticFit):
 
         It stores both covariances, labelled, and which one is realistic (the one
         :meth:`summary` prints; ``TriadModel.covariance``); the metadata records chi2/dof,
-        the degrees of freedom, the noise model, the residual RMS, the dwell count and a short
+        the degrees of freedom, the noise model, the residual RMS, the dwell count, a short
         hash of each dwell mean (``fit_dwells``: :meth:`TriadModel.own_dwells` tells a check
-        against the same dwells).
+        against the same dwells) and the session itself (``fit_session``: the dwell means and
+        their variances, from which a check of the calibration draws its uncertainty).
         """
         md = dict(meta.pop("metadata", None) or {})
         md.update(
@@ -421,6 +422,7 @@ class StaticFit(_core.StaticFit):
             residual_rms=float(self.rms),
             n_dwells=int(len(self.residuals)),
             fit_dwells=dwell_fingerprints(self.means),
+            fit_session=self._session(),
         )
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units
@@ -438,6 +440,19 @@ class StaticFit(_core.StaticFit):
             metadata=md,
             **meta,
         )
+
+    def _session(self) -> dict[str, Any] | None:
+        """The dwell means this fit was made from and the variance of each (per axis, input
+        units squared; the estimated isotropic variance when the noise was estimated), so a
+        check of the calibration can refit its session with fresh noise (a parametric
+        bootstrap of its uncertainty). None when the variances are not known finite."""
+        m = np.asarray(self.means, dtype=np.float64)
+        var = self.chi2_dof if self.var is None else self.var
+        v = np.broadcast_to(np.asarray(var, dtype=np.float64), m.shape)
+        if not (np.all(np.isfinite(m)) and np.all(np.isfinite(v)) and np.all(v > 0)):
+            return None
+        return {"means": m.tolist(), "var": np.array(v).tolist(),
+                "noise_known": bool(self.noise_known)}
 
     def to_dict(self) -> dict[str, Any]:
         ns = self.norm_stats
