@@ -10,6 +10,8 @@
 //!   consecutive large differences is a *jump* when it holds at most [`JUMP_MAX_SAMPLES`]
 //!   differences (a sensor's own low-pass filter may spread a jump over a few samples) and one
 //!   of them exceeds [`STEP_HIGH`]; a longer cluster is recorded motion;
+//! - a jump whose two sides have the same mean (a glitch: one wild sample, out and back) is
+//!   no change of pose and does not cut the stream;
 //! - the stream is a step log when it has at least [`MIN_JUMPS`] jumps, recorded motion
 //!   covers at most [`MAX_MOTION_FRACTION`] of it, and the runs between jumps (each a pose)
 //!   of at least [`MIN_RUN_SAMPLES`] samples hold at least [`MIN_RUN_COVERAGE`] of it;
@@ -121,29 +123,74 @@ pub fn step_log<T: Sample>(x: &ArrayView2<'_, T>) -> Option<StepLog> {
     if cuts.len() < MIN_JUMPS || motion_fraction > MAX_MOTION_FRACTION {
         return None;
     }
-    let mut runs: Vec<[usize; 2]> = Vec::with_capacity(cuts.len() + 1);
-    let mut start = 0;
-    for &[stop, next] in cuts.iter().chain(std::iter::once(&[n, n])) {
-        if stop >= start + MIN_RUN_SAMPLES {
-            runs.push([start, stop]);
-        }
-        start = next;
+    let (segments, jumps) = poses_between(x, &cuts, &noise);
+    if jumps < MIN_JUMPS {
+        return None;
     }
+    let runs: Vec<[usize; 2]> = segments
+        .into_iter()
+        .filter(|[a, b]| *b >= a + MIN_RUN_SAMPLES)
+        .collect();
     let covered: usize = runs.iter().map(|[a, b]| b - a).sum();
     if (covered as f64) < MIN_RUN_COVERAGE * n as f64 {
         return None;
     }
     let stride = common_value(runs.windows(2).map(|w| w[1][0] - w[0][0]));
-    if let Some(p) = stride {
-        runs = split_on_grid(&runs, p);
-    }
+    let runs = match stride {
+        Some(p) => split_on_grid(&runs, p),
+        None => runs,
+    };
     let period = common_value(runs.iter().map(|[a, b]| b - a));
     Some(StepLog {
         runs,
-        jumps: cuts.len(),
+        jumps,
         period,
         motion_fraction,
     })
+}
+
+/// The segments between the `cuts` (`[stop of the one before, start of the next]`), with
+/// every cut whose two sides have the same mean merged away: a glitch (a single wild sample,
+/// out and back) is no change of pose. Two sides differ when some axis's means differ by
+/// more than [`STEP_LOW`] standard errors (white noise of the difference noise / sqrt 2).
+/// Returns the segments and the cuts kept (the jumps).
+fn poses_between<T: Sample>(
+    x: &ArrayView2<'_, T>,
+    cuts: &[[usize; 2]],
+    noise: &[f64; 3],
+) -> (Vec<[usize; 2]>, usize) {
+    let n = x.nrows();
+    let mut sum = vec![[0.0f64; 3]; n + 1];
+    for i in 0..n {
+        for a in 0..3 {
+            sum[i + 1][a] = sum[i][a] + x[[i, a]].to_f64();
+        }
+    }
+    let mean = |[a, b]: [usize; 2], k: usize| (sum[b][k] - sum[a][k]) / (b - a) as f64;
+    let differ = |p: [usize; 2], q: [usize; 2]| {
+        let (np, nq) = ((p[1] - p[0]) as f64, (q[1] - q[0]) as f64);
+        np < 2.0
+            || nq < 2.0
+            || (0..3).any(|k| {
+                let se = noise[k] / std::f64::consts::SQRT_2 * (1.0 / np + 1.0 / nq).sqrt();
+                (mean(p, k) - mean(q, k)).abs() > STEP_LOW * se
+            })
+    };
+    let mut out = Vec::with_capacity(cuts.len() + 1);
+    let mut cur = [0, cuts[0][0]];
+    for (j, &[_, next]) in cuts.iter().enumerate() {
+        let stop = cuts.get(j + 1).map_or(n, |c| c[0]);
+        let seg = [next, stop.max(next)];
+        if differ(cur, seg) {
+            out.push(cur);
+            cur = seg;
+        } else {
+            cur[1] = seg[1]; // a glitch: the same pose goes on, the wild samples in it
+        }
+    }
+    out.push(cur);
+    let jumps = out.len() - 1;
+    (out, jumps)
 }
 
 /// A logger that stores a block of samples per pose starts its poses on a grid of step
@@ -288,6 +335,26 @@ mod tests {
         assert!(step_log(&y.view()).is_none());
         // Too few poses.
         assert!(step_log(&session(4, 100, 1e-3, 0, 6).view()).is_none());
+    }
+
+    #[test]
+    fn glitches_in_a_still_recording_are_not_jumps() {
+        // One long rest with 8 single wild samples (out and back: a bus error): the sides of
+        // each have the same mean, so no pose changes and it is not a log of rests.
+        let mut x = session(1, 3000, 1e-3, 0, 10);
+        for k in 0..8 {
+            x[[200 + 350 * k, 1]] += 0.2;
+        }
+        assert!(step_log(&x.view()).is_none());
+        // The same glitches inside the blocks of a log of rests leave its runs whole.
+        let mut y = session(30, 100, 1e-3, 0, 11);
+        for k in 0..8 {
+            y[[150 + 300 * k, 0]] -= 0.3;
+        }
+        let log = step_log(&y.view()).expect("a log of rests");
+        assert_eq!(log.jumps, 29);
+        let want: Vec<[usize; 2]> = (0..30).map(|k| [100 * k, 100 * (k + 1)]).collect();
+        assert_eq!(log.runs, want);
     }
 
     #[test]
