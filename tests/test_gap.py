@@ -614,6 +614,9 @@ def test_raw_stream_gives_half_dwell_means_and_persistence() -> None:
     assert st.noise_empirical is not None and 0.6 < st.noise_empirical.ratio_model < 1.6
     assert st.verdict == "none", r.summary()
     assert "Structure: none" in r.summary()
+    # No temperature: said as not given (perhaps a column not recognised), not as absent.
+    assert ("temperature_bias: not testable: no temperature given (none recorded, or its "
+            "column not recognised") in r.summary()
 
 
 @pytest.mark.parametrize("kind", ["per_dwell", "correlated_noise", "attitude", "hysteresis",

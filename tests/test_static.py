@@ -9,6 +9,7 @@ import json
 import math
 import os
 import pickle
+import re
 import subprocess
 import sys
 import warnings
@@ -564,6 +565,33 @@ def test_mpu6050_few_poses_reported_weak():
     assert f9.weak
     f6 = ac.fit_static(ds, 9.80665, model="diag")
     assert not f6.weak and np.all(np.abs(f6.scale / 16384 * 9.80665 - 1) < 0.05)
+
+
+def test_an_axis_never_turned_down_is_named_in_the_weak_warning():
+    """A session whose z never pointed down (a rocketry board set on its base and sides
+    only: SunDevil's table session): the weak-design warning names z and how far it went,
+    for both models, instead of advising the bias + scale model (which is as weak there)."""
+    rng = np.random.default_rng(4)
+    az = rng.uniform(0, 2 * np.pi, 24)
+    el = np.radians(np.r_[np.zeros(16), np.full(4, 90.0), rng.uniform(30, 45, 4)])
+    # On its sides, upright, and a few obliques: z from 0 to +1 g only.
+    v = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    truth = np.array([1.01, 0.99, 1.02, 0.05, -0.03, 0.5, 0.004, -0.003, 0.002])
+    K = np.array([[truth[0], 0, 0], [truth[6], truth[1], 0], [truth[7], truth[8], truth[2]]])
+    means = (K @ (9.80665 * v).T).T + truth[3:6] + 2e-2 * rng.standard_normal((24, 3))
+    lo, hi = v[:, 2].min(), v[:, 2].max()
+    for model in ("lower", "diag"):
+        with pytest.warns(WeakDesignWarning) as w:
+            ac.fit_static(means, 9.80665, model=model, sigma=2e-2)
+        msg = str(w[0].message)
+        assert re.search(r"no pose turned z down \(z from [-+]0\.0\d to \+(0\.9\d|1\.00) g\)",
+                         msg), msg
+        assert "add poses with it turned the other way" in msg and "needs fewer" not in msg
+        assert "no pose turned x" not in msg and "no pose turned y" not in msg
+    assert lo < 0.1 and hi > 0.9  # (the poses, as the message says)
+    # Every axis turned both ways (the full sphere): no such clause.
+    assert not ac.fit_static(np.vstack([means, (K @ (-9.80665 * v).T).T + truth[3:6]]),
+                             9.80665, sigma=2e-2, observability="ignore")._one_sided_axes()
 
 
 def test_imucal_six_faces_needs_diag():

@@ -378,9 +378,29 @@ class StaticFit(_core.StaticFit):
             if not rel[i] <= lim
         ]
         txt = f"predicted std {', '.join(parts)} (1 sigma)"
-        if len(rel) == 9 and not all(r <= lim for r in rel[6:]):
+        one_sided = self._one_sided_axes()
+        if one_sided:
+            txt += (f"; {'; '.join(one_sided)}: an axis seen on one side only barely separates "
+                    "its scale from its bias, whatever the model: add poses with it turned the "
+                    "other way")
+        elif len(rel) == 9 and not all(r <= lim for r in rel[6:]):
             txt += '; model "diag" (bias + scale) needs fewer attitudes'
         return txt
+
+    def _one_sided_axes(self) -> list[str]:
+        """The axes no pose turned towards gravity (or away from it): their calibrated
+        component stays above -0.5 g (or below +0.5 g) in every dwell."""
+        a = self.calibrated_means()
+        if a.ndim != 2 or a.shape[0] == 0 or not np.all(np.isfinite(a)):
+            return []
+        u = a / np.linalg.norm(a, axis=1)[:, None]
+        out = []
+        for k, name in enumerate("xyz"):
+            lo, hi = float(u[:, k].min()), float(u[:, k].max())
+            side = "down" if lo > -0.5 else "up" if hi < 0.5 else ""
+            if side:
+                out.append(f"no pose turned {name} {side} ({name} from {lo:+.2f} to {hi:+.2f} g)")
+        return out
 
     def warning_text(self) -> str | None:
         """The weak-design warning of this fit (None when the design is determined). When
