@@ -1682,3 +1682,33 @@ def test_calibrate_given_a_recording_instead_of_a_system_says_which_command(
             f"{p} --g 9.81`") in r.output, r.output
     r = CliRunner().invoke(main, ["calibrate", "statc"])  # a typo is click's own error
     assert r.exit_code == 2 and "No such command 'statc'" in r.output
+
+
+def test_a_fourth_column_names_the_temperature_of_a_headerless_file(tmp_path: Path) -> None:
+    """SunDevil's table session: 13 columns, no header, the temperature in column 12. It
+    could not be named, and the diagnosis said "no temperature was recorded". A fourth entry
+    of columns= (--columns 1,2,3,4) is the temperature column."""
+    from accelcal.sim.field import field_session
+
+    f = field_session(fs=50.0, n_dwells=14, dwell_s=4.0, move_s=2.0, sigma=1e-3, rng=8)
+    temp = 30.0 + np.linspace(0.0, 5.0, len(f.t))
+    p = tmp_path / "headerless.txt"
+    np.savetxt(p, np.column_stack([f.t, f.samples, temp]), delimiter="\t", fmt="%.9g")
+    d = stream_dwells(p, columns="1,2,3,4", time_column=0)
+    assert d.temperature is not None
+    ref = dwell_stats(f.samples, np.column_stack([d.start, d.stop]), temperature=temp)
+    np.testing.assert_allclose(d.temperature, ref.temperature, rtol=1e-9)  # %.9g in the file
+    assert stream_dwells(p, columns=[1, 2, 3], time_column=0).temperature is None
+    with pytest.raises(CalibrationError, match="temperature column .* is also an accel"):
+        stream_dwells(p, columns="1,2,3,3", time_column=0)
+    with pytest.raises(CalibrationError, match=r"exactly 3 columns \(x, y, z\), or 4"):
+        stream_dwells(p, columns="1,2", time_column=0)
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(main, ["diagnose", str(p), "--g", f"{f.g}", "--columns", "1,2,3,4",
+                                  "--time-column", "0"])
+    assert r.exit_code == 0 and "no temperature given" not in r.output, r.output
+    r = CliRunner().invoke(main, ["diagnose", str(p), "--g", f"{f.g}", "--columns", "1,2,3",
+                                  "--time-column", "0"])
+    assert "or as the 4th of the columns given (columns=, --columns)" in r.output, r.output

@@ -619,8 +619,9 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
             f"{fix}",
             "no_temperature": "not testable: no temperature given (none recorded, or its "
             "column not recognised: a file's column is read as the temperature by a name "
-            "starting with 'temp', in a header row; this is not 'no effect'); record the "
-            "temperature of every dwell",
+            "starting with 'temp' in a header row, or as the 4th of the columns given "
+            "(columns=, --columns); this is not 'no effect'); record the temperature of "
+            "every dwell",
             "constant_temperature": "not testable: temperature constant; heat or cool the "
             "sensor between dwells to test it",
             "no_time": "not testable: no dwell times t given (this is not 'no effect')",

@@ -350,8 +350,23 @@ def _three(columns: Any, what: str = "columns") -> list[Any]:
             f"columns must be 3 names or 0-based indices; got {columns!r}"
         ) from None
     if len(cols) != 3:
-        raise CalibrationError(f"columns must name exactly 3 {what} (x, y, z); got {cols!r}")
+        more = ", or 4 (x, y, z, temperature)" if what == "columns" else ""
+        raise CalibrationError(f"columns must name exactly 3 {what} (x, y, z){more}; got "
+                               f"{cols!r}")
     return cols
+
+
+def _split_columns(columns: Any) -> tuple[list[Any], Any]:
+    """User ``columns``: the accelerometer's x, y, z and, when a fourth is given, the
+    temperature column (a file without a header cannot name it)."""
+    cols = [c.strip() for c in columns.split(",")] if isinstance(columns, str) else columns
+    try:
+        cols = list(cols)
+    except TypeError:
+        cols = columns
+    if isinstance(cols, list) and len(cols) == 4:
+        return cols[:3], cols[3]
+    return _three(cols), None
 
 
 def _resolve_columns(columns: Any, names: Sequence[str] | None, ncols: int, path: str) -> list[int]:
@@ -1139,8 +1154,10 @@ def _decide(
             notes.append(f"column {names[tcol]!r} is named as a time but {why}: not used as "
                          "the time")
             tcol = None
+    temp_spec = None
     if columns is not None:
-        acc = _resolve_columns(columns, names, ncols, path)
+        acc_spec, temp_spec = _split_columns(columns)
+        acc = _resolve_columns(acc_spec, names, ncols, path)
     elif names is not None:
         by_name = _auto_acc(names, path)
         if by_name is None:
@@ -1218,7 +1235,12 @@ def _decide(
             notes.append(f"column {_label_of(names, tcol)} holds Unix epoch times in "
                          f"{epoch[0]}: read as such")
     temp = None
-    if names is not None:
+    if temp_spec is not None:
+        temp = _resolve_one(temp_spec, names, ncols, path, "columns (the 4th, temperature)")
+        if temp in acc or temp == tcol:
+            raise CalibrationError(f"{path}: the temperature column (the 4th of columns=) is "
+                                   f"also an accelerometer or the time column: {temp}")
+    elif names is not None:
         for i, n in enumerate(names):
             if i not in acc and i != tcol and _is_temperature(n):
                 temp = i
@@ -2364,7 +2386,8 @@ def read_stream(
         interchange protocol) has its columns chosen by name as a text header would; an
         array (anything with ``__array__``) is an (N, 3) or (N, >=3) table.
     columns : 3 names or 0-based indices, or "ax,ay,az", optional
-        The accelerometer x, y, z columns; chosen by name when omitted.
+        The accelerometer x, y, z columns; chosen by name when omitted. A fourth names the
+        temperature column (a file without a header cannot name it "temp...").
     fs : float, optional
         Sample rate in Hz; overrides the file's metadata and time column.
     time_column : name or 0-based index, optional

@@ -142,7 +142,8 @@ def recording_options(fn: F) -> F:
                            "says so or when given as 'NAME [ms]'), else recognised by name; "
                            "'none': use no time column (then give --fs).")(fn)
     fn = click.option("--columns", default=None,
-                      help="Accelerometer columns, e.g. ax,ay,az or 1,2,3 (0-based).")(fn)
+                      help="Accelerometer columns, e.g. ax,ay,az or 1,2,3 (0-based); a "
+                           "fourth names the temperature column (1,2,3,12).")(fn)
     return click.option("--fs", type=float, default=None,
                         help="Sample rate, Hz (else from the file's metadata or time "
                              "column).")(fn)  # type: ignore[no-any-return]
