@@ -2811,8 +2811,11 @@ _STEP_LOG_MAX_ROWS = 5_000_000
 
 def _rests_only(rec: _Recording) -> bool:
     """Whether the head of ``rec`` reads as a log that holds only the rests (see
-    :func:`step_log_dwells`), and the recording is small enough to read whole."""
+    :func:`step_log_dwells`), and the recording is small enough to read whole and can be
+    read again (not standard input) should the whole not read so."""
     lay = rec.lay
+    if rec.text is not None and rec.text.stdin:
+        return False  # read once only: a head that misleads could not be read again
     est = rec.rows_estimate()
     if len(lay.acc) != 3 or lay.head.shape[0] == 0 or (est or 0) > _STEP_LOG_MAX_ROWS:
         return False
