@@ -514,7 +514,7 @@ def test_a_static_recording_too_short_is_told_the_length_it_needs(tmp_path: Path
     assert "about 2.20 s in all. Record longer, or lower --min-dwell or --window" in out, out
     assert "--k" not in out and "raise k" not in out
     code, out = run("dwells", str(write_csv(tmp_path / "long.csv", t, s)))
-    assert code == 0 and "250 samples at 100 Hz -> 1 dwells" in out, out
+    assert code == 0 and "250 samples at 100 Hz -> 1 dwell\n" in out, out
 
 
 def test_a_session_mostly_in_motion_is_told_how_to_find_shorter_rests(tmp_path: Path) -> None:
@@ -540,4 +540,31 @@ def test_a_session_mostly_in_motion_is_told_how_to_find_shorter_rests(tmp_path: 
     q = write_csv(tmp_path / "two.csv", s.t[:1500], s.samples[:1500])
     code, out = run("calibrate", "static", str(q), "--g", str(s.g))
     assert code == 2 and "even --model diag (bias + scale) needs 6 dwells" in out, out
+    assert "Try --model diag" not in out
+
+
+def test_a_single_long_rest_is_refused_without_dead_end_advice(tmp_path: Path) -> None:
+    """tomisuarez2's initialisation-time recording: one rest of 449 s. Every refusal is
+    right, but the advice led nowhere: "Try --model diag" for dwells that are one pose (diag
+    fails alike), --calibration for 1 dwell (it needs 2), "1 dwells"; and the dwell table's
+    noise line is the detector's noise level (a low quantile), not the noise std."""
+    rng = np.random.default_rng(2)
+    n = 3000
+    s = np.array([2643.6, -642.7, 14791.4]) + [53.0, 49.0, 75.0] * rng.standard_normal((n, 3))
+    p = tmp_path / "rest.csv"
+    p.write_text("Fs,100\nax,ay,az\n" + "".join(f"{a:.0f},{b:.0f},{c:.0f}\n" for a, b, c in s))
+    code, out = run("dwells", str(p))
+    assert code == 0 and "-> 1 dwell\n" in out, out
+    assert "detector's noise level per axis x, y, z (a low quantile of the window stds" in out
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665")
+    assert code == 2 and "1 dwell found in" in out and "1 dwell cannot determine" in out, out
+    assert "Try --model diag" not in out
+    code, out = run("diagnose", str(p), "--g", "9.80665")
+    assert code == 2 and "1 dwell: the 9-parameter model needs at least 10 dwells" in out, out
+    assert "--calibration" not in out and "2 dwells suffice" not in out
+    # Cut by hand into 10 pieces: one pose, so no model can be fitted; diag is not offered.
+    b = tmp_path / "pieces.csv"
+    b.write_text("start,stop\n" + "".join(f"{300 * k},{300 * k + 290}\n" for k in range(10)))
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--bounds", str(b))
+    assert code == 2 and "the 10 dwells are one pose" in out, out
     assert "Try --model diag" not in out

@@ -1395,10 +1395,11 @@ def diagnose(
     need = 2 if cal is not None and cal[2] else 10
     if k < need:
         raise DegenerateDataError(
-            f"{k} dwells: the 9-parameter model needs at least 10 dwells for any gap test"
-            + (" (at least 2 to check a fixed calibration)" if need == 2 else
-               "; record more poses, or check a calibration made on another session against "
-               "this one with fit= (2 dwells suffice)"))
+            f"{k} dwell{'' if k == 1 else 's'}: "
+            + ("checking a fixed calibration needs at least 2" if need == 2 else
+               "the 9-parameter model needs at least 10 dwells for any gap test; record more "
+               "poses" + (", or check a calibration made on another session against this one "
+                          "with fit= (2 dwells suffice)" if k >= 2 else "")))
     if not (cal is not None and cal[2]):
         _determined(d, g_v)
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)

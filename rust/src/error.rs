@@ -30,3 +30,12 @@ pub fn invalid<T>(msg: impl Into<String>) -> Result<T> {
 pub fn degenerate<T>(msg: impl Into<String>) -> Result<T> {
     Err(CoreError::Degenerate(msg.into()))
 }
+
+/// `"1 dwell"`, `"2 dwells"`: a count and its noun, for messages.
+pub fn count_of(n: usize, noun: &str) -> String {
+    if n == 1 {
+        format!("1 {noun}")
+    } else {
+        format!("{n} {noun}s")
+    }
+}

@@ -296,15 +296,20 @@ def vibrating_notes(d: Any) -> list[str]:
     return vibrating_text(d, option="--k ")
 
 
+def count_of(n: int, noun: str = "dwell") -> str:
+    """``1 dwell``, ``2 dwells``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def source_line(file: str, rec: Any, d: Any) -> str:
     """``FILE: N samples at F Hz -> k dwells`` (or the dwell table's size)."""
     if rec is None:
         fs = "" if d.fs is None else f" (recorded at {d.fs:.6g} Hz)"
-        return f"{file}: dwell table with {len(d)} dwells{fs}"
+        return f"{file}: dwell table with {count_of(len(d))}{fs}"
     if rec.pose_table:
         return f"{file}: table of dwell means, {len(d)} poses"
     rate = "rate unknown" if rec.fs is None else f"at {rec.fs:.6g} Hz"
-    line = f"{file}: {rec.rows} samples {rate} -> {len(d)} dwells"
+    line = f"{file}: {rec.rows} samples {rate} -> {count_of(len(d))}"
     if getattr(d, "dropped", 0):
         line += (f" ({d.dropped} rows with NaN or inf samples: dropouts, left out of the "
                  "dwell statistics)")

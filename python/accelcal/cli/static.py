@@ -17,6 +17,7 @@ from ._common import (
     calibrate,
     cli_notes,
     cli_words,
+    count_of,
     detector_options,
     echo_notes,
     emit_json,
@@ -147,7 +148,9 @@ def calibrate_static(
                              nominal=nominal)
         except DegenerateDataError as e:
             hint = ""
-            if model != "diag" and "diag" not in str(e):
+            # One pose, or an axis no pose turned: the bias + scale model fails alike.
+            one_sided = "are one pose" in str(e) or "no pose turned" in str(e)
+            if model != "diag" and "diag" not in str(e) and not one_sided:
                 hint = (" Try --model diag (bias + scale: 6 parameters) or add attitudes."
                         if len(d) >= 6 else " Add attitudes: even --model diag (bias + scale) "
                         "needs 6 dwells.")
@@ -157,7 +160,7 @@ def calibrate_static(
                 hint += _shorter_rests(window_s, min_dwell_s, still)
             hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped))
             raise CalibrationError(_cli(
-                f"{len(d)} dwells found in {file}, but they cannot determine the {model!r} "
+                f"{count_of(len(d))} found in {file}, but they cannot determine the {model!r} "
                 f"model: {e}.{hint}"
             )) from None
         except CalibrationError as e:

@@ -23,6 +23,7 @@ from ._common import (
     _save_fig,
     bounds_option,
     cli_notes,
+    count_of,
     detector_options,
     echo_notes,
     emit_json,
@@ -151,12 +152,13 @@ def dwells(
         return
     echo_notes(notes)
     click.echo(source_line(file, rec, d) if rec is not None else
-               f"{file}: {len(d)} dwells")
+               f"{file}: {count_of(len(d))}")
     if d.noise_std is not None and d.threshold is not None:
         unit = (_units_of(_names(rec)) if rec is not None else "") or d.units or (
             "the recording's units")
         click.echo(
-            "noise std per axis x, y, z (from the data): "
+            "detector's noise level per axis x, y, z (a low quantile of the window stds, "
+            "from the data): "
             + " ".join(f"{v:.4g}" for v in d.noise_std)
             + f" [{unit}]; threshold = {k:g} x noise variance"
         )

@@ -212,7 +212,8 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
     let n = mean.len();
     if n < N_BASE {
         return degenerate(format!(
-            "{n} dwells cannot determine the 9 calibration parameters (need at least 9)"
+            "{} cannot determine the 9 calibration parameters (need at least 9)",
+            crate::error::count_of(n, "dwell")
         ));
     }
     let nf = n as f64;

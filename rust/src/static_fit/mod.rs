@@ -400,9 +400,9 @@ pub fn validate(means: &[[f64; 3]], g: f64, noise: &Noise<'_>, model: Model) -> 
     let p = model.n_params();
     if means.len() < p {
         return degenerate(format!(
-            "{} dwells cannot determine the {p} parameters of model {:?}: need at least {p} \
-             dwells (more to estimate the noise){}",
-            means.len(),
+            "{} cannot determine the {p} parameters of model {:?}: need at least {p} dwells \
+             (more to estimate the noise){}",
+            crate::error::count_of(means.len(), "dwell"),
             model.name(),
             if p > 6 && means.len() >= 6 {
                 "; model \"diag\" (bias + scale) needs 6"
