@@ -929,3 +929,31 @@ def test_two_dwells_checking_a_fixed_calibration_are_too_few_not_blind() -> None
     text = rep.summary()
     assert "absorbed by the calibration parameters" not in text
     assert "too few dwells (2)" in text or "no dwell times" in text
+
+
+def test_a_calibration_checked_at_one_attitude_attributes_no_effect() -> None:
+    """A fixed calibration checked on dwells that are all one pose (a long rest cut into
+    pieces, as a user did with tomisuarez2's initialisation-time recording): a gap there is a
+    constant offset, which every effect's column fitted alike (best = k3 at -4e7 ug/g^3), and
+    the previous pose is the same pose (pose_history F = 239). Now no effect is attributed,
+    attitude and pose history are not testable, and the report says why."""
+    from accelcal import fit_static
+    from accelcal.sim.static import static_dwell_means
+
+    s1 = static_dwell_means(30, rng=1, max_tilt_deg=None)
+    m = fit_static(DwellSet(s1.means, np.full((30, 3), 1e-4), np.full(30, 100)),
+                   9.80665).to_model()
+    rng = np.random.default_rng(0)
+    one = s1.means[3] + 1e-3 * rng.standard_normal((10, 3)) + [0.0, 0.0, 0.01]
+    r = diagnose(DwellSet(one, np.full((10, 3), 1e-4), np.full(10, 100)), g=9.80665, fit=m)
+    assert r.p_value < 1e-10  # the offset is a gap
+    assert r.best == "none" and not [e for e in r.effects if e["status"] == "selected"]
+    assert any(x.startswith("the 10 dwells are one pose: at one attitude a gap is a constant "
+                            "offset") for x in r.statements)
+    assert "not testable (every dwell at one attitude): attitude, pose_history" in r.summary()
+    assert r.structure.verdict != "pose_history"
+    # Two attitudes: the effects are tested again.
+    two = np.vstack([one, s1.means[7] + 1e-3 * rng.standard_normal((10, 3))])
+    r2 = diagnose(DwellSet(two, np.full((20, 3), 1e-4), np.full(20, 100)), g=9.80665, fit=m)
+    assert not any("are one pose" in x for x in r2.statements)
+    assert any(e["status"] in ("testable", "selected") for e in r2.effects)

@@ -865,12 +865,17 @@ def _structure_text(s: GapStructure) -> str:
                    f"{pers}: it is either per-dwell offsets (handling, mounting) or noise the "
                    "model misses; record half-dwell means (the dwell pass keeps them) to tell "
                    "them apart")
+    one_pose = [t for t in untestable if t.n_columns == 0]  # every dwell at one attitude
+    untestable = [t for t in untestable if t.n_columns > 0]
     if untestable:
         # pose_history leaves out the first dwell, which has no previous pose.
         txt += "; not testable (too few dwells): " + ", ".join(
             f"{t.name} ({t.n_columns} columns need > "
             f"{t.n_columns + 9 + (t.name == 'pose_history')} dwells)"
             for t in untestable)
+    if one_pose:
+        txt += ("; not testable (every dwell at one attitude): "
+                + ", ".join(t.name for t in one_pose))
     blind = [t for t in tested if t.status == "blind"]
     if blind:
         why = {"pose_history": "each pose follows the same pose every time: shuffle the pose "
@@ -1025,6 +1030,13 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any, detector: Any = Non
     return d, samples, fs_v
 
 
+def _distinct_poses(mean: NDArray[np.float64]) -> int:
+    """Distinct poses among dwell means (k, 3): closer than 5 % of the norm (about 3 deg) is
+    one pose."""
+    m = np.ascontiguousarray(mean, dtype=np.float64)
+    return int(_core.gap_distinct_poses(m, 0.05 * float(np.median(np.linalg.norm(m, axis=1)))))
+
+
 def _determined(d: DwellSet, g: float) -> None:
     """Refuse a session whose dwells cannot determine the 9-parameter calibration the
     diagnosis fits (six faces only, say), as the fit itself refuses it: residuals and pose
@@ -1040,8 +1052,7 @@ def _determined(d: DwellSet, g: float) -> None:
     except DegenerateDataError as e:
         what = re.split(r"[.;] [Aa]dd poses", str(e))[0]
         m = np.ascontiguousarray(d.mean, dtype=np.float64)
-        tol = 0.05 * float(np.median(np.linalg.norm(m, axis=1)))  # about 3 deg
-        poses = _core.gap_distinct_poses(m, tol)
+        poses = _distinct_poses(m)
         if poses < 9:
             what = (f"the {len(m)} dwells are at only {poses} distinct poses: the "
                     "9-parameter norm model needs at least 9 (tilted poses between the axes, "
@@ -1400,8 +1411,14 @@ def diagnose(
                "the 9-parameter model needs at least 10 dwells for any gap test; record more "
                "poses" + (", or check a calibration made on another session against this one "
                           "with fit= (2 dwells suffice)" if k >= 2 else "")))
+    one_pose = False
     if not (cal is not None and cal[2]):
         _determined(d, g_v)
+    elif _distinct_poses(d.mean) == 1:
+        # A fixed calibration checked at one attitude: any gap there is a constant offset,
+        # which every dictionary effect's column fits alike (their estimates would be
+        # nonsense): none is attributed.
+        one_pose, eff = True, []
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)
     tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None
@@ -1431,6 +1448,12 @@ def diagnose(
                           "this session): no calibration parameter was fitted; a gap may "
                           "also be the calibration no longer holding (a bias or scale that "
                           "moved since it was made, another temperature, another mount)")
+        if one_pose:
+            statements.append(
+                f"the {k} dwells are one pose: at one attitude a gap is a constant offset, "
+                "which no dictionary effect can be told from (so none is attributed); it is "
+                "the calibration's error there (a bias or scale that moved, another "
+                "temperature, another mount). Check it at several attitudes to say more")
         own = fit.own_dwells(d.mean)
         if own:
             statements.append(

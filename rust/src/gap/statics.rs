@@ -731,7 +731,18 @@ fn smooth_tests(
     let n = dirs.len();
     let u: Vec<[f64; 3]> = dirs.iter().map(|d| d.0).collect();
     let w: Vec<[f64; 3]> = dirs.iter().map(|d| d.1).collect();
-    let mut tests = vec![SmoothTest::ready("attitude", structure::harmonics_34(&u))];
+    // Every dwell at one attitude (a fixed calibration checked at one pose): a smooth
+    // function of attitude, or of the previous pose, is a constant there, which any offset
+    // fits: neither can be tested.
+    let one_pose = u.iter().all(|v| {
+        let c = v[0] * u[0][0] + v[1] * u[0][1] + v[2] * u[0][2];
+        c > ONE_POSE_COS
+    });
+    let mut tests = vec![if one_pose {
+        SmoothTest::unavailable("attitude", Status::TooFewRows)
+    } else {
+        SmoothTest::ready("attitude", structure::harmonics_34(&u))
+    }];
     let trend = |name: &'static str, x: Option<&Vec<f64>>, status: Status| match x {
         None => SmoothTest::unavailable(name, status),
         Some(x) => {
@@ -758,9 +769,16 @@ fn smooth_tests(
     }
     // The first dwell has no previous pose: left out of the test (an offset of the first
     // dwell alone, a warm-up say, is no dependence on the previous pose).
-    tests.push(SmoothTest::ready_without("pose_history", prev, vec![0]));
+    tests.push(if one_pose {
+        SmoothTest::unavailable("pose_history", Status::TooFewRows)
+    } else {
+        SmoothTest::ready_without("pose_history", prev, vec![0])
+    });
     tests
 }
+
+/// Gravity directions closer than this cosine (about 3 deg) are one pose.
+const ONE_POSE_COS: f64 = 0.9986;
 
 /// What the structure tests need from a static session at the final parameters.
 fn structure_input(
@@ -896,6 +914,32 @@ pub(crate) mod tests {
             (kl.try_inverse().unwrap() * y).norm(),
         );
         assert!((nu - nl).abs() < 1e-12);
+    }
+
+    #[test]
+    fn attitude_and_pose_history_are_not_tested_at_one_pose() {
+        let inp = session(3, 0.0, 1e-3, 14);
+        let opt = GapOptions::default();
+        let one = vec![([0.0, 0.6, 0.8], [0.0, 0.6, 0.8]); 14];
+        let names = |t: &[SmoothTest]| -> Vec<(&str, bool)> {
+            t.iter().map(|x| (x.name, x.cols.is_some())).collect()
+        };
+        let t = smooth_tests(&inp, &one, &opt);
+        let n = names(&t);
+        assert!(n.contains(&("attitude", false)) && n.contains(&("pose_history", false)));
+        assert!(t
+            .iter()
+            .all(|x| x.cols.is_some() || x.name != "attitude" || x.status == Status::TooFewRows));
+        // Many poses: both are tested.
+        let many: Vec<([f64; 3], [f64; 3])> = (0..14)
+            .map(|k| {
+                let a = k as f64 * 0.7;
+                let v = [a.cos() * 0.6, a.sin() * 0.6, 0.8];
+                (v, v)
+            })
+            .collect();
+        let n = names(&smooth_tests(&inp, &many, &opt));
+        assert!(n.contains(&("attitude", true)) && n.contains(&("pose_history", true)));
     }
 
     #[test]
