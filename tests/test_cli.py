@@ -568,3 +568,19 @@ def test_a_single_long_rest_is_refused_without_dead_end_advice(tmp_path: Path) -
     code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--bounds", str(b))
     assert code == 2 and "the 10 dwells are one pose" in out, out
     assert "Try --model diag" not in out
+
+
+def test_a_refusal_with_json_is_json_on_stdout(tmp_path: Path) -> None:
+    """With --json, a refusal printed nothing on stdout (the error went to stderr only): a
+    script parsing stdout got an empty string. It now gets {"error": ..., "exit_code": 2}."""
+    p = tmp_path / "rest.csv"
+    rng = np.random.default_rng(1)
+    s = np.array([0.0, 0.0, 9.81]) + 0.01 * rng.standard_normal((2000, 3))
+    p.write_text("Fs,100\nax,ay,az\n" + "".join(f"{a:.5f},{b:.5f},{c:.5f}\n" for a, b, c in s))
+    r = CliRunner().invoke(main, ["calibrate", "static", str(p), "--g", "9.81", "--json"])
+    assert r.exit_code == 2
+    out = json.loads(r.stdout)
+    assert out["exit_code"] == 2 and out["error"].startswith("1 dwell found in"), r.stdout
+    assert "accelcal: error: 1 dwell found" in r.stderr
+    r = CliRunner().invoke(main, ["calibrate", "static", str(p), "--g", "9.81"])
+    assert r.exit_code == 2 and r.stdout == ""  # without --json: stderr only

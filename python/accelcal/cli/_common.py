@@ -76,7 +76,12 @@ def cli_words(
 
 
 def _fail(msg: str) -> None:
-    click.echo(f"accelcal: error: {cli_words(msg)}", err=True)
+    text = cli_words(msg)
+    click.echo(f"accelcal: error: {text}", err=True)
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None and ctx.params.get("as_json"):
+        # A script that asked for JSON reads the refusal as JSON too (stdout), exit 2.
+        click.echo(json.dumps({"error": text, "exit_code": 2}))
     sys.exit(2)
 
 
