@@ -61,9 +61,7 @@ fn difference_noise(d: &[[f64; 3]]) -> [f64; 3] {
     let mut out = [f64::INFINITY; 3];
     for (a, o) in out.iter_mut().enumerate() {
         let mut v: Vec<f64> = d.iter().map(|r| r[a].abs()).collect();
-        let mid = v.len() / 2;
-        let (_, m, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
-        let med = *m / 0.6745;
+        let med = super::quantile_of(&mut v, 0.5) / 0.6745;
         let smallest = v
             .iter()
             .copied()

@@ -733,11 +733,8 @@ fn smooth_tests(
     let w: Vec<[f64; 3]> = dirs.iter().map(|d| d.1).collect();
     // Every dwell at one attitude (a fixed calibration checked at one pose): a smooth
     // function of attitude, or of the previous pose, is a constant there, which any offset
-    // fits: neither can be tested.
-    let one_pose = u.iter().all(|v| {
-        let c = v[0] * u[0][0] + v[1] * u[0][1] + v[2] * u[0][2];
-        c > ONE_POSE_COS
-    });
+    // fits: neither can be tested. One pose as the Python side counts it (5 % of the norm).
+    let one_pose = distinct_poses(&u, 0.05) == 1;
     let mut tests = vec![if one_pose {
         SmoothTest::unavailable("attitude", Status::TooFewRows)
     } else {
@@ -776,9 +773,6 @@ fn smooth_tests(
     });
     tests
 }
-
-/// Gravity directions closer than this cosine (about 3 deg) are one pose.
-const ONE_POSE_COS: f64 = 0.9986;
 
 /// What the structure tests need from a static session at the final parameters.
 fn structure_input(
