@@ -161,10 +161,16 @@ fn clear_writeable<T: numpy::Element, D: ndarray::Dimension>(a: &Bound<'_, numpy
 
 /// A read-only `(rows, cols)` array from row-major values (`v.len()` must be `rows * cols`;
 /// otherwise an empty `(0, cols)` array, which callers never produce).
-pub fn frozen2(py: Python<'_>, v: Vec<f64>, rows: usize, cols: usize) -> Py<numpy::PyArray2<f64>> {
+pub fn frozen2<T: numpy::Element>(
+    py: Python<'_>,
+    v: Vec<T>,
+    rows: usize,
+    cols: usize,
+) -> Py<numpy::PyArray2<T>> {
     use numpy::IntoPyArray;
-    let arr = ndarray::Array2::from_shape_vec((rows, cols), v)
-        .unwrap_or_else(|_| ndarray::Array2::zeros((0, cols)));
+    let arr = ndarray::Array2::from_shape_vec((rows, cols), v).unwrap_or_else(|_| {
+        ndarray::Array2::from_shape_vec((0, cols), Vec::new()).expect("an empty array")
+    });
     let a = arr.into_pyarray(py);
     clear_writeable(&a);
     a.unbind()

@@ -10,7 +10,7 @@ use pyo3::types::{PyBytes, PyTuple};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Mutex, PoisonError};
 
-use super::convert::{bounds_from, opt_slice, rows3, with_view, SampleArray};
+use super::convert::{bounds_from, frozen2, opt_slice, rows3, with_view, SampleArray};
 use super::CalibrationError;
 use crate::dwell::{
     output_faults, step_log, DetectorSettings, DwellAccumulator, DwellTable, OutputFault, StepLog,
@@ -388,12 +388,8 @@ impl PyStepLog {
             .iter()
             .flat_map(|r| r.iter().map(|&v| i64::try_from(v).unwrap_or(i64::MAX)))
             .collect();
-        let runs = numpy::ndarray::Array2::from_shape_vec((log.runs.len(), 2), flat)
-            .unwrap_or_else(|_| numpy::ndarray::Array2::zeros((0, 2)))
-            .to_pyarray(py)
-            .unbind();
         PyStepLog {
-            runs,
+            runs: frozen2(py, flat, log.runs.len(), 2),
             jumps: log.jumps,
             period: log.period,
             motion_fraction: log.motion_fraction,
