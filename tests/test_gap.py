@@ -948,6 +948,12 @@ def test_a_calibration_checked_at_one_attitude_attributes_no_effect() -> None:
     r = diagnose(DwellSet(one, np.full((10, 3), 1e-4), np.full(10, 100)), g=9.80665, fit=m)
     assert r.p_value < 1e-10  # the offset is a gap
     assert r.best == "none" and not [e for e in r.effects if e["status"] == "selected"]
+    # The engine decides: every effect is not testable there, and the report says why.
+    assert r.effects and all(e["status"] == "one_attitude" for e in r.effects)
+    assert sum("every dwell at one attitude" in b["reason"] for b in r.blind_spots) == len(
+        r.effects)
+    assert [t.status for t in r.structure.tests if t.name in ("attitude", "pose_history")] == [
+        "one_attitude", "one_attitude"]
     assert any(x.startswith("the 10 dwells are one pose: at one attitude a gap is a constant "
                             "offset") for x in r.statements)
     assert "not testable (every dwell at one attitude): attitude, pose_history" in r.summary()

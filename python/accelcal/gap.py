@@ -351,7 +351,8 @@ class StructureTest:
     status : "testable", "too_few_dwells" (not testable: too few degrees of freedom), "blind"
         (every column absorbed by the model), "no_time", "no_temperature",
         "constant_temperature", "no_half_dwell_means" (persistence), "no_lsb" (quantisation:
-        no output resolution or within-dwell variance), "no_noise_model".
+        no output resolution or within-dwell variance), "no_noise_model", "one_attitude"
+        (attitude, pose_history: every dwell at one attitude).
     n_columns, d : columns offered and directions tested (outside the model's range).
     statistic : F for the smooth and persistence tests, chi2/dof with the quantisation bias in
         the noise model for "quantization", chi2/dof for "per_dwell".
@@ -460,7 +461,8 @@ class GapReport:
     selected : all effects added (forward stepwise), in order.
     effects : ranked candidates: effect, status ("selected", "not_confirmed" = selected
         in-sample but rejected by the held-out gate, "testable", "blind", "no_temperature",
-        "constant_temperature", "no_time", "no_spin_axis", "too_few_dwells"), p_value (the
+        "constant_temperature", "no_time", "no_spin_axis", "too_few_dwells",
+        "one_attitude" = a fixed calibration checked at one attitude), p_value (the
         attribution test, named in ``test``: "chi2" or "F"), p_f, p_chi2, bic_weight,
         estimate and std (physical units), unit, sines (identifiability).
     ambiguous : aliased sets with the experiment that separates them.
@@ -627,6 +629,9 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
             "no_time": "not testable: no dwell times t given (this is not 'no effect')",
             "no_spin_axis": "not testable: no spin_axis given (lever arms need the body-frame "
             "spin axis of every row; this is not 'no effect')",
+            "one_attitude": "not testable: every dwell at one attitude, where a gap is a "
+            "constant offset that every effect's pattern fits alike; check the calibration at "
+            "several attitudes",
             "too_few_dwells": f"not testable: too few {sysw.row.split('(')[0]}s ({raw.n}) for "
             f"its {c.d or len(c.estimate)} direction(s) beside the "
             f"{raw.n - raw.dof} calibration parameters; to expose it: add "
@@ -687,7 +692,8 @@ def _statements(raw: Any, selected: list[str], alpha: float, sysw: _System,
     loo = raw.loo
     nc = raw.not_confirmed
     testable_or_not = [c for c in raw.candidates if c.status not in (
-        "blind", "no_temperature", "constant_temperature", "no_time", "no_spin_axis")]
+        "blind", "no_temperature", "constant_temperature", "no_time", "no_spin_axis",
+        "one_attitude")]
     if testable_or_not and all(c.status == "too_few_dwells" for c in testable_or_not):
         out.append(f"too few {sysw.row.split('(')[0]}s ({n}) for any effect test; add "
                    f"{sysw.row.split('(')[0]}s")
@@ -865,8 +871,7 @@ def _structure_text(s: GapStructure) -> str:
                    f"{pers}: it is either per-dwell offsets (handling, mounting) or noise the "
                    "model misses; record half-dwell means (the dwell pass keeps them) to tell "
                    "them apart")
-    one_pose = [t for t in untestable if t.n_columns == 0]  # every dwell at one attitude
-    untestable = [t for t in untestable if t.n_columns > 0]
+    one_pose = [t for t in tested if t.status == "one_attitude"]
     if untestable:
         # pose_history leaves out the first dwell, which has no previous pose.
         txt += "; not testable (too few dwells): " + ", ".join(
@@ -1415,14 +1420,8 @@ def diagnose(
                "the 9-parameter model needs at least 10 dwells for any gap test; record more "
                "poses" + (", or check a calibration made on another session against this one "
                           "with fit= (2 dwells suffice)" if k >= 2 else "")))
-    one_pose = False
     if not (cal is not None and cal[2]):
         _determined(d, g_v)
-    elif _distinct_poses(d.mean) == 1:
-        # A fixed calibration checked at one attitude: any gap there is a constant offset,
-        # which every dictionary effect's column fits alike (their estimates would be
-        # nonsense): none is attributed.
-        one_pose, eff = True, []
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)
     tt = None if d.t is None else np.ascontiguousarray(d.t[order], dtype=np.float64)
     temp = (None if d.temperature is None
@@ -1452,7 +1451,7 @@ def diagnose(
                           "this session): no calibration parameter was fitted; a gap may "
                           "also be the calibration no longer holding (a bias or scale that "
                           "moved since it was made, another temperature, another mount)")
-        if one_pose:
+        if any(c.status == "one_attitude" for c in raw.candidates):
             statements.append(
                 f"the {k} dwells are one pose: at one attitude a gap is a constant offset, "
                 "which no dictionary effect can be told from (so none is attributed); it is "

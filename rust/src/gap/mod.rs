@@ -60,6 +60,9 @@ pub enum Status {
     NoLsb,
     /// Needs a noise model (per-dwell variance); none was given.
     NoNoiseModel,
+    /// Needs dwells at more than one attitude (a fixed calibration checked at one pose: a
+    /// gap there is a constant offset, which every pattern fits alike).
+    OneAttitude,
 }
 
 impl Status {
@@ -76,6 +79,7 @@ impl Status {
             Status::NoHalfMeans => "no_half_dwell_means",
             Status::NoLsb => "no_lsb",
             Status::NoNoiseModel => "no_noise_model",
+            Status::OneAttitude => "one_attitude",
         }
     }
 }

@@ -338,6 +338,8 @@ pub struct StaticModel {
     fixed: Option<[f64; N_BASE]>,
     temp_status: Option<Status>,
     time_status: Option<Status>,
+    /// Every dwell at one attitude (set by [`diagnose`] for a fixed calibration).
+    one_attitude: bool,
 }
 
 /// One dwell evaluated at a parameter vector.
@@ -409,6 +411,7 @@ impl StaticModel {
             fixed: fixed.then_some(*c_params),
             temp_status,
             time_status,
+            one_attitude: false,
         }
     }
 
@@ -561,6 +564,9 @@ impl GapModel for StaticModel {
         &DICTIONARY
     }
     fn unavailable(&self, c: usize) -> Option<Status> {
+        if self.one_attitude {
+            return Some(Status::OneAttitude);
+        }
         match Effect::ALL[c] {
             Effect::TemperatureBias | Effect::TemperatureScale => self.temp_status,
             Effect::Drift => self.time_status,
@@ -699,7 +705,10 @@ pub fn diagnose(inp: &StaticInput, effects: &[Effect], opt: &GapOptions) -> Resu
         Some(c) => (c.lower_params()?, c.fixed),
         None => (quadric_start(&inp.mean, inp.g)?, false),
     };
-    let model = StaticModel::new(inp, &start, fixed, opt);
+    let mut model = StaticModel::new(inp, &start, fixed, opt);
+    // A fixed calibration checked at one attitude: a gap there is a constant offset, which
+    // every effect's column fits alike (their estimates would be nonsense): none is tested.
+    model.one_attitude = fixed && one_attitude(&model.directions(&[], &[])?);
     let idx: Vec<usize> = effects.iter().map(|e| e.index()).collect();
     let p0: Vec<f64> = if fixed { vec![] } else { start.to_vec() };
     let eng = engine::run(&model, &p0, &idx, opt)?;
@@ -722,6 +731,13 @@ pub fn diagnose(inp: &StaticInput, effects: &[Effect], opt: &GapOptions) -> Resu
     })
 }
 
+/// Every dwell at one attitude: the calibrated unit gravity directions of `dirs` (as
+/// [`StaticModel::directions`] gives them) within 5 % of each other (about 3 deg).
+fn one_attitude(dirs: &[([f64; 3], [f64; 3])]) -> bool {
+    let u: Vec<[f64; 3]> = dirs.iter().map(|d| d.0).collect();
+    distinct_poses(&u, 0.05) == 1
+}
+
 /// The smooth structure columns of a static session (unwhitened: per-row values).
 fn smooth_tests(
     inp: &StaticInput,
@@ -733,10 +749,10 @@ fn smooth_tests(
     let w: Vec<[f64; 3]> = dirs.iter().map(|d| d.1).collect();
     // Every dwell at one attitude (a fixed calibration checked at one pose): a smooth
     // function of attitude, or of the previous pose, is a constant there, which any offset
-    // fits: neither can be tested. One pose as the Python side counts it (5 % of the norm).
-    let one_pose = distinct_poses(&u, 0.05) == 1;
+    // fits: neither can be tested.
+    let one_pose = one_attitude(dirs);
     let mut tests = vec![if one_pose {
-        SmoothTest::unavailable("attitude", Status::TooFewRows)
+        SmoothTest::unavailable("attitude", Status::OneAttitude)
     } else {
         SmoothTest::ready("attitude", structure::harmonics_34(&u))
     }];
@@ -767,7 +783,7 @@ fn smooth_tests(
     // The first dwell has no previous pose: left out of the test (an offset of the first
     // dwell alone, a warm-up say, is no dependence on the previous pose).
     tests.push(if one_pose {
-        SmoothTest::unavailable("pose_history", Status::TooFewRows)
+        SmoothTest::unavailable("pose_history", Status::OneAttitude)
     } else {
         SmoothTest::ready_without("pose_history", prev, vec![0])
     });
@@ -923,7 +939,7 @@ pub(crate) mod tests {
         assert!(n.contains(&("attitude", false)) && n.contains(&("pose_history", false)));
         assert!(t
             .iter()
-            .all(|x| x.cols.is_some() || x.name != "attitude" || x.status == Status::TooFewRows));
+            .all(|x| x.cols.is_some() || x.name != "attitude" || x.status == Status::OneAttitude));
         // Many poses: both are tested.
         let many: Vec<([f64; 3], [f64; 3])> = (0..14)
             .map(|k| {
@@ -1049,6 +1065,44 @@ pub(crate) mod tests {
         )
         .unwrap();
         assert!(bad.engine.p_chi2 < 1e-10, "{}", bad.engine.p_chi2);
+    }
+
+    #[test]
+    fn a_fixed_calibration_at_one_attitude_tests_no_effect() {
+        let cal = Calibration {
+            k: [[1.02, 0.0, 0.0], [0.002, 0.98, 0.0], [-0.001, 0.003, 1.01]],
+            b: [0.05, -0.03, 0.02],
+            fixed: true,
+        };
+        // Ten dwells of one pose with an offset of 0.01 m/s^2 on z: a gap, and nothing else.
+        let mut inp = session(6, 0.0, 1e-4, 10);
+        let pose = inp.mean[3];
+        let mut rng = Rng(9);
+        for m in inp.mean.iter_mut() {
+            for i in 0..3 {
+                m[i] = pose[i] + 1e-4 * rng.normal() + if i == 2 { 0.01 } else { 0.0 };
+            }
+        }
+        inp.calibration = Some(cal);
+        let r = diagnose(&inp, &Effect::ALL, &GapOptions::default()).unwrap();
+        assert!(r.engine.p_chi2 < 1e-10, "{}", r.engine.p_chi2);
+        assert!(r.engine.selected.is_empty());
+        assert!(r
+            .engine
+            .candidates
+            .iter()
+            .all(|c| c.status == Status::OneAttitude));
+        // The same dwells at two attitudes: the effects are tested again.
+        let other = session(6, 0.0, 1e-4, 10).mean[7];
+        for m in inp.mean.iter_mut().skip(5) {
+            *m = other;
+        }
+        let r = diagnose(&inp, &Effect::ALL, &GapOptions::default()).unwrap();
+        assert!(r
+            .engine
+            .candidates
+            .iter()
+            .all(|c| c.status != Status::OneAttitude));
     }
 
     #[test]
