@@ -584,3 +584,32 @@ def test_a_refusal_with_json_is_json_on_stdout(tmp_path: Path) -> None:
     assert "accelcal: error: 1 dwell found" in r.stderr
     r = CliRunner().invoke(main, ["calibrate", "static", str(p), "--g", "9.81"])
     assert r.exit_code == 2 and r.stdout == ""  # without --json: stderr only
+
+
+def test_model_diag_is_offered_only_when_it_fits(tmp_path: Path) -> None:
+    """The refusal's "Try --model diag" is checked by fitting it: poses turned only about the
+    x axis (x never towards gravity) leave the bias + scale model undetermined too, so it is
+    not offered there; six faces (misalignments barely seen) fit it, and it is named."""
+    from accelcal import DwellSet
+
+    rng = np.random.default_rng(4)
+    th = np.linspace(0.0, 2 * np.pi, 14, endpoint=False)
+    a = 9.80665 * np.column_stack([np.zeros_like(th), np.cos(th), np.sin(th)])
+    m = a @ np.diag([1.01, 0.99, 1.02]).T + [0.05, -0.03, 0.02]
+    m = m + 1e-4 * rng.standard_normal(m.shape)
+    p = tmp_path / "about_x.csv"
+    DwellSet(m, np.full((14, 3), 1e-6), np.full(14, 100)).to_csv(p)
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665")
+    assert code == 2 and "cannot determine" in out, out
+    assert "Try --model diag" not in out
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--model", "diag")
+    assert code == 2, out  # what the hint would have led to
+    faces = np.vstack([np.eye(3), -np.eye(3), np.eye(3), -np.eye(3)]) * 9.80665
+    f = faces @ np.diag([1.01, 0.99, 1.02]).T + [0.05, -0.03, 0.02]
+    f = f + 1e-4 * rng.standard_normal(f.shape)
+    q = tmp_path / "faces.csv"
+    DwellSet(f, np.full((12, 3), 1e-6), np.full(12, 100)).to_csv(q)
+    code, out = run("calibrate", "static", str(q), "--g", "9.80665")
+    assert code == 2 and "--model diag" in out, out
+    code, out = run("calibrate", "static", str(q), "--g", "9.80665", "--model", "diag")
+    assert code == 0, out

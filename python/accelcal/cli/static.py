@@ -47,6 +47,21 @@ def _cli(msg: str) -> str:
     return cli_words(msg, _PHRASES)
 
 
+def _diag_fits(d: Any, g: float) -> bool:
+    """Whether the bias + scale model fits the dwells ``d`` (any design warning aside)."""
+    import warnings
+
+    from ..static import fit_static
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit_static(d, g, model="diag", check_g=False)
+    except CalibrationError:
+        return False
+    return True
+
+
 def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
     """For a session mostly in motion: how much was still, and the trade-off of a shorter
     window (pauses found, but also the slow ends of moves: a simulated session with 1.4 s
@@ -148,12 +163,13 @@ def calibrate_static(
                              nominal=nominal)
         except DegenerateDataError as e:
             hint = ""
-            # One pose, or an axis no pose turned: the bias + scale model fails alike.
-            one_sided = "are one pose" in str(e) or "no pose turned" in str(e)
-            if model != "diag" and "diag" not in str(e) and not one_sided:
-                hint = (" Try --model diag (bias + scale: 6 parameters) or add attitudes."
-                        if len(d) >= 6 else " Add attitudes: even --model diag (bias + scale) "
-                        "needs 6 dwells.")
+            if model != "diag" and "diag" not in str(e):
+                # Offered only when it fits these dwells (it fails alike at one pose, or
+                # when no pose turned an axis towards gravity).
+                hint = (" Add attitudes: even --model diag (bias + scale) needs 6 dwells."
+                        if len(d) < 6 else " Try --model diag (bias + scale: 6 parameters; "
+                        "it fits these dwells) or add attitudes." if _diag_fits(d, gv)
+                        else "")
             detected = rec is not None and not rec.pose_table and not bounds and rec.rows
             still = float(np.sum(undropped.count)) / rec.rows if detected else 1.0
             if still < 0.25:
