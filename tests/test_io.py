@@ -1333,6 +1333,31 @@ def test_long_format_logs_read_their_accelerometer_rows(tmp_path: Path, header: 
     lz = read_stream(pz)
     np.testing.assert_array_equal(lz.samples, w.samples)
     assert lz.path == str(pz) and any("gzip-compressed" in n for n in lz.notes)
+    # Comment lines anywhere (pandas reads through a filter that drops them, in pieces).
+    lines = pl.read_text().splitlines(keepends=True)
+    pc = tmp_path / "commented.csv"
+    pc.write_text("# logger 1.2\n" + "".join(
+        ln + ("% pause\n" if i % 997 == 0 else "// note\n" if i % 1499 == 0 else "")
+        for i, ln in enumerate(lines)))
+    lc = read_stream(pc)
+    np.testing.assert_array_equal(lc.samples, w.samples)
+
+
+def test_the_comment_filter_hands_out_pieces_of_the_uncommented_text() -> None:
+    """The long-format reader's filter: any read sizes join to the text without its
+    comment lines, a field's own '#' kept."""
+    import io as _io
+
+    text = "# head\na,b\n1,pose #3\n  % pct\n2,x\n// c\n3,y\n"
+    want = "a,b\n1,pose #3\n2,x\n3,y\n"
+    for size in (1, 2, 5, 7, 64, -1):
+        f = ac.io._Uncommented(_io.StringIO(text))
+        got = []
+        while piece := f.read(size):
+            assert size < 0 or len(piece) <= size
+            got.append(piece)
+        assert "".join(got) == want, size
+    assert "".join(ac.io._Uncommented(_io.StringIO(text))) == want
 
 
 def test_a_repeated_header_says_files_were_joined(tmp_path: Path) -> None:

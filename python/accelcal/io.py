@@ -57,7 +57,6 @@ import weakref
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from io import StringIO
 from typing import Any
 
 import numpy as np
@@ -509,6 +508,42 @@ _ACC_LABELS = {
 }
 
 
+class _Uncommented:
+    """A text file without its comment lines (``#``, ``%``, ``//`` first), as a file object
+    that hands out at most ``size`` characters per read."""
+
+    def __init__(self, fh: Any) -> None:
+        self._fh = fh
+        self._buf = ""
+
+    def read(self, size: int = -1) -> str:
+        want = size if size is not None and size >= 0 else None
+        parts, n = [self._buf], len(self._buf)
+        while want is None or n < want:
+            ln = self._fh.readline()
+            if not ln:
+                break
+            if not ln.lstrip().startswith(("#", "%", "//")):
+                parts.append(ln)
+                n += len(ln)
+        text = "".join(parts)
+        if want is None:
+            self._buf = ""
+            return text
+        self._buf = text[want:]
+        return text[:want]
+
+    def __iter__(self) -> Any:
+        buf, self._buf = self._buf, ""
+        yield from buf.splitlines(keepends=True)
+        while True:
+            ln = self._fh.readline()
+            if not ln:
+                return
+            if not ln.lstrip().startswith(("#", "%", "//")):
+                yield ln
+
+
 def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
                         time_column: Any) -> _ArraySource:
     """A long-format log (``0.01,ACC,0.1,0.2,9.8``: a text column names each row's sensor):
@@ -527,16 +562,15 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
     delim = _guess_delim(first)
     has_header = not any(_field_kind(f, delim) in ("num", "dc") for f in _split(first, delim))
     # Comment lines left out here: pandas' comment= would also cut a '#' inside a field
-    # (a label such as 'pose #3').
+    # (a label such as 'pose #3'). pandas reads the file through the filter, in pieces, so the
+    # text is never held whole beside the table.
     try:
         with open(src.opened, encoding="utf-8-sig", errors="replace") as fh:
-            body = "".join(ln for ln in fh if not ln.lstrip().startswith(("#", "%", "//")))
+            df = pd.read_csv(_Uncommented(fh), sep=delim if delim else r"\s+",
+                             header=0 if has_header else None,
+                             skipinitialspace=True, low_memory=False)
     except OSError as e:
         raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
-    try:
-        df = pd.read_csv(StringIO(body), sep=delim if delim else r"\s+",
-                         header=0 if has_header else None,
-                         skipinitialspace=True, low_memory=False)
     except (ValueError, pd.errors.ParserError) as e:
         raise CalibrationError(f"{name}: a long-format log (a text label in each row) that pandas "
                                f"cannot read: {e}") from None
