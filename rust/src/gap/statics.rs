@@ -268,19 +268,7 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
     })
 }
 
-/// Number of distinct poses among dwell means: clusters closer than `tol` (raw units).
-pub fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
-    let mut centres: Vec<[f64; 3]> = vec![];
-    for m in mean {
-        let near = centres
-            .iter()
-            .any(|c| (0..3).map(|i| (c[i] - m[i]).powi(2)).sum::<f64>().sqrt() < tol);
-        if !near {
-            centres.push(*m);
-        }
-    }
-    centres.len()
-}
+pub use crate::static_fit::start::distinct_poses;
 
 /// Exact recovery of `K` and `b` from the quadric regression coefficients (scaled frame).
 fn quadric_recover(beta: &[f64], g: f64, sc: f64, mu: [f64; 3]) -> Result<[f64; N_BASE]> {

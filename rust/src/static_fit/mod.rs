@@ -596,6 +596,9 @@ fn solve_valid<const N: usize>(
         runaway_guard(&ml.params, f0, f1, means.len()).map_err(keep)?;
     }
     let cov = covariance_stage::<N>(&ml, means.len(), g, noise.known(), set);
+    if set.raise_degenerate && cov.summary.weak && !cov.summary.degenerate {
+        start::too_few_poses(means, model, max_std(&cov.summary)).map_err(keep)?;
+    }
     let converged = !iterate
         || cov.decrement <= CONVERGED_DECREMENT
         || (cov.cov_c.is_none() && ml.solver_converged);
@@ -626,6 +629,11 @@ impl Solved {
             kmax: f64::INFINITY,
         }
     }
+}
+
+/// Largest predicted std of the parameters (comparable units).
+fn max_std(s: &observe::ObsSummary) -> f64 {
+    s.std().iter().cloned().fold(0.0, f64::max)
 }
 
 /// After a failed linear solution: when the bias + scale model ("diag") fits the dwells but
@@ -1069,6 +1077,51 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn fewer_distinct_poses_than_parameters_are_refused() {
+        // Six faces, each recorded twice with noise (a dwell split in halves, say): the
+        // misalignments are set by the noise alone. Weak, not degenerate, by the predicted
+        // std (above 0.1 relative); refused by the pose count. The bias + scale model fits
+        // them. (Many repeats of few poses at high signal to noise, whose predicted std is
+        // small, are not refused: tests/test_gap.py's fixed pose order.)
+        let k = Model::Lower.k_matrix(&TRUTH);
+        let mut s = 7u64;
+        let mut m = Vec::new();
+        for face in 0..6 {
+            // Each face tilted by a few degrees, as a hand-placed box sits, and placed twice
+            // (a tenth of a degree apart).
+            let mut a = Vector3::new(0.1 * lcg(&mut s), 0.1 * lcg(&mut s), 0.1 * lcg(&mut s));
+            a[face % 3] = if face < 3 { 1.0 } else { -1.0 };
+            for _ in 0..2 {
+                let b = a + Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 0.003;
+                let am = k * (b * (G / b.norm())) + Vector3::new(TRUTH[3], TRUTH[4], TRUTH[5]);
+                m.push([0, 1, 2].map(|i| am[i] + 5e-3 * lcg(&mut s)));
+            }
+        }
+        match fit_static(&m, G, &Noise::Estimated, &settings(Method::Lm)) {
+            Err(CoreError::Degenerate(msg)) => assert!(
+                msg.starts_with("the 12 dwells are at only 6 distinct poses")
+                    && msg.contains("or fit model \"diag\""),
+                "{msg}"
+            ),
+            other => panic!("{other:?}"),
+        }
+        let diag = FitSettings::new(Model::Diag, Method::Lm);
+        let f = fit_static(&m, G, &Noise::Estimated, &diag).unwrap();
+        assert!((f.params[0] - TRUTH[0]).abs() < 1e-2, "{:?}", f.params);
+        // Not refused when asked not to (observability "warn"): a weak fit.
+        let warn = FitSettings {
+            raise_degenerate: false,
+            ..settings(Method::Lm)
+        };
+        let f = fit_static(&m, G, &Noise::Estimated, &warn).unwrap();
+        assert!(f.summary.weak && !f.summary.degenerate, "{:?}", f.summary);
+        // Poses counted up to the limit; the same poses in any order count the same.
+        assert_eq!(start::distinct_poses_upto(&m, 0.05 * G, 4), 4);
+        m.reverse();
+        assert_eq!(start::distinct_poses(&m, 0.05 * G), 6);
     }
 
     #[test]

@@ -452,6 +452,81 @@ pub fn start_stage(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> 
     }
 }
 
+/// Dwell means closer than this fraction of their median norm (about 3 deg) are one pose.
+pub const SAME_POSE: f64 = 0.05;
+
+/// Number of distinct poses among dwell means: clusters closer than `tol` (raw units),
+/// counted up to `limit` (the count stops there).
+pub fn distinct_poses_upto(mean: &[[f64; 3]], tol: f64, limit: usize) -> usize {
+    let mut centres: Vec<[f64; 3]> = Vec::with_capacity(limit.min(mean.len()));
+    for m in mean {
+        if centres.len() >= limit {
+            break;
+        }
+        let near = centres
+            .iter()
+            .any(|c| (0..3).map(|i| (c[i] - m[i]).powi(2)).sum::<f64>().sqrt() < tol);
+        if !near {
+            centres.push(*m);
+        }
+    }
+    centres.len()
+}
+
+/// Number of distinct poses among dwell means: clusters closer than `tol` (raw units).
+pub fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
+    distinct_poses_upto(mean, tol, usize::MAX)
+}
+
+/// Median norm of the dwell means.
+fn median_norm(means: &[[f64; 3]]) -> f64 {
+    let mut norms: Vec<f64> = means
+        .iter()
+        .map(|m| (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt())
+        .collect();
+    norms.sort_by(f64::total_cmp);
+    norms.get(norms.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// A predicted relative std above this: the parameter is barely determined (set by the
+/// noise, not by the poses).
+pub const BARELY: f64 = 0.1;
+
+/// A barely determined fit (largest predicted relative std `weakest` above [`BARELY`]) whose
+/// dwells are at fewer distinct poses (within [`SAME_POSE`] of the median norm) than the
+/// model has parameters: each pose gives one norm equation, so some combination is set by
+/// the noise alone (six faces recorded twice, say, fitted with misalignments). Repeats of
+/// few poses at high signal to noise can still determine the model (a small `weakest`): not
+/// refused.
+pub fn too_few_poses(means: &[[f64; 3]], model: Model, weakest: f64) -> Result<()> {
+    if !(weakest > BARELY) {
+        return Ok(());
+    }
+    let np = model.n_params();
+    let sc = median_norm(means);
+    if !(sc > 0.0 && sc.is_finite()) {
+        return Ok(());
+    }
+    let k = distinct_poses_upto(means, SAME_POSE * sc, np);
+    if k >= np {
+        return Ok(());
+    }
+    let n = means.len();
+    let instead = if np == 9 && k >= 6 {
+        ", or fit model \"diag\" (bias + scale, 6 parameters)"
+    } else {
+        ""
+    };
+    Err(CoreError::Degenerate(format!(
+        "the {n} dwells are at only {k} distinct poses (dwells within about 3 deg of each \
+         other are one pose): model \"{}\" has {np} parameters and each pose gives one norm \
+         equation, so some are set by the noise alone (predicted std up to {weakest:.1e} \
+         relative); add poses with different gravity directions (tilts in both axes at \
+         once){instead}",
+        model.name()
+    )))
+}
+
 /// An axis's dwell means spanning less than this fraction of their typical norm: no pose
 /// turned that axis towards gravity.
 const UNEXCITED_SPAN: f64 = 0.2;
