@@ -8,6 +8,7 @@ import concurrent.futures
 import json
 import math
 import os
+import pathlib
 import pickle
 import re
 import subprocess
@@ -699,3 +700,82 @@ def test_six_faces_name_the_misalignments_not_the_ellipsoid() -> None:
         ac.fit_static(s.means, 9.80665)
     f = ac.fit_static(s.means, 9.80665, model="diag")
     assert np.all(np.abs(f.vector - truth[:6]) < 5 * f.std)
+
+
+#: A sensor's usual errors: scales within 2 %, biases of a few mg, misalignments of mrad.
+_MODEST = [1.02, 0.98, 1.01, 0.05, -0.03, 0.02, 0.002, -0.001, 0.003]
+
+
+def test_off_norm_dwells_names_rows_recorded_while_moving(tmp_path: pathlib.Path) -> None:
+    """A table of pose means with rows recorded while the sensor moved (a real student
+    session: 6 of 50 rows at 1.4-2.7 g) made the fit refuse as an undetermined design and
+    guess that the outputs do not see gravity. Those rows are now named, the fit's refusal
+    says so first, and the command line leaves them out with a note."""
+    from accelcal.sim.static import static_dwell_means
+    from accelcal.static import off_norm_dwells
+
+    s = static_dwell_means(40, truth=_MODEST, max_tilt_deg=None, sigma=3e-3, rng=11)
+    m = s.means.copy()
+    rng = np.random.default_rng(3)
+    moved = [4, 17, 30]
+    for k in moved:  # pushed: an extra 0.4-1.7 g along the reading
+        m[k] *= 1.0 + rng.uniform(0.4, 1.7)
+    off = off_norm_dwells(m, s.g_measured)
+    assert off is not None and list(off.index) == moved
+    assert min(abs(x) for x in off.residual) > 10 * off.rms
+    assert off_norm_dwells(s.means, s.g_measured) is None  # clean: none
+    # A sensor with a large offset (norms from 5 to 15 m/s^2 across poses) is not moving.
+    big = static_dwell_means(40, truth=[1.0, 1.0, 1.0, 0.0, 0.0, 4.8, 0.0, 0.0, 0.0],
+                             max_tilt_deg=None, sigma=3e-3, rng=12)
+    assert np.ptp(np.linalg.norm(big.means, axis=1)) > 8.0
+    assert off_norm_dwells(big.means, big.g_measured) is None
+    # The command line leaves them out and recovers the truth from the others.
+    from tests.test_cli import run
+
+    p = tmp_path / "means.csv"
+    np.savetxt(p, m, delimiter=",", header="ax,ay,az", comments="")
+    code, out = run("calibrate", "static", str(p), "--g", str(s.g_measured), "--means",
+                    "--json")
+    assert code == 0, out
+    js = json.loads(out)
+    assert js["n_dwells"] == 37
+    assert any("3 of 40 dwells (#4, 17, 30) cannot be at rest" in n for n in js["notes"])
+    np.testing.assert_allclose(js["vector"], _MODEST, atol=5e-3)
+
+
+def test_the_refusal_names_rows_that_cannot_be_at_rest_first() -> None:
+    from accelcal.sim.static import static_dwell_means
+
+    # Six faces, three dwells each (the misalignments unseen: "lower" cannot be fitted, the
+    # bias + scale model can), and two rows recorded while moving.
+    faces = np.vstack([np.eye(3), -np.eye(3)])
+    u = np.repeat(faces, 3, axis=0) + 0.002 * np.random.default_rng(5).normal(size=(18, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    s = static_dwell_means(u, truth=_MODEST, sigma=3e-3, rng=2)
+    m = np.insert(s.means, [3, 8], [[15.0, 9.0, 8.0], [-20.0, 5.0, 9.0]], axis=0)
+    with pytest.raises(ac.DegenerateDataError) as e:
+        ac.fit_static(m, s.g_measured)
+    msg = str(e.value)
+    assert msg.startswith("2 of 20 dwells (#3, 9) cannot be at rest"), msg
+    assert msg.count("leave them out") == 1
+    assert "With them in, the fit says:" in msg
+    assert "may not see gravity" not in msg
+
+
+def test_weakly_determined_by_the_noise_says_so_instead_of_blaming_the_poses() -> None:
+    """Many poses over the whole sphere, each mean noisy: the predicted std is above the weak
+    threshold because of the noise, which the warning now says (the same number of poses
+    spread evenly would do no better), instead of advice about attitudes; a +-30 deg design
+    still gets the design advice."""
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(60, max_tilt_deg=None, sigma=0.05, rng=4)
+    with pytest.warns(ac.WeakDesignWarning) as w:
+        f = ac.fit_static(s.means, s.g_measured)
+    text = str(w[0].message)
+    assert f.weak and "the poses are not what limits them: 60 poses spread evenly" in text
+    assert "needs fewer attitudes" not in text
+    t = static_dwell_means(20, sigma=1e-3, rng=1)  # within +-30 deg
+    with pytest.warns(ac.WeakDesignWarning) as w:
+        ac.fit_static(t.means, t.g_measured)
+    assert "the poses are not what limits them" not in str(w[0].message)

@@ -147,7 +147,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
     from . import io as _aio
     from .dwell import DetectorSettings, detect_dwells, dwell_stats, fault_text, vibrating_text
-    from .static import WeakDesignWarning, fit_static, units_of_g
+    from .static import WeakDesignWarning, fit_static, units_of_g, without_off_norm
 
     names = _names(job.cli)
     if job.g is None:
@@ -226,6 +226,9 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         fault_note.append(f"{n_bad} of {len(d)} dwells left out: their output did not follow "
                           f"the sensor ({fault_text(d, faults, limit=2)})".replace("\n  ", "; "))
         d = d.drop_faults(faults)
+    d, off = without_off_norm(d, job.g)
+    if off is not None:  # left out, as the single-file commands do
+        fault_note.append(f"{off.text(job.g)}: left out")
     fault_note += vibrating_text(d)
     k = len(d)
     row["n_dwells"] = k

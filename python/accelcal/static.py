@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextvars import ContextVar
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, cast
@@ -35,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
+from ._triad import fibonacci_sphere as _fibonacci
 from ._triad_model import TriadModel, dwell_fingerprints
 from ._validate import number, real_array
 from .dwell import DwellSet, check_faults
@@ -379,13 +381,43 @@ class StaticFit(_core.StaticFit):
         ]
         txt = f"predicted std {', '.join(parts)} (1 sigma)"
         one_sided = self._one_sided_axes()
+        noise = self._noise_limited([i for i in range(len(rel)) if not rel[i] <= lim])
         if one_sided:
             txt += (f"; {'; '.join(one_sided)}: an axis seen on one side only barely separates "
                     "its scale from its bias, whatever the model: add poses with it turned the "
                     "other way")
+        elif noise:
+            txt += noise
         elif len(rel) == 9 and not all(r <= lim for r in rel[6:]):
             txt += '; model "diag" (bias + scale) needs fewer attitudes'
         return txt
+
+    def _noise_limited(self, weak: list[int]) -> str:
+        """When the same number of poses spread evenly over the sphere would determine the
+        weak parameters ``weak`` no better (within 1.5x, the Cramer-Rao bound at the same
+        noise), the noise limits them, not the poses: the text that says so; ``""``
+        otherwise."""
+        from .design import predict_accuracy
+
+        n, rel = len(self.residuals), self.predicted_std_relative
+        sig = float(np.median(self.sigma_residual))
+        if self.noise_known and self.realistic == "scaled" and self.chi2_dof > 1.0:
+            sig *= math.sqrt(self.chi2_dof)  # the std quoted is scaled so
+        if not weak or n < 2 * rel.size or not (math.isfinite(sig) and sig > 0):
+            return ""
+        try:
+            ideal = predict_accuracy(_fibonacci(n), sig, self.model, g=self.g)
+        except CalibrationError:
+            return ""
+        unit = np.array([self.g if 3 <= i < 6 else 1.0 for i in range(rel.size)])
+        best = np.asarray(ideal.std, dtype=np.float64) / unit
+        if not all(rel[i] <= 1.5 * best[i] for i in weak):
+            return ""
+        u = unit_label(self.g)
+        return (f"; the poses are not what limits them: {n} poses spread evenly over the "
+                f"sphere would give about the same at this noise ({sig:.2g} {u} per axis of a "
+                "dwell mean): average more samples per pose (the std falls as one over the "
+                "square root of the samples) or record more poses")
 
     def _one_sided_axes(self) -> list[str]:
         """The axes no pose turned towards gravity (or away from it): their calibrated
@@ -567,7 +599,7 @@ class StaticFit(_core.StaticFit):
                 f"model; {src}"
             )
         if self.weak:
-            lines.append("  WEAK design: " + self.weak_text())
+            lines.append("  WEAKLY determined: " + self.weak_text())
         return "\n".join(lines)
 
     def __repr__(self) -> str:
@@ -663,7 +695,14 @@ def fit_static(
         )
     except CalibrationError as e:  # dwells that cannot determine a calibration: why?
         indeterminate = isinstance(e, _core.DegenerateDataError) or "ran away" in str(e)
-        hint = _gravity_free_hint(means) if indeterminate else ""
+        if not indeterminate:
+            raise
+        off = None if _SCREENING.get() else off_norm_dwells(means, g)
+        if off is not None:  # the cause, before what the fit said with them in
+            raise type(e)(
+                f"{off.text(g)}; leave them out (d[mask], or the rows of "
+                f"the array) and fit the others. With them in, the fit says: {e}") from None
+        hint = _gravity_free_hint(means)
         if not hint:
             raise
         raise type(e)(f"{e}. {hint}") from None
@@ -674,6 +713,9 @@ def fit_static(
                   if src == "user" else
                   "the dwells may barely determine the model: check their attitudes (fit "
                   "observability()), or give more iterations (max_iter=)")
+        off = None if _SCREENING.get() else off_norm_dwells(means, g)
+        if off is not None:  # the likely cause
+            advice = f"{off.text(g)}; leave them out and fit the others"
         raise CalibrationError(
             f"{method} did not reach the minimum in {fit.max_iter} iterations (start "
             f"{fit.start.tolist()}, {src}); {advice}"
@@ -682,6 +724,92 @@ def fit_static(
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit
             warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
+
+
+#: Set while :func:`off_norm_dwells` fits the other dwells (its failures get no hint).
+_SCREENING: ContextVar[bool] = ContextVar("accelcal_off_norm_screening", default=False)
+
+
+@dataclass(frozen=True)
+class OffNorm:
+    """Dwells that cannot be at rest (:func:`off_norm_dwells`): their indices, the norm of
+    each mean (input units), the median norm of all dwells, each one's norm residual (units
+    of g) under the bias + scale calibration of the other dwells, whose own residual RMS is
+    ``rms``, and the number of dwells screened."""
+
+    index: tuple[int, ...]
+    norm: tuple[float, ...]
+    median_norm: float
+    residual: tuple[float, ...]
+    rms: float
+    n_dwells: int
+
+    def text(self, g: float) -> str:
+        """In words, for reference gravity ``g``."""
+        n = self.n_dwells
+        u = unit_label(g)
+        rows = ", ".join(str(i) for i in self.index)
+        lo, hi = min(self.norm), max(self.norm)
+        r = [abs(x) for x in self.residual]
+        return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: their means' "
+                f"norms ({lo:.4g} to {hi:.4g}) lie far from every other dwell's (median "
+                f"{self.median_norm:.4g}), and the bias + scale calibration of the others "
+                f"leaves them {min(r):.3g} to {max(r):.3g} {u} off g, against {self.rms:.2g} "
+                f"{u} RMS for the others: recorded while moving, or a mistyped row")
+
+
+def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
+    """Dwells whose means cannot be at rest (a row of a table of pose means recorded while
+    the sensor moved, say): None when there are none.
+
+    A dwell is one when the norm of its mean lies further from the median norm than
+    8 robust standard deviations (1.4826 MAD) of the dwells' norms and 5 % of the median, and
+    the bias + scale calibration of the other dwells leaves it more than 10 times their
+    residual RMS and 2 % of ``g`` off ``g``. A sensor whose outputs carry large offsets (norms
+    that differ from pose to pose) has a wide spread of norms and a calibration that fits
+    every pose: none is found there. At most a quarter of the dwells are named; more than
+    that is no longer a few bad rows. ``g`` is the reference gravity of the fit.
+    """
+    try:
+        m = np.asarray(data.mean if isinstance(data, DwellSet) else data, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if m.ndim != 2 or m.shape[1] != 3 or len(m) < 8 or not np.all(np.isfinite(m)):
+        return None
+    r = np.linalg.norm(m, axis=1)
+    med = float(np.median(r))
+    mad = 1.4826 * float(np.median(np.abs(r - med)))
+    cand = np.flatnonzero(np.abs(r - med) > max(8.0 * mad, 0.05 * med))
+    if cand.size == 0 or cand.size > len(m) // 4:
+        return None
+    keep = np.setdiff1d(np.arange(len(m)), cand)
+    token = _SCREENING.set(True)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit = fit_static(m[keep], g, model="diag", check_g=False)
+    except CalibrationError:
+        return None
+    finally:
+        _SCREENING.reset(token)
+    a = fit.to_model().apply(m)
+    res = np.linalg.norm(a, axis=1) - g
+    rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    bad = [int(k) for k in cand if abs(res[k]) > max(10.0 * rms, 0.02 * g)]
+    if not bad:
+        return None
+    return OffNorm(index=tuple(bad), norm=tuple(float(r[k]) for k in bad), median_norm=med,
+                   residual=tuple(float(res[k]) for k in bad), rms=rms, n_dwells=len(m))
+
+
+def without_off_norm(d: DwellSet, g: float) -> tuple[DwellSet, OffNorm | None]:
+    """The dwells of ``d`` without those :func:`off_norm_dwells` names, and what it found."""
+    off = off_norm_dwells(d, g)
+    if off is None:
+        return d, None
+    keep = np.ones(len(d), dtype=bool)
+    keep[list(off.index)] = False
+    return d[keep], off
 
 
 def _gravity_free_hint(means: Any) -> str:

@@ -294,6 +294,17 @@ def without_faults(d: Any) -> tuple[Any, list[str]]:
                   f"{fault_text(d, faults)}"]
 
 
+def without_moving(d: Any, g: float) -> tuple[Any, list[str]]:
+    """The dwells that can be at rest, and a note naming those left out
+    (:func:`~accelcal.static.off_norm_dwells`)."""
+    from ..static import without_off_norm
+
+    kept, off = without_off_norm(d, g)
+    if off is None:
+        return d, []
+    return kept, [f"{off.text(g)}: left out, {len(kept)} used"]
+
+
 def vibrating_notes(d: Any) -> list[str]:
     """:func:`~accelcal.dwell.vibrating_text` in the terms of the command line."""
     from ..dwell import vibrating_text

@@ -26,6 +26,7 @@ from ._common import (
     stream_dwells,
     vibrating_notes,
     without_faults,
+    without_moving,
 )
 
 
@@ -110,6 +111,8 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
                      "it; check it against another session")
     extra += vibrating_notes(d)
     d, fault_notes = without_faults(d)
+    d, moving_notes = without_moving(d, gv)
+    fault_notes += moving_notes
     if fault_notes:
         # The dwells that are left (the samples would bring the faulty ones back).
         extra += fault_notes

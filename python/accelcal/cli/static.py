@@ -30,6 +30,7 @@ from ._common import (
     stream_dwells,
     vibrating_notes,
     without_faults,
+    without_moving,
 )
 from .fleet import fleet_options, is_fleet_run, run_static_fleet
 
@@ -40,6 +41,9 @@ _PHRASES = {
     "model='diag'": "--model diag",
     'model="diag"': "--model diag",
     "max_tilt_deg": "--max-tilt",
+    "check their attitudes (fit observability()), or give more iterations (max_iter=)":
+        "check their attitudes (accelcal dwells FILE --plot shows them), and any dwell "
+        "recorded while the sensor moved",
 }
 
 
@@ -155,6 +159,8 @@ def calibrate_static(
     read_notes += vibrating_notes(d)
     d, fault_notes = without_faults(d)
     read_notes += fault_notes
+    d, moving_notes = without_moving(d, gv)
+    read_notes += moving_notes
     notes: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
