@@ -263,6 +263,20 @@ def test_dwell_table_feeds_calibrate_static(tmp_path: Path) -> None:
     assert ra["n_dwells"] == rb["n_dwells"] >= 38
     np.testing.assert_array_equal(ra["vector"], rb["vector"])
     assert rb["samples"] is None and ra["samples"] == 51175
+    # Without its first comment lines (a table a user cut down, or wrote with a script of
+    # their own), with or without --means, it is still the dwell table: the variances and
+    # counts are the noise model (they were dropped, and the noise estimated, before).
+    bare = tmp_path / "bare.csv"
+    bare.write_text("".join(ln for ln in table.read_text().splitlines(keepends=True)
+                            if not ln.startswith("#")))
+    for extra in ((), ("--means",)):
+        code, c = run("calibrate", "static", str(bare), "--g", "9.81744", "--json", *extra)
+        assert code == 0, c
+        rc = json.loads(c)
+        assert rc["noise_model"] == rb["noise_model"] and "variance" in rc["noise_model"]
+        np.testing.assert_allclose(rc["vector"], rb["vector"], rtol=1e-9)
+    code, c = run("calibrate", "static", str(bare), "--g", "9.81744", "--count", "10")
+    assert code == 2 and "is a dwell table already" in c, c
 
 
 def test_stdin_and_column_options(tmp_path: Path) -> None:

@@ -207,15 +207,28 @@ def open_recording(file: str, fs: float | None, columns: str | None,
     return _open(file, columns=columns, fs=fs, time_column=time_column)
 
 
+#: Columns of a dwell table (``DwellSet.to_csv``) that a header row must hold to be read as
+#: one without its first comment line (a table edited, or written by a script of its own).
+_DWELL_TABLE_COLUMNS = {"mean_x", "mean_y", "mean_z", "var_x", "var_y", "var_z", "count"}
+
+
 def is_dwell_table(file: str) -> bool:
-    """True for a dwell table written by ``accelcal dwells -o`` (or ``--dwells-out``)."""
+    """True for a dwell table written by ``accelcal dwells -o`` (or ``--dwells-out``): its
+    first line, or, without it, a comma-separated header row naming the means, variances and
+    counts of the dwells (``mean_x ... var_x ... count``)."""
     if file == "-" or not os.path.isfile(file):  # a pipe must not be read here
         return False
     try:
         with open(file, "rb") as fh:
-            return fh.read(64).startswith(b"# accelcal dwell table")
+            head = fh.read(4096)
     except OSError:
         return False
+    if head.startswith(b"# accelcal dwell table"):
+        return True
+    for ln in head.decode("utf-8", "replace").splitlines():
+        if ln.strip() and not ln.lstrip().startswith("#"):
+            return _DWELL_TABLE_COLUMNS <= {c.strip() for c in ln.split(",")}
+    return False
 
 
 def stream_dwells(file: str, fs: float | None, columns: str | None, time_column: str | None,
@@ -229,8 +242,8 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
     written by ``accelcal dwells -o``, the table and None.
     """
     if is_dwell_table(file):
-        if bounds or means or count:
-            opt = "bounds" if bounds else "means" if means else "count"
+        if bounds or count:  # --means says what it is
+            opt = "bounds" if bounds else "count"
             raise CalibrationError(f"--{opt}: {file} is a dwell table already")
         from ..dwell import DwellSet
 
