@@ -292,3 +292,17 @@ def test_the_fleet_row_carries_the_readers_notes(tmp_path: Path) -> None:
     np.testing.assert_allclose([r2[n] for n in names],
                                ac.fit_static(counts.astype(float), G,
                                              observability="ignore").vector, rtol=1e-10)
+
+
+def test_a_table_of_means_gets_no_note_on_its_time_column_resolution(tmp_path: Path) -> None:
+    """A table of means whose time column repeats (dwells split in halves share a time):
+    read as samples its stamps would be coarser than the sample interval, and the note said
+    so; poses have no sample interval, so a table read as poses does not get it."""
+    s = static_dwell_means(14, max_tilt_deg=None, rng=3)
+    t = np.repeat(np.arange(7) * 16.1, 2)
+    p = tmp_path / "halves.csv"
+    p.write_text("t_s,ax,ay,az\n" + "".join(f"{a:.1f},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f}\n"
+                                            for a, m in zip(t, s.means, strict=True)))
+    code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--means")
+    assert code == 0, out
+    assert "read as a table of dwell means" in out and "resolution" not in out, out

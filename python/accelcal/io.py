@@ -1428,6 +1428,11 @@ def _increasing(x: NDArray[Any]) -> bool:
     return bool(x.shape[0] >= 2 and np.all(np.isfinite(x)) and np.all(np.diff(x) > 0))
 
 
+#: Start of the note on a time column coarser than the sample interval (dropped when the
+#: rows turn out to be poses, which have no sample interval).
+_COARSE_TIME_NOTE = "the time column's resolution"
+
+
 def _fs_from_time(t: NDArray[Any], path: str, notes: list[str] | None = None) -> float | None:
     """Sample rate from (the first rows of) a time column.
 
@@ -1449,7 +1454,7 @@ def _fs_from_time(t: NDArray[Any], path: str, notes: list[str] | None = None) ->
         span = float(d.sum())
         if notes is not None:
             notes.append(
-                f"the time column's resolution ({step:.3g} s) is coarser than the sample "
+                f"{_COARSE_TIME_NOTE} ({step:.3g} s) is coarser than the sample "
                 f"interval: the rate is from its span, {d.size} intervals in {span:.6g} s "
                 f"(+-{step / span:.1%})")
         return float(d.size / span)
@@ -2804,6 +2809,7 @@ def _stream_dwells(
         d = pose_table(rec, units, forced=bool(means), count=count)
         if d is not None:
             rec.pose_table = True
+            rec.lay.notes[:] = [n for n in rec.lay.notes if not n.startswith(_COARSE_TIME_NOTE)]
             return d, rec
         if rec.rows and not slow:  # read, and not poses: the rate is unknown
             raise CalibrationError(rec.no_rate())
