@@ -779,3 +779,19 @@ def test_weakly_determined_by_the_noise_says_so_instead_of_blaming_the_poses() -
     with pytest.warns(ac.WeakDesignWarning) as w:
         ac.fit_static(t.means, t.g_measured)
     assert "the poses are not what limits them" not in str(w[0].message)
+
+
+def test_to_dict_says_when_chi2_dof_is_an_estimated_noise_variance() -> None:
+    """With the noise estimated, ``chi2_dof`` is the estimated variance of a dwell mean (a
+    user read 0.000113 as a chi2/dof); the dict now says whether the noise was known, and
+    gives the estimated noise std, which recovers the simulated one."""
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(60, max_tilt_deg=None, sigma=2e-3, rng=8)
+    d = ac.fit_static(s.means, s.g_measured).to_dict()
+    assert d["noise_known"] is False and not math.isfinite(d["chi2_p"])
+    assert d["noise_std_estimated"] == pytest.approx(math.sqrt(d["chi2_dof"]))
+    assert 1.5e-3 < d["noise_std_estimated"] < 2.5e-3
+    k = ac.fit_static(s.means, s.g_measured, sigma=2e-3).to_dict()
+    assert k["noise_known"] is True and k["noise_std_estimated"] is None
+    assert 0.5 < k["chi2_dof"] < 1.5

@@ -507,7 +507,14 @@ class StaticFit(_core.StaticFit):
                 "noise_known": bool(self.noise_known)}
 
     def to_dict(self) -> dict[str, Any]:
+        """The fit as plain data (the command line's ``--json``). With the noise estimated
+        (``noise_known`` false) there is no noise model to test: ``chi2_dof`` is then the
+        estimated variance of a dwell mean per axis (input units squared, as
+        :attr:`chi2_dof`), ``chi2_p`` is NaN (null in JSON), and ``noise_std_estimated`` is
+        its root."""
         ns = self.norm_stats
+        est = (math.sqrt(self.chi2_dof) if not self.noise_known
+               and math.isfinite(self.chi2_dof) else None)
         return {
             "model": self.model,
             "method": self.method,
@@ -524,6 +531,8 @@ class StaticFit(_core.StaticFit):
             "chi2_p": self.chi2_p,
             "dof": self.dof,
             "noise_model": self.noise_model,
+            "noise_known": bool(self.noise_known),
+            "noise_std_estimated": est,
             "iterations": self.iterations,
             "converged": self.converged,
             "g": self.g,
