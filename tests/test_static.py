@@ -795,3 +795,25 @@ def test_to_dict_says_when_chi2_dof_is_an_estimated_noise_variance() -> None:
     k = ac.fit_static(s.means, s.g_measured, sigma=2e-3).to_dict()
     assert k["noise_known"] is True and k["noise_std_estimated"] is None
     assert 0.5 < k["chi2_dof"] < 1.5
+
+
+def test_repeated_poses_say_how_many_degrees_of_freedom_test_the_model() -> None:
+    """Seven dwells, six faces (one twice), bias + scale: chi2/dof had one degree of freedom,
+    which measures only how well that face repeats; the summary says so. Poses are counted on
+    the calibrated directions, so outputs with large offsets (raw counts around 32768, say)
+    count them alike; distinct poses over the sphere get no such line."""
+    from accelcal.sim.static import static_dwell_means
+
+    faces = np.vstack([np.eye(3), -np.eye(3), [[0.0, -1.0, 0.0]]])
+    faces += 0.03 * np.random.default_rng(1).normal(size=faces.shape)
+    faces /= np.linalg.norm(faces, axis=1)[:, None]
+    s = static_dwell_means(faces, truth=_MODEST[:6], sigma=1e-3, rng=1, model="diag")
+    for shift in (0.0, 30.0):  # the second: offsets of 3 g on x and y
+        f = ac.fit_static(s.means + [shift, shift, 0.0], s.g_measured, model="diag",
+                          sigma=1e-3)
+        assert f.distinct_poses == 6
+        assert ("the 7 dwells are at 6 distinct poses: none of the residuals' 1 degree of "
+                "freedom tests the model") in f.summary()
+    r = static_dwell_means(30, max_tilt_deg=None, rng=2)
+    fr = ac.fit_static(r.means, r.g_measured)
+    assert fr.distinct_poses == 30 and "distinct poses" not in fr.summary()

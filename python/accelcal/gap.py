@@ -1035,20 +1035,13 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any, detector: Any = Non
     return d, samples, fs_v
 
 
-def _distinct_poses(mean: NDArray[np.float64]) -> int:
-    """Distinct poses among dwell means (k, 3): closer than 5 % of the norm (about 3 deg) is
-    one pose."""
-    m = np.ascontiguousarray(mean, dtype=np.float64)
-    return int(_core.gap_distinct_poses(m, 0.05 * float(np.median(np.linalg.norm(m, axis=1)))))
-
-
 def _determined(d: DwellSet, g: float) -> None:
     """Refuse a session whose dwells cannot determine the 9-parameter calibration the
     diagnosis fits (six faces only, say), as the fit itself refuses it: residuals and pose
     directions from an undetermined calibration would be arbitrary."""
     import warnings
 
-    from .static import fit_static
+    from .static import distinct_poses, fit_static
 
     try:
         with warnings.catch_warnings():
@@ -1057,7 +1050,7 @@ def _determined(d: DwellSet, g: float) -> None:
     except DegenerateDataError as e:
         what = re.split(r"[.;] [Aa]dd poses", str(e))[0]
         m = np.ascontiguousarray(d.mean, dtype=np.float64)
-        poses = _distinct_poses(m)
+        poses = distinct_poses(m)
         if poses < 9:
             what = (f"the {len(m)} dwells are at only {poses} distinct poses: the "
                     "9-parameter norm model needs at least 9 (tilted poses between the axes, "

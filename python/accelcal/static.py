@@ -607,9 +607,38 @@ class StaticFit(_core.StaticFit):
                 "  no redundancy (as many dwells as parameters): the residuals cannot test the "
                 f"model; {src}"
             )
+        repeats = self._repeats_text()
+        if repeats:
+            lines.append(f"  {repeats}")
         if self.weak:
             lines.append("  WEAKLY determined: " + self.weak_text())
         return "\n".join(lines)
+
+    @cached_property
+    def distinct_poses(self) -> int:
+        """Number of distinct poses among the dwells: calibrated gravity directions within
+        0.05 of each other (about 3 deg) are one pose."""
+        a = self.calibrated_means()
+        n = np.linalg.norm(a, axis=1)
+        if not np.all(np.isfinite(a)) or not np.all(n > 0):
+            return len(a)
+        return int(_core.gap_distinct_poses(np.ascontiguousarray(a / n[:, None]), 0.05))
+
+    def _repeats_text(self) -> str:
+        """When dwells repeat poses so that fewer of the residuals' degrees of freedom test
+        the model than the dof says: how many do; ``""`` otherwise."""
+        n, p, k = len(self.residuals), len(self.names), self.distinct_poses
+        if self.dof <= 0 or k >= n or k - p >= self.dof:
+            return ""
+        test = max(k - p, 0)
+        dof = f"{self.dof} degree{'' if self.dof == 1 else 's'} of freedom"
+        if test == 0:
+            return (f"the {n} dwells are at {k} distinct poses: none of the residuals' {dof} "
+                    "tests the model, they show only how well a pose repeats (new poses test "
+                    "the model)")
+        return (f"the {n} dwells are at {k} distinct poses: {test} of the residuals' {dof} "
+                f"test{'s' if test == 1 else ''} the model, the rest show only how well a "
+                "pose repeats")
 
     def __repr__(self) -> str:
         return (
@@ -819,6 +848,14 @@ def without_off_norm(d: DwellSet, g: float) -> tuple[DwellSet, OffNorm | None]:
     keep = np.ones(len(d), dtype=bool)
     keep[list(off.index)] = False
     return d[keep], off
+
+
+def distinct_poses(mean: ArrayLike) -> int:
+    """Distinct poses among raw dwell means (k, 3): means closer than 5 % of their median
+    norm (about 3 deg) are one pose. Outputs with offsets comparable to g merge poses here:
+    a fit's :attr:`StaticFit.distinct_poses` counts on the calibrated directions."""
+    m = np.ascontiguousarray(mean, dtype=np.float64).reshape(-1, 3)
+    return int(_core.gap_distinct_poses(m, 0.05 * float(np.median(np.linalg.norm(m, axis=1)))))
 
 
 def _gravity_free_hint(means: Any) -> str:

@@ -597,7 +597,8 @@ fn solve_valid<const N: usize>(
     }
     let cov = covariance_stage::<N>(&ml, means.len(), g, noise.known(), set);
     if set.raise_degenerate && cov.summary.weak && !cov.summary.degenerate {
-        start::too_few_poses(means, model, max_std(&cov.summary)).map_err(keep)?;
+        let p = f1.unframe(&ml.params);
+        start::too_few_poses(means, model, &p, max_std(&cov.summary)).map_err(keep)?;
     }
     let converged = !iterate
         || cov.decrement <= CONVERGED_DECREMENT
@@ -1118,10 +1119,24 @@ mod tests {
         };
         let f = fit_static(&m, G, &Noise::Estimated, &warn).unwrap();
         assert!(f.summary.weak && !f.summary.degenerate, "{:?}", f.summary);
-        // Poses counted up to the limit; the same poses in any order count the same.
-        assert_eq!(start::distinct_poses_upto(&m, 0.05 * G, 4), 4);
-        m.reverse();
-        assert_eq!(start::distinct_poses(&m, 0.05 * G), 6);
+        // Poses counted up to the limit, on the calibrated directions; the same poses in any
+        // order count the same. On the raw means, whose norms carry the biases, a tolerance
+        // of 5 % of the norm would merge poses of a sensor with large offsets.
+        let u = start::directions(&m, Model::Lower, &TRUTH);
+        assert_eq!(start::distinct_poses_upto(&u, start::SAME_POSE, 4), 4);
+        let mut r = u.clone();
+        r.reverse();
+        assert_eq!(start::distinct_poses(&r, start::SAME_POSE), 6);
+        let far: Vec<[f64; 3]> = m
+            .iter()
+            .map(|x| [x[0] + 500.0, x[1] + 500.0, x[2]])
+            .collect();
+        let mut off = TRUTH;
+        off[3] += 500.0;
+        off[4] += 500.0;
+        let uf = start::directions(&far, Model::Lower, &off);
+        assert_eq!(start::distinct_poses(&uf, start::SAME_POSE), 6);
+        assert!(start::distinct_poses(&far, 0.05 * 700.0) < 6);
     }
 
     #[test]

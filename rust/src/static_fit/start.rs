@@ -452,7 +452,7 @@ pub fn start_stage(means: &[[f64; 3]], g: f64, set: &FitSettings, f0: Frame) -> 
     }
 }
 
-/// Dwell means closer than this fraction of their median norm (about 3 deg) are one pose.
+/// Unit gravity directions closer than this (about 3 deg) are one pose.
 pub const SAME_POSE: f64 = 0.05;
 
 /// Number of distinct poses among dwell means: clusters closer than `tol` (raw units),
@@ -478,36 +478,48 @@ pub fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
     distinct_poses_upto(mean, tol, usize::MAX)
 }
 
-/// Median norm of the dwell means.
-fn median_norm(means: &[[f64; 3]]) -> f64 {
-    let mut norms: Vec<f64> = means
-        .iter()
-        .map(|m| (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt())
-        .collect();
-    norms.sort_by(f64::total_cmp);
-    norms.get(norms.len() / 2).copied().unwrap_or(f64::NAN)
-}
-
 /// A predicted relative std above this: the parameter is barely determined (set by the
 /// noise, not by the poses).
 pub const BARELY: f64 = 0.1;
 
+/// Unit gravity directions of the dwells under the calibration `params` (output units;
+/// dwells it cannot evaluate are left out).
+pub fn directions(means: &[[f64; 3]], model: Model, params: &[f64; 9]) -> Vec<[f64; 3]> {
+    let Ok(t) = super::cost::inv_k(model, params) else {
+        return vec![];
+    };
+    let b = Vector3::new(params[3], params[4], params[5]);
+    means
+        .iter()
+        .filter_map(|m| {
+            let a = t * (Vector3::new(m[0], m[1], m[2]) - b);
+            let n = a.norm();
+            (n > 0.0 && n.is_finite()).then(|| [a[0] / n, a[1] / n, a[2] / n])
+        })
+        .collect()
+}
+
 /// A barely determined fit (largest predicted relative std `weakest` above [`BARELY`]) whose
-/// dwells are at fewer distinct poses (within [`SAME_POSE`] of the median norm) than the
-/// model has parameters: each pose gives one norm equation, so some combination is set by
-/// the noise alone (six faces recorded twice, say, fitted with misalignments). Repeats of
-/// few poses at high signal to noise can still determine the model (a small `weakest`): not
-/// refused.
-pub fn too_few_poses(means: &[[f64; 3]], model: Model, weakest: f64) -> Result<()> {
+/// dwells are at fewer distinct poses (calibrated gravity directions within [`SAME_POSE`],
+/// about 3 deg, under the fit's `params`, output units) than the model has parameters: each
+/// pose gives one norm equation, so some combination is set by the noise alone (six faces
+/// recorded twice, say, fitted with misalignments). Repeats of few poses at high signal to
+/// noise can still determine the model (a small `weakest`): not refused.
+pub fn too_few_poses(
+    means: &[[f64; 3]],
+    model: Model,
+    params: &[f64; 9],
+    weakest: f64,
+) -> Result<()> {
     if !(weakest > BARELY) {
         return Ok(());
     }
     let np = model.n_params();
-    let sc = median_norm(means);
-    if !(sc > 0.0 && sc.is_finite()) {
+    let u = directions(means, model, params);
+    if u.len() < means.len() {
         return Ok(());
     }
-    let k = distinct_poses_upto(means, SAME_POSE * sc, np);
+    let k = distinct_poses_upto(&u, SAME_POSE, np);
     if k >= np {
         return Ok(());
     }
