@@ -1236,3 +1236,19 @@ def test_a_session_mostly_in_motion_gets_the_noise_of_its_still_windows() -> Non
     np.testing.assert_allclose(d.noise_std, plain.noise_std, rtol=0.15)
     calm = field_session(fs=100.0, n_dwells=14, dwell_s=8.0, move_s=2.0, sigma=0.01, rng=2)
     assert np.all(np.abs(detect_dwells(calm.samples, calm.fs).noise_std / 0.01 - 1) < 0.15)
+
+
+def test_dwells_that_vary_by_a_tenth_of_g_are_noted_as_moving() -> None:
+    """A table turned continuously, read at a rate that made its slow turns look still (a
+    helper gave --fs 3.33 to a hand-turned log): 6 "dwells" with a sample std up to 43 % of
+    g, without a word. Now a note names them; dwells of a sensor at rest get none."""
+    from accelcal.dwell import unsteady_text
+
+    mean = np.array([[0.0, 0.0, 9.8], [9.8, 0.0, 0.0], [0.0, 9.8, 0.0]])
+    calm = DwellSet(mean, np.full((3, 3), 0.02**2), np.full(3, 100))
+    assert unsteady_text(calm) == []
+    var = np.full((3, 3), 0.02**2)
+    var[1, 2] = 4.2**2  # 43 % of g on z while x was up
+    notes = unsteady_text(DwellSet(mean, var, np.full(3, 100)))
+    assert len(notes) == 1 and notes[0].startswith(
+        "1 of 3 dwells (#1) have a sample std of up to 43 % of their mean's norm"), notes

@@ -792,6 +792,11 @@ def test_to_dict_says_when_chi2_dof_is_an_estimated_noise_variance() -> None:
     assert d["noise_known"] is False and not math.isfinite(d["chi2_p"])
     assert d["noise_std_estimated"] == pytest.approx(math.sqrt(d["chi2_dof"]))
     assert 1.5e-3 < d["noise_std_estimated"] < 2.5e-3
+    # The summary names the units of that estimate: the input's (it was "output units",
+    # for a fit to raw counts with g = 1).
+    counts = ac.fit_static(s.means * 1000.0, s.g_measured)
+    assert re.search(r"estimated noise of a dwell mean 2\.\d+ raw \(input\) units per axis",
+                     counts.summary()), counts.summary()
     k = ac.fit_static(s.means, s.g_measured, sigma=2e-3).to_dict()
     assert k["noise_known"] is True and k["noise_std_estimated"] is None
     assert 0.5 < k["chi2_dof"] < 1.5

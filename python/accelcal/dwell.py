@@ -574,6 +574,31 @@ def vibrating_text(d: DwellSet, option: str = "k=") -> list[str]:
             f"{take}"]
 
 
+#: A dwell's sample std on an axis above this fraction of its mean's norm is not a rest.
+UNSTEADY_STD = 0.1
+
+
+def unsteady_text(d: DwellSet) -> list[str]:
+    """A note on dwells whose sample std on some axis exceeds ``UNSTEADY_STD`` (10 %) of the
+    norm of their mean: far above any accelerometer's noise at rest, so the sensor was likely
+    moving throughout (a recording turned continuously, read at a rate that made its slow
+    turns look still)."""
+    if d.var is None or len(d) == 0:
+        return []
+    sd = np.sqrt(np.max(np.asarray(d.var), axis=1))
+    nrm = np.linalg.norm(d.mean, axis=1)
+    bad = np.flatnonzero(sd > UNSTEADY_STD * nrm)
+    if bad.size == 0:
+        return []
+    worst = float(np.max(sd[bad] / nrm[bad]))
+    which = ", ".join(f"#{k}" for k in bad[:8]) + (" ..." if bad.size > 8 else "")
+    return [f"{bad.size} of {len(d)} dwells ({which}) have a sample std of up to "
+            f"{100 * worst:.0f} % of their mean's norm on some axis: far above an "
+            "accelerometer's noise at rest, so the sensor was likely moving (a recording "
+            "turned continuously has no rests to find); look at the dwells plot before "
+            "trusting a fit"]
+
+
 def check_faults(d: DwellSet, what: str, detected: bool = False) -> None:
     """Refuse dwells whose output did not follow the sensor, naming them and the remedy
     (``detected``: the caller detected ``d`` from raw samples it was given)."""

@@ -554,7 +554,7 @@ class StaticFit(_core.StaticFit):
             else f"chi2/dof = {self.chi2_dof:.3g}"
             if self.noise_known
             else f"estimated noise of a dwell mean {math.sqrt(self.chi2_dof):.3g} "
-            f"{self.input_units or 'output units'} per axis"
+            f"{self.input_units or 'raw (input) units'} per axis"
             if math.isfinite(self.chi2_dof)
             else "no redundancy"
         )
@@ -802,7 +802,7 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
 
     A dwell is one when the norm of its mean lies further from the median norm than
     8 robust standard deviations (1.4826 MAD) of the dwells' norms and 5 % of the median, and
-    the bias + scale calibration of the other dwells leaves it more than 10 times their
+    the bias + scale calibration of the other dwells leaves it more than 6 times their
     residual RMS and 2 % of ``g`` off ``g``. A sensor whose outputs carry large offsets (norms
     that differ from pose to pose) has a wide spread of norms and a calibration that fits
     every pose: none is found there. At most a quarter of the dwells are named; more than
@@ -833,7 +833,7 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
     a = fit.to_model().apply(m)
     res = np.linalg.norm(a, axis=1) - g
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
-    bad = [int(k) for k in cand if abs(res[k]) > max(10.0 * rms, 0.02 * g)]
+    bad = [int(k) for k in cand if abs(res[k]) > max(6.0 * rms, 0.02 * g)]
     if not bad:
         return None
     return OffNorm(index=tuple(bad), norm=tuple(float(r[k]) for k in bad), median_norm=med,

@@ -279,8 +279,9 @@ def means_option(fn: F) -> F:
     return click.option(  # type: ignore[no-any-return]
         "--means", "means", is_flag=True,
         help="FILE is a table of dwell means, one pose per row (per-pose x_std... and n "
-             "columns give their noise). A file of unknown rate whose rows step from pose to "
-             "pose is read so without it, with a note.")(fn)
+             "columns give their noise). A file of unknown rate of at most 2000 rows whose "
+             "consecutive rows are typically 30 deg or more apart is read so without it, "
+             "with a note; closer poses (a sensor turned slowly) need --means.")(fn)
 
 
 def bounds_option(fn: F) -> F:
@@ -320,9 +321,9 @@ def without_moving(d: Any, g: float) -> tuple[Any, list[str]]:
 
 def vibrating_notes(d: Any) -> list[str]:
     """:func:`~accelcal.dwell.vibrating_text` in the terms of the command line."""
-    from ..dwell import vibrating_text
+    from ..dwell import unsteady_text, vibrating_text
 
-    return vibrating_text(d, option="--k ")
+    return vibrating_text(d, option="--k ") + unsteady_text(d)
 
 
 def count_of(n: int, noun: str = "dwell") -> str:
