@@ -1737,3 +1737,39 @@ def test_a_fourth_column_names_the_temperature_of_a_headerless_file(tmp_path: Pa
     r = CliRunner().invoke(main, ["diagnose", str(p), "--g", f"{f.g}", "--columns", "1,2,3",
                                   "--time-column", "0"])
     assert "or as the 4th of the columns given (columns=, --columns)" in r.output, r.output
+
+
+def test_a_serial_capture_preamble_is_skipped_with_a_note(tmp_path: Path) -> None:
+    """A logger's banner and prompts before the data (an AltIMU serial capture: 'TURN SENSOR
+    VERY SLOWLY AND CAREFULLY IN 3D') read as column names: "header has 1 names but data rows
+    have 6 columns". Text without the data's delimiter is now a preamble, skipped with a
+    note; a header that has the delimiter but the wrong count is still refused."""
+    rows = "".join(f"{14800 + i},{3500 - i},{1500 + 2 * i},{-427},{-462},{-101}\n"
+                   for i in range(50))
+    pre = ("AltIMU-10 V3 calibration data collection\r\nGyro bias collection ... KEEP SENSOR "
+           "STILL\r\nCollecting 300 points for scaling, 3/second\r\nTURN SENSOR VERY SLOWLY "
+           "AND CAREFULLY IN 3D\r\n")
+    p = write(tmp_path, pre + rows.replace("\n", "\r\n"))
+    r = read_stream(p, fs=3.0, columns=[0, 1, 2])
+    assert r.samples.shape == (50, 3) and r.samples[0, 0] == 14800
+    assert any("before the first data row are text without its delimiter" in n
+               and "a preamble, skipped" in n for n in r.notes), r.notes
+    q = write(tmp_path, "t,ax,ay,az\n" + rows, name="bad.csv")
+    with pytest.raises(CalibrationError, match="header has 4 names but data rows have 6"):
+        read_stream(q, fs=3.0, columns=[0, 1, 2])
+
+
+def test_text_on_the_last_line_is_named_as_a_trailer(tmp_path: Path) -> None:
+    """A serial capture that ends with the logger's closing message ('Done. rms Acc =
+    16384.66, ...'): the error names the line and says it is the file's last, with the
+    command that deletes it; text in the middle of the data gets no such hint."""
+    rows = "".join(f"{i * 0.1:.1f},0.01,0.02,9.8\n" for i in range(40))
+    p = write(tmp_path, "t,ax,ay,az\n" + rows + "Done. rms Acc = 1.0, rms Mag = 2.0\n\n")
+    with pytest.raises(CalibrationError, match=r"line 42: .*is not a number; it is the file's "
+                       r"last line, text after the data .*sed '42d' FILE > data.csv"):
+        read_stream(p)
+    q = write(tmp_path, "t,ax,ay,az\n" + rows + "pause\n" + rows.replace("0.01", "0.02"),
+              name="mid.csv")
+    with pytest.raises(CalibrationError, match=r"line 42: .*is not a number") as e:
+        read_stream(q)
+    assert "last line" not in str(e.value)

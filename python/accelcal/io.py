@@ -1030,6 +1030,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         t0_text = fmt.fields[j]
         t0 = _core.parse_iso8601(t0_text)
     names: tuple[str, ...] | None = None
+    pre_notes: list[str] = []
     if header is not None:
         hf = _split(header, delim)
         if header_units is not None and len(header_units) == len(hf):
@@ -1037,6 +1038,13 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
                   for h, u in zip(hf, header_units, strict=True)]
         if len(hf) == ncols:
             names = tuple(h.strip().strip("\"'") for h in hf)
+        elif delim is not None and delim not in header:
+            # Text without the data's delimiter: a logger's preamble (a serial capture's
+            # banner and prompts), not the column names.
+            preamble = sum(1 for _, ln in lines[:first] if ln.strip())
+            pre_notes.append(f"the {preamble} line(s) before the first data row are text without "
+                         f"its delimiter ({header[:40]!r} ...): a preamble, skipped; no column "
+                         "names")
         else:
             raise CalibrationError(
                 f"{path}: header has {len(hf)} names but data rows have {ncols} columns"
@@ -1080,6 +1088,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     if cols:
         head[:, cols] = arrays[0].reshape(rows, len(cols))
     lay = _decide(path, names, ncols, head, meta, columns, fs, time_column, iso)
+    lay.notes[:0] = pre_notes
     lay.delim, lay.offset, lay.first_line = delim, offset, first_line
     lay.decimal_comma, lay.iso, lay.t0, lay.t0_text = decimal_comma, iso, t0, t0_text
     if rows:
@@ -1916,15 +1925,51 @@ def _located(path: str, it: Any, fn: Callable[..., Any] | None = None, *a: Any,
         try:
             return fn(*a, **kw)
         except CalibrationError as e:
-            raise CalibrationError(f"{path}: {e}{_repeated_header_hint(str(e))}") from None
+            raise CalibrationError(f"{path}: {e}{_bad_row_hint(path, str(e))}") from None
 
     def gen() -> Iterator[Any]:
         try:
             yield from it
         except CalibrationError as e:
-            raise CalibrationError(f"{path}: {e}{_repeated_header_hint(str(e))}") from None
+            raise CalibrationError(f"{path}: {e}{_bad_row_hint(path, str(e))}") from None
 
     return gen()
+
+
+def _bad_row_hint(path: str, msg: str) -> str:
+    """What a row that is not a number may be: the header again (files joined), or the
+    file's last line (a logger's closing text)."""
+    return _repeated_header_hint(msg) or _trailer_hint(path, msg)
+
+
+def _trailer_hint(path: str, msg: str) -> str:
+    """For a field that is not a number on the file's last non-empty line: a trailer."""
+    m = re.match(r"line (\d+): .* is not a number", msg)
+    if not m or not os.path.isfile(path):
+        return ""
+    try:
+        if os.path.getsize(path) > 1 << 30:
+            return ""  # a second pass over a file this big is not worth a hint
+        newlines, tail = 0, b""
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 24), b""):
+                newlines += block.count(b"\n")
+                tail = (tail + block)[-65536:]
+    except OSError:
+        return ""
+    # Lines as the reader numbers them (a last line without its newline counts), less the
+    # blank lines at the end.
+    lines = tail.split(b"\n")
+    total = newlines + (1 if lines[-1] else 0)
+    blank = 0
+    for ln in reversed(lines[:-1] if not lines[-1] else lines):
+        if ln.strip():
+            break
+        blank += 1
+    if total - blank != int(m.group(1)):
+        return ""
+    return ("; it is the file's last line, text after the data (a logger's closing message): "
+            f"delete it (e.g. sed '{m.group(1)}d' FILE > data.csv)")
 
 
 def _repeated_header_hint(msg: str) -> str:
