@@ -724,6 +724,9 @@ def test_off_norm_dwells_names_rows_recorded_while_moving(tmp_path: pathlib.Path
     assert off is not None and list(off.index) == moved
     assert min(abs(x) for x in off.residual) > 10 * off.rms
     assert off_norm_dwells(s.means, s.g_measured) is None  # clean: none
+    one = off_norm_dwells(np.delete(m, moved[1:], axis=0), s.g_measured)
+    assert one is not None and one.text(s.g_measured).startswith(
+        "1 of 38 dwells (#4) cannot be at rest: its mean's norm (")
     # A sensor with a large offset (norms from 5 to 15 m/s^2 across poses) is not moving.
     big = static_dwell_means(40, truth=[1.0, 1.0, 1.0, 0.0, 0.0, 4.8, 0.0, 0.0, 0.0],
                              max_tilt_deg=None, sigma=3e-3, rng=12)

@@ -789,6 +789,12 @@ class OffNorm:
         rows = ", ".join(str(i) for i in self.index)
         lo, hi = min(self.norm), max(self.norm)
         r = [abs(x) for x in self.residual]
+        if len(self.index) == 1:
+            return (f"1 of {n} dwells (#{rows}) cannot be at rest: its mean's norm "
+                    f"({lo:.4g}) lies far from every other dwell's (median "
+                    f"{self.median_norm:.4g}), and the bias + scale calibration of the others "
+                    f"leaves it {r[0]:.3g} {u} off g, against {self.rms:.2g} {u} RMS for the "
+                    "others: recorded while moving, or a mistyped row")
         return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: their means' "
                 f"norms ({lo:.4g} to {hi:.4g}) lie far from every other dwell's (median "
                 f"{self.median_norm:.4g}), and the bias + scale calibration of the others "
