@@ -732,36 +732,45 @@ def fit_static(
             nominal,
         )
     except CalibrationError as e:  # dwells that cannot determine a calibration: why?
-        indeterminate = isinstance(e, _core.DegenerateDataError) or "ran away" in str(e)
-        if not indeterminate:
+        why = _explained(e, means, g)
+        if why is None:
             raise
-        off = None if _SCREENING.get() else off_norm_dwells(means, g)
-        if off is not None:  # the cause, before what the fit said with them in
-            raise type(e)(
-                f"{off.text(g)}; leave them out (d[mask], or the rows of "
-                f"the array) and fit the others. With them in, the fit says: {e}") from None
-        hint = _gravity_free_hint(means)
-        if not hint:
-            raise
-        raise type(e)(f"{e}. {hint}") from None
+        raise why from None
     attention = fit._attention  # one read: bit 0 not converged, bit 1 weak or degenerate
     if attention & 1:
-        src = fit.start_source
-        advice = ("use the default start (the exact quadric solution) or more iterations"
-                  if src == "user" else
-                  "the dwells may barely determine the model: check their attitudes (fit "
-                  "observability()), or give more iterations (max_iter=)")
-        off = None if _SCREENING.get() else off_norm_dwells(means, g)
-        if off is not None:  # the likely cause
-            advice = f"{off.text(g)}; leave them out and fit the others"
-        raise CalibrationError(
-            f"{method} did not reach the minimum in {fit.max_iter} iterations (start "
-            f"{fit.start.tolist()}, {src}); {advice}"
-        )
+        raise _not_converged(fit, method, means, g)
     if attention and observability != "ignore":
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit
             warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
+
+
+def _explained(e: CalibrationError, means: Any, g: float) -> CalibrationError | None:
+    """The fit's refusal ``e`` with its likely cause first (dwells that cannot be at rest,
+    or outputs that do not see gravity), or None to raise it as it is. Kept out of
+    :func:`fit_static`, whose common call is timed in microseconds."""
+    if not (isinstance(e, _core.DegenerateDataError) or "ran away" in str(e)):
+        return None
+    off = None if _SCREENING.get() else off_norm_dwells(means, g)
+    if off is not None:  # the cause, before what the fit said with them in
+        return type(e)(f"{off.text(g)}; leave them out (d[mask], or the rows of the array) "
+                       f"and fit the others. With them in, the fit says: {e}")
+    hint = _gravity_free_hint(means)
+    return type(e)(f"{e}. {hint}") if hint else None
+
+
+def _not_converged(fit: StaticFit, method: str, means: Any, g: float) -> CalibrationError:
+    """The error of a fit that did not reach the minimum, with advice."""
+    src = fit.start_source
+    advice = ("use the default start (the exact quadric solution) or more iterations"
+              if src == "user" else
+              "the dwells may barely determine the model: check their attitudes (fit "
+              "observability()), or give more iterations (max_iter=)")
+    off = None if _SCREENING.get() else off_norm_dwells(means, g)
+    if off is not None:  # the likely cause
+        advice = f"{off.text(g)}; leave them out and fit the others"
+    return CalibrationError(f"{method} did not reach the minimum in {fit.max_iter} iterations "
+                            f"(start {fit.start.tolist()}, {src}); {advice}")
 
 
 #: Set while :func:`off_norm_dwells` fits the other dwells (its failures get no hint).
