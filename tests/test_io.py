@@ -1773,3 +1773,19 @@ def test_text_on_the_last_line_is_named_as_a_trailer(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match=r"line 42: .*is not a number") as e:
         read_stream(q)
     assert "last line" not in str(e.value)
+
+
+@pytest.mark.parametrize(("name", "scale"), [("ustime", 1e-6), ("ms_time", 1e-3),
+                                             ("timeus", 1e-6), ("us-timestamp", 1e-6)])
+def test_a_time_column_with_its_unit_glued_on_is_the_time(tmp_path: Path, name: str,
+                                                          scale: float) -> None:
+    """A logger's 'ustime' column (micros() of a 150 Hz MPU-6050 log) was not taken for the
+    time: "the sample rate is unknown". A unit glued to 'time' is now read as the time, in
+    that unit."""
+    step = 6.6e-3 / scale  # 6.6 ms in the column's unit
+    rows = "".join(f"{2314922586 + i * step:.0f} 45 -65 -44 -16531 -126 1133\n"
+                   for i in range(400))
+    p = write(tmp_path, f"{name} gx gy gz ax ay az\n" + rows)
+    r = read_stream(p, columns=[4, 5, 6])
+    assert r.fs == pytest.approx(1 / 6.6e-3, rel=1e-3)
+    assert r.t is not None and (r.t[-1] - r.t[0]) / 399 == pytest.approx(6.6e-3, rel=1e-3)

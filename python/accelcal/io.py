@@ -212,6 +212,14 @@ def _time_name(name: str) -> tuple[float, bool] | None:
                      b)
         if m:
             b, unit = m.group(1), m.group(2)
+    if not unit:  # the unit glued on: ``ustime``, ``ms_time``, ``timeus``
+        m = re.match(r"^(ms|us|µs|ns)[_\s-]*(time|timestamp)$", b)
+        if m:
+            b, unit = m.group(2), m.group(1)
+        else:
+            m = re.match(r"^(time|timestamp)(ms|us|ns)$", b)
+            if m:
+                b, unit = m.group(1), m.group(2)
     words = [w for w in re.split(r"[^0-9a-z]+", b) if w]
     b = "".join(words)
     if b in _TIME_IMPLICIT and not unit:
