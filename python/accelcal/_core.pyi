@@ -13,6 +13,8 @@ class DegenerateDataError(CalibrationError): ...
 MIN_WINDOW_SAMPLES: Final[float]
 #: The fewest samples a dwell needs for its variance to count in the output-fault checks.
 FAULT_MIN_SAMPLES: Final[int]
+#: Unit gravity directions closer than this (about 3 deg) are one pose.
+SAME_POSE: Final[float]
 
 @final
 class StepLog:
@@ -1231,4 +1233,5 @@ __all__ = [
     "DegenerateDataError",
     "MIN_WINDOW_SAMPLES",
     "FAULT_MIN_SAMPLES",
+    "SAME_POSE",
 ]

@@ -253,7 +253,7 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
     let fit = lstsq_qr(&a, n, 9, &y).and_then(|beta| quadric_recover(&beta, g, sc, mu));
     fit.map_err(|e| match e {
         CoreError::Degenerate(m) => {
-            let k = distinct_poses(mean, 0.05 * sc);
+            let k = distinct_poses(mean, SAME_POSE * sc);
             CoreError::Degenerate(if k < N_BASE {
                 format!(
                     "the {n} dwells are at only {k} distinct poses: the 9-parameter norm model \
@@ -269,6 +269,7 @@ pub fn quadric_start(mean: &[[f64; 3]], g: f64) -> Result<[f64; N_BASE]> {
 }
 
 pub use crate::static_fit::start::distinct_poses;
+use crate::static_fit::start::{directions, SAME_POSE};
 
 /// Exact recovery of `K` and `b` from the quadric regression coefficients (scaled frame).
 fn quadric_recover(beta: &[f64], g: f64, sc: f64, mu: [f64; 3]) -> Result<[f64; N_BASE]> {
@@ -350,24 +351,19 @@ struct RowEval {
 }
 
 /// Each dwell mean moved onto the ellipsoid of the calibration `c` (lower model, raw units):
-/// `K g a/|a| + b` with `a = K^-1 (m - b)`. This removes the noise along the norm (the part
-/// the norm residual holds) and keeps the direction; a mean the calibration cannot evaluate
-/// is kept as it is.
+/// `K g u + b` with `u` its unit gravity direction under `c` ([`directions`]). This removes
+/// the noise along the norm (the part the norm residual holds) and keeps the direction; a
+/// mean the calibration cannot evaluate is kept as it is.
 fn on_ellipsoid(mean: &[[f64; 3]], c: &[f64; N_BASE], g: f64) -> Vec<[f64; 3]> {
     let k = Model::Lower.k_matrix(c);
     let b = Vector3::new(c[3], c[4], c[5]);
-    let t = inv_k(Model::Lower, c).ok();
     mean.iter()
-        .map(|m| {
-            let v = Vector3::new(m[0], m[1], m[2]);
-            let Some(t) = &t else { return *m };
-            let a = t * (v - b);
-            let r = a.norm();
-            if !(r > 0.0 && r.is_finite()) {
-                return *m;
-            }
-            let p = k * (a * (g / r)) + b;
-            [p[0], p[1], p[2]]
+        .zip(directions(mean, Model::Lower, c))
+        .map(|(m, u)| {
+            u.map_or(*m, |u| {
+                let p = k * (Vector3::new(u[0], u[1], u[2]) * g) + b;
+                [p[0], p[1], p[2]]
+            })
         })
         .collect()
 }
@@ -748,7 +744,7 @@ pub fn diagnose(inp: &StaticInput, effects: &[Effect], opt: &GapOptions) -> Resu
 /// [`StaticModel::directions`] gives them) within 5 % of each other (about 3 deg).
 fn one_attitude(dirs: &[([f64; 3], [f64; 3])]) -> bool {
     let u: Vec<[f64; 3]> = dirs.iter().map(|d| d.0).collect();
-    distinct_poses(&u, 0.05) == 1
+    distinct_poses(&u, SAME_POSE) == 1
 }
 
 /// The smooth structure columns of a static session (unwhitened: per-row values).

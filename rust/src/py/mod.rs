@@ -71,4 +71,7 @@ mod _core {
     /// The fewest samples a dwell needs for its variance to count in the output-fault checks.
     #[pymodule_export]
     const FAULT_MIN_SAMPLES: u64 = crate::dwell::FAULT_MIN_SAMPLES;
+    /// Unit gravity directions closer than this (about 3 deg) are one pose.
+    #[pymodule_export]
+    const SAME_POSE: f64 = crate::static_fit::start::SAME_POSE;
 }

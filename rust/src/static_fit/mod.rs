@@ -1122,7 +1122,10 @@ mod tests {
         // Poses counted up to the limit, on the calibrated directions; the same poses in any
         // order count the same. On the raw means, whose norms carry the biases, a tolerance
         // of 5 % of the norm would merge poses of a sensor with large offsets.
-        let u = start::directions(&m, Model::Lower, &TRUTH);
+        let u: Vec<[f64; 3]> = start::directions(&m, Model::Lower, &TRUTH)
+            .into_iter()
+            .map(Option::unwrap)
+            .collect();
         assert_eq!(start::distinct_poses_upto(&u, start::SAME_POSE, 4), 4);
         let mut r = u.clone();
         r.reverse();
@@ -1134,7 +1137,10 @@ mod tests {
         let mut off = TRUTH;
         off[3] += 500.0;
         off[4] += 500.0;
-        let uf = start::directions(&far, Model::Lower, &off);
+        let uf: Vec<[f64; 3]> = start::directions(&far, Model::Lower, &off)
+            .into_iter()
+            .map(Option::unwrap)
+            .collect();
         assert_eq!(start::distinct_poses(&uf, start::SAME_POSE), 6);
         assert!(start::distinct_poses(&far, 0.05 * 700.0) < 6);
     }

@@ -482,17 +482,16 @@ pub fn distinct_poses(mean: &[[f64; 3]], tol: f64) -> usize {
 /// noise, not by the poses).
 pub const BARELY: f64 = 0.1;
 
-/// Unit gravity directions of the dwells under the calibration `params` (output units;
-/// dwells it cannot evaluate are left out).
-pub fn directions(means: &[[f64; 3]], model: Model, params: &[f64; 9]) -> Vec<[f64; 3]> {
-    let Ok(t) = super::cost::inv_k(model, params) else {
-        return vec![];
-    };
+/// Unit gravity direction of each dwell under the calibration `params` (output units):
+/// `a/|a|` with `a = K^-1 (m - b)`; `None` for a dwell it cannot evaluate (every dwell when
+/// `K` is singular).
+pub fn directions(means: &[[f64; 3]], model: Model, params: &[f64; 9]) -> Vec<Option<[f64; 3]>> {
+    let t = super::cost::inv_k(model, params).ok();
     let b = Vector3::new(params[3], params[4], params[5]);
     means
         .iter()
-        .filter_map(|m| {
-            let a = t * (Vector3::new(m[0], m[1], m[2]) - b);
+        .map(|m| {
+            let a = t.as_ref()? * (Vector3::new(m[0], m[1], m[2]) - b);
             let n = a.norm();
             (n > 0.0 && n.is_finite()).then(|| [a[0] / n, a[1] / n, a[2] / n])
         })
@@ -515,10 +514,12 @@ pub fn too_few_poses(
         return Ok(());
     }
     let np = model.n_params();
-    let u = directions(means, model, params);
-    if u.len() < means.len() {
+    let Some(u) = directions(means, model, params)
+        .into_iter()
+        .collect::<Option<Vec<_>>>()
+    else {
         return Ok(());
-    }
+    };
     let k = distinct_poses_upto(&u, SAME_POSE, np);
     if k >= np {
         return Ok(());
