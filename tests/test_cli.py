@@ -607,22 +607,24 @@ def test_model_diag_is_offered_only_when_it_fits(tmp_path: Path) -> None:
     from accelcal import DwellSet
 
     rng = np.random.default_rng(4)
+
+    def table(gravity: np.ndarray, name: str) -> Path:
+        """Dwell means of one sensor (scales, biases) at these gravity vectors, noise 1e-4."""
+        m = gravity @ np.diag([1.01, 0.99, 1.02]).T + [0.05, -0.03, 0.02]
+        m = m + 1e-4 * rng.standard_normal(m.shape)
+        path = tmp_path / name
+        DwellSet(m, np.full((len(m), 3), 1e-6), np.full(len(m), 100)).to_csv(path)
+        return path
+
     th = np.linspace(0.0, 2 * np.pi, 14, endpoint=False)
-    a = 9.80665 * np.column_stack([np.zeros_like(th), np.cos(th), np.sin(th)])
-    m = a @ np.diag([1.01, 0.99, 1.02]).T + [0.05, -0.03, 0.02]
-    m = m + 1e-4 * rng.standard_normal(m.shape)
-    p = tmp_path / "about_x.csv"
-    DwellSet(m, np.full((14, 3), 1e-6), np.full(14, 100)).to_csv(p)
+    p = table(9.80665 * np.column_stack([np.zeros_like(th), np.cos(th), np.sin(th)]),
+              "about_x.csv")
     code, out = run("calibrate", "static", str(p), "--g", "9.80665")
     assert code == 2 and "cannot determine" in out, out
     assert "Try --model diag" not in out
     code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--model", "diag")
     assert code == 2, out  # what the hint would have led to
-    faces = np.vstack([np.eye(3), -np.eye(3), np.eye(3), -np.eye(3)]) * 9.80665
-    f = faces @ np.diag([1.01, 0.99, 1.02]).T + [0.05, -0.03, 0.02]
-    f = f + 1e-4 * rng.standard_normal(f.shape)
-    q = tmp_path / "faces.csv"
-    DwellSet(f, np.full((12, 3), 1e-6), np.full(12, 100)).to_csv(q)
+    q = table(np.vstack([np.eye(3), -np.eye(3), np.eye(3), -np.eye(3)]) * 9.80665, "faces.csv")
     code, out = run("calibrate", "static", str(q), "--g", "9.80665")
     assert code == 2 and "--model diag" in out, out
     code, out = run("calibrate", "static", str(q), "--g", "9.80665", "--model", "diag")

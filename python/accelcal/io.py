@@ -521,19 +521,18 @@ class _Uncommented:
     that hands out at most ``size`` characters per read."""
 
     def __init__(self, fh: Any) -> None:
-        self._fh = fh
+        self._lines = (ln for ln in fh if not ln.lstrip().startswith(("#", "%", "//")))
         self._buf = ""
 
     def read(self, size: int = -1) -> str:
         want = size if size is not None and size >= 0 else None
         parts, n = [self._buf], len(self._buf)
         while want is None or n < want:
-            ln = self._fh.readline()
+            ln = next(self._lines, "")
             if not ln:
                 break
-            if not ln.lstrip().startswith(("#", "%", "//")):
-                parts.append(ln)
-                n += len(ln)
+            parts.append(ln)
+            n += len(ln)
         text = "".join(parts)
         if want is None:
             self._buf = ""
@@ -544,12 +543,7 @@ class _Uncommented:
     def __iter__(self) -> Any:
         buf, self._buf = self._buf, ""
         yield from buf.splitlines(keepends=True)
-        while True:
-            ln = self._fh.readline()
-            if not ln:
-                return
-            if not ln.lstrip().startswith(("#", "%", "//")):
-                yield ln
+        yield from self._lines
 
 
 def _long_format_source(src: _TextSource, columns: Any, fs: float | None,

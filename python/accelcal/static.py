@@ -419,13 +419,21 @@ class StaticFit(_core.StaticFit):
                 "dwell mean): average more samples per pose (the std falls as one over the "
                 "square root of the samples) or record more poses")
 
+    def _unit_directions(self) -> NDArray[np.float64] | None:
+        """The calibrated gravity direction of every dwell (k, 3), or None when some dwell
+        has none (a non-finite or zero calibrated mean)."""
+        a = self.calibrated_means()
+        if a.ndim != 2 or a.shape[0] == 0 or not np.all(np.isfinite(a)):
+            return None
+        n = np.linalg.norm(a, axis=1)
+        return np.ascontiguousarray(a / n[:, None]) if np.all(n > 0) else None
+
     def _one_sided_axes(self) -> list[str]:
         """The axes no pose turned towards gravity (or away from it): their calibrated
         component stays above -0.5 g (or below +0.5 g) in every dwell."""
-        a = self.calibrated_means()
-        if a.ndim != 2 or a.shape[0] == 0 or not np.all(np.isfinite(a)):
+        u = self._unit_directions()
+        if u is None:
             return []
-        u = a / np.linalg.norm(a, axis=1)[:, None]
         out = []
         for k, name in enumerate("xyz"):
             lo, hi = float(u[:, k].min()), float(u[:, k].max())
@@ -617,12 +625,11 @@ class StaticFit(_core.StaticFit):
     @cached_property
     def distinct_poses(self) -> int:
         """Number of distinct poses among the dwells: calibrated gravity directions within
-        0.05 of each other (about 3 deg) are one pose."""
-        a = self.calibrated_means()
-        n = np.linalg.norm(a, axis=1)
-        if not np.all(np.isfinite(a)) or not np.all(n > 0):
-            return len(a)
-        return int(_core.gap_distinct_poses(np.ascontiguousarray(a / n[:, None]), 0.05))
+        ``SAME_POSE`` (0.05, about 3 deg) of each other are one pose."""
+        u = self._unit_directions()
+        if u is None:
+            return len(self.residuals)
+        return int(_core.gap_distinct_poses(u, _core.SAME_POSE))
 
     def _repeats_text(self) -> str:
         """When dwells repeat poses so that fewer of the residuals' degrees of freedom test
@@ -751,7 +758,7 @@ def _explained(e: CalibrationError, means: Any, g: float) -> CalibrationError | 
     :func:`fit_static`, whose common call is timed in microseconds."""
     if not (isinstance(e, _core.DegenerateDataError) or "ran away" in str(e)):
         return None
-    off = None if _SCREENING.get() else off_norm_dwells(means, g)
+    off = off_norm_dwells(means, g)
     if off is not None:  # the cause, before what the fit said with them in
         return type(e)(f"{off.text(g)}; leave them out (d[mask], or the rows of the array) "
                        f"and fit the others. With them in, the fit says: {e}")
@@ -766,7 +773,7 @@ def _not_converged(fit: StaticFit, method: str, means: Any, g: float) -> Calibra
               if src == "user" else
               "the dwells may barely determine the model: check their attitudes (fit "
               "observability()), or give more iterations (max_iter=)")
-    off = None if _SCREENING.get() else off_norm_dwells(means, g)
+    off = off_norm_dwells(means, g)
     if off is not None:  # the likely cause
         advice = f"{off.text(g)}; leave them out and fit the others"
     return CalibrationError(f"{method} did not reach the minimum in {fit.max_iter} iterations "
@@ -799,16 +806,17 @@ class OffNorm:
         lo, hi = min(self.norm), max(self.norm)
         r = [abs(x) for x in self.residual]
         if len(self.index) == 1:
-            return (f"1 of {n} dwells (#{rows}) cannot be at rest: its mean's norm "
-                    f"({lo:.4g}) lies far from every other dwell's (median "
-                    f"{self.median_norm:.4g}), and the bias + scale calibration of the others "
-                    f"leaves it {r[0]:.3g} {u} off g, against {self.rms:.2g} {u} RMS for the "
-                    "others: recorded while moving, or a mistyped row")
-        return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: their means' "
-                f"norms ({lo:.4g} to {hi:.4g}) lie far from every other dwell's (median "
+            whose, norms, lie, them = "its mean's norm", f"{lo:.4g}", "lies", "it"
+            off = f"{r[0]:.3g}"
+        else:
+            whose, norms, lie, them = ("their means' norms", f"{lo:.4g} to {hi:.4g}", "lie",
+                                       "them")
+            off = f"{min(r):.3g} to {max(r):.3g}"
+        return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: {whose} "
+                f"({norms}) {lie} far from every other dwell's (median "
                 f"{self.median_norm:.4g}), and the bias + scale calibration of the others "
-                f"leaves them {min(r):.3g} to {max(r):.3g} {u} off g, against {self.rms:.2g} "
-                f"{u} RMS for the others: recorded while moving, or a mistyped row")
+                f"leaves {them} {off} {u} off g, against {self.rms:.2g} {u} RMS for the "
+                "others: recorded while moving, or a mistyped row")
 
 
 def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
@@ -821,8 +829,11 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
     residual RMS and 2 % of ``g`` off ``g``. A sensor whose outputs carry large offsets (norms
     that differ from pose to pose) has a wide spread of norms and a calibration that fits
     every pose: none is found there. At most a quarter of the dwells are named; more than
-    that is no longer a few bad rows. ``g`` is the reference gravity of the fit.
+    that is no longer a few bad rows. ``g`` is the reference gravity of the fit. None too
+    while it screens (its own fit of the other dwells refusing asks it again).
     """
+    if _SCREENING.get():
+        return None
     try:
         m = np.asarray(data.mean if isinstance(data, DwellSet) else data, dtype=np.float64)
     except (TypeError, ValueError):
@@ -870,7 +881,8 @@ def distinct_poses(mean: ArrayLike) -> int:
     norm (about 3 deg) are one pose. Outputs with offsets comparable to g merge poses here:
     a fit's :attr:`StaticFit.distinct_poses` counts on the calibrated directions."""
     m = np.ascontiguousarray(mean, dtype=np.float64).reshape(-1, 3)
-    return int(_core.gap_distinct_poses(m, 0.05 * float(np.median(np.linalg.norm(m, axis=1)))))
+    tol = _core.SAME_POSE * float(np.median(np.linalg.norm(m, axis=1)))
+    return int(_core.gap_distinct_poses(m, tol))
 
 
 def _gravity_free_hint(means: Any) -> str:
