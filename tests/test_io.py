@@ -1187,7 +1187,7 @@ def test_a_clock_reset_is_kept_and_said(tmp_path: Path) -> None:
     st = read_stream(p)
     assert st.t is not None and np.array_equal(st.t, np.loadtxt(p, delimiter=",",
                                                                 skiprows=1)[:, 0])
-    assert any("steps back 1 time(s) (the first at data row 5000, by 649.99 s)" in n
+    assert any("steps back 1 time(s) (the first at data row 5001, by 649.99 s)" in n
                for n in st.notes), st.notes
 
 
@@ -1789,3 +1789,41 @@ def test_a_time_column_with_its_unit_glued_on_is_the_time(tmp_path: Path, name: 
     r = read_stream(p, columns=[4, 5, 6])
     assert r.fs == pytest.approx(1 / 6.6e-3, rel=1e-3)
     assert r.t is not None and (r.t[-1] - r.t[0]) / 399 == pytest.approx(6.6e-3, rel=1e-3)
+
+
+def _stamped_log(tmp_path: Path, t: Any, name: str) -> Path:
+    x = np.random.default_rng(2).normal(0, 0.01, (t.size, 3)) + [0, 0, 9.81]
+    p = tmp_path / name
+    np.savetxt(p, np.column_stack([t, x]), delimiter=",", header="time_s,ax,ay,az",
+               comments="", fmt="%.6f")
+    return p
+
+
+def test_samples_lost_from_the_time_column_are_said(tmp_path: Path) -> None:
+    t = np.arange(30_000) / 100.0
+    keep = np.ones(t.size, bool)
+    keep[20_000:20_050] = False  # 50 samples lost after 200 s
+    keep[25_000:25_004] = False  # and 4 more
+    st = read_stream(_stamped_log(tmp_path, t[keep], "lost.csv"))
+    gaps = [n for n in st.notes if "skips" in n]
+    assert len(gaps) == 1, st.notes
+    assert ("skips 2 time(s) by more than 3 sample intervals (the longest 510 ms, between "
+            "data rows 20000 and 20001; about 54 samples") in gaps[0]
+    # The same when streamed in blocks that cut the gap.
+    assert any("about 54 samples" in n for n in
+               ac.io._stream_dwells(_stamped_log(tmp_path, t[keep], "lost2.csv"),
+                                    chunk_rows=20_000)[1].notes())
+
+
+@pytest.mark.parametrize("kind", ["clean", "jitter", "bursts"])
+def test_a_time_column_without_lost_samples_gives_no_gap_note(tmp_path: Path,
+                                                              kind: str) -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(30_000) / 100.0
+    if kind == "jitter":  # +-40 % of an interval
+        t = t + rng.uniform(-0.004, 0.004, t.size)
+    elif kind == "bursts":  # stamped 5 samples at a time (a radio link's packets)
+        t = np.repeat(t[::5], 5)
+    st = read_stream(_stamped_log(tmp_path, t, f"{kind}.csv"))
+    assert st.fs == pytest.approx(100.0, rel=1e-2)
+    assert not any("skips" in n for n in st.notes), st.notes

@@ -2034,6 +2034,8 @@ class _TimeUnwrap:
         self.prev: float | None = None  # the last time of the previous chunk, as read
         self.wraps: list[tuple[int, int]] = []  # (row, counter width)
         self.back: list[tuple[int, float]] = []  # (row, step back in s)
+        self.gaps = _TimeGaps(fs)
+
 
     def __call__(self, t: NDArray[np.float64], row0: int) -> NDArray[np.float64]:
         if t.size > self.SLICE:  # bounded temporaries for a whole file read at once
@@ -2046,9 +2048,11 @@ class _TimeUnwrap:
             return t
         first = t[0] if self.prev is None else self.prev
         self.prev = float(t[-1])
-        if t[0] >= first and not np.less(t[1:], t[:-1]).any():  # no step back: one cheap pass
+        d = np.diff(t, prepend=first)
+        self.gaps.push(d, row0)
+        if not (d < 0).any():  # no step back
             return t if self.offset == 0.0 else t + self.offset
-        steps = np.flatnonzero(np.diff(t, prepend=first) < 0)
+        steps = np.flatnonzero(d < 0)
         add = np.full(t.shape, self.offset)
         dt = 1.0 / self.fs if self.fs else float(np.median(np.diff(t))) if t.size > 1 else 0.0
         for i in steps:
@@ -2073,15 +2077,67 @@ class _TimeUnwrap:
             out.append(
                 f"the time column {label} wraps around {len(self.wraps)} time(s) (a {w}-bit "
                 f"counter of 1 {unit}: every {2.0**w * self.unit_s:.6g} s; the first at data "
-                f"row {self.wraps[0][0]}): unwrapped, so times keep increasing")
+                f"row {self.wraps[0][0] + 1}): unwrapped, so times keep increasing")
         if self.back:
             r, j = self.back[0]
             out.append(
                 f"the time column {label} steps back {len(self.back)} time(s) (the first at "
-                f"data row {r}, by {j:.6g} s) by no counter width: a clock reset or joined "
+                f"data row {r + 1}, by {j:.6g} s) by no counter width: a clock reset or joined "
                 "files? The dwell times after it are on the new clock (the time and drift "
                 "tests of diagnose assume one clock)")
-        return out
+        return out + self.gaps.notes(label)
+
+
+class _TimeGaps:
+    """Intervals of a time column that skip samples: longer than ``FACTOR`` sample intervals
+    (``1 / fs``, the rate of the regular intervals), counted chunk by chunk.
+
+    A logger that stamps samples in bursts (several rows with one stamp or nearly, then a long
+    interval) has long intervals too, but nothing missing: its intervals shorter than
+    ``1 / FACTOR`` of a sample interval are as common as the long ones, and then no gap is
+    reported."""
+
+    FACTOR = 3.0
+
+    def __init__(self, fs: float | None) -> None:
+        self.dt = 1.0 / fs if fs else None
+        self.count = 0  # long intervals
+        self.short = 0  # intervals shorter than dt / FACTOR (bursts)
+        self.missing = 0.0  # samples the long intervals hold beyond one each
+        self.largest: tuple[float, int] | None = None  # (interval s, 0-based row after it)
+        self.n = 0  # intervals seen
+
+    def push(self, d: NDArray[np.float64], row0: int) -> None:
+        """Intervals ``d`` (s) before rows ``row0`` on (the first from the previous chunk's
+        last time; the column's first row has none)."""
+        if self.dt is None or d.size == 0:
+            return
+        d = d[1:] if row0 == 0 else d
+        off = 1 if row0 == 0 else 0
+        self.n += d.size
+        self.short += int(np.count_nonzero((d >= 0) & (d < self.dt / self.FACTOR)))
+        long = np.flatnonzero(d > self.FACTOR * self.dt)
+        if long.size == 0:
+            return
+        self.count += int(long.size)
+        self.missing += float(d[long].sum()) / self.dt - long.size
+        i = int(long[np.argmax(d[long])])
+        if self.largest is None or d[i] > self.largest[0]:
+            self.largest = (float(d[i]), row0 + off + i)
+
+    def notes(self, label: str) -> list[str]:
+        if self.largest is None or self.missing < 1.0 or self.short >= 0.5 * self.count:
+            return []  # none, or bursts of stamps rather than lost samples
+        big, row = self.largest
+        longest = f"{big * 1e3:.3g} ms" if big < 1 else f"{big:.4g} s"
+        return [
+            f"the time column {label} skips {self.count} time(s) by more than "
+            f"{self.FACTOR:g} sample intervals (the longest {longest}, between data rows "
+            f"{row} and {row + 1}; about {self.missing:.0f} samples, "
+            f"{self.missing / max(self.n + self.missing, 1.0):.1%} of the recording's span, "
+            "are missing in all): the logger lost samples. Dwell means and times stand; a "
+            "dwell holds fewer samples than its span, and the dwell detector, which counts "
+            "samples, sees a move lost in a gap as a jump"]
 
 
 class _Recording:
