@@ -226,7 +226,9 @@ def test_interrupted_apply_leaves_the_old_output(tmp_path: Path) -> None:
                    for i in range(200_000))
     good.write_text("t,ax,ay,az\n" + rows)
     bad = tmp_path / "bad.csv"
-    bad.write_text("t,ax,ay,az\n" + rows + "2000,1,2,three\n")
+    # 3000 rows that do not parse among 200 000 (1.5 %): found at the end of the pass, after
+    # output has been written.
+    bad.write_text("t,ax,ay,az\n" + rows + "2000,1,2,three\n" * 3000)
     for ext in ("csv", "npy", "npz", "h5"):
         out = tmp_path / f"out.{ext}"
         code, text = run("apply", str(cal), str(good), "-o", str(out), "--quiet")
@@ -234,6 +236,7 @@ def test_interrupted_apply_leaves_the_old_output(tmp_path: Path) -> None:
         before = out.read_bytes()
         code, text = run("apply", str(cal), str(bad), "-o", str(out), "--quiet")
         assert code == 2 and "line 200002" in text and "three" in text, text
+        assert "3000 of the 203000 data rows do not parse" in text, text
         assert out.read_bytes() == before, ext
     left = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert left == []
@@ -549,7 +552,7 @@ def test_a_session_mostly_in_motion_is_told_how_to_find_shorter_rests(tmp_path: 
     assert m and int(m.group(1)) < 25, out
     code, out = run("calibrate", "static", str(p), "--g", str(s.g), "--min-dwell", "0.4",
                     "--window", "0.2", "--json")
-    assert code == 0 and json.loads(out)["chi2_dof"] > 100, out  # the trade-off, measured
+    assert code == 0 and json.loads(out)["chi2_dof"] > 30, out  # the trade-off, measured
     # Too few dwells even for the bias + scale model: that hint is not given.
     q = write_csv(tmp_path / "two.csv", s.t[:1500], s.samples[:1500])
     code, out = run("calibrate", "static", str(q), "--g", str(s.g))

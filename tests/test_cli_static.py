@@ -127,3 +127,21 @@ def test_poses_figure_axes() -> None:
         assert "left side" in ax.get_ylabel()
     one = plots.poses_figure(ac.plan_poses(12, 30, rng=1))
     assert len(one.axes) == 1
+
+
+def test_gravity_from_latitude_is_not_refused_and_an_impossible_g_is(tmp_path: Path) -> None:
+    from accelcal.sim.field import field_session
+
+    g20 = ac.local_gravity(0.0, 20_000.0)  # 9.719 m/s^2, a balloon's: below the --g range
+    s = field_session(fs=100.0, n_dwells=14, dwell_s=10.0, move_s=3.0, max_tilt_deg=80,
+                      g=g20, sigma=2e-3, rng=3)
+    p = tmp_path / "balloon.csv"
+    np.savetxt(p, np.column_stack([s.t, s.samples]), delimiter=",", header="t,ax,ay,az",
+               comments="")
+    for cmd in ("calibrate static", "diagnose"):
+        code, out = run(*cmd.split(), str(p), "--lat", "0", "--height", "20000")
+        assert code == 0, out
+    code, out = run("calibrate", "static", str(p), "--g", "9.8895")
+    assert code != 0 and "not a plausible local gravity" in out and "--no-check-g" in out, out
+    code, out = run("calibrate", "static", str(p), "--g", "9.8895", "--no-check-g")
+    assert code == 0, out

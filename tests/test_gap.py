@@ -963,3 +963,47 @@ def test_a_calibration_checked_at_one_attitude_attributes_no_effect() -> None:
     r2 = diagnose(DwellSet(two, np.full((20, 3), 1e-4), np.full(20, 100)), g=9.80665, fit=m)
     assert not any("are one pose" in x for x in r2.statements)
     assert any(e["status"] in ("testable", "selected") for e in r2.effects)
+
+
+def test_a_calibration_checked_without_a_noise_model_is_tested_against_a_refit() -> None:
+    """A real ICM-20948 table of pose means (no per-pose noise) checked against its sibling
+    session's calibration read "chi2/dof = 1.00, G = 1.00 (1 = adequate)": with the noise
+    unknown, both are scaled to the checked calibration's own residuals, so they are 1
+    whatever the calibration. A refit of the session against the calibration's parameters
+    (a Wald test over both covariances) is the test that can fail."""
+    from accelcal import TriadModel
+    from accelcal.sim.static import static_dwell_means
+    from accelcal.static import fit_quietly
+
+    truth = np.array([1.02, 0.98, 1.01, 0.01, -0.02, 0.015, 0.002, -0.001, 0.003])
+    n_bad = 0
+    for seed in range(40):  # two sessions of the same sensor: it holds (5 % false alarms)
+        a = static_dwell_means(200, truth=truth, g=1.0, max_tilt_deg=None, sigma=3e-3,
+                               rng=1000 + seed)
+        cal = fit_quietly(a.means, 1.0).to_model()
+        b = static_dwell_means(150, truth=truth, g=1.0, max_tilt_deg=None, sigma=3e-3,
+                               rng=seed)
+        r = diagnose(DwellSet(b.means), g=1.0, fit=cal, loo=False)
+        c = r.calibration_check
+        assert c is not None and c["test"] == "F" and (c["dof"], c["dof2"]) == (9, 141)
+        n_bad += c["p_value"] < 0.05
+        if c["p_value"] > 0.05:
+            held = r.summary()
+    assert n_bad <= 5  # 2 expected; 5 or more happens once in 20 runs of 40
+    assert "p = n/a: 1 by construction" in held and "it holds on this session" in held
+    # bz moved by 3 mg (the real session's 3.6 mg): named first, and the check fails.
+    moved = truth.copy()
+    moved[5] += 4e-3
+    b = static_dwell_means(150, truth=moved, g=1.0, max_tilt_deg=None, sigma=3e-3, rng=40)
+    r = diagnose(DwellSet(b.means), g=1.0, fit=cal, loo=False)
+    c = r.calibration_check
+    assert c["p_value"] < 1e-6 and c["moved"][0]["name"] == "bz"
+    assert c["moved"][0]["delta"] == pytest.approx(4e-3, abs=1.2e-3)
+    assert "it does NOT hold on this session" in r.summary()
+    # With the noise known the statistic is chi2 on 9 parameters; a calibration without a
+    # covariance is taken as exact.
+    r = diagnose(DwellSet(mean=b.means, var=np.full_like(b.means, 9e-6), count=np.ones(150)), g=1.0,
+                 fit=TriadModel(cal.K, cal.bias, units="g", g=1.0), loo=False)
+    assert r.calibration_check["test"] == "chi2" and r.calibration_check["p_value"] < 1e-6
+    # Too few dwells to refit: no check (the chi2 of the fixed calibration stands alone).
+    assert diagnose(DwellSet(b.means[:8]), g=1.0, fit=cal, loo=False).calibration_check is None

@@ -859,13 +859,10 @@ def test_decimal_comma_files_match_pandas(tmp_path: Path) -> None:
     ("text", "words"),
     [
         ("ax,ay,az\n1,2,3\n4,5,6\n7,8\n", ["line 4", "2 fields where the data rows have 3"]),
-        ("Fs,100\nax;ay;az\n" + "1;2;3\n" * 400_000 + "4;5;6,5\n",
-         ["line 400003", '"6,5"', "decimal comma"]),
         ("t,ax,ay,az\n2024-01-01T00:00:00,1,2,3\n2024-01-01T00:00:01,1,2,3\nyesterday,1,2,3\n",
          ["line 4", '"yesterday"', "ISO-8601"]),
         ("2024-01-01 00:00:00 1 2 3\n2024-01-01 00:00:01 1 2 3\n",
          ["line 1", "date and a time separated by a space"]),
-        ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n", ["line 5002", '"oops"']),
         ("t,ax,ay,az,gx\n0,1,2,3,\n0.005,,,,1\n0.01,1,,3,\n",
          ["line 4", 'column "ay": is empty (missing value)']),
         ("timestamp,sensor,x,y,z\n0.00,MAG,0.1,0.2,9.8\n0.00,GYR,0.01,0.02,0.03\n",
@@ -881,6 +878,37 @@ def test_bad_rows_are_named_by_line(tmp_path: Path, text: str, words: list[str])
     assert msg.startswith(str(p))
     for w in words:
         assert w in msg, msg
+
+
+@pytest.mark.parametrize(
+    ("text", "rows", "words"),
+    [
+        ("Fs,100\nax;ay;az\n" + "1;2;3\n" * 400_000 + "4;5;6,5\n" + "1;2;3\n" * 10,
+         400_010, ["1 data row(s)", "line 400003", '"6,5"', "decimal comma"]),
+        ("ax,ay,az\n" + "1,2,3\n" * 5000 + "1,2,oops\n" + "1,2,3\n,-0.06\n" * 9,
+         5009, ["10 data row(s)", "line 5002", '"oops"']),
+        # A serial capture: lines cut short or run together.
+        ("t,ax,ay,az\n" + "".join(f"{i / 100},0.01,-0.02,1.01\n" + (
+            ",-0.06\n" if i % 500 == 7 else "1.03,-0.01,-0.05\n" if i % 500 == 300 else "")
+            for i in range(2000)), 2000, ["8 data row(s)", "line 10: 2 fields where the "
+                                          "data rows have 4"]),
+    ],
+)
+def test_a_few_rows_that_do_not_parse_are_left_out_and_named(
+        tmp_path: Path, text: str, rows: int, words: list[str]) -> None:
+    p = write(tmp_path, text)
+    st = read_stream(p, fs=100.0)  # the whole file in parallel chunks
+    streamed = ac.io._Recording(p, None, 100.0, None)  # in blocks, as dwell detection reads
+    n = sum(len(c[0]) for c in streamed.chunks(chunk_rows=1000))
+    for got, notes in ((len(st), st.notes), (n, streamed.notes())):
+        assert got == rows
+        note = [n for n in notes if "do not parse" in n]
+        assert len(note) == 1 and all(w in note[0] for w in words), notes
+    np.testing.assert_array_equal(np.unique(read_stream(p).samples, axis=0).shape, (1, 3))
+    # Eleven of 2000 and more than 1 %: the file's error.
+    bad = write(tmp_path, "ax,ay,az\n" + "1,2,3\n" * 1000 + "1,2\n" * 11, "bad.csv")
+    with pytest.raises(CalibrationError, match=r"line 1002: 2 fields .* \(11 of the 1011 data"):
+        read_stream(bad)
 
 
 def test_many_preamble_lines_do_not_hide_the_data(tmp_path: Path) -> None:
@@ -1141,8 +1169,10 @@ def test_rows_left_out_may_lack_a_time_and_kept_rows_may_not(tmp_path: Path) -> 
     s = read_stream(write(tmp_path, "t,ax,ay,az,gx,gy\n" + rows))
     assert len(s) == 500 and s.fs == pytest.approx(100.0)
     bad = write(tmp_path, "t,ax,ay,az,gx,gy\n" + rows + ",1,2,9.8,,\n", "bad.csv")
-    with pytest.raises(CalibrationError, match='line 1002: column "t": is empty'):
-        read_stream(bad)
+    st = read_stream(bad)  # a kept row without its time does not parse: left out, and said
+    assert len(st) == 500 and any(
+        '1 data row(s) that do not parse were left out (the first, line 1002: column "t": is '
+        "empty (missing value)): the file's last line" in n for n in st.notes), st.notes
 
 
 def _wrapping_log(tmp_path: Path, unit: str, width: int, at_s: float) -> tuple[Path, Any]:
@@ -1363,10 +1393,13 @@ def test_the_comment_filter_hands_out_pieces_of_the_uncommented_text() -> None:
 def test_a_repeated_header_says_files_were_joined(tmp_path: Path) -> None:
     part = "".join(f"{i / 100:.2f},{i % 3},{i % 5},9.8\n" for i in range(500))
     p = write(tmp_path, "t,ax,ay,az\n" + part + "t,ax,ay,az\n" + part)
-    for read in (read_stream, lambda q: stream_dwells(q)):
-        with pytest.raises(CalibrationError, match=r'line 502: column "t": "t" is not a number; '
-                           r"the line repeats the header: files joined"):
-            read(p)
+    st = read_stream(p)  # the header line is left out, and what it means is said
+    assert len(st) == 1000
+    assert any('(the first, line 502: column "t": "t" is not a number): the line repeats the '
+               "header: files joined one after the other?" in n for n in st.notes), st.notes
+    assert any("steps back 1 time(s)" in n for n in st.notes)
+    _, rec = ac.io._stream_dwells(p, window_s=0.5, min_dwell_s=0.5)
+    assert any("files joined" in n for n in rec.notes())
 
 
 @pytest.mark.parametrize("kind", ["gzip", "bz2", "xz"])
@@ -1761,18 +1794,30 @@ def test_a_serial_capture_preamble_is_skipped_with_a_note(tmp_path: Path) -> Non
 
 def test_text_on_the_last_line_is_named_as_a_trailer(tmp_path: Path) -> None:
     """A serial capture that ends with the logger's closing message ('Done. rms Acc =
-    16384.66, ...'): the error names the line and says it is the file's last, with the
-    command that deletes it; text in the middle of the data gets no such hint."""
+    16384.66, ...'): the row is left out, and the note names the line and says it is the
+    file's last; a line cut off at the file's end is said as such; text in the middle of the
+    data gets neither hint. Text on the last line of a file that does not read otherwise
+    (more rows that do not parse) gets the command that deletes it."""
+    from accelcal.io import _trailer_hint
+
     rows = "".join(f"{i * 0.1:.1f},0.01,0.02,9.8\n" for i in range(40))
     p = write(tmp_path, "t,ax,ay,az\n" + rows + "Done. rms Acc = 1.0, rms Mag = 2.0\n\n")
-    with pytest.raises(CalibrationError, match=r"line 42: .*is not a number; it is the file's "
-                       r"last line, text after the data .*sed '42d' FILE > data.csv"):
-        read_stream(p)
+
+    def note(path: Path) -> str:
+        st = read_stream(path)
+        assert len(st) == 40
+        return next(n for n in st.notes if "do not parse" in n)
+
+    assert "(the first, line 42: " in note(p) and note(p).endswith(
+        "the file's last line: text after the data (a logger's closing message)?")
+    cut = write(tmp_path, "t,ax,ay,az\n" + rows + "4.0,0.01,0.", name="cut.csv")
+    assert "the file's last line, cut off (no line end)" in note(cut)
     q = write(tmp_path, "t,ax,ay,az\n" + rows + "pause\n" + rows.replace("0.01", "0.02"),
               name="mid.csv")
-    with pytest.raises(CalibrationError, match=r"line 42: .*is not a number") as e:
-        read_stream(q)
-    assert "last line" not in str(e.value)
+    st = read_stream(q)
+    assert len(st) == 80 and not any("last line" in n for n in st.notes)
+    assert _trailer_hint(str(p), "line 42: column \"t\": \"Done. rms Acc\" is not a number") \
+        .endswith("sed '42d' FILE > data.csv)")
 
 
 @pytest.mark.parametrize(("name", "scale"), [("ustime", 1e-6), ("ms_time", 1e-3),
@@ -1827,3 +1872,15 @@ def test_a_time_column_without_lost_samples_gives_no_gap_note(tmp_path: Path,
     st = read_stream(_stamped_log(tmp_path, t, f"{kind}.csv"))
     assert st.fs == pytest.approx(100.0, rel=1e-2)
     assert not any("skips" in n for n in st.notes), st.notes
+
+
+def test_a_stray_first_line_of_a_serial_capture_is_skipped(tmp_path: Path) -> None:
+    rows = "".join(f"{61153 + 52 * i},0.05,1.00,-0.04\n" for i in range(300))
+    for head in ("04\n", "1.00,-0.04\n", "t_ms,ax,ay,az\n04\n"):
+        st = read_stream(write(tmp_path, head + rows), time_column="0 [ms]")
+        assert len(st) == 300 and st.fs == pytest.approx(1000 / 52)
+        assert any("split unlike the rows after them (4 fields): a logger's leftovers, "
+                   "skipped" in n for n in st.notes), st.notes
+    # A first line like the rest is data, whatever follows it.
+    st = read_stream(write(tmp_path, rows), time_column="0 [ms]")
+    assert len(st) == 300 and not any("leftovers" in n for n in st.notes)

@@ -256,6 +256,16 @@ def test_bad_input_gives_clear_errors():
     with pytest.raises(CalibrationError, match="plausible.*check_g=False"):
         ac.fit_static(s.means, 5.0)
     assert ac.fit_static(s.means * 5.0 / G0, 5.0, check_g=False).converged
+    # Earth's gravity spans 9.78-9.83 m/s^2 at sea level: a 9.8895 (a phone's, published
+    # with a six-position session) would bias every scale by 0.8 %, and is refused, in every
+    # unit, by fit_static and diagnose alike; the sea-level extremes and 10 km are not.
+    for g in (9.8895, 9.70, 9.86, 0.992, 1.005, 986.0, 973.0):
+        for call in (lambda g=g: ac.fit_static(s.means, g),
+                     lambda g=g: ac.diagnose(s.means, g=g)):
+            with pytest.raises(CalibrationError, match=r"not a plausible.*9\.78-9\.83"):
+                call()
+    for g in (9.78, 9.8322, ac.local_gravity(0.0, 10_000.0), 1.0, 0.9975, 978.0):
+        assert ac.fit_static(s.means * g / G0, g).converged
     with pytest.raises(CalibrationError, match="model"):
         ac.fit_static(s.means, G0, model="full")
     with pytest.raises(CalibrationError, match="method"):
@@ -746,6 +756,33 @@ def test_off_norm_dwells_names_rows_recorded_while_moving(tmp_path: pathlib.Path
     np.testing.assert_allclose(js["vector"], _MODEST, atol=5e-3)
 
 
+def test_off_norm_rows_of_an_uncalibrated_sensor_are_found_by_its_calibrated_norms() -> None:
+    """A real ICM-20948 table (1113 pose means in g): its raw norms spread over 0.94-1.06 g
+    from pose to pose (scale errors), so two rows read while moving, at 0.90 and 0.92 g, did
+    not stand out among them and were fitted; its sibling session's were left out. Under a
+    bias + scale calibration of all the rows they stand 15 std out, and are now named."""
+    from accelcal.sim.static import static_dwell_means
+    from accelcal.static import off_norm_dwells
+
+    truth = [1.06, 0.95, 1.0, 0.01, -0.02, 0.015, 0.0, 0.0, 0.0]
+    s = static_dwell_means(300, truth=truth, g=1.0, max_tilt_deg=None, sigma=3e-3, rng=21)
+    r = np.linalg.norm(s.means, axis=1)
+    assert np.ptp(r) > 0.1  # the raw norms spread 10 %
+    m = s.means.copy()
+    moved = [40, 222]
+    m[moved] *= 0.92 / r[moved][:, None]  # read at 0.92 g, within the raw spread
+    off = off_norm_dwells(m, 1.0)
+    assert off is not None and list(off.index) == moved and not off.raw_far
+    assert off.text(1.0).startswith(
+        "2 of 300 dwells (#40, 222) cannot be at rest: the bias + scale calibration of the "
+        "others leaves them")
+    assert off_norm_dwells(s.means, 1.0) is None  # clean: none
+    # Rows 1.5 % off (5 std of this noise) are a tail, not motion: not named.
+    tail = s.means.copy()
+    tail[moved] *= 0.985
+    assert off_norm_dwells(tail, 1.0) is None
+
+
 def test_the_refusal_names_rows_that_cannot_be_at_rest_first() -> None:
     from accelcal.sim.static import static_dwell_means
 
@@ -825,3 +862,15 @@ def test_repeated_poses_say_how_many_degrees_of_freedom_test_the_model() -> None
     r = static_dwell_means(30, max_tilt_deg=None, rng=2)
     fr = ac.fit_static(r.means, r.g_measured)
     assert fr.distinct_poses == 30 and "distinct poses" not in fr.summary()
+
+
+def test_a_degenerate_diag_fit_does_not_advise_the_diag_model() -> None:
+    # A real MPU-6050 session's dwell means, in g (+x, +y, -z three times, -x: 4 poses for 6
+    # parameters): the refusal names the combination, and "or fit model diag" only where
+    # the model is not diag already.
+    m = np.array([[1.0266, -0.0096, -0.0521], [0.0346, 0.9983, -0.038],
+                  [0.0254, -0.0199, -1.0528], [0.025, -0.0204, -1.0516],
+                  [-0.976, -0.0085, -0.018], [0.005, -0.016, -1.055]])
+    with pytest.raises(DegenerateDataError, match=r"cannot determine sz \+ bz/g") as e:
+        ac.fit_static(m, 1.0, model="diag", sigma=1e-3)
+    assert 'model "diag"' in str(e.value) and 'or fit model "diag"' not in str(e.value)

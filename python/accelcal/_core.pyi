@@ -1084,6 +1084,9 @@ def static_design_rows(
 def static_model_violation(k: list[list[float]], model: _StaticModel) -> tuple[int, int] | None:
     """K entries outside the model's pattern that are not zero."""
 
+def gravity_problem(g: float) -> str | None:
+    """Why ``g`` cannot be a local gravity in m/s^2, units of g or cm/s^2 (None if it can)."""
+
 def apply_triad_raw(
     samples: NDArray[Any], k: list[list[float]], b: list[float]
 ) -> NDArray[np.float64]:
@@ -1093,14 +1096,19 @@ def apply_triad_raw(
 # ---- text reader ----------------------------------------------------------------------------
 #: One output group: (column index, scale, is ISO-8601 time) per column.
 _Groups = list[list[tuple[int, float, bool]]]
+#: Rows left out because they did not parse: (count, line of the first, its fault), or None.
+_BadRows = tuple[int, int, str] | None
 
 @final
 class TextBlocks:
     """Blocks of a text recording, read and parsed ahead on a background thread.
 
-    Iterating yields ``(arrays, rows, bytes, repeats, skipped)`` per block in file order,
+    Iterating yields ``(arrays, rows, bytes, repeats, skipped, bad)`` per block in file order,
     ``arrays`` holding one float64 array per column group ((m, k), or (m,) for one column);
-    ``skipped`` counts rows left out by ``skip_empty_rows`` (their first group all empty).
+    ``skipped`` counts rows left out by ``skip_empty_rows`` (their first group all empty);
+    ``bad`` is ``(count, line, message)`` of the rows left out because they did not parse
+    (the first one's line and fault), or None. More than 10 of those that are also more than
+    1 % of the rows make the read fail at the end.
     """
 
     def __new__(
@@ -1123,7 +1131,9 @@ class TextBlocks:
         skip_empty_rows: bool = False,
     ) -> TextBlocks: ...
     def __iter__(self) -> TextBlocks: ...
-    def __next__(self) -> tuple[list[NDArray[np.float64]], int, int, int, int]: ...
+    def __next__(
+        self,
+    ) -> tuple[list[NDArray[np.float64]], int, int, int, int, _BadRows]: ...
 
 def text_read_all(
     path: str | None,
@@ -1144,11 +1154,12 @@ def text_read_all(
     progress: Callable[[int, int], object] | None = None,
     sparse_groups: list[int] = ...,
     skip_empty_rows: bool = False,
-) -> tuple[list[NDArray[np.float64]], int, int, int, int]:
+) -> tuple[list[NDArray[np.float64]], int, int, int, int, _BadRows]:
     """Read a whole text recording into one array per column group: (arrays, rows, bytes,
-    repeats, skipped). A regular file is memory-mapped and parsed in parallel chunks straight
-    into the arrays; any other source is read in blocks into arrays presized for ``rows_hint``
-    rows (an estimate: they grow past it). ``progress(rows, bytes)`` is called about every
+    repeats, skipped, bad) (``bad`` as for :class:`TextBlocks`). A regular file is
+    memory-mapped and parsed in parallel chunks straight into the arrays; any other source is
+    read in blocks into arrays presized for ``rows_hint`` rows (an estimate: they grow past
+    it). ``progress(rows, bytes)`` is called about every
     0.1 s and may raise to stop."""
 
 def text_parse_head(
@@ -1193,6 +1204,7 @@ __all__ = [
     "dwell_output_faults",
     "dwell_stats_raw",
     "dwell_step_log",
+    "gravity_problem",
     "StepLog",
     "OutputFault",
     "RawDwellAccumulator",

@@ -13,6 +13,7 @@ Needs the ``fleet`` extra (pandas, pyarrow for Parquet, Dask for clusters):
 
 from __future__ import annotations
 
+import collections
 import glob as _glob
 import io as _io
 import itertools
@@ -67,12 +68,12 @@ COLUMN_UNITS: dict[str, str] = {
 _PY_NAMES = {
     "g": "g= (m/s^2)", "latlon": "lat=/height=", "fs": "fs= (Hz)", "sources": "sources",
     "model": "model=", "method": "method=", "workers": "workers=", "client": "client=",
-    "out": "out=", "summary": "summary=",
+    "out": "out=", "summary": "summary=", "means": "means=True",
 }
 _CLI_NAMES = {
     "g": "--g (m/s^2)", "latlon": "--lat/--height", "fs": "--fs (Hz)", "sources": "FILE ...",
     "model": "--model", "method": "--method", "workers": "--workers", "client": "--scheduler",
-    "out": "--out", "summary": "--summary",
+    "out": "--out", "summary": "--summary", "means": "--means",
 }
 
 
@@ -103,6 +104,7 @@ class _Job:
     extra: dict[str, Any] = field(default_factory=dict)
     check_g: bool = True
     bounds: str | None = None  # a file of known dwells (absolute), else detection
+    means: bool = False  # every recording is a table of dwell means, one pose per row
 
 
 _INT_COLUMNS = ("n_dwells", "n_samples", "dropped_rows", "dof", "iterations")
@@ -179,6 +181,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     if st.sections is not None or rests is not None:
         # An annotated session's labelled sections, or a log of rests' runs: the dwells.
         poses = False
+    elif job.means:
+        poses = True
     elif st.fs is None or slow:
 
         poses = job.bounds is None and looks_like_poses(np.asarray(st.samples, np.float64))
@@ -186,6 +190,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
             row["message"] = (
                 f"the sample rate is not in the file (no fs metadata or time column): give "
                 f"{names['fs']}" + ("" if job.cli else " or an fs column in the manifest")
+                + f"; or, if each row is a pose's mean (a table of dwell means), {names['means']}"
             )
             return None
     else:
@@ -196,8 +201,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         d, rec = _aio._stream_dwells(job.read_path, columns=job.columns, means=True)
         why = "unknown" if st.fs is None else f"{st.fs:.4g} Hz, too low for samples"
         fault_note = [x for x in rec.notes() if not x.startswith("read as a table of dwell")]
-        fault_note.append(f"read as a table of dwell means, one pose per row ({n} rows: the "
-                          f"rate is {why}, and the rows step from attitude to attitude)")
+        fault_note.append(
+            f"read as a table of dwell means, one pose per row ({n} rows" + (
+                ": as asked)" if job.means else
+                f": the rate is {why}, and the rows step from attitude to attitude)"))
     elif rests is not None:
         d, note = rests
         fault_note.append(note)
@@ -460,10 +467,32 @@ def _safe_name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", s).strip("._") or "sensor"
 
 
+def _distinct_ids(jobs: list[_Job], given: list[bool]) -> list[_Job]:
+    """Sensor ids taken from file stems that collide (``a/acceldata.txt`` and
+    ``b/acceldata.txt``) get their folder's name in front (``a_acceldata``), then a number if
+    they still collide; ids a manifest gives are kept as they are."""
+    from dataclasses import replace as _replace
+
+    stems = collections.Counter(j.sensor_id for j, g in zip(jobs, given, strict=True) if not g)
+    out, seen = [], set()
+    for j, g in zip(jobs, given, strict=True):
+        sid = j.sensor_id
+        if not g and stems[sid] > 1:
+            sid = f"{Path(j.path).parent.name or 'root'}_{sid}"
+            base, k = sid, 2
+            while sid in seen:
+                sid, k = f"{base}-{k}", k + 1
+            j = _replace(j, sensor_id=sid)
+        seen.add(sid)
+        out.append(j)
+    return out
+
+
 def _make_jobs(
     rows: list[dict[str, Any]], base: Path, *, g: float | None, lat: float | None,
     height: float | None, fs: float | None, columns: Any, time_column: Any, model: str,
     method: str, detector: dict[str, Any], diagnose: bool, cli: bool, check_g: bool = True,
+    means: bool = False,
 ) -> list[_Job]:
     from .static import local_gravity
 
@@ -509,8 +538,10 @@ def _make_jobs(
             model=model, method=method,
             detector=detector, diagnose=diagnose,
             date=None if _missing(date) else str(date), cli=cli, extra=extra,
-            check_g=check_g, bounds=bounds,
+            check_g=check_g and not src.startswith("WGS84"),  # local gravity by construction
+            bounds=bounds, means=means,
         ))
+    jobs = _distinct_ids(jobs, [not _missing(r.get("sensor_id")) for r in rows])
     if all(j.g is None for j in jobs):
         raise CalibrationError(
             f"give the reference gravity: {names['g']} or {names['latlon']}"
@@ -795,6 +826,7 @@ def calibrate_many(
     summary: str | os.PathLike[str] | None = None,
     progress: bool | None = None,
     check_g: bool = True,
+    means: bool = False,
     _cli: bool = False,
 ) -> Any:
     """Calibrate many static-session recordings; one row per recording.
@@ -837,8 +869,11 @@ def calibrate_many(
         suffix), written atomically.
     progress : progress bar over recordings on stderr: True, False, or None (only when stderr
         is a terminal).
-    check_g : refuse a reference gravity outside 9.76-9.84 m/s^2 (default), as
+    check_g : refuse a reference gravity outside 9.74-9.85 m/s^2 (default), as
         :func:`~accelcal.fit_static` does; False for a centrifuge or another planet.
+    means : every recording is a table of dwell means, one pose per row (as ``--means`` for
+        one file); without it such a table is recognised only when its rate is unknown and
+        its rows step from attitude to attitude.
 
     Returns
     -------
@@ -890,7 +925,7 @@ def calibrate_many(
     rows, base = _sources_table(sources, names)
     jobs = _make_jobs(rows, base, g=g, lat=lat, height=height, fs=fs, columns=columns,
                       time_column=time_column, model=model, method=method, detector=det,
-                      diagnose=diagnose, cli=_cli, check_g=check_g)
+                      diagnose=diagnose, cli=_cli, check_g=check_g, means=means)
     if summary is None and out is not None:
         summary = Path(out) / "fleet.parquet"
     if summary is not None:

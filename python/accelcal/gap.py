@@ -478,6 +478,14 @@ class GapReport:
     noise_curves : for the Allan panel of :meth:`plot` (tau, adev per axis of the
         within-dwell samples, dwell length, per-axis std of the dwell means under each noise
         model, input units); empty when not available.
+    calibration_check : with a calibration held fixed (``fit=`` a TriadModel), the test of
+        whether it still holds on this session: the session refitted (same model) against
+        the calibration's parameters, a Wald statistic over both covariances (``statistic``,
+        chi2 on ``dof`` with a known noise model, else ``f`` on ``dof``, ``dof2``),
+        ``p_value``, ``moved`` (the parameters furthest apart: name, difference, its std, in
+        relative units for scales and misalignments, ``units`` for biases) and the residual
+        RMS with the calibration and refitted (``rms_fixed``, ``rms_refit``, ``units``). None
+        without a fixed calibration, or when this session cannot determine the model.
     """
 
     n: int
@@ -510,6 +518,7 @@ class GapReport:
     system: str = "static"
     units: str = "m/s^2"
     noise_curves: dict[str, Any] = field(default_factory=dict)
+    calibration_check: dict[str, Any] | None = None
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
 
     @property
@@ -892,13 +901,44 @@ def _structure_text(s: GapStructure) -> str:
     return txt
 
 
+def _calibration_check_text(c: dict[str, Any]) -> str:
+    """The calibration check of a held-fixed calibration, in words."""
+    stat = (f"chi2 = {c['statistic']:.3g} on {c['dof']} parameters" if c["test"] == "chi2"
+            else f"F({c['dof']}, {c['dof2']}) = {c['statistic']:.3g}")
+    unit = c["units"]
+
+    def amount(m: dict[str, Any]) -> str:
+        if m["relative"]:
+            return f"{m['name']} {m['delta']:+.2e} ({abs(m['delta']) / m['std']:.1f} std)"
+        return (f"{m['name']} {_mag(m['delta'], unit)} "
+                f"({abs(m['delta']) / m['std']:.1f} std)")
+
+    rms = (f"; residual RMS {_mag(c['rms_fixed'], unit)} with the calibration, "
+           f"{_mag(c['rms_refit'], unit)} refitted")
+    if c["p_value"] < 0.05:
+        return ("Calibration check: it does NOT hold on this session - a refit of the "
+                f"{c['n']} dwells differs from it beyond both their uncertainties ({stat}, "
+                f"p = {_fmt_p(c['p_value'])}): " + ", ".join(amount(m) for m in c["moved"])
+                + f" (scales and misalignments relative, biases in {unit}){rms}")
+    return (f"Calibration check: it holds on this session - a refit of the {c['n']} dwells "
+            f"agrees with it within both their uncertainties ({stat}, "
+            f"p = {_fmt_p(c['p_value'])}){rms}")
+
+
 def _summary(r: GapReport) -> str:
     L = []
     p = "n/a (noise unknown)" if not math.isfinite(r.p_value) else f"{r.p_value:.2g}"
     held = (f"{r.held_out_gap:.2f} (1 = adequate)" if math.isfinite(r.held_out_gap)
             else "n/a (not computed)")
+    if r.calibration_check is not None and not math.isfinite(r.p_value):
+        # A fixed calibration and no noise model: the noise is scaled to its residuals.
+        p = "n/a: 1 by construction, the unknown noise scaled to these residuals"
+        if math.isfinite(r.held_out_gap):
+            held = f"{r.held_out_gap:.2f} (1 by construction too)"
     L.append(f"Gap: chi2/dof = {r.chi2_per_dof:.2f} ({r.chi2:.1f} on {r.dof} dof, p = {p}); "
              f"held-out gap G = {held}")
+    if r.calibration_check is not None:
+        L.append(_calibration_check_text(r.calibration_check))
     L.append(f"Noise model: {r.noise_model}")
     w = r.where
     fl = w.get("flagged", [])
@@ -1039,14 +1079,10 @@ def _determined(d: DwellSet, g: float) -> None:
     """Refuse a session whose dwells cannot determine the 9-parameter calibration the
     diagnosis fits (six faces only, say), as the fit itself refuses it: residuals and pose
     directions from an undetermined calibration would be arbitrary."""
-    import warnings
-
-    from .static import distinct_poses, fit_static
+    from .static import distinct_poses, fit_quietly
 
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # a weak design is the report's to word
-            fit_static(d, g, check_g=False)
+        fit_quietly(d, g)  # a weak design is the report's to word
     except DegenerateDataError as e:
         what = re.split(r"[.;] [Aa]dd poses", str(e))[0]
         m = np.ascontiguousarray(d.mean, dtype=np.float64)
@@ -1287,13 +1323,9 @@ def _noise_curves(samples: NDArray[Any] | None, d: DwellSet, fs: float | None,
 def _gravity(g: Any, check: bool) -> float:
     """The reference gravity, refused when it cannot be Earth's in m/s^2, g or cm/s^2."""
     g_v = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
-    if check and not (9.7 <= g_v <= 9.9 or 0.99 <= g_v <= 1.01 or 970.0 <= g_v <= 990.0):
-        raise CalibrationError(
-            f"g = {g_v!r} is not a plausible local gravity: Earth's is 9.78-9.84 m/s^2 "
-            "(0.997-1.003 in units of g, 978-983 cm/s^2). Give g in the units the calibrated "
-            "output should have, or turn this check off (check_g=False) for a deliberate other "
-            "value"
-        )
+    why = _core.gravity_problem(g_v) if check else None
+    if why is not None:
+        raise CalibrationError(why)
     return g_v
 
 
@@ -1493,7 +1525,79 @@ def diagnose(
         if math.isfinite(c2):
             rep = replace(rep, chi2=c2, chi2_per_dof=c2 / rep.dof,
                           p_value=float(chi2_dist.sf(c2, rep.dof)))
+    if cal is not None and cal[2]:
+        check = _refit_check(fit, cal, mean, var0, g_v, unit)
+        if check is not None:
+            rms = float(np.sqrt(np.mean(np.square(np.asarray(raw.resid, dtype=np.float64)))))
+            rep = replace(rep, calibration_check={**check, "rms_fixed": rms})
     return rep
+
+
+def _cal_vector(K: Any, b: Any, model: str) -> NDArray[np.float64]:
+    """The parameter vector of ``K``, ``b`` in the paper's order (the first 6 for diag)."""
+    k = np.asarray(K, dtype=np.float64)
+    m = {"lower": (k[1, 0], k[2, 0], k[2, 1]), "upper": (k[0, 1], k[0, 2], k[1, 2])}
+    v = [k[0, 0], k[1, 1], k[2, 2], *np.asarray(b, dtype=np.float64)]
+    return np.asarray(v + list(m.get(model, ())), dtype=np.float64)
+
+
+def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float64],
+                 var: NDArray[np.float64] | None, g: float, unit: str) -> dict[str, Any] | None:
+    """Whether the held-fixed calibration ``model`` (a TriadModel; ``cal`` its K, b in the
+    session's units of g) still holds on the dwell means ``mean``: the session refitted with
+    the same model, and the difference of the parameter vectors against the sum of both
+    covariances (independent sessions), a Wald statistic: chi2 on p parameters when the
+    refit's noise model is known and its chi2 agrees with it, else F(p, dof) (its covariance
+    scaled by the residuals).
+    None when the session cannot determine the model (too few dwells, or a refusal)."""
+    from scipy.stats import chi2 as chi2_dist
+    from scipy.stats import f as f_dist
+
+    from .static import fit_quietly
+
+    try:
+        refit = fit_quietly(mean, g, model=model.model,
+                            **({} if var is None else {"sigma": np.sqrt(var)}))
+    except CalibrationError:
+        return None
+    p = len(refit.names)
+    if refit.degenerate or refit.dof < 1:
+        return None
+    theta = _cal_vector(cal[0], cal[1], model.model)[:p]
+    diff = np.asarray(refit.vector, dtype=np.float64) - theta
+    # The noise model when the refit agrees with it (chi2 upper tail p >= 0.05), else the
+    # covariance scaled by the residuals (and an F test).
+    known = bool(refit.noise_known and refit.chi2_p >= 0.05)
+    c_fit = np.asarray(refit.covariance_noise_model if known else refit.covariance_scaled,
+                       dtype=np.float64)
+    c_cal = np.zeros((p, p))
+    if model.covariance is not None:
+        c_cal = np.asarray(model.covariance, dtype=np.float64)[:p, :p]
+        if model.units == "g" and g != 1.0:  # K per g -> per the session's unit, as in cal
+            d = np.ones(p)
+            d[[i for i in (0, 1, 2, 6, 7, 8) if i < p]] = 1.0 / g
+            c_cal = c_cal * np.outer(d, d)
+    cov = c_fit + c_cal
+    w = float(diff @ np.linalg.lstsq(cov, diff, rcond=1e-12)[0])
+    if known:
+        pv, stat = float(chi2_dist.sf(w, p)), {"test": "chi2", "statistic": w, "dof": p,
+                                             "dof2": None}
+    else:
+        pv, stat = float(f_dist.sf(w / p, p, refit.dof)), {
+            "test": "F", "statistic": w / p, "dof": p, "dof2": int(refit.dof)}
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    scale = np.asarray(theta[:3], dtype=np.float64)
+    moved = []
+    for i in np.argsort(-np.abs(diff) / np.maximum(sd, 1e-300))[:3]:
+        name = refit.names[i]
+        # Scales and misalignments relative to the scale; biases in the units of g.
+        div = scale[i] if i < 3 else scale[i - 3] if i < 6 else float(np.mean(np.abs(scale)))
+        rel = i < 3 or i >= 6
+        moved.append({"name": name, "delta": float(diff[i] / div),
+                      "std": float(sd[i] / abs(div)), "unit": "" if rel else unit,
+                      "relative": rel})
+    return {**stat, "p_value": pv, "moved": moved, "rms_refit": float(refit.rms),
+            "units": unit, "n": len(mean)}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -47,7 +47,9 @@ Layout rules for text files
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import math
 import os
 import re
@@ -1022,6 +1024,10 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
             f"{path}: no numeric data rows found (the last line is {last[:60]!r}); numbers, "
             "decimal-comma numbers and ISO-8601 times are read" + hint
         )
+    stray = _stray_first_rows(src, first, fmt)
+    if stray is not None:
+        first, fmt, note = stray
+        lines = list(itertools.islice(_head_lines(src), first + 1))
     delim, ncols = fmt.delim, len(fmt.fields)
     offset, first_line = lines[first][0], first + 1
     decimal_comma = delim != "," and b"," in src.head[offset:]
@@ -1032,7 +1038,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         t0_text = fmt.fields[j]
         t0 = _core.parse_iso8601(t0_text)
     names: tuple[str, ...] | None = None
-    pre_notes: list[str] = []
+    pre_notes: list[str] = [] if stray is None else [note]
     if header is not None:
         hf = _split(header, delim)
         if header_units is not None and len(header_units) == len(hf):
@@ -1105,6 +1111,44 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
                 f"{path}: column {_label(lay, j)} holds dates and times, not numbers"
             )
     return lay
+
+
+#: Data lines after the first that decide whether it is a stray row (:func:`_stray_first_rows`).
+_STRAY_LOOKAHEAD = 40
+
+
+def _stray_first_rows(src: _TextSource, first: int, fmt: _RowFormat
+                      ) -> tuple[int, _RowFormat, str] | None:
+    """When the head's first data lines split into fewer or more fields than the rows after
+    them (a serial capture that starts mid-line: ``04`` before rows of 4 fields), the line of
+    the first row like the others, its format and the note that says what was skipped; None
+    when the first data line is like the rest."""
+    rows: list[tuple[int, str, _RowFormat]] = []
+    for i, (_, line) in enumerate(_head_lines(src)):
+        if i < first:
+            continue
+        s = line.strip()
+        if not s or s.startswith(("#", "%", "//")):
+            continue
+        f = _data_row(line.strip(" \r\n") if "\t" in line else s)
+        if f is None:
+            continue
+        rows.append((i, s, f))
+        if len(rows) > _STRAY_LOOKAHEAD:
+            break
+    shapes = collections.Counter((f.delim, len(f.fields)) for _, _, f in rows[1:])
+    if len(rows) < 5 or not shapes:
+        return None
+    (delim, n), votes = shapes.most_common(1)[0]
+    if (fmt.delim, len(fmt.fields)) == (delim, n) or votes < 0.75 * (len(rows) - 1):
+        return None
+    k = next(j for j, (_, _, f) in enumerate(rows) if (f.delim, len(f.fields)) == (delim, n))
+    i0, s0, f0 = rows[0]
+    words = "field" if len(f0.fields) == 1 else "fields"
+    note = (f"the first {k} data line(s) (line {i0 + 1}: {s0[:30]!r}, {len(f0.fields)} "
+            f"{words}) split unlike the rows after them ({n} fields): a logger's leftovers, "
+            "skipped")
+    return rows[k][0], rows[k][2], note
 
 
 def _label_of(names: tuple[str, ...] | None, j: int) -> str:
@@ -1944,23 +1988,22 @@ def _bad_row_hint(path: str, msg: str) -> str:
     return _repeated_header_hint(msg) or _trailer_hint(path, msg)
 
 
-def _trailer_hint(path: str, msg: str) -> str:
-    """For a field that is not a number on the file's last non-empty line: a trailer."""
-    m = re.match(r"line (\d+): .* is not a number", msg)
-    if not m or not os.path.isfile(path):
-        return ""
+def _last_line(path: str) -> tuple[int, bool] | None:
+    """The number of the file's last non-blank line (as the reader numbers lines: a last line
+    without its newline counts) and whether the file ends in a newline; None for what is not
+    a regular file, or is too big for a second pass (over 1 GB)."""
+    if not os.path.isfile(path):
+        return None
     try:
         if os.path.getsize(path) > 1 << 30:
-            return ""  # a second pass over a file this big is not worth a hint
+            return None  # a second pass over a file this big is not worth a hint
         newlines, tail = 0, b""
         with open(path, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 24), b""):
                 newlines += block.count(b"\n")
                 tail = (tail + block)[-65536:]
     except OSError:
-        return ""
-    # Lines as the reader numbers them (a last line without its newline counts), less the
-    # blank lines at the end.
+        return None
     lines = tail.split(b"\n")
     total = newlines + (1 if lines[-1] else 0)
     blank = 0
@@ -1968,10 +2011,31 @@ def _trailer_hint(path: str, msg: str) -> str:
         if ln.strip():
             break
         blank += 1
-    if total - blank != int(m.group(1)):
+    return total - blank, tail.endswith(b"\n")
+
+
+def _trailer_hint(path: str, msg: str) -> str:
+    """For a field that is not a number on the file's last non-empty line: a trailer."""
+    m = re.match(r"line (\d+): .* is not a number", msg)
+    last = _last_line(path) if m else None
+    if m is None or last is None or last[0] != int(m.group(1)):
         return ""
     return ("; it is the file's last line, text after the data (a logger's closing message): "
             f"delete it (e.g. sed '{m.group(1)}d' FILE > data.csv)")
+
+
+def _left_out_hint(path: str, line: int, what: str) -> str:
+    """What a left-out row that did not parse likely is: the header again (files joined),
+    the file's last line cut off, or text after the data."""
+    if _repeated_header_hint(f"line {line}: {what}"):
+        return "the line repeats the header: files joined one after the other?"
+    last = _last_line(path)
+    if last is None or last[0] != line:
+        return "lines cut short or run together, as a serial capture drops them"
+    if not last[1]:
+        return ("the file's last line, cut off (no line end): a file whose writing or copying "
+                "stopped? The rows before it are read")
+    return "the file's last line: text after the data (a logger's closing message)?"
 
 
 def _repeated_header_hint(msg: str) -> str:
@@ -2211,6 +2275,8 @@ class _Recording:
         self.bytes = 0
         self.pose_table = False  # read as a table of dwell means (one row per pose)
         self.skipped = 0  # rows whose accelerometer fields are all empty (merged logs)
+        self.bad = 0  # rows that did not parse, left out (a serial capture's broken lines)
+        self.first_bad: tuple[int, str] | None = None  # (line, what was wrong)
         self._temp_last: float | None = None  # the sparse temperature's last value
         self._temp_held = 0  # its empty fields filled
         self._last: NDArray[Any] | None = None
@@ -2290,6 +2356,14 @@ class _Recording:
         return max(int((self.text.size - self.lay.offset) / self.lay.bytes_per_row), 1)
 
     # -- reading
+    def _add_bad(self, bad: tuple[int, int, str] | None) -> None:
+        """Count the rows a block left out because they did not parse (the Rust reader
+        refuses the file when they are more than 10 and 1 % of its rows)."""
+        if bad is not None:
+            self.bad += bad[0]
+            if self.first_bad is None:
+                self.first_bad = (bad[1], bad[2])
+
     def _count_repeats(self, samples: NDArray[Any]) -> None:
         if samples.shape[0] == 0:
             return
@@ -2344,8 +2418,9 @@ class _Recording:
         pending: list[tuple[Any, Any, Any]] = []
         have = 0
         parsed = 0
-        for arrays, rows, nbytes, repeats, skipped in blocks:
+        for arrays, rows, nbytes, repeats, skipped, bad in blocks:
             self.skipped += skipped
+            self._add_bad(bad)
             if rows == 0:
                 self.bytes += nbytes
                 continue
@@ -2407,7 +2482,7 @@ class _Recording:
         assert self.text is not None
         src_t = self.text
         try:
-            arrays, rows, nbytes, repeats, skipped = _core.text_read_all(
+            arrays, rows, nbytes, repeats, skipped, bad = _core.text_read_all(
                 None if (src_t.stdin or src_t.eof) else src_t.opened,
                 lay.offset,
                 lay.ncols,
@@ -2419,6 +2494,7 @@ class _Recording:
         except CalibrationError as e:
             raise CalibrationError(f"{src_t.path}: {e}{_repeated_header_hint(str(e))}") from None
         self.rows, self.bytes, self.repeats, self.skipped = rows, nbytes, repeats, skipped
+        self._add_bad(bad)
         s, t, temp = _split_groups(lay, arrays)
         temp = self._hold_temperature(temp, 0)
         if t is None and lay.fs is not None:
@@ -2471,6 +2547,11 @@ class _Recording:
             out.append(
                 f"{self.skipped} rows with every accelerometer field empty were left out (rows "
                 "of another sensor in a merged log)")
+        if self.bad and self.first_bad is not None:
+            line, what = self.first_bad
+            out.append(
+                f"{self.bad} data row(s) that do not parse were left out (the first, line "
+                f"{line}: {what}): {_left_out_hint(self.path, line, what)}")
         if self._temp_held and self.lay.temp is not None:
             out.append(
                 f"the temperature column {_label(self.lay, self.lay.temp)} is empty in "

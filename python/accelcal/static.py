@@ -752,6 +752,14 @@ def fit_static(
     return fit
 
 
+def fit_quietly(data: DwellSet | ArrayLike, g: float, **kw: Any) -> StaticFit:
+    """:func:`fit_static` for a check inside another step: no gravity check, and no warning (a
+    weak design among them: the caller words what it found); refusals raise as ever."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fit_static(data, g, check_g=False, **kw)
+
+
 def _explained(e: CalibrationError, means: Any, g: float) -> CalibrationError | None:
     """The fit's refusal ``e`` with its likely cause first (dwells that cannot be at rest,
     or outputs that do not see gravity), or None to raise it as it is. Kept out of
@@ -789,7 +797,8 @@ class OffNorm:
     """Dwells that cannot be at rest (:func:`off_norm_dwells`): their indices, the norm of
     each mean (input units), the median norm of all dwells, each one's norm residual (units
     of g) under the bias + scale calibration of the other dwells, whose own residual RMS is
-    ``rms``, and the number of dwells screened."""
+    ``rms``, the number of dwells screened, and whether their raw norms stood out (else only
+    their calibrated norms did: the sensor's own scale errors spread the raw ones)."""
 
     index: tuple[int, ...]
     norm: tuple[float, ...]
@@ -797,6 +806,7 @@ class OffNorm:
     residual: tuple[float, ...]
     rms: float
     n_dwells: int
+    raw_far: bool = True
 
     def text(self, g: float) -> str:
         """In words, for reference gravity ``g``."""
@@ -812,25 +822,28 @@ class OffNorm:
             whose, norms, lie, them = ("their means' norms", f"{lo:.4g} to {hi:.4g}", "lie",
                                        "them")
             off = f"{min(r):.3g} to {max(r):.3g}"
-        return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: {whose} "
-                f"({norms}) {lie} far from every other dwell's (median "
-                f"{self.median_norm:.4g}), and the bias + scale calibration of the others "
-                f"leaves {them} {off} {u} off g, against {self.rms:.2g} {u} RMS for the "
-                "others: recorded while moving, or a mistyped row")
+        far = (f"{whose} ({norms}) {lie} far from every other dwell's (median "
+               f"{self.median_norm:.4g}), and " if self.raw_far else "")
+        return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: {far}the "
+                f"bias + scale calibration of the others leaves {them} {off} {u} off g, "
+                f"against {self.rms:.2g} {u} RMS for the others: recorded while moving, or a "
+                "mistyped row")
 
 
 def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
     """Dwells whose means cannot be at rest (a row of a table of pose means recorded while
     the sensor moved, say): None when there are none.
 
-    A dwell is one when the norm of its mean lies further from the median norm than
-    8 robust standard deviations (1.4826 MAD) of the dwells' norms and 5 % of the median, and
-    the bias + scale calibration of the other dwells leaves it more than 6 times their
-    residual RMS and 2 % of ``g`` off ``g``. A sensor whose outputs carry large offsets (norms
-    that differ from pose to pose) has a wide spread of norms and a calibration that fits
-    every pose: none is found there. At most a quarter of the dwells are named; more than
-    that is no longer a few bad rows. ``g`` is the reference gravity of the fit. None too
-    while it screens (its own fit of the other dwells refusing asks it again).
+    A dwell is a candidate when the norm of its mean lies further from the median norm than
+    8 robust standard deviations (1.4826 MAD) of the dwells' norms and 5 % of the median or,
+    when no norm does (an uncalibrated sensor whose norms spread widely from pose to pose),
+    when the bias + scale calibration of all the dwells leaves it further from the median
+    residual than 8 robust standard deviations of the residuals and 2 % of ``g``. A candidate
+    is named when the bias + scale calibration of the other dwells leaves it more than 6 times
+    their residual RMS and 2 % of ``g`` off ``g``. A sensor whose outputs carry large offsets
+    has a calibration that fits every pose: none is found there. At most a quarter of the
+    dwells are named; more than that is no longer a few bad rows. ``g`` is the reference
+    gravity of the fit. None too while it screens (its own fits asking it again).
     """
     if _SCREENING.get():
         return None
@@ -842,16 +855,18 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
         return None
     r = np.linalg.norm(m, axis=1)
     med = float(np.median(r))
-    mad = 1.4826 * float(np.median(np.abs(r - med)))
-    cand = np.flatnonzero(np.abs(r - med) > max(8.0 * mad, 0.05 * med))
-    if cand.size == 0 or cand.size > len(m) // 4:
-        return None
-    keep = np.setdiff1d(np.arange(len(m)), cand)
+    cand = _far_out(r, 0.05 * med)
+    raw_far = cand.size > 0
     token = _SCREENING.set(True)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            fit = fit_static(m[keep], g, model="diag", check_g=False)
+        if not raw_far:  # the raw norms spread too widely to tell: calibrated norms
+            res_all = np.linalg.norm(fit_quietly(m, g, model="diag").to_model().apply(m),
+                                     axis=1)
+            cand = _far_out(res_all, 0.02 * g)
+        if cand.size == 0 or cand.size > len(m) // 4:
+            return None
+        keep = np.setdiff1d(np.arange(len(m)), cand)
+        fit = fit_quietly(m[keep], g, model="diag")
     except CalibrationError:
         return None
     finally:
@@ -863,7 +878,16 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
     if not bad:
         return None
     return OffNorm(index=tuple(bad), norm=tuple(float(r[k]) for k in bad), median_norm=med,
-                   residual=tuple(float(res[k]) for k in bad), rms=rms, n_dwells=len(m))
+                   residual=tuple(float(res[k]) for k in bad), rms=rms, n_dwells=len(m),
+                   raw_far=raw_far)
+
+
+def _far_out(x: NDArray[np.float64], floor: float) -> NDArray[np.intp]:
+    """Indices of ``x`` further from its median than 8 robust standard deviations (1.4826
+    MAD) and ``floor``."""
+    med = float(np.median(x))
+    mad = 1.4826 * float(np.median(np.abs(x - med)))
+    return np.flatnonzero(np.abs(x - med) > max(8.0 * mad, floor))
 
 
 def without_off_norm(d: DwellSet, g: float) -> tuple[DwellSet, OffNorm | None]:

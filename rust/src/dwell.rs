@@ -1208,6 +1208,20 @@ fn gcd(mut a: u64, mut b: u64) -> u64 {
 
 // ---- automatic detection ---------------------------------------------------------------------
 
+/// A sample rate for a message: six significant digits, no trailing zeros (19.1192, 100).
+fn hz(fs: f64) -> String {
+    if !(fs.is_finite() && fs > 0.0) {
+        return format!("{fs}");
+    }
+    let decimals = (5 - fs.log10().floor() as i32).clamp(0, 12) as usize;
+    let t = format!("{fs:.decimals$}");
+    if t.contains('.') {
+        t.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        t
+    }
+}
+
 /// Settings of the automatic static-interval detector.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DetectorSettings {
@@ -1288,11 +1302,11 @@ impl DetectorSettings {
         let wn = self.window_s * self.fs;
         if wn < MIN_WINDOW_SAMPLES {
             return invalid(format!(
-                "window_s = {} s at fs = {} Hz spans {wn} sample(s); the detector needs at least \
-                 {MIN_WINDOW_SAMPLES} samples per window (is fs the sample rate in Hz? else \
-                 give window_s= {} s or more)",
+                "window_s = {} s at fs = {} Hz spans {wn:.3} sample(s); the detector needs at \
+                 least {MIN_WINDOW_SAMPLES} samples per window (is fs the sample rate in Hz? \
+                 else give window_s= {} s or more)",
                 self.window_s,
-                self.fs,
+                hz(self.fs),
                 (MIN_WINDOW_SAMPLES / self.fs * 100.0).ceil() / 100.0
             ));
         }
@@ -1585,7 +1599,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
                  used: about {:.2} s in all. Record longer, or lower min_dwell_s= or \
                  window_s=",
                 n as f64 / s.fs,
-                s.fs,
+                hz(s.fs),
                 s.min_dwell_s,
                 s.trim_s,
                 s.window_s,
@@ -1598,7 +1612,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
              {:.3e}, {:.3e}); check fs, or lower min_dwell_s= or window_s= (a rest shorter than \
              the window is not seen), or raise k= (or give noise_std=)",
             n as f64 / s.fs,
-            s.fs,
+            hz(s.fs),
             s.min_dwell_s,
             s.k,
             noise_var[0].sqrt(),
@@ -2071,6 +2085,16 @@ mod tests {
     fn gauss(seed: &mut u64) -> f64 {
         let (u, v) = (lcg(seed).max(1e-300), lcg(seed));
         (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
+    #[test]
+    fn rates_in_messages_have_six_significant_digits() {
+        assert_eq!(hz(19.11915329463981), "19.1192");
+        assert_eq!(hz(100.0), "100");
+        assert_eq!(hz(100.0098419526434), "100.01");
+        assert_eq!(hz(0.019130936), "0.0191309");
+        assert_eq!(hz(125_000.0), "125000");
+        assert_eq!(hz(f64::NAN), "NaN");
     }
 
     fn two_pass(x: &Array2<f64>, a: usize, b: usize) -> ([f64; 3], [f64; 3], [f64; 3]) {

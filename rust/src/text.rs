@@ -153,6 +153,9 @@ pub struct Block {
     /// Rows skipped because their first-group fields were all empty
     /// ([`TextLayout::skip_empty_rows`]).
     pub skipped: u64,
+    /// Rows left out because they did not parse (the first located by its line in the
+    /// block, 0-based, until the reader locates it in the file).
+    pub bad: BadRows,
 }
 
 /// A bad row, located by its line within the block (0-based).
@@ -160,6 +163,54 @@ pub struct Block {
 struct RowError {
     line: u64,
     msg: String,
+}
+
+/// Data rows left out because they did not parse: a line cut short or run together (a serial
+/// capture's), a field that is not a number. A few are left out, with a note; more than
+/// [`BAD_ROWS_FREE`] that are also more than 1 % of the rows are the file's error.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BadRows {
+    /// How many rows were left out.
+    pub count: u64,
+    /// The first of them: its line (from 1 once located in the file) and what was wrong.
+    pub first: Option<(u64, String)>,
+}
+
+/// Rows that do not parse left out whatever the file's length.
+pub const BAD_ROWS_FREE: u64 = 10;
+
+impl BadRows {
+    /// Add `other` (rows later in the file, located as these are).
+    pub fn add(&mut self, other: &BadRows) {
+        self.count += other.count;
+        if self.first.is_none() {
+            self.first.clone_from(&other.first);
+        }
+    }
+
+    /// `self` with the first row's line moved by `offset` lines.
+    fn shifted(mut self, offset: u64) -> Self {
+        if let Some((line, _)) = self.first.as_mut() {
+            *line += offset;
+        }
+        self
+    }
+
+    /// The error of a file whose rows that do not parse are too many to leave out beside
+    /// `rows` good ones: more than 1 % of all rows, unless they are at most [`BAD_ROWS_FREE`]
+    /// and at most a quarter of all rows.
+    pub fn check(&self, rows: usize) -> Result<()> {
+        let all = rows as u64 + self.count;
+        if self.count * 100 <= all || (self.count <= BAD_ROWS_FREE && self.count * 4 <= all) {
+            return Ok(());
+        }
+        let (line, msg) = self.first.clone().unwrap_or_default();
+        invalid(format!(
+            "line {line}: {msg} ({} of the {all} data rows do not parse; up to \
+             {BAD_ROWS_FREE}, or 1 %, would be left out with a note)",
+            self.count
+        ))
+    }
 }
 
 type RowResult<T> = std::result::Result<T, RowError>;
@@ -721,6 +772,9 @@ struct RowSink<'a, 'o> {
     empty_other: Option<usize>,
     /// Rows skipped with all their first-group fields empty.
     skipped: u64,
+    /// Rows left out because they did not parse.
+    bad: u64,
+    first_bad: Option<RowError>,
 }
 
 impl<'a, 'o> RowSink<'a, 'o> {
@@ -769,6 +823,26 @@ impl<'a, 'o> RowSink<'a, 'o> {
             first_empty0: 0,
             empty_other: None,
             skipped: 0,
+            bad: 0,
+            first_bad: None,
+        }
+    }
+
+    /// Leave out the current row, which did not parse (`e` says why): its values are
+    /// overwritten by the next row's, and it is counted for the note.
+    #[cold]
+    fn reject(&mut self, e: RowError) {
+        self.empty0 = 0;
+        self.empty_other = None;
+        self.bad += 1;
+        self.first_bad.get_or_insert(e);
+    }
+
+    /// The rows left out, the first located by its line in the block.
+    fn bad_rows(&self) -> BadRows {
+        BadRows {
+            count: self.bad,
+            first: self.first_bad.as_ref().map(|e| (e.line, e.msg.clone())),
         }
     }
 
@@ -987,7 +1061,14 @@ fn skip_line(buf: &[u8], pos: usize, comment: Option<u8>) -> bool {
 
 /// The fields of one line `l` (no `\n`) split on the delimiter `d`, each scanned once.
 #[inline]
-fn scan_line(l: &[u8], d: u8, line: u64, sink: &mut RowSink<'_, '_>) -> RowResult<()> {
+/// A line that does not parse is left out ([`RowSink::reject`]).
+fn scan_line(l: &[u8], d: u8, line: u64, sink: &mut RowSink<'_, '_>) {
+    if let Err(e) = scan_fields(l, d, line, sink) {
+        sink.reject(e);
+    }
+}
+
+fn scan_fields(l: &[u8], d: u8, line: u64, sink: &mut RowSink<'_, '_>) -> RowResult<()> {
     let mut nf = 0;
     let mut a = 0;
     loop {
@@ -1003,6 +1084,30 @@ fn scan_line(l: &[u8], d: u8, line: u64, sink: &mut RowSink<'_, '_>) -> RowResul
         a = e + 1;
     }
     sink.end_row(nf, line)
+}
+
+/// The fields of one line `l` (no `\n`, comment cut off) split on runs of blanks.
+fn scan_blank_separated(l: &[u8], line: u64, sink: &mut RowSink<'_, '_>) -> RowResult<()> {
+    let mut nf = 0;
+    let mut i = 0;
+    while i < l.len() {
+        while i < l.len() && l[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        if i == l.len() {
+            break;
+        }
+        let a = i;
+        while i < l.len() && !l[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        sink.field(nf, &l[a..i], line)?;
+        nf += 1;
+    }
+    if nf > 0 {
+        sink.end_row(nf, line)?;
+    }
+    Ok(())
 }
 
 /// Rows split on a delimiter byte, or on runs of spaces and tabs (`delim` None), for text
@@ -1022,30 +1127,14 @@ fn parse_plain(
         if !skip_line(buf, pos, comment) {
             let l = &buf[pos..end];
             match delim {
-                Some(d) => scan_line(l, d, line, sink)?,
+                Some(d) => scan_line(l, d, line, sink),
                 None => {
                     let l = match comment.and_then(|c| memchr::memchr(c, l)) {
                         Some(i) => &l[..i],
                         None => l,
                     };
-                    let mut nf = 0;
-                    let mut i = 0;
-                    while i < l.len() {
-                        while i < l.len() && l[i].is_ascii_whitespace() {
-                            i += 1;
-                        }
-                        if i == l.len() {
-                            break;
-                        }
-                        let a = i;
-                        while i < l.len() && !l[i].is_ascii_whitespace() {
-                            i += 1;
-                        }
-                        sink.field(nf, &l[a..i], line)?;
-                        nf += 1;
-                    }
-                    if nf > 0 {
-                        sink.end_row(nf, line)?;
+                    if let Err(e) = scan_blank_separated(l, line, sink) {
+                        sink.reject(e);
                     }
                 }
             }
@@ -1179,7 +1268,7 @@ fn parse_seps_with<const SSE: bool>(
         if !matches!(buf[pos], b'0'..=b'9' | b'-' | b'+' | b'.') {
             let end = memchr::memchr(b'\n', &buf[pos..]).map_or(n, |i| pos + i);
             if !skip_line(buf, pos, comment) {
-                scan_line(&buf[pos..end], d, line, sink)?;
+                scan_line(&buf[pos..end], d, line, sink);
             }
             if end < n {
                 line += 1;
@@ -1192,6 +1281,7 @@ fn parse_seps_with<const SSE: bool>(
         }
         let mut nf = 0;
         let mut a = pos;
+        let mut failed = None;
         let end = loop {
             let e = seps.next().unwrap_or(n);
             let eol = e >= n || buf[e] == b'\n';
@@ -1201,21 +1291,32 @@ fn parse_seps_with<const SSE: bool>(
             } else {
                 e
             };
-            match if a < fast_end {
+            let stored = match if a < fast_end {
                 span::<SSE>(buf, a, fe)
             } else {
                 None
             } {
-                Some(v) => sink.value_in(nf, v, buf, a, fe, line)?,
+                Some(v) => sink.value_in(nf, v, buf, a, fe, line),
                 None => {
                     // As scan_line would see it: up to the line's end, or past this delimiter.
                     let l = &buf[..if eol { e } else { e + 1 }];
                     let (fe, v) = scan_field(l, a, d);
                     match v {
-                        Some(v) => sink.value(nf, v, &l[a..fe], line)?,
-                        None => sink.field(nf, &l[a..fe], line)?,
+                        Some(v) => sink.value(nf, v, &l[a..fe], line),
+                        None => sink.field(nf, &l[a..fe], line),
                     }
                 }
+            };
+            if let Err(err) = stored {
+                // The row is left out: on to the next line.
+                failed = Some(err);
+                let end = if eol {
+                    e
+                } else {
+                    memchr::memchr(b'\n', &buf[e..]).map_or(n, |i| e + i)
+                };
+                seps.seek((end + 1).min(n));
+                break end;
             }
             nf += 1;
             if eol {
@@ -1223,7 +1324,9 @@ fn parse_seps_with<const SSE: bool>(
             }
             a = e + 1;
         };
-        sink.end_row(nf, line)?;
+        if let Err(e) = failed.map_or_else(|| sink.end_row(nf, line), Err) {
+            sink.reject(e);
+        }
         if end < n {
             line += 1;
             pos = end + 1;
@@ -1291,10 +1394,12 @@ fn parse_delimited(buf: &[u8], delim: u8, sink: &mut RowSink<'_, '_>) -> RowResu
                     f.is_empty() || comment.is_some_and(|c| f[0] == c)
                 };
                 if !blank {
-                    for i in 0..nend {
-                        sink.field(i, field(i), line)?;
+                    let row = (0..nend)
+                        .try_for_each(|i| sink.field(i, field(i), line))
+                        .and_then(|()| sink.end_row(nend, line));
+                    if let Err(e) = row {
+                        sink.reject(e);
                     }
-                    sink.end_row(nend, line)?;
                 }
                 nout = 0;
                 nend = 0;
@@ -1313,7 +1418,10 @@ fn parse_delimited(buf: &[u8], delim: u8, sink: &mut RowSink<'_, '_>) -> RowResu
 /// error naming its line (`layout.first_line` is the line of `buf[0]`).
 pub fn parse_block(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> Result<Block> {
     layout.validate()?;
-    parse_block_rel(buf, layout, max_rows).map_err(|e| locate(e, layout.first_line))
+    let mut b = parse_block_rel(buf, layout, max_rows).map_err(|e| locate(e, layout.first_line))?;
+    b.bad = std::mem::take(&mut b.bad).shifted(layout.first_line);
+    b.bad.check(b.rows)?;
+    Ok(b)
 }
 
 fn locate(e: RowError, first_line: u64) -> CoreError {
@@ -1334,7 +1442,7 @@ fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> 
         cap,
     );
     let (bytes, lines) = parse_rows(buf, bound.quoted, &mut sink)?;
-    let (rows, repeats, skipped) = (sink.rows, sink.repeats, sink.skipped);
+    let (rows, repeats, skipped, bad) = (sink.rows, sink.repeats, sink.skipped, sink.bad_rows());
     for (v, g) in values.iter_mut().zip(&layout.groups) {
         v.truncate(rows * g.len());
     }
@@ -1345,6 +1453,7 @@ fn parse_block_rel(buf: &[u8], layout: &TextLayout, max_rows: Option<usize>) -> 
         lines,
         repeats,
         skipped,
+        bad,
     })
 }
 
@@ -1512,6 +1621,9 @@ pub struct TextStream {
     line: u64,
     stop: Arc<AtomicBool>,
     done: bool,
+    /// Data rows so far, and the rows left out (which more than 1 % of them make an error).
+    rows: usize,
+    bad: BadRows,
 }
 
 impl TextStream {
@@ -1545,6 +1657,8 @@ impl TextStream {
             line: first_line,
             stop,
             done: false,
+            rows: 0,
+            bad: BadRows::default(),
         })
     }
 
@@ -1560,13 +1674,18 @@ impl TextStream {
                 Err(RecvTimeoutError::Timeout) => return Ok(Next::Pending),
                 Err(RecvTimeoutError::Disconnected) => {
                     self.done = true;
+                    // The whole file read: are the rows left out few enough?
+                    self.bad.check(self.rows)?;
                     return Ok(Next::Done);
                 }
             },
         };
         match job.recv_timeout(timeout) {
-            Ok(Ok(b)) => {
+            Ok(Ok(mut b)) => {
+                b.bad = std::mem::take(&mut b.bad).shifted(self.line);
                 self.line += b.lines;
+                self.rows += b.rows;
+                self.bad.add(&b.bad);
                 Ok(Next::Block(b))
             }
             Ok(Err(e)) => {
@@ -1791,6 +1910,8 @@ pub struct Collected {
     pub repeats: u64,
     /// Rows skipped with all their first-group fields empty.
     pub skipped: u64,
+    /// Rows left out because they did not parse (the first located in the file).
+    pub bad: BadRows,
 }
 
 impl Collected {
@@ -1818,6 +1939,7 @@ impl Collected {
         self.bytes += b.bytes;
         self.repeats += b.repeats;
         self.skipped += b.skipped;
+        self.bad.add(&b.bad);
     }
 }
 
@@ -1941,7 +2063,7 @@ fn read_mapped(
             rest = tail;
         }
     }
-    let results: Vec<std::result::Result<(usize, u64, u64), JobError>> = ranges
+    let results: Vec<std::result::Result<(usize, u64, u64, BadRows), JobError>> = ranges
         .par_iter()
         .zip(windows.into_par_iter())
         .zip(counts.par_iter())
@@ -1965,16 +2087,17 @@ fn read_mapped(
             }
             progress.rows.fetch_add(sink.rows, Ordering::Relaxed);
             progress.bytes.fetch_add(bytes, Ordering::Relaxed);
-            Ok((sink.rows, sink.repeats, sink.skipped))
+            Ok((sink.rows, sink.repeats, sink.skipped, sink.bad_rows()))
         })
         .collect();
-    // The first error in file order, located by line.
+    // The first error in file order, located by line; the rows left out, the first located.
     let mut line = layout.first_line;
+    let mut bad = BadRows::default();
     for (res, c) in results.iter().zip(&counts) {
         match res {
             Err(JobError::Row(e)) => return Err(locate(e.clone(), line)),
             Err(JobError::Read(e)) => return Err(e.clone()),
-            Ok(_) => {}
+            Ok((_, _, _, b)) => bad.add(&b.clone().shifted(line)),
         }
         line += c.lines;
     }
@@ -1987,7 +2110,7 @@ fn read_mapped(
     let mut off = 0usize;
     for (res, c) in results.iter().zip(&counts) {
         let (n, rep, skip) = match res {
-            Ok(x) => *x,
+            Ok((n, rep, skip, _)) => (*n, *rep, *skip),
             Err(_) => (0, 0, 0),
         };
         skipped += skip;
@@ -2009,12 +2132,14 @@ fn read_mapped(
     for (col, &k) in values.iter_mut().zip(&widths) {
         col.truncate(rows * k);
     }
+    bad.check(rows)?;
     Ok(Collected {
         values,
         rows,
         bytes: data.len(),
         repeats,
         skipped,
+        bad,
     })
 }
 
@@ -2289,7 +2414,13 @@ mod tests {
             vec![vec![num(1), num(2), num(3)], vec![num(0)], vec![num(4)]],
         );
         let e = all(&s, &lay, 64).unwrap_err().to_string();
-        assert_eq!(e, "line 2: column 4 (0-based): is empty (missing value)");
+        assert!(
+            e.starts_with(
+                "line 2: column 4 (0-based): is empty (missing value) (200 of the 300 data \
+                 rows do not parse"
+            ),
+            "{e}"
+        );
         lay.sparse_groups = vec![2];
         let quoted = s.replace("1,2,3", "\"1\",2,3");
         for (text, block) in [(&s, 64), (&s, 1 << 20), (&quoted, 100)] {
@@ -2301,10 +2432,17 @@ mod tests {
                 .all(|(a, b)| a == b || (a.is_nan() && b.is_nan()));
             assert!(same, "block {block}");
         }
-        // An empty accelerometer field is still an error.
+        // A row with an empty accelerometer field does not parse: left out, and named.
         let bad = s.clone() + "300,1,,3,20\n";
-        let e = all(&bad, &lay, 64).unwrap_err().to_string();
-        assert_eq!(e, "line 301: column 2 (0-based): is empty (missing value)");
+        let c = all(&bad, &lay, 64).unwrap();
+        assert_eq!(c.rows, 300);
+        assert_eq!(
+            c.bad,
+            BadRows {
+                count: 1,
+                first: Some((301, "column 2 (0-based): is empty (missing value)".into()))
+            }
+        );
         lay.sparse_groups = vec![3];
         assert!(lay.validate().is_err());
     }
@@ -2322,7 +2460,10 @@ mod tests {
             vec![vec![num(1), num(2), num(3)], vec![num(0)]],
         );
         let e = all(&s, &lay, 64).unwrap_err().to_string();
-        assert_eq!(e, "line 2: column 1 (0-based): is empty (missing value)");
+        assert!(
+            e.starts_with("line 2: column 1 (0-based): is empty (missing value) (400 of the"),
+            "{e}"
+        );
         lay.skip_empty_rows = true;
         let quoted = s.replace(",2,3,", ",\"2\",3,");
         for (text, block) in [(&s, 64), (&s, 1 << 20), (&quoted, 100)] {
@@ -2334,17 +2475,25 @@ mod tests {
         }
         let b = parse_block(s.as_bytes(), &lay, None).unwrap();
         assert_eq!((b.rows, b.skipped), (400, 400));
-        // Some of the accelerometer fields empty is still an error, naming the first.
+        // Some of the accelerometer fields empty: a row that does not parse, naming the first
+        // empty field.
         let bad = s.clone() + "400,400,,,\n";
-        let e = all(&bad, &lay, 64).unwrap_err().to_string();
-        assert_eq!(e, "line 801: column 2 (0-based): is empty (missing value)");
+        let c = all(&bad, &lay, 64).unwrap();
+        assert_eq!((c.rows, c.skipped, c.bad.count), (400, 400, 1));
+        assert_eq!(
+            c.bad.first,
+            Some((801, "column 2 (0-based): is empty (missing value)".into()))
+        );
         // A skipped row may leave its time empty too; a kept row may not.
         let no_time: String = (0..400).map(|i| format!("{i},{i},2,3,\n,,,,7\n")).collect();
         let c = all(&no_time, &lay, 64).unwrap();
-        assert_eq!((c.rows, c.skipped), (400, 400));
+        assert_eq!((c.rows, c.skipped, c.bad.count), (400, 400, 0));
         let bad = s.clone() + ",1,2,3,\n";
-        let e = all(&bad, &lay, 64).unwrap_err().to_string();
-        assert_eq!(e, "line 801: column 0 (0-based): is empty (missing value)");
+        let c = all(&bad, &lay, 64).unwrap();
+        assert_eq!(
+            c.bad.first,
+            Some((801, "column 0 (0-based): is empty (missing value)".into()))
+        );
     }
 
     #[test]
@@ -2366,29 +2515,53 @@ mod tests {
             vec![vec![num(1), num(2), num(3)], vec![num(0)]],
         );
         lay.first_line = 7;
+        let first = |msg: &str| Some((509, msg.to_string()));
+        let x = "column 2 (0-based): \"x\" is not a number";
         for block in [16, 300, 1 << 20] {
-            let e = all(&bad, &lay, block).unwrap_err().to_string();
+            // One bad row of 502 is left out (the next row is read), and named.
+            let c = all(&bad, &lay, block).unwrap();
+            assert_eq!((c.rows, c.bad.count), (501, 1), "block {block}");
+            assert_eq!(c.bad.first, first(x), "block {block}");
+            assert_eq!(c.values[1].last(), Some(&501.0), "block {block}");
+            // Eleven bad rows of 511 (2 %) are the file's error, naming the first.
+            let many = s.clone() + &"500,1,x,3\n".repeat(11);
+            let e = all(&many, &lay, block).unwrap_err().to_string();
             assert_eq!(
-                e, "line 509: column 2 (0-based): \"x\" is not a number",
+                e,
+                format!(
+                    "line 509: {x} (11 of the 511 data rows do not parse; up to 10, or 1 %, \
+                     would be left out with a note)"
+                ),
                 "block {block}"
             );
         }
         let ragged = s.clone() + "1,2,3\n";
-        let e = all(&ragged, &lay, 64).unwrap_err().to_string();
-        assert_eq!(e, "line 509: 3 fields where the data rows have 4");
+        let c = all(&ragged, &lay, 64).unwrap();
+        assert_eq!(c.bad.first, first("3 fields where the data rows have 4"));
         let mut crlf = bad.replace('\n', "\r\n");
         crlf.truncate(crlf.len() - 2);
-        let e = all(&crlf, &lay, 100).unwrap_err().to_string();
-        assert!(e.starts_with("line 509:"), "{e}");
+        assert_eq!(all(&crlf, &lay, 100).unwrap().bad.first, first(x));
         let ws = bad.replace(',', " ");
         lay.delimiter = Delimiter::Whitespace;
         lay.names = Some(vec!["t".into(), "ax".into(), "ay".into(), "az".into()]);
-        let e = all(&ws, &lay, 50).unwrap_err().to_string();
-        assert_eq!(e, "line 509: column \"ay\": \"x\" is not a number");
+        let c = all(&ws, &lay, 50).unwrap();
+        assert_eq!(c.bad.first, first("column \"ay\": \"x\" is not a number"));
+        // A file of bad rows only (or mostly) is an error, however short.
         let empty = "1,,3\n".to_string();
         let lay3 = layout(Delimiter::Byte(b','), 3, vec![vec![num(0), num(1), num(2)]]);
         let e = all(&empty, &lay3, 50).unwrap_err().to_string();
-        assert_eq!(e, "line 1: column 1 (0-based): is empty (missing value)");
+        assert!(
+            e.starts_with("line 1: column 1 (0-based): is empty (missing value) (1 of the 1"),
+            "{e}"
+        );
+        let e = all("1,2,3\n1,,3\n1,2,3\n", &lay3, 50)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("line 2: column 1"), "{e}");
+        assert_eq!(
+            all("1,2,3\n1,,3\n1,2,3\n1,2,3\n", &lay3, 50).unwrap().rows,
+            3
+        );
     }
 
     #[test]
@@ -2443,6 +2616,8 @@ mod tests {
         let nodc = layout(Delimiter::Byte(b';'), 2, vec![vec![num(0), num(1)]]);
         let e = all("1,5;2\n", &nodc, 64).unwrap_err().to_string();
         assert!(e.contains("decimal comma"), "{e}");
+        let c = all("1;2\n1,5;2\n3;4\n5;6\n", &nodc, 64).unwrap();
+        assert!(c.bad.first.unwrap().1.contains("decimal comma"));
     }
 
     #[test]
@@ -2894,11 +3069,14 @@ mod tests {
                 block_bytes: chunk,
                 parallel: 0,
             };
-            let e = read_all(file.map(11), lay.clone(), opts)
-                .unwrap_err()
-                .to_string();
+            let c = read_all(file.map(11), lay.clone(), opts).unwrap();
+            assert_eq!(c.rows, 5001, "{chunk}");
             assert_eq!(
-                e, "line 5004: column 2 (0-based): \"x\" is not a number",
+                c.bad,
+                BadRows {
+                    count: 2,
+                    first: Some((5004, "column 2 (0-based): \"x\" is not a number".into()))
+                },
                 "{chunk}"
             );
         }

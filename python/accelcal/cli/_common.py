@@ -161,7 +161,7 @@ def gravity_options(fn: F) -> F:
                       help="Latitude, deg (when --g is not known).")(fn)
     return click.option("--g", "g", type=float, default=None,
                         help="Reference gravity, in the units the calibrated output should "
-                             "have: m/s^2 (9.78-9.84), g (1) or cm/s^2.")(fn)  # type: ignore[no-any-return]
+                             "have: m/s^2 (9.78-9.83 at sea level), g (1) or cm/s^2.")(fn)  # type: ignore[no-any-return]
 
 
 def _tqdm_disable(quiet: bool) -> bool | None:

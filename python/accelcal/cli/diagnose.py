@@ -75,7 +75,8 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     tabled = rec is None or rec.pose_table
     if len(d) == 0:
         raise CalibrationError(f"{file}: no static dwells detected in the recording")
-    kw: dict[str, Any] = {"fit": fit, "check_g": not no_check_g}
+    # A g computed from --lat/--height is local gravity by construction (up to 50 km).
+    kw: dict[str, Any] = {"fit": fit, "check_g": not no_check_g and g is not None}
     if noise == "white":
         kw["noise_model"] = "white"
     extra: list[str] = []

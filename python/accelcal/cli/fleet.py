@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Any
 
 import click
 
 from .._core import CalibrationError
-from ._common import F, _need_plot, _save_fig, emit_json, friendly, main
+from ._common import F, _need_plot, _save_fig, cli_words, emit_json, friendly, main
 
 #: The options ``calibrate static`` takes for a fleet run (all default to "not given").
 FLEET_OPTIONS = ("summary", "out_dir", "scheduler", "workers", "manifest", "diagnose_gap")
@@ -53,6 +54,7 @@ def run_static_fleet(
     dwells_out: str | None, plot_path: str | None, as_json: bool, summary: str | None,
     out_dir: str | None, scheduler: str | None, workers: int | None, manifest: str | None,
     diagnose_gap: bool, check_g: bool = True, nominal_path: str | None = None,
+    means: bool = False,
 ) -> None:
     """``calibrate static`` over many recordings (see :func:`accelcal.calibrate_many`)."""
     from ..dwell import DetectorSettings
@@ -95,12 +97,18 @@ def run_static_fleet(
         time_column=time_column, model=model,
         method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
         workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
-        check_g=check_g, _cli=True,
+        check_g=check_g, means=means, _cli=True,
     )
     dt = time.perf_counter() - t0
+    from .static import _PHRASES  # the fit's own words ('model "diag"'), as one file's
+
+    df["message"] = [cli_words(m, _PHRASES) for m in df["message"]]
+    calibrated = int(df["status"].isin(["ok", "weak"]).sum())
     if as_json:
         # Full precision (DataFrame.to_json keeps 10 digits); missing values as null.
         emit_json(df.astype(object).where(df.notna(), None).to_dict(orient="records"))
+        if not calibrated:
+            sys.exit(1)
         return
     counts = {s: int((df["status"] == s).sum()) for s in STATUSES}
     where = f"the Dask cluster at {scheduler}" if scheduler else "local processes"
@@ -124,6 +132,21 @@ def run_static_fleet(
 
         pq, csv = _summary_paths(summary or f"{out_dir}/fleet.parquet")
         click.echo(f"wrote {pq} and {csv}; see `accelcal fleet report {pq}`")
+    if not calibrated:
+        click.echo(f"accelcal: no recording was calibrated{_one_pose_each(df)}", err=True)
+        sys.exit(1)
+
+
+def _one_pose_each(df: Any) -> str:
+    """For a fleet run in which no recording holds enough poses (each at most 3 dwells, or
+    none found): the likely mistake, several files of one sensor, one pose in each."""
+    n = df["n_dwells"].fillna(0)
+    if len(df) < 2 or not bool((n <= 3).all() and (df["status"] == "degenerate").all()):
+        return ""
+    return ("; each recording holds at most 3 dwells: if they are poses of one sensor, one "
+            "file per pose, join them into one recording (one clock), or write one row of "
+            "means per pose into a table read with --means; several files are calibrated as "
+            "several sensors")
 
 
 @main.group()

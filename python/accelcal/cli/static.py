@@ -53,14 +53,10 @@ def _cli(msg: str) -> str:
 
 def _diag_fits(d: Any, g: float) -> bool:
     """Whether the bias + scale model fits the dwells ``d`` (any design warning aside)."""
-    import warnings
-
-    from ..static import fit_static
+    from ..static import fit_quietly
 
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            fit_static(d, g, model="diag", check_g=False)
+        fit_quietly(d, g, model="diag")
     except CalibrationError:
         return False
     return True
@@ -126,11 +122,11 @@ def calibrate_static(
         if bounds:
             raise CalibrationError("--bounds takes one recording (its dwells are that "
                                    "recording's rows)")
-        if means or count:
-            raise CalibrationError(f"--{'means' if means else 'count'} takes one table of "
-                                   "dwell means, not a fleet run")
+        if count:
+            raise CalibrationError("--count takes one table of dwell means, not a fleet run "
+                                   "(give each table's count column, or --means alone)")
         return run_static_fleet(
-            files, g=g, lat=lat, height=height, fs=fs, columns=columns,
+            files, g=g, lat=lat, height=height, fs=fs, columns=columns, means=means,
             time_column=time_column, quiet=quiet, model=model, method=method,
             window_s=window_s, k_thr=k, min_dwell_s=min_dwell_s, sensor_id=sensor_id,
             output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
@@ -165,7 +161,8 @@ def calibrate_static(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            fit = fit_static(d, gv, model=model, method=method, check_g=not no_check_g,
+            fit = fit_static(d, gv, model=model, method=method,
+                             check_g=not no_check_g and g is not None,  # not from --lat
                              nominal=nominal)
         except DegenerateDataError as e:
             hint = ""

@@ -4,6 +4,8 @@ Each recording is a :func:`~accelcal.sim.field_session` stream (``t, ax, ay, az`
 with an ``# fs: ...`` metadata line) of a sensor with its own random calibration. A chosen
 fraction is corrupted the ways real files go wrong, and the truth says which and how:
 
+- ``"garbled"``: one row in ten has a field that is not a number (a logger that wrote
+  error codes; too many to leave out, so the file is refused);
 - ``"truncated"``: the file is cut mid-line part-way through (a copy that never finished);
 - ``"nan_rows"``: a few rows inside dwells read ``nan`` (a logger's dropouts);
 - ``"wrong_columns"``: one row has an extra field (a line from another logger mixed in);
@@ -25,7 +27,7 @@ from .static import G0
 
 __all__ = ["CORRUPTIONS", "FleetRecording", "fleet_recordings", "random_calibration"]
 
-CORRUPTIONS = ("truncated", "nan_rows", "wrong_columns", "few_poses")
+CORRUPTIONS = ("garbled", "truncated", "nan_rows", "wrong_columns", "few_poses")
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,11 @@ def fleet_recordings(
                           truth=truth, g=g, sigma=sigma, rng=rng)
         text = _text(s.t, s.samples, fs)
         lines = text.splitlines(keepends=True)
-        if kind == "truncated":
+        if kind == "garbled":
+            for r in range(2, len(lines), 10):  # two lines before the data
+                lines[r] = f"{s.t[r - 2]:.4f},ERR,0.0,0.0\n"
+            text = "".join(lines)
+        elif kind == "truncated":
             cut = sum(len(ln) for ln in lines[: len(lines) // 2]) + 9
             text = text[:cut]
         elif kind == "nan_rows":

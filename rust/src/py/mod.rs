@@ -58,8 +58,8 @@ mod _core {
     };
     #[pymodule_export]
     use super::static_fit::{
-        apply_triad_raw, static_design_rows, static_fit_batch, static_model_violation, PyBatchFit,
-        PyObservability, PyPrediction, PyStaticFit,
+        apply_triad_raw, gravity_problem, static_design_rows, static_fit_batch,
+        static_model_violation, PyBatchFit, PyObservability, PyPrediction, PyStaticFit,
     };
     #[pymodule_export]
     use super::text::{format_rows, parse_iso8601, text_parse_head, text_read_all, TextBlocks};

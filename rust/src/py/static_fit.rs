@@ -106,21 +106,26 @@ fn positive(obj: &Bound<'_, PyAny>, name: &str, what: &str) -> PyResult<f64> {
     )
 }
 
-/// Local gravity in any of the units the calibrated output may have.
-fn plausible_g(g: f64) -> bool {
-    (9.7..=9.9).contains(&g) || (0.99..=1.01).contains(&g) || (970.0..=990.0).contains(&g)
-}
-
 fn check_g(obj: &Bound<'_, PyAny>, check: bool) -> PyResult<f64> {
     let g = positive(obj, "g", "reference gravity (e.g. 9.81 m/s^2)")?;
-    if check && !plausible_g(g) {
-        return Err(CalibrationError::new_err(format!(
-            "g = {g} is not a plausible local gravity: Earth's is 9.78-9.84 m/s^2 (0.997-1.003 \
-             in units of g, 978-983 cm/s^2). Give g in the units the calibrated output should \
-             have, or turn this check off (check_g=False) for a deliberate other value"
-        )));
+    if check {
+        if let Some(why) = gravity_problem(g) {
+            return Err(CalibrationError::new_err(why));
+        }
     }
     Ok(g)
+}
+
+/// Why ``g`` cannot be a local gravity in m/s^2, in units of g or in cm/s^2, with what to do
+/// (None when it can).
+#[pyfunction]
+pub fn gravity_problem(g: f64) -> Option<String> {
+    crate::static_fit::implausible_g(g).map(|why| {
+        format!(
+            "{why}. Give g in the units the calibrated output should have, or turn this check \
+             off (check_g=False) for a deliberate other value"
+        )
+    })
 }
 
 /// The entries of the symmetric covariance `m` row by row. It is stored by columns, but every

@@ -11,8 +11,8 @@ use std::time::Duration;
 use super::dwell::guarded;
 use super::CalibrationError;
 use crate::text::{
-    read_all_with, Block, Collected, Column, ColumnKind, Delimiter, MappedText, Next, Progress,
-    Source, StreamOptions, TextLayout, TextStream,
+    read_all_with, BadRows, Block, Collected, Column, ColumnKind, Delimiter, MappedText, Next,
+    Progress, Source, StreamOptions, TextLayout, TextStream,
 };
 
 /// How often a waiting call looks for Ctrl-C.
@@ -152,14 +152,27 @@ fn block_to_py<'py>(py: Python<'py>, b: Block, widths: &[usize]) -> PyResult<Bou
             b.bytes.into_pyobject(py)?.into_any(),
             b.repeats.into_pyobject(py)?.into_any(),
             b.skipped.into_pyobject(py)?.into_any(),
+            bad_to_py(py, &b.bad)?,
         ],
     )
 }
 
+/// Rows left out because they did not parse: ``(count, line, message)`` of the first, or
+/// None.
+fn bad_to_py<'py>(py: Python<'py>, bad: &BadRows) -> PyResult<Bound<'py, PyAny>> {
+    match &bad.first {
+        Some((line, msg)) if bad.count > 0 => Ok((bad.count, *line, msg.as_str())
+            .into_pyobject(py)?
+            .into_any()),
+        _ => Ok(py.None().into_bound(py)),
+    }
+}
+
 /// Blocks of a text recording, read and parsed ahead on a background thread.
 ///
-/// Iterating yields ``(arrays, rows, bytes, repeats, skipped)`` per block in file order,
-/// ``arrays`` holding one float64 array per column group.
+/// Iterating yields ``(arrays, rows, bytes, repeats, skipped, bad)`` per block in file order,
+/// ``arrays`` holding one float64 array per column group, ``bad`` the rows that did not parse
+/// and were left out (``(count, line, message)`` of the first) or None.
 #[pyclass(name = "TextBlocks", module = "accelcal._core", frozen)]
 pub struct TextBlocks {
     inner: Mutex<TextStream>,
@@ -237,7 +250,7 @@ impl TextBlocks {
 /// Read a whole text recording (blocks parsed in parallel) into one array per column group.
 ///
 /// ``progress(rows, bytes)`` is called about every 0.1 s while reading (it may raise to
-/// stop); Ctrl-C stops the read. Returns ``(arrays, rows, bytes, repeats, skipped)``.
+/// stop); Ctrl-C stops the read. Returns ``(arrays, rows, bytes, repeats, skipped, bad)``.
 #[pyfunction]
 #[pyo3(signature = (path, offset, ncols, groups, *, delimiter=None, decimal_comma=false, comment="#", names=None, first_line=1, t0=None, prefix=None, stdin=false, block_bytes=4194304, rows_hint=0, progress=None, sparse_groups=Vec::new(), skip_empty_rows=false))]
 #[allow(clippy::too_many_arguments)]
@@ -335,6 +348,7 @@ pub fn text_read_all<'py>(
             collected.bytes.into_pyobject(py)?.into_any(),
             collected.repeats.into_pyobject(py)?.into_any(),
             collected.skipped.into_pyobject(py)?.into_any(),
+            bad_to_py(py, &collected.bad)?,
         ],
     )
 }

@@ -69,6 +69,30 @@ pub const SINGULAR_RTOL: f64 = 1e-9;
 /// `sqrt(CONVERGED_DECREMENT)` parameter standard deviations (1e-3 std).
 pub const CONVERGED_DECREMENT: f64 = 1e-6;
 
+/// Earth's gravity, m/s^2: 9.780 at the equator and 9.832 at the poles at sea level, about
+/// 9.75 at 10 km; a reference outside these bounds (in m/s^2, in units of the standard 9.80665,
+/// or in cm/s^2) cannot be local gravity, and would bias every scale factor.
+pub const G_BOUNDS: [f64; 2] = [9.74, 9.85];
+/// The standard gravity, m/s^2 (the unit "g").
+pub const G_STANDARD: f64 = 9.80665;
+
+/// Why `g` cannot be a local gravity in m/s^2, in units of g or in cm/s^2 (None when it can).
+pub fn implausible_g(g: f64) -> Option<String> {
+    let [lo, hi] = G_BOUNDS;
+    let within = |scale: f64| (lo * scale..=hi * scale).contains(&g);
+    if within(1.0) || within(1.0 / G_STANDARD) || within(100.0) {
+        return None;
+    }
+    Some(format!(
+        "g = {g} is not a plausible local gravity: Earth's is 9.78-9.83 m/s^2 at sea level \
+         ({lo}-{hi} allowed: {:.4}-{:.4} in units of g, {}-{} cm/s^2)",
+        lo / G_STANDARD,
+        hi / G_STANDARD,
+        lo * 100.0,
+        hi * 100.0
+    ))
+}
+
 /// Which triangle of `K` carries the misalignment terms.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Model {
@@ -951,6 +975,17 @@ mod tests {
 
     fn settings(method: Method) -> FitSettings {
         FitSettings::new(Model::Lower, method)
+    }
+
+    #[test]
+    fn gravity_is_plausible_in_each_unit_within_earths_range_only() {
+        for g in [9.78, 9.832, 9.75, 1.0, 0.9973, 1.0026, 978.0, 983.2] {
+            assert_eq!(implausible_g(g), None, "{g}");
+        }
+        for g in [9.8895, 9.7, 9.9, 0.99, 1.005, 970.0, 990.0, 5.0, 32.17] {
+            let why = implausible_g(g).expect("refused");
+            assert!(why.starts_with(&format!("g = {g} is not")), "{why}");
+        }
     }
 
     #[test]

@@ -312,10 +312,15 @@ pub fn degenerate_message(
             obs.weakest_std, obs.condition
         )
     };
+    let instead = if model == Model::Diag {
+        ""
+    } else {
+        ", or fit model \"diag\""
+    };
     format!(
         "the {n} dwells cannot determine {} of model {:?} ({how}). Add poses with different \
          gravity directions (tilts in both axes at once, larger angles, ideally the whole \
-         sphere), or fit model \"diag\"",
+         sphere){instead}",
         obs.combination,
         model.name()
     )
