@@ -710,6 +710,16 @@ def _statements(raw: Any, selected: list[str], alpha: float, sysw: _System,
         out.append(f"{nc[0]} improves the in-sample fit (p = {nc[1]:.2g}) but does not reduce "
                    f"the held-out gap by more than its parameters cost held out (G {nc[2]:.2f} "
                    f"-> {nc[3]:.2f}): not an explanation")
+    if selected and loo is not None and loo.rms_after > loo.rms_before:
+        # G divides each held-out error by its prediction's spread, which a column large on
+        # a few rows makes wide there: G can fall while those rows are predicted worse.
+        out.append(
+            f"with {selected[0]} the held-out rows are predicted worse, not better (held-out "
+            f"RMS {_mag(loo.rms_before, sysw.units)} -> {_mag(loo.rms_after, sysw.units)}), "
+            "though the held-out gap G, which allows for each prediction's own uncertainty, "
+            f"falls ({loo.g_before:.2f} -> {loo.g_after:.2f}): its evidence rests on a few rows "
+            "its column is large on; look at them (the residual plot) before taking it as the "
+            "cause")
     if loo is None:
         out.append(f"held-out gap not computed ({n} rows: too few for leave-one-out)")
     elif loo.n_failed:
@@ -1471,6 +1481,10 @@ def diagnose(
         white_var=None if white is None else np.ascontiguousarray(white),
         allan_var=None if allan is None else np.ascontiguousarray(allan),
         sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
+    if lsb is None and d.var is None:  # a table of means: was each output rounded first?
+        grid = _rounding_statement(mean, np.asarray(raw.resid, dtype=np.float64), g_v)
+        if grid:
+            statements.append(grid)
     if cal is not None and cal[2]:
         statements.append("calibration held fixed (an existing TriadModel checked against "
                           "this session): no calibration parameter was fitted; a gap may "
@@ -1531,6 +1545,59 @@ def diagnose(
             rms = float(np.sqrt(np.mean(np.square(np.asarray(raw.resid, dtype=np.float64)))))
             rep = replace(rep, calibration_check={**check, "rms_fixed": rms})
     return rep
+
+
+#: Decimal steps tried for the grid of a table of means (times a power of ten).
+_GRID_STEPS = (5.0, 2.0, 1.0)
+
+
+def table_grid(values: ArrayLike) -> tuple[float, float] | None:
+    """The step (1, 2 or 5 times a power of ten) to which ``values`` were rounded, and the
+    fraction of them that are whole multiples of it: the coarsest step with at least 30 % of
+    whole multiples, more than chance on a finer step explains (values on a 0.01 grid are
+    multiples of 0.02 half the time). None when there is none down to 1e-7 of the largest."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    top = float(np.max(np.abs(v))) if v.size else 0.0
+    if v.size < 10 or top == 0.0:
+        return None
+
+    def frac(q: float) -> float:
+        k = v / q
+        return float(np.mean(np.abs(k - np.round(k)) < np.maximum(1e-6, 1e-9 * np.abs(k))))
+
+    for e in range(int(math.ceil(math.log10(top))), int(math.log10(top)) - 8, -1):
+        for m in _GRID_STEPS:
+            q = m * 10.0**e
+            f = frac(q) if q <= top else 0.0
+            # A finer step f_ = q / r explains f when f <= 1.3 f(f_) / r (chance, with slack).
+            if f >= 0.3 and all(f > 1.3 * frac(q / r) / r for r in (2.0, 5.0)):
+                return q, f
+    return None
+
+
+def _rounding_statement(mean: NDArray[np.float64], resid: NDArray[np.float64],
+                        g: float) -> str:
+    """For a table of means whose values sit on a coarse decimal grid (:func:`table_grid`):
+    outputs rounded before they were averaged, with noise below the step, keep a rounding
+    error that is a function of the true output, so of attitude; said when its RMS is at least
+    half the norm residual's (``resid`` in units of ``g``; ``mean`` in input units)."""
+    grid = table_grid(mean)
+    if grid is None or resid.size == 0:
+        return ""
+    q, frac = grid
+    scale = float(np.median(np.linalg.norm(mean, axis=1))) / g  # input units per unit of g
+    rms = float(np.sqrt(np.mean(resid**2))) * scale
+    rounding = q * math.sqrt(frac / 12.0)
+    if not rounding >= 0.5 * rms:
+        return ""
+    return (f"{frac:.0%} of the means are whole multiples of {q:.3g} (input units): the outputs "
+            f"were rounded to {q:.3g} before they were averaged, with noise below that step, so "
+            f"the means keep a rounding error of up to +-{q / 2:.3g} that follows the true "
+            f"output, hence the attitude (about {rounding:.2g} RMS, against {rms:.2g} RMS of the "
+            "norm residual): a structure verdict (attitude above all) may be that rounding. "
+            "Record more decimals, or let noise of about one step dither the samples before "
+            "they are averaged")
 
 
 def _cal_vector(K: Any, b: Any, model: str) -> NDArray[np.float64]:
