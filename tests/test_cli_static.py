@@ -145,3 +145,23 @@ def test_gravity_from_latitude_is_not_refused_and_an_impossible_g_is(tmp_path: P
     assert code != 0 and "not a plausible local gravity" in out and "--no-check-g" in out, out
     code, out = run("calibrate", "static", str(p), "--g", "9.8895", "--no-check-g")
     assert code == 0, out
+
+
+def test_outputs_are_announced_and_apply_needs_no_rate(tmp_path: Path) -> None:
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(30, max_tilt_deg=None, sigma=1e-4, g=1.0, rng=4)
+    table = tmp_path / "means.txt"
+    np.savetxt(table, s.means, fmt="%.6f")  # pose means in g: no rate, no header
+    cal, dw = tmp_path / "cal.json", tmp_path / "dwells.csv"
+    code, out = run("calibrate", "static", str(table), "--g", "1", "--means", "-o", str(cal),
+                    "--dwells-out", str(dw))
+    assert code == 0, out
+    assert f"wrote {dw} (the dwell table: 30 dwells" in out and dw.is_file()
+    code, out = run("apply", str(cal), str(table), "-o", str(tmp_path / "applied.csv"))
+    assert code == 0 and "wrote 30 calibrated samples" in out, out
+    assert "sample rate" not in out  # applying a calibration needs none
+    # And the StaticFit's repr does not show the unit-weight chi2/dof as if it were a test.
+    f = ac.fit_static(s.means, 1.0)
+    assert "noise estimated" in repr(f) and "chi2_dof" not in repr(f)
+    assert "chi2_dof=" in repr(ac.fit_static(s.means, 1.0, sigma=1e-4))

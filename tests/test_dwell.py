@@ -1252,3 +1252,28 @@ def test_dwells_that_vary_by_a_tenth_of_g_are_noted_as_moving() -> None:
     notes = unsteady_text(DwellSet(mean, var, np.full(3, 100)))
     assert len(notes) == 1 and notes[0].startswith(
         "1 of 3 dwells (#1) have a sample std of up to 43 % of their mean's norm"), notes
+
+
+def test_a_stream_from_read_stream_goes_straight_into_detection_and_diagnosis(
+        tmp_path: Path) -> None:
+    """A new user's first calls: ``detect_dwells(read_stream(path))`` and ``diagnose(stream)``
+    wanted the samples and the rate taken apart by hand ("samples: unsupported dtype object",
+    "raw samples need fs")."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=14, dwell_s=6.0, move_s=2.0, max_tilt_deg=80.0,
+                      sigma=1e-3, rng=8)
+    p = tmp_path / "rec.csv"
+    np.savetxt(p, np.column_stack([s.t, s.samples]), delimiter=",", header="t,ax,ay,az",
+               comments="")
+    st = accelcal.read_stream(p)
+    assert accelcal.read_stream is accelcal.io.read_stream and "read_stream" in accelcal.__all__
+    d = accelcal.detect_dwells(st)
+    ref = accelcal.detect_dwells(st.samples, st.fs, t=st.t)
+    np.testing.assert_array_equal(d.mean, ref.mean)
+    np.testing.assert_array_equal(d.t, ref.t)
+    assert len(d) == 14
+    r = accelcal.diagnose(st, g=s.g, loo=False)
+    assert r.n == 14
+    with pytest.raises(accelcal.CalibrationError, match="fs .* is needed for an array of samples"):
+        accelcal.detect_dwells(st.samples)

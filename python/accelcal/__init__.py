@@ -44,6 +44,7 @@ from .gradiometer import (
     demodulate,
     startup_bias,
 )
+from .io import read_stream
 from .static import (
     BatchFit,
     StaticFit,
@@ -85,6 +86,7 @@ __all__ = [
     "diagnose_gradiometer",
     "detect_dwells",
     "dwell_stats",
+    "read_stream",
     "FleetReport",
     "calibrate_many",
     "fleet_report",

@@ -830,7 +830,7 @@ class DetectorSettings:
 
 def detect_dwells(
     samples: ArrayLike,
-    fs: float,
+    fs: float | None = None,
     *,
     t: ArrayLike | None = None,
     temperature: ArrayLike | None = None,
@@ -849,6 +849,10 @@ def detect_dwells(
     samples are dropouts, left out of the stream the detector and the statistics see (counted
     in ``DwellSet.dropped``; a dwell may span them).
 
+    ``samples`` is an (N, 3) array (then ``fs``, Hz, is required) or a
+    :class:`~accelcal.io.Stream` from :func:`accelcal.io.read_stream`, whose ``fs``, ``t``,
+    ``temperature`` and units are used unless given here.
+
     Keyword arguments override :class:`DetectorSettings` fields (``window_s=0.5`` ...).
 
     Raises
@@ -856,7 +860,11 @@ def detect_dwells(
     DegenerateDataError
         When no static dwell is found (the message gives the noise level and the settings).
     """
+    samples, fs, t, temperature, units = stream_fields(samples, fs, t, temperature, units)
     s = samples_array(samples)
+    if fs is None:
+        raise CalibrationError("fs (the sample rate, Hz) is needed for an array of samples; "
+                               "or pass the Stream that accelcal.io.read_stream returns")
     fsv = positive(fs, "fs", " (Hz)")
     st = DetectorSettings.merged(settings, kw)
     n = s.shape[0]
@@ -886,6 +894,19 @@ def detect_dwells(
                         "blocks as the dwells")
         raise e from None
     return _from_raw(d, fsv, units, drops)
+
+
+def stream_fields(data: Any, fs: float | None, t: Any, temperature: Any, units: str = ""
+                  ) -> tuple[Any, float | None, Any, Any, str]:
+    """``(samples, fs, t, temperature, units)`` of ``data``: a :class:`~accelcal.io.Stream`'s
+    own where not given (a Stream without a rate keeps ``fs`` None), else ``data`` and the
+    arguments as they are."""
+    from .io import Stream
+
+    if not isinstance(data, Stream):
+        return data, fs, t, temperature, units
+    return (data.samples, data.fs if fs is None else fs, data.t if t is None else t,
+            data.temperature if temperature is None else temperature, units)
 
 
 class DwellAccumulator:

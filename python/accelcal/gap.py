@@ -26,7 +26,14 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError, DegenerateDataError
 from ._validate import number, real_array, samples_array
-from .dwell import DetectorSettings, DwellSet, check_faults, detect_dwells, dwell_stats
+from .dwell import (
+    DetectorSettings,
+    DwellSet,
+    check_faults,
+    detect_dwells,
+    dwell_stats,
+    stream_fields,
+)
 
 __all__ = [
     "CENTRIFUGE_EFFECTS",
@@ -1069,8 +1076,10 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any, detector: Any = Non
                                    "a DwellSet carries its own t and temperature")
         check_faults(data, "diagnose")
         return data, None, data.fs
+    data, fs, t, temperature, _ = stream_fields(data, fs, t, temperature)
     if fs is None:
-        raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet")
+        raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet, or the Stream "
+                               "that accelcal.io.read_stream returns")
     fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     samples = samples_array(data, "samples")
     settings = detector if isinstance(detector, DetectorSettings) else DetectorSettings(

@@ -648,10 +648,12 @@ class StaticFit(_core.StaticFit):
                 "pose repeats")
 
     def __repr__(self) -> str:
-        return (
-            f"StaticFit(model={self.model!r}, method={self.method!r}, "
-            f"rms={self.rms:.3g}, chi2_dof={self.chi2_dof:.3g})"
-        )
+        # With the noise estimated (unit weights) chi2/dof is the residual variance, not a
+        # test: its value would read as a gross overfit.
+        tail = (f"chi2_dof={self.chi2_dof:.3g}" if self.noise_known else
+                f"noise estimated {float(np.sqrt(self.chi2_dof)):.3g} per axis")
+        return (f"StaticFit(model={self.model!r}, method={self.method!r}, "
+                f"rms={self.rms:.3g}, {tail})")
 
 
 def fit_static(

@@ -211,6 +211,9 @@ def calibrate_static(
         click.echo(f"warning: {n}")
     if output:
         click.echo(f"wrote {output} (std stored and printed: {fit.realistic.replace('_', ' ')})")
+    if dwells_out:
+        click.echo(f"wrote {dwells_out} (the dwell table: {len(undropped)} dwells, before any "
+                   "was left out)")
     if plot_path:
         click.echo(f"wrote {plot_path}")
 

@@ -349,7 +349,10 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
             out.write(t, model.apply(chunk))
     if rec.rows == 0:
         raise CalibrationError(f"{rec.path}: no data rows")
-    notes = rec.notes()
+    from ..io import NO_RATE_NOTE
+
+    # Applying a calibration needs no rate: without one the output has no time column only.
+    notes = [n for n in rec.notes() if not n.startswith(NO_RATE_NOTE)]
     if as_json:
         emit_json({"output": output, "format": out.kind, "rows": out.rows, "time_column": has_t,
                    "units": unit, "calibration": cal, "file": file,
