@@ -488,7 +488,7 @@ class GapReport:
     calibration_check : with a calibration held fixed (``fit=`` a TriadModel), the test of
         whether it still holds on this session: the session refitted (same model) against
         the calibration's parameters, a Wald statistic over both covariances (``statistic``,
-        chi2 on ``dof`` with a known noise model, else ``f`` on ``dof``, ``dof2``),
+        chi2 on ``dof`` with a known noise model, else F on ``dof``, ``dof2``; ``test``),
         ``p_value``, ``moved`` (the parameters furthest apart: name, difference, its std, in
         relative units for scales and misalignments, ``units`` for biases) and the residual
         RMS with the calibration and refitted (``rms_fixed``, ``rms_refit``, ``units``). None
@@ -1609,14 +1609,6 @@ def _rounding_statement(mean: NDArray[np.float64], resid: NDArray[np.float64],
             "they are averaged")
 
 
-def _cal_vector(K: Any, b: Any, model: str) -> NDArray[np.float64]:
-    """The parameter vector of ``K``, ``b`` in the paper's order (the first 6 for diag)."""
-    k = np.asarray(K, dtype=np.float64)
-    m = {"lower": (k[1, 0], k[2, 0], k[2, 1]), "upper": (k[0, 1], k[0, 2], k[1, 2])}
-    v = [k[0, 0], k[1, 1], k[2, 2], *np.asarray(b, dtype=np.float64)]
-    return np.asarray(v + list(m.get(model, ())), dtype=np.float64)
-
-
 def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float64],
                  var: NDArray[np.float64] | None, g: float, unit: str) -> dict[str, Any] | None:
     """Whether the held-fixed calibration ``model`` (a TriadModel; ``cal`` its K, b in the
@@ -1629,6 +1621,7 @@ def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float6
     from scipy.stats import chi2 as chi2_dist
     from scipy.stats import f as f_dist
 
+    from ._triad import vector_from_k
     from .static import fit_quietly
 
     try:
@@ -1639,7 +1632,7 @@ def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float6
     p = len(refit.names)
     if refit.degenerate or refit.dof < 1:
         return None
-    theta = _cal_vector(cal[0], cal[1], model.model)[:p]
+    theta = vector_from_k(cal[0], cal[1], model.model)[:p]
     diff = np.asarray(refit.vector, dtype=np.float64) - theta
     # The noise model when the refit agrees with it (chi2 upper tail p >= 0.05), else the
     # covariance scaled by the residuals (and an F test).

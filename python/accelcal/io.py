@@ -2277,6 +2277,7 @@ class _Recording:
         self.skipped = 0  # rows whose accelerometer fields are all empty (merged logs)
         self.bad = 0  # rows that did not parse, left out (a serial capture's broken lines)
         self.first_bad: tuple[int, str] | None = None  # (line, what was wrong)
+        self._bad_hint: str | None = None  # what the first of them likely is
         self._temp_last: float | None = None  # the sparse temperature's last value
         self._temp_held = 0  # its empty fields filled
         self._last: NDArray[Any] | None = None
@@ -2549,9 +2550,11 @@ class _Recording:
                 "of another sensor in a merged log)")
         if self.bad and self.first_bad is not None:
             line, what = self.first_bad
+            if self._bad_hint is None:  # a pass over the file: once
+                self._bad_hint = _left_out_hint(self.path, line, what)
             out.append(
                 f"{self.bad} data row(s) that do not parse were left out (the first, line "
-                f"{line}: {what}): {_left_out_hint(self.path, line, what)}")
+                f"{line}: {what}): {self._bad_hint}")
         if self._temp_held and self.lay.temp is not None:
             out.append(
                 f"the temperature column {_label(self.lay, self.lay.temp)} is empty in "
