@@ -698,7 +698,9 @@ def fit_static(
         What to do when the dwells cannot determine the parameters (DegenerateDataError
         naming the undetermined combination). Weakly determined parameters (predicted std
         above ``weak_std`` relative / g) always give a :class:`WeakDesignWarning` unless
-        ``observability="ignore"``.
+        ``observability="ignore"``. Fewer dwells than parameters, or a design so degenerate
+        that the exact linear solution fails too (no start to iterate from), raise whatever
+        this says: there is no fit to return.
     weak_std, degenerate_std : float
         Thresholds of the predicted std in relative units (scale relative, biases in g).
     max_iter : int
