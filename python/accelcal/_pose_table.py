@@ -143,8 +143,13 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True,
             raise CalibrationError(f"count must be a whole number of samples >= 1; got "
                                    f"{count!r}")
         if not std_cols:
-            raise CalibrationError(f"{rec.path}: count= gives the samples behind each mean's "
-                                   "std, but the table has no per-pose std columns (x_std...)")
+            raise CalibrationError(
+                f"{rec.path}: count= gives the samples behind each mean's std, but the table "
+                "has no per-pose std columns (x_std, y_std, z_std): the noise of a mean needs "
+                "the samples' std as well as their number. Add those columns (the logger's "
+                "std of each pose's samples), or read the table without count= (the noise is "
+                "then estimated from the residuals, and the gap is judged by F tests only); "
+                "from Python, DwellSet(mean, var=std**2, count=n) gives it directly")
         if count_col is not None:
             raise CalibrationError(f"{rec.path}: count= conflicts with the table's own count "
                                    f"column {names[count_col]!r}")  # type: ignore[index]

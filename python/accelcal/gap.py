@@ -964,6 +964,11 @@ def _summary(r: GapReport) -> str:
         "gradiometer": ("residual(s) (2 per azimuth dwell: inline, cross)", "by channel",
                         "by group"),
     }.get(r.system, ("dwell(s)", "by pose axis", "by time third"))
+    # Without dwell times the order is the rows' (drift, which needs times, is not tested).
+    timed = r.system != "static" or r.dwells.get("t") is not None
+    order = "time order" if timed else "row order: no dwell times"
+    if not timed:
+        seg_lab = "by row-order third"
     names = r.dwells.get("name")
     if names is not None and fl:  # named dwells: "4 (z_p)"
         lab = dict(zip((int(i) for i in r.dwells["index"]), names, strict=True))
@@ -982,7 +987,7 @@ def _summary(r: GapReport) -> str:
                                              for s in w["segments"]))
     sc = w.get("serial")
     if sc:
-        L.append(f"  serial correlation (time order): lag-1 r = {sc['r1']:.2f} "
+        L.append(f"  serial correlation ({order}): lag-1 r = {sc['r1']:.2f} "
                  f"(p = {_fmt_p(sc['p'])}), Durbin-Watson {sc['durbin_watson']:.2f}")
     tc = w.get("temperature")
     if tc:
@@ -1548,12 +1553,47 @@ def diagnose(
         if math.isfinite(c2):
             rep = replace(rep, chi2=c2, chi2_per_dof=c2 / rep.dof,
                           p_value=float(chi2_dist.sf(c2, rep.dof)))
+    spread = _axis_spread_statement(rep.dwells["e"], rep.dwells["direction"],
+                                    noise_known=var is not None)
+    if spread:
+        rep = replace(rep, statements=[*rep.statements, spread])
     if cal is not None and cal[2]:
         check = _refit_check(fit, cal, mean, var0, g_v, unit)
         if check is not None:
             rms = float(np.sqrt(np.mean(np.square(np.asarray(raw.resid, dtype=np.float64)))))
             rep = replace(rep, calibration_check={**check, "rms_fixed": rms})
     return rep
+
+
+#: Level below which the residuals' spread is said to differ between pose axes.
+_AXIS_SPREAD_P = 1e-3
+
+
+def _axis_spread_statement(e: Any, direction: Any, *, noise_known: bool) -> str:
+    """When the standardised residuals spread differently on the dwells nearest each axis
+    (Brown-Forsythe test, p < ``_AXIS_SPREAD_P``, at least 8 dwells per axis): the noise
+    differs between the axes and the noise model does not say so. The structure tests
+    look at the residuals' mean, not their spread, so this is said beside them."""
+    from scipy.stats import levene
+
+    e = np.asarray(e, dtype=np.float64)
+    u = np.asarray(direction, dtype=np.float64).reshape(-1, 3)
+    ok = np.isfinite(e) & np.all(np.isfinite(u), axis=1)
+    axis = np.argmax(np.abs(u[ok]), axis=1)
+    groups = {a: e[ok][axis == a] for a in range(3) if np.sum(axis == a) >= 8}
+    if len(groups) < 2:
+        return ""
+    p = float(levene(*groups.values(), center="median").pvalue)
+    if not p < _AXIS_SPREAD_P:
+        return ""
+    ms = ", ".join(f"{'xyz'[a]} {float(np.mean(g**2)):.2f}" for a, g in groups.items())
+    fix = ("the noise is unknown, so every dwell weighs the same: give each axis's noise "
+           "(std columns x_std, y_std, z_std with n or --count, or var/count)"
+           if not noise_known else "check the per-axis noise given")
+    return (f"the residuals' spread depends on the axis nearest gravity (mean e^2 by pose axis: "
+            f"{ms}; Brown-Forsythe p = {_fmt_p(p)}): the noise differs between the axes, which "
+            f"the noise model does not say; {fix}. The structure verdict is about the "
+            "residuals' mean, not this")
 
 
 #: Decimal steps tried for the grid of a table of means (times a power of ten).

@@ -635,7 +635,7 @@ class StaticFit(_core.StaticFit):
         """When dwells repeat poses so that fewer of the residuals' degrees of freedom test
         the model than the dof says: how many do; ``""`` otherwise."""
         n, p, k = len(self.residuals), len(self.names), self.distinct_poses
-        if self.dof <= 0 or k >= n or k - p >= self.dof:
+        if self.dof <= 0 or k >= n or k - p >= self.dof or self._dense_poses():
             return ""
         test = max(k - p, 0)
         dof = f"{self.dof} degree{'' if self.dof == 1 else 's'} of freedom"
@@ -646,6 +646,21 @@ class StaticFit(_core.StaticFit):
         return (f"the {n} dwells are at {k} distinct poses: {test} of the residuals' {dof} "
                 f"test{'s' if test == 1 else ''} the model, the rest show only how well a "
                 "pose repeats")
+
+    def _dense_poses(self) -> bool:
+        """Whether the poses sample the sphere too densely for repeats to mean anything: the
+        distinct poses' typical spacing (median nearest neighbour beyond ``SAME_POSE``) is
+        under 4 times ``SAME_POSE`` (a bench stepping 3 deg: neighbours within the tolerance
+        are different poses, not a pose placed twice). Not judged beyond 3000 dwells."""
+        u = self._unit_directions()
+        if u is None or len(u) < 3 or len(u) > 3000:
+            return False
+        d = np.sqrt(np.maximum(2.0 - 2.0 * (u @ u.T), 0.0))  # chords
+        np.fill_diagonal(d, np.inf)
+        d[d <= _core.SAME_POSE] = np.inf  # repeats of a pose: not the spacing
+        nn = d.min(axis=1)
+        nn = nn[np.isfinite(nn)]
+        return bool(nn.size and float(np.median(nn)) < 4.0 * _core.SAME_POSE)
 
     def __repr__(self) -> str:
         # With the noise estimated (unit weights) chi2/dof is the residual variance, not a
