@@ -471,7 +471,7 @@ def test_bounds_file_replaces_detection(tmp_path: Path) -> None:
     code, out = run("diagnose", str(IMUCAL()), "--fs", "102.4", "--g", "9.81", "--bounds", js)
     assert code == 2 and "needs at least 10 dwells" in out  # 6 faces, 9 parameters
     assert "check a calibration made on another session against this one with --calibration " \
-        "(2 dwells suffice)" in out
+        "(a TriadModel): 2 dwells suffice" in out
     code, out = run("calibrate", "static", str(IMUCAL()), str(XSENS()), "--g", "9.81",
                     "--bounds", js)
     assert code == 2 and "--bounds takes one recording" in out

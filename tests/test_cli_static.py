@@ -165,3 +165,38 @@ def test_outputs_are_announced_and_apply_needs_no_rate(tmp_path: Path) -> None:
     f = ac.fit_static(s.means, 1.0)
     assert "noise estimated" in repr(f) and "chi2_dof" not in repr(f)
     assert "chi2_dof=" in repr(ac.fit_static(s.means, 1.0, sigma=1e-4))
+
+
+def test_one_file_per_face_with_a_units_trap(tmp_path: Path) -> None:
+    """A real MPU-6050 lab: six files, one per face, headed 'aX (g)' but holding m/s^2
+    (the sketch prints counts * 9.81 / 16384), a 'Timestamp' in ms. A face alone got "Add
+    attitudes" and no word of joining the files; the units passed without a word; the rate
+    read in s (0.063 Hz) came with no note from read_stream; and pose labels 'imu_data_posZ'
+    made a table of the six means a 'long-format log' even with --means."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=62.5, n_dwells=6, dwell_s=5.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=0.02, rng=5)
+    a, b = s.bounds[0]
+    face = tmp_path / "x_axis_pos.csv"
+    rows = "".join(f"{round(16 * i)},{x:.2f},{y:.2f},{z:.2f},26.1\n"
+                   for i, (x, y, z) in enumerate(s.samples[a:b]))
+    face.write_text("Timestamp,aX (g),aY (g),aZ (g),Temp (C)\n" + rows)
+    st = ac.read_stream(face)
+    assert st.fs < 1 and any("if it is in ms" in n and "no dwell can be detected" in n
+                             for n in st.notes), st.notes
+    code, out = run("calibrate", "static", str(face), "--g", "9.81", "--time-column",
+                    "Timestamp [ms]")
+    assert code == 2 and "The recording holds one or two poses: if the other poses are in " \
+        "other files (one file per pose), join them" in out, out
+    assert "the accelerometer columns say g (aX (g), aY (g), aZ (g)), but the dwell means' " \
+        "norms are about 1" in out and "the outputs look like m/s^2" in out, out
+    # A table of the face means, labelled as the lab labelled them.
+    table = tmp_path / "means.csv"
+    means = [s.samples[p:q].mean(axis=0) for p, q in s.bounds]
+    table.write_text("pose,ax,ay,az\n" + "".join(
+        f"imu_data_{k},{x},{y},{z}\n" for k, (x, y, z) in zip(
+            ["posX", "negX", "posY", "negY", "posZ", "negZ"], means, strict=True)))
+    code, out = run("calibrate", "static", str(table), "--g", "9.81", "--means", "--model",
+                    "diag")
+    assert "long-format" not in out and "kept as the rows' names" in out, out

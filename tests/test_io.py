@@ -1884,3 +1884,16 @@ def test_a_stray_first_line_of_a_serial_capture_is_skipped(tmp_path: Path) -> No
     # A first line like the rest is data, whatever follows it.
     st = read_stream(write(tmp_path, rows), time_column="0 [ms]")
     assert len(st) == 300 and not any("leftovers" in n for n in st.notes)
+
+
+def test_a_unit_in_the_column_names_is_checked_against_the_norms() -> None:
+    from accelcal.io import declared_units_note
+
+    g_names = ("aX (g)", "aY (g)", "aZ (g)")
+    assert "the outputs look like m/s^2" in declared_units_note(g_names, 9.88)
+    assert declared_units_note(g_names, 1.01) == ""
+    assert declared_units_note(("acc_x [m/s^2]", "acc_y [m/s^2]", "acc_z [m/s^2]"), 9.8) == ""
+    assert "look like g" in declared_units_note(("ax_mps2", "ay_mps2", "az_mps2"), 1.0)
+    assert "(raw counts?)" in declared_units_note(("ax_g", "ay_g", "az_g"), 16384.0)
+    assert declared_units_note(("ax", "ay", "az"), 16384.0) == ""  # no unit declared
+    assert declared_units_note(("ax (g)", "ay [m/s^2]", "az"), 9.8) == ""  # no single unit

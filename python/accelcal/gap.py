@@ -1083,8 +1083,9 @@ def _dwells_of(data: Any, fs: Any, t: Any, temperature: Any, detector: Any = Non
         return data, None, data.fs
     data, fs, t, temperature, _ = stream_fields(data, fs, t, temperature)
     if fs is None:
-        raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet, or the Stream "
-                               "that accelcal.io.read_stream returns")
+        raise CalibrationError("raw samples need fs (Hz); or pass a DwellSet (dwell means: "
+                               "DwellSet(means)), or the Stream that accelcal.io.read_stream "
+                               "returns")
     fs_v = number(fs, "fs", lo=0.0, lo_open=True, unit="Hz")
     samples = samples_array(data, "samples")
     settings = detector if isinstance(detector, DetectorSettings) else DetectorSettings(
@@ -1463,12 +1464,14 @@ def diagnose(
         order = np.argsort(d.t, kind="stable")
     need = 2 if cal is not None and cal[2] else 10
     if k < need:
+        how = ("fit=model.to_model() (a StaticFit given as fit= is only the start of a refit; "
+               "its TriadModel is held fixed)" if cal is not None else "fit= (a TriadModel)")
         raise DegenerateDataError(
             f"{k} dwell{'' if k == 1 else 's'}: "
             + ("checking a fixed calibration needs at least 2" if need == 2 else
                "the 9-parameter model needs at least 10 dwells for any gap test; record more "
                "poses" + (", or check a calibration made on another session against this one "
-                          "with fit= (2 dwells suffice)" if k >= 2 else "")))
+                          f"with {how}: 2 dwells suffice" if k >= 2 else "")))
     if not (cal is not None and cal[2]):
         _determined(d, g_v)
     mean = np.ascontiguousarray(d.mean[order], dtype=np.float64)

@@ -199,6 +199,39 @@ def _split_unit(name: str) -> tuple[str, str]:
     return s, ""
 
 
+#: Accelerometer units a column name may declare, as the norm of gravity in them.
+_DECLARED_G = {"g": 1.0, "m/s^2": 9.80665, "m/s2": 9.80665, "m/s²": 9.80665, "mps2": 9.80665,
+               "ms2": 9.80665, "m s-2": 9.80665, "cm/s^2": 980.665, "mg": 1000.0}
+
+
+def declared_units_note(names: Sequence[str] | None, median_norm: float) -> str:
+    """When the accelerometer columns' names declare a unit (``aX (g)``, ``acc_x [m/s^2]``,
+    ``ax_g``, ``acc_x_mps2``) in which gravity's norm is not what the dwell means show
+    (``median_norm``, their median norm): the note that says so, else ``""``."""
+    if not names or not math.isfinite(median_norm) or median_norm <= 0:
+        return ""
+    units = set()
+    for n in names:
+        base, unit = _split_unit(n)
+        if not unit:
+            m = re.search(r"[_\s](g|mps2|ms2|mg)$", base.strip().lower())
+            unit = m.group(1) if m else ""
+        units.add(unit.strip().lower().replace(" ", "") if unit else "")
+    if len(units) != 1:
+        return ""
+    unit = units.pop()
+    want = _DECLARED_G.get(unit)
+    if want is None or 0.7 <= median_norm / want <= 1.4:
+        return ""
+    like = min(_DECLARED_G.items(), key=lambda kv: abs(math.log(median_norm / kv[1])))
+    looks = (f": the outputs look like {like[0]}" if 0.7 <= median_norm / like[1] <= 1.4
+             else " (raw counts?)")
+    return (f"the accelerometer columns say {unit} ({', '.join(names)}), but the dwell means' "
+            f"norms are about {median_norm:.4g}, where gravity in {unit} is {want:g}{looks}. The "
+            "calibration maps whatever the columns hold to the units of --g; check the "
+            "logger's conversion")
+
+
 def _norm(name: str) -> str:
     base, _ = _split_unit(name)
     return re.sub(r"[^0-9a-zµ]", "", base.lower())
@@ -720,8 +753,11 @@ def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str], list[str]
         if len(uniq) != 1:
             # Row labels, not a sensor per row: a small table, labels mostly distinct, none
             # naming a sensor, and columns named as an accelerometer's beside them.
+            # (A word every label shares, "imu" of imu_data_posZ ..., names no row's sensor.)
+            words = [set(re.split(r"[^a-z]+", str(v).lower())) for v in uniq]
+            shared = set.intersection(*words)
             if (labels is not None or len(vals) > POSE_TABLE_ROWS or 2 * len(uniq) < len(vals)
-                    or any(_names_a_sensor(v) for v in uniq)):
+                    or any(_SENSOR_WORDS & (w - shared) for w in words)):
                 return None
             rest = [str(k) for k in df.columns if k not in text]
             try:
@@ -2540,6 +2576,10 @@ class _Recording:
 
     def notes(self) -> list[str]:
         out = list(self.lay.notes)
+        if self.fs is not None and self.fs < 1.0:  # below any dwell detector's reach
+            hint = self.rate_hint()
+            if hint:
+                out.append(f"{hint} (at {self.fs:.4g} Hz no dwell can be detected)")
         if self._unwrap is not None and self.lay.time is not None:
             out += self._unwrap.notes(_label(self.lay, self.lay.time))
         elif self._unwrap is not None:

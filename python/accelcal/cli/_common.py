@@ -319,11 +319,18 @@ def without_moving(d: Any, g: float) -> tuple[Any, list[str]]:
     return kept, [f"{off.text(g)}: left out, {len(kept)} used"]
 
 
-def vibrating_notes(d: Any) -> list[str]:
-    """:func:`~accelcal.dwell.vibrating_text` in the terms of the command line."""
+def vibrating_notes(d: Any, rec: Any = None) -> list[str]:
+    """:func:`~accelcal.dwell.vibrating_text` in the terms of the command line, and (with the
+    recording ``rec``) a unit its column names declare that the dwells' norms contradict."""
     from ..dwell import unsteady_text, vibrating_text
+    from ..io import _names_of, declared_units_note
 
-    return vibrating_text(d, option="--k ") + unsteady_text(d)
+    out = vibrating_text(d, option="--k ") + unsteady_text(d)
+    if rec is not None and len(d):
+        unit = declared_units_note(_names_of(rec.lay), float(np.median(
+            np.linalg.norm(np.asarray(d.mean, dtype=np.float64), axis=1))))
+        out += [unit] if unit else []
+    return out
 
 
 def count_of(n: int, noun: str = "dwell") -> str:

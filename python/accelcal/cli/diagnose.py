@@ -110,7 +110,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         extra.append(f"the calibration was made from this same recording ({calibration} names "
                      "it as its source), from other dwells: the check is not independent of "
                      "it; check it against another session")
-    extra += vibrating_notes(d)
+    extra += vibrating_notes(d, rec)
     d, fault_notes = without_faults(d)
     d, moving_notes = without_moving(d, gv)
     fault_notes += moving_notes

@@ -143,10 +143,11 @@ def _one_pose_each(df: Any) -> str:
     n = df["n_dwells"].fillna(0)
     if len(df) < 2 or not bool((n <= 3).all() and (df["status"] == "degenerate").all()):
         return ""
-    return ("; each recording holds at most 3 dwells: if they are poses of one sensor, one "
-            "file per pose, join them into one recording (one clock), or write one row of "
-            "means per pose into a table read with --means; several files are calibrated as "
-            "several sensors")
+    most = int(n.max())
+    return (f"; each recording holds at most {most} dwell{'' if most == 1 else 's'}: if they "
+            "are poses of one sensor, one file per pose, join them into one recording (one "
+            "clock), or write one row of means per pose into a table read with --means; "
+            "several files are calibrated as several sensors")
 
 
 @main.group()

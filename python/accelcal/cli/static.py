@@ -152,7 +152,7 @@ def calibrate_static(
         d.to_csv(dwells_out)
     src = source_line(file, rec, d)
     undropped = d
-    read_notes += vibrating_notes(d)
+    read_notes += vibrating_notes(d, rec)
     d, fault_notes = without_faults(d)
     read_notes += fault_notes
     d, moving_notes = without_moving(d, gv)
@@ -177,7 +177,11 @@ def calibrate_static(
             still = float(np.sum(undropped.count)) / rec.rows if detected else 1.0
             if still < 0.25:
                 hint += _shorter_rests(window_s, min_dwell_s, still)
-            hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped))
+            if detected and len(d) <= 2 and still >= 0.25:
+                hint += (" The recording holds one or two poses: if the other poses are in "
+                         "other files (one file per pose), join them into one recording, or "
+                         "write one row of means per pose into a table read with --means.")
+            hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped, rec))
             raise CalibrationError(_cli(
                 f"{count_of(len(d))} found in {file}, but they cannot determine the {model!r} "
                 f"model: {e}.{hint}"
