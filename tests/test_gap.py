@@ -1105,3 +1105,16 @@ def test_repeats_are_not_counted_on_a_densely_sampled_sphere() -> None:
         faces / np.linalg.norm(faces, axis=1)[:, None], g=1.0, sigma=1e-4, rng=4)
     assert "the 12 dwells are at 6 distinct poses" in fit_quietly(six.means, 1.0,
                                                                  model="diag").summary()
+
+
+def test_the_axis_spread_test_is_scipy_levene_about_the_medians() -> None:
+    from accelcal.gap import _brown_forsythe
+    from scipy.stats import levene
+
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        g = [rng.normal(0, s, n) for s, n in ((1, 20), (rng.uniform(0.5, 2), 15), (1, 9))]
+        assert _brown_forsythe(g) == pytest.approx(levene(*g, center="median").pvalue,
+                                                   rel=1e-9, abs=1e-300)
+        assert _brown_forsythe(g[:2]) == pytest.approx(
+            levene(*g[:2], center="median").pvalue, rel=1e-9, abs=1e-300)
