@@ -1135,6 +1135,7 @@ class _CalUncertainty:
     spread: NDArray[np.float64]  # (k, k) covariance of the norms over those draws
     grad_m: NDArray[np.float64]  # (k, 3) d r_k / d m_k, output per raw unit
     bootstrap: bool = False  # the draws refit the calibration's own session
+    draws: NDArray[np.float64] | None = None  # (draws, p) the parameter deviations drawn
 
     def norm_var(self, var: NDArray[np.float64]) -> NDArray[np.float64]:
         """(k,) variance of each dwell's norm from the per-axis variances ``var`` of its
@@ -1262,7 +1263,8 @@ def _calibration_var(fit: Any, g: float, mean: NDArray[np.float64]) -> _CalUncer
     grad_m = c * u @ np.linalg.inv(k_matrix(v, fit.model))  # d r / d m = c K^-T u, per row
     w = np.sum(grad_m**2, axis=1)
     return _CalUncertainty(np.asarray(np.maximum(np.diag(spread), 0.0) / w),
-                           np.asarray(dev.mean(axis=0)), spread, grad_m, boot)
+                           np.asarray(dev.mean(axis=0)), spread, grad_m, boot,
+                           draws if boot else None)
 
 
 def _noise(d: DwellSet, noise: Any, inflation: _F64 | None, noise_model: str,
@@ -1561,7 +1563,8 @@ def diagnose(
     if spread:
         rep = replace(rep, statements=[*rep.statements, spread])
     if cal is not None and cal[2]:
-        check = _refit_check(fit, cal, mean, var0, g_v, unit)
+        check = _refit_check(fit, cal, mean, var0, g_v, unit,
+                             None if unc is None else unc.draws)
         if check is not None:
             rms = float(np.sqrt(np.mean(np.square(np.asarray(raw.resid, dtype=np.float64)))))
             rep = replace(rep, calibration_check={**check, "rms_fixed": rms})
@@ -1671,7 +1674,8 @@ def _rounding_statement(mean: NDArray[np.float64], resid: NDArray[np.float64],
 
 
 def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float64],
-                 var: NDArray[np.float64] | None, g: float, unit: str) -> dict[str, Any] | None:
+                 var: NDArray[np.float64] | None, g: float, unit: str,
+                 draws: NDArray[np.float64] | None = None) -> dict[str, Any] | None:
     """Whether the held-fixed calibration ``model`` (a TriadModel; ``cal`` its K, b in the
     session's units of g) still holds on the dwell means ``mean``: the session refitted with
     the same model, and the difference of the parameter vectors against the sum of both
@@ -1700,9 +1704,17 @@ def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float6
     known = bool(refit.noise_known and refit.chi2_p >= 0.05)
     c_fit = np.asarray(refit.covariance_noise_model if known else refit.covariance_scaled,
                        dtype=np.float64)
+    # The calibration's own uncertainty: the spread of its session refitted with fresh noise
+    # (a parametric bootstrap, when the model carries its session: a weak design's sampling
+    # distribution is far wider than its linearised covariance says), else its covariance.
+    if draws is None:
+        draws = _session_draws(model, np.asarray(model.vector, dtype=np.float64))
     c_cal = np.zeros((p, p))
-    if model.covariance is not None:
+    if draws is not None and draws.shape[0] > 2 * p:
+        c_cal = np.atleast_2d(np.cov(np.asarray(draws, dtype=np.float64)[:, :p].T))
+    elif model.covariance is not None:
         c_cal = np.asarray(model.covariance, dtype=np.float64)[:p, :p]
+    if c_cal.any():
         if model.units == "g" and g != 1.0:  # K per g -> per the session's unit, as in cal
             d = np.ones(p)
             d[[i for i in (0, 1, 2, 6, 7, 8) if i < p]] = 1.0 / g
