@@ -359,3 +359,20 @@ def test_table_columns_by_name_and_unit(tmp_path):
             read_centrifuge_table(q)
         for w in words:
             assert w in str(ei.value), str(ei.value)
+
+
+def test_diagnose_centrifuge_names_the_rows_the_screen_excludes() -> None:
+    """The published table as printed (23 of 60 rows with a lost sign) read "chi2/dof = 1.00
+    ... Structure: none: the residuals are consistent with the noise model": with no noise
+    given, the scale came from those very residuals. The report now names the rows the robust
+    screen excludes, and says that the noise level itself was not tested."""
+    printed = accelcal.read_centrifuge_table(PRINTED())
+    r = accelcal.diagnose_centrifuge(printed.outputs, printed.omega, 1.0)
+    said = [s for s in r.statements if s.startswith("the robust screen of the centrifuge fit")]
+    assert said and "excludes 23 of 60 rows" in said[0], r.statements
+    assert "consistent with the noise model" not in r.structure.summary()
+    assert "whether their size is what the noise should give is not tested" in \
+        r.structure.summary()
+    corrected = accelcal.read_centrifuge_table(CORRECTED())
+    r = accelcal.diagnose_centrifuge(corrected.outputs, corrected.omega, 1.0)
+    assert not any(s.startswith("the robust screen") for s in r.statements)

@@ -101,7 +101,12 @@ def test_static_norm_figure_axes() -> None:
     fig = plots.static_norm_figure(fit)
     top, bottom = fig.axes
     assert top.get_ylabel() == "|a| / g  [g]"
-    assert bottom.get_ylabel() == "|a| - g  [mm/s^2]" and bottom.get_xlabel() == "dwell"
+    assert bottom.get_ylabel() == "|a| - g  [mm/s^2]"
+    assert bottom.get_xlabel() == "dwell (numbered from 0, as in the tables)"
+    # The largest residual sits at the dwell number the reports give it.
+    heights = np.array([b.get_height() for b in bottom.patches])
+    xs = np.array([b.get_x() + b.get_width() / 2 for b in bottom.patches])
+    assert xs[np.argmax(np.abs(heights))] == np.argmax(np.abs(fit.residuals))
     assert "before (fitted bias removed, one common scale)" in [
         t.get_text() for t in top.get_legend().get_texts()]
     # Counts are shown in g: the 'before' norms are near 1 g, not near 57000 counts.
@@ -200,3 +205,25 @@ def test_one_file_per_face_with_a_units_trap(tmp_path: Path) -> None:
     code, out = run("calibrate", "static", str(table), "--g", "9.81", "--means", "--model",
                     "diag")
     assert "long-format" not in out and "kept as the rows' names" in out, out
+
+
+def test_apply_says_when_the_calibration_does_not_fit_the_recording(tmp_path: Path) -> None:
+    """The Xsens calibration (raw counts) applied to an MPU-9150 recording in m/s^2 wrote
+    calibrated norms of 136 m/s^2 without a word."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=4.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=1e-3, rng=9)
+    rec = tmp_path / "rec.csv"
+    np.savetxt(rec, np.column_stack([s.t, s.samples]), delimiter=",", header="t,ax,ay,az",
+               comments="")
+    other = tmp_path / "other.csv"
+    np.savetxt(other, np.column_stack([s.t, s.samples * 14.0]), delimiter=",",
+               header="t,ax,ay,az", comments="")
+    cal = tmp_path / "cal.json"
+    assert run("calibrate", "static", str(rec), "--g", str(s.g), "-o", str(cal))[0] == 0
+    code, out = run("apply", str(cal), str(rec), "-o", str(tmp_path / "a.csv"))
+    assert code == 0 and "is this the sensor" not in out, out
+    code, out = run("apply", str(cal), str(other), "-o", str(tmp_path / "b.csv"))
+    assert code == 0 and "the calibrated output's norm is typically 1" in out \
+        and "is this the sensor, and are these the units" in out, out

@@ -618,3 +618,30 @@ def test_a_fleet_of_one_pose_per_file_is_told_to_join_them(tmp_path: Path) -> No
     assert code == 1, out
     assert "accelcal: no recording was calibrated; each recording holds at most 1 dwell: if " \
            "they are poses of one sensor, one file per pose, join them" in out, out
+
+
+def test_a_fleet_row_says_when_the_residuals_exceed_the_noise_model(tmp_path: Path) -> None:
+    """The Xsens session (chi2/dof 15.6, p = 6e-80) was an 'ok' row with an empty message;
+    the single-file summary says it."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=50.0, n_dwells=16, dwell_s=6.0, move_s=2.0, max_tilt_deg=70.0,
+                      sigma=2e-3, rng=6)
+    x = s.samples.copy()
+    for a, b in s.bounds:  # a per-dwell offset 10 times the noise of a dwell mean
+        x[a:b] += np.random.default_rng(a).normal(0, 2e-3 / np.sqrt(b - a) * 10, 3)
+    p = write_csv(tmp_path / "offsets.csv", s.t, x)
+    df = ac.calibrate_many([str(p)], g=G0, workers=1, progress=False)
+    assert df.loc[0, "status"] in ("ok", "weak")
+    assert "residuals exceed the noise model (chi2/dof" in df.loc[0, "message"]
+
+
+def test_a_dead_worker_names_the_missing_main_guard(monkeypatch: pytest.MonkeyPatch) -> None:
+    import types
+
+    from accelcal.fleet import _died_hint
+
+    monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace(__file__="script.py"))
+    assert "put the call under 'if __name__ == \"__main__\":'" in _died_hint()
+    monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace())
+    assert _died_hint() == "run this recording alone to see why"

@@ -201,3 +201,27 @@ def test_schema_is_shipped_and_published():
     s = schema()
     assert s["properties"]["format"]["const"] == "accelcal.TriadModel"
     jsonschema.Draft202012Validator.check_schema(s)
+
+
+def test_a_hand_edited_unit_and_a_bom_are_handled(tmp_path):
+    """A calibration made with g = 9.81744 m/s^2 whose 'units.output' was edited to 'g': apply
+    labelled m/s^2 values as g. Refused now, naming both fields; a file saved with a UTF-8
+    BOM (Windows Notepad) reads."""
+    import json
+
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(20, max_tilt_deg=None, sigma=1e-4, rng=2, g=9.81744)
+    m = ac.fit_static(s.means, 9.81744).to_model()
+    p = tmp_path / "cal.json"
+    m.save(p)
+    d = json.loads(p.read_text())
+    d["units"]["output"] = "g"
+    bad = tmp_path / "edited.json"
+    bad.write_text(json.dumps(d))
+    with pytest.raises(ac.CalibrationError, match=r"'units.output' says 'g' but field 'g' is "
+                                                  r"9.81744"):
+        ac.TriadModel.load(bad)
+    bom = tmp_path / "bom.json"
+    bom.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
+    np.testing.assert_array_equal(ac.TriadModel.load(bom).K, m.K)

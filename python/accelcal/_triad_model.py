@@ -363,6 +363,13 @@ class TriadModel:
             )
         except CalibrationError as e:
             raise CalibrationError(f"{source}: {e}") from None
+        unit_g = {"g": 1.0, "m/s^2": 9.80665, "cm/s^2": 980.665}.get(m.units)
+        if m.g is not None and unit_g is not None and not 0.9 < m.g / unit_g < 1.1:
+            # The output unit and the gravity the fit used must agree: a hand-edited unit
+            # would label every calibrated value wrongly.
+            raise CalibrationError(
+                f"{source}: field 'units.output' says {m.units!r} but field 'g' is {m.g!r}, "
+                f"not gravity in {m.units} (about {unit_g:g}): one of them was edited")
         if "vector" in d:
             v = _finite_array(d["vector"], f"{source}: vector")
             want = m.vector
@@ -388,7 +395,7 @@ class TriadModel:
         """Read and validate a model written by :meth:`save` (versions 1 and 2)."""
         src = repr(str(path))
         try:
-            with open(path, encoding="utf-8") as fh:
+            with open(path, encoding="utf-8-sig") as fh:  # a BOM, as Notepad saves it
                 d = json.load(fh)
         except OSError as e:
             raise CalibrationError(f"cannot read model {src}: {e.strerror}") from None

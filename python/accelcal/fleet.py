@@ -22,6 +22,7 @@ import os
 import re
 import socket
 import stat
+import sys
 import time
 import warnings
 from collections.abc import Iterable, Sequence
@@ -259,6 +260,12 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     temp = None if d.temperature is None else float(np.mean(d.temperature))
     row["temperature"] = math.nan if temp is None else temp
     row["status"] = "weak" if (fit.weak or weak) else "ok"
+    # The single-file summary's note, at 0.001: a fleet's rows are read as a list of the
+    # recordings to look at, and at 0.05 one clean recording in twenty would be on it.
+    if fit.noise_known and fit.dof > 0 and fit.chi2_p < 1e-3:
+        notes.append(f"residuals exceed the noise model (chi2/dof {fit.chi2_dof:.3g}, p = "
+                     f"{fit.chi2_p:.2g}): the std are scaled by chi2/dof; diagnose says what "
+                     "the excess is made of")
     unit = units_of_g(job.g)
     if unit != "m/s^2":
         # The columns are named for m/s^2; a g given in g (or cm/s^2) puts them in its units.
@@ -584,8 +591,7 @@ def _run_local(jobs: list[_Job], workers: int, progress: bool | None) -> list[Re
                 try:
                     out[j.index] = f.result()
                 except BrokenProcessPool as e:
-                    out[j.index] = _failed(j, f"a worker process died ({e}); run this "
-                                              "recording alone to see why")
+                    out[j.index] = _failed(j, f"a worker process died ({e}); {_died_hint()}")
                 except Exception as e:  # noqa: BLE001 - e.g. a result that cannot be sent back
                     out[j.index] = _failed(j, f"worker failed: {type(e).__name__}: {e}")
                 bar.update(1)
@@ -594,6 +600,18 @@ def _run_local(jobs: list[_Job], workers: int, progress: bool | None) -> list[Re
             raise
         ex.shutdown(wait=True)
     return [r for r in out if r is not None]
+
+
+def _died_hint() -> str:
+    """What to do when a local worker died: run from a script, the likely cause is a call at
+    its top level (each spawned worker imports the script and reaches the call again)."""
+    main = sys.modules.get("__main__")
+    if getattr(main, "__file__", None):
+        return ("if calibrate_many is called at the top level of a script, put the call under "
+                "'if __name__ == \"__main__\":' (each worker is a fresh interpreter that "
+                "imports the script), or pass workers=1; else run this recording alone to "
+                "see why")
+    return "run this recording alone to see why"
 
 
 def _cores() -> int:

@@ -843,8 +843,13 @@ def _structure_text(s: GapStructure) -> str:
     if v == "none":
         tried = (", ".join(_smooth_phrase(t.name) for t in smooth_ok) if smooth_ok
                  else "nothing testable")
-        txt = ("none: the residuals are consistent with the noise model and show no structure "
-               f"(smooth in {tried}: none significant)")
+        if math.isnan(s.per_dwell_rms):  # no noise model: its scale came from these residuals
+            txt = (f"none: the residuals show no structure (smooth in {tried}: none "
+                   "significant); with the noise unknown, whether their size is what the noise "
+                   "should give is not tested (give the noise for that)")
+        else:
+            txt = ("none: the residuals are consistent with the noise model and show no "
+                   f"structure (smooth in {tried}: none significant)")
     elif v == "noise_model":
         ne = s.noise_empirical
         pt = next((x for x in s.tests if x.name == "persistence"), None)
@@ -1828,7 +1833,31 @@ def diagnose_centrifuge(
                    "row(s)", "by axis", "by speed", lambda x: f"{x:g}", lambda x: f"{x:g}",
                    _fixes_separation(_CENTRIFUGE_FIX))
     return _build_report(raw, sysw, g=g_v, alpha=float(alpha), noise_model=noise_model,
-                         statements=[], rows={"omega": om})
+                         statements=_screened_rows(out, om, radius_v, g_v),
+                         rows={"omega": om})
+
+
+def _screened_rows(outputs: NDArray[np.float64], omega: NDArray[np.float64], radius: float,
+                   g: float) -> list[str]:
+    """The rows the robust screen of the centrifuge fit (:func:`accelcal.fit_centrifuge`)
+    excludes, said: the diagnosis fits every row, and a few rows far off (a lost sign in a
+    printed table) set its noise scale when the noise is unknown, or its chi2 when known."""
+    from .centrifuge import fit_centrifuge
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit = fit_centrifuge(outputs, omega, radius, g=g)
+    except CalibrationError:
+        return []
+    bad = [int(i) for i in np.asarray(fit.outliers)]
+    if not bad:
+        return []
+    return [f"the robust screen of the centrifuge fit (fit_centrifuge, calibrate centrifuge) "
+            f"excludes {len(bad)} of {len(outputs)} rows ({', '.join(map(str, bad[:8]))}"
+            f"{' ...' if len(bad) > 8 else ''}): rows inconsistent with the model (a mistyped "
+            "or mis-signed value?), which this diagnosis fits with the others; leave them out "
+            "(outputs[mask], omega[mask]) and diagnose again"]
 
 
 def diagnose_gradiometer(

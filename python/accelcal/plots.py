@@ -43,7 +43,7 @@ def static_norm_figure(fit: Any, dwells: Any = None) -> Any:
 
     plt = _plt()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    k = np.arange(1, len(fit.residuals) + 1)
+    k = np.arange(len(fit.residuals))  # numbered from 0, as the tables and reports
     g = fit.g
     u = unit_label(g)
     nb = fit.norms_before()
@@ -61,7 +61,7 @@ def static_norm_figure(fit: Any, dwells: Any = None) -> Any:
                  ecolor="k", capsize=2, label=f"1 sigma ({src})")
     ax2.axhline(0.0, color="k", lw=0.8)
     ax2.set_ylabel(f"|a| - g  [{unit}]")
-    ax2.set_xlabel("dwell")
+    ax2.set_xlabel("dwell (numbered from 0, as in the tables)")
     ax2.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax2.legend(fontsize=8)
     chi = f"chi2/dof {fit.chi2_dof:.3g}" if fit.noise_known else "noise estimated"

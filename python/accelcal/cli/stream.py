@@ -4,6 +4,7 @@ with bounded memory, whatever its length."""
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import sys
@@ -345,14 +346,23 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
         header.append(f"fs_hz: {rec.fs!r}")
     with _Output(output, has_t, header) as out, \
             _progress_bar(rec, "apply", False if quiet else None) as cb:
+        norms: list[float] = []
         for chunk, t, _temp in rec.chunks(chunk_rows, cb):
-            out.write(t, model.apply(chunk))
+            cal_chunk = model.apply(chunk)
+            if len(norms) < 8 and len(cal_chunk):  # the calibrated norm, on the first chunks
+                norms.append(float(np.nanmedian(np.linalg.norm(cal_chunk, axis=1))))
+            out.write(t, cal_chunk)
     if rec.rows == 0:
         raise CalibrationError(f"{rec.path}: no data rows")
     from ..io import NO_RATE_NOTE
 
     # Applying a calibration needs no rate: without one the output has no time column only.
     notes = [n for n in rec.notes() if not n.startswith(NO_RATE_NOTE)]
+    typical = float(np.median(norms)) if norms else math.nan
+    if model.g and math.isfinite(typical) and not 0.5 < typical / model.g < 2.0:
+        notes.append(f"the calibrated output's norm is typically {typical:.4g} {unit}, where "
+                     f"gravity (g = {model.g:g}, the calibration's) would read {model.g:g}: is "
+                     "this the sensor, and are these the units, the calibration was made for?")
     if as_json:
         emit_json({"output": output, "format": out.kind, "rows": out.rows, "time_column": has_t,
                    "units": unit, "calibration": cal, "file": file,
