@@ -20,6 +20,7 @@ import json
 import math
 import os
 import threading
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -50,7 +51,7 @@ def _csv_text(v: str) -> str:
     return v
 _AXES = ("x", "y", "z")
 _STATE_MAGIC = b"ACCELCAL-DWELL-ACCUMULATOR\n"
-_STATE_VERSION = 2  # 2: the dropout runs of detection (1 is read too)
+_STATE_VERSION = 3  # 3: a CRC-32 of the rest; 2: the dropout runs of detection (1, 2 read)
 
 
 def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> NDArray[np.float64]:
@@ -909,6 +910,11 @@ def stream_fields(data: Any, fs: float | None, t: Any, temperature: Any, units: 
             data.temperature if temperature is None else temperature, units)
 
 
+def _state_crc(meta: dict[str, Any], raw: bytes) -> int:
+    """CRC-32 of a state's header fields (sorted, without the CRC itself) and core bytes."""
+    return zlib.crc32(json.dumps(meta, sort_keys=True).encode() + b"\n" + raw)
+
+
 class DwellAccumulator:
     """Streaming per-dwell statistics for acquisition scripts.
 
@@ -1006,11 +1012,11 @@ class DwellAccumulator:
     def to_state(self) -> bytes:
         """The complete state as bytes (versioned; the core's state plus ``fs`` and units)."""
         with self._lock:
-            head = json.dumps(
-                {"version": _STATE_VERSION, "fs": self.fs, "units": self.units,
-                 "mode": self.mode, "dropouts": self._drops.runs}
-            ).encode()
-            return _STATE_MAGIC + head + b"\n" + self._raw.to_state()
+            meta = {"version": _STATE_VERSION, "fs": self.fs, "units": self.units,
+                    "mode": self.mode, "dropouts": self._drops.runs}
+            raw = self._raw.to_state()
+            meta["crc32"] = _state_crc(meta, raw)
+            return _STATE_MAGIC + json.dumps(meta).encode() + b"\n" + raw
 
     @classmethod
     def from_state(cls, state: bytes) -> DwellAccumulator:
@@ -1028,11 +1034,15 @@ class DwellAccumulator:
             runs = meta.get("dropouts", []) if version >= 2 else []
         except (ValueError, KeyError, TypeError, AttributeError):
             raise CalibrationError("not a DwellAccumulator state (bad header)") from None
-        if version not in (1, _STATE_VERSION):
+        if version not in (1, 2, _STATE_VERSION):
             raise CalibrationError(
                 f"DwellAccumulator state version {version!r} is not supported "
                 f"(this version reads 1 to {_STATE_VERSION})"
             )
+        if version >= 3 and meta.get("crc32") != _state_crc(
+                {k: v for k, v in meta.items() if k != "crc32"}, raw):
+            raise CalibrationError("DwellAccumulator state is corrupted (its CRC-32 does not "
+                                   "match: bytes changed since to_state wrote them)")
         if mode not in ("bounds", "detect") or not isinstance(units, str) or not (
             isinstance(runs, list) and all(
                 isinstance(r, list) and len(r) == 2 and all(
