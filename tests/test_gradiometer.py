@@ -405,3 +405,11 @@ def test_cli_gradiometer_plot_and_option_words(tmp_path):
     # Errors name CLI options.
     r = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab), "--sigma", "-1"])
     assert r.exit_code == 2 and "--sigma must" in r.output, r.output
+
+
+def test_no_residual_dof_says_why_the_std_are_nan() -> None:
+    from accelcal.gradiometer import startup_bias
+
+    r = startup_bias([0.0, 60.0], [[52.2, -32.0], [-29.1, -29.2]])
+    assert r.dof == 0 and not np.all(np.isfinite(r.std))
+    assert "std n/a: 2 azimuths leave no residual degree of freedom" in r.summary()

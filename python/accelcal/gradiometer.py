@@ -167,6 +167,11 @@ class StartupBias(_core.StartupBiasCore):
         for n, v, s in zip(self.names, self.params, self.std, strict=True):
             u = units[n.split("_")[0]]
             lines.append(f"  {n:<8} {v:>14.6g} +- {s:<10.3g} {u}")
+        if self.dof <= 0 and not np.all(np.isfinite(self.std)):
+            lines.append(
+                f"  std n/a: {len(self.azimuth_deg)} azimuths leave no residual degree of "
+                "freedom to estimate the noise from (the solution fits them exactly); give "
+                "sigma= (the noise std of an average, E) or add azimuths")
         if self.sigma is not None:
             how = "estimated from residuals" if self.sigma_estimated else "given"
             lines.append(f"  noise std of an average: {np.mean(self.sigma):.3g} E ({how})")
