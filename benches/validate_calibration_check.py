@@ -8,7 +8,8 @@ calibration's uncertainty: none (taken as exact), draws from N(theta, C) (its co
 and the parametric bootstrap of its own session (the default when the model carries it,
 ``metadata["fit_session"]``); and the calibration check (``GapReport.calibration_check``: the
 second session refitted, a Wald test of the parameter difference over the refit's covariance
-and the bootstrap's), with the noise model given and without one. Run: ``python benches/validate_calibration_check.py [--n 100]``.
+and the bootstrap's), with the noise model given and without one.
+Run: ``python benches/validate_calibration_check.py [--n 100]``.
 """
 
 from __future__ import annotations
