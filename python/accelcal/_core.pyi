@@ -1084,6 +1084,12 @@ def static_design_rows(
 def static_model_violation(k: list[list[float]], model: _StaticModel) -> tuple[int, int] | None:
     """K entries outside the model's pattern that are not zero."""
 
+def chi2_sf(x: float, k: float) -> float:
+    """Upper tail of the chi-square distribution with ``k`` degrees of freedom at ``x``."""
+
+def f_sf(f: float, d1: float, d2: float) -> float:
+    """Upper tail of the F distribution with ``d1``, ``d2`` degrees of freedom at ``f``."""
+
 def gravity_problem(g: float) -> str | None:
     """Why ``g`` cannot be a local gravity in m/s^2, units of g or cm/s^2 (None if it can)."""
 
@@ -1205,6 +1211,8 @@ __all__ = [
     "dwell_stats_raw",
     "dwell_step_log",
     "gravity_problem",
+    "chi2_sf",
+    "f_sf",
     "StepLog",
     "OutputFault",
     "RawDwellAccumulator",

@@ -1557,12 +1557,10 @@ def diagnose(
                         noise_model=nm_text, statements=statements, rows=rows,
                         noise_curves=curves)
     if unc is not None and var0 is not None and rep.dof > 0:
-        from scipy.stats import chi2 as chi2_dist
-
         c2 = unc.chi2(np.asarray(raw.resid, dtype=np.float64), var0)
         if math.isfinite(c2):
             rep = replace(rep, chi2=c2, chi2_per_dof=c2 / rep.dof,
-                          p_value=float(chi2_dist.sf(c2, rep.dof)))
+                          p_value=float(_core.chi2_sf(c2, rep.dof)))
     spread = _axis_spread_statement(rep.dwells["e"], rep.dwells["direction"],
                                     noise_known=var is not None)
     if spread:
@@ -1608,10 +1606,8 @@ def _axis_spread_statement(e: Any, direction: Any, *, noise_known: bool) -> str:
 def _brown_forsythe(groups: list[NDArray[np.float64]]) -> float:
     """The p-value of the Brown-Forsythe test of equal spread (Levene's test about the
     medians: a one-way ANOVA of each value's distance from its group's median), as
-    ``scipy.stats.levene(*groups, center="median")`` gives it, without its overhead (the
-    diagnosis runs in a few ms)."""
-    from scipy.special import fdtrc
-
+    ``scipy.stats.levene(*groups, center="median")`` gives it, without SciPy (not a run-time
+    dependency) and its overhead (the diagnosis runs in a few ms)."""
     z = [np.abs(g - np.median(g)) for g in groups]
     n = np.array([len(x) for x in z], dtype=np.float64)
     means = np.array([x.mean() for x in z])
@@ -1622,7 +1618,7 @@ def _brown_forsythe(groups: list[NDArray[np.float64]]) -> float:
     if within <= 0.0:
         return 1.0 if between <= 0.0 else 0.0
     f = (total - k) / (k - 1) * between / within
-    return float(fdtrc(k - 1, total - k, f))
+    return float(_core.f_sf(f, k - 1, total - k))
 
 
 #: Decimal steps tried for the grid of a table of means (times a power of ten).
@@ -1688,9 +1684,6 @@ def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float6
     refit's noise model is known and its chi2 agrees with it, else F(p, dof) (its covariance
     scaled by the residuals).
     None when the session cannot determine the model (too few dwells, or a refusal)."""
-    from scipy.stats import chi2 as chi2_dist
-    from scipy.stats import f as f_dist
-
     from ._triad import vector_from_k
     from .static import fit_quietly
 
@@ -1727,10 +1720,10 @@ def _refit_check(model: Any, cal: tuple[Any, Any, bool], mean: NDArray[np.float6
     cov = c_fit + c_cal
     w = float(diff @ np.linalg.lstsq(cov, diff, rcond=1e-12)[0])
     if known:
-        pv, stat = float(chi2_dist.sf(w, p)), {"test": "chi2", "statistic": w, "dof": p,
-                                             "dof2": None}
+        pv, stat = float(_core.chi2_sf(w, p)), {"test": "chi2", "statistic": w, "dof": p,
+                                               "dof2": None}
     else:
-        pv, stat = float(f_dist.sf(w / p, p, refit.dof)), {
+        pv, stat = float(_core.f_sf(w / p, p, refit.dof)), {
             "test": "F", "statistic": w / p, "dof": p, "dof2": int(refit.dof)}
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     scale = np.asarray(theta[:3], dtype=np.float64)

@@ -477,6 +477,19 @@ pub fn gap_distinct_poses(mean: PyReadonlyArray2<'_, f64>, tol: f64) -> PyResult
     Ok(statics::distinct_poses(&rows3(&mean, "mean")?, tol))
 }
 
+/// Upper tail of the chi-square distribution with `k` degrees of freedom at `x` (the
+/// engine's own; Python calls it so that no test needs SciPy at run time).
+#[pyfunction]
+pub fn chi2_sf(x: f64, k: f64) -> f64 {
+    crate::gap::special::chi2_sf(x, k)
+}
+
+/// Upper tail of the F distribution with `d1`, `d2` degrees of freedom at `f`.
+#[pyfunction]
+pub fn f_sf(f: f64, d1: f64, d2: f64) -> f64 {
+    crate::gap::special::f_sf(f, d1, d2)
+}
+
 /// The effect dictionary of a system: `(name, unit, number of parameters)` (the
 /// gradiometer's azimuth_error has one parameter per dwell: 0 here).
 #[pyfunction]

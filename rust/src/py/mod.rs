@@ -47,9 +47,9 @@ mod _core {
     };
     #[pymodule_export]
     use super::gap::{
-        gap_diagnose_centrifuge, gap_diagnose_gradiometer, gap_diagnose_static, gap_dictionary,
-        gap_distinct_poses, GapCandidate, GapGroup, GapHeldOut, GapLocation, GapNoiseEmpirical,
-        GapRaw, GapSettings, GapStructure, GapStructureTest,
+        chi2_sf, f_sf, gap_diagnose_centrifuge, gap_diagnose_gradiometer, gap_diagnose_static,
+        gap_dictionary, gap_distinct_poses, GapCandidate, GapGroup, GapHeldOut, GapLocation,
+        GapNoiseEmpirical, GapRaw, GapSettings, GapStructure, GapStructureTest,
     };
     #[pymodule_export]
     use super::gradiometer::{
