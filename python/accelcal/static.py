@@ -651,9 +651,10 @@ class StaticFit(_core.StaticFit):
         """Whether the poses sample the sphere too densely for repeats to mean anything: the
         distinct poses' typical spacing (median nearest neighbour beyond ``SAME_POSE``) is
         under 4 times ``SAME_POSE`` (a bench stepping 3 deg: neighbours within the tolerance
-        are different poses, not a pose placed twice). Not judged beyond 3000 dwells."""
+        are different poses, not a pose placed twice). Not judged beyond 2000 dwells (the
+        pairwise distances take 32 MB there)."""
         u = self._unit_directions()
-        if u is None or len(u) < 3 or len(u) > 3000:
+        if u is None or len(u) < 3 or len(u) > 2000:
             return False
         d = np.sqrt(np.maximum(2.0 - 2.0 * (u @ u.T), 0.0))  # chords
         np.fill_diagonal(d, np.inf)
