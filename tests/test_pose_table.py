@@ -306,3 +306,24 @@ def test_a_table_of_means_gets_no_note_on_its_time_column_resolution(tmp_path: P
     code, out = run("calibrate", "static", str(p), "--g", "9.80665", "--means")
     assert code == 0, out
     assert "read as a table of dwell means" in out and "resolution" not in out, out
+
+
+def test_columns_a_table_of_means_does_not_read_are_named(tmp_path: Path) -> None:
+    """A real lab's table of face means with std columns named sx, sy, sz (accelcal's own
+    names for the scale factors): they were dropped without a word, and the noise estimated."""
+    s = static_dwell_means(8, max_tilt_deg=None, sigma=1e-3, rng=3)
+    p = tmp_path / "means.csv"
+    rows = "".join(f"{x},{y},{z},0.01,0.01,0.02,1800,26.1,ok\n" for x, y, z in s.means)
+    p.write_text("ax,ay,az,sx,sy,sz,n,temp,flag\n" + rows)
+    d, rec = ac.io._stream_dwells(p, means=True)
+    note = [n for n in rec.notes() if "of the table are not used" in n]
+    assert note and note[0].startswith("column(s) 'sx', 'sy', 'sz' of the table are not used: "
+                                       "a per-pose std is read from columns named like "
+                                       "x_std"), rec.notes()  # ('flag' has its own note)
+    assert d.temperature is not None and d.var is None
+    # Named as it reads them: no such note, and the noise comes from std / sqrt(n).
+    q = tmp_path / "named.csv"
+    q.write_text("ax,ay,az,x_std,y_std,z_std,n,temp\n" + "".join(
+        f"{x},{y},{z},0.01,0.01,0.02,1800,26.1\n" for x, y, z in s.means))
+    d2, rec2 = ac.io._stream_dwells(q, means=True)
+    assert not any("not used" in n for n in rec2.notes()) and d2.var is not None

@@ -202,7 +202,27 @@ def pose_table(rec: _Recording, units: str = "", forced: bool = True,
                      "sample count (a column n or count, or count= for all poses) they give "
                      "no standard error of the means; the noise level is estimated from the "
                      "fit")
+    unused = _unused_columns(rec, std_cols or [], count_col)
+    if unused:
+        notes.append(
+            f"column(s) {', '.join(repr(c) for c in unused)} of the table are not used: a "
+            "per-pose std is read from columns named like x_std, std_x or sigma_z (with a "
+            "count column n or count), a temperature from one whose name starts with temp")
     labels = None if rec.arrays is None else rec.arrays.labels
     if labels is not None and len(labels) != n:
         labels = None
     return DwellSet(s, var, counts, t=t, temperature=temp, units=units, names=labels)
+
+
+def _unused_columns(rec: _Recording, std_cols: list[int], count_col: int | None) -> list[str]:
+    """Names of a pose table's columns that nothing reads (not the means, the time, the
+    temperature, a per-pose std or the count), other sensors' (gyroscope, magnetometer,
+    pressure) aside."""
+    lay = rec.lay
+    if lay.names is None:
+        return []
+    used = set(lay.acc) | set(std_cols)
+    used |= {c for c in (lay.time, lay.temp, count_col) if c is not None}
+    other_sensor = re.compile(r"gyr|mag|baro|press|rate")  # another sensor's: not ours to read
+    return [str(lay.names[i]) for i in range(len(lay.names))
+            if i not in used and not other_sensor.search(str(lay.names[i]).lower())]
