@@ -1164,9 +1164,9 @@ def test_vibrating_poses_are_reported_with_the_k_that_takes_them() -> None:
     np.testing.assert_array_equal(acc.finish().vibrating, d.vibrating)
     assert len(detect_dwells(s.samples, s.fs).vibrating) == 0
     # The k the note suggests takes all 16 poses.
-    from accelcal.cli._common import vibrating_notes
+    from accelcal.cli._common import dwell_notes
 
-    note = vibrating_notes(d)[0]
+    note = dwell_notes(d)[0]
     k = int(re.search(r"--k (\d+) would take them", note).group(1))  # type: ignore[union-attr]
     assert len(detect_dwells(x, s.fs, k=k)) == 16
     listed = d.to_dict()["vibrating"]

@@ -725,10 +725,16 @@ _SENSOR_WORDS = {
 }
 
 
-def _names_a_sensor(label: str) -> bool:
-    """A row label with a word of :data:`_SENSOR_WORDS` (``ACC``, ``gyro_z``): it names the
-    sensor of its row, not a pose or a section."""
-    return bool(_SENSOR_WORDS.intersection(re.split(r"[^a-z]+", label.lower())))
+def _label_words(label: str) -> set[str]:
+    """The words of a row label, lower case (``imu_data_posZ`` -> imu, data, posz)."""
+    return set(re.split(r"[^a-z]+", label.lower()))
+
+
+def _names_a_sensor(label: str, shared: set[str] | frozenset[str] = frozenset()) -> bool:
+    """A row label with a word of :data:`_SENSOR_WORDS` (``ACC``, ``gyro_z``), other than the
+    ``shared`` words every label of its column has: it names the sensor of its row, not a pose
+    or a section."""
+    return bool(_SENSOR_WORDS.intersection(_label_words(label) - shared))
 
 
 def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str], list[str] | None] | None:
@@ -754,10 +760,9 @@ def _wide_with_text(df: Any, text: list[str]) -> tuple[Any, list[str], list[str]
             # Row labels, not a sensor per row: a small table, labels mostly distinct, none
             # naming a sensor, and columns named as an accelerometer's beside them.
             # (A word every label shares, "imu" of imu_data_posZ ..., names no row's sensor.)
-            words = [set(re.split(r"[^a-z]+", str(v).lower())) for v in uniq]
-            shared = set.intersection(*words)
+            shared = set.intersection(*(_label_words(str(v)) for v in uniq))
             if (labels is not None or len(vals) > POSE_TABLE_ROWS or 2 * len(uniq) < len(vals)
-                    or any(_SENSOR_WORDS & (w - shared) for w in words)):
+                    or any(_names_a_sensor(str(v), shared) for v in uniq)):
                 return None
             rest = [str(k) for k in df.columns if k not in text]
             try:

@@ -419,9 +419,11 @@ class StaticFit(_core.StaticFit):
                 "dwell mean): average more samples per pose (the std falls as one over the "
                 "square root of the samples) or record more poses")
 
-    def _unit_directions(self) -> NDArray[np.float64] | None:
+    @cached_property
+    def _directions(self) -> NDArray[np.float64] | None:
         """The calibrated gravity direction of every dwell (k, 3), or None when some dwell
-        has none (a non-finite or zero calibrated mean)."""
+        has none (a non-finite or zero calibrated mean); computed once for the summary's
+        one-sided axes, distinct poses and pose spacing."""
         a = self.calibrated_means()
         if a.ndim != 2 or a.shape[0] == 0 or not np.all(np.isfinite(a)):
             return None
@@ -431,7 +433,7 @@ class StaticFit(_core.StaticFit):
     def _one_sided_axes(self) -> list[str]:
         """The axes no pose turned towards gravity (or away from it): their calibrated
         component stays above -0.5 g (or below +0.5 g) in every dwell."""
-        u = self._unit_directions()
+        u = self._directions
         if u is None:
             return []
         out = []
@@ -626,7 +628,7 @@ class StaticFit(_core.StaticFit):
     def distinct_poses(self) -> int:
         """Number of distinct poses among the dwells: calibrated gravity directions within
         ``SAME_POSE`` (0.05, about 3 deg) of each other are one pose."""
-        u = self._unit_directions()
+        u = self._directions
         if u is None:
             return len(self.residuals)
         return int(_core.gap_distinct_poses(u, _core.SAME_POSE))
@@ -653,7 +655,7 @@ class StaticFit(_core.StaticFit):
         under 4 times ``SAME_POSE`` (a bench stepping 3 deg: neighbours within the tolerance
         are different poses, not a pose placed twice). Not judged beyond 2000 dwells (the
         pairwise distances take 32 MB there)."""
-        u = self._unit_directions()
+        u = self._directions
         if u is None or len(u) < 3 or len(u) > 2000:
             return False
         d = np.sqrt(np.maximum(2.0 - 2.0 * (u @ u.T), 0.0))  # chords

@@ -319,9 +319,11 @@ def without_moving(d: Any, g: float) -> tuple[Any, list[str]]:
     return kept, [f"{off.text(g)}: left out, {len(kept)} used"]
 
 
-def vibrating_notes(d: Any, rec: Any = None) -> list[str]:
-    """:func:`~accelcal.dwell.vibrating_text` in the terms of the command line, and (with the
-    recording ``rec``) a unit its column names declare that the dwells' norms contradict."""
+def dwell_notes(d: Any, rec: Any = None) -> list[str]:
+    """What the dwells ``d`` show about the recording, in the terms of the command line:
+    vibrating stretches (:func:`~accelcal.dwell.vibrating_text`), dwells too unsteady to be
+    rests, and (with the recording ``rec``) a unit its column names declare that the dwells'
+    norms contradict."""
     from ..dwell import unsteady_text, vibrating_text
     from ..io import _names_of, declared_units_note
 

@@ -15,6 +15,7 @@ from ._common import (
     cli_notes,
     cli_words,
     detector_options,
+    dwell_notes,
     echo_notes,
     emit_json,
     friendly,
@@ -24,7 +25,6 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
-    vibrating_notes,
     without_faults,
     without_moving,
 )
@@ -110,7 +110,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         extra.append(f"the calibration was made from this same recording ({calibration} names "
                      "it as its source), from other dwells: the check is not independent of "
                      "it; check it against another session")
-    extra += vibrating_notes(d, rec)
+    extra += dwell_notes(d, rec)
     d, fault_notes = without_faults(d)
     d, moving_notes = without_moving(d, gv)
     fault_notes += moving_notes

@@ -19,6 +19,7 @@ from ._common import (
     cli_words,
     count_of,
     detector_options,
+    dwell_notes,
     echo_notes,
     emit_json,
     friendly,
@@ -28,7 +29,6 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
-    vibrating_notes,
     without_faults,
     without_moving,
 )
@@ -152,7 +152,7 @@ def calibrate_static(
         d.to_csv(dwells_out)
     src = source_line(file, rec, d)
     undropped = d
-    read_notes += vibrating_notes(d, rec)
+    read_notes += dwell_notes(d, rec)
     d, fault_notes = without_faults(d)
     read_notes += fault_notes
     d, moving_notes = without_moving(d, gv)
@@ -181,7 +181,7 @@ def calibrate_static(
                 hint += (" The recording holds one or two poses: if the other poses are in "
                          "other files (one file per pose), join them into one recording, or "
                          "write one row of means per pose into a table read with --means.")
-            hint += "".join(f" Note: {n}." for n in vibrating_notes(undropped, rec))
+            hint += "".join(f" Note: {n}." for n in dwell_notes(undropped, rec))
             raise CalibrationError(_cli(
                 f"{count_of(len(d))} found in {file}, but they cannot determine the {model!r} "
                 f"model: {e}.{hint}"

@@ -26,6 +26,7 @@ from ._common import (
     cli_notes,
     count_of,
     detector_options,
+    dwell_notes,
     echo_notes,
     emit_json,
     friendly,
@@ -35,7 +36,6 @@ from ._common import (
     recording_options,
     source_line,
     stream_dwells,
-    vibrating_notes,
 )
 
 
@@ -128,7 +128,7 @@ def dwells(
         if rec.rows == 0:
             raise CalibrationError(f"{rec.path}: no data rows")
         d = _named_dwells(acc.finish(), known)
-    notes = ([] if rec is None else rec.notes()) + vibrating_notes(d)
+    notes = ([] if rec is None else rec.notes()) + dwell_notes(d)
     faults = d.faults()
     if faults:
         from ..dwell import fault_text
