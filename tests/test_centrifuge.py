@@ -13,6 +13,7 @@ import pytest
 from accelcal import CalibrationError, DegenerateDataError
 from accelcal._reference import centrifuge_fit_reference
 from accelcal.centrifuge import (
+    CentrifugeModelWarning,
     CentrifugeOutlierWarning,
     calibrate_centrifuge_table,
     fit_centrifuge,
@@ -376,3 +377,90 @@ def test_diagnose_centrifuge_names_the_rows_the_screen_excludes() -> None:
     corrected = accelcal.read_centrifuge_table(CORRECTED())
     r = accelcal.diagnose_centrifuge(corrected.outputs, corrected.omega, 1.0)
     assert not any(s.startswith("the robust screen") for s in r.statements)
+
+
+def _caught(call):
+    """(result, warnings raised) of ``call()``."""
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        res = call()
+    return res, w
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_screen_keeps_every_row_when_a_radius_error_spreads_the_misfit(seed):
+    """A 0.1 mm radius error (1e-4 relative) with 1e-6 g noise given: every residual is ~1e-5 g
+    (tens of sigma) and smooth in the rate, not sparse. The screen used to exclude 20 good rows
+    with false residuals of ~0.006 g and leave a fit that looked perfect (whitened rms 1.03)
+    with b_y 172 of its std off the truth (0.017 g). It now keeps every row and says the
+    residuals point to a model error."""
+    s = centrifuge_session(noise_g=1e-6, rng=seed, g=9.8, radius_error=1e-4)
+    args = (s.outputs, s.omega, s.radius)
+    plain = fit_centrifuge(*args, g=9.8, sigma=1e-6, robust=False)
+    f, w = _caught(lambda: fit_centrifuge(*args, g=9.8, sigma=1e-6))
+    assert [x.category for x in w] == [CentrifugeModelWarning], [str(x.message) for x in w]
+    msg = str(w[0].message)
+    assert msg.startswith("robust screen kept all 60 rows")
+    for words in ("model error", "not a few outliers", "the radius", "lever arm",
+                  "diagnose_centrifuge", "understates"):
+        assert words in msg, msg
+    assert len(f.outliers) == 0 and f.screen_kept_all and f.draws > 0
+    np.testing.assert_array_equal(f.params, plain.params)
+    # The misfit is shown, not hidden: the whitened rms is ~11, and b_y is the plain fit's
+    # (5e-5 g off through the model error), not 0.017 g off.
+    assert f.residual_rms > 5
+    assert abs(f.bias[1] - s.truth["bias"][1]) < 1e-4
+    text = f.summary()
+    assert "60 rows, 0 excluded" in text and "model error, not outliers" in text
+    assert not plain.screen_kept_all and plain.model_error_text() == ""
+    assert __import__("pickle").loads(__import__("pickle").dumps(f)).screen_kept_all
+
+
+def test_screen_keeps_every_row_when_the_kept_rows_still_reject_the_noise_model():
+    """More than a quarter of the rows trimmed off a misfit present in every row: a 20 um lever
+    arm at 1e-5 g noise (20 of 60 rows excluded before) and the guide's upper-triangle
+    coupling fitted with misalignment=True at 1e-6 g (35 of 60 before)."""
+    s = centrifuge_session(noise_g=1e-5, rng=0, g=9.8,
+                           lever_arm=np.diag([2e-5, -1e-5, 1.5e-5]))
+    f, w = _caught(lambda: fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8, sigma=1e-5))
+    assert [x.category for x in w] == [CentrifugeModelWarning]
+    assert len(f.outliers) == 0 and f.screen_kept_all
+    mis = np.zeros((3, 3))
+    mis[0, 1] = 1e-3
+    s = centrifuge_session(noise_g=1e-6, rng=0, g=9.8, misalignment=mis)
+    f, w = _caught(lambda: fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8,
+                                          misalignment=True, sigma=1e-6))
+    assert [x.category for x in w] == [CentrifugeModelWarning]
+    assert len(f.outliers) == 0 and f.screen_kept_all and f.residual_rms > 5
+
+
+def test_screen_still_excludes_sparse_gross_errors_with_the_noise_given():
+    s = centrifuge_session(noise_g=1e-6, rng=3, g=9.8)
+    o = s.outputs.copy()
+    bad = [2, 11, 30, 47, 58]
+    o[bad, 2] *= -1
+    f, w = _caught(lambda: fit_centrifuge(o, s.omega, s.radius, g=9.8, sigma=1e-6))
+    assert [x.category for x in w] == [CentrifugeOutlierWarning]
+    assert str(w[0].message).startswith("excluded 5 of 60 rows")
+    assert f.outliers.tolist() == bad and not f.screen_kept_all
+    assert "model error" not in f.summary()
+    z = (f.params - np.r_[S, B, D]) / f.std
+    assert np.all(np.abs(z) < 5), z
+
+
+def test_a_model_that_fits_no_rows_is_called_a_model_error_not_outliers():
+    """A 2 mm along-axis lever arm not in the model, 1e-6 g noise given: no subset of rows
+    agrees with the model. The error used to read "only 0 rows are consistent with the model"."""
+    s = centrifuge_session(noise_g=1e-6, rng=0, g=9.8, lever_arm=np.diag([0.002] * 3))
+    with pytest.raises(DegenerateDataError, match="does not fit the rows as a whole") as ei:
+        fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8, sigma=1e-6)
+    msg = str(ei.value)
+    for words in ("model error", "lever arm", "robust=False", "diagnose_centrifuge"):
+        assert words in msg, msg
+    plain = fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8, sigma=1e-6, robust=False)
+    assert plain.residual_rms > 100
+    # With the lever arm in the model the session fits, and nothing is screened.
+    f, w = _caught(lambda: fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8, sigma=1e-6,
+                                          lever_arm="along", spin_axis=s.spin_axis))
+    assert not w and len(f.outliers) == 0 and f.residual_rms < 1.5
+    assert f.lever_arm == pytest.approx([0.002] * 3, abs=1e-5)

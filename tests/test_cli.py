@@ -534,6 +534,42 @@ def test_a_static_recording_too_short_is_told_the_length_it_needs(tmp_path: Path
     assert code == 0 and "250 samples at 100 Hz -> 1 dwell\n" in out, out
 
 
+@pytest.mark.parametrize(("fs", "rest_s", "window"), [(19.0, 1.0, "0.5"), (100.0, 0.4, "0.1")])
+def test_brief_rests_are_told_the_settings_that_find_them(
+        tmp_path: Path, fs: float, rest_s: float, window: str) -> None:
+    """A hand-turned sensor held a second in each pose at 19 Hz (AhmedFouad23's MPU-6050
+    captures), or 0.2-0.4 s at 100 Hz (mgiurato's LSM303 log): the defaults need rests of
+    2.2 s and found none, and "lower --min-dwell or --window" could not reach them while the
+    0.1 s trim stayed. Now the refusal names shorter settings (--trim among them) that find
+    every rest, and following it gives the simulator's calibration."""
+    from accelcal.sim.field import field_session
+
+    tilts = np.random.default_rng(1).uniform(-80, 80, size=(18, 2))
+    s = field_session(fs=fs, dwell_s=rest_s, move_s=1.0, tilts_deg=tilts, sigma=2e-3, rng=2)
+    p = write_csv(tmp_path / "brief.csv", s.t, s.samples)
+    code, out = run("calibrate", "static", str(p), "--g", str(s.g))
+    assert code == 2 and "no static dwell found" in out, out
+    assert "a rest must last a window, the shortest dwell and two trims, 2.200 s here" in out
+    m = re.search(r"Shorter settings, --window ([\d.]+) s with --min-dwell ([\d.]+) s and "
+                  r"--trim ([\d.]+) s, find 18 steady dwell\(s\)", out)
+    assert m and m.group(1) == window, out
+    code, out = run("calibrate", "static", str(p), "--g", str(s.g), "--window", m.group(1),
+                    "--min-dwell", m.group(2), "--trim", m.group(3), "--json")
+    assert code == 0, out
+    res = json.loads(out)
+    assert res["n_dwells"] == 18
+    got, std = np.array(res["vector"]), np.array(res["std"])
+    assert np.all(np.abs(got - s.truth) < 5 * std), (got - s.truth) / std
+
+
+def test_a_short_file_counts_every_sample_in_its_refusal(tmp_path: Path) -> None:
+    """89 rows at 100 Hz: the refusal said "88 samples" (the detector's whole blocks)."""
+    t = np.arange(89) / 100.0
+    x = np.array([0.0, 0.0, 9.81]) + 0.01 * np.random.default_rng(0).standard_normal((89, 3))
+    code, out = run("dwells", str(write_csv(tmp_path / "short.csv", t, x)))
+    assert code == 2 and "89 samples" in out and "88 samples" not in out, out
+
+
 def test_a_session_mostly_in_motion_is_told_how_to_find_shorter_rests(tmp_path: Path) -> None:
     """Brief pauses (1.4 s) between long moves (a hand-waved sensor, as an imu_tk fork's data
     showed): too few dwells for the model, and the error says how little was still and the
@@ -632,3 +668,70 @@ def test_model_diag_is_offered_only_when_it_fits(tmp_path: Path) -> None:
     assert code == 2 and "--model diag" in out, out
     code, out = run("calibrate", "static", str(q), "--g", "9.80665", "--model", "diag")
     assert code == 0, out
+
+
+def test_no_command_writes_over_its_own_input(tmp_path: Path) -> None:
+    """Only `apply FILE -o FILE` was refused: `calibrate static r.csv -o r.csv`, `--dwells-out
+    r.csv`, `dwells r.csv -o r.csv`, `apply cal.json r.csv -o cal.json` and the centrifuge and
+    gradiometer tables' -o each replaced their input with exit 0. Now every command refuses
+    before it reads or writes anything, and the inputs keep their bytes."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=200.0, n_dwells=12, dwell_s=3.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=2e-3, rng=3)
+    rec = write_csv(tmp_path / "rec.csv", s.t, s.samples)
+    cal = tmp_path / "cal.json"
+    code, out = run("calibrate", "static", str(rec), "--g", str(s.g), "-o", str(cal))
+    assert code == 0, out
+    grad = tmp_path / "g.csv"
+    grad.write_text("azimuth_deg,inline_E,cross_E\n0,52.3,-32.1\n90,-26.9,17.5\n"
+                    "180,52.4,-32.2\n270,-26.8,17.4\n")
+    before = {p: p.read_bytes() for p in (rec, cal, grad)}
+    other = str(tmp_path / "other.json")
+    cases = [
+        (["calibrate", "static", str(rec), "--g", "9.81", "-o", str(rec)],
+         f"-o {rec} would overwrite the recording {rec}"),
+        (["calibrate", "static", str(rec), "--g", "9.81", "--dwells-out", str(rec)],
+         f"--dwells-out {rec} would overwrite the recording"),
+        (["calibrate", "static", str(rec), "--g", "9.81", "--plot", str(rec)],
+         "--plot"),
+        (["calibrate", "static", str(rec), "--g", "9.81", "-o", other, "--dwells-out", other],
+         f"-o and --dwells-out name the same file ({other})"),
+        (["dwells", str(rec), "-o", str(rec)], "would overwrite the recording"),
+        (["apply", str(cal), str(rec), "-o", str(rec)], "would overwrite the recording"),
+        (["apply", str(cal), str(rec), "-o", str(cal)],
+         f"-o {cal} would overwrite the calibration file {cal}"),
+        (["diagnose", str(rec), "--g", "9.81", "--calibration", str(cal), "--plot", str(cal)],
+         "would overwrite the calibration file"),
+        (["calibrate", "gradiometer", str(grad), "-o", str(grad)],
+         f"-o {grad} would overwrite the table {grad}"),
+    ]
+    for args, want in cases:
+        code, out = run(*args)
+        assert code == 2 and want in out and "nothing was written" in out, (args, out)
+    assert {p: p.read_bytes() for p in (rec, cal, grad)} == before
+    assert not (tmp_path / "other.json").exists()
+
+
+def test_diagnose_with_a_calibration_takes_its_g_and_refuses_another_unit(
+        tmp_path: Path) -> None:
+    """`diagnose FILE --calibration cal.json` demanded --g although the file stores the g it
+    was made with; and `--g 1` against a calibration in m/s^2 gave "best = k3". Now the
+    stored g is used (with a note), and a g in other units is refused in CLI words."""
+    from accelcal.sim.field import field_session
+
+    cal = tmp_path / "cal.json"
+    recs = []
+    for seed in (2, 3):
+        s = field_session(fs=200.0, n_dwells=24, dwell_s=4.0, move_s=2.0, max_tilt_deg=80,
+                          rng=seed)
+        recs.append(write_csv(tmp_path / f"rec{seed}.csv", s.t, s.samples))
+    code, out = run("calibrate", "static", str(recs[0]), "--g", str(s.g), "-o", str(cal))
+    assert code == 0, out
+    code, out = run("diagnose", str(recs[1]), "--calibration", str(cal))
+    assert code == 0, out
+    assert "g = 9.80665 m/s^2 from the calibration file" in out, out
+    assert "common offset" not in out
+    code, out = run("diagnose", str(recs[1]), "--calibration", str(cal), "--g", "1")
+    assert code == 2 and "the calibration was made with g = 9.80665" in out, out
+    assert "--no-check-g" in out and "check_g=False" not in out, out

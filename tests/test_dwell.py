@@ -1295,3 +1295,30 @@ def test_a_corrupted_state_is_refused_not_read() -> None:
         b[int(rng.integers(len(b)))] ^= 1 << int(rng.integers(8))
         with pytest.raises(CalibrationError):
             DwellAccumulator.from_state(bytes(b))
+
+
+def test_few_dwells_carry_the_shorter_settings_that_find_more() -> None:
+    """Brief rests (0.9 s at 100 Hz) among a few long ones: the defaults find the long ones,
+    and the DwellSet carries shorter settings that find every rest, all of them steady; the
+    streaming accumulator gives the same (any chunking); the suggestion finds them."""
+    from accelcal import DwellAccumulator
+    from accelcal.sim.field import field_session
+
+    tilts = np.random.default_rng(4).uniform(-80, 80, size=(14, 2))
+    s = field_session(fs=100.0, dwell_s=0.9, move_s=1.0, tilts_deg=tilts, sigma=2e-3, rng=5)
+    long = field_session(fs=100.0, dwell_s=4.0, move_s=1.0, tilts_deg=tilts[:3], sigma=2e-3,
+                         rng=6)
+    x = np.vstack([long.samples, s.samples])
+    d = detect_dwells(x, 100.0)
+    assert len(d) == 3 and d.shorter is not None
+    w, m, tr, k = d.shorter
+    assert (w, m, tr) == (0.25, 0.125, 0.0625) and k == 17
+    acc = DwellAccumulator(fs=100.0)
+    for c in np.array_split(x, 7):
+        acc.push(c)
+    assert acc.finish().shorter == d.shorter
+    assert len(detect_dwells(x, 100.0, window_s=w, min_dwell_s=m, trim_s=tr)) == k
+    with pytest.raises(accelcal.DegenerateDataError, match=r"window_s = 0.25 s with "
+                       r"min_dwell_s = "
+                       r"0.125 s and trim_s = 0.0625 s, find 14 steady dwell\(s\)"):
+        detect_dwells(s.samples, 100.0)

@@ -1140,3 +1140,32 @@ def test_the_diagnosis_runs_without_scipy(monkeypatch: pytest.MonkeyPatch) -> No
         r = diagnose(d, g=1.0, fit=cal, loo=False)
         assert r.calibration_check is not None and math.isfinite(r.calibration_check["p_value"])
         assert diagnose(d, g=1.0).summary()
+
+
+def test_a_fixed_calibration_checked_with_another_g_is_refused_or_named() -> None:
+    """An exploratory test: `diagnose(d, g=1, fit=model)` against a calibration made in m/s^2
+    gave "best = k3" at chi2/dof 5e10, and g 100 ppm off gave k3 without a word about g. Now
+    a g in other units is refused (naming both), and a common offset of the calibrated norms
+    is named with the g difference; the right g gives neither."""
+    import warnings
+
+    from accelcal.sim import field_session
+
+    s1 = field_session(fs=200.0, n_dwells=24, dwell_s=8.0, move_s=3.0, max_tilt_deg=80, rng=2)
+    s2 = field_session(fs=200.0, n_dwells=24, dwell_s=8.0, move_s=3.0, max_tilt_deg=80, rng=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        d1 = accelcal.detect_dwells(s1.samples, s1.fs, t=s1.t)
+        model = accelcal.fit_static(d1, s1.g).to_model()
+    d2 = accelcal.detect_dwells(s2.samples, s2.fs, t=s2.t)
+    with pytest.raises(accelcal.CalibrationError,
+                       match=r"g = 1, but the calibration was made with g = 9.80665 \(m/s\^2\)"):
+        accelcal.diagnose(d2, g=1.0, fit=model)
+    same = accelcal.diagnose(d2, g=s2.g, fit=model)
+    assert not any("common offset" in x for x in same.statements)
+    off = accelcal.diagnose(d2, g=s2.g * (1 + 1e-4), fit=model)
+    text = [x for x in off.statements if "common offset" in x]
+    assert len(text) == 1 and "-98.2 ppm of g off" in text[0] and "+100 ppm" in text[0], text
+    assert "common offset" in off.summary()
+    assert "wrong_g" not in [b["effect"] for b in off.blind_spots]  # held fixed, it shows
+    assert "wrong_g" in [b["effect"] for b in accelcal.diagnose(d2, g=s2.g).blind_spots]

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from accelcal import CalibrationError, DegenerateDataError
 from accelcal._reference import demodulate_reference
+from accelcal.gradiometer import StartupMisfitWarning
 from accelcal.sim import gradiometer_session
 
 
@@ -122,6 +123,8 @@ def test_unbalanced_drift_recovery():
     assert np.allclose(r.params, np.r_[b, g, d], atol=1e-9)
 
 
+# Thousands of draws: p < 1e-3 happens; the misfit check is tested below.
+@pytest.mark.filterwarnings("ignore::accelcal.gradiometer.StartupMisfitWarning")
 def test_monte_carlo_matches_covariance():
     rng = np.random.default_rng(3)
     for az, t in [(UNBAL, None), ([0.0, 90.0, 90.0, 0.0], np.array([0.0, 60.0, 120.0, 180.0]))]:
@@ -345,10 +348,13 @@ def test_summary_warns_when_sigma_rests_on_few_degrees_of_freedom() -> None:
     sb = accelcal.startup_bias(az, y)
     assert sb.sigma_estimated and sb.dof == 6
     assert "uncertain by about +-29 %" in sb.summary()
-    given = accelcal.startup_bias(az, y, sigma=1.0)
+    with pytest.warns(StartupMisfitWarning):  # this draw: chi2 25.4 on 6 dof (p = 3e-4)
+        given = accelcal.startup_bias(az, y, sigma=1.0)
     assert "uncertain by" not in given.summary()
 
 
+# Thousands of draws: p < 1e-3 happens; the misfit check is tested below.
+@pytest.mark.filterwarnings("ignore::accelcal.gradiometer.StartupMisfitWarning")
 def test_azimuth_error_prediction():
     rng = np.random.default_rng(11)
     az, g, st = np.array(BAL), np.array([60.0, -30.0]), 0.5
@@ -413,3 +419,144 @@ def test_no_residual_dof_says_why_the_std_are_nan() -> None:
     r = startup_bias([0.0, 60.0], [[52.2, -32.0], [-29.1, -29.2]])
     assert r.dof == 0 and not np.all(np.isfinite(r.std))
     assert "std n/a: 2 azimuths leave no residual degree of freedom" in r.summary()
+
+
+# ---- units of the azimuths and the misfit against a given sigma ------------------------------
+def _session(az, seed, noise_mps2=1e-9):
+    """Channel averages (E) and their noise std (E) of a simulated start-up at ``az`` deg."""
+    ses = gradiometer_session(az, fs=100.0, dwell_s=10.0, slew_s=2.0, noise_mps2=noise_mps2,
+                              seed=seed)
+    d = accelcal.demodulate(ses.accel, ses.phase, ses.bounds, radius_m=ses.radius_m)
+    return ses, d.outputs, d.std.mean(axis=1)
+
+
+RAD_DESIGNS = [BAL, [0.0, 90.0, 180.0, 270.0], [0.0, 120.0, 240.0], [0.0, 60.0, 120.0],
+               [0.0, 90.0, 90.0, 0.0], [0.0, 90.0], [3.0, 33.0, 97.0, 151.0]]
+
+
+@pytest.mark.parametrize("az", RAD_DESIGNS)
+@pytest.mark.parametrize("given", [True, False])
+def test_azimuths_in_radians_are_refused(az, given):
+    ses, y, sd = _session(az, 5)
+    with pytest.raises(CalibrationError, match=r"the azimuths look like radians.*np\.degrees"):
+        accelcal.startup_bias(np.radians(az), y, sigma=sd if given else None)
+    # The workflow goes through the same check.
+    cal = accelcal.StartupCalibration(sigma=sd if given else None)
+    for a, (i, c) in zip(np.radians(az), y, strict=True):
+        cal.record_mean(a, i, c)
+    with pytest.raises(CalibrationError, match="look like radians"):
+        cal.solve()
+    # The same data in degrees: no refusal, no misfit warning (warnings are errors here),
+    # the bias within 4 std (from the given sigma: [0, 90] has no residual to estimate it).
+    r = accelcal.startup_bias(az, y, sigma=sd if given else None)
+    std = accelcal.startup_bias(az, y, sigma=sd).bias_std
+    assert np.all(np.abs(r.bias - ses.truth.bias_E) < 4 * std)
+
+
+def test_radians_refusal_figures_and_opt_out():
+    # The explorer's case: 0, 45, 90, 135 deg passed as radians with sigma = 0.05 E.
+    rng = np.random.default_rng(0)
+    y = model(BAL, [12.0, -7.0], [40.0, -25.0]) + rng.normal(0, 0.05, (4, 2))
+    with pytest.raises(CalibrationError) as e:
+        accelcal.startup_bias(np.radians(BAL), y, sigma=0.05)
+    msg = str(e.value)
+    assert "read as radians (0, 45, 90, 135 deg) they fit the data within the given noise" in msg
+    assert "where read as degrees they do not" in msg and "check_units=False" in msg
+    r = accelcal.startup_bias(BAL, y, sigma=0.05)
+    assert np.all(np.abs(r.bias - [12.0, -7.0]) < 4 * r.bias_std) and r.chi2_p > 1e-3
+    # Without sigma: residuals compared.
+    with pytest.raises(CalibrationError, match="residuals .* times smaller"):
+        accelcal.startup_bias(np.radians(BAL), y)
+    # check_units=False fits them as degrees, and the misfit is reported.
+    with pytest.warns(StartupMisfitWarning, match="exceed the noise model.*wrong azimuths") as w:
+        bad = accelcal.startup_bias(np.radians(BAL), y, sigma=0.05, check_units=False)
+    assert len(w) == 1 and abs(bad.bias[0] - 12.0) > 100
+    assert "note: residuals exceed the noise model" in bad.summary()
+    # Radians with a sigma ten times too small: neither reading is within the noise, so no
+    # refusal, but the misfit warning says how much better the radians reading fits.
+    az = [3.0, 33.0, 97.0, 151.0]
+    y = model(az, [12.0, -7.0], [40.0, -25.0]) + rng.normal(0, 1.0, (4, 2))
+    with pytest.warns(StartupMisfitWarning, match=r"read as radians \(3, 33, 97, 151 deg\) "
+                      r"the azimuths leave chi2/dof .* instead of .*np\.degrees"):
+        accelcal.startup_bias(np.radians(az), y, sigma=0.1)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("given", [True, False])
+def test_small_degree_design_is_not_refused(seed, given):
+    # 0, 1, 2, 3 deg: legal (if poorly conditioned) and all within 2 pi; the data say degrees.
+    az = [0.0, 1.0, 2.0, 3.0]
+    ses, y, sd = _session(az, seed)
+    r = accelcal.startup_bias(az, y, sigma=sd if given else None)
+    assert np.isfinite(r.condition) and np.all(np.isfinite(r.bias_std))
+    assert np.all(np.abs(r.bias - ses.truth.bias_E) < 4 * r.bias_std)
+    # Also a gradient-free session (nothing to tell the readings apart by): not refused.
+    y0 = model(az, [12.0, -7.0], [0.0, 0.0]) + np.random.default_rng(seed).normal(0, 0.05, (4, 2))
+    accelcal.startup_bias(az, y0, sigma=0.05 if given else None)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_misfit_against_a_given_sigma(seed):
+    az = [0.0, 45.0, 90.0, 135.0, 0.0, 90.0]
+    ses, y, sd = _session(az, seed)
+    # The right sigma: no warning (warnings are errors here), no note.
+    ok = accelcal.startup_bias(az, y, sigma=sd)
+    assert ok.chi2_p > 1e-3 and ok.misfit_text() is None
+    assert "exceed" not in ok.summary()
+    assert ok.to_dict()["chi2"] == pytest.approx(ok.chi2)
+    # Ten times too small: a warning naming the factor and the suspects, and a summary line.
+    with pytest.warns(StartupMisfitWarning) as w:
+        bad = accelcal.startup_bias(az, y, sigma=sd / 10)
+    msg = str(w[0].message)
+    assert "residuals exceed the noise model" in msg
+    assert f"they are {np.sqrt(bad.chi2 / bad.dof):.3g} times the given noise std" in msg
+    assert "wrong azimuths (units, sign or zero), a wrong sigma, or a platform error" in msg
+    assert np.sqrt(bad.chi2 / bad.dof) == pytest.approx(10 * np.sqrt(ok.chi2 / ok.dof))
+    assert bad.chi2_p < 1e-3
+    assert "  note: residuals exceed the noise model" in bad.summary()
+    # Estimated sigma: nothing to test against.
+    est = accelcal.startup_bias(az, y)
+    assert np.isnan(est.chi2) and np.isnan(est.chi2_p) and "exceed" not in est.summary()
+
+
+def test_cli_gradiometer_radians_and_misfit(tmp_path):
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    rng = np.random.default_rng(0)
+    y = model(BAL, [12.0, -7.0], [40.0, -25.0]) + rng.normal(0, 0.05, (4, 2))
+
+    def table(name, header, az):
+        p = tmp_path / name
+        p.write_text(f"{header},inline_E,cross_E\n" + "\n".join(
+            f"{a!r},{u!r},{v!r}" for a, (u, v) in zip(az, y.tolist(), strict=True)) + "\n")
+        return str(p)
+
+    rad = table("rad.csv", "azimuth_deg", np.radians(BAL).tolist())
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", rad, "--sigma", "0.05"])
+    assert r.exit_code == 2, r.output
+    assert "the azimuths look like radians" in r.output and "'azimuth [rad]'" in r.output
+    assert "--no-unit-check" in r.output and "np.degrees" not in r.output
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", rad])
+    assert r.exit_code == 2 and "look like radians" in r.output, r.output
+    # Labelled as radians, the same numbers are converted and fit.
+    lab = table("lab.csv", "azimuth [rad]", np.radians(BAL).tolist())
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", lab, "--sigma", "0.05"])
+    assert r.exit_code == 0 and "bias_I" in r.output and "exceed" not in r.output, r.output
+    # Forced as degrees: fit, with the misfit in the summary (once: the warning is the note).
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", rad, "--sigma", "0.05",
+                                  "--no-unit-check"])
+    assert r.exit_code == 0, r.output
+    assert r.output.count("residuals exceed the noise model") == 1
+    assert "724 times the given noise std" in r.output
+    # A sigma ten times too small: the note, once, naming the option.
+    deg = table("deg.csv", "azimuth_deg", BAL)
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", deg, "--sigma", "0.005"])
+    assert r.exit_code == 0, r.output
+    assert r.output.count("residuals exceed the noise model") == 1
+    assert "a wrong --sigma" in r.output
+    r = CliRunner().invoke(main, ["calibrate", "gradiometer", deg, "--sigma", "0.005", "--json"])
+    import json
+
+    out = json.loads(r.output)
+    assert out["chi2_p"] < 1e-3 and "exceed the noise model" in out["warnings"][0]

@@ -931,6 +931,13 @@ def test_sample_counter_is_not_time(tmp_path: Path) -> None:
     assert s.t is None and s.fs is None
     assert any("counts samples" in n for n in s.notes)
     assert any("sample rate is not in the file" in n for n in s.notes)
+    # Without columns= too (a helper's real file: `index, x, y, z` rows 0..88 in m/s^2, read
+    # as a clock in s at 1 Hz before): the counter is no time, the three others are the axes.
+    rows = "".join(f"{i},{0.4 + i % 5 * 1e-3},-0.1,{9.3 + i % 3 * 1e-3}\r\n" for i in range(89))
+    s = read_stream(write(tmp_path, rows))
+    assert s.t is None and s.fs is None and s.samples.shape == (89, 3)
+    assert s.samples[0, 0] == pytest.approx(0.4)
+    assert any("column 0 (0-based) counts samples" in n for n in s.notes)
 
 
 def test_repeated_samples_give_the_output_rate(tmp_path: Path) -> None:

@@ -11,6 +11,7 @@ from . import io as io  # accelcal.io.read_stream, iter_stream, stream_dwells
 from ._core import CalibrationError, DegenerateDataError
 from .centrifuge import (
     CentrifugeFit,
+    CentrifugeModelWarning,
     CentrifugeOutlierWarning,
     calibrate_centrifuge_table,
     fit_centrifuge,
@@ -40,6 +41,7 @@ from .gradiometer import (
     Demodulated,
     StartupBias,
     StartupCalibration,
+    StartupMisfitWarning,
     calibrate_gradiometer_table,
     demodulate,
     startup_bias,
@@ -59,6 +61,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CentrifugeFit",
+    "CentrifugeModelWarning",
     "CentrifugeOutlierWarning",
     "CentrifugeSensitivity",
     "calibrate_centrifuge_table",
@@ -70,6 +73,7 @@ __all__ = [
     "Demodulated",
     "StartupBias",
     "StartupCalibration",
+    "StartupMisfitWarning",
     "StartupPrediction",
     "calibrate_gradiometer_table",
     "demodulate",

@@ -32,6 +32,7 @@ __all__ = [
     "paper_design",
     "paper_positions",
     "CentrifugeFit",
+    "CentrifugeModelWarning",
     "CentrifugeOutlierWarning",
     "CentrifugeTable",
     "calibrate_centrifuge_table",
@@ -195,6 +196,11 @@ class CentrifugeOutlierWarning(UserWarning):
     """Rows inconsistent with the centrifuge model were excluded from the fit."""
 
 
+class CentrifugeModelWarning(UserWarning):
+    """The residuals exceed the noise model across the rows (a model error, not outliers): the
+    robust screen kept every row (:attr:`CentrifugeFit.screen_kept_all`)."""
+
+
 class CentrifugeFit(_core.CentrifugeFitCore):
     """Result of :func:`fit_centrifuge` (the data live in the Rust result; arrays are read-only).
 
@@ -234,6 +240,10 @@ class CentrifugeFit(_core.CentrifugeFitCore):
         ``outlier_k`` normal standard deviations).
     outliers : ndarray int
         Rows excluded by the robust screen (0-based; :meth:`row_name` names them).
+    screen_kept_all : bool
+        The screen ran but kept every row: what it would exclude is a misfit spread over the
+        rows (a model error), not sparse outliers; the fit is the plain one, whose rows beyond
+        ``threshold`` remain (:meth:`model_error_text` says so).
     residual_rms : float
         RMS of the weighted residuals of the rows used (g; whitened, ~1, when ``sigma`` was
         given).
@@ -305,6 +315,36 @@ class CentrifugeFit(_core.CentrifugeFitCore):
         return {"screen_sigma": self.screen_sigma}
 
     @property
+    def screen_kept_all(self) -> bool:
+        """The robust screen ran (``draws > 0``) yet kept every row although rows exceed the
+        threshold: it judged the misfit a model error spread over the rows, not outliers (the
+        core's rule: more than half of the rows excluded; the excluded rows' residuals made by
+        the exclusion, over 30 times their plain-fit residuals; or, with ``sigma`` given, more
+        than a quarter excluded while the rows kept still reject the noise model)."""
+        return bool(self.draws > 0 and not len(self.outliers)
+                    and np.any(np.abs(self.studentized) > self.threshold))
+
+    def model_error_text(self) -> str:
+        """What :attr:`screen_kept_all` means, one line (empty when the screen did not keep
+        every row that way)."""
+        if not self.screen_kept_all:
+            return ""
+        k = len(self.residuals)
+        over = int(np.sum(np.abs(self.studentized) > self.threshold))
+        unit = "(whitened)" if self.noise_known else "g"
+        std = ("their std, from the given noise, understates the error"
+               if self.noise_known else "their std holds only if the misfit is noise-like")
+        return (
+            f"kept all {k} rows: the residuals exceed the noise model across many rows "
+            f"({over} of {k} beyond the {self.threshold:.3g}-sigma threshold, residual rms "
+            f"{self.residual_rms:.3g} {unit}), a misfit spread over the rows, not a few "
+            "outliers: a model error (the radius or rate, a lever arm, misalignment, K3), "
+            "which excluding rows would only hide. The parameters carry that error and "
+            f"{std}; accelcal.diagnose_centrifuge names the effect (then fit it: lever_arm=, "
+            "misalignment=, k3=, or correct the radius or rate)"
+        )
+
+    @property
     def outlier_residuals(self) -> NDArray[np.float64]:
         """Residuals (g) of the excluded rows, in the order of :attr:`outliers`."""
         return np.asarray(self.residuals[self.outliers], dtype=np.float64)
@@ -351,6 +391,8 @@ class CentrifugeFit(_core.CentrifugeFitCore):
         for n, v, s in zip(self.names, self.params, self.std, strict=True):
             u = units.get(n.split("_")[0].rstrip("xyz") or n[0], "")
             lines.append(f"  {n:<10} {v: .9g}  +- {s:.2g} {u}")
+        if self.screen_kept_all:
+            lines.append(f"  model error, not outliers: {self.model_error_text()}")
         if len(self.outliers):
             lines.append(f"  excluded {len(self.outliers)} of {len(self.residuals)} rows "
                          "inconsistent with |f|^2 = A^2 + 1 (residual, studentised):")
@@ -475,7 +517,14 @@ def fit_centrifuge(
         it the rows weigh equally and the covariance is scaled by the residual variance.
     robust : bool
         Screen rows inconsistent with the model; excluded rows raise a
-        :class:`CentrifugeOutlierWarning` naming them. See ``outlier_k``.
+        :class:`CentrifugeOutlierWarning` naming them. See ``outlier_k``. The screen is for
+        sparse gross errors (a lost sign, a wrong row): when what it would exclude is a misfit
+        spread over the rows instead (more than half of them; residuals the exclusion itself
+        makes, over 30 times the rows' plain-fit residuals; or, with ``sigma`` given, more than
+        a quarter of the rows while those kept still reject the noise model), every row is
+        kept, :attr:`CentrifugeFit.screen_kept_all` is set and a
+        :class:`CentrifugeModelWarning` says the residuals point to a model error. When fewer
+        rows than the parameters need agree with any fit, DegenerateDataError says so.
     outlier_k : float
         Screening threshold as a normal tail: a good row is excluded with the probability of a
         ``outlier_k``-sigma normal deviation, ``2 Phi(-k)`` per row (5.7e-7 at the default 5,
@@ -548,6 +597,9 @@ def fit_centrifuge(
     res = CentrifugeFit(fit)  # the same result as the Python type (arrays shared)
     if len(res.outliers):
         warnings.warn(res.excluded_text(), CentrifugeOutlierWarning, stacklevel=2)
+    elif res.screen_kept_all:
+        warnings.warn("robust screen " + res.model_error_text(), CentrifugeModelWarning,
+                      stacklevel=2)
     return res
 
 

@@ -213,6 +213,9 @@ class DwellSet:
         if not isinstance(units, str):
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
+        #: Detected dwells, when few were found: shorter detector settings that find more
+        #: steady dwells (brief rests), ``(window_s, min_dwell_s, trim_s, dwells)``; else None.
+        self.shorter: tuple[float, float, float, int] | None = None
         self.names: list[str] | None = None
         if names is not None:
             nm = list(names)
@@ -549,6 +552,19 @@ def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None =
     return "\n  ".join(lines)
 
 
+def shorter_text(d: DwellSet) -> list[str]:
+    """A note when shorter detector settings find more steady dwells than were found
+    (:attr:`DwellSet.shorter`: brief rests that the window missed), with the settings."""
+    if d.shorter is None:
+        return []
+    w, m, tr, k = d.shorter
+    return [f"only {len(d)} dwell(s) found; shorter settings, window_s = {w:g} s with "
+            f"min_dwell_s = {m:g} s and trim_s = {tr:g} s, find {k} steady dwells (brief "
+            "rests, the means of each dwell's halves agreeing): check them (the dwells plot, "
+            "the fit's chi2/dof) before use, since a short window also takes the slow ends of "
+            "moves"]
+
+
 def vibrating_text(d: DwellSet, option: str = "k=") -> list[str]:
     """A note on the stretches the detector left out although they look still (vibration
     above its threshold), with the detector ``k`` that would take them (``option`` names it:
@@ -697,7 +713,7 @@ def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
     if t is None and fs is not None:
         t = 0.5 * (start + stop - 1) / fs
     nv = d.noise_var
-    return DwellSet(
+    out = DwellSet(
         d.mean,
         d.var,
         d.count,
@@ -716,6 +732,10 @@ def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
         vibrating=vib if d.threshold is not None else None,
         vibrating_std=d.vibrating_std if d.threshold is not None else None,
     )
+    if d.shorter is not None:
+        w, m, tr, k = d.shorter
+        out.shorter = (float(w), float(m), float(tr), int(k))
+    return out
 
 
 def dwell_stats(

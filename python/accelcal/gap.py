@@ -1050,6 +1050,58 @@ def _summary(r: GapReport) -> str:
 # Static diagnosis.
 
 
+def _same_gravity(fit: Any, g: float) -> None:
+    """Refuse a ``g`` that a held-fixed calibration's own ``g`` contradicts: its calibrated
+    norms are in the units of the ``g`` it was made with, and a factor between the two (1 for
+    9.80665 m/s^2, a tenth of a percent between sites) would be a gap the dictionary explains
+    with K2 or K3 (an exploratory test: ``g=1`` against a calibration in m/s^2 gave "best =
+    k3" at chi2/dof 5e10). Sites differ by at most 0.5 % in g."""
+    from .static import TriadModel
+
+    if not isinstance(fit, TriadModel) or fit.g is None or fit.units == "g":
+        return
+    ratio = g / fit.g
+    if abs(ratio - 1.0) > 0.01:
+        unit = fit.units or "output units"
+        raise CalibrationError(
+            f"g = {g:.6g}, but the calibration was made with g = {fit.g:.6g} ({unit}): its "
+            f"calibrated norms are in those units, so the check would read a factor "
+            f"{ratio:.4g} as a gap. Give this site's gravity in the calibration's units (about "
+            f"{fit.g:.4g}), or check_g=False for a deliberate other value")
+
+
+def _common_offset(resid: NDArray[np.float64], var: NDArray[np.float64] | None, g: float,
+                   fit: Any) -> str:
+    """With a calibration held fixed: a statement when the calibrated norms sit off ``g`` by a
+    common amount (weighted mean residual beyond 3 standard errors). Refitting absorbs such an
+    offset into the scale factors; held fixed, it is the calibration's common scale having
+    moved or a ``g`` that is not the one it was made with, and on poses near the axes the K2
+    and K3 columns fit it too, so it is named before any effect is believed."""
+    if var is None or len(resid) < 2 or not np.all(np.isfinite(resid)):
+        return ""
+    w = 1.0 / np.maximum(np.sum(np.asarray(var, dtype=np.float64), axis=1) / 3.0, 1e-300)
+    mean = float(np.sum(w * resid) / np.sum(w))
+    chi2 = float(np.sum(w * (resid - mean) ** 2))
+    scale = max(chi2 / (len(resid) - 1), 1.0)  # the scatter, when it exceeds the noise
+    se = math.sqrt(scale / float(np.sum(w)))
+    if not abs(mean) > 3.0 * se:
+        return ""
+    ppm = 1e6 * mean / g
+    text = (f"the calibrated norms sit {ppm:+.3g} ppm of g off on average ({abs(mean) / se:.1f} "
+            "standard errors, the scatter between dwells included): a common offset, which a "
+            "refit absorbs into the scale factors. Held fixed, it is the calibration's common "
+            "scale having moved, or a g that is not the one the calibration was made with")
+    from .static import TriadModel
+
+    if isinstance(fit, TriadModel) and fit.g is not None and fit.units != "g":
+        dg = 1e6 * (g / fit.g - 1.0)
+        if abs(dg) >= 1.0:
+            text += (f" (it was made with g = {fit.g:.7g}, checked with {g:.7g}: "
+                     f"{dg:+.3g} ppm)")
+    return text + ("; on poses near the axes the K2 and K3 columns fit such an offset too, so "
+                   "check g and the scale before believing either")
+
+
 def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bool] | None:
     """(K, b, fixed) of a StaticFit (start), a TriadModel (held fixed) or 9 parameters."""
     from .static import StaticFit, TriadModel
@@ -1461,6 +1513,8 @@ def diagnose(
     g_v = _gravity(g, check_g)
     eff = _names(effects, list(EFFECTS))
     cal = _calibration(fit, g_v)
+    if check_g:
+        _same_gravity(fit, g_v)
     nm_choice = _choice("noise_model", noise_model, ("auto", "white", "allan"))
     d, samples, fs_v = _dwells_of(data, fs, t, temperature, detector)
     inflation = None if d.inflation is None else _pool_inflation(d.inflation, d.count)
@@ -1520,6 +1574,9 @@ def diagnose(
                 "which no dictionary effect can be told from (so none is attributed); it is "
                 "the calibration's error there (a bias or scale that moved, another "
                 "temperature, another mount). Check it at several attitudes to say more")
+        offset = _common_offset(np.asarray(raw.resid, dtype=np.float64), var, g_v, fit)
+        if offset:
+            statements.append(offset)
         own = fit.own_dwells(d.mean)
         if own:
             statements.append(
@@ -1566,6 +1623,8 @@ def diagnose(
     if spread:
         rep = replace(rep, statements=[*rep.statements, spread])
     if cal is not None and cal[2]:
+        # Held fixed, a wrong g is no longer absorbed: it is a common offset of the norms.
+        rep = replace(rep, blind_spots=[b for b in rep.blind_spots if b["effect"] != "wrong_g"])
         check = _refit_check(fit, cal, mean, var0, g_v, unit,
                              None if unc is None else unc.draws)
         if check is not None:

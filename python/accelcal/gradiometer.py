@@ -17,7 +17,9 @@ above); the disc phase is measured from the platform x axis towards y.
 
 from __future__ import annotations
 
+import math
 import os
+import warnings
 from typing import Any
 
 import numpy as np
@@ -32,6 +34,7 @@ __all__ = [
     "Demodulated",
     "StartupBias",
     "StartupCalibration",
+    "StartupMisfitWarning",
     "calibrate_gradiometer_table",
     "demodulate",
     "startup_bias",
@@ -39,6 +42,22 @@ __all__ = [
 
 PARAM_NAMES = ("bias_I", "bias_C", "I", "C", "drift_I", "drift_C")
 _F64 = NDArray[np.float64]
+
+#: With ``sigma`` given, residuals whose chi2 has an upper-tail probability below this exceed
+#: the noise model (a warning and a note in the summary).
+MISFIT_P = 1e-3
+#: The azimuths are refused as radians when, read as radians, they leave a (whitened) residual
+#: sum of squares this many times smaller than read as degrees.
+UNIT_RATIO = 1e3
+#: Radians of whole multiples of this many degrees, to within ``_ROUND_TOL_DEG``, look like a
+#: design in degrees converted to radians (a session whose data cannot tell the readings apart).
+_ROUND_STEP_DEG = 2.5
+_ROUND_TOL_DEG = 1e-3
+
+
+class StartupMisfitWarning(UserWarning):
+    """With ``sigma`` given, the residuals of a start-up fit exceed that noise (chi2 p-value
+    below :data:`MISFIT_P`): the std quoted, which come from ``sigma``, are too small."""
 
 
 # ------------------------------------------------------------------------------------------
@@ -156,6 +175,38 @@ class StartupBias(_core.StartupBiasCore):
         """Standard deviations of the gradient, E."""
         return self.std[2:4]
 
+    @property
+    def chi2(self) -> float:
+        """``sum (residual / sigma)^2`` over both channels with ``sigma`` given; NaN when
+        ``sigma`` was estimated or not given."""
+        if self.sigma is None or self.sigma_estimated:
+            return math.nan
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return float(np.sum((self.residuals / self.sigma[:, None]) ** 2))
+
+    @property
+    def chi2_p(self) -> float:
+        """Probability of a chi2 this large or larger under chi2(dof) when ``sigma`` is right
+        (NaN without a given ``sigma`` or without residual degrees of freedom)."""
+        c = self.chi2
+        if self.dof <= 0 or math.isnan(c):
+            return math.nan
+        return 0.0 if math.isinf(c) else float(_core.chi2_sf(c, float(self.dof)))
+
+    def misfit_text(self) -> str | None:
+        """Why the std quoted are too small, when the residuals exceed the given ``sigma``
+        (chi2 p-value below :data:`MISFIT_P`); None otherwise."""
+        p = self.chi2_p
+        if not p < MISFIT_P:
+            return None
+        r = self.chi2 / self.dof
+        return (
+            f"residuals exceed the noise model (chi2/dof {r:.3g} on {self.dof} dof, p = "
+            f"{p:.2g}): they are {math.sqrt(r):.3g} times the given noise std, so the std "
+            "quoted (from sigma) are too small; suspect wrong azimuths (units, sign or zero), "
+            "a wrong sigma, or a platform error"
+        )
+
     def summary(self) -> str:
         """A readable block: estimates with standard deviations."""
         units = {"bias": "E", "I": "E", "C": "E", "drift": "E/s"}
@@ -182,6 +233,9 @@ class StartupBias(_core.StartupBiasCore):
                     f"so it and every std above are uncertain by about +-{100 * rel:.0f} % "
                     "(give sigma= from the dwell noise, or add azimuths)"
                 )
+        misfit = self.misfit_text()
+        if misfit is not None:
+            lines.append(f"  note: {misfit}")
         return "\n".join(lines)
 
     def __str__(self) -> str:
@@ -199,6 +253,8 @@ class StartupBias(_core.StartupBiasCore):
             "residuals_E": self.residuals.tolist(),
             "sigma_E": None if self.sigma is None else self.sigma.tolist(),
             "sigma_estimated": self.sigma_estimated,
+            "chi2": self.chi2 if math.isfinite(self.chi2) else None,
+            "chi2_p": self.chi2_p if math.isfinite(self.chi2_p) else None,
             "dof": self.dof,
             "condition": self.condition,
             "azimuth_deg": self.azimuth_deg.tolist(),
@@ -215,6 +271,7 @@ def startup_bias(
     drift: bool = False,
     sigma: float | ArrayLike | None = None,
     t_ref: float | None = None,
+    check_units: bool = True,
 ) -> StartupBias:
     """Per-startup bias of the inline and cross channels by least squares.
 
@@ -234,15 +291,33 @@ def startup_bias(
     t_ref : float, optional
         Reference time of the bias with drift, s; default the mean of ``t`` (the centre of
         the sequence, where a time-symmetric sequence decorrelates drift from bias).
+    check_units : bool
+        Refuse azimuths that look like radians (see Raises); False fits them as degrees
+        whatever they look like.
 
     Returns
     -------
     StartupBias
+        With ``sigma`` given, ``chi2`` / ``chi2_p`` test the residuals against it.
 
     Raises
     ------
     DegenerateDataError
         When the azimuth set cannot separate bias and gradient (e.g. 0/180 deg), with why.
+    CalibrationError
+        When every azimuth lies within +-2 pi and either (a) read as radians they fit the
+        data far better than read as degrees (whitened residual sum of squares
+        :data:`UNIT_RATIO` times smaller, and with ``sigma`` given the radians reading
+        within the noise, chi2 p >= :data:`MISFIT_P`, and the degrees reading not), or (b)
+        they are radians of whole multiples of 2.5 deg (to 1e-3 deg: ``np.radians(45)``)
+        and the data do not favour the degrees reading that much. A design such as 0, 1, 2,
+        3 deg that the data fit as degrees is not refused.
+
+    Warns
+    -----
+    StartupMisfitWarning
+        With ``sigma`` given and residual degrees of freedom, when the residuals exceed it
+        (chi2 p-value below :data:`MISFIT_P`); the summary says so too.
     """
     az = _azimuths(azimuth_deg, "azimuth_deg")
     m = az.size
@@ -254,8 +329,87 @@ def startup_bias(
     if drift and t_ref is not None:
         tref = number(t_ref, "t_ref", unit="s")
     sd = None if sigma is None else _dwell_std(sigma, m)
-    raw = _core.startup_bias_raw(az, y, sd, tt if drift else None, tref)
-    return StartupBias(*raw.__reduce__()[1])
+    td = tt if drift else None
+    raw = _core.startup_bias_raw(az, y, sd, td, tref)
+    fit = StartupBias(*raw.__reduce__()[1])
+    hint = None
+    if check_units:
+        refuse, hint = _radians_check(az, y, sd, td, tref, fit)
+        if refuse is not None:
+            raise CalibrationError(refuse)
+    misfit = fit.misfit_text()
+    if misfit is not None:
+        warnings.warn(misfit + ("" if hint is None else f"; {hint}"), StartupMisfitWarning,
+                      stacklevel=2)
+    return fit
+
+
+def _list(v: _F64, n: int = 8) -> str:
+    """At most ``n`` numbers, comma separated."""
+    words = [f"{x:g}" for x in v[:n]]
+    return ", ".join(words + (["..."] if v.size > n else []))
+
+
+def _radians_check(
+    az: _F64, y: _F64, sd: _F64 | None, t: _F64 | None, t_ref: float | None, fit: StartupBias
+) -> tuple[str | None, str | None]:
+    """Whether azimuths given as degrees look like radians: ``(why to refuse, hint)``.
+
+    Only azimuths that all lie within +-2 pi (and are not all 0) are candidates. The same
+    data are fitted with the azimuths read as radians and the two (whitened) residual sums of
+    squares compared: see :func:`startup_bias` (Raises) for the rule. The hint (for the misfit
+    warning) is set when, with ``sigma`` given, the radians reading fits markedly (10x)
+    better without meeting the rule.
+    """
+    if not (np.any(az != 0.0) and np.all(np.abs(az) <= 2.0 * np.pi * (1.0 + 1e-12))):
+        return None, None
+    deg = np.degrees(az)
+    try:
+        alt = _core.startup_bias_raw(deg, y, sd, t, t_ref)
+    except CalibrationError:  # degenerate as radians (e.g. 0 and pi): not that reading
+        return None, None
+    w = (np.ones(az.size) if sd is None else 1.0 / sd)[:, None]
+    with np.errstate(over="ignore", invalid="ignore"):
+        rss_d = float(np.sum((fit.residuals * w) ** 2))
+        rss_r = float(np.sum((alt.residuals * w) ** 2))
+        floor = 1e-18 * float(np.sum((y * w) ** 2))  # a residual at rounding level
+    if not (math.isfinite(rss_d) and math.isfinite(rss_r) and math.isfinite(floor)):
+        return None, None
+    dof = fit.dof
+    fix = ("pass np.degrees(azimuth) as azimuth_deg, or check_units=False if they are "
+           "degrees")
+    head = (f"the azimuths look like radians, not degrees: all lie within +-2 pi "
+            f"({_list(az)})")
+    if dof > 0 and rss_d > UNIT_RATIO * max(rss_r, floor):
+        if sd is None:
+            ratio = math.sqrt(rss_d / max(rss_r, floor))
+            return (
+                f"{head}, and read as radians ({_list(deg)} deg) they fit the data with "
+                f"residuals {ratio:.3g} times smaller (rms {math.sqrt(rss_r / dof):.3g} E "
+                f"against {math.sqrt(rss_d / dof):.3g} E read as degrees); {fix}"
+            ), None
+        p_d = float(_core.chi2_sf(rss_d, float(dof)))
+        p_r = float(_core.chi2_sf(rss_r, float(dof)))
+        if p_r >= MISFIT_P > p_d:
+            return (
+                f"{head}, and read as radians ({_list(deg)} deg) they fit the data within the "
+                f"given noise (chi2 {rss_r:.3g} on {dof} dof, p = {p_r:.2g}) where read as "
+                f"degrees they do not (chi2 {rss_d:.3g}, p = {p_d:.2g}); {fix}"
+            ), None
+    off = np.abs(deg - np.round(deg / _ROUND_STEP_DEG) * _ROUND_STEP_DEG)
+    if np.all(off <= _ROUND_TOL_DEG) and not rss_r > UNIT_RATIO * max(rss_d, floor):
+        why = ("leave no residual to tell the two readings apart" if dof <= 0
+               else "do not tell the two readings apart")
+        return (
+            f"{head}, which are {_list(deg)} deg in radians, and the data {why}; {fix}"
+        ), None
+    if sd is not None and dof > 0 and rss_d > 10.0 * max(rss_r, floor):
+        return None, (
+            f"read as radians ({_list(deg)} deg) the azimuths leave chi2/dof "
+            f"{rss_r / dof:.3g} instead of {rss_d / dof:.3g}: if they are radians, pass "
+            "np.degrees(azimuth) as azimuth_deg"
+        )
+    return None, None
 
 
 # ------------------------------------------------------------------------------------------
@@ -387,7 +541,8 @@ class StartupCalibration:
         result = cal.solve()
 
     ``record_raw`` takes the raw a1..a4 streams and the spin phase instead (demodulated in
-    Rust); ``record_mean`` takes averages computed elsewhere.
+    Rust); ``record_mean`` takes averages computed elsewhere. ``check_units=False`` lets
+    :meth:`solve` fit azimuths that look like radians (see :func:`startup_bias`).
     """
 
     frame_rotation = staticmethod(frame_rotation)
@@ -398,8 +553,10 @@ class StartupCalibration:
         drift: bool = False,
         sigma: float | ArrayLike | str | None = None,
         radius_m: float | None = None,
+        check_units: bool = True,
     ) -> None:
         self.drift = bool(drift)
+        self.check_units = bool(check_units)
         if isinstance(sigma, str) and sigma != "stream":
             raise CalibrationError(
                 f"sigma must be a number, an array, 'stream' or None; got {sigma!r}"
@@ -518,7 +675,8 @@ class StartupCalibration:
             if any(v is None or not v > 0 for v in self._sem):
                 raise CalibrationError("sigma='stream' needs the noise of every recorded dwell")
             sig = np.array(self._sem, dtype=np.float64)
-        return startup_bias(self.azimuth_deg, self.outputs, t=t, drift=self.drift, sigma=sig)
+        return startup_bias(self.azimuth_deg, self.outputs, t=t, drift=self.drift, sigma=sig,
+                            check_units=self.check_units)
 
 
 # ------------------------------------------------------------------------------------------
@@ -529,6 +687,7 @@ def calibrate_gradiometer_table(
     *,
     drift: bool | None = None,
     sigma: float | None = None,
+    check_units: bool = True,
 ) -> StartupBias:
     """Start-up bias from a table of per-azimuth averages (delimited text, ``#`` comments).
 
@@ -537,7 +696,8 @@ def calibrate_gradiometer_table(
     ``[rad]``), the inline and cross channels (``inline_E``, ``inline``, ``cross_E``,
     ``cross``; E unless ``[mE]`` or ``[1/s^2]``) and optionally the time (``t_s``, ``t``,
     ``time``; s unless ``[min]`` or ``[h]``). ``drift=None`` fits a drift when there is a time
-    column and at least 3 rows.
+    column and at least 3 rows. ``check_units`` as for :func:`startup_bias` (an azimuth
+    column in radians whose header does not say so is refused).
     """
     d = read_table(path, [
         Col("azimuth_deg", "the azimuth (azimuth_deg, azimuth, az, heading)", {
@@ -560,4 +720,5 @@ def calibrate_gradiometer_table(
         t=t,
         drift=use_drift,
         sigma=sigma,
+        check_units=check_units,
     )

@@ -1313,7 +1313,12 @@ def _decide(
         if len(rest) == 3:
             acc = rest
         elif ncols == 4 and tcol is None and _increasing(head[:, 0]):
-            tcol, acc = 0, [1, 2, 3]
+            acc = [1, 2, 3]
+            if _is_counter(head[:, 0]):  # a row index (tomascufaro's 0, 1, 2 ...), no clock
+                notes.append("column 0 (0-based) counts samples (0, 1, 2, ...): not used as "
+                             "time")
+            else:
+                tcol = 0
         else:
             triads = _triads_by_norm(head, tcol)
             if len(triads) == 1:

@@ -218,6 +218,10 @@ pub struct CentrifugeFit {
     pub residual_std: Vec<f64>,
     /// Minimal subsets drawn by the screen (0 when the fast path was enough).
     pub draws: usize,
+    /// The screen ran but kept every row: its exclusion was judged a model error spread over
+    /// the rows, not sparse outliers (see [`misfit_is_spread`]); the fit is the plain one and
+    /// `studentized` / `threshold` are the plain fit's (rows beyond the threshold remain).
+    pub screen_kept_all: bool,
     /// Singular values of the column-scaled Jacobian.
     pub singular_values: Vec<f64>,
     /// Condition number of the column-scaled Jacobian.
@@ -1825,17 +1829,81 @@ struct Screened {
     draws: usize,
     st: Studentized,
     threshold: f64,
+    /// The screen ran and its exclusion was voided by [`misfit_is_spread`]: every row kept.
+    kept_all: bool,
 }
 
 /// Most reclassification rounds of the screen (it stops earlier when the rows settle).
 const SCREEN_ROUNDS: usize = 10;
+
+/// Largest credible ratio of the excluded rows' residuals in the screened fit to their
+/// residuals in the plain fit (root sum of squares over the excluded rows; see
+/// [`misfit_is_spread`]).
+const SCREEN_MAX_AMPLIFICATION: f64 = 30.0;
+
+/// Stage (screen verdict): whether the screen's exclusion of `excluded` (of `n` rows) is a
+/// misfit spread over the rows (a model error: radius, rate, lever arm, misalignment, K3)
+/// rather than sparse gross errors, in which case every row is kept. The screen is for sparse
+/// errors; it is overruled when
+/// 1. it excludes more than half of the rows: beyond the breakdown point of its least-median
+///    start, so whatever it keeps is not "the good majority";
+/// 2. the excluded rows' residuals in the screened fit (`r_screened`, g) exceed
+///    [`SCREEN_MAX_AMPLIFICATION`] times their residuals in the plain fit on every row
+///    (`r_plain`, g; rows not invertible there are left out). For a linear model the deleted
+///    residuals of a set O are `(I - H_OO)^-1` times its plain residuals, a ratio at most
+///    `1 / (1 - lambda_max(H_OO))`: a ratio of 30 means the rows kept see less than 1/30 of
+///    the information on some parameter combination that the excluded rows carry, so the
+///    screened fit moved freely along it (absorbing a model error in the kept rows) and the
+///    excluded rows' large residuals are made by the exclusion, not found by it. Gross errors
+///    in simulated sessions (1 to 40 % of the rows, sign flips, offsets) give ratios of 1 to
+///    11; a 1e-4 radius or rate error at 1e-6 g noise gives 700 to 9e4;
+/// 3. it excludes more than a quarter of the rows, the noise is given, and the rows it keeps
+///    still reject the noise model: their whitened chi-square `kept_chi2 = (chi2, dof)` is
+///    beyond the screen's own tail probability `tail` (`2 Phi(-outlier_k)`). Such an exclusion
+///    trimmed the worst rows of a misfit present in every row.
+fn misfit_is_spread(
+    n: usize,
+    excluded: &[usize],
+    r_plain: &[f64],
+    r_screened: &[f64],
+    kept_chi2: Option<(f64, usize)>,
+    tail: f64,
+) -> bool {
+    let q = excluded.len();
+    if q == 0 {
+        return false;
+    }
+    if 2 * q > n {
+        return true;
+    }
+    let (mut ss_screened, mut ss_plain) = (0.0, 0.0);
+    for &k in excluded {
+        let (a, b) = (r_screened[k], r_plain[k]);
+        if a.is_finite() && b.is_finite() {
+            ss_screened += a * a;
+            ss_plain += b * b;
+        }
+    }
+    if ss_screened > SCREEN_MAX_AMPLIFICATION * SCREEN_MAX_AMPLIFICATION * ss_plain {
+        return true;
+    }
+    if 4 * q > n {
+        if let Some((chi2, dof)) = kept_chi2 {
+            if dof > 0 && chi2_sf(chi2, dof as f64) < tail {
+                return true;
+            }
+        }
+    }
+    false
+}
 
 /// Stage (screening). A good row is excluded when its studentised residual exceeds the
 /// threshold of [`t_threshold`], i.e. with the probability of a `outlier_k`-sigma normal event
 /// (`2 Phi(-k)` per row). The plain fit on every row is kept when no row exceeds it (or the
 /// screen is off); otherwise the least median of squares over random minimal subsets gives
 /// an outlier-free start, and the rows are reclassified with the same statistic until they
-/// settle.
+/// settle. The plain fit is kept after all (`kept_all`) when [`misfit_is_spread`] judges the
+/// exclusion a model error; fewer than `p + 2` rows left is an error saying so.
 fn screen(
     data: &CentrifugeData<'_>,
     rc: &mut [RowConst],
@@ -1846,19 +1914,24 @@ fn screen(
     let p = opt.model.n_params();
     let known = data.sigma.is_some();
     let all: Vec<usize> = (0..n).collect();
+    // The plain fit with its row weights, for the verdict on the screen's exclusion.
+    let mut plain_fit: Option<(Screened, Vec<RowConst>)> = None;
     match plain {
         Ok(out) => {
             let st = studentize(data, rc, opt, &out.params, &all);
             let threshold = t_threshold(opt.outlier_k, st.dof.saturating_sub(1), known);
-            if !opt.robust || st.t.iter().all(|v| v.abs() <= threshold) {
-                return Ok(Screened {
-                    rows: all,
-                    out,
-                    draws: 0,
-                    st,
-                    threshold,
-                });
+            let sc = Screened {
+                rows: all,
+                out,
+                draws: 0,
+                st,
+                threshold,
+                kept_all: false,
+            };
+            if !opt.robust || sc.st.t.iter().all(|v| v.abs() <= threshold) {
+                return Ok(sc);
             }
+            plain_fit = Some((sc, rc.to_vec()));
         }
         Err(e) if !opt.robust => return Err(e),
         // The plain fit can fail outright on gross outliers: go straight to the screen.
@@ -1877,7 +1950,12 @@ fn screen(
     for _ in 0..SCREEN_ROUNDS {
         if rows.len() < p + 2 {
             return degenerate(format!(
-                "only {} rows are consistent with the model; {} parameters need at least {}",
+                "the robust screen found only {} rows consistent with the model ({} parameters \
+                 need at least {}): the model does not fit the rows as a whole, which is a \
+                 model error (the radius or rate, a lever arm, misalignment, K3), not a few \
+                 outliers, unless most rows are bad. Fit with the screen off (robust=False) to \
+                 see the residuals over speed and position, and run diagnose_centrifuge to \
+                 name the effect",
                 rows.len(),
                 p,
                 p + 2
@@ -1896,12 +1974,40 @@ fn screen(
             draws,
             st,
             threshold,
+            kept_all: false,
         });
         if settled {
             break;
         }
     }
-    last.ok_or_else(|| CoreError::NotConverged("the robust screen ran no round".into()))
+    let sc =
+        last.ok_or_else(|| CoreError::NotConverged("the robust screen ran no round".into()))?;
+    let Some((mut whole, rc_plain)) = plain_fit else {
+        return Ok(sc);
+    };
+    let mut used = vec![false; n];
+    for &k in &sc.rows {
+        used[k] = true;
+    }
+    let excluded: Vec<usize> = (0..n).filter(|&k| !used[k]).collect();
+    let kept_chi2 = known.then(|| {
+        let chi2 = sc
+            .rows
+            .iter()
+            .map(|&k| rc[k].w * sc.st.r[k])
+            .filter(|v| v.is_finite())
+            .map(|v| v * v)
+            .sum::<f64>();
+        (chi2, sc.st.dof)
+    });
+    let tail = chi2_sf(opt.outlier_k * opt.outlier_k, 1.0);
+    if misfit_is_spread(n, &excluded, &whole.st.r, &sc.st.r, kept_chi2, tail) {
+        rc.copy_from_slice(&rc_plain);
+        whole.draws = draws;
+        whole.kept_all = true;
+        return Ok(whole);
+    }
+    Ok(sc)
 }
 
 /// Stage (sign folding): `S > 0` (a norm observation cannot fix it when D = 0). Flipping `S_i`
@@ -2293,6 +2399,7 @@ fn fit_staged(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeF
         threshold: sc.threshold,
         residual_std,
         draws: sc.draws,
+        screen_kept_all: sc.kept_all,
         condition: u.condition,
         singular_values: u.singular_values,
         iterations: sc.out.iterations,
@@ -2675,6 +2782,141 @@ mod tests {
         assert!(f.outliers.is_empty() && f.draws == 0);
         assert!(f.studentized.iter().all(|t| t.abs() <= f.threshold));
         assert!((f.screen_sigma - 1e-5).abs() < 0.3e-5, "{}", f.screen_sigma);
+    }
+
+    #[test]
+    fn stage_verdict_tells_a_spread_misfit_from_sparse_outliers() {
+        let n = 60;
+        let tail = chi2_sf(25.0, 1.0);
+        let plain = vec![1e-5; n];
+        // Sparse gross errors: the plain fit sees them (ratio ~1): the exclusion stands.
+        let mut gross = vec![1e-6; n];
+        for k in [3, 17, 40] {
+            gross[k] = 1.2e-5;
+        }
+        assert!(!misfit_is_spread(
+            n,
+            &[3, 17, 40],
+            &plain,
+            &gross,
+            None,
+            tail
+        ));
+        // Residuals 600 times what the plain fit leaves on the same rows: made by the
+        // exclusion (the kept rows barely see a parameter combination the excluded carry).
+        let made: Vec<f64> = (0..n).map(|k| if k < 20 { 6e-3 } else { 1e-6 }).collect();
+        let twenty: Vec<usize> = (0..20).collect();
+        assert!(misfit_is_spread(n, &twenty, &plain, &made, None, tail));
+        // ... even when a few of them are not amplified; rows the plain fit could not invert
+        // do not count.
+        let mut inf_plain = plain.clone();
+        inf_plain[0] = f64::INFINITY;
+        assert!(misfit_is_spread(n, &twenty, &inf_plain, &made, None, tail));
+        assert!(!misfit_is_spread(n, &[0], &inf_plain, &made, None, tail));
+        // More than half the rows is never sparse.
+        let most: Vec<usize> = (0..31).collect();
+        assert!(misfit_is_spread(n, &most, &plain, &plain, None, tail));
+        // More than a quarter with the rows kept still rejecting the noise model (chi2 104 on
+        // 31 dof, p ~ 1e-9): a trimmed misfit. A quarter or less, or the kept rows consistent,
+        // or the noise unknown: the exclusion stands.
+        let sixteen: Vec<usize> = (0..16).collect();
+        let fifteen: Vec<usize> = (0..15).collect();
+        assert!(misfit_is_spread(
+            n,
+            &sixteen,
+            &plain,
+            &plain,
+            Some((104.0, 31)),
+            tail
+        ));
+        assert!(!misfit_is_spread(
+            n,
+            &sixteen,
+            &plain,
+            &plain,
+            Some((40.0, 31)),
+            tail
+        ));
+        assert!(!misfit_is_spread(
+            n,
+            &fifteen,
+            &plain,
+            &plain,
+            Some((104.0, 36)),
+            tail
+        ));
+        assert!(!misfit_is_spread(n, &sixteen, &plain, &plain, None, tail));
+        assert!(!misfit_is_spread(
+            n,
+            &[],
+            &plain,
+            &plain,
+            Some((1e9, 51)),
+            tail
+        ));
+    }
+
+    /// The paper's session on a true radius of `r_true` m (the fit is told 1 m), with
+    /// roughly normal output noise of std `level` g.
+    fn radius_error_session(r_true: f64, level: f64) -> (Vec<[f64; 3]>, Vec<f64>) {
+        let mut rng = Rng(11);
+        let mut o = Vec::new();
+        let mut om = Vec::new();
+        for s in 1..=3 {
+            let w = 2.0 * std::f64::consts::PI * s as f64;
+            let a = w * w * r_true / 9.8;
+            for (c1, c3) in design() {
+                let mut n = [0.0; 3];
+                for i in 0..3 {
+                    let f = a * c1[i] + c3[i];
+                    let u: f64 = (0..12)
+                        .map(|_| (rng.next() >> 11) as f64 / (1u64 << 53) as f64)
+                        .sum();
+                    n[i] = S[i] * (f + D[i] * f * f) + B[i] + level * (u - 6.0);
+                }
+                o.push(n);
+                om.push(w);
+            }
+        }
+        (o, om)
+    }
+
+    #[test]
+    fn stage_screen_keeps_every_row_of_a_model_error() {
+        // A 0.1 mm radius error with 1e-6 g noise given: every residual is ~1e-5 g (tens of
+        // sigma) and smooth in the rate. The screen used to exclude 20 good rows, leaving a
+        // fit that looked perfect with b_y 170 sigma off; now the plain fit is kept and flagged.
+        let (o, w) = radius_error_session(1.0001, 1e-6);
+        let sig = vec![[1e-6; 3]; o.len()];
+        let mut d = data(&o, &w);
+        d.sigma = Some(&sig);
+        let f = fit(&d, &FitOptions::default()).unwrap();
+        assert!(f.outliers.is_empty(), "{:?}", f.outliers);
+        assert!(f.screen_kept_all && f.draws > 0);
+        assert!(f.residual_rms > 5.0, "{}", f.residual_rms);
+        assert!(f.studentized.iter().any(|t| t.abs() > f.threshold));
+        let plain = fit(
+            &d,
+            &FitOptions {
+                robust: false,
+                ..FitOptions::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(f.params, plain.params);
+        assert!(!plain.screen_kept_all && plain.draws == 0);
+        // b_y: within the model error of the plain fit (~5e-5 g), not 0.017 g off.
+        assert!((f.params[4] - B[1]).abs() < 2e-4, "{}", f.params[4]);
+        // Sparse gross errors on the same session are still excluded, and only they.
+        let (mut o2, _) = radius_error_session(1.0, 1e-6);
+        for &k in &[0usize, 4, 25, 47] {
+            o2[k][2] = -o2[k][2];
+        }
+        let mut d2 = data(&o2, &w);
+        d2.sigma = Some(&sig);
+        let f2 = fit(&d2, &FitOptions::default()).unwrap();
+        assert_eq!(f2.outliers, vec![0, 4, 25, 47]);
+        assert!(!f2.screen_kept_all);
     }
 
     #[test]

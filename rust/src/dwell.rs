@@ -17,7 +17,7 @@
 //! - and the stream gets an estimate of the output resolution (LSB) per axis from a bounded,
 //!   chunking-independent subsample ([`LsbSampler`]).
 
-use crate::error::{degenerate, invalid, Result};
+use crate::error::{degenerate, invalid, CoreError, Result};
 use crate::gap::special::chi2_isf;
 use ndarray::ArrayView2;
 use rayon::prelude::*;
@@ -1365,6 +1365,9 @@ pub struct Detection {
     /// static window (vibration, not motion); `[start, stop)` sample bounds, at least
     /// `min_dwell_s` long after the trim.
     pub vibrating: Vec<Vibrating>,
+    /// Shorter settings that find more steady dwells, when fewer than [`PROBE_BELOW`] were
+    /// found ([`ShorterWindow`]).
+    pub shorter: Option<ShorterWindow>,
 }
 
 /// A stretch that vibrates above the detector's threshold while its mean stays put.
@@ -1503,7 +1506,129 @@ fn runs(mark: &[bool], trim: usize, min_blocks: usize) -> Vec<[usize; 2]> {
 /// `blocks[j]` holds samples `[j * b, (j + 1) * b)` with `b = settings.block_len()`. A block
 /// whose moments are not finite holds NaN or inf samples (a dropout): no window that contains
 /// it is static, so no dwell contains it.
-pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<Detection> {
+///
+/// `n` is the number of samples pushed (the blocks hold all but the last partial block): the
+/// messages count it.
+pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings, n: usize) -> Result<Detection> {
+    let det = detect_once(blocks, s, n);
+    let found = match &det {
+        Ok(d) => d.bounds.len(),
+        Err(CoreError::Degenerate(_)) => 0,
+        Err(_) => return det,
+    };
+    if found >= PROBE_BELOW {
+        return det;
+    }
+    let shorter = probe_shorter(blocks, s, n, found);
+    match (det, shorter) {
+        (Ok(mut d), sh) => {
+            d.shorter = sh;
+            Ok(d)
+        }
+        (Err(CoreError::Degenerate(m)), Some(sh)) => {
+            Err(CoreError::Degenerate(format!("{m}. {}", sh.advice())))
+        }
+        (e, _) => e,
+    }
+}
+
+/// Below this many dwells the detector also tries shorter windows ([`probe_shorter`]).
+const PROBE_BELOW: usize = 9;
+
+/// Shorter detector settings that find more steady dwells than the ones used (brief rests:
+/// a hand-turned sensor held for a second in each pose). Only suggested, never applied: a
+/// short window also takes the slow ends of moves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShorterWindow {
+    /// Window, s.
+    pub window_s: f64,
+    /// Shortest dwell, s.
+    pub min_dwell_s: f64,
+    /// Settling trimmed at each end, s.
+    pub trim_s: f64,
+    /// Steady dwells these settings find (see [`probe_shorter`]).
+    pub dwells: usize,
+}
+
+impl ShorterWindow {
+    /// The suggestion in words (Python keyword spelling; the command line rewrites it).
+    pub fn advice(&self) -> String {
+        format!(
+            "Shorter settings, window_s = {} s with min_dwell_s = {} s and trim_s = {} s, \
+             find {} steady dwell(s) (brief rests); check them (the dwells plot, the fit's \
+             chi2/dof) before use",
+            self.window_s, self.min_dwell_s, self.trim_s, self.dwells
+        )
+    }
+}
+
+/// The windows tried for brief rests: 0.5, 0.25 and 0.1 s, none under the detector's fewest
+/// samples per window (at two decimals) nor under a block, and only those shorter than the
+/// window used. With each, the shortest dwell becomes half the window and the settling trim a
+/// quarter of it (or stay as given, if less): a rest of twice the window is then found.
+fn shorter_settings(s: &DetectorSettings) -> Vec<DetectorSettings> {
+    let floor = ((MIN_WINDOW_SAMPLES / s.fs * 100.0).ceil() / 100.0).max(s.block_s);
+    let mut out: Vec<DetectorSettings> = Vec::new();
+    for w in [0.5, 0.25, 0.1] {
+        let w = f64::max(w, floor);
+        if w < s.window_s && out.iter().all(|o| o.window_s != w) {
+            let c = DetectorSettings {
+                window_s: w,
+                min_dwell_s: s.min_dwell_s.min(0.5 * w),
+                trim_s: s.trim_s.min(0.25 * w),
+                ..*s
+            };
+            if c.validate().is_ok() {
+                out.push(c);
+            }
+        }
+    }
+    out
+}
+
+/// A dwell is steady when the means of its two halves agree within [`STILL_SE`] standard
+/// errors of white noise of the noise variance `v` on every axis: a rest, not the slow end
+/// of a move that a short window takes as static.
+fn steady(st: &DwellStat, v: &[f64; 3]) -> bool {
+    let n = st.moments.n as f64;
+    let inv = 4.0 / n.max(1.0); // halves of n / 2 samples each
+    (0..3).all(|k| {
+        let d = st.half_mean[0][k] - st.half_mean[1][k];
+        d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
+    })
+}
+
+/// The shorter settings ([`shorter_settings`]) that find the most dwells, more than `found`
+/// and at least 3, every one of them steady (the longest window among equals), or `None`.
+fn probe_shorter(
+    blocks: &[Moments],
+    s: &DetectorSettings,
+    n: usize,
+    found: usize,
+) -> Option<ShorterWindow> {
+    let mut best: Option<ShorterWindow> = None;
+    for c in shorter_settings(s) {
+        let Ok(d) = detect_once(blocks, &c, n) else {
+            continue;
+        };
+        // Every dwell found must be steady: one that creeps is the end of a move, and the
+        // settings that take it would put it into the fit.
+        let n = d.stats.len();
+        let all_steady = d.stats.iter().all(|st| steady(st, &d.noise_var));
+        if all_steady && n > found.max(2) && best.is_none_or(|b| n > b.dwells) {
+            best = Some(ShorterWindow {
+                window_s: c.window_s,
+                min_dwell_s: c.min_dwell_s,
+                trim_s: c.trim_s,
+                dwells: n,
+            });
+        }
+    }
+    best
+}
+
+/// [`detect_from_blocks`] without the probe of shorter windows.
+fn detect_once(blocks: &[Moments], s: &DetectorSettings, n: usize) -> Result<Detection> {
     s.validate()?;
     let b = s.block_len();
     let w = s.window_blocks();
@@ -1511,7 +1636,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         return invalid(format!(
             "stream too short for dwell detection: {} samples, need more than one {} s window \
              ({} samples)",
-            blocks.len().saturating_mul(b),
+            n,
             s.window_s,
             w.saturating_mul(b)
         ));
@@ -1586,7 +1711,6 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         })
         .collect();
     if bounds.is_empty() {
-        let n = blocks.len() * b;
         if is_static[h..h + nw].iter().all(|&x| x) {
             // Static throughout: only the length is missing. No window is centred on the
             // stream's first and last half window, so they are not used (a recording's first
@@ -1609,15 +1733,17 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         return degenerate(format!(
             "no static dwell found in {n} samples ({:.4} s at {} Hz): no run of at least \
              min_dwell_s = {} s stayed below k = {} x the noise variance (noise std {:.3e}, \
-             {:.3e}, {:.3e}); check fs, or lower min_dwell_s= or window_s= (a rest shorter than \
-             the window is not seen), or raise k= (or give noise_std=)",
+             {:.3e}, {:.3e}); check fs, or lower min_dwell_s=, window_s= or trim_s= (a rest \
+             must last a window, the shortest dwell and two trims, {:.3} s here, to be seen), or raise \
+             k= (or give noise_std=)",
             n as f64 / s.fs,
             hz(s.fs),
             s.min_dwell_s,
             s.k,
             noise_var[0].sqrt(),
             noise_var[1].sqrt(),
-            noise_var[2].sqrt()
+            noise_var[2].sqrt(),
+            s.window_s + s.min_dwell_s + 2.0 * s.trim_s
         ));
     }
     Ok(Detection {
@@ -1626,6 +1752,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings) -> Result<De
         noise_var,
         threshold: thr,
         vibrating,
+        shorter: None,
     })
 }
 
@@ -1653,6 +1780,9 @@ pub struct DwellTable {
     pub dropped: u64,
     /// Stretches that look still but vibrate above the detection threshold (detection only).
     pub vibrating: Vec<Vibrating>,
+    /// Shorter detector settings that find more steady dwells (detection only, when few were
+    /// found).
+    pub shorter: Option<ShorterWindow>,
 }
 
 impl DwellTable {
@@ -1713,6 +1843,7 @@ pub fn dwell_table<T: Sample>(
         lsb: lsb.estimate(),
         dropped: 0,
         vibrating: Vec::new(),
+        shorter: None,
     })
 }
 
@@ -1981,6 +2112,7 @@ impl BoundsAcc {
             lsb: self.lsb.estimate(),
             dropped: 0,
             vibrating: Vec::new(),
+            shorter: None,
         })
     }
 }
@@ -2046,7 +2178,7 @@ impl DetectAcc {
                  variance): rescale them"
             ));
         }
-        let det = detect_from_blocks(&self.blocks, &self.settings)?;
+        let det = detect_from_blocks(&self.blocks, &self.settings, self.pos)?;
         let bl = self.settings.block_len();
         let t_mid = (self.has_t == Some(true)).then(|| {
             det.bounds
@@ -2070,6 +2202,7 @@ impl DetectAcc {
             lsb: self.lsb.estimate(),
             dropped: self.dropped,
             vibrating: det.vibrating,
+            shorter: det.shorter,
         })
     }
 }
@@ -2475,6 +2608,93 @@ mod tests {
             }
         }
         Array2::from_shape_fn((rows.len(), 3), |(i, a)| rows[i][a])
+    }
+
+    /// Rests of `rest` samples (noise 0.01) at 12 levels, separated by 100-sample ramps
+    /// (the ramp's middle wiggles, its ends are slow: a smoothstep).
+    fn brief_rests(seed: u64, rest: usize) -> Array2<f64> {
+        let mut s = seed;
+        let mut rows = Vec::new();
+        let levels: Vec<f64> = (0..12).map(|i| (i as f64 * 0.7).sin() * 3.0).collect();
+        for (i, &l) in levels.iter().enumerate() {
+            for _ in 0..rest {
+                rows.push([l + 0.01 * lcg(&mut s), 0.01 * lcg(&mut s), 9.8]);
+            }
+            if i + 1 < levels.len() {
+                for j in 0..100 {
+                    let f = j as f64 / 100.0;
+                    let e = f * f * (3.0 - 2.0 * f);
+                    rows.push([l + e * (levels[i + 1] - l), 0.0, 9.8]);
+                }
+            }
+        }
+        Array2::from_shape_fn((rows.len(), 3), |(i, a)| rows[i][a] + 0.01 * lcg(&mut s))
+    }
+
+    #[test]
+    fn brief_rests_get_shorter_settings_that_find_them() {
+        // 0.8 s rests at 100 Hz: the defaults need 2.2 s and find none; the error names the
+        // settings that find all 12, which then do.
+        let x = brief_rests(3, 80);
+        let e = detect_table(&x.view(), DetectorSettings::new(100.0), None, None).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("2.200 s here"), "{msg}");
+        assert!(
+            msg.contains(
+                "window_s = 0.25 s with min_dwell_s = 0.125 s and trim_s = 0.0625 s, \
+                          find 12 steady dwell(s)"
+            ),
+            "{msg}"
+        );
+        let mut st = DetectorSettings::new(100.0);
+        (st.window_s, st.min_dwell_s, st.trim_s) = (0.25, 0.125, 0.0625);
+        let t = detect_table(&x.view(), st, None, None).unwrap();
+        assert_eq!(t.bounds.len(), 12);
+        assert_eq!(t.shorter, None); // 12 found: nothing to suggest
+                                     // Rests long enough for the defaults: no probe.
+        let t = detect_table(
+            &brief_rests(3, 400).view(),
+            DetectorSettings::new(100.0),
+            None,
+            None,
+        )
+        .unwrap();
+        assert_eq!((t.bounds.len(), t.shorter), (12, None));
+    }
+
+    #[test]
+    fn the_shorter_windows_respect_the_fewest_samples_and_the_settings_given() {
+        let w = |fs: f64, window: f64| {
+            let mut s = DetectorSettings::new(fs);
+            s.window_s = window;
+            shorter_settings(&s)
+                .iter()
+                .map(|c| (c.window_s, c.min_dwell_s, c.trim_s))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(
+            w(100.0, 1.0),
+            vec![(0.5, 0.25, 0.1), (0.25, 0.125, 0.0625), (0.1, 0.05, 0.025)]
+        );
+        // 19 Hz: no window under 8 samples (0.43 s at two decimals).
+        assert_eq!(w(19.0, 1.0), vec![(0.5, 0.25, 0.1), (0.43, 0.215, 0.1)]);
+        assert_eq!(
+            w(100.0, 0.3),
+            vec![(0.25, 0.125, 0.0625), (0.1, 0.05, 0.025)]
+        );
+        assert!(w(100.0, 0.1).is_empty());
+        // A steady dwell: its halves agree within 4 standard errors; a creeping one does not.
+        let half = |d: f64| DwellStat {
+            moments: Moments {
+                n: 100,
+                ..Moments::EMPTY
+            },
+            half_mean: [[0.0; 3], [d, 0.0, 0.0]],
+            inflation: [1.0; 3],
+        };
+        let v = [1e-4; 3]; // std 0.01: a half mean's SE is 0.01 / sqrt(50)
+        assert!(steady(&half(0.005), &v));
+        assert!(!steady(&half(0.02), &v));
     }
 
     #[test]

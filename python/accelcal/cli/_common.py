@@ -33,6 +33,7 @@ CLI_WORDS: dict[str, str] = {
     "time_column": "--time-column",
     "window_s": "--window",
     "min_dwell_s": "--min-dwell",
+    "trim_s": "--trim",
     "k": "--k",
     "chunk_rows": "--chunk-rows",
     "g": "--g",
@@ -65,7 +66,7 @@ def cli_words(
         return opt + (" ..." if m.group(2) else "")
 
     keys = "|".join(sorted(map(re.escape, CLI_WORDS), key=len, reverse=True))
-    msg = re.sub(rf"(?<![\w-])({keys})=(\[\.\.\.\])?(?![\w\d.+-])", repl, msg)
+    msg = re.sub(rf"(?<![\w-])({keys})=(\[\.\.\.\])?(?![\w\d+-]|\.\w)", repl, msg)
     # A setting quoted with its value (``min_dwell_s = 1 s``, ``window_s = 0.5 s``): the
     # option with its value. (One-letter names other than k stay: ``g = 9.81`` may be a
     # statement about gravity, not the option.)
@@ -85,12 +86,51 @@ def _fail(msg: str) -> None:
     sys.exit(2)
 
 
+#: A command's parameters that name files it reads, with the words for them.
+_READS = {"file": "the recording", "files": "the recording", "table": "the table",
+          "cal": "the calibration file", "calibration": "the calibration file",
+          "bounds": "the bounds file", "nominal_path": "the nominal calibration",
+          "manifest": "the manifest"}
+#: A command's parameters that name files it writes, with their options.
+_WRITES = {"output": "-o", "dwells_out": "--dwells-out", "plot_path": "--plot",
+           "summary": "--summary"}
+
+
+def _same_path(a: str, b: str) -> bool:
+    """Whether paths ``a`` and ``b`` name one file (standard input, ``-``, names none)."""
+    if a == "-" or b == "-":
+        return False
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one does not exist (yet): the same name is the same file
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def check_outputs(params: Mapping[str, Any]) -> None:
+    """Refuse, before anything is read or written, a command whose output file would replace
+    one of its inputs or another of its outputs: nothing a user gave is ever overwritten."""
+    outs = [(opt, str(params[k])) for k, opt in _WRITES.items() if params.get(k)]
+    ins = [(words, str(v)) for k, words in _READS.items() if params.get(k)
+           for v in (params[k] if isinstance(params[k], (tuple, list)) else [params[k]])]
+    for i, (opt, path) in enumerate(outs):
+        for words, src in ins:
+            if _same_path(path, src):
+                raise CalibrationError(f"{opt} {path} would overwrite {words} {src}; nothing "
+                                       "was written: choose another path")
+        for opt2, path2 in outs[:i]:
+            if _same_path(path, path2):
+                raise CalibrationError(f"{opt2} and {opt} name the same file ({path}); "
+                                       "nothing was written: choose two paths")
+
+
 def friendly(fn: F) -> F:
-    """Turn user-facing failures into one clear line and exit status 2."""
+    """Turn user-facing failures into one clear line and exit status 2 (and refuse outputs
+    that would overwrite an input: :func:`check_outputs`)."""
 
     @functools.wraps(fn)
     def wrapper(*a: Any, **kw: Any) -> Any:
         try:
+            check_outputs(kw)
             return fn(*a, **kw)
         except CalibrationError as e:
             _fail(str(e))
@@ -258,7 +298,10 @@ def stream_dwells(file: str, fs: float | None, columns: str | None, time_column:
 
 
 def detector_options(fn: F) -> F:
-    """``--window``, ``--k`` and ``--min-dwell``: the dwell detector's settings."""
+    """``--window``, ``--k``, ``--min-dwell`` and ``--trim``: the dwell detector's settings."""
+    fn = click.option("--trim", "trim_s", type=float, default=0.1, show_default=True,
+                      help="Settling cut from each end of a rest, s (a rest must last "
+                           "--window + --min-dwell + 2 x --trim to be found).")(fn)
     fn = click.option("--min-dwell", "min_dwell_s", type=float, default=1.0, show_default=True,
                       help="Shortest dwell kept, s.")(fn)
     fn = click.option("--k", "k", type=float, default=6.0, show_default=True,
@@ -321,13 +364,15 @@ def without_moving(d: Any, g: float) -> tuple[Any, list[str]]:
 
 def dwell_notes(d: Any, rec: Any = None) -> list[str]:
     """What the dwells ``d`` show about the recording, in the terms of the command line:
+    shorter detector settings that find more dwells (:func:`~accelcal.dwell.shorter_text`),
     vibrating stretches (:func:`~accelcal.dwell.vibrating_text`), dwells too unsteady to be
     rests, and (with the recording ``rec``) a unit its column names declare that the dwells'
     norms contradict."""
-    from ..dwell import unsteady_text, vibrating_text
+    from ..dwell import shorter_text, unsteady_text, vibrating_text
     from ..io import _names_of, declared_units_note
 
-    out = vibrating_text(d, option="--k ") + unsteady_text(d)
+    out = [cli_words(n) for n in shorter_text(d)]
+    out += vibrating_text(d, option="--k ") + unsteady_text(d)
     if rec is not None and len(d):
         unit = declared_units_note(_names_of(rec.lay), float(np.median(
             np.linalg.norm(np.asarray(d.mean, dtype=np.float64), axis=1))))

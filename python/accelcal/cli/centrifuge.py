@@ -16,7 +16,7 @@ from ._common import (
 )
 
 #: Python keywords in messages of the fit and the option that sets each on the command line.
-_PHRASES = {"pass check_units=False": "use --no-unit-check"}
+_PHRASES = {"pass check_units=False": "use --no-unit-check", "robust=False": "--no-screen"}
 _NAMES = {
     "check_units=False": "--no-unit-check",
     "outlier_k": "--outlier-k",
@@ -66,7 +66,12 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
     by their 0-based index."""
     import warnings
 
-    from ..centrifuge import CentrifugeOutlierWarning, fit_centrifuge, read_centrifuge_table
+    from ..centrifuge import (
+        CentrifugeModelWarning,
+        CentrifugeOutlierWarning,
+        fit_centrifuge,
+        read_centrifuge_table,
+    )
 
     _need_plot(plot_path)
     t = read_centrifuge_table(table, g=g)
@@ -80,9 +85,10 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
             )
         except CalibrationError as e:
             raise type(e)(_cli(str(e))) from None
-    # The summary names the excluded rows once; other warnings are printed as they come.
+    # The summary names the excluded rows, or the model error, once; other warnings are
+    # printed as they come.
     notes = [str(w.message) for w in caught
-             if not issubclass(w.category, CentrifugeOutlierWarning)]
+             if not issubclass(w.category, (CentrifugeOutlierWarning, CentrifugeModelWarning))]
     if output:
         write_json_file(output, fit.to_dict())
     if plot_path:

@@ -56,7 +56,8 @@ from ._common import (
 def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: float | None,
              columns: str | None, time_column: str | None, quiet: bool, noise: str,
              preset: str, calibration: str | None, plot_path: str | None,
-             window_s: float, k: float, min_dwell_s: float, bounds: str | None, means: bool,
+             window_s: float, k: float, min_dwell_s: float, trim_s: float, bounds: str | None,
+             means: bool,
              count: int | None, no_check_g: bool, as_json: bool) -> None:
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
@@ -65,12 +66,20 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
 
     _need_plot(plot_path)
     fit = TriadModel.load(calibration) if calibration else None
+    g_note = ""
+    if g is None and lat is None and fit is not None and fit.g is not None and fit.units != "g":
+        # The calibration file says the g it was made with: the check uses it (a new site's
+        # g differs by up to 0.5 %: the report names such a common offset).
+        g, g_note = fit.g, (f"g = {fit.g:.7g} {fit.units or ''} from the calibration file "
+                            "(the g it was made with); give --g if this site's differs").replace(
+                                "  ", " ")
     gv, _ = _resolve_g(g, lat, height, file, fs, columns, time_column)
     # One streaming pass: the dwell accumulator keeps what the diagnosis needs from inside
     # the dwells (means, variances and, where the accumulator provides them, within-dwell
     # noise statistics), so memory stays bounded whatever the recording's length.
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "diagnose", bounds, means,
-                           count=count, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+                           count=count, window_s=window_s, k=k, min_dwell_s=min_dwell_s,
+                           trim_s=trim_s)
     # A dwell table, or a table of dwell means: no samples to read again.
     tabled = rec is None or rec.pose_table
     if len(d) == 0:
@@ -79,7 +88,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     kw: dict[str, Any] = {"fit": fit, "check_g": not no_check_g and g is not None}
     if noise == "white":
         kw["noise_model"] = "white"
-    extra: list[str] = []
+    extra: list[str] = [g_note] if g_note else []
     no_allan = noise == "allan" and getattr(d, "inflation", None) is None
     if no_allan and (tabled or file == "-" or bounds):
         why = ("standard input cannot be read twice" if file == "-" else
@@ -100,7 +109,7 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
             raise CalibrationError(f"{file}: the sample rate is unknown; give --fs (Hz)")
         from ..dwell import DetectorSettings
 
-        det = DetectorSettings(window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        det = DetectorSettings(window_s=window_s, k=k, min_dwell_s=min_dwell_s, trim_s=trim_s)
         d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=det)
         run = (st.samples,)
         kw.update(fs=st.fs, t=st.t, temperature=st.temperature, detector=det)

@@ -50,7 +50,7 @@ def run_static_fleet(
     files: tuple[str, ...], *, g: float | None, lat: float | None, height: float,
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
     method: str, window_s: float,
-    k_thr: float, min_dwell_s: float, sensor_id: str, output: str | None,
+    k_thr: float, min_dwell_s: float, trim_s: float, sensor_id: str, output: str | None,
     dwells_out: str | None, plot_path: str | None, as_json: bool, summary: str | None,
     out_dir: str | None, scheduler: str | None, workers: int | None, manifest: str | None,
     diagnose_gap: bool, check_g: bool = True, nominal_path: str | None = None,
@@ -90,7 +90,8 @@ def run_static_fleet(
     sources: Any = manifest if manifest else (files[0] if len(files) == 1 else list(files))
     if len(files) == 1 and not any(c in files[0] for c in "*?["):
         sources = [files[0]]  # one recording, not a manifest or a glob
-    detector = DetectorSettings(window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s)
+    detector = DetectorSettings(window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s,
+                                trim_s=trim_s)
     t0 = time.perf_counter()
     df = calibrate_many(
         sources, g=g, lat=lat, height=height, fs=fs, columns=columns,

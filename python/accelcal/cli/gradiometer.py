@@ -22,6 +22,13 @@ _PHRASES = {
     "sigma must": "--sigma must",
     "sigma=": "--sigma",
     "dwell times t (s)": "dwell times (a t_s column, s)",
+    "pass np.degrees(azimuth) as azimuth_deg, or check_units=False if they are degrees":
+        "give the azimuths in degrees or say the column is in radians ('azimuth [rad]'), or "
+        "use --no-unit-check if they are degrees",
+    "a wrong sigma": "a wrong --sigma",
+    "(from sigma)": "(from --sigma)",
+    "pass np.degrees(azimuth) as azimuth_deg":
+        "give the azimuths in degrees or say the column is in radians ('azimuth [rad]')",
 }
 
 
@@ -33,6 +40,8 @@ def _cli(msg: str) -> str:
 @click.argument("table", type=click.Path())
 @click.option("--drift/--no-drift", default=None, help="Fit a linear bias drift (needs t_s).")
 @click.option("--sigma", type=float, default=None, help="Noise std of one average, E.")
+@click.option("--no-unit-check", is_flag=True,
+              help="Fit azimuths as degrees even when they look like radians.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the result as JSON.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
@@ -40,19 +49,30 @@ def _cli(msg: str) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
-                          output: str | None, plot_path: str | None, as_json: bool) -> None:
+                          no_unit_check: bool, output: str | None, plot_path: str | None,
+                          as_json: bool) -> None:
     """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows.
 
     Columns by name, with units in brackets: the azimuth (azimuth_deg, azimuth, az, heading;
     deg or rad), the inline and cross channels (E, mE or 1/s^2) and optionally the time (s,
-    min or h)."""
+    min or h). Azimuths in a column that does not say [rad] but that look like radians
+    (see accelcal.startup_bias) are refused; with --sigma, residuals that exceed it are
+    reported."""
+    import warnings
+
     from ..gradiometer import calibrate_gradiometer_table
 
     _need_plot(plot_path)
-    try:
-        sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma)
-    except CalibrationError as e:
-        raise type(e)(_cli(str(e))) from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma,
+                                             check_units=not no_unit_check)
+        except CalibrationError as e:
+            raise type(e)(_cli(str(e))) from None
+    text = _cli(sb.summary())
+    # The summary states the misfit note; other warnings (or more words) are printed as well.
+    notes = [m for m in (_cli(str(w.message)) for w in caught) if m not in text]
     if output:
         write_json_file(output, sb.to_dict())
     if plot_path:
@@ -60,9 +80,13 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
 
         _save_fig(gradiometer_figure(sb), plot_path)
     if as_json:
-        emit_json(sb.to_dict())
+        out = sb.to_dict()
+        out["warnings"] = [_cli(str(w.message)) for w in caught]
+        emit_json(out)
         return
-    click.echo(_cli(sb.summary()))
+    click.echo(text)
+    for n in notes:
+        click.echo(f"warning: {n}")
     if output:
         click.echo(f"wrote {output}")
     if plot_path:

@@ -106,7 +106,8 @@ def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
 def calibrate_static(
     files: tuple[str, ...], g: float | None, lat: float | None, height: float,
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
-    method: str, window_s: float, k: float, min_dwell_s: float, bounds: str | None,
+    method: str, window_s: float, k: float, min_dwell_s: float, trim_s: float,
+    bounds: str | None,
     means: bool, count: int | None, no_check_g: bool,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
     plot_path: str | None, as_json: bool, **fleet: Any,
@@ -128,7 +129,7 @@ def calibrate_static(
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns, means=means,
             time_column=time_column, quiet=quiet, model=model, method=method,
-            window_s=window_s, k_thr=k, min_dwell_s=min_dwell_s, sensor_id=sensor_id,
+            window_s=window_s, k_thr=k, min_dwell_s=min_dwell_s, trim_s=trim_s, sensor_id=sensor_id,
             output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
             check_g=not no_check_g, nominal_path=nominal_path, **fleet)
     file = files[0]
@@ -142,7 +143,7 @@ def calibrate_static(
     nominal = TriadModel.load(nominal_path) if nominal_path else None
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds, means,
                            count=count,
-                           window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+                           window_s=window_s, k=k, min_dwell_s=min_dwell_s, trim_s=trim_s)
     read_notes = [] if rec is None else rec.notes()
     if len(d) == 0:
         raise CalibrationError(
@@ -175,7 +176,8 @@ def calibrate_static(
                         else "")
             detected = rec is not None and not rec.pose_table and not bounds and rec.rows
             still = float(np.sum(undropped.count)) / rec.rows if detected else 1.0
-            if still < 0.25:
+            if still < 0.25 and getattr(undropped, "shorter", None) is None:
+                # (With shorter settings that find more, dwell_notes names them below.)
                 hint += _shorter_rests(window_s, min_dwell_s, still)
             if detected and len(d) <= 2 and still >= 0.25:
                 hint += (" The recording holds one or two poses: if the other poses are in "

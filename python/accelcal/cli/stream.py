@@ -95,6 +95,7 @@ def dwells(
     window_s: float,
     k: float,
     min_dwell_s: float,
+    trim_s: float,
     bounds: str | None,
     means: bool,
     count: int | None,
@@ -112,14 +113,16 @@ def dwells(
                                "(--means) has none")
     if not plot_path:
         d, rec = stream_dwells(file, fs, columns, time_column, quiet, "dwells", bounds, means,
-                               count=count, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+                               count=count, window_s=window_s, k=k, min_dwell_s=min_dwell_s,
+                               trim_s=trim_s)
     else:
         # The same single pass, also keeping a decimated picture of the stream.
         from ..io import _named_dwells, read_bounds
 
         rec = open_recording(file, fs, columns, time_column)
         known = read_bounds(bounds) if bounds else None
-        acc = rec.dwell_accumulator(known, window_s=window_s, k=k, min_dwell_s=min_dwell_s)
+        acc = rec.dwell_accumulator(known, window_s=window_s, k=k, min_dwell_s=min_dwell_s,
+                                    trim_s=trim_s)
         env = _Envelope((rec.rows_estimate() or 100_000) // 4000)
         with _progress_bar(rec, "dwells", False if quiet else None) as cb:
             for s, t, temp in rec.chunks(None, cb):
@@ -332,8 +335,6 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     from ..static import TriadModel
 
     model = _load_model(cal)
-    if file != "-" and Path(output).resolve() == Path(file).resolve():
-        raise CalibrationError("the output would overwrite the input recording; choose another -o")
     rec = open_recording(file, fs, columns, time_column)
     has_t = rec.lay.time is not None or rec.fs is not None or (
         rec.arrays is not None and rec.arrays.t is not None)

@@ -67,6 +67,9 @@ pub struct DwellTableRaw {
     vibrating_bounds: Py<PyArray2<i64>>,
     /// (m, 3) their sample std per axis.
     vibrating_std: Py<PyArray2<f64>>,
+    /// Shorter detector settings that find more steady dwells (brief rests), when few were
+    /// found: ``(window_s, min_dwell_s, trim_s, dwells)``, or None.
+    shorter: Option<(f64, f64, f64, usize)>,
 }
 
 impl DwellTableRaw {
@@ -110,6 +113,9 @@ impl DwellTableRaw {
             })
             .to_pyarray(py)
             .unbind(),
+            shorter: t
+                .shorter
+                .map(|w| (w.window_s, w.min_dwell_s, w.trim_s, w.dwells)),
         }
     }
 }
