@@ -1904,3 +1904,28 @@ def test_a_unit_in_the_column_names_is_checked_against_the_norms() -> None:
     assert "(raw counts?)" in declared_units_note(("ax_g", "ay_g", "az_g"), 16384.0)
     assert declared_units_note(("ax", "ay", "az"), 16384.0) == ""  # no unit declared
     assert declared_units_note(("ax (g)", "ay [m/s^2]", "az"), 9.8) == ""  # no single unit
+
+
+def test_rows_of_label_value_pairs_are_read_by_their_labels(tmp_path: Path) -> None:
+    """A serial monitor's log, `Ax 0.00 Ay -1.23 Az -10.12` per line (cuspaceflight/kestrel's
+    acc_data.txt): "no numeric data rows found", whatever --columns. Now the labels name the
+    columns (also `ax: 1.0, ay: ...` and `t=0.01 ax=...`), a line of other text is left out
+    with a note, and a file that is mostly other text is still refused."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(40, 3)).round(2)
+    p = write(tmp_path, "".join(f"Ax {a:.2f} Ay {b:.2f} Az {c:.2f}\n" for a, b, c in x),
+              "acc_data.txt")
+    s = read_stream(p, fs=10.0)
+    np.testing.assert_array_equal(s.samples, x)
+    assert any("rows of label-value pairs (Ax, Ay, Az)" in n for n in s.notes), s.notes
+    text = "MPU6050 ready\n" + "".join(
+        f"t={i / 100:.2f}, ax: {a:.2f}, ay: {b:.2f}, az: {c:.2f}\n" for i, (a, b, c) in
+        enumerate(x))
+    s = read_stream(write(tmp_path, text, "serial.log"))
+    np.testing.assert_array_equal(s.samples, x)
+    assert s.fs == pytest.approx(100.0)
+    assert any("1 row(s) of other text left out" in n for n in s.notes), s.notes
+    mostly = "".join(f"reading {i}\n" for i in range(20)) + "Ax 1 Ay 2 Az 3\n" * 5
+    with pytest.raises(CalibrationError, match=r"label-value pairs \(Ax Ay Az\) in only 5 of "
+                       r"its 25 rows"):
+        read_stream(write(tmp_path, mostly, "mostly.txt"), fs=10.0)

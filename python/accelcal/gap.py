@@ -1071,26 +1071,26 @@ def _same_gravity(fit: Any, g: float) -> None:
 
 
 def _common_offset(resid: NDArray[np.float64], var: NDArray[np.float64] | None, g: float,
-                   fit: Any) -> str:
-    """With a calibration held fixed: a statement when the calibrated norms sit off ``g`` by a
-    common amount (weighted mean residual beyond 3 standard errors). Refitting absorbs such an
-    offset into the scale factors; held fixed, it is the calibration's common scale having
+                   fit: Any) -> tuple[float, str] | None:
+    """With a calibration held fixed: the common offset of the calibrated norms from ``g``
+    (their weighted mean residual, m/s^2) and the statement that names it, when it exceeds 3
+    standard errors (the scatter between dwells included); else None. Refitting absorbs such
+    an offset into the scale factors; held fixed, it is the calibration's common scale having
     moved or a ``g`` that is not the one it was made with, and on poses near the axes the K2
-    and K3 columns fit it too, so it is named before any effect is believed."""
+    and K3 columns fit it too (an exploratory test: g 100 ppm off gave "best = k3")."""
     if var is None or len(resid) < 2 or not np.all(np.isfinite(resid)):
-        return ""
+        return None
     w = 1.0 / np.maximum(np.sum(np.asarray(var, dtype=np.float64), axis=1) / 3.0, 1e-300)
     mean = float(np.sum(w * resid) / np.sum(w))
     chi2 = float(np.sum(w * (resid - mean) ** 2))
     scale = max(chi2 / (len(resid) - 1), 1.0)  # the scatter, when it exceeds the noise
     se = math.sqrt(scale / float(np.sum(w)))
     if not abs(mean) > 3.0 * se:
-        return ""
-    ppm = 1e6 * mean / g
-    text = (f"the calibrated norms sit {ppm:+.3g} ppm of g off on average ({abs(mean) / se:.1f} "
-            "standard errors, the scatter between dwells included): a common offset, which a "
-            "refit absorbs into the scale factors. Held fixed, it is the calibration's common "
-            "scale having moved, or a g that is not the one the calibration was made with")
+        return None
+    text = (f"the calibrated norms sit {1e6 * mean / g:+.3g} ppm of g off on average "
+            f"({abs(mean) / se:.1f} standard errors, the scatter between dwells included): a "
+            "common offset, the calibration's common scale having moved or a g that is not "
+            "the one it was made with")
     from .static import TriadModel
 
     if isinstance(fit, TriadModel) and fit.g is not None and fit.units != "g":
@@ -1098,8 +1098,10 @@ def _common_offset(resid: NDArray[np.float64], var: NDArray[np.float64] | None, 
         if abs(dg) >= 1.0:
             text += (f" (it was made with g = {fit.g:.7g}, checked with {g:.7g}: "
                      f"{dg:+.3g} ppm)")
-    return text + ("; on poses near the axes the K2 and K3 columns fit such an offset too, so "
-                   "check g and the scale before believing either")
+    text += (". It is taken out before the effects are tested, as a refit would absorb it "
+             "(on poses near the axes the K2 and K3 columns would fit it otherwise): the "
+             "figures below check the calibration up to a common scale")
+    return mean, text
 
 
 def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bool] | None:
@@ -1554,11 +1556,23 @@ def diagnose(
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]
     svar = None if d.var is None else np.ascontiguousarray(d.var[order], dtype=np.float64)
-    raw = _core.gap_diagnose_static(
-        mean, var, tt, temp, g_v, eff, settings, calibration=cal, half_mean=hm,
-        white_var=None if white is None else np.ascontiguousarray(white),
-        allan_var=None if allan is None else np.ascontiguousarray(allan),
-        sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
+
+    def engine(g_ref: float) -> Any:
+        return _core.gap_diagnose_static(
+            mean, var, tt, temp, g_ref, eff, settings, calibration=cal, half_mean=hm,
+            white_var=None if white is None else np.ascontiguousarray(white),
+            allan_var=None if allan is None else np.ascontiguousarray(allan),
+            sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
+
+    raw = engine(g_v)
+    offset_text = ""
+    if cal is not None and cal[2] and not any(c.status == "one_attitude" for c in raw.candidates):
+        off = _common_offset(np.asarray(raw.resid, dtype=np.float64), var, g_v, fit)
+        if off is not None:
+            # Held fixed, a common offset (g, or the common scale) is tested apart from the
+            # effects, as a refit absorbs it: they are tested on what remains.
+            offset_text = off[1]
+            raw = engine(g_v + off[0])
     if lsb is None and d.var is None:  # a table of means: was each output rounded first?
         grid = _rounding_statement(mean, np.asarray(raw.resid, dtype=np.float64), g_v)
         if grid:
@@ -1574,9 +1588,8 @@ def diagnose(
                 "which no dictionary effect can be told from (so none is attributed); it is "
                 "the calibration's error there (a bias or scale that moved, another "
                 "temperature, another mount). Check it at several attitudes to say more")
-        offset = _common_offset(np.asarray(raw.resid, dtype=np.float64), var, g_v, fit)
-        if offset:
-            statements.append(offset)
+        if offset_text:
+            statements.append(offset_text)
         own = fit.own_dwells(d.mean)
         if own:
             statements.append(

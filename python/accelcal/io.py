@@ -544,6 +544,68 @@ class _LongFormat(CalibrationError):
     """Data rows with a text label: a long-format log (one row per sensor reading)."""
 
 
+class _LabelPairs(CalibrationError):
+    """Rows of label-value pairs (``Ax 0.00 Ay -1.23 Az -10.12``): a serial monitor's log."""
+
+
+#: A label and its number in a row of label-value pairs (``Ax 0.00``, ``ax: 0.0``, ``ax=0.0``).
+_PAIR = re.compile(r"([A-Za-z_][\w.\[\]/^]*)\s*[:=]?\s*"
+                   r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])")
+
+
+def _label_pairs(line: str) -> tuple[str, ...] | None:
+    """The labels of a row of at least three label-value pairs and nothing else but
+    separators (blanks, commas, semicolons, bars), or None."""
+    s = line.strip()
+    pairs = _PAIR.findall(s)
+    if len(pairs) < 3 or _PAIR.sub("", s).strip(" \t,;|"):
+        return None
+    return tuple(label for label, _ in pairs)
+
+
+def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
+                        time_column: Any) -> _ArraySource:
+    """A log of label-value pairs (``Ax 0.00 Ay -1.23 Az -10.12``, as an Arduino sketch prints
+    them; cuspaceflight/kestrel's ``acc_data.txt``): read in memory (such logs are small), the
+    labels naming the columns. Rows with other labels (a line of another sensor, a message)
+    are left out with a note; more than a quarter of them is an error."""
+    import pandas as pd
+
+    name = src.path
+    rows: dict[tuple[str, ...], list[list[float]]] = {}
+    other = 0
+    try:
+        with open(src.opened, encoding="utf-8-sig", errors="replace") as fh:
+            for ln in fh:
+                t = ln.strip()
+                if not t or t.startswith(("#", "%", "//")):
+                    continue
+                labels = _label_pairs(t)
+                if labels is None:
+                    other += 1
+                    continue
+                rows.setdefault(labels, []).append([float(v) for _, v in _PAIR.findall(t)])
+    except OSError as e:
+        raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
+    labels, values = max(rows.items(), key=lambda kv: len(kv[1]))
+    left = other + sum(len(v) for k, v in rows.items() if k != labels)
+    total = left + len(values)
+    if left > total / 4:
+        raise CalibrationError(
+            f"{name}: a log of label-value pairs ({' '.join(labels)}) in only {len(values)} of "
+            f"its {total} rows; write the accelerometer's rows to a file of their own")
+    if len(set(labels)) != len(labels):
+        raise CalibrationError(f"{name}: a log of label-value pairs whose labels repeat in a "
+                               f"row ({' '.join(labels)}); give the columns a header instead")
+    out = _dataframe_source(pd.DataFrame(values, columns=list(labels)), columns, fs,
+                            time_column, path=name, named=True)
+    note = (f"rows of label-value pairs ({', '.join(labels)}): the labels name the columns")
+    if left:
+        note += f"; {left} row(s) of other text left out"
+    out.lay.notes.append(note)
+    return out
+
+
 #: Labels of accelerometer rows in a long-format log (lower case).
 _ACC_LABELS = {
     "acc", "accel", "acceleration", "accelerometer", "a", "imu_acc", "acc_raw", "accraw",
@@ -1017,6 +1079,8 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
             if fmt is not None:
                 first = i
                 break
+            if _label_pairs(s) is not None:
+                raise _LabelPairs(f"{path}: line {i + 1} is a row of label-value pairs")
             hint = _split_datetime_hint(s)
             if hint:
                 raise CalibrationError(f"{path}: line {i + 1}: {hint}")
@@ -2274,11 +2338,13 @@ class _Recording:
                 text = self.text
                 try:
                     self.lay = _sniff(text, columns, fs, time_column)
-                except _LongFormat:
+                except (_LongFormat, _LabelPairs) as e:
                     if text.stdin:
                         raise
                     self.text = None
-                    self.arrays = _long_format_source(text, columns, fs, time_column)
+                    read = (_label_pairs_source if isinstance(e, _LabelPairs)
+                            else _long_format_source)
+                    self.arrays = read(text, columns, fs, time_column)
                     self.lay = self.arrays.lay
                 if comp is not None:
                     self.lay.notes.append(f"{comp}-compressed text: read through a temporary "
