@@ -735,3 +735,19 @@ def test_diagnose_with_a_calibration_takes_its_g_and_refuses_another_unit(
     code, out = run("diagnose", str(recs[1]), "--calibration", str(cal), "--g", "1")
     assert code == 2 and "the calibration was made with g = 9.80665" in out, out
     assert "--no-check-g" in out and "check_g=False" not in out, out
+
+
+def test_several_dwells_at_one_pose_are_said_to_be_one_pose(tmp_path: Path) -> None:
+    """A helper's real one-pose file read with a long window gave 3 dwells and "Add
+    attitudes", without saying that the 3 are one attitude (the one-file-per-pose hint came
+    only when detection merged them into one). Now it counts the poses, not the dwells."""
+    rng = np.random.default_rng(2)
+    t = np.arange(3000) / 100.0
+    x = np.array([0.4, -0.1, 9.3]) + 0.01 * rng.standard_normal((3000, 3))
+    x[990:1010] += 0.5  # two knocks split one rest into three dwells
+    x[1990:2010] -= 0.5
+    code, out = run("calibrate", "static", str(write_csv(tmp_path / "one.csv", t, x)),
+                    "--g", "9.81")
+    assert code == 2 and "3 dwells found" in out, out
+    assert "The recording holds 3 dwells at one pose: if the other poses are in other files" \
+        in out, out

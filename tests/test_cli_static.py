@@ -192,7 +192,7 @@ def test_one_file_per_face_with_a_units_trap(tmp_path: Path) -> None:
                              for n in st.notes), st.notes
     code, out = run("calibrate", "static", str(face), "--g", "9.81", "--time-column",
                     "Timestamp [ms]")
-    assert code == 2 and "The recording holds one or two poses: if the other poses are in " \
+    assert code == 2 and "The recording holds one pose: if the other poses are in " \
         "other files (one file per pose), join them" in out, out
     assert "the accelerometer columns say g (aX (g), aY (g), aZ (g)), but the dwell means' " \
         "norms are about 1" in out and "the outputs look like m/s^2" in out, out

@@ -1172,3 +1172,25 @@ def test_a_fixed_calibration_checked_with_another_g_is_refused_or_named() -> Non
     assert "common offset" in off.summary()
     assert "wrong_g" not in [b["effect"] for b in off.blind_spots]  # held fixed, it shows
     assert "wrong_g" in [b["effect"] for b in accelcal.diagnose(d2, g=s2.g).blind_spots]
+
+
+def test_centrifuge_sigma_means_what_fit_centrifuge_takes() -> None:
+    """A scalar sigma was the norm residual's std in diagnose_centrifuge but the per-axis
+    output noise in fit_centrifuge: the same value gave chi2/dof 2.57 (p = 6e-9, "a gap")
+    on a clean session of scale 0.5. Now a scalar or (k,) is the output noise as in the fit
+    (identical to the (k, 3) array), and sigma_norm= keeps the other meaning."""
+    from accelcal.sim import centrifuge_session
+
+    s = centrifuge_session(noise_g=1e-6, rng=1, g=9.8, scale=[0.5, 0.5, 0.5])
+    kw: dict[str, Any] = {"g": 9.8, "spin_axis": s.spin_axis, "loo": False}
+    scalar = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, sigma=1e-6, **kw)
+    full = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius,
+                                        sigma=np.full(s.outputs.shape, 1e-6), **kw)
+    rows = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius,
+                                        sigma=np.full(len(s.omega), 1e-6), **kw)
+    assert scalar.chi2 == full.chi2 == rows.chi2 and scalar.p_value > 0.05
+    norm = accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, sigma_norm=1e-6, **kw)
+    assert norm.chi2 == pytest.approx(4 * scalar.chi2, rel=0.05)  # the norm's noise is 2e-6
+    with pytest.raises(CalibrationError, match="not both"):
+        accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, sigma=1e-6, sigma_norm=1e-6,
+                                     **kw)

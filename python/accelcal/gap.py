@@ -651,7 +651,8 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
             "too_few_dwells": f"not testable: too few {sysw.row.split('(')[0]}s ({raw.n}) for "
             f"its {c.d or len(c.estimate)} direction(s) beside the "
             f"{raw.n - raw.dof} calibration parameters; to expose it: add "
-            f"{sysw.row.split('(')[0]}s" + (f" or {fix}" if fix else ""),
+            f"{sysw.row.split('(')[0]}s" + (f" (then, if it is still not testable: {fix})"
+                                            if fix else ""),
         }.get(st)
         if reason:
             blind.append({"effect": nm, "reason": reason})
@@ -1830,6 +1831,7 @@ def diagnose_centrifuge(
     max_effects: int = 3,
     test: str = "auto",
     gate: str = "auto",
+    sigma_norm: float | ArrayLike | None = None,
 ) -> GapReport:
     """Diagnose the gap of a centrifuge session against the scale + bias + K2 norm model.
 
@@ -1844,9 +1846,15 @@ def diagnose_centrifuge(
     g : gravity used to express A = omega^2 R / g in g, m/s^2.
     spin_axis : (k, 3) spin-axis unit vector in the body frame per row; without it the lever
         arms are not testable (reported as such).
-    sigma : noise std of each row's norm residual (scalar or (k,), g) or of each output
-        ((k, 3), g, propagated to the norm); None: unit weights scaled to the baseline fit
-        (F tests only, no absolute gap test).
+    sigma : noise std of each **output** per axis (g), as :func:`accelcal.fit_centrifuge`
+        takes it: the same on every row and axis (scalar), per row ((k,)) or per row and axis
+        ((k, 3)), propagated to each row's norm residual. (Before, a scalar or (k,) was the
+        norm residual's std, which a sensor of scale s gives as s times the output noise: the
+        same ``sigma`` passed to both functions then disagreed by s^2 in chi2.) None (and no
+        ``sigma_norm``): unit weights scaled to the baseline fit (F tests only, no absolute
+        gap test).
+    sigma_norm : instead of ``sigma``, the noise std of each row's norm residual itself
+        (scalar or (k,), g).
     alpha : family-wise false-alarm level of the attribution.
     effects : "all" or names from :data:`CENTRIFUGE_EFFECTS`: ``lever_along`` (offset of each
         accelerometer along its own axis, mm), ``lever_across`` (the six across-axis offsets,
@@ -1874,22 +1882,25 @@ def diagnose_centrifuge(
     c3 = None if spin_axis is None else _real(spin_axis, "spin_axis", (k, 3))
     names = _names(effects, list(CENTRIFUGE_EFFECTS))
     s_norm = s_axis = None
-    if sigma is None:
+    if sigma is not None and sigma_norm is not None:
+        raise CalibrationError("give sigma (output noise per axis) or sigma_norm (noise of the "
+                               "norm residual), not both")
+    if sigma is None and sigma_norm is None:
         noise_model = "unknown: unit weights scaled to the baseline fit (F tests only)"
-    else:
+    elif sigma is not None:
         s_ = _real(sigma, "sigma")
-        if s_.ndim == 2:
-            if s_.shape != out.shape:
-                raise CalibrationError(f"sigma must be scalar, ({k},) or ({k}, 3) (g); got "
-                                       f"{s_.shape}")
-            s_axis = s_
-            noise_model = "given per-axis output noise of each row, propagated to the norm"
-        else:
-            if s_.size not in (1, k):
-                raise CalibrationError(f"sigma must be scalar, ({k},) or ({k}, 3) (g); got "
-                                       f"{s_.shape}")
-            s_norm = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (k,)))
-            noise_model = "given noise std of each row's norm residual"
+        if s_.ndim == 2 and s_.shape != out.shape or s_.ndim < 2 and s_.size not in (1, k):
+            raise CalibrationError(f"sigma must be scalar, ({k},) or ({k}, 3) (g); got "
+                                   f"{s_.shape}")
+        s_axis = np.ascontiguousarray(
+            s_ if s_.ndim == 2 else np.broadcast_to(s_.reshape(-1, 1), (k, 3)))
+        noise_model = "given per-axis output noise of each row, propagated to the norm"
+    else:
+        s_ = _real(sigma_norm, "sigma_norm")
+        if s_.ndim > 1 or s_.size not in (1, k):
+            raise CalibrationError(f"sigma_norm must be scalar or ({k},) (g); got {s_.shape}")
+        s_norm = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (k,)))
+        noise_model = "given noise std of each row's norm residual"
     raw = _core.gap_diagnose_centrifuge(out, om, radius_v, g_v, names, settings,
                                         spin_axis=c3, sigma_norm=s_norm, sigma_axis=s_axis)
     sysw = _System("centrifuge", "g", _CENTRIFUGE_FIX,

@@ -179,10 +179,15 @@ def calibrate_static(
             if still < 0.25 and getattr(undropped, "shorter", None) is None:
                 # (With shorter settings that find more, dwell_notes names them below.)
                 hint += _shorter_rests(window_s, min_dwell_s, still)
-            if detected and len(d) <= 2 and still >= 0.25:
-                hint += (" The recording holds one or two poses: if the other poses are in "
-                         "other files (one file per pose), join them into one recording, or "
-                         "write one row of means per pose into a table read with --means.")
+            from ..static import distinct_poses
+
+            poses = distinct_poses(d.mean) if len(d) else 0
+            if detected and poses <= 2 and still >= 0.25:
+                held = (f"holds {count_of(len(d))} at " if len(d) > poses else "holds ")
+                hint += (f" The recording {held}{'one pose' if poses == 1 else 'two poses'}: "
+                         "if the other poses are in other files (one file per pose), join "
+                         "them into one recording, or write one row of means per pose into a "
+                         "table read with --means.")
             hint += "".join(f" Note: {n}." for n in dwell_notes(undropped, rec))
             raise CalibrationError(_cli(
                 f"{count_of(len(d))} found in {file}, but they cannot determine the {model!r} "
