@@ -751,3 +751,35 @@ def test_several_dwells_at_one_pose_are_said_to_be_one_pose(tmp_path: Path) -> N
     assert code == 2 and "3 dwells found" in out, out
     assert "The recording holds 3 dwells at one pose: if the other poses are in other files" \
         in out, out
+
+
+def test_apply_writes_compressed_text_or_standard_output_and_refuses_unknown_formats(
+        tmp_path: Path) -> None:
+    """`apply -o x.csv.gz` wrote plain text under a .gz name, `-o -` a file named '-', and an
+    unknown suffix silently became CSV. Now .gz/.bz2/.xz text is compressed (and reads back
+    as the .csv does), - writes the rows to standard output (the summary to stderr), and an
+    unknown format is refused before anything is written."""
+    import accelcal
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=3.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=2e-3, rng=3)
+    rec = write_csv(tmp_path / "rec.csv", s.t, s.samples)
+    cal = tmp_path / "cal.json"
+    assert run("calibrate", "static", str(rec), "--g", str(s.g), "-o", str(cal))[0] == 0
+    plain = tmp_path / "out.csv"
+    assert run("apply", str(cal), str(rec), "-o", str(plain))[0] == 0
+    for suffix in (".csv.gz", ".csv.bz2", ".csv.xz"):
+        packed = tmp_path / f"out{suffix}"
+        code, out = run("apply", str(cal), str(rec), "-o", str(packed))
+        assert code == 0, out
+        assert packed.read_bytes()[:2] != b"# "  # compressed, not text
+        a, b = accelcal.read_stream(plain), accelcal.read_stream(packed)
+        np.testing.assert_array_equal(a.samples, b.samples)
+    r = CliRunner().invoke(main, ["apply", str(cal), str(rec), "-o", "-"])
+    assert r.exit_code == 0 and r.stdout.startswith("# calibrated by accelcal"), r.output
+    assert "to standard output" in r.stderr and not (tmp_path / "-").exists()
+    assert r.stdout.count("\n") == plain.read_text().count("\n")
+    code, out = run("apply", str(cal), str(rec), "-o", str(tmp_path / "out.foo"))
+    assert code == 2 and "unknown output format '.foo'" in out, out
+    assert not (tmp_path / "out.foo").exists()

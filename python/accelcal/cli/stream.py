@@ -218,12 +218,24 @@ class _Output:
     .h5/.hdf5 (datasets samples, t; needs h5py). Everything goes through a temporary file
     that replaces the output only when complete (an interrupted run leaves it untouched)."""
 
-    KINDS = {".csv": "csv", ".txt": "csv", ".npy": "npy", ".npz": "npz", ".h5": "h5",
-             ".hdf5": "h5"}
+    KINDS = {".csv": "csv", ".txt": "csv", ".dat": "csv", ".tsv": "csv", "": "csv",
+             ".npy": "npy", ".npz": "npz", ".h5": "h5", ".hdf5": "h5"}
+    #: Compressed text: the suffix after .csv / .txt names the compressor.
+    COMPRESSED = {".gz": "gzip", ".bz2": "bz2", ".xz": "lzma"}
 
     def __init__(self, path: str, has_t: bool, header: list[str]) -> None:
         self.path = path
-        self.kind = self.KINDS.get(Path(path).suffix.lower(), "csv")
+        p = Path(path)
+        suffix = p.suffix.lower()
+        self.compress = self.COMPRESSED.get(suffix)
+        if self.compress is not None:
+            suffix = Path(p.stem).suffix.lower()
+        kind = self.KINDS.get(suffix) if path != "-" else "csv"
+        if kind is None or (self.compress is not None and kind != "csv"):
+            raise CalibrationError(
+                f"{path}: unknown output format {p.suffix!r}: give .csv or .txt (text, also "
+                ".csv.gz, .csv.bz2, .csv.xz), .npy, .npz or .h5, or - for standard output")
+        self.kind = kind
         self.has_t = has_t
         self.header = header
         self.rows = 0
@@ -234,7 +246,15 @@ class _Output:
             setup.push(self.stack)
             self.stack.__enter__()
             mode = "w+b" if self.kind == "h5" else "wb"
-            self.fh = self.stack.enter_context(atomic_open(self.path, mode))
+            if self.path == "-":  # text on standard output (a pipe)
+                self.fh = sys.stdout.buffer
+            else:
+                self.fh = self.stack.enter_context(atomic_open(self.path, mode))
+            if self.compress is not None:
+                import importlib
+
+                lib = importlib.import_module(self.compress)
+                self.fh = self.stack.enter_context(lib.open(self.fh, "wb"))
             if self.kind == "csv":
                 for h in self.header:
                     self.fh.write(f"# {h}\n".encode())
@@ -321,8 +341,9 @@ class _Output:
 @click.argument("file", type=click.Path(allow_dash=True))
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True,
               help="Calibrated stream, in the units of the calibration's g (m/s^2 or g): "
-                   ".csv (t_s, ax, ay, az), .npy ((N, 4) t_s, ax, ay, az), .npz (samples, t) "
-                   "or .h5 (samples, t; needs h5py).")
+                   ".csv (t_s, ax, ay, az; also .csv.gz, .csv.bz2, .csv.xz), .npy ((N, 4) t_s, "
+                   "ax, ay, az), .npz (samples, t) or .h5 (samples, t; needs h5py); - writes "
+                   "the text to standard output.")
 @recording_options
 @click.option("--chunk-rows", type=click.IntRange(min=1), default=500_000, show_default=True,
               help="Rows calibrated at a time (memory use is about 100 bytes per row).")
@@ -334,6 +355,9 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     from ..io import _progress_bar
     from ..static import TriadModel
 
+    if output == "-" and as_json:
+        raise CalibrationError("-o - writes the calibrated rows to standard output, where "
+                               "--json would write too: give one of them")
     model = _load_model(cal)
     rec = open_recording(file, fs, columns, time_column)
     has_t = rec.lay.time is not None or rec.fs is not None or (
@@ -371,7 +395,7 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
         return
     echo_notes(notes)
     click.echo(f"wrote {out.rows} calibrated samples ({unit}{', with t_s' if has_t else ''}) "
-               f"to {output}")
+               f"to {'standard output' if output == '-' else output}", err=output == "-")
 
 
 def _load_model(cal: str) -> Any:
