@@ -783,3 +783,24 @@ def test_apply_writes_compressed_text_or_standard_output_and_refuses_unknown_for
     code, out = run("apply", str(cal), str(rec), "-o", str(tmp_path / "out.foo"))
     assert code == 2 and "unknown output format '.foo'" in out, out
     assert not (tmp_path / "out.foo").exists()
+
+
+def test_apply_to_dropouts_only_says_nothing_from_numpy(tmp_path: Path) -> None:
+    """A recording of NaN rows only (a logger's dropouts): the calibrated-norm check leaked
+    numpy's "All-NaN slice encountered" warning to stderr. The rows pass through as NaN."""
+    import warnings
+
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=3.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=2e-3, rng=3)
+    cal = tmp_path / "cal.json"
+    rec = write_csv(tmp_path / "rec.csv", s.t, s.samples)
+    assert run("calibrate", "static", str(rec), "--g", str(s.g), "-o", str(cal))[0] == 0
+    nan = tmp_path / "nan.csv"
+    nan.write_text("t,ax,ay,az\n0,nan,nan,nan\n0.01,nan,nan,nan\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, out = run("apply", str(cal), str(nan), "-o", str(tmp_path / "o.csv"))
+    assert code == 0 and "All-NaN" not in out, out
+    assert "nan,nan,nan" in (tmp_path / "o.csv").read_text()

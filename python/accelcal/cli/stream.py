@@ -375,7 +375,10 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
         for chunk, t, _temp in rec.chunks(chunk_rows, cb):
             cal_chunk = model.apply(chunk)
             if len(norms) < 8 and len(cal_chunk):  # the calibrated norm, on the first chunks
-                norms.append(float(np.nanmedian(np.linalg.norm(cal_chunk, axis=1))))
+                nc = np.linalg.norm(cal_chunk, axis=1)
+                nc = nc[np.isfinite(nc)]  # dropouts (NaN rows) pass through as NaN
+                if nc.size:
+                    norms.append(float(np.median(nc)))
             out.write(t, cal_chunk)
     if rec.rows == 0:
         raise CalibrationError(f"{rec.path}: no data rows")
