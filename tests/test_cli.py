@@ -804,3 +804,19 @@ def test_apply_to_dropouts_only_says_nothing_from_numpy(tmp_path: Path) -> None:
         code, out = run("apply", str(cal), str(nan), "-o", str(tmp_path / "o.csv"))
     assert code == 0 and "All-NaN" not in out, out
     assert "nan,nan,nan" in (tmp_path / "o.csv").read_text()
+
+
+def test_a_file_named_dash_is_not_overwritten_by_dash_output(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`dwells ./- -o -` replaced the input file named '-' (the overwrite check took '-' as
+    standard input and output, but these commands write a file of that name)."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=12, dwell_s=3.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=2e-3, rng=3)
+    monkeypatch.chdir(tmp_path)
+    rec = write_csv(tmp_path / "-", s.t, s.samples)
+    before = rec.read_bytes()
+    code, out = run("dwells", "./-", "-o", "-")
+    assert code == 2 and "would overwrite the recording" in out, out
+    assert rec.read_bytes() == before

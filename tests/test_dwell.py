@@ -1322,3 +1322,32 @@ def test_few_dwells_carry_the_shorter_settings_that_find_more() -> None:
                        r"min_dwell_s = "
                        r"0.125 s and trim_s = 0.0625 s, find 14 steady dwell\(s\)"):
         detect_dwells(s.samples, 100.0)
+
+
+def test_long_rests_get_no_shorter_settings() -> None:
+    """An exploratory test: six faces held 30 s, or one rest of 1000 s, were told that
+    shorter settings find "8 steady dwells (brief rests)" (a 0.1 s window cuts a long rest
+    into pieces on noise alone). The probe now runs only when what was found covers under a
+    quarter of the recording."""
+    from accelcal.sim.field import field_session
+
+    six = field_session(fs=100.0, n_dwells=6, dwell_s=30.0, move_s=2.0, max_tilt_deg=80.0,
+                        sigma=2e-3, rng=1)
+    d = detect_dwells(six.samples, 100.0)
+    assert len(d) == 6 and d.shorter is None
+    rest = np.array([0.0, 0.0, 9.81]) + 2e-3 * np.random.default_rng(2).standard_normal(
+        (100_000, 3))
+    d = detect_dwells(rest, 100.0)
+    assert len(d) == 1 and d.shorter is None
+
+
+def test_the_vibration_note_never_offers_the_current_threshold() -> None:
+    """A stretch whose std is 2.3x the noise (its windows above k = 6, the stretch as a whole
+    below): the note said "--k 6 would take them (... k = 6 now)". It now offers 7."""
+    from accelcal.dwell import vibrating_text
+
+    d = DwellSet(np.array([[0.0, 0.0, 9.81]]), np.full((1, 3), 1e-6), np.array([100]),
+                 threshold=np.full(3, 6e-6), noise_std=np.full(3, 1e-3),
+                 vibrating=np.array([[200, 400]]), vibrating_std=np.full((1, 3), 2.3e-3), fs=100.0)
+    (note,) = vibrating_text(d, option="--k ")
+    assert "--k 7 would take them" in note and "k = 6 now" in note, note

@@ -1925,6 +1925,12 @@ def test_rows_of_label_value_pairs_are_read_by_their_labels(tmp_path: Path) -> N
     np.testing.assert_array_equal(s.samples, x)
     assert s.fs == pytest.approx(100.0)
     assert any("1 row(s) of other text left out" in n for n in s.notes), s.notes
+    # A unit after each number (`Ax: 0.88 g`, `Ax: 8.64 m/s2`): skipped, not read as a label.
+    for unit in ("g", "m/s2", "m/s^2"):
+        text = "".join(f"Ax: {a:.2f} {unit}  Ay: {b:.2f} {unit}  Az: {c:.2f} {unit}\n"
+                       for a, b, c in x)
+        s = read_stream(write(tmp_path, text, "units.txt"), fs=10.0)
+        np.testing.assert_array_equal(s.samples, x)
     mostly = "".join(f"reading {i}\n" for i in range(20)) + "Ax 1 Ay 2 Az 3\n" * 5
     with pytest.raises(CalibrationError, match=r"label-value pairs \(Ax Ay Az\) in only 5 of "
                        r"its 25 rows"):

@@ -575,7 +575,9 @@ def vibrating_text(d: DwellSet, option: str = "k=") -> list[str]:
     noise = np.asarray(d.noise_std)
     k_now = float(np.max(np.asarray(d.threshold) / noise**2))
     ratio = float(np.max(vs / noise))
-    k_need = math.ceil(1.1 * ratio**2)
+    # Above the threshold now: at least the next whole k (a ratio of about sqrt(k) gave
+    # "--k 6 would take them (... k = 6 now)").
+    k_need = max(math.ceil(1.1 * ratio**2), math.floor(k_now) + 1)
     span = int((vb[:, 1] - vb[:, 0]).sum())
     when = "" if not d.fs else (f" ({span / d.fs:.3g} s in all, the first at "
                                 f"{vb[0, 0] / d.fs:.1f} s)")

@@ -550,7 +550,9 @@ class _LabelPairs(CalibrationError):
 
 #: A label and its number in a row of label-value pairs (``Ax 0.00``, ``ax: 0.0``, ``ax=0.0``).
 _PAIR = re.compile(r"([A-Za-z_][\w.\[\]/^]*)\s*[:=]?\s*"
-                   r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])")
+                   r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])"
+                   r"(?:\s*(?:m/s\^?2|m/s²|m/s/s|ms\^?-2|mg|g|deg/s|dps|rad/s|°C|C|degC)"
+                   r"(?![\w/^²°]))?")
 
 
 def _label_pairs(line: str) -> tuple[str, ...] | None:

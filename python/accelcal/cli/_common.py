@@ -97,8 +97,9 @@ _WRITES = {"output": "-o", "dwells_out": "--dwells-out", "plot_path": "--plot",
 
 
 def _same_path(a: str, b: str) -> bool:
-    """Whether paths ``a`` and ``b`` name one file (standard input, ``-``, names none)."""
-    if a == "-" or b == "-":
+    """Whether paths ``a`` and ``b`` name one file. ``-`` as both is standard input and
+    output; otherwise ``-`` is a file of that name (``dwells ./- -o -`` writes one)."""
+    if a == "-" and b == "-":
         return False
     try:
         return os.path.samefile(a, b)
