@@ -1935,3 +1935,24 @@ def test_rows_of_label_value_pairs_are_read_by_their_labels(tmp_path: Path) -> N
     with pytest.raises(CalibrationError, match=r"label-value pairs \(Ax Ay Az\) in only 5 of "
                        r"its 25 rows"):
         read_stream(write(tmp_path, mostly, "mostly.txt"), fs=10.0)
+
+
+def test_a_clock_in_ms_beside_a_rate_given_is_named_not_called_lost_samples(
+        tmp_path: Path) -> None:
+    """`t=10, 20, ...` (ms) read in s beside --fs 100: "the logger lost samples ... 99.9 %
+    missing", which was false. Now the note names the unit that fits, with or without a
+    header; a real gap is still a gap."""
+    t = np.arange(3000) * 10.0
+    x = np.array([0.0, 0.0, 9.8]) + 0.01 * np.random.default_rng(0).standard_normal((3000, 3))
+    body = "".join(f"{a:g},{b:.5f},{c:.5f},{d:.5f}\n" for a, (b, c, d) in zip(t, x, strict=True))
+    for text, name in (("t,ax,ay,az\n" + body, "t"), (body, "0")):
+        s = read_stream(write(tmp_path, text), fs=100.0)
+        assert not any("lost samples" in n for n in s.notes), s.notes
+        assert any("looks like a clock in ms read in s" in n and f"'{name} [ms]'" in n
+                   for n in s.notes), s.notes
+    ts = np.arange(3000) / 100.0
+    ts[1500:] += 2.0  # 2 s lost
+    body = "".join(f"{a:.2f},{b:.5f},{c:.5f},{d:.5f}\n" for a, (b, c, d) in
+                   zip(ts, x, strict=True))
+    s = read_stream(write(tmp_path, "t,ax,ay,az\n" + body), fs=100.0)
+    assert any("the logger lost samples" in n for n in s.notes), s.notes

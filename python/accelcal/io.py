@@ -2282,6 +2282,7 @@ class _TimeGaps:
         self.missing = 0.0  # samples the long intervals hold beyond one each
         self.largest: tuple[float, int] | None = None  # (interval s, 0-based row after it)
         self.n = 0  # intervals seen
+        self.total = 0.0  # their sum, s (the ones that go forward)
 
     def push(self, d: NDArray[np.float64], row0: int) -> None:
         """Intervals ``d`` (s) before rows ``row0`` on (the first from the previous chunk's
@@ -2291,6 +2292,7 @@ class _TimeGaps:
         d = d[1:] if row0 == 0 else d
         off = 1 if row0 == 0 else 0
         self.n += d.size
+        self.total += float(d[d > 0].sum())
         self.short += int(np.count_nonzero((d >= 0) & (d < self.dt / self.FACTOR)))
         long = np.flatnonzero(d > self.FACTOR * self.dt)
         if long.size == 0:
@@ -2304,6 +2306,21 @@ class _TimeGaps:
     def notes(self, label: str) -> list[str]:
         if self.largest is None or self.missing < 1.0 or self.short >= 0.5 * self.count:
             return []  # none, or bursts of stamps rather than lost samples
+        if self.dt is not None and self.count >= 0.9 * self.n:
+            # Nearly every interval is long: not lost samples, but a clock in other units
+            # than the rate given (t = 10, 20, ... ms read in s beside fs = 100 Hz said "99.9 %
+            # missing").
+            ratio = self.total / max(self.n, 1) / self.dt
+            unit = next((u for u, f in (("ms", 1e3), ("us", 1e6), ("ns", 1e9))
+                         if 0.5 * f <= ratio <= 2.0 * f), None)
+            name = label[1:-1] if label.startswith("'") and label.endswith("'") else (
+                label.split()[0])  # 'x' or 3 (0-based)
+            why = (f"it looks like a clock in {unit} read in s: name its unit with "
+                   f"time_column= (e.g. '{name} [{unit}]')" if unit else
+                   "check the rate given (fs=) and the time column's unit")
+            return [f"the time column {label} steps by {ratio:.4g} sample intervals of the "
+                    f"rate given ({1.0 / self.dt:.6g} Hz) on average: {why}; the dwell times "
+                    "are in its units as read"]
         big, row = self.largest
         longest = f"{big * 1e3:.3g} ms" if big < 1 else f"{big:.4g} s"
         return [
