@@ -129,6 +129,12 @@ class DwellSet:
         (vibration, not motion). ``vibrating_std`` (m, 3) is their sample std per axis. Raise
         the detector's ``k`` above (std / noise_std)^2 to use them as dwells. Not kept by
         :meth:`to_csv`.
+    shorter : tuple or None
+        For detected dwells, when fewer than 9 were found and they cover under a quarter of
+        the stream: shorter detector settings ``(window_s, min_dwell_s, trim_s, dwells)``
+        that find more dwells, every one steady (the means of its halves agree within 4
+        standard errors of the noise): brief rests the window missed. Only a suggestion (a
+        short window also takes the slow ends of moves); None otherwise.
     fs : float or None
         Sample rate of the stream, Hz.
     names : list of str or None
