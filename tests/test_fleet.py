@@ -649,7 +649,7 @@ def test_a_dead_worker_names_the_missing_main_guard(monkeypatch: pytest.MonkeyPa
 
 def test_a_compressed_recording_is_named_without_its_suffixes() -> None:
     """A fleet run named `b.csv.gz`'s sensor `b.csv` (its calibration `b.csv_....json`)."""
-    from accelcal.fleet import _file_stem
+    from accelcal.io import file_stem
 
-    assert [_file_stem(p) for p in ("a/b.csv.gz", "b.csv.bz2", "b.txt.xz", "b.csv", "b.v2.csv",
+    assert [file_stem(p) for p in ("a/b.csv.gz", "b.csv.bz2", "b.txt.xz", "b.csv", "b.v2.csv",
                                     "b")] == ["b", "b", "b", "b", "b.v2", "b"]

@@ -35,6 +35,7 @@ import numpy as np
 from ._core import CalibrationError, DegenerateDataError
 from ._files import atomic_write
 from ._triad import MODELS, PARAM_NAMES
+from .io import file_stem
 
 __all__ = [
     "STATUSES",
@@ -474,15 +475,6 @@ def _safe_name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", s).strip("._") or "sensor"
 
 
-def _file_stem(path: str) -> str:
-    """A recording's name without its suffix, and without a compression suffix first
-    (``b.csv.gz`` -> ``b``, not ``b.csv``)."""
-    p = Path(path)
-    if p.suffix.lower() in (".gz", ".bz2", ".xz", ".zst"):
-        p = Path(p.stem)
-    return p.stem
-
-
 def _distinct_ids(jobs: list[_Job], given: list[bool]) -> list[_Job]:
     """Sensor ids taken from file stems that collide (``a/acceldata.txt`` and
     ``b/acceldata.txt``) get their folder's name in front (``a_acceldata``), then a number if
@@ -522,7 +514,7 @@ def _make_jobs(
         read_path = str(base / path) if not os.path.isabs(path) else path
         where = f"manifest row {i} ({path})"
         sid = r.get("sensor_id")
-        sensor_id = _file_stem(path) if _missing(sid) else str(sid)
+        sensor_id = file_stem(path) if _missing(sid) else str(sid)
         rg = _num(r.get("g"), "g (m/s^2)", where)
         rlat = _num(r.get("lat"), "lat (deg)", where)
         rh = _num(r.get("height"), "height (m)", where)

@@ -1051,24 +1051,34 @@ def _summary(r: GapReport) -> str:
 # Static diagnosis.
 
 
+def made_with_g(fit: Any) -> float | None:
+    """The g a held-fixed calibration (a TriadModel) was made with, in the units of its
+    calibrated norms, or None (no g stored, not a TriadModel, or a model in units of g, whose
+    K the diagnosis rescales by the g given)."""
+    from .static import TriadModel
+
+    if not isinstance(fit, TriadModel) or fit.g is None or fit.units == "g":
+        return None
+    return float(fit.g)
+
+
 def _same_gravity(fit: Any, g: float) -> None:
     """Refuse a ``g`` that a held-fixed calibration's own ``g`` contradicts: its calibrated
     norms are in the units of the ``g`` it was made with, and a factor between the two (1 for
     9.80665 m/s^2, a tenth of a percent between sites) would be a gap the dictionary explains
     with K2 or K3 (an exploratory test: ``g=1`` against a calibration in m/s^2 gave "best =
     k3" at chi2/dof 5e10). Sites differ by at most 0.5 % in g."""
-    from .static import TriadModel
-
-    if not isinstance(fit, TriadModel) or fit.g is None or fit.units == "g":
+    g0 = made_with_g(fit)
+    if g0 is None:
         return
-    ratio = g / fit.g
+    ratio = g / g0
     if abs(ratio - 1.0) > 0.01:
         unit = fit.units or "output units"
         raise CalibrationError(
-            f"g = {g:.6g}, but the calibration was made with g = {fit.g:.6g} ({unit}): its "
+            f"g = {g:.6g}, but the calibration was made with g = {g0:.6g} ({unit}): its "
             f"calibrated norms are in those units, so the check would read a factor "
             f"{ratio:.4g} as a gap. Give this site's gravity in the calibration's units (about "
-            f"{fit.g:.4g}), or check_g=False for a deliberate other value")
+            f"{g0:.4g}), or check_g=False for a deliberate other value")
 
 
 def _common_offset(resid: NDArray[np.float64], var: NDArray[np.float64] | None, g: float,
@@ -1093,12 +1103,10 @@ def _common_offset(resid: NDArray[np.float64], var: NDArray[np.float64] | None, 
             f"({abs(mean) / se:.1f} standard errors, the scatter between dwells included), a "
             "common offset that a refit would absorb into the scale factors: a g that is not "
             "the one the calibration was made with")
-    from .static import TriadModel
-
-    if isinstance(fit, TriadModel) and fit.g is not None and fit.units != "g":
-        dg = 1e6 * (g / fit.g - 1.0)
-        if abs(dg) >= 1.0:
-            text += f" (it was made with g = {fit.g:.7g}, checked with {g:.7g}: {dg:+.3g} ppm)"
+    g0 = made_with_g(fit)
+    if g0 is not None and abs(1e6 * (g / g0 - 1.0)) >= 1.0:
+        text += (f" (it was made with g = {g0:.7g}, checked with {g:.7g}: "
+                 f"{1e6 * (g / g0 - 1.0):+.3g} ppm)")
     return text + (", the calibration's common scale having moved, or the mean of an effect "
                    "below; on poses near the axes the K2 and K3 columns fit a pure offset "
                    "too, so check g before believing either of them")
@@ -1556,15 +1564,11 @@ def diagnose(
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]
     svar = None if d.var is None else np.ascontiguousarray(d.var[order], dtype=np.float64)
-
-    def engine(g_ref: float) -> Any:
-        return _core.gap_diagnose_static(
-            mean, var, tt, temp, g_ref, eff, settings, calibration=cal, half_mean=hm,
-            white_var=None if white is None else np.ascontiguousarray(white),
-            allan_var=None if allan is None else np.ascontiguousarray(allan),
-            sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
-
-    raw = engine(g_v)
+    raw = _core.gap_diagnose_static(
+        mean, var, tt, temp, g_v, eff, settings, calibration=cal, half_mean=hm,
+        white_var=None if white is None else np.ascontiguousarray(white),
+        allan_var=None if allan is None else np.ascontiguousarray(allan),
+        sample_var=svar, lsb=None if lsb is None else [float(x) for x in np.asarray(lsb)])
     offset_text = ""
     if cal is not None and cal[2] and not any(c.status == "one_attitude" for c in raw.candidates):
         # Named, not taken out: taking it out before the effects are tested (tried) made a

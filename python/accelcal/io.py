@@ -59,6 +59,7 @@ import weakref
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -555,14 +556,14 @@ _PAIR = re.compile(r"([A-Za-z_][\w.\[\]/^]*)\s*[:=]?\s*"
                    r"(?![\w/^²°]))?")
 
 
-def _label_pairs(line: str) -> tuple[str, ...] | None:
-    """The labels of a row of at least three label-value pairs and nothing else but
-    separators (blanks, commas, semicolons, bars), or None."""
+def _label_pairs(line: str) -> list[tuple[str, str]] | None:
+    """The (label, number) pairs of a row of at least three label-value pairs and nothing
+    else but separators (blanks, commas, semicolons, bars), or None."""
     s = line.strip()
     pairs = _PAIR.findall(s)
     if len(pairs) < 3 or _PAIR.sub("", s).strip(" \t,;|"):
         return None
-    return tuple(label for label, _ in pairs)
+    return pairs
 
 
 def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
@@ -582,11 +583,12 @@ def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
                 t = ln.strip()
                 if not t or t.startswith(("#", "%", "//")):
                     continue
-                labels = _label_pairs(t)
-                if labels is None:
+                pairs = _label_pairs(t)
+                if pairs is None:
                     other += 1
                     continue
-                rows.setdefault(labels, []).append([float(v) for _, v in _PAIR.findall(t)])
+                rows.setdefault(tuple(k for k, _ in pairs), []).append(
+                    [float(v) for _, v in pairs])
     except OSError as e:
         raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
     labels, values = max(rows.items(), key=lambda kv: len(kv[1]))
@@ -956,6 +958,26 @@ def _open_bytes(path: str) -> Any:
 
 #: Magic bytes of the compressed text files that are read (through a temporary file).
 _COMPRESSED = ((b"\x1f\x8b", "gzip"), (b"BZh", "bz2"), (b"\xfd7zXZ\x00", "xz"))
+#: The file-name suffixes of those formats (written by ``apply -o out.csv.gz``).
+COMPRESSED_SUFFIXES = {".gz": "gzip", ".bz2": "bz2", ".xz": "xz"}
+
+
+def compression_open(kind: str) -> Any:
+    """The ``open`` of a compression format of :data:`_COMPRESSED` ("gzip", "bz2", "xz")."""
+    import bz2
+    import gzip
+    import lzma
+
+    return {"gzip": gzip.open, "bz2": bz2.open, "xz": lzma.open}[kind]
+
+
+def file_stem(path: str | os.PathLike[str]) -> str:
+    """A file's name without its suffix, and without a compression suffix first
+    (``b.csv.gz`` -> ``b``, not ``b.csv``)."""
+    p = Path(path)
+    if p.suffix.lower() in COMPRESSED_SUFFIXES:
+        p = Path(p.stem)
+    return p.stem
 
 
 def _compression(head: bytes) -> str | None:
@@ -973,14 +995,11 @@ def _is_mseed(head: bytes) -> bool:
 def _decompressed(path: str, kind: str) -> str:
     """Decompress ``path`` (gzip, bz2 or xz) into a temporary file; returns its name. The
     parser reads files in place (memory-mapped), so a compressed file is expanded first."""
-    import bz2
-    import gzip
     import lzma
     import shutil
     import tempfile
 
-    openers: dict[str, Any] = {"gzip": gzip.open, "bz2": bz2.open, "xz": lzma.open}
-    opener = openers[kind]
+    opener = compression_open(kind)
     fd, tmp = tempfile.mkstemp(prefix="accelcal-", suffix=".txt")
     try:
         with opener(path, "rb") as src, os.fdopen(fd, "wb") as dst:

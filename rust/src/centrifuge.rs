@@ -2821,39 +2821,14 @@ mod tests {
         // or the noise unknown: the exclusion stands.
         let sixteen: Vec<usize> = (0..16).collect();
         let fifteen: Vec<usize> = (0..15).collect();
-        assert!(misfit_is_spread(
-            n,
-            &sixteen,
-            &plain,
-            &plain,
-            Some((104.0, 31)),
-            tail
-        ));
-        assert!(!misfit_is_spread(
-            n,
-            &sixteen,
-            &plain,
-            &plain,
-            Some((40.0, 31)),
-            tail
-        ));
-        assert!(!misfit_is_spread(
-            n,
-            &fifteen,
-            &plain,
-            &plain,
-            Some((104.0, 36)),
-            tail
-        ));
-        assert!(!misfit_is_spread(n, &sixteen, &plain, &plain, None, tail));
-        assert!(!misfit_is_spread(
-            n,
-            &[],
-            &plain,
-            &plain,
-            Some((1e9, 51)),
-            tail
-        ));
+        let spread = |q: &[usize], chi2: Option<(f64, usize)>| {
+            misfit_is_spread(n, q, &plain, &plain, chi2, tail)
+        };
+        assert!(spread(&sixteen, Some((104.0, 31))));
+        assert!(!spread(&sixteen, Some((40.0, 31))));
+        assert!(!spread(&fifteen, Some((104.0, 36))));
+        assert!(!spread(&sixteen, None));
+        assert!(!spread(&[], Some((1e9, 51))));
     }
 
     /// The paper's session on a true radius of `r_true` m (the fit is told 1 m), with

@@ -1307,7 +1307,7 @@ impl DetectorSettings {
                  else give window_s= {} s or more)",
                 self.window_s,
                 hz(self.fs),
-                (MIN_WINDOW_SAMPLES / self.fs * 100.0).ceil() / 100.0
+                self.shortest_window_s()
             ));
         }
         if let Some(v) = self.noise_var {
@@ -1318,6 +1318,12 @@ impl DetectorSettings {
             }
         }
         Ok(())
+    }
+
+    /// The shortest window of [`MIN_WINDOW_SAMPLES`] samples at this rate, s, rounded up to
+    /// two decimals (as messages and suggestions give it).
+    pub fn shortest_window_s(&self) -> f64 {
+        (MIN_WINDOW_SAMPLES / self.fs * 100.0).ceil() / 100.0
     }
 
     /// Samples per block (at least 1; at most `MAX_FS * MAX_DURATION_S`, so no overflow).
@@ -1429,12 +1435,17 @@ impl MeanPrefix {
         }
         let (ma, na) = self.mean(i, i + h);
         let (mb, nb) = self.mean(i + h, i + w);
-        let inv = 1.0 / na.max(1.0) + 1.0 / nb.max(1.0);
-        (0..3).all(|k| {
-            let d = ma[k] - mb[k];
-            d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
-        })
+        halves_agree(&ma, &mb, 1.0 / na.max(1.0) + 1.0 / nb.max(1.0), v)
     }
+}
+
+/// The means `ma`, `mb` of two halves agree within [`STILL_SE`] standard errors of white
+/// noise of variance `v` on every axis; `inv` is `1 / na + 1 / nb` of their sample counts.
+fn halves_agree(ma: &[f64; 3], mb: &[f64; 3], inv: f64, v: &[f64; 3]) -> bool {
+    (0..3).all(|k| {
+        let d = ma[k] - mb[k];
+        d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
+    })
 }
 
 /// A window variance at quantile `q` of the (finite) window variances `col`.
@@ -1572,7 +1583,7 @@ impl ShorterWindow {
 /// window used. With each, the shortest dwell becomes half the window and the settling trim a
 /// quarter of it (or stay as given, if less): a rest of twice the window is then found.
 fn shorter_settings(s: &DetectorSettings) -> Vec<DetectorSettings> {
-    let floor = ((MIN_WINDOW_SAMPLES / s.fs * 100.0).ceil() / 100.0).max(s.block_s);
+    let floor = s.shortest_window_s().max(s.block_s);
     let mut out: Vec<DetectorSettings> = Vec::new();
     for w in [0.5, 0.25, 0.1] {
         let w = f64::max(w, floor);
@@ -1599,11 +1610,8 @@ fn shorter_settings(s: &DetectorSettings) -> Vec<DetectorSettings> {
 /// simulated sensor on a lever arm, whose variance is the noise's.)
 fn steady(st: &DwellStat, v: &[f64; 3]) -> bool {
     let n = st.moments.n as f64;
-    let inv = 4.0 / n.max(1.0); // halves of n / 2 samples each
-    (0..3).all(|k| {
-        let d = st.half_mean[0][k] - st.half_mean[1][k];
-        d.is_finite() && d * d <= STILL_SE * STILL_SE * v[k] * inv
-    })
+    // Halves of n / 2 samples each.
+    halves_agree(&st.half_mean[0], &st.half_mean[1], 4.0 / n.max(1.0), v)
 }
 
 /// The shorter settings ([`shorter_settings`]) that find the most dwells, more than `found`

@@ -62,17 +62,19 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     """Sim-to-real gap diagnosis of a static session recording (or of a dwell table written
     by ``accelcal dwells -o``)."""
     from ..gap import diagnose as run_diagnose
+    from ..gap import made_with_g
     from ..static import TriadModel, unit_label
 
     _need_plot(plot_path)
     fit = TriadModel.load(calibration) if calibration else None
     g_note = ""
-    if g is None and lat is None and fit is not None and fit.g is not None and fit.units != "g":
+    g0 = made_with_g(fit)
+    if g is None and lat is None and g0 is not None:
         # The calibration file says the g it was made with: the check uses it (a new site's
         # g differs by up to 0.5 %: the report names such a common offset).
-        g, g_note = fit.g, (f"g = {fit.g:.7g} {fit.units or ''} from the calibration file "
-                            "(the g it was made with); give --g if this site's differs").replace(
-                                "  ", " ")
+        unit = f"{fit.units} " if fit is not None and fit.units else ""
+        g, g_note = g0, (f"g = {g0:.7g} {unit}from the calibration file (the g it was made "
+                         "with); give --g if this site's differs")
     gv, _ = _resolve_g(g, lat, height, file, fs, columns, time_column)
     # One streaming pass: the dwell accumulator keeps what the diagnosis needs from inside
     # the dwells (means, variances and, where the accumulator provides them, within-dwell

@@ -220,14 +220,14 @@ class _Output:
 
     KINDS = {".csv": "csv", ".txt": "csv", ".dat": "csv", ".tsv": "csv", "": "csv",
              ".npy": "npy", ".npz": "npz", ".h5": "h5", ".hdf5": "h5"}
-    #: Compressed text: the suffix after .csv / .txt names the compressor.
-    COMPRESSED = {".gz": "gzip", ".bz2": "bz2", ".xz": "lzma"}
 
     def __init__(self, path: str, has_t: bool, header: list[str]) -> None:
         self.path = path
         p = Path(path)
         suffix = p.suffix.lower()
-        self.compress = self.COMPRESSED.get(suffix)
+        from ..io import COMPRESSED_SUFFIXES
+
+        self.compress = COMPRESSED_SUFFIXES.get(suffix)  # after .csv / .txt
         if self.compress is not None:
             suffix = Path(p.stem).suffix.lower()
         kind = self.KINDS.get(suffix) if path != "-" else "csv"
@@ -251,10 +251,9 @@ class _Output:
             else:
                 self.fh = self.stack.enter_context(atomic_open(self.path, mode))
             if self.compress is not None:
-                import importlib
+                from ..io import compression_open
 
-                lib = importlib.import_module(self.compress)
-                self.fh = self.stack.enter_context(lib.open(self.fh, "wb"))
+                self.fh = self.stack.enter_context(compression_open(self.compress)(self.fh, "wb"))
             if self.kind == "csv":
                 for h in self.header:
                     self.fh.write(f"# {h}\n".encode())
