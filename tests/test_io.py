@@ -1937,6 +1937,39 @@ def test_rows_of_label_value_pairs_are_read_by_their_labels(tmp_path: Path) -> N
         read_stream(write(tmp_path, mostly, "mostly.txt"), fs=10.0)
 
 
+def test_adafruit_example_rows_name_their_sensor(tmp_path: Path) -> None:
+    """The Adafruit sensor libraries' examples print `Acceleration X: 0.11, Y: -0.18, Z: 10.16
+    m/s^2`, then `Rotation X: ...` and `Temperature: 25.3 degC` (MPU-6050), or `\t\tAccel X:
+    ...` (LSM6DS): "no numeric data rows found". Now the sensor's name prefixes the labels, the
+    accelerometer's rows are read however many rows of other sensors sit between them, and a
+    decimal comma is read too."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(40, 3)).round(2)
+    mpu = "".join(f"Acceleration X: {a:.2f}, Y: {b:.2f}, Z: {c:.2f} m/s^2\n"
+                  f"Rotation X: 0.01, Y: {-b / 9:.2f}, Z: 0.00 rad/s\nTemperature: 25.3 degC\n\n"
+                  for a, b, c in x)
+    s = read_stream(write(tmp_path, "Adafruit MPU6050 test!\nMPU6050 Found!\n" + mpu,
+                          "mpu.txt"), fs=10.0)
+    np.testing.assert_array_equal(s.samples, x)
+    note = next(n for n in s.notes if "label-value pairs" in n)
+    assert "(Acceleration X, Acceleration Y, Acceleration Z)" in note, note
+    assert "40 row(s) of other sensors' pairs (Rotation) left out" in note, note
+    assert "42 row(s) of other text left out" in note, note  # 2 + 40 temperatures
+    lsm = "".join(f"\t\tAccel X: {a:.2f} \tY: {b:.2f} \tZ: {c:.2f} m/s^2 \n"
+                  f"\t\tGyro X: 0.01 \tY: 0.02 \tZ: 0.03 radians/s \n" for a, b, c in x)
+    s = read_stream(write(tmp_path, lsm, "lsm.txt"), fs=10.0)
+    np.testing.assert_array_equal(s.samples, x)
+    dc = "".join(f"Acceleration X: {a:.2f}; Y: {b:.2f}; Z: {c:.2f} m/s^2\n".replace(".", ",")
+                 for a, b, c in x)
+    s = read_stream(write(tmp_path, dc, "dc.txt"), fs=10.0)
+    np.testing.assert_array_equal(s.samples, x)
+    # Another sensor's name does not lift the rule: mostly other rows is still refused.
+    other = "".join(f"Magnetic X: {a:.2f}, Y: {b:.2f}, Z: {c:.2f} uT\n" for a, b, c in x)
+    with pytest.raises(CalibrationError, match=r"write the accelerometer's rows to a file"):
+        read_stream(write(tmp_path, other + "Gyro X: 1, Y: 2, Z: 3\n" * 60, "mag.txt"),
+                    fs=10.0)
+
+
 def test_a_clock_in_ms_beside_a_rate_given_is_named_not_called_lost_samples(
         tmp_path: Path) -> None:
     """`t=10, 20, ...` (ms) read in s beside --fs 100: "the logger lost samples ... 99.9 %

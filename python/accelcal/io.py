@@ -556,14 +556,48 @@ _PAIR = re.compile(r"([A-Za-z_][\w.\[\]/^]*)\s*[:=]?\s*"
                    r"(?![\w/^²°]))?")
 
 
+#: The same with a decimal comma (``X: 0,11; Y: -0,18; Z: 10,16``).
+_PAIR_DC = re.compile(_PAIR.pattern.replace(r"(?:\d+\.?\d*|\.\d+)", r"\d+(?:,\d+)?")
+                      .replace(r"(?![\w.])", r"(?![\w.,]\d)"))
+
+#: A sensor's name of one to three words before its pairs (``Acceleration X: 0.12, Y: -0.45,
+#: Z: 9.81 m/s^2``, as the Adafruit sensor libraries' examples print it; ``Accel X: ...``).
+_PAIRS_PREFIX = re.compile(r"([A-Za-z][A-Za-z_]*(?: [A-Za-z][A-Za-z_]*){0,2}):?\s+")
+
+
+def _pairs_only(s: str) -> list[tuple[str, str]] | None:
+    for pattern, dc in ((_PAIR, False), (_PAIR_DC, True)):
+        pairs = pattern.findall(s)
+        if len(pairs) >= 3 and not pattern.sub("", s).strip(" \t,;|"):
+            return [(k, v.replace(",", ".")) for k, v in pairs] if dc else pairs
+        if "," not in s:
+            break
+    return None
+
+
 def _label_pairs(line: str) -> list[tuple[str, str]] | None:
     """The (label, number) pairs of a row of at least three label-value pairs and nothing
-    else but separators (blanks, commas, semicolons, bars), or None."""
+    else but separators (blanks, commas, semicolons, bars), or None. A sensor's name before
+    the pairs prefixes their labels (``Acceleration X``); the numbers may have a decimal
+    comma."""
     s = line.strip()
-    pairs = _PAIR.findall(s)
-    if len(pairs) < 3 or _PAIR.sub("", s).strip(" \t,;|"):
-        return None
+    pairs = _pairs_only(s)
+    words = s[:48].split()
+    for n in range(1, min(3, len(words) - 1) + 1):
+        m = _PAIRS_PREFIX.fullmatch(" ".join(words[:n]) + " ")
+        if pairs is not None or m is None:
+            continue
+        rest = _pairs_only(s.split(None, n)[n])
+        if rest is not None:
+            pairs = [(f"{m.group(1)} {k}", v) for k, v in rest]
     return pairs
+
+
+def _names_acceleration(labels: tuple[str, ...]) -> bool:
+    """Whether labels with a sensor's name before them (``Acceleration X``) name an
+    accelerometer."""
+    heads = {k.rsplit(" ", 1)[0].lower() for k in labels if " " in k}
+    return len(heads) == 1 and heads.pop() in _ACC_LABELS | {"linear acceleration"}
 
 
 def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
@@ -591,10 +625,13 @@ def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
                     [float(v) for _, v in pairs])
     except OSError as e:
         raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
-    labels, values = max(rows.items(), key=lambda kv: len(kv[1]))
+    # Rows that name their sensor (Adafruit's examples print `Acceleration X: ...`, then
+    # `Rotation X: ...` and `Temperature: ...`): the accelerometer's, however many others.
+    named = [kv for kv in rows.items() if _names_acceleration(kv[0])]
+    labels, values = max(named or rows.items(), key=lambda kv: len(kv[1]))
     left = other + sum(len(v) for k, v in rows.items() if k != labels)
     total = left + len(values)
-    if left > total / 4:
+    if left > total / 4 and len(named) != 1:
         raise CalibrationError(
             f"{name}: a log of label-value pairs ({' '.join(labels)}) in only {len(values)} of "
             f"its {total} rows; write the accelerometer's rows to a file of their own")
@@ -604,8 +641,13 @@ def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
     out = _dataframe_source(pd.DataFrame(values, columns=list(labels)), columns, fs,
                             time_column, path=name, named=True)
     note = (f"rows of label-value pairs ({', '.join(labels)}): the labels name the columns")
-    if left:
-        note += f"; {left} row(s) of other text left out"
+    others = {k[0].rsplit(" ", 1)[0] if " " in k[0] else " ".join(k): len(v)
+              for k, v in rows.items() if k != labels}
+    if others:
+        note += (f"; {sum(others.values())} row(s) of other sensors' pairs "
+                 f"({', '.join(others)}) left out")
+    if other:
+        note += f"; {other} row(s) of other text left out"
     out.lay.notes.append(note)
     return out
 
