@@ -647,6 +647,26 @@ def test_a_dead_worker_names_the_missing_main_guard(monkeypatch: pytest.MonkeyPa
     assert _died_hint() == "run this recording alone to see why"
 
 
+def test_a_parquet_recording_is_a_recording_and_a_parquet_manifest_a_manifest(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    """A .parquet file was always taken for a manifest: a recording in Parquet was read as a
+    table of recordings without a 'path' column. Now its columns decide."""
+    rec = next(r for r in fleet["recs"] if not r.corruption)
+    tab = pd.read_csv(rec.path, comment="#")
+    pq = tmp_path / f"{rec.sensor_id}.parquet"
+    tab.to_parquet(pq)
+    man = tmp_path / "manifest.parquet"
+    pd.DataFrame({"path": [rec.path, str(pq)]}).to_parquet(man)
+    one = ac.calibrate_many(str(pq), g=G0, workers=1, progress=False)
+    both = ac.calibrate_many(str(man), g=G0, workers=1, progress=False)
+    assert one["status"].tolist() == ["ok"] and both["status"].tolist() == ["ok", "ok"]
+    ref = fleet["df"].set_index("sensor_id").loc[rec.sensor_id, PARAMS].to_numpy(float)
+    for row in (one.iloc[0], both.iloc[0], both.iloc[1]):
+        np.testing.assert_allclose(row[PARAMS].to_numpy(float), ref, rtol=1e-9, atol=1e-12)
+    code, out = _cli("calibrate", "static", "--manifest", str(pq), "--g", str(G0))
+    assert code == 2 and "needs a 'path' column" in out, out
+
+
 def test_a_compressed_recording_is_named_without_its_suffixes() -> None:
     """A fleet run named `b.csv.gz`'s sensor `b.csv` (its calibration `b.csv_....json`)."""
     from accelcal.io import file_stem

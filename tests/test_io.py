@@ -1970,6 +1970,33 @@ def test_adafruit_example_rows_name_their_sensor(tmp_path: Path) -> None:
                     fs=10.0)
 
 
+@pytest.mark.parametrize("suffix", [".parquet", ".feather"])
+def test_parquet_and_feather_tables_are_read_by_their_column_names(tmp_path: Path,
+                                                                  suffix: str) -> None:
+    """A logger that writes Parquet (or Feather): "no numeric data rows found", the binary
+    file read as text. Now read through pyarrow as a DataFrame: columns by name, a timestamp
+    column as the time, a temperature column; a broken file names its format."""
+    import pandas as pd  # the [parquet] extra; installed by make test
+    rng = np.random.default_rng(5)
+    n = 500
+    df = pd.DataFrame({"timestamp": pd.date_range("2024-03-01T12:00:00Z", periods=n,
+                                                  freq="4ms"),
+                       "gyr_x": rng.normal(size=n), "acc_x": rng.normal(size=n),
+                       "acc_y": rng.normal(size=n), "acc_z": 9.8 + rng.normal(size=n),
+                       "temp_c": np.linspace(20, 25, n)})
+    p = tmp_path / f"rec{suffix}"
+    getattr(df, "to_" + suffix[1:])(p)
+    s = read_stream(p)
+    np.testing.assert_array_equal(s.samples, df[["acc_x", "acc_y", "acc_z"]].to_numpy())
+    assert s.fs == pytest.approx(250.0) and s.t0.startswith("2024-03-01T12:00:00")
+    np.testing.assert_allclose(s.t, np.arange(n) * 0.004, atol=1e-9)
+    np.testing.assert_array_equal(s.temperature, df["temp_c"].to_numpy())
+    (tmp_path / f"bad{suffix}").write_text("ax,ay,az\n1,2,3\n")
+    with pytest.raises(CalibrationError, match=r"bad\.\w+: cannot read the (Parquet|Feather) "
+                                               r"file"):
+        read_stream(tmp_path / f"bad{suffix}")
+
+
 def test_a_clock_in_ms_beside_a_rate_given_is_named_not_called_lost_samples(
         tmp_path: Path) -> None:
     """`t=10, 20, ...` (ms) read in s beside --fs 100: "the logger lost samples ... 99.9 %

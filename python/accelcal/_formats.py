@@ -1,5 +1,6 @@
 """Readers of formats that need a third-party library (installed with an extra): workbooks
-(pandas with openpyxl, xlrd or odfpy), National Instruments TDMS (npTDMS), miniSEED (ObsPy)
+(pandas with openpyxl, xlrd or odfpy), Parquet and Feather tables (pyarrow), National
+Instruments TDMS (npTDMS), miniSEED (ObsPy)
 and ROS bags (rosbags). Each gives an :class:`~accelcal.io._ArraySource` built by the same
 layout rules as a DataFrame, so names, units, time and temperature columns are chosen as for
 text; ``io`` imports this module only when it meets one of these files."""
@@ -226,6 +227,28 @@ def _spreadsheet_source(p: str, columns: Any, fs: float | None,
     return src
 
 
+def _arrow_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _ArraySource:
+    """A Parquet or Feather (Arrow IPC) table read through pyarrow and pandas, its columns
+    chosen by name as from a header (a timestamp column is a time column)."""
+    try:
+        import pandas  # noqa: F401 - to_pandas needs it
+        import pyarrow.feather as feather
+        import pyarrow.parquet as parquet
+    except ImportError:
+        raise CalibrationError(
+            f"{p}: a Parquet/Feather table; reading it needs pyarrow and pandas: pip install "
+            "'accelcal[parquet]'") from None
+    low = p.lower()
+    try:
+        table = (parquet.read_table(p) if low.endswith((".parquet", ".pq"))
+                 else feather.read_table(p))
+        df = table.to_pandas()
+    except (OSError, ValueError) as e:  # pyarrow's ArrowInvalid is a ValueError
+        kind = "Parquet" if low.endswith((".parquet", ".pq")) else "Feather"
+        raise CalibrationError(f"{p}: cannot read the {kind} file: {e}") from None
+    return _dataframe_source(df, columns, fs, time_column, path=p)
+
+
 def is_rosbag(p: str) -> bool:
     """A ROS 1 ``.bag`` file, a ROS 2 bag folder (``metadata.yaml`` beside its storage) or
     that folder's ``.db3`` / ``.mcap`` file."""
@@ -324,6 +347,7 @@ def _ros_topic(p: str, counts: dict[str, int], columns: Any, types: dict[str, st
 #: kind (as ``io._kind`` names it) -> reader.
 SOURCES: dict[str, Callable[[str, Any, float | None, Any], _ArraySource]] = {
     "sheet": _spreadsheet_source,
+    "arrow": _arrow_source,
     "tdms": _tdms_source,
     "mseed": _mseed_source,
     "rosbag": _rosbag_source,

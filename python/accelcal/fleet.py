@@ -358,7 +358,14 @@ _SHEETS = (".xlsx", ".xlsm", ".xls", ".ods")
 def _is_manifest_file(p: str) -> bool:
     low = p.lower()
     if low.endswith((".parquet", ".pq")):
-        return True
+        # A manifest has a path column; a recording in Parquet has accelerometer columns.
+        try:
+            import pyarrow.parquet as parquet
+
+            names = parquet.read_schema(p).names
+        except Exception:  # noqa: BLE001 - missing pyarrow or unreadable: the manifest's reader says why
+            return True
+        return "path" in {str(c).strip().lower() for c in names}
     if low.endswith(_SHEETS) and os.path.isfile(p):
         # A workbook is a manifest when its first sheet has a path column (a recording in a
         # workbook has accelerometer columns instead).

@@ -1,7 +1,8 @@
 """Readers for accelerometer recordings: delimited text (with or without header and metadata
 lines, from a file or ``-`` for standard input), ``.npy``, ``.npz``, HDF5, MATLAB ``.mat`` (v5
 and v7.3), spreadsheets (``.xlsx``, ``.xls``, ``.ods``: phyphox's default export; through
-pandas), National Instruments TDMS (LabVIEW; through npTDMS), miniSEED (seismic loggers;
+pandas), Parquet and Feather tables (through pyarrow), National Instruments TDMS (LabVIEW;
+through npTDMS), miniSEED (seismic loggers;
 through ObsPy), ROS bags (through rosbags), and tables already in memory (a pandas or polars
 DataFrame, anything with ``__array__``); plus chunked reading that streams large files into
 :class:`~accelcal.DwellAccumulator` in one pass.
@@ -2077,6 +2078,8 @@ def _kind(p: str) -> str:
         return _mat_kind(p)
     if low.endswith((".xlsx", ".xlsm", ".xls", ".ods")):
         return "sheet"
+    if low.endswith((".parquet", ".pq", ".feather", ".arrow")):
+        return "arrow"
     if low.endswith(".tdms"):
         return "tdms"
     if low.endswith((".mseed", ".miniseed", ".msd", ".seed")):
@@ -2439,7 +2442,7 @@ class _Recording:
                 self.arrays = _array_source(p, _npz_arrays(p), columns, fs, time_column)
             elif kind in ("mat5", "mat73"):
                 self.arrays = _array_source(p, _mat_arrays(p, kind), columns, fs, time_column)
-            elif kind in ("sheet", "tdms", "mseed", "rosbag"):
+            elif kind in ("sheet", "arrow", "tdms", "mseed", "rosbag"):
                 from . import _formats
 
                 self.arrays = _formats.SOURCES[kind](p, columns, fs, time_column)

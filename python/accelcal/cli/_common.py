@@ -425,7 +425,8 @@ def main() -> None:
     """Calibrate accelerometers from the norm of what they measure.
 
     Recordings: delimited text (with or without a header; also gzip, bzip2 or xz), .npy,
-    .npz, HDF5, MATLAB .mat, spreadsheets (.xlsx), LabVIEW TDMS, miniSEED and ROS bags;
+    .npz, HDF5, MATLAB .mat, spreadsheets (.xlsx), Parquet and Feather tables, LabVIEW
+    TDMS, miniSEED and ROS bags;
     columns are found by name or given with --columns.
     """
 
