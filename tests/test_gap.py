@@ -1169,8 +1169,44 @@ def test_a_fixed_calibration_checked_with_another_g_is_refused_or_named() -> Non
     assert len(text) == 1 and "-98.2 ppm of g off" in text[0] and "+100 ppm" in text[0], text
     assert "so check g before believing either of them" in text[0]
     assert "common offset" in off.summary()
-    assert "wrong_g" not in [b["effect"] for b in off.blind_spots]  # held fixed, it shows
+    # Held fixed, a wrong g shows in the gap; the check then says the scales moved, and the
+    # effects are tested against the refit (which absorbs g): no K3 is blamed for it.
+    assert same.calibration_check["p_value"] >= 0.05
+    assert "wrong_g" not in [b["effect"] for b in same.blind_spots]
+    assert off.calibration_check["attribution"] == "refit" and off.best == "none"
+    assert {m["name"] for m in off.calibration_check["moved"]} == {"sx", "sy", "sz"}
+    assert not any("a significant gap remains" in x for x in off.statements)
     assert "wrong_g" in [b["effect"] for b in accelcal.diagnose(d2, g=s2.g).blind_spots]
+
+
+def test_a_moved_calibration_is_not_blamed_on_an_attitude_effect() -> None:
+    """A calibration whose bias moved by 10 std (or scale by 20 std) since it was made,
+    checked against a clean session: "best = k2" (k3 for the scale) in 8 of 8 sessions, K2
+    at -742+-63 ug/g^2 where the truth is 0, beside a check that named bx. Now, when the
+    check says the calibration does not hold, the effects are tested against the session
+    refitted: none for a moved calibration, and a real K2 or settling effect is still found;
+    the gap figures stay the fixed calibration's."""
+    found: dict[str, list[str]] = {"bx": [], "sy": [], "k2": [], "settling": []}
+    for seed in range(4):
+        s = gap_session((), n_dwells=30, rng=seed)
+        for name, i, step in (("bx", 3, 10 * s.sigma), ("sy", 1, 20 * s.sigma / s.g)):
+            v = s.nuisance.copy()
+            v[i] += step
+            r = diagnose(s.dwells, g=s.g, fit=accelcal.TriadModel.from_vector(v))
+            assert r.calibration_check["attribution"] == "refit"
+            assert r.calibration_check["moved"][0]["name"] == name
+            assert r.chi2_per_dof > 20 and r.p_value < 1e-9  # the fixed calibration's gap
+            found[name].append(r.best)
+        for eff in ("k2", "settling"):
+            e = gap_session([eff], n_dwells=30, rng=seed, amplitudes=[8.0])
+            found[eff].append(diagnose(e.dwells, g=e.g,
+                                       fit=accelcal.TriadModel.from_vector(e.nuisance)).best)
+    assert found == {"bx": ["none"] * 4, "sy": ["none"] * 4, "k2": ["k2"] * 4,
+                     "settling": ["settling"] * 4}, found
+    moved = s.nuisance + np.r_[0, 0, 0, 10 * s.sigma, 0, 0, 0, 0, 0]
+    text = diagnose(s.dwells, g=s.g, fit=accelcal.TriadModel.from_vector(moved)).summary()
+    assert "the effects below are tested against the refit" in text
+    assert "a moved bias looks like K2" in text
 
 
 def test_centrifuge_sigma_means_what_fit_centrifuge_takes() -> None:

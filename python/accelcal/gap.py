@@ -492,7 +492,11 @@ class GapReport:
         ``p_value``, ``moved`` (the parameters furthest apart: name, difference, its std, in
         relative units for scales and misalignments, ``units`` for biases) and the residual
         RMS with the calibration and refitted (``rms_fixed``, ``rms_refit``, ``units``). None
-        without a fixed calibration, or when this session cannot determine the model.
+        without a fixed calibration, or when this session cannot determine the model. When
+        the calibration does not hold (``p_value < alpha``), ``attribution`` is "refit": the
+        effects, the figures after them and ``structure`` are those of the session refitted
+        (a moved calibration's residuals mimic attitude effects), ``chi2_refit`` and
+        ``dof_refit`` its gap; the gap figures stay the fixed calibration's.
     """
 
     n: int
@@ -938,11 +942,13 @@ def _calibration_check_text(c: dict[str, Any]) -> str:
 
     rms = (f"; residual RMS {_mag(c['rms_fixed'], unit)} with the calibration, "
            f"{_mag(c['rms_refit'], unit)} refitted")
-    if c["p_value"] < 0.05:
+    if c["p_value"] < c.get("alpha", 0.05):
+        fixed = ("; the effects below are tested against the refit"
+                 if c.get("attribution") == "refit" else "")
         return ("Calibration check: it does NOT hold on this session - a refit of the "
                 f"{c['n']} dwells differs from it beyond both their uncertainties ({stat}, "
                 f"p = {_fmt_p(c['p_value'])}): " + ", ".join(amount(m) for m in c["moved"])
-                + f" (scales and misalignments relative, biases in {unit}){rms}")
+                + f" (scales and misalignments relative, biases in {unit}){rms}{fixed}")
     return (f"Calibration check: it holds on this session - a refit of the {c['n']} dwells "
             f"agrees with it within both their uncertainties ({stat}, "
             f"p = {_fmt_p(c['p_value'])}){rms}")
@@ -1644,8 +1650,65 @@ def diagnose(
                              None if unc is None else unc.draws)
         if check is not None:
             rms = float(np.sqrt(np.mean(np.square(np.asarray(raw.resid, dtype=np.float64)))))
-            rep = replace(rep, calibration_check={**check, "rms_fixed": rms})
+            rep = replace(rep, calibration_check={**check, "rms_fixed": rms,
+                                                  "alpha": float(settings.alpha)})
+            if check["p_value"] < float(settings.alpha):
+                rep = _refit_attribution(rep, [*statements, spread], d, g_v, dict(
+                    effects=effects, alpha=alpha, noise=noise, loo=loo,
+                    max_effects=max_effects, test=test, gate=gate, trust_level=trust_level,
+                    correction=correction, n_draws=n_draws, gate_margin=gate_margin,
+                    preset=preset, noise_model=noise_model, random_offset=random_offset))
     return rep
+
+
+def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g: float,
+                       options: dict[str, Any]) -> GapReport:
+    """The attribution of a session against which a held-fixed calibration does NOT hold:
+    the effects tested against the session refitted, not against the calibration. A moved
+    calibration's residuals are smooth in attitude (a moved bias is linear in it, a moved
+    scale quadratic), so attitude effects mimic them: against the moved calibration a bias
+    moved by 10 std was attributed to K2 in every session tried, a scale to K3.
+
+    The gap figures (chi2, p-value, held-out gap, residuals, localisation) stay the fixed
+    calibration's; what follows the baseline (effects, best, selected, ambiguity, blind
+    spots, the figures after, structure) is the refit's, and ``shrink`` is the refit's
+    held-out gap after its effects over the fixed calibration's (``calibration_check``
+    says ``attribution`` = "refit"). ``said_before``: the fixed report's statements on its
+    data and calibration (not those on its own attribution). When the session cannot be
+    refitted for a diagnosis, the fixed report, with a warning in its statements."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            refit = diagnose(d, g=g, check_g=False, **options)
+    except CalibrationError as e:
+        return replace(fixed, statements=[*fixed.statements, (
+            "the calibration does not hold on this session, and the effects were tested "
+            "against it: a moved calibration's residuals are smooth in attitude (a moved bias "
+            "looks like K2, a moved scale like K3), so take them as that until a session that "
+            f"can be refitted says more ({e})")])
+    rows = dict(fixed.dwells)
+    for key in ("resid_after", "resid_after_mps2", "e_after", "z_loo_after"):
+        if key in refit.dwells and key in rows:
+            rows[key] = refit.dwells[key]
+    said = ("the calibration does not hold on this session, so the effects were tested "
+            "against this session refitted: a moved calibration's residuals are smooth in "
+            "attitude, and attitude effects mimic them (a moved bias looks like K2, a moved "
+            "scale like K3). The effects, the figures after them and the structure are what "
+            f"is left beyond a calibration that moved (refitted: chi2/dof = "
+            f"{refit.chi2_per_dof:.3g} on {refit.dof} dof)")
+    return replace(
+        fixed, best=refit.best, selected=refit.selected, effects=refit.effects,
+        ambiguous=refit.ambiguous, blind_spots=refit.blind_spots,
+        held_out_gap_after=refit.held_out_gap_after,
+        shrink=(refit.held_out_gap_after / fixed.held_out_gap
+                if math.isfinite(fixed.held_out_gap) and fixed.held_out_gap > 0 else math.nan),
+        excess_remaining=refit.excess_remaining, rms_after=refit.rms_after,
+        remaining=refit.remaining, params_after=refit.params_after, std_after=refit.std_after,
+        structure=refit.structure, dwells=rows,
+        calibration_check={**(fixed.calibration_check or {}), "attribution": "refit",
+                           "chi2_refit": refit.chi2, "dof_refit": refit.dof},
+        statements=[*(x for x in said_before if x), said,
+                    *(x for x in refit.statements if x not in said_before)])
 
 
 #: Level below which the residuals' spread is said to differ between pose axes.
