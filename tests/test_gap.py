@@ -1209,6 +1209,33 @@ def test_a_moved_calibration_is_not_blamed_on_an_attitude_effect() -> None:
     assert "a moved bias looks like K2" in text
 
 
+def test_dwell_times_from_a_reset_clock_are_not_used() -> None:
+    """Six files joined, each with its clock from 0: every dwell time about 2.28 s, and
+    diagnose called drift "testable" (0.000774+-0.00059 ug/h) and sorted the dwells by those
+    times. Now detected dwells whose times step back in the sample order have no times: drift
+    is not testable, the dwells keep their sample order, and the report says why; the
+    caller's DwellSet is not changed. A table of means without sample indices is still put in
+    time order."""
+    s = gap_session(("drift",), n_dwells=24, rng=5, amplitudes=[20.0])
+    d = s.dwells
+    k = len(d)
+    start = np.arange(k) * 1000
+    t = np.asarray(d.t, dtype=np.float64).copy()
+    t[k // 2:] -= t[k // 2] - 1.0  # the clock restarted half way
+    joined = DwellSet(d.mean, d.var, d.count, t, d.temperature, start=start, stop=start + 900)
+    r = diagnose(joined, g=s.g)
+    assert np.array_equal(joined.t, t)
+    assert next(e for e in r.effects if e["effect"] == "drift")["status"] == "no_time"
+    assert any("step back 1 time(s) from one dwell to the next" in x for x in r.statements)
+    np.testing.assert_array_equal(r.dwells["index"], np.arange(k))
+    one_clock = diagnose(DwellSet(d.mean, d.var, d.count, d.t, d.temperature, start=start,
+                                  stop=start + 900), g=s.g)
+    assert one_clock.best == "drift"
+    table = diagnose(DwellSet(d.mean, d.var, d.count, t, d.temperature), g=s.g)
+    assert not any("step back" in x for x in table.statements)
+    np.testing.assert_array_equal(table.dwells["index"], np.argsort(t, kind="stable"))
+
+
 def test_centrifuge_sigma_means_what_fit_centrifuge_takes() -> None:
     """A scalar sigma was the norm residual's std in diagnose_centrifuge but the per-axis
     output noise in fit_centrifuge: the same value gave chi2/dof 2.57 (p = 6e-9, "a gap")

@@ -1537,7 +1537,11 @@ def diagnose(
     half, lsb = d.half_mean, d.lsb
     k = len(d)
     order = np.arange(k)
-    if d.t is not None and np.any(np.diff(d.t) < 0):
+    reset = _clock_reset(d)
+    if reset:
+        d = d[:]  # a copy: the caller's DwellSet keeps its times
+        d.t = None
+    elif d.t is not None and np.any(np.diff(d.t) < 0):
         order = np.argsort(d.t, kind="stable")
     need = 2 if cal is not None and cal[2] else 10
     if k < need:
@@ -1569,6 +1573,8 @@ def diagnose(
     hm = None if half is None else np.ascontiguousarray(np.asarray(half, dtype=np.float64)[order])
     statements = [] if var is not None else [
         "no per-dwell variance given: chi2 gap not testable (F tests only)"]
+    if reset:
+        statements.append(reset)
     svar = None if d.var is None else np.ascontiguousarray(d.var[order], dtype=np.float64)
     raw = _core.gap_diagnose_static(
         mean, var, tt, temp, g_v, eff, settings, calibration=cal, half_mean=hm,
@@ -1659,6 +1665,22 @@ def diagnose(
                     correction=correction, n_draws=n_draws, gate_margin=gate_margin,
                     preset=preset, noise_model=noise_model, random_offset=random_offset))
     return rep
+
+
+def _clock_reset(d: DwellSet) -> str:
+    """Why the dwell times cannot be used, or "": detected dwells (``start`` known) whose
+    times step back in the sample order were timed by a clock that was reset (files joined,
+    a logger restarted), so drift, time trends and the time order mean nothing."""
+    if d.t is None or d.start is None or len(d) < 2:
+        return ""
+    t = np.asarray(d.t, dtype=np.float64)[np.argsort(np.asarray(d.start), kind="stable")]
+    back = int(np.sum(np.diff(t) < 0))
+    if not back:
+        return ""
+    return (f"the dwells' times step back {back} time(s) from one dwell to the next in the "
+            "order of the samples (a clock "
+            "reset: files joined, or a logger restarted): the times are not used, so drift "
+            "and the time tests are not testable and the dwells are taken in sample order")
 
 
 def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g: float,
