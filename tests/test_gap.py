@@ -272,6 +272,16 @@ def test_gradiometer_drift_azimuth_and_channel_scale() -> None:
     assert {"drift", "warmup"} <= {b["effect"] for b in r.blind_spots}
     with pytest.raises(DegenerateDataError, match="0/180"):
         accelcal.diagnose_gradiometer([0.0, 180.0, 0.0], np.zeros((3, 2)), sigma=0.5)
+    # sigma per channel, as demodulate gives it (inline, cross): equal columns are the scalar;
+    # a noisier cross channel weighs less.
+    both = accelcal.diagnose_gradiometer(az, y2, t=t, sigma=np.full((len(az), 2), 0.5))
+    r = accelcal.diagnose_gradiometer(az, y2, t=t, sigma=0.5)
+    assert both.chi2 == r.chi2 and both.best == r.best
+    noisy = accelcal.diagnose_gradiometer(az, y2, t=t, sigma=np.c_[np.full(len(az), 0.5),
+                                                                   np.full(len(az), 2.0)])
+    assert noisy.chi2 < 0.9 * r.chi2
+    with pytest.raises(CalibrationError, match=r"sigma must be scalar, \(\d+,\) or \(\d+, 2\)"):
+        accelcal.diagnose_gradiometer(az, y2, t=t, sigma=np.full((len(az), 3), 0.5))
 
 
 def test_screening_estimate_has_the_sign_of_the_truth() -> None:
@@ -1265,6 +1275,20 @@ def test_a_centrifuge_radius_error_is_named_not_called_blind() -> None:
         null = centrifuge_session(noise_g=1e-6, rng=seed)
         assert accelcal.diagnose_centrifuge(null.outputs, null.omega, null.radius, g=null.g,
                                             sigma=1e-6).best == "none"
+
+
+def test_a_start_given_as_values_is_checked_by_what_is_wrong() -> None:
+    """fit=[nan]*9 said "... the 9 values ...; got list" (the NaN was the problem), and the
+    6 values of a scale-and-bias start were refused. Now a NaN is named, and 6 values start
+    a fit as 9 with no misalignment do."""
+    s = gap_session((), n_dwells=30, rng=1)
+    with pytest.raises(accelcal.CalibrationError, match=r"fit holds NaN or inf"):
+        diagnose(s.dwells, g=s.g, fit=[np.nan] * 9)
+    with pytest.raises(accelcal.CalibrationError, match=r"or the 6 .* of a start; got 3 values"):
+        diagnose(s.dwells, g=s.g, fit=[1, 2, 3])
+    six = diagnose(s.dwells, g=s.g, fit=s.nuisance[:6].tolist())
+    nine = diagnose(s.dwells, g=s.g, fit=[*s.nuisance[:6], 0, 0, 0])
+    assert six.chi2 == nine.chi2 and six.best == nine.best == "none"
 
 
 def test_centrifuge_sigma_means_what_fit_centrifuge_takes() -> None:

@@ -1148,10 +1148,15 @@ def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bo
         v = np.asarray(fit, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
         v = np.zeros(0)
-    if v.size != 9 or not np.all(np.isfinite(v)):
+    if v.size not in (6, 9):
+        got = f"{v.size} values" if v.size else type(fit).__name__
         raise CalibrationError("fit must be a StaticFit (used as the start), a TriadModel (an "
-                               "existing calibration, checked against this session) or the 9 "
-                               f"values [sx,sy,sz,bx,by,bz,m1,m2,m3]; got {type(fit).__name__}")
+                               "existing calibration, checked against this session), the 9 "
+                               "values [sx,sy,sz,bx,by,bz,m1,m2,m3] or the 6 [sx,sy,sz,bx,by,bz]"
+                               f" of a start; got {got}")
+    if not np.all(np.isfinite(v)):
+        raise CalibrationError(f"fit holds NaN or inf: {v.tolist()}")
+    v = np.concatenate([v, np.zeros(9 - v.size)])
     k9 = [[v[0], 0.0, 0.0], [v[6], v[1], 0.0], [v[7], v[8], v[2]]]
     return k9, v[3:6].tolist(), False
 
@@ -1479,7 +1484,8 @@ def diagnose(
     g : local gravity, m/s^2.
     fit : a StaticFit (its calibration is the start instead of the exact linear quadric fit),
         a TriadModel (an existing calibration, held fixed: the diagnosis checks it against
-        this session instead of refitting it), or the 9 values [sx,sy,sz,bx,by,bz,m1,m2,m3].
+        this session instead of refitting it), or the 9 values [sx,sy,sz,bx,by,bz,m1,m2,m3]
+        (or the 6 [sx,sy,sz,bx,by,bz]) of a start.
     effects : "all" or a list of effect names (see :data:`EFFECTS`).
     alpha : family-wise false-alarm level of the attribution over the testable candidates of
         each stepwise stage (see ``correction``) and of the structure tests.
@@ -2060,7 +2066,9 @@ def diagnose_gradiometer(
     azimuth_deg : (m,) commanded platform azimuths, deg.
     outputs : (m, 2) average inline and cross output per azimuth, E.
     t : (m,) dwell mid times, s (needed for drift and warm-up).
-    sigma : noise std of an average (scalar or (m,), E); None: scaled to the baseline fit.
+    sigma : noise std of an average, E: scalar, (m,) (both channels) or (m, 2) (inline,
+        cross: the ``std`` of :func:`demodulate`'s result, beside its ``outputs``); None:
+        scaled to the baseline fit.
     alpha : family-wise false-alarm level of the attribution.
     effects : "all" or names from :data:`GRADIOMETER_EFFECTS`: ``drift`` (linear bias drift
         per channel, E/h), ``azimuth_error`` (one error per dwell, deg; a common offset is
@@ -2093,9 +2101,13 @@ def diagnose_gradiometer(
         noise_model = "unknown: unit weights scaled to the baseline fit (F tests only)"
     else:
         s_ = _real(sigma, "sigma")
-        if s_.size not in (1, m):
-            raise CalibrationError(f"sigma must be scalar or ({m},) (E); got {s_.shape}")
-        sig = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (m,)))
+        if s_.shape == (m, 2):  # inline, cross (a Demodulated's std)
+            sig = np.ascontiguousarray(s_.reshape(-1))
+        elif s_.size in (1, m) and s_.ndim <= 1:
+            sig = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (m,)))
+        else:
+            raise CalibrationError(f"sigma must be scalar, ({m},) or ({m}, 2) (inline, cross; "
+                                   f"E); got {s_.shape}")
         if not np.all(sig > 0):
             raise CalibrationError("sigma must be positive and finite (E)")
         noise_model = "given noise std of each average"

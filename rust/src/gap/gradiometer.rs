@@ -46,7 +46,8 @@ pub struct GradiometerInput {
     pub outputs: Vec<[f64; 2]>,
     /// Dwell mid times, s.
     pub t: Option<Vec<f64>>,
-    /// Noise std of each average, E (`None`: unknown, scaled to the baseline fit).
+    /// Noise std of each average, E: one per azimuth (both channels), or two (inline,
+    /// cross) per azimuth in that order (`None`: unknown, scaled to the baseline fit).
     pub sigma: Option<Vec<f64>>,
     /// Warm-up time constant, s.
     pub warmup_tau_s: f64,
@@ -59,6 +60,7 @@ pub struct GradiometerModel {
     dict: Vec<EffectInfo>,
     th: Vec<f64>,
     wu: Vec<f64>,
+    /// Noise std of each residual row (inline, cross of each azimuth).
     sig: Vec<f64>,
 }
 
@@ -98,7 +100,7 @@ impl GradiometerModel {
             dict,
             th,
             wu,
-            sig: inp.sigma.clone().unwrap_or_else(|| vec![1.0; m]),
+            sig: row_sigma(inp.sigma.as_deref(), m),
             inp: inp.clone(),
         }
     }
@@ -189,7 +191,7 @@ impl GapModel for GradiometerModel {
         for (ri, &row) in rows.iter().enumerate() {
             let (k, ch) = (row / 2, row % 2);
             let ev = self.dwell(k, active, p);
-            let w = 1.0 / self.sig[k];
+            let w = 1.0 / self.sig[row];
             e[ri] = (self.inp.outputs[k][ch] - ev.y[ch]) * w;
             for j in 0..N_BASE {
                 jac[(ri, j)] = -ev.base[ch][j] * w;
@@ -219,16 +221,26 @@ impl GapModel for GradiometerModel {
             let (k, ch) = (row / 2, row % 2);
             let ev = self.dwell(k, active, p);
             for (j, v) in self.effect_partials(&ev, k, ch, c) {
-                out[(ri, j)] = -v / self.sig[k];
+                out[(ri, j)] = -v / self.sig[row];
             }
         }
         Ok(out)
     }
     fn sigma(&self, rows: &[usize], _active: &[usize], _p: &[f64]) -> Result<Vec<f64>> {
-        Ok(rows.iter().map(|&r| self.sig[r / 2]).collect())
+        Ok(rows.iter().map(|&r| self.sig[r]).collect())
     }
     fn predictable(&self, c: usize) -> bool {
         c != 1 // a held-out dwell's own azimuth error is unknown
+    }
+}
+
+/// The noise std of each residual row (2 per azimuth: inline, cross) from one value per
+/// azimuth or one per row; unit weights without one.
+fn row_sigma(sigma: Option<&[f64]>, m: usize) -> Vec<f64> {
+    match sigma {
+        Some(s) if s.len() == 2 * m => s.to_vec(),
+        Some(s) => s.iter().flat_map(|&v| [v, v]).collect(),
+        None => vec![1.0; 2 * m],
     }
 }
 
@@ -256,7 +268,15 @@ fn check(inp: &GradiometerInput) -> Result<()> {
         }
     }
     if let Some(s) = &inp.sigma {
-        if s.len() != m || s.iter().any(|v| !(*v > 0.0) || !v.is_finite()) {
+        if s.len() != m && s.len() != 2 * m {
+            return invalid(format!(
+                "sigma must hold {m} values (one per azimuth) or {} (inline, cross of each); \
+                 got {}",
+                2 * m,
+                s.len()
+            ));
+        }
+        if s.iter().any(|v| !(*v > 0.0) || !v.is_finite()) {
             return invalid("sigma must be positive and finite (E)");
         }
     }
@@ -368,5 +388,32 @@ mod tests {
         let r = diagnose(&s, &all, &o).unwrap();
         assert_eq!(r.engine.candidates[0].status, Status::NoTime);
         assert_eq!(r.engine.candidates[3].status, Status::NoTime);
+    }
+
+    #[test]
+    fn sigma_per_channel_weighs_each_row() {
+        let o = GapOptions::default();
+        let s = session(1, [0.0; 2], 0.0, [0.0; 2]);
+        let per_dwell = diagnose(&s, &[0], &o).unwrap();
+        let mut both = s.clone();
+        both.sigma = Some(vec![0.5; 24]);
+        let same = diagnose(&both, &[0], &o).unwrap();
+        assert_eq!(per_dwell.engine.chi2, same.engine.chi2);
+        // The cross channel four times noisier: its rows weigh 1/16 in the chi2.
+        both.sigma = Some(
+            (0..24)
+                .map(|r| if r % 2 == 1 { 2.0 } else { 0.5 })
+                .collect(),
+        );
+        let w = diagnose(&both, &[0], &o).unwrap();
+        assert!(
+            w.engine.chi2 < 0.9 * same.engine.chi2,
+            "{} {}",
+            w.engine.chi2,
+            same.engine.chi2
+        );
+        both.sigma = Some(vec![0.5; 13]);
+        let e = diagnose(&both, &[0], &o).unwrap_err().to_string();
+        assert!(e.contains("12 values (one per azimuth) or 24"), "{e}");
     }
 }
