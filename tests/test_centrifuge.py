@@ -464,3 +464,15 @@ def test_a_model_that_fits_no_rows_is_called_a_model_error_not_outliers():
                                           lever_arm="along", spin_axis=s.spin_axis))
     assert not w and len(f.outliers) == 0 and f.residual_rms < 1.5
     assert f.lever_arm == pytest.approx([0.002] * 3, abs=1e-5)
+
+
+def test_no_rows_is_named_as_such() -> None:
+    """0 rows used to read "no rotation: omega is 0 for every row"."""
+    with pytest.raises(CalibrationError, match=r"outputs have no rows \(shape \(0, 3\)\)"):
+        accelcal.fit_centrifuge(np.zeros((0, 3)), np.zeros(0), 0.5)
+    # The rows of a simulated session fit the truth; none of them is refused the same way.
+    s = centrifuge_session(noise_g=1e-5, rng=2)
+    with pytest.raises(CalibrationError, match="no rows"):
+        fit_centrifuge(s.outputs[:0], s.omega[:0], s.radius, g=s.g)
+    fit = fit_centrifuge(s.outputs, s.omega, s.radius, g=s.g)
+    assert np.all(np.abs((fit.params - np.r_[S, B, D]) / fit.std) < 5)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from accelcal import CalibrationError, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
 from accelcal._reference import allan_inflation_sample_stride, dwell_reference, lsb_reference
+from accelcal._triad import k_matrix
 from accelcal.io import read_stream
 from conftest import COUNTS_PER_MPS2, clipped_session, shared_data, vibrating_session
 from hypothesis import HealthCheck, given, settings
@@ -538,7 +539,7 @@ def test_bad_channels() -> None:
         dwell_stats(GOOD, [[0, 10]], temperature=temp)
     # A channel given with some chunks but not others.
     acc = DwellAccumulator([[0, 10]])
-    acc.push(GOOD[:100], t=np.zeros(100))
+    acc.push(GOOD[:100], t=np.arange(100) / 100.0)
     with clear_error("t", "every chunk"):
         acc.push(GOOD[100:])
 
@@ -637,10 +638,19 @@ def test_nan_inside_given_bounds_is_refused_with_where() -> None:
     x[[30, 31, 40], 1] = np.nan
     with clear_error("dwell 1 [20, 50)", "3 row(s)", "first at sample 30"):
         dwell_stats(x, [[0, 20], [20, 50], [60, 100]])
+    # The accumulator refuses the chunk that brings them (nothing of it kept), so that it
+    # stays usable: the same chunk without them, and the rest, give the clean table.
     acc = DwellAccumulator([[0, 20], [20, 50], [60, 100]])
-    push_in_chunks(acc, [25, 35, 41], x)
-    with clear_error("dwell 1 [20, 50)", "3 row(s)", "first at sample 30"):
-        acc.finish()
+    acc.push(x[:25])
+    with clear_error("dwell 1 [20, 50)", "2 row(s) in this chunk", "first at sample 30",
+                     "nothing of this chunk was kept"):
+        acc.push(x[25:35])
+    assert acc.position == 25
+    acc.push(GOOD[25:35])
+    with clear_error("dwell 1 [20, 50)", "1 row(s) in this chunk", "first at sample 40"):
+        acc.push(x[35:41])
+    acc.push(GOOD[35:])
+    assert_same(acc.finish(), dwell_stats(GOOD, [[0, 20], [20, 50], [60, 100]]))
     # Outside every dwell it changes nothing.
     assert_same(dwell_stats(x, [[0, 20], [60, 100]]), dwell_stats(GOOD, [[0, 20], [60, 100]]))
 
@@ -1351,3 +1361,132 @@ def test_the_vibration_note_never_offers_the_current_threshold() -> None:
                  vibrating=np.array([[200, 400]]), vibrating_std=np.full((1, 3), 2.3e-3), fs=100.0)
     (note,) = vibrating_text(d, option="--k ")
     assert "--k 7 would take them" in note and "k = 6 now" in note, note
+
+
+# ---- non-finite samples in a dwell of the bounds, and finish before the end ----------------
+def test_accumulator_refuses_a_chunk_with_nan_inside_a_dwell_and_stays_usable() -> None:
+    """A chunk with NaN inside a dwell used to be accepted, and every later finish() failed
+    with no way back. Now the push refuses it (nothing kept); NaN between dwells is kept."""
+    from accelcal.sim import field_session
+
+    s = field_session(fs=1000.0, n_dwells=10, dwell_s=5.0, move_s=2.0, rng=2)
+    x = s.samples.copy()
+    x[100] = np.nan  # inside dwell 0 [0, 5000)
+    x[6000] = np.inf  # in the move between dwells 0 and 1
+    acc = DwellAccumulator(s.bounds, fs=s.fs)
+    with clear_error("dwell 0 [0, 5000)", "first at sample 100", "nothing of this chunk"):
+        acc.push(x[:1000], t=s.t[:1000])
+    assert acc.position == 0
+    acc.push(s.samples[:1000], t=s.t[:1000])  # the clean chunk
+    acc.push(x[1000:], t=s.t[1000:])  # the inf between dwells is no dwell's
+    ref = dwell_stats(s.samples, s.bounds, t=s.t, fs=s.fs)
+    assert_same(acc.finish(), ref)
+    # The means are the simulated specific force (raw output of the true model).
+    k = k_matrix(s.truth)
+    want = (np.linalg.inv(k) @ (ref.mean - s.truth[3:6]).T).T
+    assert np.all(np.abs(np.linalg.norm(want, axis=1) - s.g) < 5 * s.sigma / np.sqrt(5000))
+    # A checkpoint keeps the bounds: the check works after from_state too.
+    back = DwellAccumulator.from_state(DwellAccumulator(s.bounds).to_state())
+    with clear_error("dwell 0 [0, 5000)"):
+        back.push(x[:1000])
+
+
+def test_finish_before_every_dwell_is_pushed_names_the_complete_ones() -> None:
+    from accelcal.sim import field_session
+
+    s = field_session(fs=1000.0, n_dwells=10, dwell_s=5.0, move_s=2.0, rng=2)
+    acc = DwellAccumulator(s.bounds)
+    acc.push(s.samples[:40000])
+    with clear_error("finish needs every dwell complete", "6 [42000, 47000)",
+                     "9 [63000, 68000) out of range of the 40000 samples", "0 [0, 5000)",
+                     "and 2 more complete", "push the rest"):
+        acc.finish()
+    acc.push(s.samples[40000:])  # unchanged: the rest completes it
+    assert_same(acc.finish(), dwell_stats(s.samples, s.bounds))
+
+
+# ---- sample times against fs -------------------------------------------------------------
+def _field() -> Any:
+    from accelcal.sim import field_session
+
+    return field_session(fs=1000.0, n_dwells=6, dwell_s=4.0, move_s=2.0, rng=3)
+
+
+def _mid_times(t: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """The simulated dwells' mid times (first and last sample of each)."""
+    return 0.5 * (t[bounds[:, 0]] + t[bounds[:, 1] - 1])
+
+
+@pytest.mark.parametrize(("factor", "unit"), [(1e3, "ms"), (1e6, "us"), (1e9, "ns")])
+def test_times_in_other_units_than_fs_are_refused(factor: float, unit: str) -> None:
+    """t in ms beside fs in Hz gave dwell times in the thousands with durations of ~4 s: a
+    drift per hour 1000 times wrong downstream."""
+    s = _field()
+    good = detect_dwells(s.samples, s.fs, t=s.t)
+    # In s, the dwell times are the simulated ones (mid times of the true bounds).
+    assert len(good) == len(s.bounds)
+    np.testing.assert_allclose(good.t, _mid_times(s.t, s.bounds), atol=0.5)
+    words = ("fs = 1000 Hz", f"clock in {unit}, not s", f"t / {factor:g}")
+    with clear_error(*words):
+        detect_dwells(s.samples, s.fs, t=s.t * factor)
+    with clear_error(*words):
+        dwell_stats(s.samples, s.bounds, t=s.t * factor, fs=s.fs)
+    for acc in (DwellAccumulator(fs=s.fs), DwellAccumulator(s.bounds, fs=s.fs)):
+        with clear_error(*words, "nothing of this chunk was kept"):
+            push_in_chunks(acc, [10, 4000], s.samples, t=s.t * factor)
+    # Without fs the times are the only clock: nothing to compare them with.
+    assert dwell_stats(s.samples, s.bounds, t=s.t * factor).t is not None
+    # check_times=False takes them as given (a checkpoint keeps the choice).
+    kept = detect_dwells(s.samples, s.fs, t=s.t * factor, check_times=False)
+    np.testing.assert_allclose(kept.t, good.t * factor, rtol=1e-12)
+    acc = DwellAccumulator.from_state(DwellAccumulator(fs=s.fs, check_times=False).to_state())
+    push_in_chunks(acc, [10, 4000], s.samples, t=s.t * factor)
+    assert_same(acc.finish(), kept)
+    with clear_error("1/3 of a sample interval", "fs = 1000 Hz"):
+        detect_dwells(s.samples, s.fs, t=s.t / 60.0)  # minutes
+
+
+def test_times_that_never_advance_or_run_backwards_are_refused() -> None:
+    s = _field()
+    with clear_error("t holds the same time (0)", "every one of the"):
+        detect_dwells(s.samples, s.fs, t=np.zeros(s.t.size))
+    with clear_error("t holds the same time"):
+        dwell_stats(s.samples, s.bounds, t=np.full(s.t.size, 7.0))
+    with clear_error("steps back", "reversed"):
+        detect_dwells(s.samples, s.fs, t=s.t[::-1].copy())
+    acc = DwellAccumulator(fs=s.fs)
+    with clear_error("t holds the same time", "nothing of this chunk"):
+        push_in_chunks(acc, [5, 100], s.samples, t=np.zeros(s.t.size))
+    assert acc.position == 5  # the first chunk, too short to judge, was kept
+
+
+def test_a_clock_step_back_warns_and_chunks_agree_with_one_push() -> None:
+    """A step back (a clock reset) is kept with a TimeStepWarning, as read_stream keeps it
+    with a note; the interval across a chunk boundary counts, so chunked == one push."""
+    from accelcal.dwell import TimeStepWarning
+
+    s = _field()
+    t = s.t.copy()
+    cut = int(s.bounds[3, 0]) - 300  # in the move before dwell 3
+    t[cut:] -= 100.0
+    with pytest.warns(TimeStepWarning, match=rf"steps back 1 time\(s\) \(the first at row {cut}"):
+        one = detect_dwells(s.samples, s.fs, t=t)
+    assert len(one) == len(s.bounds)
+    np.testing.assert_allclose(one.t[3:], _mid_times(s.t, s.bounds[3:]) - 100.0, atol=0.5)
+    acc = DwellAccumulator(fs=s.fs)
+    with pytest.warns(TimeStepWarning, match=rf"the first at row {cut}, by 99.999 s"):
+        push_in_chunks(acc, [1000, cut, cut + 7], s.samples, t=t)  # the step on a boundary
+    assert_same(acc.finish(), one)
+    with pytest.warns(TimeStepWarning, match=rf"row {cut}"):
+        by_bounds = dwell_stats(s.samples, s.bounds, t=t, fs=s.fs)
+    acc_b = DwellAccumulator(s.bounds, fs=s.fs)
+    with pytest.warns(TimeStepWarning):
+        push_in_chunks(acc_b, [cut], s.samples, t=t)
+    assert_same(acc_b.finish(), by_bounds)
+    # The checkpoint keeps the last time: a resumed stream sees the step across it.
+    acc_c = DwellAccumulator(fs=s.fs)
+    acc_c.push(s.samples[:cut], t=t[:cut])
+    resumed = DwellAccumulator.from_state(acc_c.to_state())
+    with pytest.warns(TimeStepWarning, match=rf"row {cut}"):
+        resumed.push(s.samples[cut:], t=t[cut:])
+    assert_same(resumed.finish(), one)

@@ -560,3 +560,51 @@ def test_cli_gradiometer_radians_and_misfit(tmp_path):
 
     out = json.loads(r.output)
     assert out["chi2_p"] < 1e-3 and "exceed the noise model" in out["warnings"][0]
+
+
+def test_phase_in_degrees_is_refused_and_radians_recover_the_truth() -> None:
+    """The explorer's case: the phase passed in degrees gave inline ~[0.1 0.2 -0.2 1.4] E
+    (truth [52 -13 -28 37]) without a word. A wrapped phase whose wraps make 360 and whose
+    values exceed 2 pi, or a phase stepping more than pi per sample, is refused."""
+    s = gradiometer_session([0, 45, 90, 135], noise_mps2=1e-8, fs=400.0, dwell_s=20.0, seed=1)
+    truth = s.truth.channels_E
+    wrapped = np.mod(s.phase, 2 * np.pi)
+    for ph in (s.phase, wrapped, wrapped - np.pi):  # radians, continuous or wrapped
+        d = accelcal.demodulate(s.accel, ph, s.bounds, radius_m=s.radius_m)
+        assert np.all(np.abs(d.outputs - truth) < 4 * d.std), (d.outputs, truth)
+    for deg in (np.degrees(wrapped), np.degrees(wrapped) - 180.0,
+                np.degrees(np.mod(-s.phase, 2 * np.pi))):  # [0, 360), [-180, 180), reversed
+        with pytest.raises(CalibrationError, match=r"looks like degrees, not radians.*"
+                           r"wraps around.*np\.radians\(phase\).*check_units=False"):
+            accelcal.demodulate(s.accel, deg, s.bounds, radius_m=s.radius_m)
+    # The opt-out demodulates as told: the wrong answer the check prevents.
+    bad = accelcal.demodulate(s.accel, np.degrees(wrapped), s.bounds, radius_m=s.radius_m,
+                              check_units=False)
+    assert np.all(np.abs(bad.inline_E - truth[:, 0]) > 10.0)
+    cal = accelcal.StartupCalibration(radius_m=s.radius_m)
+    a0, a1 = s.bounds[0]
+    with pytest.raises(CalibrationError, match="degrees"):
+        cal.record_raw(0.0, s.accel[a0:a1], np.degrees(wrapped[a0:a1]))
+    assert len(cal) == 0
+
+
+def test_coarse_phase_in_degrees_is_refused() -> None:
+    # 40 samples a turn: 9 deg per sample, more than half a turn per sample read as radians.
+    s = gradiometer_session([0, 45, 90, 135], fs=20.0, spin_hz=0.5, dwell_s=40.0,
+                            slew_s=4.0, seed=3)
+    d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m)
+    np.testing.assert_allclose(d.outputs, s.truth.channels_E, atol=1e-6)
+    with pytest.raises(CalibrationError, match=r"advances 9 per sample.*40 samples per turn"):
+        accelcal.demodulate(s.accel, np.degrees(s.phase), s.bounds, radius_m=s.radius_m)
+
+
+def test_sigma_of_the_wrong_shape_is_named_as_given() -> None:
+    # It used to say "got (8,)" for the (4, 2) array given (flattened before the message).
+    rng = np.random.default_rng(2)
+    y = model(BAL, [12.0, -7.0], [40.0, -25.0]) + rng.normal(0, 0.05, (4, 2))
+    with pytest.raises(CalibrationError, match=r"shape \(4,\).*got shape \(4, 2\)"):
+        accelcal.startup_bias(BAL, y, sigma=np.full((4, 2), 0.05))
+    # A column of one std per azimuth is still read as such, and recovers the truth.
+    col = accelcal.startup_bias(BAL, y, sigma=np.full((4, 1), 0.05))
+    np.testing.assert_array_equal(col.std, accelcal.startup_bias(BAL, y, sigma=0.05).std)
+    assert np.all(np.abs(col.bias - [12.0, -7.0]) < 4 * col.bias_std)

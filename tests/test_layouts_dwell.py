@@ -44,6 +44,10 @@ def counts(seed: int = 5, fs: float = 100.0) -> np.ndarray:
 X = counts()
 N = X.shape[0]
 T = np.arange(N, dtype=np.float64)  # whole numbers: exact in every dtype
+# T counts samples, so the rate is 1 sample per unit of T (fs = 1) and the detector settings
+# are in samples (those of 1 s, 0.1 s and 0.02 s at 100 Hz): t must agree with fs.
+SAMPLE_UNITS: dict[str, float] = {"window_s": 100.0, "min_dwell_s": 100.0, "trim_s": 10.0,
+                                  "block_s": 2.0}
 TEMP = np.round(np.linspace(10, 30, N))
 BOUNDS = np.array([[20, 300], [500, 800], [1000, 1001 + 64], [1500, 1780]])
 VARIANTS = dict(layout_variants(X))
@@ -54,21 +58,21 @@ TEMP_VARIANTS = dict(layout_variants(TEMP))
 @pytest.fixture(scope="module")
 def ref() -> dict[str, DwellSet]:
     return {
-        "stats": dwell_stats(X, BOUNDS, t=T, temperature=TEMP, fs=100.0),
-        "detect": detect_dwells(X, 100.0, t=T, temperature=TEMP),
+        "stats": dwell_stats(X, BOUNDS, t=T, temperature=TEMP, fs=1.0),
+        "detect": detect_dwells(X, 1.0, **SAMPLE_UNITS, t=T, temperature=TEMP),
     }
 
 
 @pytest.mark.parametrize("layout", LAYOUT_NAMES)
 def test_dwell_stats_any_layout(layout: str, ref: dict[str, DwellSet]) -> None:
     got = dwell_stats(VARIANTS[layout], BOUNDS, t=CH_VARIANTS[layout],
-                      temperature=TEMP_VARIANTS[layout], fs=100.0)
+                      temperature=TEMP_VARIANTS[layout], fs=1.0)
     assert_same(got, ref["stats"])
 
 
 @pytest.mark.parametrize("layout", LAYOUT_NAMES)
 def test_detect_dwells_any_layout(layout: str, ref: dict[str, DwellSet]) -> None:
-    got = detect_dwells(VARIANTS[layout], 100.0, t=CH_VARIANTS[layout],
+    got = detect_dwells(VARIANTS[layout], 1.0, **SAMPLE_UNITS, t=CH_VARIANTS[layout],
                         temperature=TEMP_VARIANTS[layout])
     assert len(got) == 5
     assert_same(got, ref["detect"])
@@ -77,7 +81,8 @@ def test_detect_dwells_any_layout(layout: str, ref: dict[str, DwellSet]) -> None
 @pytest.mark.parametrize("layout", LAYOUT_NAMES)
 @pytest.mark.parametrize("mode", ["bounds", "detect"])
 def test_accumulator_any_layout(layout: str, mode: str, ref: dict[str, DwellSet]) -> None:
-    acc = DwellAccumulator(BOUNDS, fs=100.0) if mode == "bounds" else DwellAccumulator(fs=100.0)
+    acc = DwellAccumulator(BOUNDS, fs=1.0) if mode == "bounds" else DwellAccumulator(
+        fs=1.0, **SAMPLE_UNITS)
     x, t, temp = VARIANTS[layout], CH_VARIANTS[layout], TEMP_VARIANTS[layout]
     for a, b in [(0, 333), (333, 334), (334, 1200), (1200, N)]:
         # Chunks of the layout variant itself (a DataFrame is sliced as a DataFrame).
@@ -104,7 +109,7 @@ BOUND_LAYOUTS: list[tuple[str, Any]] = [
 
 @pytest.mark.parametrize(("name", "bounds"), BOUND_LAYOUTS)
 def test_bounds_any_layout(name: str, bounds: Any, ref: dict[str, DwellSet]) -> None:
-    assert_same(dwell_stats(X, bounds, t=T, temperature=TEMP, fs=100.0), ref["stats"])
+    assert_same(dwell_stats(X, bounds, t=T, temperature=TEMP, fs=1.0), ref["stats"])
 
 
 @pytest.mark.parametrize("layout", LAYOUT_NAMES)

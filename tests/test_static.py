@@ -395,8 +395,10 @@ def test_every_layout_gives_the_c_ordered_answer(layout):
     np.testing.assert_array_equal(got.vector, want.vector)
     b3 = np.stack([s.means, s.means[::-1]])
     xb = conv(b3) if layout != "strided" else np.repeat(b3, 2, axis=1)[:, ::2]
-    wantb = ac.fit_static_batch(np.ascontiguousarray(np.asarray(xb, dtype=np.float64)), g)
-    np.testing.assert_array_equal(ac.fit_static_batch(xb, g).params, wantb.params)
+    wantb = ac.fit_static_batch(np.ascontiguousarray(np.asarray(xb, dtype=np.float64)), g,
+                                check_g=False)
+    np.testing.assert_array_equal(ac.fit_static_batch(xb, g, check_g=False).params,
+                                  wantb.params)
 
 
 def test_threads_give_identical_results():
@@ -874,3 +876,65 @@ def test_a_degenerate_diag_fit_does_not_advise_the_diag_model() -> None:
     with pytest.raises(DegenerateDataError, match=r"cannot determine sz \+ bz/g") as e:
         ac.fit_static(m, 1.0, model="diag", sigma=1e-3)
     assert 'model "diag"' in str(e.value) and 'or fit model "diag"' not in str(e.value)
+
+
+def test_batch_refuses_an_implausible_g_as_fit_static_does() -> None:
+    """fit_static_batch(means[None], 1000.0) used to return 'ok' with scales ~0.011 where
+    fit_static refuses the g; now both refuse it, with the same opt-out."""
+    s = static_dwell_means(18, max_tilt_deg=None, rng=0)
+    with pytest.raises(CalibrationError) as single:
+        ac.fit_static(s.means, 1000.0)
+    with pytest.raises(CalibrationError) as batch:
+        ac.fit_static_batch(s.means[None], 1000.0)
+    assert str(batch.value) == str(single.value)
+    assert "not a plausible local gravity" in str(batch.value) and "check_g=False" in str(
+        batch.value)
+    with pytest.raises(CalibrationError, match=r"g\[1\] \(session 1\): g = 98\.1 is not"):
+        ac.fit_static_batch(np.stack([s.means, s.means]), [s.g_measured, 98.1])
+    # A plausible g fits the truth; check_g=False fits what it is told (scales / 1000 g).
+    ok = ac.fit_static_batch(s.means[None], s.g_measured, sigma=s.sigma)
+    assert ok.state == ["ok"] or ok.state == ["weak"]
+    assert np.all(np.abs(ok.params[0] - s.truth) < 5 * ok.std[0])
+    off = ac.fit_static_batch(s.means[None], 1000.0, check_g=False)
+    np.testing.assert_allclose(off.params[0, :3] * 1000.0 / s.g_measured, ok.params[0, :3],
+                               rtol=1e-3)
+
+
+def test_a_start_with_a_scale_factor_not_positive_is_refused() -> None:
+    """start=[-1, 1, 1, 0...] converged to a mirrored calibration (sx = -1.1, det K < 0)
+    without a word: the norm cannot tell an axis's sign."""
+    s = static_dwell_means(18, max_tilt_deg=None, rng=0)
+    bad = [-1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    for call in (lambda: ac.fit_static(s.means, s.g_measured, start=bad),
+                 lambda: ac.fit_static_batch(s.means[None], s.g_measured, start=bad)):
+        with pytest.raises(CalibrationError, match=r"start: the scale factors.*sx = -1\b.*"
+                           r"mirrored calibration"):
+            call()
+    with pytest.raises(CalibrationError, match=r"sy = 0, sz = nan"):
+        ac.fit_static(s.means, s.g_measured, model="diag", start=[1, 0, np.nan, 0, 0, 0])
+    # A positive start reaches the truth, with det K > 0.
+    f = fit_quiet(s.means, s.g_measured, sigma=s.sigma, start=NOMINAL)
+    assert f.start_source == "user" and np.linalg.det(f.K) > 0
+    assert np.all(np.abs(f.vector - s.truth) < 5 * f.std)
+
+
+def test_an_exact_fit_claims_no_reduction_of_the_norm_scatter() -> None:
+    """Six dwells, six parameters: the fit passes through every dwell, and the summary said
+    "std(|a| - g) reduced by 100.0 %" right above "no redundancy". Now n/a, with the reason;
+    a fit with redundancy still says how far the scatter went down."""
+    import warnings
+
+    from accelcal.sim.static import static_dwell_means
+
+    truth = [1.01, 0.99, 1.02, 0.01, -0.02, 0.03, 0, 0, 0]
+    s = static_dwell_means(6, truth, 9.80665, sigma=1e-3, max_tilt_deg=None, rng=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ac.WeakDesignWarning)
+        exact = ac.fit_static(s.means, 9.80665, model="diag", sigma=1e-3)
+    assert exact.dof == 0
+    text = exact.summary()
+    assert "reduction: n/a (no redundancy: the fit passes through every dwell)" in text
+    assert "reduced by" not in text
+    s = static_dwell_means(20, truth, 9.80665, sigma=1e-3, max_tilt_deg=None, rng=1)
+    more = ac.fit_static(s.means, 9.80665, model="diag", sigma=1e-3).summary()
+    assert re.search(r"std\(\|a\| - g\) reduced by \d+\.\d %", more), more

@@ -225,3 +225,21 @@ def test_a_hand_edited_unit_and_a_bom_are_handled(tmp_path):
     bom = tmp_path / "bom.json"
     bom.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
     np.testing.assert_array_equal(ac.TriadModel.load(bom).K, m.K)
+
+
+def test_apply_an_empty_chunk_gives_an_empty_result(fitted):
+    """Streaming code applies a calibration chunk by chunk and may read nothing: (0, 3) in
+    gives (0, 3) float64 out (it raised "raw are empty"), and chunks with an empty one among
+    them give the calibrated truth of the whole."""
+    s = static_dwell_means(20, max_tilt_deg=None, rng=14)
+    tm = fitted.to_model()
+    for dtype in (np.float64, np.float32, np.int16):
+        out = tm.apply(np.zeros((0, 3), dtype=dtype))
+        assert out.shape == (0, 3) and out.dtype == np.float64
+    parts = [tm.apply(s.means[:5]), tm.apply(s.means[5:5]), tm.apply(s.means[5:])]
+    got = np.vstack(parts)
+    np.testing.assert_array_equal(got, tm.apply(s.means))
+    # The calibrated means are the simulated specific force, to a few noise std.
+    assert np.max(np.abs(got - s.force)) < 6 * s.sigma
+    with pytest.raises(CalibrationError, match="raw"):
+        tm.apply(np.zeros((0, 3), dtype=bool))

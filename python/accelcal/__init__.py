@@ -28,7 +28,14 @@ from .design import (
     predict_accuracy,
     predict_startup_accuracy,
 )
-from .dwell import DetectorSettings, DwellAccumulator, DwellSet, detect_dwells, dwell_stats
+from .dwell import (
+    DetectorSettings,
+    DwellAccumulator,
+    DwellSet,
+    TimeStepWarning,
+    detect_dwells,
+    dwell_stats,
+)
 from .fleet import FleetReport, calibrate_many, fleet_report
 from .gap import (
     GapReport,
@@ -74,6 +81,7 @@ __all__ = [
     "StartupBias",
     "StartupCalibration",
     "StartupMisfitWarning",
+    "TimeStepWarning",
     "StartupPrediction",
     "calibrate_gradiometer_table",
     "demodulate",

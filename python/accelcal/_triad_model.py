@@ -20,7 +20,7 @@ from . import _core
 from ._core import CalibrationError
 from ._files import atomic_write
 from ._triad import PARAM_NAMES, k_matrix, n_params, vector_from_k
-from ._validate import samples_array
+from ._validate import numeric_array, samples_array
 
 __all__ = ["TriadModel", "dwell_fingerprints", "iso_utc"]
 
@@ -272,10 +272,14 @@ class TriadModel:
     def apply(self, raw: ArrayLike) -> NDArray[np.float64]:
         """Calibrated specific force (N, 3) float64 of raw output (N, 3) (float64, float32,
         int16, int32 read in place; other integer types widened). Stateless per sample, so
-        chunks of a stream can be applied one at a time."""
+        chunks of a stream can be applied one at a time: an empty chunk (0, 3) gives an
+        empty (0, 3) float64 array."""
         a = np.asarray(raw)
         if a.ndim == 1 and a.size == 3:
             return self.apply(a.reshape(1, 3))[0]  # type: ignore[no-any-return]
+        if a.ndim == 2 and a.shape == (0, 3):  # an empty read of a stream
+            numeric_array(a, "raw")  # the dtype still has to be a real number type
+            return np.empty((0, 3), dtype=np.float64)
         s = samples_array(a, "raw")
         return _core.apply_triad_raw(  # type: ignore[no-any-return]
             s, self.K.tolist(), self.bias.tolist()

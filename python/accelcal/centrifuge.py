@@ -553,6 +553,11 @@ def fit_centrifuge(
     out = real_array(outputs, "outputs", "g")
     if out.ndim != 2 or out.shape[1] != 3:
         raise CalibrationError(f"outputs must have shape (k, 3) in g; got {out.shape}")
+    if out.shape[0] == 0:
+        raise CalibrationError(
+            "outputs have no rows (shape (0, 3)): give one mean output per position and speed "
+            "(k, 3) in g, with at least two distinct non-zero speeds"
+        )
     om = real_array(omega, "omega", "rad/s").reshape(-1)
     if om.shape[0] != out.shape[0]:
         raise CalibrationError(

@@ -9,6 +9,19 @@ Non-finite samples (NaN or inf)
     that writes NaN for each missed sample still gives whole dwells), ``DwellSet.start`` and
     ``stop`` still count the rows of the stream as given, and ``DwellSet.dropped`` counts the
     rows left out. The time and temperature channels of the rows kept must be finite.
+
+Sample times ``t`` (s)
+    Checked against the sample rate where both are given (:func:`detect_dwells`,
+    :func:`dwell_stats` with ``fs``, :meth:`DwellAccumulator.push` with ``fs``): when most
+    intervals between the times are over :data:`CLOCK_RATIO` sample intervals ``1 / fs`` and
+    so is their mean (or both under ``1 / CLOCK_RATIO`` of one), a CalibrationError names
+    both and the likely unit (t in ms, us or ns read as s). Times that never advance (all
+    equal), or step back more often than forward, are refused with or without ``fs``. A
+    time that steps back now and then (a clock reset, files joined) is kept as given with a
+    :class:`TimeStepWarning`, as :func:`accelcal.io.read_stream` keeps it with a note. The
+    checks wait for 16 intervals; a :class:`~accelcal.io.Stream`'s own
+    ``t`` is not checked again (read_stream notes what it found), and ``check_times=False``
+    takes ``t`` as given.
 """
 
 from __future__ import annotations
@@ -20,6 +33,7 @@ import json
 import math
 import os
 import threading
+import warnings
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
@@ -37,6 +51,7 @@ __all__ = [
     "DetectorSettings",
     "DwellAccumulator",
     "DwellSet",
+    "TimeStepWarning",
     "detect_dwells",
     "dwell_stats",
 ]
@@ -52,6 +67,143 @@ def _csv_text(v: str) -> str:
 _AXES = ("x", "y", "z")
 _STATE_MAGIC = b"ACCELCAL-DWELL-ACCUMULATOR\n"
 _STATE_VERSION = 3  # 3: a CRC-32 of the rest; 2: the dropout runs of detection (1, 2 read)
+
+
+#: Sample times are refused when their intervals are this many times ``1 / fs`` (or this
+#: many times smaller): most of them and their mean.
+CLOCK_RATIO = 3.0
+#: Intervals between sample times needed before they are judged (a stream pushed in chunks
+#: is judged on the times pushed so far).
+_CLOCK_MIN_STEPS = 16
+
+
+class TimeStepWarning(UserWarning):
+    """Sample times ``t`` step back (a clock reset, recordings joined): they are kept as
+    given, so the dwell times after a step back are on the new clock."""
+
+
+class _Clock:
+    """The running check of per-sample times ``t`` (s) against ``fs``: counts of the
+    intervals, so that a stream pushed in chunks is judged on the same numbers as in one
+    call, with the first and last time (the interval across a chunk boundary counts).
+
+    :meth:`check` returns the state with a chunk added (or raises) without changing this one;
+    the caller keeps it once the chunk is accepted."""
+
+    FIELDS = ("first", "last", "steps", "pos", "long", "short", "back", "warned")
+    __slots__ = FIELDS
+
+    def __init__(self, state: list[Any] | None = None) -> None:
+        self.first: float | None = None
+        self.last: float | None = None
+        self.steps = self.pos = self.long = self.short = self.back = 0
+        self.warned = False
+        if state is not None:
+            (self.first, self.last, self.steps, self.pos, self.long, self.short, self.back,
+             self.warned) = state
+
+    def state(self) -> list[Any]:
+        return [getattr(self, k) for k in self.FIELDS]
+
+    @staticmethod
+    def valid_state(v: Any) -> bool:
+        return isinstance(v, list) and len(v) == len(_Clock.FIELDS) and all(
+            (x is None or isinstance(x, float)) for x in v[:2]) and all(
+            type(x) is int and x >= 0 for x in v[2:7]) and isinstance(v[7], bool)
+
+    def check(self, t: NDArray[np.float64] | None, fs: float | None, row0: int = 0
+              ) -> tuple[_Clock, str | None]:
+        """``(state with t added, warning text or None)``; a CalibrationError when the times
+        cannot be sample times at ``fs``. ``row0`` is the stream row of ``t[0]``;
+        non-finite times are left to the core."""
+        if t is None or t.size == 0:
+            return self, None
+        rows = None
+        if not math.isfinite(float(np.add.reduce(t))):  # one sum when every time is finite
+            rows = np.flatnonzero(np.isfinite(t))
+        v = t if rows is None else t[rows]
+        new = _Clock(self.state())
+        if v.size == 0:
+            return new, None
+        d = v[1:] - v[:-1]
+        if self.last is None:
+            new.first = float(v[0])
+            lo = hi = math.nan
+        else:  # the interval across the chunk boundary
+            lo = hi = float(v[0]) - self.last
+        new.last = float(v[-1])
+        n = d.size + (self.last is not None)
+        new.steps += n
+        dt = None if fs is None else 1.0 / fs
+        nback = 0
+        if d.size:
+            lo, hi = float(np.fmin(d.min(), lo)), float(np.fmax(d.max(), hi))
+        if n and lo > 0 and (dt is None or (lo >= dt / CLOCK_RATIO and hi <= CLOCK_RATIO * dt)):
+            new.pos += n  # the common case: every interval about 1 / fs
+        elif n:
+            if self.last is not None:
+                d = np.concatenate(([float(v[0]) - self.last], d))
+            new.pos += int(np.count_nonzero(d > 0))
+            nback = int(np.count_nonzero(d < 0))
+            new.back += nback
+            if dt is not None:
+                new.long += int(np.count_nonzero(d > CLOCK_RATIO * dt))
+                new.short += int(np.count_nonzero((d > 0) & (d < dt / CLOCK_RATIO)))
+        warn = None
+        if nback and not self.warned:
+            i = int(np.flatnonzero(d < 0)[0])
+            at = i + (0 if self.last is not None else 1)  # index in v of the row after it
+            row = row0 + (at if rows is None else int(rows[at]))
+            new.warned = True
+            warn = (
+                f"t steps back {nback} time(s) (the first at row {row}, by "
+                f"{float(-d[i]):.6g} s): a clock reset or recordings joined? Kept as given: "
+                "the dwell times after a step back are on the new clock"
+            )
+        if new.steps < _CLOCK_MIN_STEPS:
+            return new, warn
+        if new.pos == 0 and new.back == 0:
+            raise CalibrationError(
+                f"t holds the same time ({new.first:g}) in every one of the {new.steps + 1} "
+                "rows: not a clock (a logger's clock never set?); give the sample times in s, "
+                "or no t" + (" (fs gives the dwell times)" if fs is not None else "")
+            )
+        if new.back >= new.pos:
+            raise CalibrationError(
+                f"t steps back in {new.back} of its {new.steps} intervals and forward in "
+                f"{new.pos}: sample times must increase (reversed or shuffled rows?)"
+            )
+        assert new.first is not None and new.last is not None
+        if dt is not None:
+            mean = (new.last - new.first) / new.steps
+            ratio = mean / dt
+            if 2 * new.long > new.pos and ratio > CLOCK_RATIO:
+                unit = next(((u, f) for u, f in (("ms", 1e3), ("us", 1e6), ("ns", 1e9))
+                             if 0.5 * f <= ratio <= 2.0 * f), None)
+                why = (f"t looks like a clock in {unit[0]}, not s: give t / {unit[1]:g}"
+                       if unit else "check the unit of t (s) and the rate fs (Hz)")
+                raise CalibrationError(
+                    f"t advances {mean:.4g} per sample on average ({new.long} of {new.pos} "
+                    f"intervals over {CLOCK_RATIO:g} sample intervals) where fs = {fs:g} Hz "
+                    f"means {dt:.4g} s: {ratio:.4g} sample intervals; {why}. Dwell times "
+                    "and durations would disagree by that factor"
+                )
+            if 2 * new.short > new.pos and ratio < 1.0 / CLOCK_RATIO:
+                raise CalibrationError(
+                    f"t advances {mean:.4g} per sample on average ({new.short} of {new.pos} "
+                    f"intervals under 1/{CLOCK_RATIO:g} of a sample interval) where fs = "
+                    f"{fs:g} Hz means {dt:.4g} s: {ratio:.4g} sample intervals; check the "
+                    "unit of t (s; in minutes or hours?) and the rate fs (Hz). Dwell times "
+                    "and durations would disagree by that factor"
+                )
+        return new, warn
+
+
+def _check_times(t: NDArray[np.float64] | None, fs: float | None) -> None:
+    """:class:`_Clock`'s check of a whole stream's times (a warning for steps back)."""
+    _, warn = _Clock().check(t, fs)
+    if warn is not None:
+        warnings.warn(warn, TimeStepWarning, stacklevel=3)
 
 
 def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> NDArray[np.float64]:
@@ -754,6 +906,7 @@ def dwell_stats(
     temperature: ArrayLike | None = None,
     fs: float | None = None,
     units: str = "",
+    check_times: bool = True,
 ) -> DwellSet:
     """Per-dwell mean, variance (ddof = 1), count, half-dwell means and Allan noise inflation
     over ``[start, stop)`` bounds, in one pass.
@@ -770,17 +923,26 @@ def dwell_stats(
     temperature : (N,) float, optional
         Temperature per sample; each dwell gets its mean.
     fs : float, optional
-        Sample rate in Hz (gives dwell times when ``t`` is absent).
+        Sample rate in Hz (gives dwell times when ``t`` is absent; with ``t``, checked
+        against it).
 
-    A dwell containing NaN or inf samples is refused (see the module notes).
+    check_times : bool
+        Check ``t`` (module notes); False takes it as given (a clock in other units on
+        purpose).
+
+    A dwell containing NaN or inf samples is refused (see the module notes), and so are
+    times ``t`` that do not advance or disagree with ``fs`` (module notes: a CalibrationError
+    naming both and the likely unit of ``t``); times that step back now and then give a
+    :class:`TimeStepWarning`.
     """
     s = samples_array(samples)
     b = bounds_array(bounds)
     n = s.shape[0]
     fsv = None if fs is None else positive(fs, "fs", " (Hz)")
-    d = _core.dwell_stats_raw(
-        s, b, channel(t, n, "t"), channel(temperature, n, "temperature")
-    )
+    tc = channel(t, n, "t")
+    if check_times:
+        _check_times(tc, fsv)
+    d = _core.dwell_stats_raw(s, b, tc, channel(temperature, n, "temperature"))
     return _from_raw(d, fsv, units)
 
 
@@ -865,6 +1027,7 @@ def detect_dwells(
     temperature: ArrayLike | None = None,
     settings: DetectorSettings | None = None,
     units: str = "",
+    check_times: bool = True,
     **kw: Any,
 ) -> DwellSet:
     """Find the static intervals of a stream and return their statistics.
@@ -884,11 +1047,20 @@ def detect_dwells(
 
     Keyword arguments override :class:`DetectorSettings` fields (``window_s=0.5`` ...).
 
+    ``t`` (N,) gives the sample times in s, checked against ``fs`` (see the module notes): a
+    clock in other units (ms, us, ns) or one that never advances is refused, one that steps
+    back now and then warns (:class:`TimeStepWarning`). A Stream's own ``t`` is not checked
+    again (:func:`accelcal.io.read_stream` notes what it found); ``check_times=False`` takes
+    ``t`` as given.
+
     Raises
     ------
     DegenerateDataError
         When no static dwell is found (the message gives the noise level and the settings).
+    CalibrationError
+        Bad input, or sample times ``t`` that disagree with ``fs`` or do not advance.
     """
+    t_given = t is not None
     samples, fs, t, temperature, units = stream_fields(samples, fs, t, temperature, units)
     s = samples_array(samples)
     if fs is None:
@@ -898,6 +1070,8 @@ def detect_dwells(
     st = DetectorSettings.merged(settings, kw)
     n = s.shape[0]
     tc, temp = channel(t, n, "t"), channel(temperature, n, "temperature")
+    if t_given and check_times:
+        _check_times(tc, fsv)
     drops = _Dropouts()
     if s.dtype.kind == "f":
         # The core counts the rows with NaN or inf as it goes (no extra pass over clean data);
@@ -953,10 +1127,17 @@ class DwellAccumulator:
     return on the concatenated stream (bit for bit, whatever the chunking).
 
     Safe to share between threads (e.g. a GUI thread reading :attr:`position` while another
-    pushes). A push that fails (bad shape, NaN time, ...) keeps nothing of its chunk: the
-    accumulator stays usable with what it held before. It pickles, and :meth:`to_state` /
-    :meth:`from_state` checkpoint a stream mid-dwell so that another process resumes it with
-    bit-identical results.
+    pushes). A push that fails (bad shape, NaN time, NaN or inf samples inside a dwell of
+    the bounds, ...) keeps nothing of its chunk: the accumulator stays usable with what it
+    held before. It pickles, and :meth:`to_state` / :meth:`from_state` checkpoint a stream
+    mid-dwell so that another process resumes it with bit-identical results.
+
+    Sample times ``t`` are checked as :func:`detect_dwells` checks them (module notes), on
+    the times pushed so far: the interval from the last time of one chunk to the first of
+    the next counts, so chunks are judged as the stream in one push would be (a
+    disagreement with ``fs`` is refused at the push that shows it, once 16 intervals are
+    in). A step back warns once per accumulator. ``check_times=False`` takes the times as
+    given (times already checked, as :func:`accelcal.io.read_stream` checks and notes them).
     """
 
     def __init__(
@@ -966,16 +1147,21 @@ class DwellAccumulator:
         fs: float | None = None,
         settings: DetectorSettings | None = None,
         units: str = "",
+        check_times: bool = True,
         **kw: Any,
     ) -> None:
         self.fs = None if fs is None else positive(fs, "fs", " (sample rate in Hz)")
+        self.check_times = bool(check_times)
         if not isinstance(units, str):
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
         self._drops = _Dropouts()
+        self._clock = _Clock()
+        self._bounds: NDArray[np.int64] | None = None
         self._lock = threading.Lock()
         if bounds is not None:
-            self._raw = _core.RawDwellAccumulator(bounds=bounds_array(bounds))
+            self._bounds = bounds_array(bounds)
+            self._raw = _core.RawDwellAccumulator(bounds=self._bounds)
             self.mode = "bounds"
         elif self.fs is not None:
             st = DetectorSettings.merged(settings, kw)
@@ -996,11 +1182,15 @@ class DwellAccumulator:
         t: ArrayLike | None = None,
         temperature: ArrayLike | None = None,
     ) -> None:
-        """Add a chunk (m, 3) of samples (and optional per-sample t, temperature).
+        """Add a chunk (m, 3) of samples (and optional per-sample t in s, temperature).
 
         On error nothing of the chunk is kept: the accumulator holds what it held before the
-        call, stays usable, and the message says so.
+        call, stays usable, and the message says so. With bounds, a chunk with NaN or inf
+        samples inside a dwell is refused here (outside every dwell they are harmless);
+        with detection they are dropouts (module notes). Times ``t`` that disagree with
+        ``fs`` or do not advance are refused; a step back warns (:class:`TimeStepWarning`).
         """
+        warn = None
         try:
             a = numeric_array(chunk, "chunk")
             if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
@@ -1008,40 +1198,98 @@ class DwellAccumulator:
             c = samples_array(a, "chunk")
             m = c.shape[0]
             tc, temp = channel(t, m, "t"), channel(temperature, m, "temperature")
-            ok = _Dropouts.finite_rows(c) if self.mode == "detect" else None
-            if ok is not None:  # dropouts: left out of the stream the detector sees
+            ok = _Dropouts.finite_rows(c)
+            if self.mode == "detect" and ok is not None:
+                # dropouts: left out of the stream the detector sees
                 c = c[ok]
                 tc = None if tc is None else tc[ok]
                 temp = None if temp is None else temp[ok]
             with self._lock:
                 at = int(self._raw.position) + self._drops.n
+                if self.mode == "bounds" and ok is not None:
+                    self._refuse_nonfinite_in_dwells(ok, at)
+                clock, warn = (self._clock.check(tc, self.fs, at) if self.check_times
+                               else (self._clock, None))
                 if c.shape[0]:
                     self._raw.push(c, tc, temp)
-                if ok is not None:
+                self._clock = clock
+                if self.mode == "detect" and ok is not None:
                     self._drops.add(ok, at)
         except CalibrationError as e:
             raise type(e)(
                 f"{e} (nothing of this chunk was kept: the accumulator still holds the "
                 f"{self.position} samples pushed before and stays usable)"
             ) from None
+        if warn is not None:
+            warnings.warn(warn, TimeStepWarning, stacklevel=2)
+
+    def _refuse_nonfinite_in_dwells(self, ok: NDArray[np.bool_], at: int) -> None:
+        """A CalibrationError, as :func:`dwell_stats` words it, when a row of the chunk
+        starting at stream row ``at`` that ``ok`` leaves out lies inside a dwell of the
+        bounds (a state written before the bounds were kept cannot tell: the dwell is then
+        refused at :meth:`finish`)."""
+        if self._bounds is None:
+            return
+        bad = np.flatnonzero(~ok) + at
+        lo = np.searchsorted(bad, self._bounds[:, 0], side="left")
+        hi = np.searchsorted(bad, self._bounds[:, 1], side="left")
+        hit = np.flatnonzero(hi > lo)
+        if hit.size:
+            k = int(hit[0])
+            b0, b1 = (int(v) for v in self._bounds[k])
+            raise CalibrationError(
+                f"samples contain NaN or inf in dwell {k} [{b0}, {b1}): "
+                f"{int(hi[k] - lo[k])} row(s) in this chunk, the first at sample "
+                f"{int(bad[lo[k]])}; a dwell given by bounds must be complete (cut it out of "
+                "the bounds, or use DwellAccumulator(fs=...), whose detection treats "
+                "non-finite samples as dropouts)"
+            )
 
     def finish(self) -> DwellSet:
-        """The dwell table of everything pushed so far (the accumulator stays usable)."""
+        """The dwell table of everything pushed so far (the accumulator stays usable).
+
+        With bounds, every dwell must be complete (its ``stop`` pushed): before that a
+        CalibrationError names the dwells complete and those still waiting for samples
+        (push the rest and call again). Detection takes what has been pushed.
+        """
         with self._lock:
             drops = _Dropouts([list(r) for r in self._drops.runs])
             n = int(self._raw.position) + drops.n
             try:
                 raw = self._raw.finish()
             except CalibrationError as e:
-                raise drops.explain(e, n) from None
+                raise self._incomplete(n) or drops.explain(e, n) from None
         return _from_raw(raw, self.fs, self.units, drops)
+
+    def _incomplete(self, n: int) -> CalibrationError | None:
+        """With bounds beyond the ``n`` samples pushed: the error naming the dwells complete
+        and those that are not; None otherwise."""
+        b = self._bounds
+        if b is None or int(b[:, 1].max()) <= n:
+            return None
+        done = np.flatnonzero(b[:, 1] <= n)
+        wait = np.flatnonzero(b[:, 1] > n)
+
+        def some(ix: NDArray[np.intp]) -> str:
+            words = [f"{int(i)} [{int(b[i, 0])}, {int(b[i, 1])})" for i in ix[:4]]
+            return ", ".join(words) + (f" and {ix.size - 4} more" if ix.size > 4 else "")
+
+        have = (f"dwell(s) {some(done)} complete" if done.size else "no dwell complete yet")
+        return CalibrationError(
+            f"with bounds, finish needs every dwell complete: dwell(s) {some(wait)} out of "
+            f"range of the {n} samples pushed so far (the bounds reach sample "
+            f"{int(b[:, 1].max())}), {have}; push the rest of the stream and call finish "
+            "again (the accumulator is unchanged)"
+        )
 
     # ---- checkpoints ----------------------------------------------------------------------
     def to_state(self) -> bytes:
         """The complete state as bytes (versioned; the core's state plus ``fs`` and units)."""
         with self._lock:
             meta = {"version": _STATE_VERSION, "fs": self.fs, "units": self.units,
-                    "mode": self.mode, "dropouts": self._drops.runs}
+                    "mode": self.mode, "dropouts": self._drops.runs,
+                    "clock": self._clock.state(), "check_times": self.check_times,
+                    "bounds": None if self._bounds is None else self._bounds.tolist()}
             raw = self._raw.to_state()
             meta["crc32"] = _state_crc(meta, raw)
             return _STATE_MAGIC + json.dumps(meta).encode() + b"\n" + raw
@@ -1060,6 +1308,8 @@ class DwellAccumulator:
             meta = json.loads(head)
             version, fs, units, mode = meta["version"], meta["fs"], meta["units"], meta["mode"]
             runs = meta.get("dropouts", []) if version >= 2 else []
+            clock, bounds = meta.get("clock"), meta.get("bounds")  # absent from older states
+            check_times = meta.get("check_times", True)
         except (ValueError, KeyError, TypeError, AttributeError):
             raise CalibrationError("not a DwellAccumulator state (bad header)") from None
         if version not in (1, 2, _STATE_VERSION):
@@ -1075,6 +1325,11 @@ class DwellAccumulator:
             isinstance(runs, list) and all(
                 isinstance(r, list) and len(r) == 2 and all(
                     type(v) is int and v >= 0 for v in r) for r in runs)
+        ) or not (clock is None or _Clock.valid_state(clock)) or not isinstance(
+            check_times, bool) or not (
+            bounds is None or (mode == "bounds" and isinstance(bounds, list) and bounds and all(
+                isinstance(r, list) and len(r) == 2 and all(type(v) is int for v in r)
+                for r in bounds))
         ):
             raise CalibrationError("not a DwellAccumulator state (bad header)")
         self = cls.__new__(cls)
@@ -1082,6 +1337,9 @@ class DwellAccumulator:
         self.units = units
         self.mode = mode
         self._drops = _Dropouts(runs)
+        self._clock = _Clock(clock)
+        self.check_times = check_times
+        self._bounds = None if bounds is None else np.asarray(bounds, dtype=np.int64)
         self._lock = threading.Lock()
         self._raw = _core.RawDwellAccumulator.from_state(raw)
         return self

@@ -108,9 +108,13 @@ def _dwell_std(sigma: Any, m: int) -> _F64:
     s = real_array(sigma, "sigma", "E")
     if s.ndim == 0:
         s = np.full(m, float(s))
-    s = s.reshape(-1)
-    if s.shape != (m,):
-        raise CalibrationError(f"sigma must be a number or have shape ({m},); got {s.shape}")
+    if s.ndim > 1 and s.size == m and max(s.shape) == m:  # a column or a row of m
+        s = s.reshape(-1)
+    if s.shape != (m,):  # named as given: an (m, 2) array is not m numbers
+        raise CalibrationError(
+            f"sigma must be a number or have shape ({m},) (one noise std per azimuth, E); "
+            f"got shape {s.shape}"
+        )
     if not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise CalibrationError(
             f"sigma must be positive and finite (E, noise std of an average); got {sigma!r}"
@@ -468,6 +472,48 @@ def _accel(x: ArrayLike) -> NDArray[Any]:
     return a
 
 
+#: A wrap period within this fraction of 360 (the wrap jumps plus one step) is degrees.
+_PHASE_PERIOD_TOL = 0.05
+
+
+def _phase_in_degrees(ph: _F64) -> str | None:
+    """Why the spin phase ``ph`` (meant in radians) plainly is in degrees, or None: see
+    :func:`demodulate` (Raises) for the rule. Non-finite values are left to the core."""
+    v = ph[np.isfinite(ph)]
+    if v.size < 3:
+        return None
+    d = np.diff(v)
+    step = float(np.median(d))
+    if step == 0.0 or not math.isfinite(step):
+        return None
+    fix = ("pass np.radians(phase) (or np.deg2rad), or check_units=False if it is in "
+           "radians")
+    span = float(np.ptp(v))
+    back = d[d * step < 0.0]  # steps against the spin: wraps (or glitches)
+    wraps = np.abs(back[np.abs(back) > np.pi])
+    if wraps.size:
+        period = float(np.median(wraps)) + abs(step)
+        if (abs(period - 360.0) <= _PHASE_PERIOD_TOL * 360.0
+                and 2.0 * np.pi * (1.0 + _PHASE_PERIOD_TOL) < span
+                <= 360.0 * (1.0 + _PHASE_PERIOD_TOL)):
+            return (
+                f"the phase looks like degrees, not radians: it wraps around {wraps.size} "
+                f"time(s) by about {float(np.median(wraps)):.4g} (a period of about "
+                f"{period:.4g}, where radians wrap by 2 pi = 6.283) and its values span "
+                f"{span:.4g} (from {float(v.min()):.4g} to {float(v.max()):.4g}; a phase "
+                f"wrapped in radians spans at most 2 pi); {fix}"
+            )
+        return None
+    if np.pi < abs(step) <= 90.0:
+        return (
+            f"the phase looks like degrees, not radians: it advances {abs(step):.4g} per "
+            f"sample (median), which read as radians is more than half a turn per sample "
+            f"(the spin and its 2-omega signal cannot be sampled so) and read as degrees "
+            f"{360.0 / abs(step):.3g} samples per turn; {fix}"
+        )
+    return None
+
+
 def demodulate(
     accel: ArrayLike,
     phase: ArrayLike,
@@ -475,6 +521,7 @@ def demodulate(
     *,
     radius_m: float,
     t: ArrayLike | None = None,
+    check_units: bool = True,
 ) -> Demodulated:
     """Inline and cross channels per dwell by 2-omega demodulation (numerics in Rust).
 
@@ -497,6 +544,20 @@ def demodulate(
         Disc radius R, m.
     t : (N,) float, optional
         Sample times, s (gives each dwell's mid time).
+    check_units : bool
+        Refuse a phase that plainly is in degrees (see Raises); False demodulates it as
+        radians whatever it looks like.
+
+    Raises
+    ------
+    CalibrationError
+        Bad shapes, and with ``check_units`` a phase in degrees: (a) a wrapped phase whose
+        wrap-around jumps plus one step make about 360 (within 5 %) and whose values span
+        more than 2 pi (a phase wrapped in radians spans at most 2 pi), or (b) a phase without
+        wraps that advances more than pi per sample (half a turn or more per sample read as
+        radians; at most 90, 4 samples a turn or more, read as degrees). A continuous phase
+        in degrees sampled finely (under pi per sample) cannot be told from radians by its
+        values and is not refused: pass ``np.radians(phase)``.
     """
     a = _accel(accel)
     n = a.shape[0]
@@ -505,6 +566,10 @@ def demodulate(
         raise CalibrationError(
             f"phase must have shape ({n},) to match accel (rad); got {np.shape(phase)}"
         )
+    if check_units:
+        why = _phase_in_degrees(ph)
+        if why is not None:
+            raise CalibrationError(why)
     b = bounds_array([[0, n]] if bounds is None else bounds)
     r = positive(radius_m, "radius_m", " (m)")
     tv = None
@@ -617,12 +682,15 @@ class StartupCalibration:
         *,
         t: ArrayLike | None = None,
         radius_m: float | None = None,
+        check_units: bool = True,
     ) -> Demodulated:
-        """Demodulate one azimuth's raw ``(N, 4)`` streams (m/s^2) and record the channels."""
+        """Demodulate one azimuth's raw ``(N, 4)`` streams (m/s^2; ``phase`` in rad) and
+        record the channels. ``check_units`` as for :func:`demodulate` (a phase in degrees
+        is refused)."""
         r = radius_m if radius_m is not None else self.radius_m
         if r is None:
             raise CalibrationError("record_raw needs the disc radius (radius_m, m)")
-        dm = demodulate(accel, phase, radius_m=r, t=t)
+        dm = demodulate(accel, phase, radius_m=r, t=t, check_units=check_units)
         tm = None if dm.t is None else float(dm.t[0])
         sem = float(np.sqrt(0.5 * (dm.std_inline_E[0] ** 2 + dm.std_cross_E[0] ** 2)))
         self._add(azimuth_deg, (dm.inline_E[0], dm.cross_E[0]), tm, sem,

@@ -603,7 +603,10 @@ class StaticFit(_core.StaticFit):
         if ns["before"] is not None:
             lines.append(f"  norm before ({ns['before_source']}): " + ns["before"].line())
         lines.append("  norm after:  " + ns["after"].line())
-        if ns["std_reduction_percent"] is not None:
+        if self.dof <= 0:
+            lines.append("  std(|a| - g) reduction: n/a (no redundancy: the fit passes through "
+                         "every dwell)")
+        elif ns["std_reduction_percent"] is not None:
             red = float(ns["std_reduction_percent"])
             lines.append(f"  std(|a| - g) reduced by {red:.1f} %" if red >= 0.05 else
                          f"  std(|a| - g) increased by {-red:.1f} %" if red <= -0.05 else
@@ -709,7 +712,9 @@ def fit_static(
         Without it and without variances the output noise is taken as isotropic and its level
         estimated from the residuals (``noise_model`` says which).
     start : (p,), optional
-        Start of GN/LM (default the quadric solution), e.g. the paper's e0.
+        Start of GN/LM (default the quadric solution), e.g. the paper's e0. Its scale
+        factors ``sx, sy, sz`` must be positive: the norm cannot tell an axis's sign, so a
+        negative one would converge to a mirrored calibration (det K < 0).
     nominal : TriadModel, optional
         Nominal model for the "before" norm statistics.
     observability : "raise" (default), "warn" or "ignore"
@@ -732,7 +737,7 @@ def fit_static(
         Too few dwells, singular or numerically singular pose set, not an ellipsoid.
     CalibrationError
         NaN, bad shapes or options (the message names the argument, value and valid range),
-        implausible g, non-convergence.
+        implausible g, a start with a scale factor not positive, non-convergence.
     """
     if observability not in _OBSERVABILITY:
         raise CalibrationError(
@@ -753,7 +758,7 @@ def fit_static(
     else:
         means, var, noise_model, units = _inputs(data, sigma)
         if start is not None:
-            st = np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+            st = _start(start)
     try:
         fit = StaticFit(  # positional: the fastest call into the constructor
             means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
@@ -772,6 +777,24 @@ def fit_static(
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit
             warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
+
+
+def _start(start: ArrayLike) -> list[float]:
+    """A GN/LM start as a list, refused when a scale factor (its first three entries) is not
+    positive: ``|K^-1 (a - b)|`` is the same with an axis mirrored, so such a start converges
+    to a mirrored calibration (det K < 0) that fits the norms as well. The length and the
+    other values are the core's to check."""
+    v = real_array(start, "start").reshape(-1)
+    sc = v[:3]
+    bad = [f"{n} = {x:g}" for n, x in zip(PARAM_NAMES, sc, strict=False) if not x > 0]
+    if bad:
+        raise CalibrationError(
+            f"start: the scale factors (sx, sy, sz, its first three entries) must be positive; "
+            f"got {', '.join(bad)}. The norm |a| cannot tell an axis's sign, so this start "
+            "would converge to a mirrored calibration (det K < 0) that fits as well: give "
+            "positive scale factors, or no start (the exact quadric solution)"
+        )
+    return v.tolist()  # type: ignore[no-any-return]
 
 
 def fit_quietly(data: DwellSet | ArrayLike, g: float, **kw: Any) -> StaticFit:
@@ -963,6 +986,7 @@ def fit_static_batch(
     degenerate_std: float = 3.0,
     weak_std: float = 1e-3,
     mask: ArrayLike | None = None,
+    check_g: bool = True,
 ) -> BatchFit:
     """Fit B independent sessions of dwell means on all cores.
 
@@ -973,6 +997,10 @@ def fit_static_batch(
     ``status`` (0 ok, 1 degenerate, 2 not converged, 3 invalid input), ``state`` ("ok",
     "weak", "degenerate", "error") and ``messages`` ("session 17: dwell 3 has a NaN mean").
     The interpreter is released during the work; results do not depend on the thread count.
+
+    ``check_g`` (as for :func:`fit_static`) refuses, for the whole batch, a ``g`` that is not
+    a plausible local gravity in m/s^2, g or cm/s^2 (the CalibrationError names the session
+    of a (B,) ``g``); ``start`` is checked as there (positive scale factors).
     """
     if isinstance(means, (list, tuple)):
         m: Any = [_as_means(x, f"session {i}") for i, x in enumerate(means)]
@@ -988,7 +1016,9 @@ def fit_static_batch(
                 f"mask must be boolean (True for the dwells to use); got {mk.dtype}"
             )
     gv: Any = g if np.ndim(g) == 0 else np.asarray(g, dtype=np.float64).reshape(-1).tolist()
-    st = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1).tolist()
+    if check_g:
+        _check_batch_g(gv)
+    st = None if start is None else _start(start)
     return _core.static_fit_batch(
         m,
         gv,
@@ -1001,6 +1031,23 @@ def fit_static_batch(
         weak_std=weak_std,
         mask=mk,
     )
+
+
+def _check_batch_g(gv: Any) -> None:
+    """:func:`fit_static`'s gravity check on a batch's scalar or per-session ``g``; values
+    that are not positive finite numbers are left to the core, which names them."""
+    vals = gv if isinstance(gv, list) else [gv]
+    for i, v in enumerate(vals):
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            return  # not a number: the core says so
+        if not (math.isfinite(x) and x > 0):
+            continue
+        why = _core.gravity_problem(x)
+        if why is not None:
+            where = f"g[{i}] (session {i}): " if isinstance(gv, list) else ""
+            raise CalibrationError(f"{where}{why}")
 
 
 # ------------------------------------------------------------------------------------------
