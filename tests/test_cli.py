@@ -820,3 +820,68 @@ def test_a_file_named_dash_is_not_overwritten_by_dash_output(
     code, out = run("dwells", "./-", "-o", "-")
     assert code == 2 and "would overwrite the recording" in out, out
     assert rec.read_bytes() == before
+
+
+def test_a_clock_in_ms_read_in_s_is_not_offered_a_longer_window(tmp_path: Path) -> None:
+    """softdream's up.txt (t in ms, no header, 2.4 s at 84.5 Hz) read in s gives 0.084 Hz:
+    the error offered "--window 95.07 s or more" beside the right fix (the clock in ms). The
+    unit is now the only advice; and no window longer than the whole recording is offered."""
+    from test_io import six_faces_ms
+
+    joined = tmp_path / "faces.txt"
+    six_faces_ms(joined, np.random.default_rng(3))
+    up = tmp_path / "up.txt"
+    up.write_text("".join(joined.read_text().splitlines(keepends=True)[:207]))
+    code, out = run("calibrate", "static", str(up), "--g", "1")
+    assert code == 2 and "the detector needs at least 8 samples per window;" in out, out
+    assert "name its unit with --time-column (e.g. '0 [ms]')" in out, out
+    assert "else give --window" not in out and " s or more" not in out, out
+    # A rate in Hz that is plausible keeps the advice (a 4 Hz logger: test above) unless the
+    # window it needs is longer than the recording: 5 rows at 2 Hz span 2.5 s, not 4.
+    few = tmp_path / "few.csv"
+    write_csv(few, np.arange(5) * 0.5, np.tile([0.0, 0.0, 1.0], (5, 1)))
+    code, out = run("dwells", str(few))
+    assert code == 2 and "else give --window 4 s or more" not in out, out
+    assert "At 2 Hz a window needs 4 s or more, longer than the whole recording" in out, out
+
+
+def test_apply_says_why_the_time_column_is_not_written(tmp_path: Path) -> None:
+    """softdream's six faces joined (t in ms, the clock restarting at each face): apply wrote
+    ax,ay,az only, with no word of the time column; now a note says why and how to keep it
+    (--time-column '0 [ms]', which writes t_s in s)."""
+    from test_io import six_faces_ms
+
+    p = tmp_path / "faces.txt"
+    table = six_faces_ms(p, np.random.default_rng(4))
+    cal = tmp_path / "cal.json"
+    code, out = run("calibrate", "static", str(p), "--g", "1", "--model", "diag", "-o",
+                    str(cal))
+    assert code == 0, out
+    code, out = run("apply", str(cal), str(p), "-o", str(tmp_path / "out.csv"))
+    assert code == 0, out
+    lines = (tmp_path / "out.csv").read_text().splitlines()
+    assert [ln for ln in lines if not ln.startswith("#")][0] == "ax,ay,az"
+    steps = np.diff(table[:, 0])
+    rate = 1000.0 / np.mean(steps[steps > 0])  # the true rate, Hz, of the clock in ms
+    m = re.search(r"note: no time column \(t_s\) written: the sample rate is unknown .*column 0 "
+                  r"\(0-based\) looks like a clock \(mean step [\d.]+; it steps back 5 times "
+                  r"in the first 1242 rows: joined files\?\): if it is the time in ms "
+                  r"\(([\d.]+) Hz\).*name it with --time-column \(e\.g\. '0 \[ms\]'\) to "
+                  r"write t_s", out)
+    assert m and float(m.group(1)) == pytest.approx(rate, rel=1e-3), out
+    # As the note says: with the unit named, t_s is written, in s.
+    code, out = run("apply", str(cal), str(p), "-o", str(tmp_path / "t.csv"), "--time-column",
+                    "0 [ms]")
+    assert code == 0 and "with t_s" in out and "no time column" not in out, out
+    rows = [ln for ln in (tmp_path / "t.csv").read_text().splitlines() if ln[:1] != "#"]
+    assert rows[0] == "t_s,ax,ay,az"
+    got = np.loadtxt(rows[1:], delimiter=",")
+    assert got.shape == (1242, 4)
+    np.testing.assert_allclose(np.diff(got[:207, 0]), np.diff(table[:207, 0]) / 1000.0,
+                               atol=1e-6)
+    # A file with no clock at all loses none: nothing to say.
+    q = tmp_path / "noclock.csv"
+    np.savetxt(q, table[:, 1:], delimiter=",", header="ax,ay,az", comments="", fmt="%.6f")
+    code, out = run("apply", str(cal), str(q), "-o", str(tmp_path / "q.csv"))
+    assert code == 0 and "wrote 1242 calibrated samples (g) to" in out, out
+    assert "time column" not in out and "note:" not in out, out

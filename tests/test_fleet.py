@@ -616,8 +616,28 @@ def test_a_fleet_of_one_pose_per_file_is_told_to_join_them(tmp_path: Path) -> No
         paths.append(str(write_csv(tmp_path / f"pose{i}.csv", s.t[a:b], s.samples[a:b])))
     code, out = _cli("calibrate", "static", *paths, "--g", str(G0))
     assert code == 1, out
-    assert "accelcal: no recording was calibrated; each recording holds at most 1 dwell: if " \
+    assert "accelcal: no recording was calibrated; each recording holds 1 dwell: if " \
            "they are poses of one sensor, one file per pose, join them" in out, out
+
+
+def test_a_fleet_of_one_pose_per_file_names_the_file_that_holds_none(tmp_path: Path) -> None:
+    """softdream's six faces as a fleet: "each recording holds at most 1 dwell" when right.txt
+    held none (its rest too short for the detector). The counts are now said as they are."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=50.0, n_dwells=6, dwell_s=4.0, move_s=1.0, max_tilt_deg=80.0,
+                      sigma=2e-3, rng=3)
+    paths = []
+    for i, (a, b) in enumerate(s.bounds):
+        if i == 4:  # a rest of 2 s: shorter than a window, a dwell and two trims (2.2 s)
+            a, b = (a + b) // 2 - 50, (a + b) // 2 + 50
+        paths.append(str(write_csv(tmp_path / f"pose{i}.csv", s.t[a:b], s.samples[a:b])))
+    code, out = _cli("calibrate", "static", *paths, "--g", str(G0))
+    assert code == 1, out
+    assert "pose4 (" in out and "too short for a dwell" in out, out
+    assert "accelcal: no recording was calibrated; the recordings hold 1 dwell each, except " \
+           "pose4 (none): if they are poses of one sensor" in out, out
+    assert "at most" not in out, out
 
 
 def test_a_fleet_row_says_when_the_residuals_exceed_the_noise_model(tmp_path: Path) -> None:

@@ -2016,3 +2016,84 @@ def test_a_clock_in_ms_beside_a_rate_given_is_named_not_called_lost_samples(
                    zip(ts, x, strict=True))
     s = read_stream(write(tmp_path, "t,ax,ay,az\n" + body), fs=100.0)
     assert any("the logger lost samples" in n for n in s.notes), s.notes
+
+
+def six_faces_ms(path: Path, rng: np.random.Generator, bump: tuple[int, int] | None = None,
+                 n: int = 207) -> np.ndarray:
+    """Six faces logged one file each and joined (the softdream recording): ``t_ms ax ay az``
+    in g, no header, about 84.45 Hz, the clock restarting near 1000 ms at each face (it steps
+    back 5 times), nothing recorded between the faces. ``bump`` (face, axis): a 0.1 g knock
+    (Gaussian, 4 samples std) within that face's run. Returns the table written."""
+    k, b = np.array([1.005, 1.002, 1.01]), np.array([0.03, 0.004, -0.053])
+    faces = np.array([[0, 0, 1], [0, 0, -1], [0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0]],
+                     dtype=np.float64)
+    rows = []
+    for j, f in enumerate(faces):
+        s = k * f + b + 3e-3 * rng.standard_normal((n, 3))
+        if bump is not None and j == bump[0]:
+            s[:, bump[1]] += 0.1 * np.exp(-0.5 * ((np.arange(n) - 120) / 4.0) ** 2)
+        t = int(rng.integers(1000, 1100)) + np.round(np.arange(n) * 1000 / 84.45)
+        rows.append(np.column_stack([t, s]))
+    table = np.vstack(rows)
+    np.savetxt(path, table, fmt=["%d", "%.6f", "%.6f", "%.6f"], delimiter=" ")
+    return table
+
+
+def test_a_run_that_varies_far_more_than_the_others_is_named(tmp_path: Path) -> None:
+    """softdream's joined faces: read as a log of rests, each run is taken whole, and in
+    right.txt's a 0.15 g knock made its std on y 4x the others' (0.0138 against 0.0033)
+    with nothing said. The run and the axis are now named (by dwells, calibrate static and
+    the fleet alike); the samples used stay the same."""
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    p = tmp_path / "faces.txt"
+    six_faces_ms(p, np.random.default_rng(1), bump=(3, 1))
+    table = np.loadtxt(p)
+    d, rec = ac.io._stream_dwells(p)
+    runs = [[207 * j, 207 * (j + 1)] for j in range(6)]
+    ref = dwell_stats(table[:, 1:], runs)  # the runs whole, as before
+    np.testing.assert_array_equal(np.column_stack([d.start, d.stop]), runs)
+    np.testing.assert_allclose(d.mean, ref.mean, rtol=0, atol=1e-15)
+    std = np.sqrt(ref.var)
+    others = np.median(np.delete(ref.var[:, 1], 3))
+    said = (f"dwell 3 (start 621, stop 828) varies far more than the other runs on y: sample "
+            f"std {std[3, 1]:.3g} against a median {np.sqrt(others):.3g} over the others "
+            f"({ref.var[3, 1] / others:.3g}x the variance, std in the file's units)")
+    assert any(n.startswith(said) and "look at the dwells plot" in n for n in rec.notes()), \
+        rec.notes()
+    for args in (["dwells", str(p)], ["calibrate", "static", str(p), "--g", "1", "--model",
+                                      "diag"]):
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 0 and said in r.output and "dwell bounds (--bounds)" in r.output, \
+            r.output
+    row = ac.calibrate_many([str(p)], g=1.0, model="diag", workers=1,
+                            progress=False).iloc[0]
+    assert said in row["message"], row["message"]
+    # The same faces without the knock: every run alike, nothing said.
+    q = tmp_path / "calm.txt"
+    six_faces_ms(q, np.random.default_rng(1))
+    _, rec2 = ac.io._stream_dwells(q)
+    assert any("holds only the rests" in n for n in rec2.notes())
+    assert not any("varies far more" in n for n in rec2.notes()), rec2.notes()
+
+
+def test_columns_found_by_their_norm_say_the_median_norm_in_the_files_units(
+        tmp_path: Path) -> None:
+    """"(1.003, g)" said neither what 1.003 was nor what g meant there."""
+    p = tmp_path / "faces.txt"
+    six_faces_ms(p, np.random.default_rng(2))
+    table = np.loadtxt(p)
+    level = float(np.median(np.linalg.norm(table[:, 1:], axis=1)))
+    notes = read_stream(p).notes
+    said = (f"the only three adjacent columns whose norm stays near 1 g (median norm "
+            f"{level:.4g} in the file's units: about 1 g if they are g) over the first")
+    assert any(said in n for n in notes), notes
+    # Read in m/s^2: the same note names that unit.
+    q = tmp_path / "mps2.txt"
+    ms = table.copy()
+    ms[:, 1:] *= 9.80665
+    np.savetxt(q, ms, fmt=["%d", "%.5f", "%.5f", "%.5f"], delimiter=" ")
+    level = float(np.median(np.linalg.norm(np.loadtxt(q)[:, 1:], axis=1)))
+    assert any(f"(median norm {level:.4g} in the file's units: about 1 g if they "
+               "are m/s^2)" in n for n in read_stream(q).notes)

@@ -210,6 +210,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     elif rests is not None:
         d, note = rests
         fault_note.append(note)
+        fault_note += _aio.uneven_runs_note(d)
     elif job.bounds is not None or st.sections is not None:
         # Known dwells (a bounds file, or an annotated session's labelled sections): a
         # dropout inside one is an error, as ever.

@@ -1433,8 +1433,9 @@ def _decide(
             notes.append(
                 f"columns {', '.join(repr(names[i]) for i in by_name)} taken as the "
                 f"accelerometer x, y, z: no name says so, but they are the only three adjacent "
-                f"columns whose norm stays near 1 g ({level:.4g}, {unit}) over the first "
-                f"{head.shape[0]} rows; give columns= to choose others")
+                f"columns whose norm stays near 1 g (median norm {level:.4g} in the file's "
+                f"units: about 1 g if they are {unit}) over the first {head.shape[0]} rows; "
+                "give columns= to choose others")
         acc = by_name
     else:
         rest = [i for i in range(ncols) if i != tcol]
@@ -1454,8 +1455,9 @@ def _decide(
                 notes.append(
                     f"no header: columns {', '.join(map(str, acc))} (0-based) taken as the "
                     f"accelerometer x, y, z: the only three adjacent columns whose norm stays "
-                    f"near 1 g ({level:.4g}, {unit}) over the first {head.shape[0]} rows; give "
-                    "columns= to choose others")
+                    f"near 1 g (median norm {level:.4g} in the file's units: about 1 g if "
+                    f"they are {unit}) over the first {head.shape[0]} rows; give columns= to "
+                    "choose others")
             else:
                 used = int(np.sum(np.any(np.isfinite(head), axis=0))) if head.size else ncols
                 raise CalibrationError(
@@ -2397,6 +2399,12 @@ class _TimeGaps:
             "samples, sees a move lost in a gap as a jump"]
 
 
+#: The Rust core's advice in its "too few samples per window" error (``dwell.rs``,
+#: ``DetectorSettings::validate``): a longer window, s.
+_WINDOW_ADVICE = re.compile(r" \(is fs the sample rate in Hz\? else give window_s= "
+                            r"([0-9.eE+-]+) s or more\)")
+
+
 class _Recording:
     """An opened recording: its layout, and its rows as chunks (one pass)."""
 
@@ -2510,6 +2518,56 @@ class _Recording:
                 f"read in {unit}: if it is in {said}, name its unit with time_column= (e.g. "
                 f"'{name} [{alt[0][0]}]') or give fs=")
 
+    def untimed_note(self) -> str:
+        """For a calibrated stream of this recording written without a time column (none
+        read, no rate known) while a column looks like its clock (:meth:`clock_hint`): that
+        it was not written, why, and how to write it; ``""`` for a recording with no clock
+        (its output lacks nothing it had)."""
+        clock = self.clock_hint()
+        if not clock:
+            return ""
+        return ("no time column (t_s) written: the sample rate is unknown (no rate metadata "
+                f"or time column read); {clock} to write t_s, or give fs= (Hz)")
+
+    def clock_hint(self) -> str:
+        """For a recording read without a time column: the column that may be its clock,
+        ``"column 0 (0-based) looks like a clock (...): if it is the time in ms (84.457 Hz),
+        name it with time_column= (e.g. '0 [ms]')"``, or ``""``. A clock increases in nearly
+        every row (one that steps back a few times: files joined) and is no accelerometer,
+        temperature or sample-counter column; its mean step read in s, ms, us and ns gives
+        the units whose rate is plausible (1 Hz to 100 kHz)."""
+        lay = self.lay
+        head = lay.head
+        if lay.time is not None or head.ndim != 2:
+            return ""
+        for j in range(head.shape[1]):
+            if j in lay.acc or j == lay.temp:
+                continue
+            x = head[:, j].astype(np.float64)
+            if x.shape[0] < 10 or not np.all(np.isfinite(x)) or _is_counter(x):
+                continue
+            d = np.diff(x)
+            back = int(np.count_nonzero(d < 0))
+            if np.count_nonzero(d > 0) < 0.9 * d.size:
+                continue
+            # The mean of the steps near the median (no gaps, no repeats): stamps rounded to
+            # whole ms still give the rate between them.
+            med = float(np.median(d[d > 0]))
+            step = float(np.mean(d[(d > 0.5 * med) & (d < 1.5 * med)]))
+            said = [(u, 1.0 / (step * f)) for u, f in (("s", 1.0), ("ms", 1e-3),
+                                                        ("us", 1e-6), ("ns", 1e-9))]
+            said = [(u, r) for u, r in said if 1.0 <= r <= 1e5]
+            if not said:
+                continue
+            name = lay.names[j] if lay.names is not None else str(j)
+            steps = (f"; it steps back {back} time{'' if back == 1 else 's'} in the first "
+                     f"{x.shape[0]} rows: joined files?" if back else "")
+            units = " or ".join(f"{u} ({r:.5g} Hz)" for u, r in said)
+            return (f"column {_label(lay, j)} looks like a clock (mean step {step:.4g}"
+                    f"{steps}): if it is the time in {units}, name it with time_column= "
+                    f"(e.g. '{name} [{said[0][0]}]')")
+        return ""
+
     def dwell_accumulator(self, bounds: Any = None, units: str = "",
                           **detector: Any) -> Any:
         """A :class:`~accelcal.DwellAccumulator` for this recording's rate, with the error
@@ -2526,13 +2584,40 @@ class _Recording:
         if bounds is None and self.fs is None:
             raise CalibrationError(self.no_rate())
         try:
-            return DwellAccumulator(bounds, fs=self.fs, units=units,
+            return DwellAccumulator(bounds, fs=self.fs, units=units, check_times=False,
                                     **({} if bounds is not None else detector))
         except CalibrationError as exc:
             hint = self.rate_hint() if bounds is None else ""  # the rate sizes detection only
-            if not hint:
+            # Below 1 Hz the clock read in another unit is the fix (its rate is usable: the
+            # hint names it), not a window of minutes.
+            msg = self._window_advice(str(exc), bool(hint) and self.fs is not None
+                                      and self.fs < 1.0)
+            if not hint and msg == str(exc):
                 raise
-            raise CalibrationError(f"{exc}; {hint}") from None
+            raise CalibrationError(f"{msg}; {hint}" if hint else msg) from None
+
+    def _window_advice(self, msg: str, other_unit: bool) -> str:
+        """The detector's "too few samples per window" error ``msg`` without advice that
+        misleads: no longer window when the rate read from the time column is below any
+        detector's reach and another unit of it gives a usable rate (``other_unit``: that is
+        the fix), nor one longer than the whole recording."""
+        m = _WINDOW_ADVICE.search(msg)
+        if m is None:
+            return msg
+        if other_unit:
+            return msg[:m.start()] + msg[m.end():]
+        rows = self.rows_estimate()
+        span = rows / self.fs if rows and self.fs else None
+        try:
+            need = float(m.group(1))
+        except ValueError:
+            return msg
+        if span is None or need <= span:
+            return msg
+        about = "" if self.arrays is not None else "about "
+        return (msg[:m.start()] + f" (is fs the sample rate in Hz? At {self.fs:.6g} Hz a "
+                f"window needs {need:g} s or more, longer than the whole recording ({about}"
+                f"{rows} rows, {span:.4g} s): no dwell can be detected in it)" + msg[m.end():])
 
     @property
     def fs(self) -> float | None:
@@ -3184,9 +3269,12 @@ def _stream_dwells(
             d, note = got
             rec.lay.notes[:] = [n for n in rec.lay.notes if not n.startswith(NO_RATE_NOTE)]
             rec.lay.notes.append(note)
+            rec.lay.notes += uneven_runs_note(d)
             if rec.fs is None:
+                clock = rec.clock_hint()
                 rec.lay.notes.append(f"{NO_RATE_NOTE}: the dwells do not need it here, their "
-                                     "times do (the time tests of diagnose): give fs= (Hz)")
+                                     "times do (the time tests of diagnose): give fs= (Hz)"
+                                     + (f"; or, {clock}" if clock else ""))
             return d, rec
         rec = _Recording(path, columns, fs, time_column)  # its head only: detect as ever
     if means or (means is None and bounds is None and not annotated
@@ -3277,6 +3365,47 @@ def step_log_dwells(samples: Any, t: Any, temperature: Any, fs: float | None, un
         note += (f", {cut} of them cut on the logger's grid of blocks (poses too close for a "
                  "jump between them)")
     return d, note
+
+
+#: A run of a log of rests whose sample variance on an axis is more than this many times
+#: the median of the other runs' on that axis is named in a note (std 3x the others').
+_UNEVEN_RUN_VAR = 9.0
+
+
+def uneven_runs_note(d: Any) -> list[str]:
+    """For dwells taken whole (the runs of a log that holds only the rests, see
+    :func:`step_log_dwells`): a note on the run whose sample variance on some axis is more
+    than ``_UNEVEN_RUN_VAR`` (9) times the median of the other runs' on that axis (a bump or
+    a turn begun within the run, which is in its mean), naming the run and the axis, and how
+    many other runs are so; ``[]`` otherwise (and for fewer than 3 runs). It only says so:
+    the samples used stay the same."""
+    var = None if d.var is None else np.asarray(d.var, dtype=np.float64)
+    if var is None or var.ndim != 2 or var.shape[0] < 3:
+        return []
+    found: list[tuple[float, int, int, float]] = []  # (ratio, run, axis, others' median)
+    for ax in range(var.shape[1]):
+        v = var[:, ax]
+        for i in range(v.size):
+            rest = np.delete(v, i)
+            rest = rest[np.isfinite(rest)]
+            med = float(np.median(rest)) if rest.size else math.nan
+            if med > 0 and math.isfinite(v[i]) and v[i] > _UNEVEN_RUN_VAR * med:
+                found.append((float(v[i]) / med, i, ax, med))
+    if not found:
+        return []
+    r, i, ax, med = max(found)
+    units = getattr(d, "units", "")
+    unit, of = (f" {units}", "") if units else ("", ", std in the file's units")
+    rows = ""
+    if d.start is not None and d.stop is not None:
+        rows = f" (start {int(d.start[i])}, stop {int(d.stop[i])})"
+    more = len({run for _, run, _, _ in found} - {i})
+    also = f" ({more} other run(s) too)" if more else ""
+    return [f"dwell {d.label(i)}{rows} varies far more than the other runs on {'xyz'[ax]}"
+            f"{also}: sample std {math.sqrt(float(var[i, ax])):.3g}{unit} against a median "
+            f"{math.sqrt(med):.3g}{unit} over the others ({r:.3g}x the variance{of}); each "
+            "run is taken whole, so a bump or a turn within it is in its mean: look at the "
+            "dwells plot and, if so, give the rows to keep as dwell bounds (bounds=)"]
 
 
 def _short_dwells(d: Any) -> list[str]:

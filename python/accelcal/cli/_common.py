@@ -38,6 +38,7 @@ CLI_WORDS: dict[str, str] = {
     "chunk_rows": "--chunk-rows",
     "g": "--g",
     "fit": "--calibration",
+    "bounds": "--bounds",
 }
 #: Library phrases that are a flag on the command line.
 CLI_PHRASES: dict[str, str] = {"means=True": "--means",

@@ -144,11 +144,30 @@ def _one_pose_each(df: Any) -> str:
     n = df["n_dwells"].fillna(0)
     if len(df) < 2 or not bool((n <= 3).all() and (df["status"] == "degenerate").all()):
         return ""
-    most = int(n.max())
-    return (f"; each recording holds at most {most} dwell{'' if most == 1 else 's'}: if they "
-            "are poses of one sensor, one file per pose, join them into one recording (one "
-            "clock), or write one row of means per pose into a table read with --means; "
-            "several files are calibrated as several sensors")
+    return (f"; {_dwells_each(df['sensor_id'], n)}: if they are poses of one sensor, one "
+            "file per pose, join them into one recording (one clock), or write one row of "
+            "means per pose into a table read with --means; several files are calibrated as "
+            "several sensors")
+
+
+def _dwells_each(ids: Any, n: Any) -> str:
+    """How many dwells the recordings hold, exactly: ``each recording holds 1 dwell``, or
+    the most common count with the exceptions named (``the recordings hold 1 dwell each,
+    except right (none)``)."""
+    counts = [int(x) for x in n]
+
+    def held(k: int) -> str:
+        return "none" if k == 0 else f"{k} dwell{'' if k == 1 else 's'}"
+
+    common = max(sorted(set(counts)), key=counts.count)  # the fewer on a tie
+    others = [(str(i), k) for i, k in zip(ids, counts, strict=True) if k != common]
+    if not others:
+        return "no recording holds a dwell" if common == 0 else (
+            f"each recording holds {held(common)}")
+    named = ", ".join(f"{i} ({held(k)})" for i, k in others[:4])
+    more = f" and {len(others) - 4} more" if len(others) > 4 else ""
+    each = "no dwell" if common == 0 else f"{held(common)} each"
+    return f"the recordings hold {each}, except {named}{more}"
 
 
 @main.group()

@@ -385,6 +385,9 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
 
     # Applying a calibration needs no rate: without one the output has no time column only.
     notes = [n for n in rec.notes() if not n.startswith(NO_RATE_NOTE)]
+    untimed = "" if has_t else rec.untimed_note()
+    if untimed:  # a column that looks like a clock: said, not dropped in silence
+        notes.append(untimed)
     typical = float(np.median(norms)) if norms else math.nan
     if model.g and math.isfinite(typical) and not 0.5 < typical / model.g < 2.0:
         notes.append(f"the calibrated output's norm is typically {typical:.4g} {unit}, where "
