@@ -885,3 +885,30 @@ def test_apply_says_why_the_time_column_is_not_written(tmp_path: Path) -> None:
     code, out = run("apply", str(cal), str(q), "-o", str(tmp_path / "q.csv"))
     assert code == 0 and "wrote 1242 calibrated samples (g) to" in out, out
     assert "time column" not in out and "note:" not in out, out
+
+
+def test_files_joined_with_their_clocks_restarting_are_read_once_noted(tmp_path: Path) -> None:
+    """Six one-pose files joined, each clock from 0 in ms (softdream/imu_calibration's faces):
+    the dwell pass warned again what the reader had noted (a raw TimeStepWarning line, an
+    "internal error" under warnings-as-errors), and diagnose sorted the dwells by those
+    times and called drift testable. Now one note from the reader; diagnose drops the times."""
+    rng = np.random.default_rng(4)
+    truth_s, truth_b = np.array([1.005, 1.002, 1.01]), np.array([0.03, 0.004, -0.05])
+    rows = []
+    for face in np.vstack([np.eye(3), -np.eye(3)]):
+        y = truth_s * face + truth_b + rng.normal(0, 3e-3, (200, 3))
+        t_ms = np.arange(200) * 11.84 + rng.uniform(0, 0.5, 200)
+        rows += [f"{t:.0f} {a:.6f} {b:.6f} {c:.6f}\n" for t, (a, b, c) in zip(t_ms, y, strict=True)]
+    p = tmp_path / "faces.txt"
+    p.write_text("".join(rows))
+    cal = tmp_path / "cal.json"
+    code, out = run("calibrate", "static", str(p), "--g", "1", "--time-column", "0 [ms]",
+                    "--model", "diag", "-o", str(cal))
+    assert code == 0, out
+    assert "TimeStepWarning" not in out and out.count("steps back 5 time(s)") == 1, out
+    code, out = run("diagnose", str(p), "--g", "1", "--time-column", "0 [ms]",
+                    "--calibration", str(cal))
+    assert code == 0, out
+    assert "TimeStepWarning" not in out
+    assert "the times are not used, so drift and the time tests are not testable" in out
+    assert re.search(r"drift\s+no_time", out), out

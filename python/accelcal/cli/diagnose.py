@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import click
 
 from .._core import CalibrationError
+from ..dwell import TimeStepWarning
 from ._common import (
     _need_plot,
     _resolve_g,
@@ -112,7 +114,8 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         from ..dwell import DetectorSettings
 
         det = DetectorSettings(window_s=window_s, k=k, min_dwell_s=min_dwell_s, trim_s=trim_s)
-        d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=det)
+        d = detect_dwells(st.samples, st.fs, t=st.t, temperature=st.temperature, settings=det,
+                          check_times=False)  # the reader noted what the clock did
         run = (st.samples,)
         kw.update(fs=st.fs, t=st.t, temperature=st.temperature, detector=det)
     src = source_line(file, rec, d)
@@ -132,7 +135,10 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
         for key in ("fs", "t", "temperature", "detector"):
             kw.pop(key, None)
     try:
-        rep = run_diagnose(*run, g=gv, preset=preset, **kw)
+        with warnings.catch_warnings():
+            # The reader noted what the clock did; the dwell pass would say it again.
+            warnings.simplefilter("ignore", TimeStepWarning)
+            rep = run_diagnose(*run, g=gv, preset=preset, **kw)
     except CalibrationError as e:
         raise type(e)(cli_words(str(e), {"check_g=False": "--no-check-g",
                                          'model "diag"': "--model diag"})) from None
