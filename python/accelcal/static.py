@@ -1036,12 +1036,13 @@ def fit_static_batch(
 def _check_batch_g(gv: Any) -> None:
     """:func:`fit_static`'s gravity check on a batch's scalar or per-session ``g``; values
     that are not positive finite numbers are left to the core, which names them."""
-    vals = gv if isinstance(gv, list) else [gv]
-    for i, v in enumerate(vals):
-        try:
-            x = float(v)
-        except (TypeError, ValueError):
-            return  # not a number: the core says so
+    try:
+        vals = np.asarray(gv if isinstance(gv, list) else [gv], dtype=np.float64)
+    except (TypeError, ValueError):
+        return  # not numbers: the core says so
+    # Each distinct value once (a fleet's sessions share a few g), at its first session.
+    uniq, first = np.unique(vals, return_index=True)
+    for x, i in sorted(zip(uniq.tolist(), first.tolist(), strict=True), key=lambda p: p[1]):
         if not (math.isfinite(x) and x > 0):
             continue
         why = _core.gravity_problem(x)
