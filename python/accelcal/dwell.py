@@ -252,19 +252,18 @@ class DwellSet:
         bounds the halves split at ``start + count // 2``; detected dwells split at the
         detector block nearest the middle (within ``block_s``).
     inflation : (k, 3) float64 or None
-        Allan noise inflation: the factor by which the noise of each dwell mean exceeds white
-        noise of the same sample-to-sample deviation (about 1 for white noise, larger for
-        flicker or random-walk noise). One dwell's value scatters widely and is skewed: on
-        white noise (12 dwells of 4800 samples) its median is 0.92 and its mean 1.22, so pool
-        it before use, as :func:`accelcal.diagnose` does (the median over dwells, at least 1,
-        or a power law in the dwell length). Per dwell and axis, from the overlapping Allan deviation at cluster
-        sizes of about L/16 and L/4 samples (L = dwell length) referred to the one-sample Allan
-        deviation, extrapolated to tau = L along the log-log slope between them (clipped to
-        [0, 1]). Clusters start at sub-block boundaries (64 per dwell with bounds, the detector
-        blocks for detected dwells) rather than at every sample: the same expectation as the
-        sample-stride estimator, a slightly larger scatter. Not pooled over dwells and not
-        floored at 1. NaN where it cannot be estimated: dwells under 64 samples, or an axis
-        without sample-to-sample variation.
+        Allan noise inflation: the factor by which the noise of each dwell mean exceeds white noise
+        of the same sample-to-sample deviation (about 1 for white noise, larger for flicker or
+        random-walk noise). One dwell's value scatters widely and is skewed: on white noise (12
+        dwells of 4800 samples) its median is 0.92 and its mean 1.22, so pool it before use, as
+        :func:`accelcal.diagnose` does (the median over dwells, at least 1, or a power law in the
+        dwell length). Per dwell and axis, from the overlapping Allan deviation at cluster sizes of
+        about L/16 and L/4 samples (L = dwell length) referred to the one-sample Allan deviation,
+        extrapolated to tau = L along the log-log slope between them (clipped to [0, 1]). Clusters
+        start at sub-block boundaries (64 per dwell with bounds, the detector blocks for detected
+        dwells) rather than at every sample: the same expectation as the sample-stride estimator, a
+        slightly larger scatter. Not pooled over dwells and not floored at 1. NaN where it cannot be
+        estimated: dwells under 64 samples, or an axis without sample-to-sample variation.
     lsb : (3,) float64 or None
         Output resolution per axis, input units: for integer samples the common divisor of the
         spacings between distinct values (1 count for ordinary data); for float samples the

@@ -505,10 +505,14 @@ class GapReport:
         relative units for scales and misalignments, ``units`` for biases) and the residual
         RMS with the calibration and refitted (``rms_fixed``, ``rms_refit``, ``units``). None
         without a fixed calibration, or when this session cannot determine the model. When
-        the calibration does not hold (``p_value < alpha``), ``attribution`` is "refit": the
-        effects, the figures after them and ``structure`` are those of the session refitted
-        (a moved calibration's residuals mimic attitude effects), ``chi2_refit`` and
-        ``dof_refit`` its gap; the gap figures stay the fixed calibration's.
+        the calibration does not hold (``p_value < alpha``), the session is also diagnosed
+        refitted, and the explanation with the lower BIC (``bic_fixed``: the calibration as
+        it is with the effects found against it; ``bic_refit``: its parameters refitted, with
+        the effects found then) gives the attribution: ``attribution`` "refit" (a moved
+        calibration's residuals mimic attitude effects: the effects, the figures after them
+        and ``structure`` are the refit's, ``chi2_refit`` and ``dof_refit`` its gap) or
+        "fixed" (a real effect also pulls a refit away; ``alike_cos`` says how alike the two
+        explanations are on these poses). The gap figures stay the fixed calibration's.
     """
 
     n: int
@@ -955,8 +959,10 @@ def _calibration_check_text(c: dict[str, Any]) -> str:
     rms = (f"; residual RMS {_mag(c['rms_fixed'], unit)} with the calibration, "
            f"{_mag(c['rms_refit'], unit)} refitted")
     if c["p_value"] < c.get("alpha", 0.05):
-        fixed = ("; the effects below are tested against the refit"
-                 if c.get("attribution") == "refit" else "")
+        fixed = {"refit": "; the effects below are tested against the refit",
+                 "fixed": "; the effects below are tested against the calibration, which "
+                          "with them explains this session better than a refit (see the "
+                          "notes)"}.get(c.get("attribution", ""), "")
         return ("Calibration check: it does NOT hold on this session - a refit of the "
                 f"{c['n']} dwells differs from it beyond both their uncertainties ({stat}, "
                 f"p = {_fmt_p(c['p_value'])}): " + ", ".join(amount(m) for m in c["moved"])
@@ -1701,13 +1707,37 @@ def _clock_reset(d: DwellSet) -> str:
             "and the time tests are not testable and the dwells are taken in sample order")
 
 
+def _effect_dims(rep: GapReport) -> dict[str, int]:
+    """The number of parameters of each selected effect of a report."""
+    return {e["effect"]: len(e["estimate"]) for e in rep.effects
+            if e["effect"] in rep.selected}
+
+
+def _bic(rep: GapReport, n_cal: int) -> float:
+    """The Bayesian information criterion of a report's final model (its ``n_cal``
+    calibration parameters and selected effects): the chi2 after the effects when the noise
+    is known, else ``n ln(RSS / n)`` of the residuals after them, plus ``k ln n``."""
+    n = rep.n
+    k = n_cal + sum(_effect_dims(rep).values())
+    if math.isfinite(rep.p_value):
+        stat = float(rep.remaining["chi2"])
+    else:
+        r = np.asarray(rep.dwells["resid_after"], dtype=np.float64)
+        stat = n * math.log(max(float(np.mean(r * r)), 1e-300))
+    return stat + k * math.log(n)
+
+
 def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g: float,
                        options: dict[str, Any]) -> GapReport:
     """The attribution of a session against which a held-fixed calibration does NOT hold:
-    the effects tested against the session refitted, not against the calibration. A moved
-    calibration's residuals are smooth in attitude (a moved bias is linear in it, a moved
-    scale quadratic), so attitude effects mimic them: against the moved calibration a bias
-    moved by 10 std was attributed to K2 in every session tried, a scale to K3.
+    the effects tested against the session refitted, not against the calibration, when
+    that explains the session better (a lower BIC; else the fixed report, with a note). A
+    moved calibration's residuals are smooth in attitude (a moved bias is linear in it, a
+    moved scale quadratic), so attitude effects mimic them: against the moved calibration a
+    bias moved by 10 std was attributed to K2 in every session tried, a scale to K3. But a
+    real effect also pulls a refit away from the calibration, and a small session refitted
+    has no room left to show it (a real K2 on 12 dwells: named in 1 of 12 sessions refitted,
+    12 of 12 against the calibration).
 
     The gap figures (chi2, p-value, held-out gap, residuals, localisation) stay the fixed
     calibration's; what follows the baseline (effects, best, selected, ambiguity, blind
@@ -1726,6 +1756,38 @@ def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g:
             "against it: a moved calibration's residuals are smooth in attitude (a moved bias "
             "looks like K2, a moved scale like K3), so take them as that until a session that "
             f"can be refitted says more ({e})")])
+    # Which explains the session better: the calibration as it is with the effects found
+    # against it, or a calibration that moved (its parameters refitted) with the effects
+    # found then. A real effect also pulls a refit away from the calibration (the check
+    # rejects it), and a small session refitted has no room left to show the effect.
+    n_cal = len(np.asarray(refit.params, dtype=np.float64)) - sum(
+        _effect_dims(refit).values())
+    bic_fixed, bic_refit = _bic(fixed, 0), _bic(refit, n_cal)
+    versus = {"bic_fixed": bic_fixed, "bic_refit": bic_refit}
+    if not bic_refit < bic_fixed:
+        # How alike the two explanations are on these poses: what the effects take out of
+        # the residuals against the calibration, and what refitting it takes out.
+        eff = (np.asarray(fixed.dwells["resid"], dtype=np.float64)
+               - np.asarray(fixed.dwells["resid_after"], dtype=np.float64))
+        cal = (np.asarray(fixed.dwells["resid"], dtype=np.float64)
+               - np.asarray(refit.dwells["resid"], dtype=np.float64))
+        den = float(np.linalg.norm(eff) * np.linalg.norm(cal))
+        cos = float(eff @ cal) / den if den > 0 else math.nan
+        moved = ", ".join(m["name"] for m in (fixed.calibration_check or {}).get("moved", []))
+        alike = (f"; on these {fixed.n} poses the two are alike (cosine {cos:.2f} between "
+                 f"what the effects and what a refit take out of the residuals), so "
+                 f"{', '.join(fixed.selected)} may also be the calibration having moved "
+                 f"({moved}): a session of other poses tells them apart"
+                 if fixed.selected and math.isfinite(cos) and cos > 0.9 else "")
+        kept = (f"the calibration does not hold by the check above, but it explains this "
+                f"session better as it is, with {', '.join(fixed.selected) or 'no effect'}, "
+                f"than refitted (BIC {bic_fixed:.1f} against {bic_refit:.1f} with its "
+                f"{n_cal} parameters refitted), so the effects are tested against it (a "
+                f"real effect also pulls a refit away from the calibration){alike}")
+        return replace(fixed, calibration_check={**(fixed.calibration_check or {}),
+                                                 "attribution": "fixed", "alike_cos": cos,
+                                                 **versus},
+                       statements=[*fixed.statements, kept])
     rows = dict(fixed.dwells)
     for key in ("resid_after", "resid_after_mps2", "e_after", "z_loo_after"):
         if key in refit.dwells and key in rows:
@@ -1735,7 +1797,9 @@ def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g:
             "attitude, and attitude effects mimic them (a moved bias looks like K2, a moved "
             "scale like K3). The effects, the figures after them and the structure are what "
             f"is left beyond a calibration that moved (refitted: chi2/dof = "
-            f"{refit.chi2_per_dof:.3g} on {refit.dof} dof)")
+            f"{refit.chi2_per_dof:.3g} on {refit.dof} dof; BIC {bic_refit:.1f} against "
+            f"{bic_fixed:.1f} for the calibration as it is"
+            + (f" with {', '.join(fixed.selected)}" if fixed.selected else "") + ")")
     return replace(
         fixed, best=refit.best, selected=refit.selected, effects=refit.effects,
         ambiguous=refit.ambiguous, blind_spots=refit.blind_spots,
@@ -1746,7 +1810,7 @@ def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g:
         remaining=refit.remaining, params_after=refit.params_after, std_after=refit.std_after,
         structure=refit.structure, dwells=rows,
         calibration_check={**(fixed.calibration_check or {}), "attribution": "refit",
-                           "chi2_refit": refit.chi2, "dof_refit": refit.dof},
+                           "chi2_refit": refit.chi2, "dof_refit": refit.dof, **versus},
         statements=[*(x for x in said_before if x), said,
                     *(x for x in refit.statements if x not in said_before)])
 
