@@ -1455,8 +1455,9 @@ def test_times_that_never_advance_or_run_backwards_are_refused() -> None:
     with clear_error("steps back", "reversed"):
         detect_dwells(s.samples, s.fs, t=s.t[::-1].copy())
     acc = DwellAccumulator(fs=s.fs)
+    twelve_s = int(12 * s.fs)  # a clock is judged once the rows span 10 s at fs
     with clear_error("t holds the same time", "nothing of this chunk"):
-        push_in_chunks(acc, [5, 100], s.samples, t=np.zeros(s.t.size))
+        push_in_chunks(acc, [5, twelve_s], s.samples, t=np.zeros(s.t.size))
     assert acc.position == 5  # the first chunk, too short to judge, was kept
 
 
@@ -1490,3 +1491,37 @@ def test_a_clock_step_back_warns_and_chunks_agree_with_one_push() -> None:
     with pytest.warns(TimeStepWarning, match=rf"row {cut}"):
         resumed.push(s.samples[cut:], t=t[cut:])
     assert_same(resumed.finish(), one)
+
+
+@pytest.mark.parametrize("chunk", [1, 7])
+def test_coarse_and_burst_stamps_pushed_in_small_chunks_are_judged_as_one_call(
+        chunk: int) -> None:
+    """A logger that stamps in whole seconds, pushed a row at a time: the 17th push was refused
+    ("t holds the same time (0) in every one of the 17 rows: not a clock") and every row until
+    the clock ticked was lost; jittered burst stamps pushed in chunks of 1 or 7 were refused as
+    "reversed or shuffled rows?". detect_dwells on the whole stream took both. Now pushes in
+    small chunks give what one call gives."""
+    import warnings
+
+    fs, n = 100.0, 3000
+    rng = np.random.default_rng(0)
+    x = np.tile([0.0, 0.0, 9.81], (n, 1)) + rng.normal(0, 1e-3, (n, 3))
+    clocks = {"whole seconds": np.floor(np.arange(n) / fs),
+              "jittered bursts": (np.floor(np.arange(n) / 64) * 64 / fs
+                                  + np.abs(rng.normal(0, 2e-3, n)))}
+    for name, t in clocks.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", accelcal.TimeStepWarning)
+            one = accelcal.detect_dwells(x, fs, t=t)
+            acc = accelcal.DwellAccumulator(fs=fs)
+            for i in range(0, n, chunk):
+                acc.push(x[i:i + chunk], t=t[i:i + chunk])
+            got = acc.finish()
+        assert len(got) == len(one) == 1, name
+        np.testing.assert_array_equal(got.mean, one.mean)
+        np.testing.assert_array_equal(got.t, one.t)
+    # A clock that never moves over more than 10 s of rows, or runs backwards, is refused.
+    with pytest.raises(accelcal.CalibrationError, match=r"holds the same time"):
+        accelcal.detect_dwells(x, fs, t=np.zeros(n))
+    with pytest.raises(accelcal.CalibrationError, match=r"reversed or shuffled rows"):
+        accelcal.detect_dwells(x, fs, t=np.arange(n)[::-1] / fs)

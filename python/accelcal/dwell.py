@@ -19,7 +19,9 @@ Sample times ``t`` (s)
     equal), or step back more often than forward, are refused with or without ``fs``. A
     time that steps back now and then (a clock reset, files joined) is kept as given with a
     :class:`TimeStepWarning`, as :func:`accelcal.io.read_stream` keeps it with a note. The
-    checks wait for 16 intervals; a :class:`~accelcal.io.Stream`'s own
+    checks wait for 16 intervals, and those of a clock that does not advance (or runs slow)
+    for rows spanning 10 s at ``fs`` (stamps in whole seconds, jittered bursts: a stream
+    pushed a row at a time is judged as one call); a :class:`~accelcal.io.Stream`'s own
     ``t`` is not checked again (read_stream notes what it found), and ``check_times=False``
     takes ``t`` as given.
 """
@@ -75,6 +77,11 @@ CLOCK_RATIO = 3.0
 #: Intervals between sample times needed before they are judged (a stream pushed in chunks
 #: is judged on the times pushed so far).
 _CLOCK_MIN_STEPS = 16
+#: With ``fs`` known, times that have not advanced (or went back) are refused only once the
+#: rows span this long at ``fs``, s: a logger that stamps in whole seconds repeats a stamp for
+#: a second's rows, jittered stamps of one burst step back and forth, and a stream pushed a
+#: row at a time must not be refused before its clock ticks.
+_CLOCK_FLAT_S = 10.0
 
 
 class TimeStepWarning(UserWarning):
@@ -162,18 +169,22 @@ class _Clock:
             )
         if new.steps < _CLOCK_MIN_STEPS:
             return new, warn
-        if new.pos == 0 and new.back == 0:
+        # Whether the clock advances is judged once the rows span _CLOCK_FLAT_S at fs.
+        judged = dt is None or new.steps * dt > _CLOCK_FLAT_S
+        if new.pos == 0 and new.back == 0 and judged:
             raise CalibrationError(
                 f"t holds the same time ({new.first:g}) in every one of the {new.steps + 1} "
                 "rows: not a clock (a logger's clock never set?); give the sample times in s, "
                 "or no t" + (" (fs gives the dwell times)" if fs is not None else "")
             )
-        if new.back >= new.pos:
+        # Jittered stamps of a logger that stamps in bursts step back about as often as
+        # forward, but advance overall: only a clock that went back overall is refused.
+        assert new.first is not None and new.last is not None
+        if new.back >= new.pos and new.back and new.last < new.first and judged:
             raise CalibrationError(
                 f"t steps back in {new.back} of its {new.steps} intervals and forward in "
                 f"{new.pos}: sample times must increase (reversed or shuffled rows?)"
             )
-        assert new.first is not None and new.last is not None
         if dt is not None:
             mean = (new.last - new.first) / new.steps
             ratio = mean / dt
@@ -188,7 +199,7 @@ class _Clock:
                     f"means {dt:.4g} s: {ratio:.4g} sample intervals; {why}. Dwell times "
                     "and durations would disagree by that factor"
                 )
-            if 2 * new.short > new.pos and ratio < 1.0 / CLOCK_RATIO:
+            if 2 * new.short > new.pos and ratio < 1.0 / CLOCK_RATIO and judged:
                 raise CalibrationError(
                     f"t advances {mean:.4g} per sample on average ({new.short} of {new.pos} "
                     f"intervals under 1/{CLOCK_RATIO:g} of a sample interval) where fs = "
