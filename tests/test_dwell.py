@@ -1520,6 +1520,9 @@ def test_coarse_and_burst_stamps_pushed_in_small_chunks_are_judged_as_one_call(
         assert len(got) == len(one) == 1, name
         np.testing.assert_array_equal(got.mean, one.mean)
         np.testing.assert_array_equal(got.t, one.t)
+    # Steps back under one sample interval are jitter, not a clock reset.
+    with pytest.warns(accelcal.TimeStepWarning, match=r"under one sample interval: jittered"):
+        accelcal.detect_dwells(x, fs, t=clocks["jittered bursts"])
     # A clock that never moves over more than 10 s of rows, or runs backwards, is refused.
     with pytest.raises(accelcal.CalibrationError, match=r"holds the same time"):
         accelcal.detect_dwells(x, fs, t=np.zeros(n))

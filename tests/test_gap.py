@@ -1271,6 +1271,8 @@ def test_dwell_times_from_a_reset_clock_are_not_used() -> None:
     assert np.array_equal(joined.t, t)
     assert next(e for e in r.effects if e["effect"] == "drift")["status"] == "no_time"
     assert any("step back 1 time(s) from one dwell to the next" in x for x in r.statements)
+    drift = next(b for b in r.blind_spots if b["effect"] == "drift")
+    assert "the dwell times were dropped, since they step back" in drift["reason"], drift
     np.testing.assert_array_equal(r.dwells["index"], np.arange(k))
     one_clock = diagnose(DwellSet(d.mean, d.var, d.count, d.t, d.temperature, start=start,
                                   stop=start + 900), g=s.g)
@@ -1318,6 +1320,8 @@ def test_a_start_given_as_values_is_checked_by_what_is_wrong() -> None:
         diagnose(s.dwells, g=s.g, fit=[np.nan] * 9)
     with pytest.raises(accelcal.CalibrationError, match=r"or the 6 .* of a start; got 3 values"):
         diagnose(s.dwells, g=s.g, fit=[1, 2, 3])
+    with pytest.raises(accelcal.CalibrationError, match=r"scale factors .* must be positive"):
+        diagnose(s.dwells, g=s.g, fit=[-s.nuisance[0], *s.nuisance[1:]])
     six = diagnose(s.dwells, g=s.g, fit=s.nuisance[:6].tolist())
     nine = diagnose(s.dwells, g=s.g, fit=[*s.nuisance[:6], 0, 0, 0])
     assert six.chi2 == nine.chi2 and six.best == nine.best == "none"

@@ -162,11 +162,12 @@ class _Clock:
             at = i + (0 if self.last is not None else 1)  # index in v of the row after it
             row = row0 + (at if rows is None else int(rows[at]))
             new.warned = True
-            warn = (
-                f"t steps back {nback} time(s) (the first at row {row}, by "
-                f"{float(-d[i]):.6g} s): a clock reset or recordings joined? Kept as given: "
-                "the dwell times after a step back are on the new clock"
-            )
+            by = float(-d[i])
+            why = ("under one sample interval: jittered time stamps? Kept as given"
+                   if dt is not None and by < dt else
+                   "a clock reset or recordings joined? Kept as given: the dwell times after "
+                   "a step back are on the new clock")
+            warn = f"t steps back {nback} time(s) (the first at row {row}, by {by:.6g} s): {why}"
         if new.steps < _CLOCK_MIN_STEPS:
             return new, warn
         # Whether the clock advances is judged once the rows span _CLOCK_FLAT_S at fs.

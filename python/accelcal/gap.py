@@ -1162,7 +1162,9 @@ def _calibration(fit: Any, g: float) -> tuple[list[list[float]], list[float], bo
                                f" of a start; got {got}")
     if not np.all(np.isfinite(v)):
         raise CalibrationError(f"fit holds NaN or inf: {v.tolist()}")
-    v = np.concatenate([v, np.zeros(9 - v.size)])
+    from .static import _start
+
+    v = np.concatenate([_start(v), np.zeros(9 - v.size)])  # positive scales, as fit_static
     k9 = [[v[0], 0.0, 0.0], [v[6], v[1], 0.0], [v[7], v[8], v[2]]]
     return k9, v[3:6].tolist(), False
 
@@ -1669,6 +1671,11 @@ def diagnose(
         if math.isfinite(c2):
             rep = replace(rep, chi2=c2, chi2_per_dof=c2 / rep.dof,
                           p_value=float(_core.chi2_sf(c2, rep.dof)))
+    if reset:  # the times were given, then dropped: say so where the blind spots list them
+        rep = replace(rep, blind_spots=[
+            {**b, "reason": "not testable: the dwell times were dropped, since they step back "
+                            "(a clock reset: see the notes); this is not 'no effect'"}
+            if "no dwell times" in b["reason"] else b for b in rep.blind_spots])
     spread = _axis_spread_statement(rep.dwells["e"], rep.dwells["direction"],
                                     noise_known=var is not None)
     if spread:
