@@ -312,7 +312,7 @@ def centrifuge_validation(n: int) -> list[str]:
     des = paper_design()
     noise = 2e-6
     effs = ["lever_along", "lever_across", "k3", "misalignment", "cross_coupling",
-            "rate_offset"]
+            "rate_offset", "radius_error"]
     lines = [
         "", "## Centrifuge dictionary (accelcal.diagnose_centrifuge)", "",
         f"Paper design (20 positions x 2pi/4pi/6pi rad/s, R = 1 m), random scale 1.2-1.3, bias "
@@ -335,11 +335,12 @@ def centrifuge_validation(n: int) -> list[str]:
                                             sigma=np.full(out.shape, noise), loo=loo)
 
     fa = 0
-    for _ in range(4 * n):
+    n_null = 16 * n  # a rate near 5 % needs hundreds of sessions to be told from 5 %
+    for _ in range(n_null):
         r = run(centrifuge_outputs_noisy(_cf_outputs("none", np.zeros(1), base_truth(), des),
                                          noise, gen))
         fa += r.best != "none"
-    for eff in effs + ["radius_error"]:
+    for eff in effs:
         k = CENTRIFUGE_EFFECTS[eff][0]
         res = []
         for _ in range(n):
@@ -349,17 +350,12 @@ def centrifuge_validation(n: int) -> list[str]:
             lam_target = float(np.exp(gen.uniform(np.log(5), np.log(300))))
             clean = _cf_outputs(eff, phi, bt, des)
             lam1 = run(clean, loo=False).chi2
-            if eff != "radius_error" and lam1 > 0:
+            if lam1 > 0:
                 phi = phi * np.sqrt(lam_target / lam1)
                 clean = _cf_outputs(eff, phi, bt, des)
                 lam1 = run(clean, loo=False).chi2
             r = run(clean + gen.normal(0, noise, clean.shape))
             res.append((lam1, r))
-        if eff == "radius_error":
-            bl = sum(any(b["effect"] == "radius_error" for b in r.blind_spots) for _, r in res)
-            lines.append(f"| radius_error (blind: absorbed by the scale factors, sine < 0.05; "
-                         f"listed as blind spot in {_pct(bl, n)}) | - | - | - |")
-            continue
         mid = [r for lam, r in res if 10 <= lam < 30]
         hi = [r for lam, r in res if lam >= 30]
         ok = [r for r in hi if r.best == eff]
@@ -368,7 +364,11 @@ def centrifuge_validation(n: int) -> list[str]:
         lines.append(f"| {eff} | {_pct(sum(r.best == eff for r in mid), len(mid))} | "
                      f"{_pct(len(ok), len(hi))} | {gtxt} |")
         print(lines[-1], file=sys.stderr)
-    lines += ["", f"False alarms on null centrifuge sessions: {_pct(fa, 4 * n)}."]
+    lines += ["", f"False alarms on null centrifuge sessions: {_pct(fa, n_null)}.", "",
+              "radius_error is mostly absorbed by the per-axis scales (only its 1 g term "
+              "differs: principal-angle sine 0.004 here), so the centrifuge counts a direction "
+              "absorbed below a sine of 1e-3 (accelcal.gap.CENTRIFUGE_SINE_TOL), not 0.05: its "
+              "lambda above is what that small remainder leaves."]
     return lines
 
 
