@@ -1970,6 +1970,55 @@ def test_adafruit_example_rows_name_their_sensor(tmp_path: Path) -> None:
                     fs=10.0)
 
 
+def test_more_sketch_outputs_are_read_by_their_labels(tmp_path: Path) -> None:
+    """Rows that real sketches print and that were refused ("labels repeat", "no numeric data
+    rows found") or read wrong: the LIS3DH example's raw counts and m/s^2 on one line (labels
+    X, Y, Z twice) or on alternate lines (read as one stream of both), SparkFun's BMI270
+    (`Acceleration in g's\tX: ...\tRotation in deg/sec\tX: ...`) and `Accel: X=... Gyro:
+    X=...`, SparkFun's ICM-20948 (`Scaled. Acc (mg) [ x, y, z ], Gyr (DPS) [ ... ]`), units
+    attached or not in the short list (`0.01g`, `LSB`, `[m/s^2]`), a row cut short before its
+    unit (its Z read as 1), and a `c0,c1,c2` header taken for pairs c 0, c 1, c 2."""
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(40, 3)).round(4)
+    raw = (x * 1000).round()
+
+    def read(text: str, name: str, **kw: Any) -> Any:
+        return read_stream(write(tmp_path, text, name), fs=10.0, **kw)
+
+    same = "".join(f"X:  {r[0]:.0f}  \tY:  {r[1]:.0f}  \tZ:  {r[2]:.0f}\t\tX: {a:.4f} \tY: "
+                   f"{b:.4f} \tZ: {c:.4f}  m/s^2 \n" for r, (a, b, c) in zip(raw, x, strict=True))
+    s = read("LIS3DH test!\n" + same, "lis.txt")
+    np.testing.assert_array_equal(s.samples, x)
+    assert any("the accelerometer's: X.2, Y.2, Z.2" in n for n in s.notes), s.notes
+    np.testing.assert_array_equal(read(same, "lis1.txt", columns="X,Y,Z").samples, raw)
+    alt = "".join(f"X:  {r[0]:.0f}  \tY:  {r[1]:.0f}  \tZ:  {r[2]:.0f}\nX: {a:.4f} \tY: "
+                  f"{b:.4f} \tZ: {c:.4f}  m/s^2 \n" for r, (a, b, c) in zip(raw, x, strict=True))
+    s = read(alt, "alt.txt")
+    np.testing.assert_array_equal(s.samples, x)
+    assert any("40 row(s) of the same labels without the unit" in n for n in s.notes), s.notes
+    bmi = "".join(f"Acceleration in g's\tX: {a:.4f}\tY: {b:.4f}\tZ: {c:.4f}\tRotation in "
+                  f"deg/sec\tX: 0.1\tY: 0.2\tZ: 0.3\n" for a, b, c in x)
+    np.testing.assert_array_equal(read("BMI270 connected!\n" + bmi, "bmi.txt").samples, x)
+    eq = "".join(f"Accel: X={a:.4f} Y={b:.4f} Z={c:.4f}\tGyro: X=1 Y=2 Z=3\n" for a, b, c in x)
+    np.testing.assert_array_equal(read(eq, "eq.txt").samples, x)
+    icm = "".join(f"Scaled. Acc (mg) [ {a:.4f}, {b:.4f}, {c:.4f} ], Gyr (DPS) [ 0.1, -0.3, 0.5 "
+                  f"], Mag (uT) [ 12.0, -22.5, 40.1 ], Tmp (C) [ 25.12 ]\n" for a, b, c in x)
+    s = read(icm, "icm.txt")
+    np.testing.assert_array_equal(s.samples, x)
+    np.testing.assert_array_equal(s.temperature, np.full(40, 25.12))
+    for unit in ("g", "LSB", "[m/s^2]", "counts"):
+        sep = "" if unit == "g" else " "
+        text = "".join(f"X: {a:.4f}{sep}{unit} Y: {b:.4f}{sep}{unit} Z: {c:.4f}{sep}{unit}\n"
+                       for a, b, c in x)
+        np.testing.assert_array_equal(read(text, "u.txt").samples, x)
+    cut = "".join(f"Acceleration X: {a:.4f}, Y: {b:.4f}, Z: {c:.4f} m/s^2\n" for a, b, c in x)
+    s = read(cut + "Acceleration X: 0.11, Y: -0.18, Z: 1\n", "cut.txt")
+    np.testing.assert_array_equal(s.samples, x)  # the cut row's Z of 1 is not read
+    ones = np.abs(rng.normal(size=(40, 3))) * 0.01 + [0, 0, 1]
+    p = write(tmp_path, "c0,c1,c2\n" + "".join(f"{a},{b},{c}\n" for a, b, c in ones), "c.csv")
+    np.testing.assert_array_equal(read_stream(p, fs=10.0).samples, ones)  # no label pairs
+
+
 @pytest.mark.parametrize("suffix", [".parquet", ".feather"])
 def test_parquet_and_feather_tables_are_read_by_their_column_names(tmp_path: Path,
                                                                   suffix: str) -> None:

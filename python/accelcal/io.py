@@ -61,7 +61,7 @@ import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -550,67 +550,161 @@ class _LabelPairs(CalibrationError):
     """Rows of label-value pairs (``Ax 0.00 Ay -1.23 Az -10.12``): a serial monitor's log."""
 
 
-#: A label and its number in a row of label-value pairs (``Ax 0.00``, ``ax: 0.0``, ``ax=0.0``).
-_PAIR = re.compile(r"([A-Za-z_][\w.\[\]/^]*)\s*[:=]?\s*"
-                   r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])"
-                   r"(?:\s*(?:m/s\^?2|m/s²|m/s/s|ms\^?-2|mg|g|deg/s|dps|rad/s|°C|C|degC)"
-                   r"(?![\w/^²°]))?")
+#: Units a serial sketch prints after a number (``Z: 9.81 m/s^2``, ``X: 0.01g``).
+_PAIR_UNIT = (r"(?:m/s\^?2|m/s²|m/s/s|m ?s\^?-2|\[m/s\^?2\]|\[g\]|mg|mG|g's|g|G|deg/s|dps"
+              r"|rad/s|radians/s|°C|C|degC|LSB|counts|raw|uT)")
+_PAIR_LABEL = r"[A-Za-z_][\w.\[\]/^]*"
 
 
+def _pair_pattern(number: str) -> re.Pattern[str]:
+    """A label, its number and an optional unit (``Ax 0.00``, ``ax: 0.0``, ``ax=0.0 g``):
+    the label and the number apart (``c0`` is a name, not a pair)."""
+    return re.compile(rf"({_PAIR_LABEL})(?:\s*[:=]\s*|\s+)({number})(?:\s*({_PAIR_UNIT}))?"
+                      r"(?![\w./^²°'])")
+
+
+_PAIR = _pair_pattern(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 #: The same with a decimal comma (``X: 0,11; Y: -0,18; Z: 10,16``).
-_PAIR_DC = re.compile(_PAIR.pattern.replace(r"(?:\d+\.?\d*|\.\d+)", r"\d+(?:,\d+)?")
-                      .replace(r"(?![\w.])", r"(?![\w.,]\d)"))
-
-#: A sensor's name of one to three words before its pairs (``Acceleration X: 0.12, Y: -0.45,
-#: Z: 9.81 m/s^2``, as the Adafruit sensor libraries' examples print it; ``Accel X: ...``).
-_PAIRS_PREFIX = re.compile(r"([A-Za-z][A-Za-z_]*(?: [A-Za-z][A-Za-z_]*){0,2}):?\s+")
-
-
-def _pairs_only(s: str) -> list[tuple[str, str]] | None:
-    for pattern, dc in ((_PAIR, False), (_PAIR_DC, True)):
-        pairs = pattern.findall(s)
-        if len(pairs) >= 3 and not pattern.sub("", s).strip(" \t,;|"):
-            return [(k, v.replace(",", ".")) for k, v in pairs] if dc else pairs
-        if "," not in s:
-            break
-    return None
+_PAIR_DC = _pair_pattern(r"[-+]?\d+(?:,\d+)?(?!\d)")
+#: A word of a sensor's name before its pairs (``Acceleration``, ``Accel:``, ``in g's``).
+_PAIR_WORD = re.compile(r"[A-Za-z][\w'/]*:?")
+#: At most this many words name a sensor, and labels of at most 2 characters take its name
+#: (``Accel X``; a longer label, ``Temp: 25.3``, stands alone).
+_PAIR_NAME_WORDS, _PAIR_SHORT = 4, 2
 
 
-def _label_pairs(line: str) -> list[tuple[str, str]] | None:
-    """The (label, number) pairs of a row of at least three label-value pairs and nothing
-    else but separators (blanks, commas, semicolons, bars), or None. A sensor's name before
-    the pairs prefixes their labels (``Acceleration X``); the numbers may have a decimal
-    comma."""
-    s = line.strip()
-    pairs = _pairs_only(s)
-    words = s[:48].split()
-    for n in range(1, min(3, len(words) - 1) + 1):
-        m = _PAIRS_PREFIX.fullmatch(" ".join(words[:n]) + " ")
-        if pairs is not None or m is None:
+class _Pair(NamedTuple):
+    label: str
+    value: str
+    unit: str
+
+
+def _pairs_of(s: str, pattern: re.Pattern[str], dc: bool) -> list[_Pair] | None:
+    """The pairs of ``s`` read with ``pattern``, each short label prefixed by the sensor's
+    name before it (``Acceleration in g's X``, ``Gyro X``), or None when anything but
+    pairs, names and separators (blanks, commas, semicolons, bars) is left."""
+    out: list[_Pair] = []
+    name: list[str] = []
+    after_pair = False
+    pos, n = 0, len(s)
+    while pos < n:
+        if s[pos] in " \t,;|":
+            pos += 1
             continue
-        rest = _pairs_only(s.split(None, n)[n])
-        if rest is not None:
-            pairs = [(f"{m.group(1)} {k}", v) for k, v in rest]
+        m = pattern.match(s, pos)
+        if m is not None:
+            label, value, unit = m.group(1), m.group(2), m.group(3) or ""
+            if len(label) > _PAIR_SHORT:
+                name = []  # a label of its own: the name before it ends
+            elif name:
+                label = f"{' '.join(name)} {label}"
+            out.append(_Pair(label, value.replace(",", ".") if dc else value, unit))
+            after_pair, pos = True, m.end()
+            continue
+        w = _PAIR_WORD.match(s, pos)
+        if w is None:
+            return None
+        if after_pair:
+            name, after_pair = [], False
+        name.append(w.group(0).rstrip(":"))
+        if len(name) > _PAIR_NAME_WORDS:
+            return None
+        pos = w.end()
+    return out if len(out) >= 3 and not (name and not after_pair) else None
+
+
+#: A sensor's values in brackets, its unit in parentheses (SparkFun's ICM-20948 example:
+#: ``Scaled. Acc (mg) [ 000689.88, 000229.33, 000943.60 ], Gyr (DPS) [ ... ]``).
+_BRACKETS = re.compile(r"([A-Za-z][\w]*)\s*(?:\(([^)]*)\))?\s*\[\s*([-+\d.eE]+(?:\s*,\s*"
+                       r"[-+\d.eE]+)*)\s*\]")
+
+
+def _bracket_pairs(s: str) -> list[_Pair] | None:
+    """The values of a row of bracketed triads (``Acc (mg) [ x, y, z ], Gyr (DPS) [ ... ]``)
+    as pairs labelled ``Acc x`` ..., or None: at least one triad, and nothing else but words
+    (``Scaled.``) and separators."""
+    out: list[_Pair] = []
+    for m in _BRACKETS.finditer(s):
+        vals = [v.strip() for v in m.group(3).split(",")]
+        if not all(_NUMBER.fullmatch(v) for v in vals):
+            return None
+        axes = ("x", "y", "z") if len(vals) == 3 else [str(i + 1) for i in range(len(vals))]
+        labels = [m.group(1)] if len(vals) == 1 else [f"{m.group(1)} {a}" for a in axes]
+        out += [_Pair(k, v, (m.group(2) or "").strip()) for k, v in zip(labels, vals,
+                                                                         strict=True)]
+    rest = _BRACKETS.sub(" ", s)
+    if len(out) < 3 or any(ch.isdigit() for ch in rest):
+        return None
+    return out
+
+
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def _label_pairs(line: str) -> list[_Pair] | None:
+    """The (label, number, unit) pairs of a row of at least three label-value pairs and
+    nothing else but separators and sensors' names, or None. A sensor's name before its
+    pairs prefixes their labels (``Acceleration X``, Adafruit's examples; ``Acceleration in
+    g's X`` then ``Rotation in deg/sec X``, SparkFun's); the numbers may have a decimal comma
+    and a unit after them. Bracketed triads (``Acc (mg) [ x, y, z ]``) read as ``Acc x``..."""
+    s = line.strip()
+    pairs = _pairs_of(s, _PAIR, False)
+    if pairs is None and "," in s:
+        pairs = _pairs_of(s, _PAIR_DC, True)
+    if pairs is None and "[" in s:
+        pairs = _bracket_pairs(s)
     return pairs
+
+
+def _acc_name(label: str) -> bool:
+    """Whether a pair's label carries a sensor's name that says accelerometer."""
+    if " " not in label:
+        return False
+    head = label.rsplit(" ", 1)[0].lower()
+    return head in _ACC_LABELS | {"linear acceleration"} or head.split()[0] in _ACC_LABELS
 
 
 def _names_acceleration(labels: tuple[str, ...]) -> bool:
     """Whether labels with a sensor's name before them (``Acceleration X``) name an
-    accelerometer."""
-    heads = {k.rsplit(" ", 1)[0].lower() for k in labels if " " in k}
-    return len(heads) == 1 and heads.pop() in _ACC_LABELS | {"linear acceleration"}
+    accelerometer: exactly three of them do."""
+    return sum(map(_acc_name, labels)) == 3
+
+
+def _triads(pairs: list[_Pair]) -> tuple[list[str], list[int]]:
+    """A row's labels made distinct (a label that repeats gets ``.2``, ``.3``: the LIS3DH
+    example prints raw counts and m/s^2 as ``X: ... Y: ... Z: ... X: ... m/s^2``), and the
+    indices of the accelerometer's three: those named so (``Accel X`` beside ``Gyro X``), else
+    of repeated triads the one with a unit; [] when the labels alone decide."""
+    seen: dict[str, int] = {}
+    labels = []
+    for p in pairs:
+        seen[p.label] = seen.get(p.label, 0) + 1
+        labels.append(p.label if seen[p.label] == 1 else f"{p.label}.{seen[p.label]}")
+    acc = [i for i, p in enumerate(pairs) if _acc_name(p.label)]
+    if len(acc) == 3 and len(acc) < len(pairs):
+        return labels, acc
+    if len(pairs) % 3 == 0 and len(seen) == 3 and len(pairs) > 3:  # repeated triads
+        groups = [list(range(i, i + 3)) for i in range(0, len(pairs), 3)]
+        with_unit = [g for g in groups if any(pairs[i].unit for i in g)]
+        if len(with_unit) == 1:
+            return labels, with_unit[0]
+    return labels, []
 
 
 def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
                         time_column: Any) -> _ArraySource:
     """A log of label-value pairs (``Ax 0.00 Ay -1.23 Az -10.12``, as an Arduino sketch prints
-    them; cuspaceflight/kestrel's ``acc_data.txt``): read in memory (such logs are small), the
-    labels naming the columns. Rows with other labels (a line of another sensor, a message)
-    are left out with a note; more than a quarter of them is an error."""
+    them; cuspaceflight/kestrel's ``acc_data.txt``; the Adafruit and SparkFun examples'
+    ``Acceleration X: ...``): read in memory (such logs are small), the labels naming the
+    columns. Rows with other labels (a line of another sensor, a message) are left out with a
+    note; more than a quarter of them is an error, unless the rows kept name their sensor an
+    accelerometer. Of rows with the same labels, those with a unit are kept when some have
+    one (the others: raw counts on alternate lines, or rows cut short)."""
     import pandas as pd
 
     name = src.path
-    rows: dict[tuple[str, ...], list[list[float]]] = {}
+    rows: dict[tuple[tuple[str, ...], bool], list[list[float]]] = {}
+    pick: dict[tuple[str, ...], list[int]] = {}
     other = 0
     try:
         with open(src.opened, encoding="utf-8-sig", errors="replace") as fh:
@@ -622,28 +716,39 @@ def _label_pairs_source(src: _TextSource, columns: Any, fs: float | None,
                 if pairs is None:
                     other += 1
                     continue
-                rows.setdefault(tuple(k for k, _ in pairs), []).append(
-                    [float(v) for _, v in pairs])
+                row_labels, row_acc = _triads(pairs)
+                key = tuple(row_labels)
+                pick.setdefault(key, row_acc)
+                rows.setdefault((key, any(p.unit for p in pairs)), []).append(
+                    [float(p.value) for p in pairs])
     except OSError as e:
         raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
+    # Of rows with the same labels, those with a unit when some have one.
+    unitless = {k: len(v) for (k, u), v in rows.items() if not u and (k, True) in rows}
+    sets = {k: v for (k, u), v in rows.items() if u or (k, True) not in rows}
     # Rows that name their sensor (Adafruit's examples print `Acceleration X: ...`, then
     # `Rotation X: ...` and `Temperature: ...`): the accelerometer's, however many others.
-    named = [kv for kv in rows.items() if _names_acceleration(kv[0])]
-    labels, values = max(named or rows.items(), key=lambda kv: len(kv[1]))
-    left = other + sum(len(v) for k, v in rows.items() if k != labels)
+    named = [kv for kv in sets.items() if _names_acceleration(kv[0])]
+    labels, values = max(named or sets.items(), key=lambda kv: len(kv[1]))
+    dropped = unitless.get(labels, 0)
+    left = other + sum(len(v) for k, v in sets.items() if k != labels) + dropped
     total = left + len(values)
-    if left > total / 4 and len(named) != 1:
+    if left > total / 4 and len(named) != 1 and not dropped:
         raise CalibrationError(
             f"{name}: a log of label-value pairs ({' '.join(labels)}) in only {len(values)} of "
             f"its {total} rows; write the accelerometer's rows to a file of their own")
-    if len(set(labels)) != len(labels):
-        raise CalibrationError(f"{name}: a log of label-value pairs whose labels repeat in a "
-                               f"row ({' '.join(labels)}); give the columns a header instead")
-    out = _dataframe_source(pd.DataFrame(values, columns=list(labels)), columns, fs,
+    acc = pick.get(labels, [])
+    chosen = columns if columns is not None or not acc else [labels[i] for i in acc]
+    out = _dataframe_source(pd.DataFrame(values, columns=list(labels)), chosen, fs,
                             time_column, path=name, named=True)
     note = (f"rows of label-value pairs ({', '.join(labels)}): the labels name the columns")
+    if chosen is not columns:
+        note += f"; the accelerometer's: {', '.join(chosen)} (columns= picks others)"
+    if dropped:
+        note += (f"; {dropped} row(s) of the same labels without the unit the others carry "
+                 "(raw counts on alternate lines, or rows cut short) left out")
     others = {k[0].rsplit(" ", 1)[0] if " " in k[0] else " ".join(k): len(v)
-              for k, v in rows.items() if k != labels}
+              for k, v in sets.items() if k != labels}
     if others:
         note += (f"; {sum(others.values())} row(s) of other sensors' pairs "
                  f"({', '.join(others)}) left out")
