@@ -685,6 +685,11 @@ def test_a_parquet_recording_is_a_recording_and_a_parquet_manifest_a_manifest(
         np.testing.assert_allclose(row[PARAMS].to_numpy(float), ref, rtol=1e-9, atol=1e-12)
     code, out = _cli("calibrate", "static", "--manifest", str(pq), "--g", str(G0))
     assert code == 2 and "needs a 'path' column" in out, out
+    # One FILE that is a table of recordings is a manifest (it was read as a recording: "the
+    # table has no numeric columns").
+    code, out = _cli("calibrate", "static", str(man), "--g", str(G0), "--summary",
+                     str(tmp_path / "s.csv"), "--quiet")
+    assert code == 0 and "calibrated 2 recordings" in out, out
 
 
 def test_a_compressed_recording_is_named_without_its_suffixes() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from typing import Any
 
@@ -118,7 +119,14 @@ def calibrate_static(
     ``accelcal dwells -o`` / ``--dwells-out``. Several recordings (or --summary, --out,
     --scheduler, --manifest) make a fleet run: one row per recording in a summary table, one
     calibration file per sensor, on all local cores or a Dask cluster; see `accelcal fleet
-    report`."""
+    report`. One FILE that is a table of recordings (a 'path' column) is taken as
+    --manifest."""
+    if len(files) == 1 and not fleet.get("manifest"):
+        from ..fleet import _is_manifest_file
+
+        if os.path.isfile(files[0]) and _is_manifest_file(files[0]):
+            fleet = {**fleet, "manifest": files[0]}
+            files = ()
     if is_fleet_run(files, fleet):
         if bounds:
             raise CalibrationError("--bounds takes one recording (its dwells are that "
