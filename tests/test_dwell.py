@@ -1475,7 +1475,9 @@ def test_a_clock_step_back_warns_and_chunks_agree_with_one_push() -> None:
     assert len(one) == len(s.bounds)
     np.testing.assert_allclose(one.t[3:], _mid_times(s.t, s.bounds[3:]) - 100.0, atol=0.5)
     acc = DwellAccumulator(fs=s.fs)
-    with pytest.warns(TimeStepWarning, match=rf"the first at row {cut}, by 99.999 s"):
+    # Pushed in chunks, the first step back is warned, with no count of the whole stream's.
+    with pytest.warns(TimeStepWarning, match=rf"steps back at row {cut}, by 99.999 s \(further "
+                                             r"steps back of this stream are not warned"):
         push_in_chunks(acc, [1000, cut, cut + 7], s.samples, t=t)  # the step on a boundary
     assert_same(acc.finish(), one)
     with pytest.warns(TimeStepWarning, match=rf"row {cut}"):
@@ -1491,6 +1493,13 @@ def test_a_clock_step_back_warns_and_chunks_agree_with_one_push() -> None:
     with pytest.warns(TimeStepWarning, match=rf"row {cut}"):
         resumed.push(s.samples[cut:], t=t[cut:])
     assert_same(resumed.finish(), one)
+    # A row at a time (the plain-float path) is judged and warned the same.
+    acc_1 = DwellAccumulator(fs=s.fs)
+    with pytest.warns(TimeStepWarning, match=rf"steps back at row {cut}, by 99.999 s"):
+        for i in range(0, cut + 50):
+            acc_1.push(s.samples[i:i + 1], t=t[i:i + 1])
+    acc_1.push(s.samples[cut + 50:], t=t[cut + 50:])
+    assert_same(acc_1.finish(), one)
 
 
 @pytest.mark.parametrize("chunk", [1, 7])

@@ -118,13 +118,18 @@ class _Clock:
             (x is None or isinstance(x, float)) for x in v[:2]) and all(
             type(x) is int and x >= 0 for x in v[2:7]) and isinstance(v[7], bool)
 
-    def check(self, t: NDArray[np.float64] | None, fs: float | None, row0: int = 0
-              ) -> tuple[_Clock, str | None]:
+    def check(self, t: NDArray[np.float64] | None, fs: float | None, row0: int = 0,
+              whole: bool = False) -> tuple[_Clock, str | None]:
         """``(state with t added, warning text or None)``; a CalibrationError when the times
         cannot be sample times at ``fs``. ``row0`` is the stream row of ``t[0]``;
-        non-finite times are left to the core."""
+        non-finite times are left to the core. ``whole``: ``t`` is the whole stream, so the
+        warning can count every step back (a stream pushed in chunks warns at its first)."""
         if t is None or t.size == 0:
             return self, None
+        if t.size == 1 and self.last is not None:  # a row at a time: no array work
+            x = float(t[0])
+            if math.isfinite(x):
+                return self._one(x, fs, row0)
         rows = None
         if not math.isfinite(float(np.add.reduce(t))):  # one sum when every time is finite
             rows = np.flatnonzero(np.isfinite(t))
@@ -162,12 +167,43 @@ class _Clock:
             at = i + (0 if self.last is not None else 1)  # index in v of the row after it
             row = row0 + (at if rows is None else int(rows[at]))
             new.warned = True
-            by = float(-d[i])
-            why = ("under one sample interval: jittered time stamps? Kept as given"
-                   if dt is not None and by < dt else
-                   "a clock reset or recordings joined? Kept as given: the dwell times after "
-                   "a step back are on the new clock")
-            warn = f"t steps back {nback} time(s) (the first at row {row}, by {by:.6g} s): {why}"
+            warn = self._step_back_text(float(-d[i]), row, dt, nback if whole else None)
+        return new._judged(warn, fs, dt)
+
+    def _one(self, x: float, fs: float | None, row: int) -> tuple[_Clock, str | None]:
+        """:meth:`check` of one finite time ``x`` after others, in plain floats."""
+        assert self.last is not None
+        new = _Clock.__new__(_Clock)
+        d = x - self.last
+        dt = None if fs is None else 1.0 / fs
+        new.first, new.last, new.steps, new.warned = self.first, x, self.steps + 1, self.warned
+        new.pos, new.back = self.pos + (d > 0), self.back + (d < 0)
+        new.long, new.short = self.long, self.short
+        if dt is not None:
+            new.long += d > CLOCK_RATIO * dt
+            new.short += 0 < d < dt / CLOCK_RATIO
+        warn = None
+        if d < 0 and not self.warned:
+            new.warned = True
+            warn = self._step_back_text(-d, row, dt, None)
+        return new._judged(warn, fs, dt)
+
+    @staticmethod
+    def _step_back_text(by: float, row: int, dt: float | None, count: int | None) -> str:
+        why = ("under one sample interval: jittered time stamps? Kept as given"
+               if dt is not None and by < dt else
+               "a clock reset or recordings joined? Kept as given: the dwell times after "
+               "a step back are on the new clock")
+        if count is None:  # a stream pushed in chunks: its first step back, warned once
+            return (f"t steps back at row {row}, by {by:.6g} s (further steps back of this "
+                    f"stream are not warned again): {why}")
+        return f"t steps back {count} time(s) (the first at row {row}, by {by:.6g} s): {why}"
+
+    def _judged(self, warn: str | None, fs: float | None, dt: float | None
+                ) -> tuple[_Clock, str | None]:
+        """This state (the chunk added) and its warning, or a CalibrationError when the times
+        so far cannot be sample times at ``fs``."""
+        new = self
         if new.steps < _CLOCK_MIN_STEPS:
             return new, warn
         # Whether the clock advances is judged once the rows span _CLOCK_FLAT_S at fs.
@@ -213,7 +249,7 @@ class _Clock:
 
 def _check_times(t: NDArray[np.float64] | None, fs: float | None) -> None:
     """:class:`_Clock`'s check of a whole stream's times (a warning for steps back)."""
-    _, warn = _Clock().check(t, fs)
+    _, warn = _Clock().check(t, fs, whole=True)
     if warn is not None:
         warnings.warn(warn, TimeStepWarning, stacklevel=3)
 
