@@ -494,15 +494,27 @@ fn projected_estimate(
     sine_tol: f64,
 ) -> (Vec<f64>, Vec<f64>) {
     let k = c.ncols();
-    let nmax = (0..k).map(|i| c.column(i).norm()).fold(0.0, f64::max);
-    let cp = c - q * (q.transpose() * c);
+    // Each column scaled to unit norm, so that the kept directions are those of the
+    // identifiability sines whatever the columns' sizes (K2's x^2, y^2, z^2 columns differ by
+    // orders of magnitude on near-axis poses): scaled by the largest column alone, every
+    // direction of the small ones was dropped and the estimate read "0 +- 0".
+    let norms: Vec<f64> = (0..k).map(|i| c.column(i).norm()).collect();
+    let mut cn = c.clone();
+    for (i, &nrm) in norms.iter().enumerate() {
+        if nrm > 0.0 {
+            cn.column_mut(i).scale_mut(1.0 / nrm);
+        }
+    }
+    let cp = &cn - q * (q.transpose() * &cn);
     let mut est = vec![0.0; k];
     let mut var = vec![0.0; k];
+    let mut kept = 0;
     if let Ok((u2, s, vt2)) = thin_svd(&cp) {
         for j in 0..s.len() {
-            if !(s[j] > sine_tol * nmax) {
+            if !(s[j] > sine_tol) {
                 continue;
             }
+            kept += 1;
             let coef = -u2.column(j).dot(e) / s[j];
             for i in 0..k {
                 est[i] += vt2[(j, i)] * coef;
@@ -510,7 +522,17 @@ fn projected_estimate(
             }
         }
     }
-    (est, var.iter().map(|v| v.sqrt()).collect())
+    // Back to the columns' own scale; NaN where nothing could be estimated.
+    let mut std = vec![f64::NAN; k];
+    for i in 0..k {
+        if kept == 0 || !(norms[i] > 0.0) {
+            est[i] = f64::NAN;
+            continue;
+        }
+        est[i] /= norms[i];
+        std[i] = var[i].sqrt() / norms[i];
+    }
+    (est, std)
 }
 
 /// Screen one candidate's whitened columns `c` against the current model (`b`, residual `e`,
@@ -1940,6 +1962,37 @@ mod tests {
         let b = basis(&j).unwrap();
         assert_eq!(b.rank, 2);
         assert!((b.q.transpose() * &b.q - DMatrix::identity(2, 2)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn estimates_of_columns_of_very_different_sizes_are_kept() {
+        // Two effect columns outside range(Q), one 1e4 times the other: scaled by the
+        // largest alone, the small one's direction fell under the tolerance and the estimate
+        // read 0 +- 0 for both parameters.
+        let n = 12;
+        let mut rng = Rng(7);
+        let mut q = DMatrix::from_fn(n, 2, |_, _| rng.normal());
+        q = q.qr().q().columns(0, 2).into_owned();
+        let mut c = DMatrix::from_fn(n, 2, |_, _| rng.normal());
+        c.column_mut(0).scale_mut(1e4);
+        let theta = [3e-4, 2.5];
+        let e =
+            -(&c * DVector::from_column_slice(&theta)) + &q * DVector::from_vec(vec![1.0, -2.0]);
+        let (est, std) = projected_estimate(&c, &q, &e, 1e-6, 0.05);
+        for i in 0..2 {
+            assert!(
+                (est[i] - theta[i]).abs() < 1e-9 * theta[i].abs().max(1.0),
+                "{est:?}"
+            );
+            assert!(std[i] > 0.0 && std[i].is_finite(), "{std:?}");
+        }
+        // Nothing outside range(Q): not estimated (NaN), not 0 +- 0.
+        let inside = &q * DMatrix::from_fn(2, 2, |_, _| rng.normal());
+        let (est, std) = projected_estimate(&inside, &q, &e, 1e-6, 0.05);
+        assert!(
+            est.iter().chain(&std).all(|v| v.is_nan()),
+            "{est:?} {std:?}"
+        );
     }
 
     #[test]
