@@ -1221,6 +1221,23 @@ def test_a_moved_calibration_is_not_blamed_on_an_attitude_effect() -> None:
     assert "a moved bias looks like K2" in text
 
 
+def _known_noise(means: np.ndarray, sig: float, **kw: Any) -> DwellSet:
+    """Dwell means of 1000 samples each whose mean's noise is ``sig`` per axis."""
+    k = len(means)
+    return DwellSet(means, np.full((k, 3), sig**2 * 1000), np.full(k, 1000), **kw)
+
+
+def _sphere_calibration() -> tuple[np.ndarray, float, Any]:
+    """(truth, sigma, calibration) of a sensor calibrated on 40 dwells over the sphere, its
+    noise known: a calibration that holds, to check on other sessions of it."""
+    from accelcal.sim.static import static_dwell_means
+
+    tr = np.array([1.02, 0.98, 1.01, 0.01, -0.02, 0.015, 0.002, -0.001, 0.003])
+    sig = 1e-3
+    first = static_dwell_means(40, truth=tr, g=1.0, max_tilt_deg=None, sigma=sig, rng=1)
+    return tr, sig, accelcal.fit_static(_known_noise(first.means, sig), 1.0).to_model()
+
+
 def test_a_real_effect_on_a_small_session_is_not_lost_to_a_refit() -> None:
     """A calibration that holds, checked on 12 dwells with a real K2 (1e4 ug/g^2 on x): K2
     pulls the refit away, the check rejects the calibration, and the refit of 12 dwells had
@@ -1230,18 +1247,13 @@ def test_a_real_effect_on_a_small_session_is_not_lost_to_a_refit() -> None:
     effect is still not called K2 on 30 dwells (the test above)."""
     from accelcal.sim.static import static_dwell_means
 
-    tr = np.array([1.02, 0.98, 1.01, 0.01, -0.02, 0.015, 0.002, -0.001, 0.003])
-    sig = 1e-3
-    first = static_dwell_means(40, truth=tr, g=1.0, max_tilt_deg=None, sigma=sig, rng=1)
-    cal = accelcal.fit_static(DwellSet(first.means, np.full((40, 3), sig**2 * 1000),
-                                       np.full(40, 1000)), 1.0).to_model()
+    tr, sig, cal = _sphere_calibration()
     named = 0
     for seed in range(6):
         ses = static_dwell_means(12, truth=tr, g=1.0, max_tilt_deg=60, sigma=sig,
                                  rng=1000 + seed)
         m = ses.means + 0.01 * ((ses.force * tr[:3]) ** 2) * [1, 0, 0]
-        d = DwellSet(m, np.full((12, 3), sig**2 * 1000), np.full(12, 1000),
-                     t=np.arange(12) * 60.0)
+        d = _known_noise(m, sig, t=np.arange(12) * 60.0)
         r = diagnose(d, g=1.0, fit=cal)
         named += r.best == "k2"
         if r.calibration_check["attribution"] == "fixed":
@@ -1336,15 +1348,11 @@ def test_a_calibration_that_holds_is_not_rejected_on_a_weak_session() -> None:
 
     from accelcal.sim.static import static_dwell_means
 
-    tr = np.array([1.02, 0.98, 1.01, 0.01, -0.02, 0.015, 0.002, -0.001, 0.003])
-    sig = 1e-3
-    first = static_dwell_means(40, truth=tr, g=1.0, max_tilt_deg=None, sigma=sig, rng=1)
-    cal = accelcal.fit_static(DwellSet(first.means, np.full((40, 3), sig**2 * 1000),
-                                       np.full(40, 1000)), 1.0).to_model()
+    tr, sig, cal = _sphere_calibration()
     rejected = 0
     for seed in range(30):
         s = static_dwell_means(10, truth=tr, g=1.0, max_tilt_deg=30, sigma=sig, rng=1000 + seed)
-        d = DwellSet(s.means, np.full((10, 3), sig**2 * 1000), np.full(10, 1000))
+        d = _known_noise(s.means, sig)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", accelcal.WeakDesignWarning)
             c = diagnose(d, g=1.0, fit=cal, loo=False).calibration_check

@@ -358,6 +358,11 @@ def _need_pandas() -> Any:
 _SHEETS = (".xlsx", ".xlsm", ".xls", ".ods")
 
 
+def _has_path_column(names: Any) -> bool:
+    """A table whose column names hold ``path`` lists recordings (a manifest)."""
+    return "path" in {str(c).strip().lower() for c in names}
+
+
 def _is_manifest_file(p: str) -> bool:
     low = p.lower()
     if low.endswith((".parquet", ".pq")):
@@ -368,7 +373,7 @@ def _is_manifest_file(p: str) -> bool:
             names = parquet.read_schema(p).names
         except Exception:  # noqa: BLE001 - missing pyarrow or unreadable: the manifest's reader says why
             return True
-        return "path" in {str(c).strip().lower() for c in names}
+        return _has_path_column(names)
     if low.endswith(_SHEETS) and os.path.isfile(p):
         # A workbook is a manifest when its first sheet has a path column (a recording in a
         # workbook has accelerometer columns instead).
@@ -376,7 +381,7 @@ def _is_manifest_file(p: str) -> bool:
             head = _need_pandas().read_excel(p, nrows=0)
         except Exception:  # noqa: BLE001 - not readable here: the recording reader says why
             return False
-        return "path" in {str(c).strip().lower() for c in head.columns}
+        return _has_path_column(head.columns)
     if not low.endswith((".csv", ".tsv", ".txt")) or not os.path.isfile(p):
         return False
     with open(p, encoding="utf-8", errors="replace") as fh:

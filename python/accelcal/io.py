@@ -563,7 +563,9 @@ def _pair_pattern(number: str) -> re.Pattern[str]:
                       r"(?![\w./^²°'])")
 
 
-_PAIR = _pair_pattern(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+#: A number as the serial rows print it (a sign, a decimal point, an exponent).
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+_PAIR = _pair_pattern(_NUMBER.pattern)
 #: The same with a decimal comma (``X: 0,11; Y: -0,18; Z: 10,16``).
 _PAIR_DC = _pair_pattern(r"[-+]?\d+(?:,\d+)?(?!\d)")
 #: A word of a sensor's name before its pairs (``Acceleration``, ``Accel:``, ``in g's``).
@@ -637,8 +639,6 @@ def _bracket_pairs(s: str) -> list[_Pair] | None:
         return None
     return out
 
-
-_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
 
 def _label_pairs(line: str) -> list[_Pair] | None:
