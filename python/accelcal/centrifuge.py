@@ -401,6 +401,17 @@ class CentrifugeFit(_core.CentrifugeFitCore):
                 lines.append(f"    {self.row_name(k):<32} {r:+11.4g} g  {t:+9.3g}")
         return "\n".join(lines)
 
+    def _rms_g(self) -> float:
+        """RMS of the norm residuals of the rows used, in g (``residual_rms`` is whitened when
+        the noise was given)."""
+        if not self.noise_known:
+            return float(self.residual_rms)
+        r = np.asarray(self.residuals, dtype=np.float64)
+        used = np.ones(r.size, dtype=bool)
+        used[np.asarray(self.outliers, dtype=np.intp)] = False
+        used &= np.isfinite(r)
+        return float(np.sqrt(np.mean(np.square(r[used])))) if used.any() else float("nan")
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly dictionary (lists and floats)."""
 
@@ -431,7 +442,9 @@ class CentrifugeFit(_core.CentrifugeFitCore):
             "threshold": self.threshold,
             "outliers": conv(self.outliers),
             "row_labels": list(self.labels),
-            "residual_rms_g": self.residual_rms,
+            # In g whatever the noise: with sigma given, residual_rms is whitened (its own key).
+            "residual_rms_g": self._rms_g(),
+            "residual_rms_whitened": self.residual_rms if self.noise_known else None,
             "observability": conv(self.observability),
             "iterations": self.iterations,
             "converged": self.converged,
