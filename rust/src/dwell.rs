@@ -1519,9 +1519,17 @@ fn runs(mark: &[bool], trim: usize, min_blocks: usize) -> Vec<[usize; 2]> {
 /// it is static, so no dwell contains it.
 ///
 /// `n` is the number of samples pushed (the blocks hold all but the last partial block): the
-/// messages count it.
-pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings, n: usize) -> Result<Detection> {
-    let det = detect_once(blocks, s, n);
+/// messages count it. `lsb` is the output step per axis of quantised samples: the noise
+/// variance the detector estimates is floored at the quantisation's `lsb^2 / 12` (see
+/// [`quantisation_floor`]).
+pub fn detect_from_blocks(
+    blocks: &[Moments],
+    s: &DetectorSettings,
+    n: usize,
+    lsb: Option<[f64; 3]>,
+) -> Result<Detection> {
+    let floor = quantisation_floor(lsb);
+    let det = detect_once(blocks, s, n, floor);
     let found = match &det {
         Ok(d) => d.bounds.len(),
         Err(CoreError::Degenerate(_)) => 0,
@@ -1535,7 +1543,7 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings, n: usize) ->
     if found >= PROBE_BELOW || 4 * still >= n {
         return det;
     }
-    let shorter = probe_shorter(blocks, s, n, found);
+    let shorter = probe_shorter(blocks, s, n, found, floor);
     match (det, shorter) {
         (Ok(mut d), sh) => {
             d.shorter = sh;
@@ -1546,6 +1554,19 @@ pub fn detect_from_blocks(blocks: &[Moments], s: &DetectorSettings, n: usize) ->
         }
         (e, _) => e,
     }
+}
+
+/// The least noise variance per axis the detector takes for samples quantised in steps of
+/// `lsb`: `lsb^2 / 12`, the variance of the rounding. Below about a third of a step of white
+/// noise, the windows that sit inside one output code have a variance of zero or nearly, so
+/// their low quantile - the estimate - is far below the noise of the windows that straddle a
+/// code boundary (a quarter of a step squared): every such still window read as motion (2 of
+/// 20 rests found at 0.2 LSB of noise; at 0.12 LSB and below the estimate was zero and the
+/// detection refused). Zero when the samples are not quantised.
+fn quantisation_floor(lsb: Option<[f64; 3]>) -> [f64; 3] {
+    lsb.map_or([0.0; 3], |l| {
+        l.map(|x| if x.is_finite() { x * x / 12.0 } else { 0.0 })
+    })
 }
 
 /// Below this many dwells the detector also tries shorter windows ([`probe_shorter`]).
@@ -1621,10 +1642,11 @@ fn probe_shorter(
     s: &DetectorSettings,
     n: usize,
     found: usize,
+    floor: [f64; 3],
 ) -> Option<ShorterWindow> {
     let mut best: Option<ShorterWindow> = None;
     for c in shorter_settings(s) {
-        let Ok(d) = detect_once(blocks, &c, n) else {
+        let Ok(d) = detect_once(blocks, &c, n, floor) else {
             continue;
         };
         // Every dwell found must be steady: one that creeps is the end of a move, and the
@@ -1643,8 +1665,14 @@ fn probe_shorter(
     best
 }
 
-/// [`detect_from_blocks`] without the probe of shorter windows.
-fn detect_once(blocks: &[Moments], s: &DetectorSettings, n: usize) -> Result<Detection> {
+/// [`detect_from_blocks`] without the probe of shorter windows; `floor` is the least noise
+/// variance per axis ([`quantisation_floor`]).
+fn detect_once(
+    blocks: &[Moments],
+    s: &DetectorSettings,
+    n: usize,
+    floor: [f64; 3],
+) -> Result<Detection> {
     s.validate()?;
     let b = s.block_len();
     let w = s.window_blocks();
@@ -1688,10 +1716,12 @@ fn detect_once(blocks: &[Moments], s: &DetectorSettings, n: usize) -> Result<Det
             // A perfectly constant axis (e.g. clipped or simulated noise-free) must not make
             // every tiny change look like motion, nor divide by zero.
             let top = nv.iter().cloned().fold(0.0, f64::max);
-            for v in nv.iter_mut() {
+            for (v, f) in nv.iter_mut().zip(floor) {
                 if *v <= 0.0 {
                     *v = if top > 0.0 { top } else { f64::MIN_POSITIVE };
                 }
+                // Then no less than the rounding's own variance (quantised samples).
+                *v = v.max(f);
             }
             nv
         }
@@ -2194,7 +2224,7 @@ impl DetectAcc {
                  variance): rescale them"
             ));
         }
-        let det = detect_from_blocks(&self.blocks, &self.settings, self.pos)?;
+        let det = detect_from_blocks(&self.blocks, &self.settings, self.pos, self.lsb.estimate())?;
         let bl = self.settings.block_len();
         let t_mid = (self.has_t == Some(true)).then(|| {
             det.bounds
@@ -2727,6 +2757,54 @@ mod tests {
         }
         assert_eq!(t.dropped, 0);
         assert_eq!(t.lsb, None);
+    }
+
+    /// Integer counts whose white noise is well below one step: windows inside one output
+    /// code have no variance at all, yet every rest is found (the noise floored at the
+    /// rounding's lsb^2 / 12). Before: 1 of 5 rests, or a refusal (zero noise).
+    #[test]
+    fn rests_of_noise_below_one_output_step_are_found() {
+        let levels = [0.3, 1000.5, -1000.1, 2000.45, 500.0, -300.52];
+        for sd in [0.08, 0.15, 0.2] {
+            let mut s = 5u64;
+            // Sum of 12 uniforms on [0, 1), centred: about normal, unit variance.
+            let mut gauss = || (0..12).map(|_| lcg(&mut s)).sum::<f64>() - 6.0;
+            let mut rows: Vec<[i16; 3]> = Vec::new();
+            for (i, &l) in levels.iter().enumerate() {
+                for _ in 0..500 {
+                    let r = [
+                        l + sd * gauss(),
+                        200.25 + sd * gauss(),
+                        16384.5 + sd * gauss(),
+                    ];
+                    rows.push(r.map(|v| v.round() as i16));
+                }
+                if i + 1 < levels.len() {
+                    for j in 0..200 {
+                        let f = j as f64 / 200.0;
+                        let v = l + f * (levels[i + 1] - l);
+                        let w = 200.0 + 300.0 * (f * std::f64::consts::TAU).sin();
+                        rows.push([v.round() as i16, w.round() as i16, 16384]);
+                    }
+                }
+            }
+            let x = Array2::from_shape_fn((rows.len(), 3), |(i, a)| rows[i][a]);
+            let mut acc = DwellAccumulator::with_detector(DetectorSettings::new(100.0)).unwrap();
+            acc.push(&x.view(), None, None).unwrap();
+            let t = acc.finish().unwrap();
+            assert_eq!(t.lsb, Some([1.0; 3]));
+            assert_eq!(
+                t.bounds.len(),
+                levels.len(),
+                "noise {sd} LSB: {:?}",
+                t.bounds
+            );
+            for (m, &l) in t.moments().iter().zip(&levels) {
+                // Within half a step: below one step of noise a dwell mean is biased towards
+                // its nearest code (the quantisation verdict of the gap diagnosis).
+                assert!((m.mean[0] - l).abs() <= 0.5, "{} {l}", m.mean[0]);
+            }
+        }
     }
 
     /// The noise level of a session that moves most of the time comes from its stillest
