@@ -698,3 +698,187 @@ def test_a_compressed_recording_is_named_without_its_suffixes() -> None:
 
     assert [file_stem(p) for p in ("a/b.csv.gz", "b.csv.bz2", "b.txt.xz", "b.csv", "b.v2.csv",
                                     "b")] == ["b", "b", "b", "b", "b.v2", "b"]
+
+
+# ---- an --out folder shared by several runs, duplicate entries, a report without spread -------
+def _good(fleet: dict[str, Any], n: int) -> list[str]:
+    return [r.path for r in fleet["recs"] if not r.corruption][:n]
+
+
+def _board_a(path: str) -> pd.DataFrame:
+    """A manifest: one recording as board-A, on a day-level test date (one name per day)."""
+    return pd.DataFrame({"path": [path], "sensor_id": ["board-A"], "date": ["2026-11-21"]})
+
+
+BOARD_A = "board-A_20261121T000000Z"
+
+
+def test_a_later_run_never_replaces_another_recordings_calibration_file(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    a, b, c = _good(fleet, 3)
+    out = tmp_path / "cals"
+    first = ac.calibrate_many(_board_a(a), g=G0, out=out, workers=1, progress=False)
+    f1 = Path(first.loc[0, "cal_file"])
+    assert f1.name == f"{BOARD_A}.json" and first.loc[0, "message"] == ""
+    kept = f1.read_bytes()
+    second = ac.calibrate_many(_board_a(b), g=G0, out=out, workers=1, progress=False)
+    third = ac.calibrate_many(_board_a(c), g=G0, out=out, workers=1, progress=False)
+    # the board's history: one file per calibration, the earlier ones untouched
+    assert f1.read_bytes() == kept
+    assert sorted(p.name for p in out.glob("*.json")) == [
+        f"{BOARD_A}-2.json", f"{BOARD_A}-3.json", f"{BOARD_A}.json"]
+    for df, src, name in ((second, b, f"{BOARD_A}-2.json"), (third, c, f"{BOARD_A}-3.json")):
+        assert Path(df.loc[0, "cal_file"]).name == name
+        assert ac.TriadModel.load(df.loc[0, "cal_file"]).metadata["source"] == src
+        msg = df.loc[0, "message"]
+        assert df.loc[0, "status"] == "ok"
+        assert f"{BOARD_A}.json" in msg and a in msg and f"written as {name}" in msg, msg
+    assert ac.TriadModel.load(f1).metadata["source"] == a
+    # the fleet report lists the renamed ones as calibrated with a note
+    assert [n["sensor_id"] for n in ac.fleet_report(second).noted] == ["board-A"]
+
+
+def test_a_rerun_of_the_same_recording_keeps_the_one_identical_file(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    a = _good(fleet, 1)[0]
+    out = tmp_path / "cals"
+    first = ac.calibrate_many(_board_a(a), g=G0, out=out, workers=1, progress=False)
+    f1 = Path(first.loc[0, "cal_file"])
+    st = os.stat(f1)
+    again = ac.calibrate_many(_board_a(a), g=G0, out=out, workers=2, progress=False)
+    assert again.loc[0, "cal_file"] == str(f1) and again.loc[0, "message"] == ""
+    assert [p.name for p in out.glob("*.json")] == [f1.name]
+    assert os.stat(f1).st_mtime_ns == st.st_mtime_ns and os.stat(f1).st_ino == st.st_ino
+    # the file records what the recording held
+    m = ac.TriadModel.load(f1)
+    assert m.metadata["source_sha256"] == hashlib.sha256(Path(a).read_bytes()).hexdigest()
+
+
+def test_a_new_recording_under_an_old_file_name_does_not_replace_its_calibration(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    """The same path, re-recorded (or two runs within one second): another recording."""
+    a, b = _good(fleet, 2)
+    rec = tmp_path / "S9.csv"
+    rec.write_bytes(Path(a).read_bytes())
+    out = tmp_path / "cals"
+    man = _board_a(str(rec))
+    first = ac.calibrate_many(man, g=G0, out=out, workers=1, progress=False)
+    kept = Path(first.loc[0, "cal_file"]).read_bytes()
+    rec.write_bytes(Path(b).read_bytes())  # the board recorded again, same file name
+    second = ac.calibrate_many(man, g=G0, out=out, workers=1, progress=False)
+    assert Path(first.loc[0, "cal_file"]).read_bytes() == kept
+    assert Path(second.loc[0, "cal_file"]).name == f"{BOARD_A}-2.json"
+    assert "written as" in second.loc[0, "message"]
+    # a file of that name that is no calibration at all is not touched either
+    (out / f"{BOARD_A}-3.json").write_text("my notes\n")
+    (out / f"{BOARD_A}-4.json").symlink_to(out / f"{BOARD_A}-3.json")
+    rec.write_bytes(Path(_good(fleet, 3)[2]).read_bytes())
+    third = ac.calibrate_many(man, g=G0, out=out, workers=1, progress=False)
+    assert Path(third.loc[0, "cal_file"]).name == f"{BOARD_A}-5.json"
+    assert (out / f"{BOARD_A}-3.json").read_text() == "my notes\n"
+    assert (out / f"{BOARD_A}-4.json").is_symlink()
+    assert not [p for p in out.iterdir() if p.name.startswith(".accelcal-tmp-")]
+
+
+def test_the_cli_says_when_a_calibration_file_name_was_taken(fleet: dict[str, Any],
+                                                              tmp_path: Path) -> None:
+    a, b = _good(fleet, 2)
+    for i, p in enumerate((a, b)):
+        _board_a(p).to_csv(tmp_path / f"m{i}.csv", index=False)
+    out = str(tmp_path / "cals")
+    code, _ = _cli("calibrate", "static", "--manifest", str(tmp_path / "m0.csv"), "--g",
+                   str(G0), "--out", out, "--quiet")
+    assert code == 0
+    code, text = _cli("calibrate", "static", "--manifest", str(tmp_path / "m1.csv"), "--g",
+                      str(G0), "--out", out, "--quiet")
+    assert code == 0, text
+    assert f"board-A ({b}): ok: " in text and f"written as {BOARD_A}-2.json" in text, text
+    assert len(list(Path(out).glob("*.json"))) == 2
+
+
+def test_a_recording_listed_twice_is_calibrated_once_under_its_own_name(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    a, b = _good(fleet, 2)
+    link = tmp_path / "link.csv"
+    link.symlink_to(a)
+    rel = os.path.relpath(a)
+    df = ac.calibrate_many([a, b, rel, str(link)], g=G0, out=tmp_path / "c", workers=1,
+                           progress=False)
+    assert list(df["path"]) == [a, b]
+    assert list(df["sensor_id"]) == [Path(a).stem, Path(b).stem]
+    assert df["status"].tolist() == ["ok", "ok"] and df.loc[1, "message"] == ""
+    msg = df.loc[0, "message"]
+    assert "listed 3 times" in msg and rel in msg and str(link) in msg, msg
+    assert "calibrated once" in msg
+    assert len(list((tmp_path / "c").glob("*.json"))) == 2
+    rep = ac.fleet_report(df)
+    assert rep.n == 2 and rep.counts["ok"] == 2
+
+
+def test_a_manifest_row_repeated_is_one_calibration_other_settings_are_two(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    a, b = _good(fleet, 2)
+    same = pd.DataFrame({"path": [a, b, a], "sensor_id": ["X", "Y", "X"]})
+    df = ac.calibrate_many(same, g=G0, workers=1, progress=False)
+    assert list(df["sensor_id"]) == ["X", "Y"] and "listed 2 times" in df.loc[0, "message"]
+    # the same recording on two dates (or with known dwells and with detection): two
+    # calibrations of one sensor, each row naming the other; the sensor keeps its file stem
+    two = pd.DataFrame({"path": [a, b, a], "date": ["2026-05-01", None, "2026-06-01"]})
+    df = ac.calibrate_many(two, g=G0, out=tmp_path / "c", workers=1, progress=False)
+    assert list(df["path"]) == [a, b, a]
+    assert list(df["sensor_id"]) == [Path(a).stem, Path(b).stem, Path(a).stem]
+    assert df["status"].tolist() == ["ok"] * 3 and df.loc[1, "message"] == ""
+    assert "also in manifest row 2, with other date" in df.loc[0, "message"]
+    assert "also in manifest row 0, with other date" in df.loc[2, "message"]
+    assert len(list((tmp_path / "c").glob("*.json"))) == 3
+
+
+def test_the_cli_calibrates_a_file_matched_twice_once(fleet: dict[str, Any],
+                                                      tmp_path: Path) -> None:
+    a, b = _good(fleet, 2)
+    out = tmp_path / "cals"
+    code, text = _cli("calibrate", "static", a, b, a, "--g", str(G0), "--out", str(out),
+                      "--quiet", "--workers", "1")
+    assert code == 0, text
+    assert "calibrated 2 recordings" in text and "1 duplicate entry skipped" in text, text
+    assert f"{Path(a).stem} ({a}): ok: the same recording is listed 2 times" in text, text
+    assert sorted(p.name.split("_")[0] for p in out.glob("*.json")) == sorted(
+        [Path(a).stem, Path(b).stem])
+
+
+def test_the_report_says_when_the_outlier_test_cannot_run(fleet: dict[str, Any]) -> None:
+    ok = fleet["df"][fleet["df"]["status"] == "ok"].reset_index(drop=True)
+    # five identical copies of one recording among three others: zero spread everywhere
+    copies = pd.concat([ok.iloc[[0]]] * 5 + [ok.iloc[1:4]], ignore_index=True)
+    rep = ac.fleet_report(copies)
+    assert rep.outliers == []
+    assert [u["param"] for u in rep.unscreened] == PARAMS
+    assert all("spread is 0" in u["reason"] for u in rep.unscreened)
+    assert all(d["screened"] is False for d in rep.distributions)
+    text = rep.summary()
+    assert "no outlier sensors" not in text
+    assert "outlier test not run" in text and "spread is 0" in text, text
+    assert rep.to_dict()["unscreened"] == rep.unscreened
+    # only sx without spread: the other parameters are screened, sx is named as not
+    some = ok.iloc[:9].copy()
+    some.loc[:5, "sx"] = some.loc[0, "sx"]
+    rep = ac.fleet_report(some)
+    assert [u["param"] for u in rep.unscreened] == ["sx"]
+    assert "3 of the 9 differ from it" in rep.unscreened[0]["reason"]
+    text = rep.summary()
+    assert "no outlier sensors among sy, sz, bx, by, bz, m1, m2, m3" in text, text
+    assert "outlier test not run for sx" in text
+    # too few recordings
+    rep = ac.fleet_report(ok.iloc[:2])
+    assert "fewer than 3" in rep.unscreened[0]["reason"]
+    assert "no outlier sensors" not in rep.summary()
+
+
+def test_cli_report_names_parameters_not_screened(fleet: dict[str, Any],
+                                                  tmp_path: Path) -> None:
+    ok = fleet["df"][fleet["df"]["status"] == "ok"]
+    pd.concat([ok.iloc[[0]]] * 4, ignore_index=True).to_parquet(tmp_path / "t.parquet")
+    code, text = _cli("fleet", "report", str(tmp_path / "t.parquet"))
+    assert code == 0 and "outlier test not run" in text, text
+    code, text = _cli("fleet", "report", str(tmp_path / "t.parquet"), "--json")
+    assert code == 0 and len(json.loads(text)["unscreened"]) == 9

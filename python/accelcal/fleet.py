@@ -15,11 +15,14 @@ from __future__ import annotations
 
 import collections
 import glob as _glob
+import hashlib
 import io as _io
 import itertools
+import json
 import math
 import os
 import re
+import secrets
 import socket
 import stat
 import sys
@@ -33,7 +36,14 @@ from typing import Any
 import numpy as np
 
 from ._core import CalibrationError, DegenerateDataError
-from ._files import atomic_write
+from ._files import (
+    TMP_PREFIX,
+    _fsync_dir,
+    _live,
+    _signals_cleanup,
+    atomic_write,
+    clean_stale_temps,
+)
 from ._triad import MODELS, PARAM_NAMES
 from .io import file_stem
 
@@ -107,6 +117,8 @@ class _Job:
     check_g: bool = True
     bounds: str | None = None  # a file of known dwells (absolute), else detection
     means: bool = False  # every recording is a table of dwell means, one pose per row
+    listed_as: tuple[str, ...] = ()  # every entry of the recording when it is listed twice
+    note: str = ""  # for the row's message: the recording listed again
 
 
 _INT_COLUMNS = ("n_dwells", "n_samples", "dropped_rows", "dof", "iterations")
@@ -276,7 +288,9 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         notes.append(f"g = {job.g:g} is in {unit or 'other units than m/s^2'}: g_mps2, "
                      "rms_mps2 and gap_rms_after_mps2 are in those units in this row")
     row["message"] = "; ".join(fault_note + weak + notes)
-    meta = {"source": job.path, "n_dwells": k}
+    meta: dict[str, Any] = {"source": job.path, "n_dwells": k}
+    if stat.S_ISREG(mode):  # what the recording held: tells a re-recorded file from a rerun
+        meta["source_sha256"] = _sha256(job.read_path)
     kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
     if job.date:
         kw["date"] = job.date
@@ -295,6 +309,14 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         except CalibrationError as e:
             row["gap_error"] = str(e)
     return model
+
+
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _calibrate_one(job: _Job) -> tuple[dict[str, Any], Any]:
@@ -490,25 +512,109 @@ def _safe_name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", s).strip("._") or "sensor"
 
 
-def _distinct_ids(jobs: list[_Job], given: list[bool]) -> list[_Job]:
-    """Sensor ids taken from file stems that collide (``a/acceldata.txt`` and
-    ``b/acceldata.txt``) get their folder's name in front (``a_acceldata``), then a number if
-    they still collide; ids a manifest gives are kept as they are."""
+def _file_key(read_path: str) -> tuple[Any, ...]:
+    """What identifies a recording: its file (a hard link or another spelling of the path is
+    the same file), else its path with ``.``, ``..`` and symbolic links resolved."""
+    try:
+        st = os.stat(read_path)
+    except OSError:  # missing here (a cluster's worker may see it): compare the paths
+        return ("path", os.path.realpath(read_path))
+    if stat.S_ISREG(st.st_mode):
+        return ("file", st.st_dev, st.st_ino)
+    return ("path", os.path.realpath(read_path))
+
+
+def _row_settings(r: dict[str, Any]) -> dict[str, Any]:
+    return {k: (None if _missing(v) else v) for k, v in r.items() if k != "path"}
+
+
+def _join(items: Sequence[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def _once_each(jobs: list[_Job], rows: list[dict[str, Any]]
+               ) -> tuple[list[_Job], list[bool], list[tuple[Any, ...]]]:
+    """Each recording once: a recording listed again with the same settings (overlapping
+    globs, the same path spelled two ways, a symbolic link to it, a manifest row repeated) is
+    calibrated once, in the row of its first entry, whose ``listed_as`` then names every
+    entry. Manifest rows that give one recording other settings (known bounds in one and
+    detection in the other, say) are different calibrations: each is kept, and its row notes
+    the other. Returns the jobs (renumbered), whether each row names its sensor, and each
+    job's file key."""
     from dataclasses import replace as _replace
 
-    stems = collections.Counter(j.sensor_id for j, g in zip(jobs, given, strict=True) if not g)
+    keys = [_file_key(j.read_path) for j in jobs]
+    settings = [_row_settings(r) for r in rows]
+    same: dict[int, list[int]] = {}  # first entry -> its entries with the same settings
+    first: dict[tuple[Any, ...], list[int]] = {}  # file -> first entries of its settings
+    for i, key in enumerate(keys):
+        heads = first.setdefault(key, [])
+        k = next((h for h in heads if settings[h] == settings[i]), None)
+        if k is None:
+            heads.append(i)
+            same[i] = [i]
+        else:
+            same[k].append(i)
+    out: list[_Job] = []
+    given: list[bool] = []
+    out_keys: list[tuple[Any, ...]] = []
+    for k, idx in same.items():
+        j = jobs[k]
+        listed = tuple(jobs[i].path for i in idx) if len(idx) > 1 else ()
+        others = [h for h in first[keys[k]] if h != k]
+        note = _listed_note(j.path, listed)
+        if others:
+            a = settings[k]
+            diff = {c for h in others for c in {*a, *settings[h]}
+                    if a.get(c) != settings[h].get(c)}
+            rows_ = _join([str(h) for h in others])
+            note = "; ".join(x for x in (note, (
+                f"the same recording is also in manifest row{'s' if len(others) > 1 else ''} "
+                f"{rows_}, with other {_join(sorted(diff))}: calibrated for each")) if x)
+        out.append(_replace(j, index=len(out), listed_as=listed, note=note))
+        given.append(not _missing(rows[k].get("sensor_id")))
+        out_keys.append(keys[k])
+    return out, given, out_keys
+
+
+def _distinct_ids(jobs: list[_Job], given: list[bool],
+                  keys: list[tuple[Any, ...]]) -> list[_Job]:
+    """Sensor ids taken from the stems of different files that collide (``a/acceldata.txt``
+    and ``b/acceldata.txt``) get their folder's name in front (``a_acceldata``), then a number
+    if they still collide; ids a manifest gives are kept as they are, and so are those of one
+    file calibrated with different settings (one sensor)."""
+    from dataclasses import replace as _replace
+
+    files: dict[str, set[tuple[Any, ...]]] = collections.defaultdict(set)
+    for j, g, key in zip(jobs, given, keys, strict=True):
+        if not g:
+            files[j.sensor_id].add(key)
     out, seen = [], set()
-    for j, g in zip(jobs, given, strict=True):
+    named: dict[tuple[Any, ...], str] = {}
+    for j, g, key in zip(jobs, given, keys, strict=True):
         sid = j.sensor_id
-        if not g and stems[sid] > 1:
-            sid = f"{Path(j.path).parent.name or 'root'}_{sid}"
-            base, k = sid, 2
-            while sid in seen:
-                sid, k = f"{base}-{k}", k + 1
+        if not g and len(files[sid]) > 1:
+            if key in named:
+                sid = named[key]
+            else:
+                sid = f"{Path(j.path).parent.name or 'root'}_{sid}"
+                base, k = sid, 2
+                while sid in seen:
+                    sid, k = f"{base}-{k}", k + 1
+                named[key] = sid
             j = _replace(j, sensor_id=sid)
         seen.add(sid)
         out.append(j)
     return out
+
+
+def _listed_note(path: str, listed_as: tuple[str, ...]) -> str:
+    """The row's note for a recording listed more than once."""
+    if not listed_as:
+        return ""
+    spell = sorted(set(listed_as), key=listed_as.index)
+    how = f"as {path} each time" if len(spell) == 1 else f"as {_join(spell)}"
+    return f"the same recording is listed {len(listed_as)} times ({how}): calibrated once"
 
 
 def _make_jobs(
@@ -564,7 +670,8 @@ def _make_jobs(
             check_g=check_g and not src.startswith("WGS84"),  # local gravity by construction
             bounds=bounds, means=means,
         ))
-    jobs = _distinct_ids(jobs, [not _missing(r.get("sensor_id")) for r in rows])
+    jobs, given, keys = _once_each(jobs, rows)
+    jobs = _distinct_ids(jobs, given, keys)
     if all(j.g is None for j in jobs):
         raise CalibrationError(
             f"give the reference gravity: {names['g']} or {names['latlon']}"
@@ -786,6 +893,109 @@ def _cal_names(models: list[Any]) -> list[str | None]:
     return names
 
 
+def _add_note(row: dict[str, Any], note: str) -> None:
+    if note:
+        row["message"] = "; ".join(x for x in (row.get("message") or "", note) if x)
+
+
+def _link_new(src: Path, dst: Path) -> bool:
+    """Give the complete file ``src`` the name ``dst`` unless ``dst`` exists (a hard link:
+    atomic, and never replaces anything, even when another run writes the same name at the
+    same moment). False when ``dst`` exists."""
+    try:
+        os.link(src, dst)
+    except FileExistsError:
+        return False
+    except OSError:  # a file system without hard links: check, then rename (best effort)
+        if os.path.lexists(dst):
+            return False
+        os.replace(src, dst)
+    return True
+
+
+def _same_bytes(path: Path, data: bytes) -> bool:
+    try:
+        st = os.lstat(path)
+        return stat.S_ISREG(st.st_mode) and st.st_size == len(data) and (
+            path.read_bytes() == data)
+    except OSError:
+        return False
+
+
+def _holder(path: Path, model: Any) -> str:
+    """What an existing file in the calibration folder holds, in a few words."""
+    try:
+        st = os.lstat(path)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > 50_000_000:
+            raise ValueError
+        d = json.loads(path.read_text(encoding="utf-8"))
+        if d.get("format") != "accelcal.TriadModel":
+            raise ValueError
+        src = d.get("metadata", {}).get("source")
+    except (OSError, ValueError, AttributeError, UnicodeDecodeError):
+        return "not a calibration of this recording"
+    if src is None:
+        return "a calibration of another recording"
+    if src != model.metadata.get("source"):
+        return f"the calibration of {src}"
+    sha = d.get("metadata", {}).get("source_sha256")
+    if sha is not None and sha != model.metadata.get("source_sha256"):
+        return f"the calibration of an earlier recording in {src}"
+    return f"another calibration of {src} (other settings)"
+
+
+def _save_new(model: Any, folder: Path, used: set[str],
+              names: dict[str, str]) -> tuple[Path, str, bool]:
+    """Write a calibration file into ``folder`` without ever replacing a file there.
+
+    Its name is ``<sensor_id>_<date>.json``, else ``-2``, ``-3`` ... : the first name that no
+    other recording of this run took (``used``) and that is free in the folder. A file already
+    there with exactly the same content (the same recording, the same result: a rerun of a
+    batch with a manifest date) is kept as it is and stands for this calibration. Returns the
+    file, the row's note when a name was taken by an existing file, and whether the file was
+    already there.
+    """
+    base = _cal_name(model)
+    clean_stale_temps(folder / base)
+    # The complete file under a temporary name, then linked to its name: a reader (or another
+    # run) sees no half file, and a file of that name is never replaced.
+    stage = folder / f"{TMP_PREFIX}{base}-{os.getpid()}-{secrets.token_hex(4)}"
+    taken: list[str] = []
+    with _signals_cleanup():
+        _live.add(str(stage))
+        try:
+            model.save(stage)
+            data = stage.read_bytes()
+            k = 1
+            while True:
+                name = base if k == 1 else f"{base[:-5]}-{k}.json"
+                k += 1
+                if name in used:  # another recording of this run: -2 as ever, no note
+                    continue
+                target = folder / name
+                if _link_new(stage, target):
+                    same = False
+                    break
+                if _same_bytes(target, data):
+                    same = True
+                    break
+                taken.append(f"{name} ({_holder(target, model)})")
+        finally:
+            _live.discard(str(stage))
+            try:
+                os.unlink(stage)
+            except OSError:
+                pass
+    _fsync_dir(folder)
+    used.add(name)
+    note = ""
+    if taken:
+        more = f" and {len(taken) - 3} more" if len(taken) > 3 else ""
+        note = (f"{names['out']} already holds {_join(taken[:3])}{more}: this calibration is "
+                f"written as {name}, the existing file{'s' if len(taken) > 1 else ''} kept")
+    return target, note, same
+
+
 def _summary_paths(summary: str | os.PathLike[str]) -> tuple[Path, Path]:
     p = Path(summary)
     if p.suffix.lower() == ".csv":
@@ -878,7 +1088,10 @@ def calibrate_many(
         dwells, :func:`accelcal.io.read_bounds`, used instead of detection) columns; a value
         in a row overrides the keyword default, an empty cell uses it. Relative paths in a
         manifest file are relative to the manifest's folder. Other manifest columns are
-        carried into the result.
+        carried into the result. A recording listed more than once with the same settings (the
+        same file, however its path is spelled or linked) is calibrated once, in the row of its
+        first entry, whose ``message`` names the entries; manifest rows that give one
+        recording different settings are each calibrated, and each row names the others.
     g : reference gravity, m/s^2 (or ``lat``, deg, and ``height``, m: WGS84 normal gravity).
     fs : sample rate, Hz, when the files do not give it.  columns, time_column : the
         accelerometer columns and the time column, as for :func:`accelcal.io.read_stream`.
@@ -897,8 +1110,14 @@ def calibrate_many(
         ``<sensor_id>_<UTC date>.json`` (``YYYYmmddTHHMMSSZ``; the date is the manifest's
         ``date`` or the time of the fit), written atomically, so later calibrations of a
         sensor sit beside earlier ones and ``TriadModel.find`` picks the one valid at a time.
-        The table is also written there as ``fleet.parquet`` and ``fleet.csv`` unless
-        ``summary`` says otherwise.
+        A file already in the folder is never replaced: a name taken (by this run, or by an
+        earlier one: a manifest date, two runs within a second) gives ``-2``, ``-3`` ..., and
+        when an earlier file took it the row's ``message`` says so. A file there with exactly
+        the content this run would write (the same recording, by path and by the SHA-256 the
+        file records in ``metadata["source_sha256"]``, the same settings and result) is kept
+        as it is and named in ``cal_file``. The table is also written there as
+        ``fleet.parquet`` and ``fleet.csv`` (replaced by each run) unless ``summary`` says
+        otherwise.
     summary : path of the table (Parquet; the CSV is written beside it with a ``.csv``
         suffix), written atomically.
     progress : progress bar over recordings on stderr: True, False, or None (only when stderr
@@ -921,7 +1140,9 @@ def calibrate_many(
         ``noise_model``, ``iterations``, ``temperature``, with ``diagnose=True`` ``gap_best``,
         ``gap_selected``, ``gap_structure``, ``gap_chi2_dof``, ``gap_p_value``,
         ``gap_held_out``, ``gap_rms_after_mps2``, ``gap_error``; then ``cal_file``,
-        ``elapsed_s`` and ``worker`` (host:pid). ``DataFrame.attrs["units"]`` names the units.
+        ``elapsed_s`` and ``worker`` (host:pid). ``DataFrame.attrs["units"]`` names the units,
+        ``attrs["duplicates"]`` maps a recording listed more than once to its other entries,
+        ``attrs["cal_files_kept"]`` lists the identical calibration files found in ``out``.
 
     Raises
     ------
@@ -971,16 +1192,26 @@ def calibrate_many(
         n = workers if workers is not None else _cores()
         results = _run_local(jobs, max(1, min(n, len(jobs))), progress)
 
+    for (row, _), j in zip(results, jobs, strict=True):
+        _add_note(row, j.note)
+    kept: list[str] = []
     if out is not None:
         folder = Path(out)
         cal_names = _cal_names([m for _, m in results])
         _check_outputs([folder / n for n in cal_names if n], jobs, sources, names)
         folder.mkdir(parents=True, exist_ok=True)
-        for (row, model_obj), name in zip(results, cal_names, strict=True):
-            if model_obj is not None and name:
-                model_obj.save(folder / name)
-                row["cal_file"] = str(folder / name)
+        used: set[str] = set()
+        for row, model_obj in results:
+            if model_obj is None:
+                continue
+            path, note, same = _save_new(model_obj, folder, used, names)
+            row["cal_file"] = str(path)
+            _add_note(row, note)
+            if same:
+                kept.append(str(path))
     df = _frame(results, jobs, diagnose)
+    df.attrs["duplicates"] = {j.path: list(j.listed_as[1:]) for j in jobs if j.listed_as}
+    df.attrs["cal_files_kept"] = kept
     if summary is not None:
         pq, csv = _summary_paths(summary)
         _write_table(df, pq, csv, names)
@@ -995,7 +1226,7 @@ class FleetReport:
     n : recordings.  counts : status -> number of recordings.
     distributions : one dict per parameter over the ``ok`` rows: ``param``, ``unit``, ``n``,
         ``median``, ``spread`` (robust std: 1.4826 x the median absolute deviation), ``min``,
-        ``max``.
+        ``max``, ``screened`` (whether the outlier test could run on it).
     outliers : one dict per (sensor, parameter) with robust ``|z| > z_limit``: ``sensor_id``,
         ``path``, ``param``, ``value``, ``median``, ``z``.
     failed : one dict per recording with status degenerate or error: ``sensor_id``, ``path``,
@@ -1004,6 +1235,10 @@ class FleetReport:
     noted : the same for ``ok`` recordings whose message says what was left out or noticed
         (dropout rows, dwells whose output did not follow the sensor, vibrating stretches):
         calibrated, but worth a look on a production line.
+    unscreened : one dict per parameter the outlier test could not run on: ``param`` and
+        ``reason`` (fewer than 3 ok recordings, or a spread of 0: at least half the values
+        are equal, as copies of one recording give, and no robust z can be formed). Its
+        outliers are then unknown, not absent.
     """
 
     n: int
@@ -1015,6 +1250,7 @@ class FleetReport:
     z_limit: float
     table: Any = field(repr=False, default=None)
     noted: list[dict[str, Any]] = field(default_factory=list)
+    unscreened: list[dict[str, Any]] = field(default_factory=list)
 
     def summary(self) -> str:
         """The report as text."""
@@ -1028,6 +1264,8 @@ class FleetReport:
             for d in self.distributions:
                 L.append(f"  {d['param']:<10} {d['median']:>12.6g} {d['spread']:>11.3g} "
                          f"{d['min']:>12.6g} {d['max']:>12.6g}  {d['unit']}")
+        skipped = {u["param"] for u in self.unscreened}
+        screened = [d["param"] for d in self.distributions if d["param"] not in skipped]
         if self.outliers:
             L.append(f"outlier sensors (robust |z| > {self.z_limit:g}):")
             by: dict[str, list[dict[str, Any]]] = {}
@@ -1036,8 +1274,20 @@ class FleetReport:
             for who, items in by.items():
                 L.append(f"  {who}: " + ", ".join(
                     f"{o['param']} = {o['value']:.6g} (z = {o['z']:+.1f})" for o in items))
-        else:
+        elif screened and skipped:
+            L.append(f"no outlier sensors among {', '.join(screened)} (robust |z| > "
+                     f"{self.z_limit:g})")
+        elif screened:
             L.append(f"no outlier sensors (robust |z| > {self.z_limit:g})")
+        elif not self.distributions:
+            L.append("outlier test not run: no ok recordings")
+        # Say which parameters were not screened, and why: "no outliers" would claim a test
+        # that did not run (grouped by reason: copies of one recording give them all).
+        why: dict[str, list[str]] = {}
+        for u in self.unscreened:
+            why.setdefault(u["reason"], []).append(u["param"])
+        for reason, ps in why.items():
+            L.append(f"outlier test not run for {', '.join(ps)}: {reason}")
         if self.weak:
             L.append(f"weakly determined ({len(self.weak)}):")
             L += [f"  {f['sensor_id']} ({f['path']}): {f['message']}" for f in self.weak]
@@ -1057,7 +1307,7 @@ class FleetReport:
         return {
             "n": self.n, "counts": dict(self.counts), "distributions": self.distributions,
             "outliers": self.outliers, "failed": self.failed, "weak": self.weak,
-            "noted": self.noted, "z_limit": self.z_limit,
+            "noted": self.noted, "unscreened": self.unscreened, "z_limit": self.z_limit,
         }
 
     def plot(self, fig: Any = None) -> Any:
@@ -1091,8 +1341,10 @@ class FleetReport:
         for ax in axs[len(dists):]:
             ax.set_axis_off()
         n_out = len({o["sensor_id"] for o in self.outliers})
+        skipped = ", ".join(u["param"] for u in self.unscreened)
         fig.suptitle(f"fleet of {self.n}: {self.counts.get('ok', 0)} ok; {n_out} outlier "
-                     f"sensor(s) (red, robust |z| > {self.z_limit:g})")
+                     f"sensor(s) (red, robust |z| > {self.z_limit:g})"
+                     + (f"; not screened: {skipped}" if skipped else ""))
         fig.tight_layout()
         return fig
 
@@ -1105,8 +1357,10 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
     """Summarise a fleet table (a DataFrame from :func:`calibrate_many`, or the path of its
     Parquet/CSV file): distributions of every fitted parameter over the ``ok`` recordings,
     outlier sensors with robust ``|z| > z`` on any parameter (z = (value - median) /
-    (1.4826 x MAD); a parameter with zero spread is not screened), and the recordings that
-    failed, with their reasons."""
+    (1.4826 x MAD)), and the recordings that failed, with their reasons. A parameter the
+    test cannot run on (fewer than 3 ok recordings, or a spread of 0: at least half the
+    values equal, as copies of one recording give) is listed in ``unscreened`` with the
+    reason, and the summary says so instead of "no outlier sensors"."""
     pd = _need_pandas()
     df = table if isinstance(table, pd.DataFrame) else read_fleet_table(table)
     missing = {"sensor_id", "path", "status", "message"} - set(df.columns)
@@ -1121,6 +1375,7 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
     ok = df[df["status"] == "ok"]
     dists: list[dict[str, Any]] = []
     outliers: list[dict[str, Any]] = []
+    unscreened: list[dict[str, Any]] = []
     params = [p for p in PARAM_NAMES if p in df.columns]
     for p in params:
         x = ok[p].to_numpy(dtype=float)
@@ -1130,9 +1385,20 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
         xs = x[good]
         med = float(np.median(xs))
         spread = float(1.4826 * np.median(np.abs(xs - med)))
+        screened = spread > 0 and xs.size >= 3
         dists.append({"param": p, "unit": _unit(p), "n": int(xs.size), "median": med,
-                      "spread": spread, "min": float(xs.min()), "max": float(xs.max())})
-        if spread > 0 and xs.size >= 3:
+                      "spread": spread, "min": float(xs.min()), "max": float(xs.max()),
+                      "screened": screened})
+        if xs.size < 3:
+            unscreened.append({"param": p, "reason": f"fewer than 3 ok recordings ({xs.size})"
+                                                     " to take a median and a spread from"})
+        elif not spread > 0:
+            n_diff = int((xs != med).sum())
+            unscreened.append({"param": p, "reason": (
+                f"its spread is 0: {xs.size - n_diff} of the {xs.size} ok recordings give "
+                f"exactly the median (copies of one recording?), {n_diff} of the {xs.size} "
+                "differ from it, and no robust z can be formed")})
+        if screened:
             zz = (x - med) / spread
             for i in np.flatnonzero(good & (np.abs(zz) > zl)):
                 r = ok.iloc[int(i)]
@@ -1149,4 +1415,5 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
                  "message": str(r.message)} for r in sel.itertuples()]
 
     return FleetReport(len(df), counts, dists, outliers, rows(("degenerate", "error")),
-                       rows(("weak",)), zl, df, noted=rows(("ok",), noted=True))
+                       rows(("weak",)), zl, df, noted=rows(("ok",), noted=True),
+                       unscreened=unscreened)

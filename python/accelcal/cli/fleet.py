@@ -113,7 +113,12 @@ def run_static_fleet(
         return
     counts = {s: int((df["status"] == s).sum()) for s in STATUSES}
     where = f"the Dask cluster at {scheduler}" if scheduler else "local processes"
-    click.echo(f"calibrated {len(df)} recordings on {where} in {dt:.1f} s: "
+    # a recording listed again (overlapping globs, a link to it) is calibrated once; its row
+    # names every entry
+    n_dup = sum(len(v) for v in df.attrs.get("duplicates", {}).values())
+    dup = (f" ({n_dup} duplicate entr{'y' if n_dup == 1 else 'ies'} skipped)" if n_dup
+           else "")
+    click.echo(f"calibrated {len(df)} recordings{dup} on {where} in {dt:.1f} s: "
                + ", ".join(f"{counts[s]} {s}" for s in STATUSES))
     if not summary and not out_dir:
         cols = ["sensor_id", "status", "n_dwells", "rms_mps2", "chi2_dof"]
@@ -126,8 +131,11 @@ def run_static_fleet(
     for r in bad.itertuples():
         click.echo(f"  {r.sensor_id} ({r.path}): {r.status}: {r.message}")
     if out_dir:
-        n_cal = int((df["cal_file"] != "").sum())
-        click.echo(f"wrote {n_cal} calibration files to {out_dir}")
+        n_kept = len(df.attrs.get("cal_files_kept", []))
+        n_cal = int((df["cal_file"] != "").sum()) - n_kept
+        kept = (f" ({n_kept} identical one{'' if n_kept == 1 else 's'} already there, left as "
+                f"{'it was' if n_kept == 1 else 'they were'})" if n_kept else "")
+        click.echo(f"wrote {n_cal} calibration files to {out_dir}{kept}")
     if summary or out_dir:
         from ..fleet import _summary_paths
 
