@@ -1380,3 +1380,34 @@ def test_centrifuge_sigma_means_what_fit_centrifuge_takes() -> None:
     with pytest.raises(CalibrationError, match="not both"):
         accelcal.diagnose_centrifuge(s.outputs, s.omega, s.radius, sigma=1e-6, sigma_norm=1e-6,
                                      **kw)
+
+
+def test_an_effect_named_beside_untestable_ones_is_reported_ambiguous_with_them():
+    # 12 dwells: a hidden temperature bias (3 directions) cannot be tested beside the 9
+    # calibration parameters, while K2 or K3 (2 identifiable directions) can, and may take the
+    # gap. Before: 'best = k2' with no word that the truth was never tested.
+    wrong = 0
+    for seed in range(40):
+        s = gap_session(("temperature_bias",), rng=seed, amplitudes=[40.0], n_dwells=12)
+        r = diagnose(s.dwells, g=s.g)
+        status = {e["effect"]: e["status"] for e in r.effects}
+        assert status["temperature_bias"] in ("too_few_dwells", "selected", "testable")
+        if r.best not in ("none", "temperature_bias"):
+            wrong += 1
+            amb = [a for a in r.ambiguous if "temperature_bias" in a["effects"]]
+            assert amb and amb[0]["effects"][0] == r.best, seed
+            assert "more dwells" in amb[0]["experiment"]
+            assert "not testable beside it" in r.summary()
+    assert wrong >= 1  # the case occurs in these sessions
+
+
+def test_a_noise_model_far_too_pessimistic_is_said():
+    # The dwells' noise given 4x too large in std: chi2/dof about 1/16.
+    s = gap_session((), rng=7, n_dwells=30)
+    d = s.dwells[:]
+    d.var = d.var * 16.0
+    r = diagnose(d, g=s.g, noise_model="white")
+    assert r.chi2_per_dof < 0.2
+    assert any("too pessimistic" in st for st in r.statements)
+    ok = diagnose(s.dwells, g=s.g, noise_model="white")
+    assert not any("too pessimistic" in st for st in ok.statements)
