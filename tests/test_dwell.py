@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import warnings
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
@@ -1537,3 +1538,248 @@ def test_coarse_and_burst_stamps_pushed_in_small_chunks_are_judged_as_one_call(
         accelcal.detect_dwells(x, fs, t=np.zeros(n))
     with pytest.raises(accelcal.CalibrationError, match=r"reversed or shuffled rows"):
         accelcal.detect_dwells(x, fs, t=np.arange(n)[::-1] / fs)
+
+
+# ---- partly clipped dwells in integer streams ---------------------------------------------
+CLIP_TRUTH = np.array([3100., 3050., 3150., 2500., -1800., 3000., 30., -20., 10.])
+
+
+def partly_clipped_int16(margin: float) -> tuple[Any, np.ndarray]:
+    """An int16 session (24 dwells, noise 8 counts) in which dwell 3's true x mean lies
+    ``margin`` counts inside +32767, clipped as the sensor would: part of its samples sit on
+    the rail (no dwell is clipped throughout)."""
+    from accelcal.sim import field_session
+
+    tilts = np.random.default_rng(3).uniform(-85, 85, (24, 2))
+    sin_ty = -((32767 - margin) - 2500) / 3100 / 9.80665
+    tilts[3] = [0.0, np.degrees(np.arcsin(sin_ty))]
+    s = field_session(fs=1000.0, tilts_deg=tilts, dwell_s=4.0, move_s=2.0, rng=0,
+                      truth=CLIP_TRUTH, sigma=8.0)
+    return s, np.clip(np.round(s.samples), -32768, 32767).astype(np.int16)
+
+
+def test_a_partly_clipped_dwell_of_an_integer_stream_is_found_and_refused() -> None:
+    s, x = partly_clipped_int16(0.0)  # about half of dwell 3's x samples on the rail
+    b0, b1 = s.bounds[3]
+    on_rail = int(np.sum(x[b0:b1, 0] == 32767))
+    assert 0.3 < on_rail / (b1 - b0) < 0.7
+    d = dwell_stats(x, s.bounds)
+    faults = d.faults()
+    assert [(f.dwell, f.axis, f.kind, f.rail) for f in faults] == [
+        (3, 0, "partly_saturated_high", 32767.0)]
+    assert d.clipped is not None and d.clipped[3, 0, 1] == on_rail
+    with pytest.raises(CalibrationError, match=rf"(?s)dwell 3.*{on_rail} of {b1 - b0} x "
+                       r"samples .* at 32767.*clipped"):
+        accelcal.fit_static(d, s.g)
+    # Left out, the fit finds the simulator's truth; kept, it would be many std off.
+    fit = accelcal.fit_static(d.drop_faults(), s.g)
+    assert np.all(np.abs(fit.vector - CLIP_TRUTH) < 5 * fit.std)
+    bad = accelcal.fit_static(d.mean, s.g, observability="ignore")
+    assert np.max(np.abs(bad.vector - CLIP_TRUTH) / fit.std) > 10
+    # Detection, the accumulator (any chunking) and the CSV round trip find the same dwell.
+    dd = detect_dwells(x, s.fs)
+    owner = [int(np.flatnonzero((s.bounds[:, 0] <= a) & (b <= s.bounds[:, 1]))[0])
+             for a, b in zip(dd.start, dd.stop, strict=True)]
+    assert [(owner[f.dwell], f.axis, f.kind) for f in dd.faults()] == [
+        (3, 0, "partly_saturated_high")]
+    for acc in (DwellAccumulator(s.bounds), DwellAccumulator(fs=s.fs)):
+        push_in_chunks(acc, list(range(0, x.shape[0], 997)), x)
+        got = acc.finish()
+        want = d if acc.mode == "bounds" else dd
+        assert got.clipped is not None and want.clipped is not None
+        assert np.array_equal(got.clipped, want.clipped)
+        assert ([(f.dwell, f.kind) for f in got.faults()]
+                == [(f.dwell, f.kind) for f in want.faults()])
+        restored = DwellAccumulator.from_state(acc.to_state())
+        assert np.array_equal(restored.finish().clipped, want.clipped)  # type: ignore[arg-type]
+    back = DwellSet.from_csv(d.to_csv())
+    assert [(f.dwell, f.kind) for f in back.faults()] == [(3, "partly_saturated_high")]
+    assert [(f.dwell, f.kind) for f in d[2:6].faults()] == [(1, "partly_saturated_high")]
+
+
+def test_a_pose_well_inside_the_integer_rail_is_not_flagged() -> None:
+    s, x = partly_clipped_int16(40.0)  # 5 noise std inside: no sample reaches the rail
+    d = dwell_stats(x, s.bounds)
+    assert (d.clipped is None or not d.clipped.any()) and d.faults() == []
+    fit = accelcal.fit_static(d, s.g)
+    assert np.all(np.abs(fit.vector - CLIP_TRUTH) < 5 * fit.std)
+    # A few samples on the rail bias the mean by less than half its standard error: counted,
+    # not flagged.
+    s, x = partly_clipped_int16(22.0)
+    d = dwell_stats(x, s.bounds)
+    assert d.clipped is not None and 0 < d.clipped[3, 0, 1] < 0.01 * d.count[3]  # type: ignore[index]
+    assert d.faults() == []
+
+
+# ---- DataFrames: the accelerometer columns by name, as read_stream takes them --------------
+def test_dataframe_columns_are_taken_by_name_on_every_path() -> None:
+    """A logger that writes ``az, ay, ax``: detect_dwells, dwell_stats and the accumulator
+    take the columns by name, as read_stream does (they took them in storage order, x and
+    z swapped, with no warning). Three columns whose names do not say which axis keep
+    their order; names that point at some axes but not one column each are refused."""
+    pd = pytest.importorskip("pandas")
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=12, dwell_s=4.0, move_s=2.0, rng=1,
+                      max_tilt_deg=60)
+    x = s.samples
+    df = pd.DataFrame({"az": x[:, 2], "ay": x[:, 1], "ax": x[:, 0]})
+    want = detect_dwells(x, s.fs)
+    got = detect_dwells(df, s.fs)
+    assert np.array_equal(got.mean, want.mean) and np.array_equal(got.var, want.var)
+    fit = accelcal.fit_static(got, s.g)
+    assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)
+    assert np.array_equal(dwell_stats(df, s.bounds).mean, dwell_stats(x, s.bounds).mean)
+    acc = DwellAccumulator(fs=s.fs)
+    for a in range(0, x.shape[0], 997):
+        acc.push(df.iloc[a:a + 997])
+    assert np.array_equal(acc.finish().mean, want.mean)
+    # Names that say nothing about the axes: storage order, as before.
+    plain = pd.DataFrame(x)
+    assert np.array_equal(detect_dwells(plain, s.fs).mean, want.mean)
+    with clear_error("'ax', 'ay', 'temp'", "x, y, z"):
+        detect_dwells(pd.DataFrame({"ax": x[:, 0], "ay": x[:, 1], "temp": x[:, 2]}), s.fs)
+
+
+# ---- uint16 words: signed 16-bit values stored as unsigned, as read_stream reads them ------
+U16_TRUTH = np.array([1670., 1660., 1690., 300., -250., 500., 15., -20., 10.])  # MPU-like
+
+
+def u16_session(offset: float = 0.0) -> tuple[Any, np.ndarray, np.ndarray]:
+    """A session in int16 counts (MPU-6050-like truth, 1670 counts per m/s^2) and its words
+    as a DAQ hands them over in uint16: int16 registers stored as unsigned, or (``offset``
+    32768) an output that is unsigned by design, offset binary about mid-scale."""
+    from accelcal.sim import field_session
+
+    truth = U16_TRUTH + np.r_[0, 0, 0, offset, offset, offset, 0, 0, 0]
+    s = field_session(fs=500.0, n_dwells=16, dwell_s=4.0, move_s=2.0, rng=2,
+                      max_tilt_deg=80, truth=truth, sigma=4.0)
+    counts = np.round(s.samples).astype(np.int64)
+    return s, counts, (counts & 0xFFFF).astype(np.uint16)
+
+
+def test_uint16_words_stored_signed_are_read_as_read_stream_reads_them(tmp_path: Path) -> None:
+    """detect_dwells and dwell_stats read uint16 words holding int16 registers as signed, with
+    a warning, as read_stream reads the same words from a file (they read them unsigned,
+    silently, and the fit was refused blaming an axis never turned to gravity). An output
+    that is unsigned by design (mid-scale 32768) keeps its values, with no warning."""
+    s, counts, words = u16_session()
+    assert words.max() > 60000 and counts.min() < 0
+    npy = tmp_path / "u16.npy"
+    np.save(npy, words)
+    st = read_stream(npy, fs=s.fs)
+    want = detect_dwells(st)
+    with pytest.warns(UserWarning, match="stored as unsigned"):
+        got = detect_dwells(words, s.fs)
+    assert np.array_equal(got.mean, want.mean) and np.array_equal(got.var, want.var)
+    assert np.array_equal(got.mean, detect_dwells(counts, s.fs).mean)
+    fit = accelcal.fit_static(got, s.g)
+    assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)
+    with pytest.warns(UserWarning, match=r"view\(np.int16\)"):
+        d = dwell_stats(words, s.bounds)
+    assert np.array_equal(d.mean, dwell_stats(counts, s.bounds).mean)
+    # An unsigned-by-design output: read as given, its bias near mid-scale.
+    su, ucounts, uwords = u16_session(32768.0)
+    assert uwords.max() > 32768 and np.array_equal(uwords, ucounts)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        du = detect_dwells(uwords, su.fs)
+        assert np.array_equal(dwell_stats(uwords, su.bounds).mean,
+                              dwell_stats(ucounts, su.bounds).mean)
+    fu = accelcal.fit_static(du, su.g)
+    assert np.all(np.abs(fu.vector - su.truth) < 5 * fu.std)
+
+
+def test_accumulator_warns_of_uint16_words_stored_signed() -> None:
+    """DwellAccumulator cannot judge a stream's words chunk by chunk, so it reads uint16 as
+    given; when the first rows pushed hold signed 16-bit values stored unsigned, it says so
+    once and names the fix (it was silent, and the fit failed blaming the poses). The fix
+    gives the dwells of detect_dwells on the words, and the truth."""
+    s, counts, words = u16_session()
+    acc = DwellAccumulator(fs=s.fs)
+    with pytest.warns(UserWarning, match=r"stored as unsigned.*view\(np.int16\)") as rec:
+        for a in range(0, len(words), 250):
+            acc.push(words[a:a + 250])
+    assert sum("stored as unsigned" in str(w.message) for w in rec) == 1
+    fixed = DwellAccumulator(fs=s.fs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for a in range(0, len(words), 250):
+            fixed.push(words[a:a + 250].view(np.int16))
+    got = fixed.finish()
+    with pytest.warns(UserWarning):
+        assert np.array_equal(got.mean, detect_dwells(words, s.fs).mean)
+    fit = accelcal.fit_static(got, s.g)
+    assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)
+    # Row by row too (judged on the first rows pushed), and never for an unsigned design.
+    one = DwellAccumulator(fs=s.fs)
+    with pytest.warns(UserWarning, match="stored as unsigned"):
+        for r in range(5000):
+            one.push(words[r:r + 1])
+    su, _, uwords = u16_session(32768.0)
+    plain = DwellAccumulator(fs=su.fs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for a in range(0, len(uwords), 250):
+            plain.push(uwords[a:a + 250])
+
+
+# ---- messages -------------------------------------------------------------------------
+def test_accumulator_errors_give_the_row_of_the_stream() -> None:
+    """A NaN time or temperature at stream row 1234, pushed in chunks of 100: the error names
+    row 1234 of the stream (it said "row 34"), with dropouts left out of detection counted
+    as rows of the stream; the chunk is not kept, and the rest gives the batch's dwells."""
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=12, dwell_s=4.0, move_s=2.0, rng=1)
+    x, n = s.samples.copy(), s.samples.shape[0]
+    for what in ("t", "temperature"):
+        ch = {"t": s.t.copy(), "temperature": 20.0 + 0.001 * np.arange(n)}
+        ch[what][1234] = np.nan
+        acc = DwellAccumulator(fs=s.fs)
+        with clear_error(f"{what} contains NaN or inf", "row 1234 of the stream",
+                         "row 34 of the chunk", "nothing of this chunk was kept"):
+            push_in_chunks(acc, list(range(0, n, 100)), x, **ch)
+        assert acc.position == 1200
+    # Dropouts (NaN samples) before the bad time, in the same chunk: still the stream's row.
+    xd = x.copy()
+    xd[1210:1220] = np.nan
+    t = s.t.copy()
+    t[1234] = np.inf
+    acc = DwellAccumulator(fs=s.fs)
+    with clear_error("row 1234 of the stream", "(inf)"):
+        push_in_chunks(acc, list(range(0, n, 100)), xd, t=t)
+    acc.push(xd[1200:1300], t=s.t[1200:1300])
+    push_in_chunks(acc, list(range(0, n - 1300, 100)), xd[1300:], t=s.t[1300:])
+    want = detect_dwells(xd, s.fs, t=s.t)
+    got = acc.finish()
+    assert np.array_equal(got.mean, want.mean) and np.array_equal(got.start, want.start)
+    fit = accelcal.fit_static(got, s.g, observability="ignore")
+    assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)
+
+
+def test_bounds_mode_refuses_detector_settings_and_unknown_keywords() -> None:
+    """With known bounds nothing is detected: detector settings are refused with a message
+    saying so, unknown keywords are refused by name (both were accepted silently), and a
+    bare number given as bounds hints at fs= (it said only "got ()")."""
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=12, dwell_s=4.0, move_s=2.0, rng=1)
+    with clear_error("unknown keyword", "'bogus_option'"):
+        DwellAccumulator(s.bounds, fs=s.fs, k=3.0, bogus_option=1)
+    with clear_error("unknown", "'bogus_option'"):  # as with fs= (detection)
+        DwellAccumulator(fs=s.fs, bogus_option=1)
+    with clear_error("['k', 'window_s']", "do not apply with known bounds"):
+        DwellAccumulator(s.bounds, fs=s.fs, k=3.0, window_s=0.2)
+    with clear_error("['settings']", "do not apply with known bounds"):
+        DwellAccumulator(s.bounds, settings=accelcal.DetectorSettings())
+    for rate in (5000.0, 5000, np.float64(5000.0)):
+        with clear_error("single number", "fs=", "DwellAccumulator(fs=5000)"):
+            DwellAccumulator(rate)  # type: ignore[arg-type]
+    # The bounds alone still give the statistics of the true dwells, and fs= detects them.
+    acc = DwellAccumulator(s.bounds, fs=s.fs)
+    acc.push(s.samples)
+    d = acc.finish()
+    assert np.array_equal(d.mean, dwell_stats(s.samples, s.bounds).mean)
+    fit = accelcal.fit_static(d, s.g, observability="ignore")
+    assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)

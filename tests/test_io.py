@@ -2146,3 +2146,23 @@ def test_columns_found_by_their_norm_say_the_median_norm_in_the_files_units(
     level = float(np.median(np.linalg.norm(np.loadtxt(q)[:, 1:], axis=1)))
     assert any(f"(median norm {level:.4g} in the file's units: about 1 g if they "
                "are m/s^2)" in n for n in read_stream(q).notes)
+
+
+def test_a_transposed_array_is_named_as_such(tmp_path: Path) -> None:
+    """A (3, N) array saved by mistake: the error says it looks transposed and how to fix it
+    (it only spoke of N columns and no header row); saved as its transpose it reads as the
+    session, and its dwells give the truth."""
+    from accelcal.sim import field_session
+
+    s = field_session(fs=500.0, n_dwells=12, dwell_s=4.0, move_s=2.0, rng=1)
+    for name, a in (("x.npy", s.samples.T), ("xt.npy", np.vstack([s.t, s.samples.T]))):
+        np.save(tmp_path / name, a)
+        with pytest.raises(CalibrationError, match=r"\(\d, N\) array .* transposed: save a\.T"):
+            read_stream(tmp_path / name, fs=s.fs)
+    with pytest.raises(CalibrationError, match=r"looks like a \(3, N\) array.*samples\.T"):
+        detect_dwells(s.samples.T, s.fs)
+    np.save(tmp_path / "ok.npy", s.samples.T.T)
+    st = read_stream(tmp_path / "ok.npy", fs=s.fs)
+    np.testing.assert_array_equal(st.samples, s.samples)
+    fit = ac.fit_static(detect_dwells(st), s.g, observability="ignore")
+    assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)

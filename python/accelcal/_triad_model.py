@@ -8,6 +8,7 @@ import hashlib
 import json
 import math
 import os
+import warnings
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -273,13 +274,32 @@ class TriadModel:
         """Calibrated specific force (N, 3) float64 of raw output (N, 3) (float64, float32,
         int16, int32 read in place; other integer types widened). Stateless per sample, so
         chunks of a stream can be applied one at a time: an empty chunk (0, 3) gives an
-        empty (0, 3) float64 array."""
-        a = np.asarray(raw)
+        empty (0, 3) float64 array.
+
+        A DataFrame's x, y, z columns are taken by name, as :func:`accelcal.io.read_stream`
+        takes them. uint16 words are read as signed 16-bit values stored as unsigned (65404
+        for -132, with a warning when some are above 32767) when the model's bias lies near
+        0 (within +-16384), as a signed output's does; with a bias near mid-scale 32768 (an
+        unsigned 16-bit output) they are read as given."""
+        a = numeric_array(raw, "raw")  # a DataFrame's x, y, z by name, as read_stream takes them
         if a.ndim == 1 and a.size == 3:
             return self.apply(a.reshape(1, 3))[0]  # type: ignore[no-any-return]
         if a.ndim == 2 and a.shape == (0, 3):  # an empty read of a stream
-            numeric_array(a, "raw")  # the dtype still has to be a real number type
             return np.empty((0, 3), dtype=np.float64)
+        if a.dtype == np.uint16 and np.all(np.abs(self.bias) < 16384.0):
+            # The model's zero point lies near 0, as a signed output's does (an unsigned
+            # 16-bit output's sits near mid-scale 32768): the words are signed 16-bit values
+            # stored as unsigned, as read_stream reads such a file. Judged by the model, not
+            # by the chunk, so that every chunk of a stream is read alike.
+            if np.any(a >= 32768):
+                warnings.warn(
+                    "raw: uint16 words applied to a model whose bias "
+                    f"{np.array2string(self.bias, precision=4)} lies near 0, as a signed "
+                    "output's does (an unsigned 16-bit output's lies near 32768): read as "
+                    "signed 16-bit values stored as unsigned, as accelcal.io.read_stream "
+                    "reads them (give raw.view(np.int16) to say so and silence this)",
+                    UserWarning, stacklevel=2)
+            a = a.view(np.int16)
         s = samples_array(a, "raw")
         return _core.apply_triad_raw(  # type: ignore[no-any-return]
             s, self.K.tolist(), self.bias.tolist()

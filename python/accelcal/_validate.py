@@ -12,6 +12,7 @@ arrays are refused rather than cast (a cast would drop the imaginary part or rea
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
@@ -27,13 +28,48 @@ def _describe(x: Any) -> str:
     return r if len(r) <= 60 else r[:57] + "..."
 
 
+def _table_order(x: Any, name: str) -> list[int] | None:
+    """For a table of three named columns (a pandas or polars DataFrame): the storage
+    indices of its x, y, z, chosen by name exactly as :func:`accelcal.io.read_stream`
+    chooses them (``az, ay, ax`` gives ``[2, 1, 0]``); None for anything else, and for
+    names that say nothing about the axes (``0, 1, 2``, ``a, b, c``: storage order). Names
+    that point at some axes but not at one column each are refused, naming the columns."""
+    if isinstance(x, np.ndarray) or not hasattr(x, "columns"):
+        return None
+    try:
+        names = [str(c) for c in x.columns]
+    except TypeError:
+        return None
+    if len(names) != 3:
+        return None  # the shape check refuses it
+    from .io import _auto_acc  # the one copy of read_stream's choice by name
+
+    try:
+        order = _auto_acc(names, name)
+    except CalibrationError:
+        raise CalibrationError(
+            f"{name}: cannot tell which of the DataFrame's columns {names} are the "
+            "accelerometer x, y, z (their names point at some axes but not at one column "
+            "each); select them in x, y, z order (df[['ax', 'ay', 'az']]), or read the "
+            "DataFrame with accelcal.io.read_stream(df, columns=[...])"
+        ) from None
+    return None if order is None or order == [0, 1, 2] else order
+
+
 def numeric_array(x: Any, name: str) -> NDArray[Any]:
     """``x`` as a NumPy array of a real numeric dtype in native byte order (no copy when it
-    already is one); complex, boolean, object and text input is refused by name."""
+    already is one); complex, boolean, object and text input is refused by name.
+
+    A DataFrame of three named columns gives them in x, y, z order by name, as
+    :func:`accelcal.io.read_stream` takes them (``az, ay, ax`` is reordered); three columns
+    whose names do not say which axis (``0, 1, 2``) keep their order."""
+    order = _table_order(x, name)
     try:
         a = np.asarray(x)
     except (TypeError, ValueError) as e:
         raise CalibrationError(f"{name} cannot be read as an array: {e}") from None
+    if order is not None and a.ndim == 2 and a.shape[1] == 3:
+        a = a[:, order]
     kind = a.dtype.kind
     if kind == "c":
         raise CalibrationError(
@@ -62,7 +98,10 @@ def samples_array(x: Any, name: str = "samples") -> NDArray[Any]:
     """
     a = numeric_array(x, name)
     if a.ndim != 2 or a.shape[1] != 3:
-        raise CalibrationError(f"{name} must have shape (N, 3) (x, y, z per row); got {a.shape}")
+        hint = (f": it looks like a (3, N) array of x, y, z rows; give its transpose "
+                f"{name}.T" if a.ndim == 2 and a.shape[0] == 3 and a.shape[1] > 3 else "")
+        raise CalibrationError(
+            f"{name} must have shape (N, 3) (x, y, z per row); got {a.shape}{hint}")
     if a.shape[0] == 0:
         raise CalibrationError(f"{name} are empty (0 rows)")
     if a.dtype in _NATIVE:
@@ -75,6 +114,38 @@ def samples_array(x: Any, name: str = "samples") -> NDArray[Any]:
     if big >= 2.0**53:
         raise CalibrationError(f"{name}: integer values up to {big:.3g} cannot be held exactly")
     return a.astype(np.float64)
+
+
+def stored_signed16(a: NDArray[Any]) -> bool:
+    """Whether uint16 samples (N, 3) hold signed 16-bit values stored as unsigned (65404 for
+    -132), judged on the first rows exactly as :func:`accelcal.io.read_stream` judges a
+    file's accelerometer columns. A 16-bit output that is unsigned by design (mid-scale
+    32768) is not: read as signed, its axes would spread more."""
+    if a.dtype != np.uint16 or a.ndim != 2 or a.shape[0] == 0:
+        return False
+    from .io import _SNIFF_ROWS, _stored_unsigned
+
+    return _stored_unsigned(a[:_SNIFF_ROWS])
+
+
+def signed16_text(name: str) -> str:
+    """The note of :func:`stored_signed16`'s finding for the array called ``name``."""
+    from .io import STORED_UNSIGNED_TEXT
+
+    return f"{name}: the uint16 words {STORED_UNSIGNED_TEXT}"
+
+
+def signed16_samples(a: NDArray[Any], name: str = "samples") -> NDArray[Any]:
+    """uint16 samples read as :func:`accelcal.io.read_stream` reads them: viewed as int16
+    (no copy), with a warning, when they hold signed 16-bit values stored as unsigned
+    (:func:`stored_signed16`); otherwise ``a`` as it is."""
+    if not stored_signed16(a):
+        return a
+    warnings.warn(
+        f"{signed16_text(name)}: read as signed, as accelcal.io.read_stream reads them (give "
+        f"{name}.view(np.int16) to say so and silence this, or {name}.astype(np.int32) to "
+        "keep them unsigned)", UserWarning, stacklevel=3)
+    return a.view(np.int16)
 
 
 def channel(x: Any, n: int, name: str) -> NDArray[np.float64] | None:

@@ -34,6 +34,7 @@ import io
 import json
 import math
 import os
+import statistics
 import threading
 import warnings
 import zlib
@@ -47,7 +48,18 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._core import CalibrationError
 from ._files import atomic_write
-from ._validate import bounds_array, channel, number, numeric_array, positive, samples_array
+from ._validate import (
+    _to_float,
+    bounds_array,
+    channel,
+    number,
+    numeric_array,
+    positive,
+    samples_array,
+    signed16_samples,
+    signed16_text,
+    stored_signed16,
+)
 
 __all__ = [
     "DetectorSettings",
@@ -337,6 +349,16 @@ class DwellSet:
         that find more dwells, every one steady (the means of its halves agree within 4
         standard errors of the noise): brief rests the window missed. Only a suggestion (a
         short window also takes the slow ends of moves); None otherwise.
+    clipped : (k, 3, 2) int64 or None
+        Samples of each dwell on each axis's low and high rail: for integer samples, the
+        smallest and largest values of their dtype (-32768 and 32767 for int16), where the
+        output clips. Counted only where the dwell's mean and variance allow enough of them
+        to bias the mean (0 elsewhere: a dwell far from the rail needs no search, so the
+        check costs nothing in a session that stays within range); None when no dwell has
+        any (and for float samples, whose rail is not known). :meth:`faults` flags the
+        dwells with enough of them to bias the mean.
+    rail : (3, 2) float64 or None
+        The low and high rail per axis (NaN where no dwell reached it), with ``clipped``.
     fs : float or None
         Sample rate of the stream, Hz.
     names : list of str or None
@@ -366,6 +388,8 @@ class DwellSet:
         vibrating: ArrayLike | None = None,
         vibrating_std: ArrayLike | None = None,
         names: Sequence[str] | None = None,
+        clipped: ArrayLike | None = None,
+        rail: ArrayLike | None = None,
     ) -> None:
         m = numeric_array(mean, "mean").astype(np.float64, copy=True)
         if m.ndim == 1 and m.size == 3:
@@ -430,6 +454,19 @@ class DwellSet:
             if len(nm) != k or not all(isinstance(x, str) for x in nm):
                 raise CalibrationError(f"names must be {k} strings (one per dwell); got {nm!r}")
             self.names = nm
+        self.clipped: NDArray[np.int64] | None = None
+        self.rail: NDArray[np.float64] | None = None
+        if (clipped is None) != (rail is None):
+            raise CalibrationError("clipped and rail go together: give both or neither")
+        if clipped is not None:
+            c = numeric_array(clipped, "clipped")
+            if c.shape != (k, 3, 2) or c.dtype.kind not in "iu" or np.any(c < 0):
+                raise CalibrationError(f"clipped must be ({k}, 3, 2) counts >= 0; got "
+                                       f"{c.dtype} {c.shape}")
+            if self.count is not None and np.any(c > self.count[:, None, None]):
+                raise CalibrationError("clipped must not exceed count")
+            self.clipped = c.astype(np.int64)
+            self.rail = _arr(rail, "rail", (3, 2), finite=False)
 
     def __len__(self) -> int:
         return int(self.mean.shape[0])
@@ -469,6 +506,8 @@ class DwellSet:
             vibrating=self.vibrating,
             vibrating_std=self.vibrating_std,
             names=None if self.names is None else [self.names[i] for i in sel],
+            clipped=take(self.clipped),
+            rail=self.rail,
         )
 
     def label(self, k: int) -> str:
@@ -490,7 +529,7 @@ class DwellSet:
         return np.sqrt(self.var / self.count[:, None])
 
     # ---- output faults ---------------------------------------------------------------------
-    def faults(self) -> list[_core.OutputFault]:
+    def faults(self) -> list[Fault]:
         """Dwells whose output did not follow the sensor: an axis exactly constant over a
         dwell of at least 30 samples, where that axis's noise is otherwise resolvable (its
         typical dwell std at least one LSB, or positive when the output is not quantised:
@@ -504,16 +543,47 @@ class DwellSet:
         mean lies within reach of it is ``"partly_saturated_high"`` / ``"_low"``: with the
         axis's typical noise std s, a pose delta s inside the rail reads a mean short by
         s (phi(delta) - delta Q(delta)), flagged above half the mean's standard error. Empty
-        without ``var`` and ``count``. In a session where no dwell is saturated throughout, a
-        partly clipped dwell is not found (that needs each dwell's sample extremes).
+        without ``var`` and ``count``.
+
+        Integer samples show the rail themselves (:attr:`clipped`: the dtype's extremes): a
+        dwell with some samples on it is ``"partly_saturated_high"`` / ``"_low"`` too (a
+        :class:`RailFault`, which counts them) when the fraction p on the rail means a
+        shortfall s (phi(delta) - delta Q(delta)) with Q(delta) = p above half the mean's
+        standard error, whether or not a dwell is saturated throughout. Float samples have
+        no known rail: there, in a session where no dwell is saturated throughout, a partly
+        clipped dwell is not found.
         """
         if self.var is None or self.count is None:
             return []
-        return _core.dwell_output_faults(
+        found: list[Fault] = list(_core.dwell_output_faults(
             self.mean, self.var, self.count, None if self.lsb is None else self.lsb.tolist()
-        )
+        ))
+        more = self._rail_faults(found)
+        if not more:
+            return found
+        return sorted(found + more, key=lambda f: (f.dwell, 0 if f.axis is None else f.axis + 1))
 
-    def drop_faults(self, faults: list[_core.OutputFault] | None = None) -> DwellSet:
+    def _rail_faults(self, found: list[Fault]) -> list[Fault]:
+        """The dwells with enough samples on an integer rail to bias their mean (those
+        ``found`` already flagged on that axis left out)."""
+        if self.clipped is None or self.rail is None or self.count is None or self.var is None:
+            return []
+        taken = {(f.dwell, f.axis) for f in found} | {(f.dwell, a) for f in found
+                                                      if f.axis is None for a in range(3)}
+        out: list[Fault] = []
+        for k, a, side in np.argwhere(self.clipped > 0).tolist():
+            n, c = int(self.count[k]), int(self.clipped[k, a, side])
+            if (k, a) in taken or not _clip_biases(c / max(n, 1), n):
+                continue
+            v = sorted(float(x) for x, m in zip(self.var[:, a], self.count, strict=True)
+                       if m >= _FAULT_MIN_SAMPLES and math.isfinite(x))
+            q = v[-(-3 * (len(v) - 1) // 4)] if v else float(self.var[k, a])
+            out.append(RailFault(k, a, "partly_saturated_" + ("high" if side else "low"),
+                                 float(self.mean[k, a]), float(self.rail[a, side]), q, c, n))
+            taken.add((k, a))
+        return out
+
+    def drop_faults(self, faults: list[Fault] | None = None) -> DwellSet:
         """The dwells without those :meth:`faults` lists (all of them when there are none);
         ``faults`` is that list when the caller already has it."""
         faults = self.faults() if faults is None else faults
@@ -553,6 +623,10 @@ class DwellSet:
                 cols += [(f"half{h + 1}_{a}", self.half_mean[:, h, i]) for i, a in enumerate(_AXES)]
         if self.inflation is not None:
             cols += [(f"inflation_{a}", self.inflation[:, i]) for i, a in enumerate(_AXES)]
+        if self.clipped is not None:
+            for h, side in enumerate(("low", "high")):
+                cols += [(f"clipped_{side}_{a}", self.clipped[:, i, h])
+                         for i, a in enumerate(_AXES)]
         buf = io.StringIO()
         buf.write(_CSV_MAGIC + "\n")
         if self.units:
@@ -565,6 +639,10 @@ class DwellSet:
                 buf.write(f"# {key}: " + " ".join(repr(float(x)) for x in v) + "\n")
         if self.dropped:
             buf.write(f"# dropped: {self.dropped}\n")
+        if self.rail is not None:
+            for h, side in enumerate(("low", "high")):
+                buf.write(f"# rail_{side}: " + " ".join(repr(float(x)) for x in self.rail[:, h])
+                          + "\n")
         buf.write(",".join(n for n, _ in cols) + "\n")
         for r in range(k):
             cells = []
@@ -636,6 +714,12 @@ class DwellSet:
             return num(meta[key].split(), key, np.float64) if key in meta else None
 
         h1, h2 = cols("half1"), cols("half2")
+        c_lo, c_hi = cols("clipped_low"), cols("clipped_high")
+        r_lo, r_hi = vec("rail_low"), vec("rail_high")
+        clipped = rail = None
+        if c_lo is not None and c_hi is not None and r_lo is not None and r_hi is not None:
+            clipped = np.stack([c_lo, c_hi], axis=2).astype(np.int64)
+            rail = np.stack([r_lo, r_hi], axis=1)
         return cls(
             cols("mean"),  # type: ignore[arg-type]
             cols("var"),
@@ -653,6 +737,8 @@ class DwellSet:
             lsb=vec("lsb"),
             dropped=int(meta.get("dropped", "0")),
             names=data.get("name"),
+            clipped=clipped,
+            rail=rail,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -662,7 +748,7 @@ class DwellSet:
                                "names": self.names}
         for name in (
             "start", "stop", "count", "t", "temperature", "mean", "var", "half_mean",
-            "threshold", "noise_std", "lsb",
+            "threshold", "noise_std", "lsb", "clipped",
         ):
             v = getattr(self, name)
             out[name] = None if v is None else v.tolist()
@@ -676,9 +762,12 @@ class DwellSet:
             {"start": int(a), "stop": int(b), "std": sd.tolist()}
             for (a, b), sd in zip(self.vibrating, self.vibrating_std, strict=True)
         ]
+        out["rail"] = None if self.rail is None else [
+            [None if math.isnan(x) else x for x in r] for r in self.rail.tolist()]
         out["faults"] = [
             {"dwell": f.dwell, "axis": None if f.axis is None else _AXES[f.axis],
-             "kind": f.kind, "value": f.value, "rail": None if math.isnan(f.rail) else f.rail}
+             "kind": f.kind, "value": f.value, "rail": None if math.isnan(f.rail) else f.rail,
+             **({"clipped": f.clipped} if isinstance(f, RailFault) else {})}
             for f in self.faults()
         ]
         return out
@@ -723,8 +812,12 @@ _FAULT_MEANING = {
 }
 
 
-def _partly_text(f: _core.OutputFault, a: str, std: float, unit: str,
-                 faults: list[_core.OutputFault]) -> str:
+def _partly_text(f: Fault, a: str, std: float, unit: str, faults: list[Fault]) -> str:
+    if isinstance(f, RailFault):
+        return (f"{f.clipped} of {f.count} {a} samples ({100.0 * f.clipped / f.count:.2g} %) "
+                f"at {f.rail:.10g}{unit}, the {'largest' if f.rail > f.value else 'smallest'} "
+                "value the integer samples can hold: clipped at the sensor's range, so its "
+                f"{a} mean {f.value:.10g}{unit} is biased inside the rail")
     rail_dwells = [g.dwell for g in faults if g.axis == f.axis and g.rail == f.rail
                    and g.kind.startswith("saturated")]
     delta = abs(f.rail - f.value) / std
@@ -734,7 +827,7 @@ def _partly_text(f: _core.OutputFault, a: str, std: float, unit: str,
             "part of its samples are clipped, so its mean is biased")
 
 
-def fault_text(d: DwellSet, faults: list[_core.OutputFault], limit: int | None = 8) -> str:
+def fault_text(d: DwellSet, faults: list[Fault], limit: int | None = 8) -> str:
     """The faults in words, one line per dwell axis (``limit`` lines, then a count)."""
     unit = f" {d.units}" if d.units else ""
     lines = []
@@ -911,8 +1004,217 @@ class _Dropouts:
         return i + np.where(k > 0, lengths[np.maximum(k - 1, 0)], 0)
 
 
+#: Fewest samples of a dwell for clipping to be judged (as for a constant axis).
+_FAULT_MIN_SAMPLES = 30
+#: A dwell with samples on a rail is flagged when the clipping shifts its mean by more than
+#: this many standard errors of the mean (the partly saturated test of ``DwellSet.faults``).
+_PARTLY_CLIPPED_SE = 0.5
+
+
+def _clip_shortfall(delta: float) -> float:
+    """Mean shortfall, in noise std, of a Gaussian sample clipped ``delta`` std from its mean:
+    ``phi(delta) - delta Q(delta)``."""
+    d = max(0.0, delta)
+    return math.exp(-0.5 * d * d) / math.sqrt(2.0 * math.pi) - d * 0.5 * math.erfc(d / math.sqrt(2))
+
+
+@dataclass(frozen=True)
+class RailFault:
+    """A dwell with part of its samples on an integer output's rail (the largest or smallest
+    value its dtype holds, where the ADC clips): ``kind`` is ``"partly_saturated_high"`` or
+    ``"partly_saturated_low"``, with the fields of :class:`accelcal._core.OutputFault` and
+    ``clipped`` of the dwell's ``count`` samples on the rail."""
+
+    dwell: int
+    axis: int
+    kind: str
+    value: float
+    rail: float
+    typical_var: float
+    clipped: int
+    count: int
+
+
+Fault = _core.OutputFault | RailFault
+
+
+_INT_RAILS: dict[np.dtype[Any], tuple[int, int]] = {}
+
+
+def _int_rails(dtype: np.dtype[Any]) -> tuple[int, int]:
+    """The smallest and largest value of an integer dtype (cached: np.iinfo is slow for a
+    push of a few rows)."""
+    r = _INT_RAILS.get(dtype)
+    if r is None:
+        info = np.iinfo(dtype)
+        r = _INT_RAILS[dtype] = (int(info.min), int(info.max))
+    return r
+
+
+class _Rails:
+    """Samples of an integer stream at its dtype's extremes (the ADC's rails: the output
+    clips there), as runs ``[first row, length]`` per axis and side (0 low, 1 high) of the
+    stream as given, and the rail values; for the samples each dwell holds on a rail.
+
+    A chunk is searched only when one check of its extremes finds a sample on a rail (the
+    streaming path; a whole array is instead searched dwell by dwell, only in the dwells
+    that :func:`_rail_candidates` names). Float samples are not checked (their rail is not
+    known)."""
+
+    def __init__(self, runs: list[list[list[list[int]]]] | None = None,
+                 value: list[list[float | None]] | None = None) -> None:
+        # runs[axis][side]: (m, 2) int64 arrays [first row, length], in stream order
+        self.runs: list[list[list[NDArray[np.int64]]]] = [[[], []] for _ in range(3)]
+        if runs is not None:
+            for ax in range(3):
+                for side in (0, 1):
+                    if runs[ax][side]:
+                        self.runs[ax][side].append(
+                            np.asarray(runs[ax][side], dtype=np.int64).reshape(-1, 2))
+        self.value: list[list[float | None]] = (
+            value if value is not None else [[None, None] for _ in range(3)])
+
+    def copy(self) -> _Rails:
+        out = _Rails(value=[list(v) for v in self.value])
+        out.runs = [[list(side) for side in ax] for ax in self.runs]
+        return out
+
+    @staticmethod
+    def valid_state(v: Any) -> bool:
+        return (isinstance(v, dict) and isinstance(v.get("runs"), list) and len(v["runs"]) == 3
+                and all(isinstance(ax, list) and len(ax) == 2 and all(
+                    isinstance(side, list) and all(
+                        isinstance(r, list) and len(r) == 2 and all(
+                            type(x) is int and x >= 0 for x in r) for r in side)
+                    for side in ax) for ax in v["runs"])
+                and isinstance(v.get("value"), list) and len(v["value"]) == 3 and all(
+                    isinstance(ax, list) and len(ax) == 2 and all(
+                        x is None or isinstance(x, (int, float)) for x in ax)
+                    for ax in v["value"]))
+
+    def state(self) -> dict[str, Any]:
+        return {"runs": [[self._all(side).tolist() for side in ax] for ax in self.runs],
+                "value": self.value}
+
+    @staticmethod
+    def _all(parts: list[NDArray[np.int64]]) -> NDArray[np.int64]:
+        return np.concatenate(parts) if parts else np.zeros((0, 2), dtype=np.int64)
+
+    def add(self, a: NDArray[Any], offset: int, dtype: np.dtype[Any]) -> None:
+        """Record the rail samples of a chunk ``a`` (values of ``dtype``, the input's dtype
+        before any widening) that starts at stream row ``offset``."""
+        if dtype.kind not in "iu" or a.shape[0] == 0:
+            return
+        lo, hi = _int_rails(dtype)
+        rails = [(s, v) for s, v, hit in ((0, lo, np.minimum.reduce(a, axis=None) <= lo),
+                                          (1, hi, np.maximum.reduce(a, axis=None) >= hi)) if hit]
+        for side, v in rails:
+            if a.flags.c_contiguous:  # one comparison of the flat array, then split by axis
+                hit = np.flatnonzero(a.reshape(-1) == v)
+                where = [hit[hit % 3 == ax] // 3 for ax in range(3)]
+            else:
+                where = [np.flatnonzero(a[:, ax] == v) for ax in range(3)]
+            for ax, at in enumerate(where):
+                if at.size == 0:
+                    continue
+                self.value[ax][side] = float(v)
+                at = at.astype(np.int64) + offset
+                cut = np.flatnonzero(np.diff(at) != 1) + 1
+                first = at[np.concatenate([[0], cut])]
+                last = at[np.concatenate([cut - 1, [at.size - 1]])]
+                new = np.column_stack([first, last - first + 1])
+                parts = self.runs[ax][side]
+                if parts and int(parts[-1][-1].sum()) == int(new[0, 0]):  # continues a run
+                    prev = parts[-1].copy()
+                    prev[-1, 1] += new[0, 1]
+                    parts[-1] = prev
+                    new = new[1:]
+                if new.shape[0]:
+                    parts.append(new)
+
+    def attach(self, d: DwellSet) -> None:
+        """Set ``d.clipped`` and ``d.rail`` from the rail samples recorded, as
+        :func:`_attach_rails` sets them from the samples."""
+        if d.start is None or d.stop is None or not any(s for ax in self.runs for s in ax):
+            return
+        rail = np.array([[np.nan if v is None else v for v in ax] for ax in self.value])
+        counts = np.zeros((len(d), 3, 2), dtype=np.int64)
+        for k, ax, side in _rail_candidates(d, rail):
+            r = self._all(self.runs[ax][side])
+            at = np.array([d.start[k], d.stop[k]], dtype=np.int64)
+            lo, hi = self._below(r, at)
+            counts[k, ax, side] = hi - lo
+        _set_clipped(d, counts, rail)
+
+    @staticmethod
+    def _below(r: NDArray[np.int64], x: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Rail rows before each row ``x`` (runs ``r`` sorted and apart)."""
+        ends = r[:, 0] + r[:, 1]
+        done = np.concatenate([[0], np.cumsum(r[:, 1])])
+        j = np.searchsorted(r[:, 0], x, side="left")  # runs starting before x
+        last = np.maximum(j - 1, 0)
+        over = np.where(j > 0, np.maximum(ends[last] - x, 0), 0)
+        return done[j] - over
+
+
+def _clip_biases(p: float, n: int) -> bool:
+    """Whether a fraction ``p`` of ``n`` Gaussian samples clipped at a rail shifts their mean
+    by more than ``_PARTLY_CLIPPED_SE`` standard errors (the clip ``Q^-1(p)`` std away)."""
+    if n < _FAULT_MIN_SAMPLES or p <= 0.0:
+        return False
+    delta = 0.0 if p >= 0.5 else statistics.NormalDist().inv_cdf(1.0 - p)
+    return _clip_shortfall(delta) * math.sqrt(n) > _PARTLY_CLIPPED_SE
+
+
+def _rail_candidates(d: DwellSet, rail: NDArray[np.float64]) -> list[tuple[int, int, int]]:
+    """``(dwell, axis, side)`` whose samples could hold enough on the rail ``rail[axis,
+    side]`` to bias the mean: c samples a distance D from the mean add c D^2 to the sum of
+    squared deviations, so at most a fraction var (n - 1) / (n D^2) of them can be on it.
+    Dwells far from every rail (nearly always all of them) need no search."""
+    if d.var is None or d.count is None:
+        return []
+    n = d.count.astype(np.float64)[:, None]
+    out = []
+    for side in (0, 1):
+        dist = np.abs(rail[None, :, side] - d.mean)  # NaN where no rail
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pmax = np.where(dist > 0, d.var * (n - 1) / (n * dist**2), 1.0)
+        # Below 1e-7 no dwell of under 1e10 samples can be biased by half a standard error.
+        for k, ax in np.argwhere(np.isfinite(dist) & (pmax > 1e-7)).tolist():
+            if _clip_biases(min(1.0, float(pmax[k, ax])), int(d.count[k])):
+                out.append((k, ax, side))
+    return out
+
+
+def _set_clipped(d: DwellSet, counts: NDArray[np.int64], rail: NDArray[np.float64]) -> None:
+    """``d.clipped`` and ``d.rail`` (the rails some dwell reached) when a count is > 0."""
+    if not counts.any():
+        return
+    d.clipped = counts
+    d.rail = np.where(counts.any(axis=0), rail, np.nan)
+
+
+def _attach_rails(d: DwellSet, s: NDArray[Any], dtype: np.dtype[Any]) -> None:
+    """Count the samples of ``s`` (values of ``dtype``, before any widening; rows of the
+    stream as ``d.start`` / ``d.stop`` count them) on an integer dtype's rails, in the dwells
+    where they could bias the mean (:func:`_rail_candidates`), into ``d.clipped`` /
+    ``d.rail``."""
+    if dtype.kind not in "iu" or d.start is None or d.stop is None:
+        return
+    lo, hi = _int_rails(dtype)
+    rail = np.tile(np.array([float(lo), float(hi)]), (3, 1))
+    cands = _rail_candidates(d, rail)
+    if not cands:
+        return
+    counts = np.zeros((len(d), 3, 2), dtype=np.int64)
+    for k, ax, side in cands:
+        col = s[int(d.start[k]):int(d.stop[k]), ax]
+        counts[k, ax, side] = np.count_nonzero(col == (hi if side else lo))
+    _set_clipped(d, counts, rail)
+
+
 def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
-              drops: _Dropouts | None = None) -> DwellSet:
+              drops: _Dropouts | None = None, rails: _Rails | None = None) -> DwellSet:
     start, stop, dropped = d.start, d.stop, int(d.dropped)
     vib = d.vibrating_bounds
     if drops is not None and drops.n:
@@ -942,6 +1244,8 @@ def _from_raw(d: _core.DwellTableRaw, fs: float | None, units: str,
         vibrating=vib if d.threshold is not None else None,
         vibrating_std=d.vibrating_std if d.threshold is not None else None,
     )
+    if rails is not None:
+        rails.attach(out)
     if d.shorter is not None:
         w, m, tr, k = d.shorter
         out.shorter = (float(w), float(m), float(tr), int(k))
@@ -965,7 +1269,10 @@ def dwell_stats(
     ----------
     samples : (N, 3) array
         Raw counts or physical units, any real dtype, memory layout or byte order (float64,
-        float32, int16 and int32 are read in place; a DataFrame works too).
+        float32, int16 and int32 are read in place; a DataFrame works too, its x, y, z
+        columns taken by name as :func:`accelcal.io.read_stream` takes them). uint16 words
+        that hold signed 16-bit values stored as unsigned (judged on the first rows as
+        read_stream judges a file) are read as signed, with a warning.
     bounds : (k, 2) int
         ``[start, stop)`` sample indices, non-overlapping, at least 2 samples each.
     t : (N,) float, optional
@@ -985,7 +1292,8 @@ def dwell_stats(
     naming both and the likely unit of ``t``); times that step back now and then give a
     :class:`TimeStepWarning`.
     """
-    s = samples_array(samples)
+    given = signed16_samples(numeric_array(samples, "samples"))
+    s = samples_array(given)
     b = bounds_array(bounds)
     n = s.shape[0]
     fsv = None if fs is None else positive(fs, "fs", " (Hz)")
@@ -993,7 +1301,9 @@ def dwell_stats(
     if check_times:
         _check_times(tc, fsv)
     d = _core.dwell_stats_raw(s, b, tc, channel(temperature, n, "temperature"))
-    return _from_raw(d, fsv, units)
+    out = _from_raw(d, fsv, units)
+    _attach_rails(out, s, given.dtype)
+    return out
 
 
 _SETTING_RANGES: dict[str, tuple[float, float, bool, str]] = {
@@ -1093,7 +1403,9 @@ def detect_dwells(
 
     ``samples`` is an (N, 3) array (then ``fs``, Hz, is required) or a
     :class:`~accelcal.io.Stream` from :func:`accelcal.io.read_stream`, whose ``fs``, ``t``,
-    ``temperature`` and units are used unless given here.
+    ``temperature`` and units are used unless given here. A DataFrame's x, y, z columns are
+    taken by name, and uint16 words read as signed when they hold signed 16-bit values
+    stored as unsigned, as :func:`dwell_stats` reads them.
 
     Keyword arguments override :class:`DetectorSettings` fields (``window_s=0.5`` ...).
 
@@ -1112,7 +1424,8 @@ def detect_dwells(
     """
     t_given = t is not None
     samples, fs, t, temperature, units = stream_fields(samples, fs, t, temperature, units)
-    s = samples_array(samples)
+    given = signed16_samples(numeric_array(samples, "samples"))
+    s = samples_array(given)
     if fs is None:
         raise CalibrationError("fs (the sample rate, Hz) is needed for an array of samples; "
                                "or pass the Stream that accelcal.io.read_stream returns")
@@ -1139,14 +1452,16 @@ def detect_dwells(
     try:
         d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
     except CalibrationError as e:
-        e = drops.explain(e, n, samples_array(samples))
+        e = drops.explain(e, n, samples_array(given))
         if "no static dwell found" in str(e) and _core.dwell_step_log(s) is not None:
             e = type(e)(f"{e}. Note: the stream reads as a log that holds only the rests (a "
                         "block of samples per pose, jumps between them, no motion recorded): "
                         "accelcal.io.step_log_dwells(samples, t, temperature, fs) takes its "
                         "blocks as the dwells")
         raise e from None
-    return _from_raw(d, fsv, units, drops)
+    out = _from_raw(d, fsv, units, drops)
+    _attach_rails(out, s, given.dtype)  # integer samples: no dropouts, rows of the stream
+    return out
 
 
 def stream_fields(data: Any, fs: float | None, t: Any, temperature: Any, units: str = ""
@@ -1160,6 +1475,85 @@ def stream_fields(data: Any, fs: float | None, t: Any, temperature: Any, units: 
         return data, fs, t, temperature, units
     return (data.samples, data.fs if fs is None else fs, data.t if t is None else t,
             data.temperature if temperature is None else temperature, units)
+
+
+def _refuse_nonfinite_channel(v: NDArray[np.float64] | None, what: str, at: int,
+                              kept: NDArray[np.intp] | None) -> None:
+    """A CalibrationError, as the core words it but with the row of the stream, when the
+    chunk's channel ``v`` (time, temperature) holds NaN or inf. ``at``: the stream row of
+    the chunk's first row; ``kept``: the chunk rows ``v`` holds (dropouts left out)."""
+    if v is None or v.size == 0 or math.isfinite(float(np.add.reduce(v))):
+        return
+    bad = np.flatnonzero(~np.isfinite(v))
+    if bad.size == 0:  # finite values whose sum overflows
+        return
+    i = int(bad[0])
+    row = i if kept is None else int(kept[i])
+    x = float(v[i])
+    shown = "NaN" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+    raise CalibrationError(
+        f"{what} contains NaN or inf: {bad.size} value(s) in this chunk, the first at row "
+        f"{at + row} of the stream (row {row} of the chunk) ({shown}); {what} must be finite "
+        "everywhere"
+    )
+
+
+def _bounds_settings_error(settings: Any, kw: dict[str, Any]) -> CalibrationError:
+    """The error of a ``DwellAccumulator(bounds, ...)`` given detector settings (which do
+    not apply: the dwells are known) or unknown keywords."""
+    names = sorted(f.name for f in fields(DetectorSettings))
+    bad = sorted(set(kw) - set(names))
+    if bad:
+        return CalibrationError(
+            f"unknown keyword argument(s) {bad} of DwellAccumulator; it takes bounds or fs, "
+            f"settings, units, check_times and, with fs (detection), the detector settings "
+            f"{names}"
+        )
+    given = sorted(kw) + (["settings"] if settings is not None else [])
+    return CalibrationError(
+        f"detector settings {given} do not apply with known bounds: the dwells are given, "
+        "nothing is detected; drop them, or give fs= without bounds to detect the dwells"
+    )
+
+
+class _SignedWords:
+    """The first uint16 rows pushed to a :class:`DwellAccumulator`, judged as
+    :func:`accelcal.io.read_stream` judges a file's head (:func:`stored_signed16`, on up to
+    its first 10 000 rows) each time they double: when they hold signed 16-bit values
+    stored as unsigned, the warning text, once. The accumulator cannot read them as signed
+    (the rows pushed before the finding were read as given, whatever the chunking)."""
+
+    def __init__(self) -> None:
+        self.rows: list[NDArray[Any]] = []
+        self.n = 0
+        self.next = 16
+        self.done = False
+
+    def add(self, a: NDArray[Any]) -> str | None:
+        if self.done or a.dtype != np.uint16:
+            return None
+        from .io import _SNIFF_ROWS
+
+        take = a[:_SNIFF_ROWS - self.n]
+        self.rows.append(np.array(take))  # a copy: a DAQ reuses its buffer
+        self.n += take.shape[0]
+        if self.n < min(self.next, _SNIFF_ROWS):
+            return None
+        self.next = 2 * self.n
+        head = np.concatenate(self.rows)
+        self.rows = [head]
+        found = stored_signed16(head)
+        if found or self.n >= _SNIFF_ROWS:
+            self.done, self.rows = True, []
+        if not found:
+            return None
+        return (
+            f"{signed16_text('chunk')} over the first {self.n} rows pushed, as "
+            "accelcal.io.read_stream and detect_dwells read them; the accumulator reads "
+            "uint16 as unsigned (it cannot judge a stream chunk by chunk), so its dwells "
+            "come out wrong: push chunk.view(np.int16) (or chunk.astype(np.int32) to keep "
+            "them unsigned and silence this)"
+        )
 
 
 def _state_crc(meta: dict[str, Any], raw: bytes) -> int:
@@ -1188,6 +1582,12 @@ class DwellAccumulator:
     disagreement with ``fs`` is refused at the push that shows it, once 16 intervals are
     in). A step back warns once per accumulator. ``check_times=False`` takes the times as
     given (times already checked, as :func:`accelcal.io.read_stream` checks and notes them).
+
+    uint16 chunks are read as given (unsigned): whether a stream's words are signed 16-bit
+    values stored as unsigned cannot be judged chunk by chunk. When the first rows pushed
+    look so, a warning says to push ``chunk.view(np.int16)`` (:func:`detect_dwells` on the
+    whole stream reads them as signed). With bounds, detector settings and unknown keywords
+    are refused. Errors name rows of the stream, not of the chunk.
     """
 
     def __init__(
@@ -1206,10 +1606,21 @@ class DwellAccumulator:
             raise CalibrationError(f"units must be a string; got {units!r}")
         self.units = units
         self._drops = _Dropouts()
+        self._rails = _Rails()
         self._clock = _Clock()
+        self._words = _SignedWords()
         self._bounds: NDArray[np.int64] | None = None
         self._lock = threading.Lock()
         if bounds is not None:
+            if settings is not None or kw:
+                raise _bounds_settings_error(settings, kw)
+            rate = _to_float(bounds) if np.ndim(bounds) == 0 else None
+            if rate is not None:
+                raise CalibrationError(
+                    f"bounds must have shape (k, 2) [start, stop); got the single number "
+                    f"{bounds!r}: to detect the dwells at a sample rate, give it as fs= "
+                    f"(DwellAccumulator(fs={rate:g}))"
+                )
             self._bounds = bounds_array(bounds)
             self._raw = _core.RawDwellAccumulator(bounds=self._bounds)
             self.mode = "bounds"
@@ -1240,7 +1651,7 @@ class DwellAccumulator:
         with detection they are dropouts (module notes). Times ``t`` that disagree with
         ``fs`` or do not advance are refused; a step back warns (:class:`TimeStepWarning`).
         """
-        warn = None
+        warn = words = None
         try:
             a = numeric_array(chunk, "chunk")
             if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
@@ -1256,6 +1667,9 @@ class DwellAccumulator:
                 temp = None if temp is None else temp[ok]
             with self._lock:
                 at = int(self._raw.position) + self._drops.n
+                kept = np.flatnonzero(ok) if self.mode == "detect" and ok is not None else None
+                _refuse_nonfinite_channel(tc, "t", at, kept)
+                _refuse_nonfinite_channel(temp, "temperature", at, kept)
                 if self.mode == "bounds" and ok is not None:
                     self._refuse_nonfinite_in_dwells(ok, at)
                 clock, warn = (self._clock.check(tc, self.fs, at) if self.check_times
@@ -1265,6 +1679,8 @@ class DwellAccumulator:
                 self._clock = clock
                 if self.mode == "detect" and ok is not None:
                     self._drops.add(ok, at)
+                self._rails.add(c, at, a.dtype)  # integers: no dropouts
+                words = self._words.add(a)
         except CalibrationError as e:
             raise type(e)(
                 f"{e} (nothing of this chunk was kept: the accumulator still holds the "
@@ -1272,6 +1688,8 @@ class DwellAccumulator:
             ) from None
         if warn is not None:
             warnings.warn(warn, TimeStepWarning, stacklevel=2)
+        if words is not None:
+            warnings.warn(words, UserWarning, stacklevel=2)
 
     def _refuse_nonfinite_in_dwells(self, ok: NDArray[np.bool_], at: int) -> None:
         """A CalibrationError, as :func:`dwell_stats` words it, when a row of the chunk
@@ -1304,12 +1722,13 @@ class DwellAccumulator:
         """
         with self._lock:
             drops = _Dropouts([list(r) for r in self._drops.runs])
+            rails = self._rails.copy()
             n = int(self._raw.position) + drops.n
             try:
                 raw = self._raw.finish()
             except CalibrationError as e:
                 raise self._incomplete(n) or drops.explain(e, n) from None
-        return _from_raw(raw, self.fs, self.units, drops)
+        return _from_raw(raw, self.fs, self.units, drops, rails)
 
     def _incomplete(self, n: int) -> CalibrationError | None:
         """With bounds beyond the ``n`` samples pushed: the error naming the dwells complete
@@ -1339,6 +1758,7 @@ class DwellAccumulator:
             meta = {"version": _STATE_VERSION, "fs": self.fs, "units": self.units,
                     "mode": self.mode, "dropouts": self._drops.runs,
                     "clock": self._clock.state(), "check_times": self.check_times,
+                    "rails": self._rails.state(),
                     "bounds": None if self._bounds is None else self._bounds.tolist()}
             raw = self._raw.to_state()
             meta["crc32"] = _state_crc(meta, raw)
@@ -1360,6 +1780,7 @@ class DwellAccumulator:
             runs = meta.get("dropouts", []) if version >= 2 else []
             clock, bounds = meta.get("clock"), meta.get("bounds")  # absent from older states
             check_times = meta.get("check_times", True)
+            rails = meta.get("rails")  # absent from older states
         except (ValueError, KeyError, TypeError, AttributeError):
             raise CalibrationError("not a DwellAccumulator state (bad header)") from None
         if version not in (1, 2, _STATE_VERSION):
@@ -1375,7 +1796,8 @@ class DwellAccumulator:
             isinstance(runs, list) and all(
                 isinstance(r, list) and len(r) == 2 and all(
                     type(v) is int and v >= 0 for v in r) for r in runs)
-        ) or not (clock is None or _Clock.valid_state(clock)) or not isinstance(
+        ) or not (clock is None or _Clock.valid_state(clock)) or not (
+            rails is None or _Rails.valid_state(rails)) or not isinstance(
             check_times, bool) or not (
             bounds is None or (mode == "bounds" and isinstance(bounds, list) and bounds and all(
                 isinstance(r, list) and len(r) == 2 and all(type(v) is int for v in r)
@@ -1387,7 +1809,9 @@ class DwellAccumulator:
         self.units = units
         self.mode = mode
         self._drops = _Dropouts(runs)
+        self._rails = _Rails() if rails is None else _Rails(rails["runs"], rails["value"])
         self._clock = _Clock(clock)
+        self._words = _SignedWords()
         self.check_times = check_times
         self._bounds = None if bounds is None else np.asarray(bounds, dtype=np.int64)
         self._lock = threading.Lock()

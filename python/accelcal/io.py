@@ -1565,10 +1565,15 @@ def _decide(
                     "choose others")
             else:
                 used = int(np.sum(np.any(np.isfinite(head), axis=0))) if head.size else ncols
+                transposed = (
+                    f"; it holds {head.shape[0]} rows of {ncols} values: it looks like a "
+                    f"({head.shape[0]}, N) array of x, y, z (and time) rows, which must be "
+                    f"transposed: save a.T, an (N, {head.shape[0]}) array"
+                    if head.shape[0] in (3, 4) and ncols > 16 else "")
                 raise CalibrationError(
                     f"{path}: {used} columns and no header row: cannot tell which are the "
-                    f"accelerometer x, y, z{_triads_text(triads, None)}; give columns=[...] "
-                    "(0-based indices) and, if there is one, time_column="
+                    f"accelerometer x, y, z{_triads_text(triads, None)}{transposed}; give "
+                    "columns=[...] (0-based indices) and, if there is one, time_column="
                 )
     if tcol is not None and tcol in acc:
         tcol = None
@@ -1576,9 +1581,7 @@ def _decide(
     if unsigned:
         lv = _one_g(_signed16(head[:, acc]).astype(np.float64))
         notes.append(
-            f"columns {_columns_text(names, acc)} hold signed 16-bit values stored as "
-            "unsigned (65404 for -132; read as signed they stay near zero where stored they "
-            "jump between the ends of 0..65535): read as signed"
+            f"columns {_columns_text(names, acc)} {STORED_UNSIGNED_TEXT}: read as signed"
             + ("" if lv is None else f", their norm is {lv[0]:.5g} ({lv[1]})"))
     if tcol is None and time_column is None and not no_time:
         dated = [j for j in sorted(iso or ()) if j not in acc]
@@ -1697,6 +1700,13 @@ def _one_g(x: NDArray[Any]) -> tuple[float, str] | None:
     if unit is None or float(np.quantile(np.abs(norm / level - 1.0), 0.75)) >= 0.05:
         return None
     return level, unit
+
+
+#: What :func:`_stored_unsigned` found, as the notes and warnings word it.
+STORED_UNSIGNED_TEXT = (
+    "hold signed 16-bit values stored as unsigned (65404 for -132; read as signed they stay "
+    "near zero where stored they jump between the ends of 0..65535)"
+)
 
 
 def _signed16(x: NDArray[Any]) -> NDArray[Any]:
