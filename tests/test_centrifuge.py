@@ -207,6 +207,21 @@ def test_screen_finds_lost_signs_that_mask_each_other_with_the_noise_estimated(n
         assert abs(f.bias[0] - s.truth["bias"][0]) < 1e-5
 
 
+def test_one_speed_with_rows_at_rest_separates_k2_from_scale():
+    # Two levels of specific force (1 g at rest, sqrt(A^2 + 1) at speed) determine K2: the fit
+    # is within a few std of the truth (before: refused, "K2 cannot be separated from scale").
+    from accelcal.sim.centrifuge import paper_design
+
+    s = centrifuge_session(paper_design(omegas=[0.0, 4 * np.pi]), noise_g=1e-6, rng=1, g=9.8)
+    f = fit_centrifuge(s.outputs, s.omega, 1.0, g=9.8)
+    truth = np.r_[s.truth["scale"], s.truth["bias"], s.truth["k2"]]
+    z = (np.r_[f.scale, f.bias, f.k2] - truth) / f.std[:9]
+    assert np.all(np.abs(z) < 4), z
+    with pytest.raises(DegenerateDataError, match="no rows at rest"):
+        one = centrifuge_session(paper_design(omegas=[4 * np.pi]), noise_g=1e-6, rng=1, g=9.8)
+        fit_centrifuge(one.outputs, one.omega, 1.0, g=9.8)
+
+
 def _centripetal_g(design, latitude_deg):
     """A (g) of every row from the forward model with a unit sensor: |f|^2 = A^2 + 1."""
     from accelcal.centrifuge import centrifuge_outputs

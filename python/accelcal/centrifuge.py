@@ -503,7 +503,8 @@ def fit_centrifuge(
         Mean outputs per position and speed (g). Any layout (C or Fortran order, strided,
         a DataFrame), float or integer dtype, either byte order.
     omega : array_like (k,)
-        Signed spin rate of each row (rad/s); at least two distinct non-zero speeds.
+        Signed spin rate of each row (rad/s); at least two distinct speeds (rows at rest,
+        0, count as one).
     radius : float
         Nominal radius (m).
     g : float
@@ -569,7 +570,7 @@ def fit_centrifuge(
     if out.shape[0] == 0:
         raise CalibrationError(
             "outputs have no rows (shape (0, 3)): give one mean output per position and speed "
-            "(k, 3) in g, with at least two distinct non-zero speeds"
+            "(k, 3) in g, with at least two distinct speeds (rows at rest count as one)"
         )
     om = real_array(omega, "omega", "rad/s").reshape(-1)
     if om.shape[0] != out.shape[0]:

@@ -1061,12 +1061,13 @@ pub fn validate(data: &CentrifugeData<'_>, model: &ModelOptions) -> Result<usize
     let mut speeds: Vec<f64> = data.omega.iter().map(|w| w.abs()).collect();
     speeds.sort_by(|a, b| a.total_cmp(b));
     speeds.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1e-300));
-    let nonzero = speeds.iter().filter(|w| **w > 0.0).count();
-    if nonzero < 2 {
-        return degenerate(format!(
-            "only {nonzero} distinct non-zero speed(s): K2 cannot be separated from scale; \
-             run at least two (better three) speeds"
-        ));
+    // Two levels of specific force separate K2 from scale: two speeds, or one speed and rows
+    // at rest (1 g).
+    if speeds.len() < 2 {
+        return degenerate(
+            "only 1 distinct speed and no rows at rest: K2 cannot be separated from scale; \
+             run at least two (better three) speeds, or add rows at rest",
+        );
     }
     let p = model.n_params();
     if k < p + 1 {
