@@ -1391,12 +1391,19 @@ fn lmeds(
     lmeds_draws(data, rc, opt, needed).map(|(params, draws, _)| (params, draws))
 }
 
-/// The h-th smallest weighted absolute residual (`h = ceil((n + 9) / 2)`, the least-median
-/// criterion) of the norm residuals `r` (g; `inf` where not invertible).
-fn lmeds_criterion(rc: &[RowConst], r: &[f64]) -> f64 {
-    let n = r.len();
+/// The h-th smallest of the weighted absolute residuals `ab` ([`weighted_abs`];
+/// `h = ceil((n + 9) / 2)`): the least-median criterion.
+fn lmeds_criterion(ab: &[f64]) -> f64 {
+    let n = ab.len();
     let h = (n + ModelOptions::default().n_params()).div_ceil(2);
-    kth_smallest(&weighted_abs(rc, r), h.min(n) - 1)
+    kth_smallest(ab, h.min(n) - 1)
+}
+
+/// A robust residual scale from an order statistic `x` of `m` absolute residuals of a fit of
+/// `p` parameters (the median's, or the least-median criterion): `1.4826 x` with the
+/// small-sample factor `1 + 5 / (m - p)`, at least `floor`.
+fn robust_scale(x: f64, m: usize, p: usize, floor: f64) -> f64 {
+    (1.4826 * (1.0 + 5.0 / (m - p) as f64) * x).max(floor)
 }
 
 /// [`lmeds`] with at most `needed` minimal subsets; also returns the best criterion.
@@ -1813,8 +1820,7 @@ fn masked(st: &Studentized, threshold: f64, p: usize, floor: f64) -> bool {
     if m < p + 3 {
         return false;
     }
-    let med = kth_smallest(&a, (m - 1) / 2);
-    let s = (1.4826 * (1.0 + 5.0 / (m - p) as f64) * med).max(floor);
+    let s = robust_scale(kth_smallest(&a, (m - 1) / 2), m, p, floor);
     let gate = MASKING_GATE.min(threshold);
     a.iter().any(|&v| v > gate * s)
         || a.iter().filter(|&&v| v > MASKING_TAIL * s).count() >= MASKING_TAIL_ROWS
@@ -1858,7 +1864,7 @@ fn probe_masked(
     if m == 0 || !((ss / m as f64).sqrt() > PROBE_MIN_RELATIVE) {
         return false;
     }
-    let plain = lmeds_criterion(rc, r_plain);
+    let plain = lmeds_criterion(&weighted_abs(rc, r_plain));
     if !(plain > opt.sigma_floor) {
         return false;
     }
@@ -2060,9 +2066,7 @@ fn screen(
     // First classification from the least-median fit (a robust scale from the median).
     let rb = residuals_pre(data, rc, &ModelOptions::default(), &base_p);
     let ab = weighted_abs(rc, &rb);
-    let h = (n + 9).div_ceil(2);
-    let crit = kth_smallest(&ab, h - 1);
-    let sig_l = (1.4826 * (1.0 + 5.0 / (n - 9) as f64) * crit).max(opt.sigma_floor);
+    let sig_l = robust_scale(lmeds_criterion(&ab), n, 9, opt.sigma_floor);
     let mut rows: Vec<usize> = (0..n).filter(|&k| ab[k] <= opt.outlier_k * sig_l).collect();
     let mut start = base_p;
     let mut last: Option<Screened> = None;
