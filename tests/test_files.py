@@ -14,7 +14,13 @@ from pathlib import Path
 
 import pytest
 from accelcal import CalibrationError
-from accelcal._files import TMP_PREFIX, atomic_open, atomic_write, clean_stale_temps
+from accelcal._files import (
+    TMP_PREFIX,
+    atomic_create,
+    atomic_open,
+    atomic_write,
+    clean_stale_temps,
+)
 
 
 def temps(folder: Path) -> list[str]:
@@ -155,3 +161,23 @@ def test_cli_output_to_dev_null(tmp_path: Path) -> None:
     link.symlink_to(tmp_path / "t.csv")
     r = CliRunner().invoke(main, ["dwells", str(f), "--fs", "100", "-o", str(link)])
     assert r.exit_code == 2 and "symbolic link" in r.output
+
+
+def test_atomic_create_never_replaces_a_file_and_leaves_no_temporary(tmp_path: Path) -> None:
+    p = tmp_path / "sub" / "cal.json"
+    assert atomic_create(p, b"first\n")
+    assert p.read_bytes() == b"first\n"
+    assert (p.stat().st_mode & 0o777) == (0o666 & ~_umask_now())
+    assert not atomic_create(p, b"second\n")
+    assert p.read_bytes() == b"first\n"
+    link = tmp_path / "sub" / "link.json"
+    link.symlink_to(p)
+    assert not atomic_create(link, "third\n")
+    assert p.read_bytes() == b"first\n" and link.is_symlink()
+    assert temps(p.parent) == []
+
+
+def _umask_now() -> int:
+    m = os.umask(0)
+    os.umask(m)
+    return m

@@ -8,6 +8,9 @@
 - A path whose last component is a symbolic link is refused (the message names the link and
   its target): replacing the link would silently cut it, writing through it would change a file
   the user did not name. Give the target path instead.
+- :func:`atomic_create` writes a new file the same way but never replaces one: the complete
+  temporary file is hard-linked to its name, which fails when the name exists (a file kept
+  by name, such as a fleet's calibration history).
 - Temporary files are named ``.accelcal-tmp-<name>-<pid>-<random>`` in the target's folder.
   They are removed on any error, on Ctrl-C and on SIGTERM or SIGHUP (the process then exits
   with status 128 + the signal number); one left by a process that was killed outright
@@ -156,32 +159,69 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[An
             yield fh
             fh.flush()
         return
-    folder = p.parent if str(p.parent) else Path(".")
+    with _temp_beside(p) as (fd, tmp):
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        try:
+            perm = os.stat(p).st_mode & 0o7777
+        except FileNotFoundError:
+            perm = 0o666 & ~_umask()
+        os.chmod(tmp, perm)
+        os.replace(tmp, p)
+    _fsync_dir(_folder(p))
+
+
+def _folder(p: Path) -> Path:
+    return p.parent if str(p.parent) else Path(".")
+
+
+@contextmanager
+def _temp_beside(p: Path) -> Iterator[tuple[int, str]]:
+    """A new temporary file in the folder of ``p`` (created if need be; stale temporaries of
+    ``p`` cleaned first): ``(fd, name)``. It is removed on a signal and when the block ends
+    unless the block renamed it."""
+    folder = _folder(p)
     folder.mkdir(parents=True, exist_ok=True)
     clean_stale_temps(p)
     with _signals_cleanup():
         fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{p.name}-{os.getpid()}-", dir=folder)
         _live.add(tmp)
         try:
-            with os.fdopen(fd, mode) as fh:
-                yield fh
-                fh.flush()
-                os.fsync(fh.fileno())
-            try:
-                perm = os.stat(p).st_mode & 0o7777
-            except FileNotFoundError:
-                perm = 0o666 & ~_umask()
-            os.chmod(tmp, perm)
-            os.replace(tmp, p)
-            _live.discard(tmp)
-            _fsync_dir(folder)
-        except BaseException:
+            yield fd, tmp
+        finally:
             _live.discard(tmp)
             try:
-                os.unlink(tmp)
+                os.unlink(tmp)  # renamed already: nothing there
             except OSError:
                 pass
-            raise
+
+
+def atomic_create(path: str | os.PathLike[str], data: str | bytes) -> bool:
+    """Write ``data`` to the new file ``path`` atomically, never replacing a file of that
+    name, even one another process creates at the same moment: the complete temporary file
+    is hard-linked to its name (on a file system without hard links: checked, then renamed,
+    best effort). False, and nothing written, when ``path`` exists."""
+    p = Path(path)
+    if os.path.lexists(p):
+        return False
+    with _temp_beside(p) as (fd, tmp):
+        with os.fdopen(fd, "wb" if isinstance(data, bytes) else "w") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        try:
+            os.link(tmp, p)
+        except FileExistsError:
+            return False
+        except OSError:
+            if os.path.lexists(p):
+                return False
+            os.replace(tmp, p)
+    _fsync_dir(_folder(p))
+    return True
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -341,9 +341,13 @@ class TriadModel:
         sid = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.sensor_id) or "triad"
         return f"{sid}_{self.datetime.strftime('%Y%m%dT%H%M%SZ')}.json"
 
+    def to_json(self) -> str:
+        """The model as the JSON text :meth:`save` writes."""
+        return json.dumps(self.to_dict(), indent=2) + "\n"
+
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the model as JSON, atomically."""
-        atomic_write(path, json.dumps(self.to_dict(), indent=2) + "\n")
+        atomic_write(path, self.to_json())
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "model") -> TriadModel:

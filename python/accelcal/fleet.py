@@ -22,7 +22,6 @@ import json
 import math
 import os
 import re
-import secrets
 import socket
 import stat
 import sys
@@ -36,14 +35,7 @@ from typing import Any
 import numpy as np
 
 from ._core import CalibrationError, DegenerateDataError
-from ._files import (
-    TMP_PREFIX,
-    _fsync_dir,
-    _live,
-    _signals_cleanup,
-    atomic_write,
-    clean_stale_temps,
-)
+from ._files import atomic_create, atomic_write
 from ._triad import MODELS, PARAM_NAMES
 from .io import file_stem
 
@@ -898,21 +890,6 @@ def _add_note(row: dict[str, Any], note: str) -> None:
         row["message"] = "; ".join(x for x in (row.get("message") or "", note) if x)
 
 
-def _link_new(src: Path, dst: Path) -> bool:
-    """Give the complete file ``src`` the name ``dst`` unless ``dst`` exists (a hard link:
-    atomic, and never replaces anything, even when another run writes the same name at the
-    same moment). False when ``dst`` exists."""
-    try:
-        os.link(src, dst)
-    except FileExistsError:
-        return False
-    except OSError:  # a file system without hard links: check, then rename (best effort)
-        if os.path.lexists(dst):
-            return False
-        os.replace(src, dst)
-    return True
-
-
 def _same_bytes(path: Path, data: bytes) -> bool:
     try:
         st = os.lstat(path)
@@ -956,37 +933,24 @@ def _save_new(model: Any, folder: Path, used: set[str],
     already there.
     """
     base = _cal_name(model)
-    clean_stale_temps(folder / base)
-    # The complete file under a temporary name, then linked to its name: a reader (or another
-    # run) sees no half file, and a file of that name is never replaced.
-    stage = folder / f"{TMP_PREFIX}{base}-{os.getpid()}-{secrets.token_hex(4)}"
+    data = model.to_json().encode()
     taken: list[str] = []
-    with _signals_cleanup():
-        _live.add(str(stage))
-        try:
-            model.save(stage)
-            data = stage.read_bytes()
-            k = 1
-            while True:
-                name = base if k == 1 else f"{base[:-5]}-{k}.json"
-                k += 1
-                if name in used:  # another recording of this run: -2 as ever, no note
-                    continue
-                target = folder / name
-                if _link_new(stage, target):
-                    same = False
-                    break
-                if _same_bytes(target, data):
-                    same = True
-                    break
-                taken.append(f"{name} ({_holder(target, model)})")
-        finally:
-            _live.discard(str(stage))
-            try:
-                os.unlink(stage)
-            except OSError:
-                pass
-    _fsync_dir(folder)
+    k = 1
+    while True:
+        name = base if k == 1 else f"{base[:-5]}-{k}.json"
+        k += 1
+        if name in used:  # another recording of this run: -2 as ever, no note
+            continue
+        target = folder / name
+        # Complete under a temporary name, then linked to its name: a reader (or another
+        # run) sees no half file, and a file of that name is never replaced.
+        if atomic_create(target, data):
+            same = False
+            break
+        if _same_bytes(target, data):
+            same = True
+            break
+        taken.append(f"{name} ({_holder(target, model)})")
     used.add(name)
     note = ""
     if taken:
