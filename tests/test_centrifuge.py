@@ -409,7 +409,8 @@ def test_diagnose_centrifuge_names_the_rows_the_screen_excludes() -> None:
     """The published table as printed (23 of 60 rows with a lost sign) read "chi2/dof = 1.00
     ... Structure: none: the residuals are consistent with the noise model": with no noise
     given, the scale came from those very residuals. The report now names the rows the robust
-    screen excludes, and says that the noise level itself was not tested."""
+    screen excludes (and leaves them out), and says that the noise level itself was not
+    tested."""
     printed = accelcal.read_centrifuge_table(PRINTED())
     r = accelcal.diagnose_centrifuge(printed.outputs, printed.omega, 1.0)
     said = [s for s in r.statements if s.startswith("the robust screen of the centrifuge fit")]
@@ -420,6 +421,38 @@ def test_diagnose_centrifuge_names_the_rows_the_screen_excludes() -> None:
     corrected = accelcal.read_centrifuge_table(CORRECTED())
     r = accelcal.diagnose_centrifuge(corrected.outputs, corrected.omega, 1.0)
     assert not any(s.startswith("the robust screen") for s in r.statements)
+
+
+def test_diagnose_centrifuge_leaves_out_the_rows_the_fit_screens() -> None:
+    """Rows of a simulated session (no unmodelled effect) with the x sign lost. The diagnosis
+    fitted every row: with two such rows it failed with "a design matrix is not finite",
+    naming neither row nor cause; with four it named radius_error (-452 mm, p 3e-8). It now
+    leaves out the rows the fit's robust screen excludes, as the fit does, and says so;
+    robust=False fits them and names them (or names the row it cannot invert)."""
+    from accelcal.sim.centrifuge import centrifuge_session
+
+    s = centrifuge_session(noise_g=1e-6, rng=3)
+    for rows in ([27, 30], [15, 49], [44, 29, 57, 26]):
+        out = s.outputs.copy()
+        out[rows, 0] *= -1
+        args = (out, s.omega, s.radius)
+        r = accelcal.diagnose_centrifuge(*args, g=s.g, spin_axis=s.spin_axis)
+        assert r.best == "none" and r.n == 60 - len(rows), (rows, r.summary())
+        assert sorted(set(range(60)) - set(r.dwells["index"].tolist())) == sorted(rows)
+        said = [t for t in r.statements if t.startswith("the robust screen of the centrifuge")]
+        assert said and "leaves them out" in said[0], r.statements
+        assert set(rows) == {int(v) for v in said[0].split("rows (", 1)[1].split(")")[0]
+                             .split(", ")}
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                r = accelcal.diagnose_centrifuge(*args, g=s.g, spin_axis=s.spin_axis,
+                                                 robust=False)
+            text = " ".join(r.statements)
+        except CalibrationError as e:
+            text = str(e)
+            assert "design matrix" not in text and "outside the invertible range" in text, text
+        assert "robust=False" in text and ", ".join(map(str, sorted(rows))) in text, text
 
 
 def _caught(call):

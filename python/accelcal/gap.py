@@ -2084,6 +2084,7 @@ def diagnose_centrifuge(
     test: str = "auto",
     gate: str = "auto",
     sigma_norm: float | ArrayLike | None = None,
+    robust: bool = True,
 ) -> GapReport:
     """Diagnose the gap of a centrifuge session against the scale + bias + K2 norm model.
 
@@ -2116,6 +2117,11 @@ def diagnose_centrifuge(
         ``cross_coupling`` (K_ij f_i f_j, i != j, ug/g^2) and ``rate_offset`` (spin-rate
         offset, e.g. the Earth rate Omega sin(latitude), urad/s).
     loo, max_effects, test, gate : as in :func:`accelcal.diagnose`.
+    robust : leave out the rows the robust screen of :func:`accelcal.fit_centrifuge` excludes
+        (gross errors such as a lost sign), as the fit does; the report names them and keeps
+        the session's row numbers. False diagnoses every row (and says which rows the screen
+        would exclude): a few rows far off otherwise set the noise scale, or the chi2, and are
+        "explained" by an effect such as a radius error of hundreds of mm.
 
     Returns
     -------
@@ -2155,39 +2161,58 @@ def diagnose_centrifuge(
             raise CalibrationError(f"sigma_norm must be scalar or ({k},) (g); got {s_.shape}")
         s_norm = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (k,)))
         noise_model = "given noise std of each row's norm residual"
-    raw = _core.gap_diagnose_centrifuge(out, om, radius_v, g_v, names, settings,
-                                        spin_axis=c3, sigma_norm=s_norm, sigma_axis=s_axis)
+    bad = _screened_rows(out, om, radius_v, g_v, s_axis)
+    screened = [_screened_text(bad, k, robust)] if bad else []
+    keep = np.setdiff1d(np.arange(k), bad) if robust else np.arange(k)
+    if len(keep) < k:
+        out, om = out[keep], om[keep]
+        c3, s_axis, s_norm = (None if a is None else np.ascontiguousarray(a[keep])
+                              for a in (c3, s_axis, s_norm))
+    try:
+        raw = _core.gap_diagnose_centrifuge(out, om, radius_v, g_v, names, settings,
+                                            spin_axis=c3, sigma_norm=s_norm, sigma_axis=s_axis)
+    except CalibrationError as e:
+        if not screened or robust:
+            raise
+        raise CalibrationError(f"{e}; {screened[0]}") from e
     sysw = _System("centrifuge", "g", _CENTRIFUGE_FIX,
                    [{"effect": "common_scale_vs_radius",
                      "reason": _radius_reason(om, radius_v, g_v)}],
                    "row(s)", "by axis", "by speed", lambda x: f"{x:g}", lambda x: f"{x:g}",
                    _fixes_separation(_CENTRIFUGE_FIX))
     return _build_report(raw, sysw, g=g_v, alpha=float(alpha), noise_model=noise_model,
-                         statements=_screened_rows(out, om, radius_v, g_v),
-                         rows={"omega": om})
+                         statements=screened,
+                         rows={"omega": om, "index": keep})
 
 
 def _screened_rows(outputs: NDArray[np.float64], omega: NDArray[np.float64], radius: float,
-                   g: float) -> list[str]:
-    """The rows the robust screen of the centrifuge fit (:func:`accelcal.fit_centrifuge`)
-    excludes, said: the diagnosis fits every row, and a few rows far off (a lost sign in a
-    printed table) set its noise scale when the noise is unknown, or its chi2 when known."""
+                   g: float, sigma: NDArray[np.float64] | None) -> list[int]:
+    """The rows (0-based) the robust screen of the centrifuge fit
+    (:func:`accelcal.fit_centrifuge`, with the output noise when given) excludes."""
     from .centrifuge import fit_centrifuge
 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            fit = fit_centrifuge(outputs, omega, radius, g=g)
+            fit = fit_centrifuge(outputs, omega, radius, g=g, sigma=sigma)
     except CalibrationError:
         return []
-    bad = [int(i) for i in np.asarray(fit.outliers)]
-    if not bad:
-        return []
-    return [f"the robust screen of the centrifuge fit (fit_centrifuge, calibrate centrifuge) "
-            f"excludes {len(bad)} of {len(outputs)} rows ({', '.join(map(str, bad[:8]))}"
-            f"{' ...' if len(bad) > 8 else ''}): rows inconsistent with the model (a mistyped "
-            "or mis-signed value?), which this diagnosis fits with the others; leave them out "
-            "(outputs[mask], omega[mask]) and diagnose again"]
+    return [int(i) for i in np.asarray(fit.outliers)]
+
+
+def _screened_text(bad: list[int], k: int, robust: bool) -> str:
+    """The screened rows said, and what the diagnosis did with them."""
+    head = (f"the robust screen of the centrifuge fit (fit_centrifuge, calibrate centrifuge) "
+            f"excludes {len(bad)} of {k} rows ({', '.join(map(str, bad[:8]))}"
+            f"{' ...' if len(bad) > 8 else ''}) as inconsistent with the model (a mistyped or "
+            "mis-signed value?)")
+    if robust:
+        return (f"{head}: this diagnosis leaves them out, as the fit does, and is of the "
+                f"{k - len(bad)} rows kept (row numbers are the session's; robust=False "
+                "diagnoses every row)")
+    return (f"{head}, and this diagnosis (robust=False) fits them with the others: a few rows "
+            "far off set the noise scale or the chi2 and can be explained by an effect that is "
+            "not there; robust=True leaves them out")
 
 
 def diagnose_gradiometer(

@@ -224,10 +224,15 @@ impl CentrifugeModel {
             }
             pp[c] = p[c];
         }
-        if e.iter().any(|v| !v.is_finite()) {
-            return Err(CoreError::NotConverged(
-                "a centrifuge row is outside the invertible range of the model".into(),
-            ));
+        let bad = rows.iter().enumerate().find(|&(ri, _)| {
+            !e[ri].is_finite() || (0..cols.len()).any(|jc| !jac[(ri, jc)].is_finite())
+        });
+        if let Some((_, &k)) = bad {
+            return Err(CoreError::NotConverged(format!(
+                "centrifuge row {k} is outside the invertible range of the model near its \
+                 fit (no real input gives that output with the fitted K2): a gross error in \
+                 the row, or rows that spoil the fit"
+            )));
         }
         Ok(())
     }
