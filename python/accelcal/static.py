@@ -688,7 +688,7 @@ def fit_static(
     nominal: TriadModel | None = None,
     observability: str = "raise",
     weak_std: float = 1e-3,
-    degenerate_std: float = 3.0,
+    degenerate_std: float = 0.3,
     max_iter: int = 200,
     check_g: bool = True,
 ) -> StaticFit:
@@ -726,6 +726,10 @@ def fit_static(
         this says: there is no fit to return.
     weak_std, degenerate_std : float
         Thresholds of the predicted std in relative units (scale relative, biases in g).
+        Above ``degenerate_std`` (0.3: 30 % of the scale, or 0.3 g) a combination counts as
+        undetermined: an exactly singular pose set fitted to noisy means gets a predicted
+        std of 0.4 or more along its null combination whatever the noise, so the data cannot
+        tell such a design from a singular one.
     max_iter : int
         Iteration limit of GN/LM, in [1, 100000].
     check_g : bool
@@ -983,7 +987,7 @@ def fit_static_batch(
     sigma: float | None = None,
     start: ArrayLike | None = None,
     max_iter: int = 200,
-    degenerate_std: float = 3.0,
+    degenerate_std: float = 0.3,
     weak_std: float = 1e-3,
     mask: ArrayLike | None = None,
     check_g: bool = True,

@@ -211,7 +211,7 @@ fn settings_from(
         s.max_iter = arg_int(o, "max_iter", 1, 100_000)?;
     }
     if let Some(o) = &degenerate_std.0 {
-        s.degenerate_std = positive(o, "degenerate_std", "relative std (default 3)")?;
+        s.degenerate_std = positive(o, "degenerate_std", "relative std (default 0.3)")?;
     }
     if let Some(o) = &weak_std.0 {
         s.weak_std = positive(o, "weak_std", "relative std (default 1e-3)")?;

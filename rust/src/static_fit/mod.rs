@@ -55,9 +55,13 @@ use rayon::prelude::*;
 pub const PARAM_NAMES: [&str; 9] = ["sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3"];
 
 /// Default predicted std (comparable units) above which a combination counts as undetermined:
-/// a combination known to no better than 300 % (of the scale, or of g for a bias) is not
-/// determined. Below it a large predicted std is reported as a weak design, with the fit.
-pub const DEGENERATE_STD: f64 = 3.0;
+/// a combination known to no better than 30 % (of the scale, or of g for a bias) is not
+/// determined. An exactly singular pose set (the two-plane field procedure) fitted to noisy
+/// means gets a predicted std of 0.4 to several hundred along its null combination whatever
+/// the noise (the noise itself tilts the Jacobian there), so above 0.3 the data cannot tell
+/// their design from a singular one; at 3 such fits were returned with a warning in 5-25 %
+/// of sessions. Below it a large predicted std is reported as a weak design, with the fit.
+pub const DEGENERATE_STD: f64 = 0.3;
 /// Default predicted std (comparable units) above which a parameter counts as weakly determined.
 pub const WEAK_STD: f64 = 1e-3;
 /// Scale factors above this multiple of the data's spread scale (median distance of the
@@ -687,12 +691,18 @@ fn undetermined_by_design<const N: usize>(
     };
     let cov = covariance_stage::<N>(&at, means.len(), g, noise.known(), set);
     let n = means.len();
-    if !cov.summary.degenerate {
-        if !cov.summary.weak {
-            return Ok(());
-        }
-        // Weakly determined there: the linear solution's failure ("not an ellipsoid") comes
-        // from parameters the poses barely see, which the message names.
+    if !cov.summary.degenerate && !cov.summary.weak {
+        return Ok(());
+    }
+    if cov.summary.weakest_std.is_finite() {
+        // Weakly determined there, or undetermined but not exactly singular: the linear
+        // solution's failure ("not an ellipsoid") comes from parameters the poses barely
+        // see, which the message names (six faces: all three misalignments).
+        let verb = if cov.summary.degenerate {
+            "cannot determine"
+        } else {
+            "barely determine"
+        };
         let weak: Vec<String> = (0..N)
             .filter(|&i| !(cov.summary.std_comparable[i] <= set.weak_std))
             .map(|i| {
@@ -705,7 +715,7 @@ fn undetermined_by_design<const N: usize>(
             })
             .collect();
         return degenerate(format!(
-            "the {n} dwells barely determine {} of model \"{}\" (relative units), so its \
+            "the {n} dwells {verb} {} of model \"{}\" (relative units), so its \
              linear solution fails (the fitted quadric is not an ellipsoid) while the bias + \
              scale model fits them; add poses between the axes (tilts of 35-55 deg in both \
              axes at once), or fit model \"diag\"",
