@@ -2,8 +2,9 @@
 
 Python blocks run in order in one namespace per guide; shell lines that call ``accelcal`` run
 through click's runner; ``printf ... > file`` lines are honoured (the gradiometer guide makes
-its table that way). The working folder is a scratch folder with the public recordings in
-``data/``, as each guide tells its reader to lay them out.
+its table that way). The blocks run as the reader's script would (``__name__`` is
+``"__main__"``, so code under the guard runs). The working folder is a scratch folder with
+the public recordings in ``data/``, as each guide tells its reader to lay them out.
 """
 
 from __future__ import annotations
@@ -58,7 +59,9 @@ def test_guide_examples_run(guide: Path, tmp_path: Path) -> None:
     (work / "examples").symlink_to(ROOT / "examples")
     blocks = _blocks(guide.read_text())
     assert blocks, f"{guide.name} has no examples"
-    ns: dict[str, object] = {"__name__": "__guide__"}
+    # "__main__", as in the reader's script: the fleet guide's blocks run under
+    # 'if __name__ == "__main__":' (its process pools import the script).
+    ns: dict[str, object] = {"__name__": "__main__"}
     old = Path.cwd()
     os.chdir(work)
     try:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import accelcal
 import numpy as np
 import pytest
@@ -295,6 +297,13 @@ def test_startup_calibration_workflow_streams_and_raw():
     r2 = cal2.solve()
     assert not r2.sigma_estimated
     assert np.all(np.abs(r2.bias - s.truth.bias_E) < 5 * r2.bias_std)
+    # the summary says where sigma came from, and a pickle keeps it
+    assert r2.sigma_source == "from the streams"
+    assert "E (from the streams)" in r2.summary() and "(given)" not in r2.summary()
+    assert pickle.loads(pickle.dumps(r2)).sigma_source == "from the streams"
+    assert "E (given)" in accelcal.startup_bias(az, np.array(means), t=np.array(times),
+                                                drift=True, sigma=1.0).summary()
+    assert "(estimated from residuals)" in r.summary()
 
     bad = accelcal.StartupCalibration(drift=True)
     bad.record_mean(0.0, 1.0, 2.0)

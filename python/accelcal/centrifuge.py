@@ -108,7 +108,8 @@ def paper_positions() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
 def paper_design(
     omegas: Any = (2 * np.pi, 4 * np.pi, 6 * np.pi), radius: float = 1.0
 ) -> CentrifugeDesign:
-    """The seed paper's 20-position x 3-speed design (rows ordered speed-major like Table 1)."""
+    """The 20-position x 3-speed design of Wang and Li (2021,
+    doi:10.19306/j.cnki.2095-8110.2021.06.019), rows ordered speed-major like its Table 1."""
     om = np.asarray(omegas, dtype=np.float64).ravel()
     rad, up = paper_positions()
     n = len(om)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -151,6 +151,10 @@ class StartupBias(_core.StartupBiasCore):
         Noise std of each average used for the covariance, E (given or estimated).
     sigma_estimated : bool
         True when ``sigma`` was estimated from the residuals.
+    sigma_source : str
+        Where ``sigma`` came from, as the summary says it: ``"given"``, ``"from the streams"``
+        (``StartupCalibration(sigma="stream")``: each dwell's own standard error) or
+        ``"estimated from residuals"``.
     dof : int
         Redundancy ``2m - p``.
     condition : float
@@ -162,6 +166,16 @@ class StartupBias(_core.StartupBiasCore):
     """
 
     __slots__ = ()
+    #: where a non-estimated ``sigma`` came from (see :class:`_StartupBiasFromStreams`)
+    _given_sigma: ClassVar[str] = "given"
+
+    @property
+    def sigma_source(self) -> str:
+        """Where ``sigma`` came from: ``"given"``, ``"from the streams"`` or ``"estimated from
+        residuals"`` (``""`` without a sigma)."""
+        if self.sigma is None:
+            return ""
+        return "estimated from residuals" if self.sigma_estimated else self._given_sigma
 
     @property
     def params(self) -> _F64:
@@ -228,8 +242,8 @@ class StartupBias(_core.StartupBiasCore):
                 "freedom to estimate the noise from (the solution fits them exactly); give "
                 "sigma= (the noise std of an average, E) or add azimuths")
         if self.sigma is not None:
-            how = "estimated from residuals" if self.sigma_estimated else "given"
-            lines.append(f"  noise std of an average: {np.mean(self.sigma):.3g} E ({how})")
+            lines.append(f"  noise std of an average: {np.mean(self.sigma):.3g} E "
+                         f"({self.sigma_source})")
             if self.sigma_estimated and 0 < self.dof < 10:
                 rel = 1.0 / np.sqrt(2.0 * self.dof)
                 lines.append(
@@ -265,6 +279,14 @@ class StartupBias(_core.StartupBiasCore):
             "t_s": None if self.t is None else self.t.tolist(),
             "t_ref_s": self.t_ref,
         }
+
+
+class _StartupBiasFromStreams(StartupBias):
+    """A :class:`StartupBias` whose ``sigma`` is each dwell's standard error from the
+    demodulated streams (``StartupCalibration(sigma="stream")``); it pickles as such."""
+
+    __slots__ = ()
+    _given_sigma: ClassVar[str] = "from the streams"
 
 
 def startup_bias(
@@ -432,6 +454,12 @@ class Demodulated(_core.DemodulatedCore):
         Demodulated channels, E (samples in m/s^2).
     std_inline_E, std_cross_E : (k,) float
         White-noise standard errors from the fit residuals, E.
+    outputs : (k, 2) float
+        ``inline_E`` and ``cross_E`` as columns, E: the per-dwell outputs that
+        ``startup_bias`` and ``diagnose_gradiometer`` take.
+    std : (k, 2) float
+        ``std_inline_E`` and ``std_cross_E`` as columns, E (``std.mean()`` is a ``sigma=`` for
+        them).
     start, stop : (k,) int
         Samples used: ``[start, stop)`` covers whole revolutions from the dwell start.
     revolutions : (k,) int
@@ -743,8 +771,11 @@ class StartupCalibration:
             if any(v is None or not v > 0 for v in self._sem):
                 raise CalibrationError("sigma='stream' needs the noise of every recorded dwell")
             sig = np.array(self._sem, dtype=np.float64)
-        return startup_bias(self.azimuth_deg, self.outputs, t=t, drift=self.drift, sigma=sig,
-                            check_units=self.check_units)
+        fit = startup_bias(self.azimuth_deg, self.outputs, t=t, drift=self.drift, sigma=sig,
+                           check_units=self.check_units)
+        if isinstance(self.sigma, str):  # "stream": say where sigma came from
+            fit = _StartupBiasFromStreams(*fit.__reduce__()[1])
+        return fit
 
 
 # ------------------------------------------------------------------------------------------

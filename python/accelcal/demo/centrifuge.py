@@ -1,4 +1,5 @@
-"""``accelcal demo`` centrifuge section: simulate, fit, compare with truth; seed-table lines."""
+"""``accelcal demo`` centrifuge section: simulate, fit, compare with truth; lines on the
+paper's Table 1 (Wang and Li 2021)."""
 
 from __future__ import annotations
 
@@ -75,8 +76,8 @@ def demo_section(rng_seed: int = 0) -> str:
         f_bad = fit_centrifuge(bad.outputs, bad.omega, 1.0, g=9.8)
     p2 = paper_table2()
     paper = np.r_[p2["scale"], p2["bias"], p2["k2"]]
-    lines.append("seed table (sign-corrected), paper Table 2 vs taylor-paper (eqs 19, 21, 22 "
-                 "corrected) vs nls:")
+    lines.append("Wang and Li (2021) Table 1 (sign-corrected): paper Table 2 vs taylor-paper "
+                 "(eqs 19, 21, 22 corrected) vs nls:")
     for i, n in enumerate(f_nls.names):
         lines.append(f"  {n:<5} truth {truth[i]:<10.6g} paper {paper[i]:<12.7g} "
                      f"taylor {f_tay.params[i]:<13.8g} nls {f_nls.params[i]:.9g}")

@@ -29,7 +29,7 @@ SEED000_TRUTH = FIELD_TRUTH
 class FieldSession:
     """A simulated session: raw output stream plus the truth behind it.
 
-    samples : (N, 3) raw output in m/s^2 (the seed's model am = K a + b + noise).
+    samples : (N, 3) raw output in m/s^2 (the norm-observation paper's model am = K a + b + noise).
     t : (N,) s.  fs : Hz.  g : reference gravity, m/s^2.
     truth : (9,) [sx, sy, sz, bx, by, bz, m1, m2, m3].
     tilts_deg : (n, 2) platform tilts (tx, ty) of each dwell.
@@ -69,7 +69,7 @@ def field_session(
     The platform holds ``n_dwells`` attitudes for ``dwell_s`` seconds each, tilts uniform in
     +-``max_tilt_deg`` (or the given ``tilts_deg`` (n, 2)), and moves between them over
     ``move_s`` seconds (smooth tilt change plus the kinematic acceleration of the motion).
-    White noise of ``sigma`` m/s^2 per axis and sample (the seed's 1e-3).
+    White noise of ``sigma`` m/s^2 per axis and sample (the paper's 1e-3).
     """
     gen = np.random.default_rng(rng)
     if fs <= 0 or not np.isfinite(fs):

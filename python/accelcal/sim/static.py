@@ -4,7 +4,7 @@ paper (Huang et al., field calibration of an atomic gravimeter's accelerometer; 
 Attitudes are platform tilts ``(tx, ty)`` in degrees, giving the specific force
 ``a = [-g sin ty, g sin tx cos ty, g cos tx cos ty]``, or unit gravity directions (n, 3) for
 the full sphere. Raw output ``am = K a + b + N(0, sigma^2)`` per axis, ``K = S + M`` lower
-triangular (the seed's model) or upper / diagonal.
+triangular (the paper's model) or upper / diagonal.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def sphere_attitudes(
 class StaticSession:
     """A simulated set of dwell means with its truth.
 
-    means : (n, 3) raw dwell means (output units; m/s^2 for the seed's truth).
+    means : (n, 3) raw dwell means (output units; m/s^2 for the paper's truth, :data:`FIELD_TRUTH`).
     g_true : true gravity, m/s^2.  g_measured : the gravimeter's value g_true + N(0, sigma_g).
     force : (n, 3) true specific force per dwell.  attitudes : what was asked for.
     truth : parameter vector.  sigma : std of each dwell mean per axis.
