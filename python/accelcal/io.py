@@ -96,9 +96,13 @@ _FS_KEYS = {
     "rate",
     "ratehz",
     "odr",
+    "odrhz",
+    "abtastrate",
+    "abtastfrequenz",
+    "frequenz",
 }
 _TIME_BASES = {
-    "t", "time", "timestamp", "timestamps", "tstamp", "elapsed", "elapsedtime", "datetime",
+    "t", "ts", "time", "timestamp", "timestamps", "tstamp", "elapsed", "elapsedtime", "datetime",
     "unixtime", "epoch", "epochtime", "posixtime", "timeutc", "utc", "sec", "secs", "seconds",
     "xvalue",  # LabVIEW .lvm
     "timesincestart", "timeelapsed", "relativetime", "reltime",  # AndroSensor and others
@@ -1028,11 +1032,16 @@ def _meta_pair(line: str) -> tuple[str, str] | None:
     s = line.strip().lstrip("#%").strip()
     if not s:
         return None
-    for sep in ("=", ":", ",", ";", "\t"):
+    # "=" and ":" first; of the delimiters, the first one in the line (``Abtastrate [Hz];100,0``
+    # is a key and a decimal-comma value, not "Abtastrate [Hz];100" and "0").
+    delims = sorted((s.index(d), d) for d in (",", ";", "\t") if d in s)
+    for sep in ("=", ":", *(d for _, d in delims)):
         if sep in s:
             k, v = s.split(sep, 1)
             k, v = k.strip(), v.strip().rstrip(",;").strip()
-            if k and not _is_number(k) and sep in ",;\t" and any(x in v for x in ",;\t"):
+            several = any(x in v for x in ",;\t") and not (
+                sep != "," and re.fullmatch(r"[+-]?\d+,\d+(?:\s*\S+)?", v))
+            if k and not _is_number(k) and sep in ",;\t" and several:
                 return None  # a row of several fields, not key,value
             if k and not _is_number(k):
                 return k, v
@@ -1040,14 +1049,70 @@ def _meta_pair(line: str) -> tuple[str, str] | None:
     return None
 
 
-def _fs_from_meta(meta: dict[str, str]) -> float | None:
+#: Metadata keys (as `_fs_from_meta` normalises them) that give the sample interval, whose
+#: inverse is the rate.
+_PERIOD_KEYS = {
+    "period", "sampleperiod", "samplingperiod", "interval", "sampleinterval",
+    "samplinginterval", "samplingtime", "dt", "timestep", "logginginterval", "loginterval",
+    "measurementinterval", "recordinterval",
+}
+#: Rate units a metadata value or key may carry, as the factor to Hz.
+_RATE_UNITS = {"hz": 1.0, "khz": 1e3, "mhz": 1e6, "sps": 1.0, "ksps": 1e3, "s/s": 1.0,
+               "samples/s": 1.0, "/s": 1.0, "1/s": 1.0, "s-1": 1.0}
+
+
+def _fs_from_meta(meta: dict[str, str], path: str = "",
+                  lines: dict[str, tuple[int, str]] | None = None
+                  ) -> tuple[float, str] | None:
+    """The sample rate a metadata line states, in Hz, and where it comes from (``"the
+    metadata line 2 ('# Sample rate: 1 kHz')"``), or None. The unit is read from the value
+    (``1 kHz``) or the key (``Sample rate [Hz]``), Hz when neither says; a key naming an
+    interval or period (``Sampling interval (s),0.01``, ``period = 10 ms``) gives 1/value,
+    in s unless a unit says otherwise. A unit not understood is refused."""
     for k, v in meta.items():
-        if re.sub(r"[^0-9a-z]", "", k.lower()) in _FS_KEYS:
-            tok = v.replace(",", ".").split()
-            if tok and _is_number(tok[0]):
-                f = float(tok[0])
-                if np.isfinite(f) and f > 0:
-                    return f
+        base, kunit = _split_unit(k)
+        key = re.sub(r"[^0-9a-z]", "", base.lower())
+        full = re.sub(r"[^0-9a-z]", "", k.lower())
+        if key.endswith("hz") and key[:-2] in _FS_KEYS:
+            key, kunit = key[:-2], kunit or "Hz"
+        period = key in _PERIOD_KEYS
+        if not period and key not in _FS_KEYS and full not in _FS_KEYS:
+            continue
+        val = v.strip()
+        if re.fullmatch(r"[+-]?\d+,\d+(?:\s*\S+)?", val):  # a decimal comma
+            val = val.replace(",", ".", 1)
+        m = re.match(r"^([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(.*)$", val)
+        if m is None:
+            continue
+        f = float(m.group(1))
+        rest = m.group(2).strip()
+        line = (lines or {}).get(k)
+        where = (f"the metadata line {line[0]} ({line[1]!r})" if line is not None
+                 else f"the metadata {k!r} = {v!r}")
+        um = re.match(r"^([A-Za-zµ/0-9-]+)", rest)
+        unit = um.group(1) if um is not None and re.match(r"[A-Za-zµ/]", rest) else ""
+        if not period and rest.lower().startswith(("samples per second", "samples/sec",
+                                                   "per second", "samples per s")):
+            unit = "Hz"
+        if not unit:
+            unit = kunit
+        u = unit.strip().lower()
+        if period:
+            scale = _TIME_UNITS.get(u)
+            if scale is None:
+                raise CalibrationError(
+                    f"{path}: {where}: the interval's unit {unit!r} is not understood (s, ms, "
+                    "us or ns); give the rate with fs= (Hz)")
+            f = 1.0 / (f * scale) if f > 0 else f
+        else:
+            scale = _RATE_UNITS.get(u.replace(" ", ""), 1.0 if u == "" else None)
+            if scale is None:
+                raise CalibrationError(
+                    f"{path}: {where}: the rate's unit {unit!r} is not understood (Hz, kHz or "
+                    "MHz); give the rate with fs= (Hz)")
+            f *= scale
+        if np.isfinite(f) and f > 0:
+            return f, where
     return None
 
 
@@ -1232,6 +1297,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     path = src.path
     lines: list[tuple[int, str]] = []  # the lines up to the first data row
     meta: dict[str, str] = {}
+    meta_lines: dict[str, tuple[int, str]] = {}  # the line of each metadata key, and its text
     header: str | None = None
     header_units: list[str] | None = None
     first: int | None = None
@@ -1277,6 +1343,7 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
         kv = _meta_pair(s)
         if kv:
             meta[kv[0]] = kv[1]
+            meta_lines[kv[0]] = (i + 1, s)
     if first is None or fmt is None:
         if not src.head.strip(b"\xef\xbb\xbf"):
             raise CalibrationError(f"{path}: file is empty")
@@ -1369,7 +1436,8 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     head = np.full((rows, ncols), np.nan)
     if cols:
         head[:, cols] = arrays[0].reshape(rows, len(cols))
-    lay = _decide(path, names, ncols, head, meta, columns, fs, time_column, iso)
+    lay = _decide(path, names, ncols, head, meta, columns, fs, time_column, iso,
+                  meta_lines=meta_lines)
     lay.notes[:0] = pre_notes
     lay.delim, lay.offset, lay.first_line = delim, offset, first_line
     lay.decimal_comma, lay.iso, lay.t0, lay.t0_text = decimal_comma, iso, t0, t0_text
@@ -1481,6 +1549,7 @@ def _decide(
     time_column: Any,
     iso: set[int] | None = None,
     dwells_known: bool = False,
+    meta_lines: dict[str, tuple[int, str]] | None = None,
 ) -> _Layout:
     """Choose accelerometer, time and temperature columns and the sample rate.
 
@@ -1488,6 +1557,7 @@ def _decide(
     accelerometer columns is the time when no column is named as one.
     ``dwells_known`` : the file marks its dwells itself (an annotated session), so a missing
     rate only costs the dwells' times, not their detection.
+    ``meta_lines`` : the line of each metadata key and its text (text files), for messages.
     """
     notes: list[str] = []
     tcol: int | None = None
@@ -1623,7 +1693,8 @@ def _decide(
                      "(user) acceleration, from which the device's sensor fusion removed "
                      "gravity: a static calibration needs the raw accelerometer output, which "
                      "sees gravity")
-    fs_meta = _fs_from_meta(meta)
+    meta_rate = _fs_from_meta(meta, path, meta_lines)
+    fs_meta, meta_where = (None, "") if meta_rate is None else meta_rate
     fs_time = None
     # Rows of another sensor (every accelerometer field empty, NaN in the head) are left
     # out of the read, so out of the rate too.
@@ -1639,6 +1710,22 @@ def _decide(
         fsv, src = fs_time, "time column"
     else:
         fsv, src = None, None
+    if (src == "metadata" and fsv is not None and fs_time is not None and tcol is not None
+            and abs(fs_time / fsv - 1.0) > 0.05):
+        # Two rates from the file that disagree: either may be the wrong one (a unit the
+        # reader took wrong, a time column in ms), and the dwells depend on it.
+        units = {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}
+        unit = units.get(tscale, "s")
+        tname = names[tcol] if names is not None else str(tcol)
+        # The unit of the time column that gives the metadata's rate, if one does.
+        other = next((u for f, u in units.items() if f != tscale
+                      and abs(fs_time * tscale / f / fsv - 1.0) <= 0.05), None)
+        raise CalibrationError(
+            f"{path}: {meta_where} gives {fsv:.6g} Hz but the time column "
+            f"{_label_of(names, tcol)} read in {unit} gives {fs_time:.6g} Hz; give the rate "
+            f"with fs= (Hz), or the time column's unit with time_column= (e.g. "
+            f"'{tname} [{other or 'ms'}]'"
+            + (f", which gives {fsv:.6g} Hz" if other else "") + ")")
     if fsv is not None and src != "time column" and fs_time is not None:
         if abs(fs_time / fsv - 1.0) > 0.01:
             said = "fs= " if src == "given" else "the file's metadata says "
@@ -1993,7 +2080,9 @@ class _ArraySource:
     path: str
     table: Any  # (N, c) array-like supporting row slices, or _Columns
     lay: _Layout
-    t: Any = None  # separate (N,) time array, s
+    t: Any = None  # separate (N,) time array, in units of t_scale s
+    t_name: str | None = None  # its key
+    t_scale: float = 1.0  # its unit, s
     temp: Any = None
     closer: Callable[[], None] | None = None
     labels: list[str] | None = None  # a text label per row (a table of pose means' names)
@@ -2020,6 +2109,8 @@ class _ArraySource:
             samples = _signed16(samples)
         if t is None and self.t is not None:
             t = np.asarray(self.t[a:b], dtype=np.float64)
+            if self.t_scale != 1.0:
+                t = t * self.t_scale
         if temp is None and self.temp is not None:
             temp = np.asarray(self.temp[a:b], dtype=np.float64)
         return samples, t, temp
@@ -2043,6 +2134,10 @@ def _array_source(
     extra_meta: dict[str, Any] | None = None,
     closer: Callable[[], None] | None = None,
 ) -> _ArraySource:
+    # A rate stored as a one-element array (``np.savez(..., fs=[100.0])``, MATLAB's 1 x 1):
+    # a scalar.
+    data = {k: (v[0] if k in _FS_NPZ_KEYS and np.ndim(v) == 1 and np.shape(v)[0] == 1
+                else v) for k, v in data.items()}
     table, names = _table_from_dict(path, data)
     scalars = {**(extra_meta or {}), **{k: v for k, v in data.items() if np.ndim(v) == 0}}
     meta = _scalar_meta(scalars)
@@ -2051,6 +2146,17 @@ def _array_source(
     fk = next((k for k in _FS_NPZ_KEYS if k in scalars), None)
     if fk is not None:
         meta_fs = positive(np.asarray(scalars[fk]).item(), f"{path}: {fk}", " (Hz)")
+    # time_column= naming a separate 1-D array of the container (``'t [ms]'``), not a column
+    # of the sample table.
+    sep_t: tuple[str, float] | None = None
+    if isinstance(time_column, str) and not _no_time(time_column, names):
+        spec, unit_scale = _time_spec(time_column, None)
+        if (isinstance(spec, str) and (names is None or spec not in names) and spec in data
+                and np.ndim(data[spec]) == 1):
+            found = _time_name(spec)
+            sep_t = (spec, unit_scale if unit_scale is not None
+                     else found[0] if found is not None else 1.0)
+            time_column = False
     if isinstance(table, _Columns):
         n = table.n
         head = table.rows(0, min(n, _SNIFF_ROWS), range(len(table.names))).astype(np.float64)
@@ -2062,16 +2168,19 @@ def _array_source(
     lay.metadata = meta
     n = table.shape[0]
     src = _ArraySource(path, table, lay, closer=closer)
-    if lay.time is None:
-        tk = next((k for k in _T_KEYS if k in data and np.ndim(data[k]) == 1
-                   and (names is None or k not in names)), None)
+    if lay.time is None and (sep_t is not None or time_column is not False):
+        tk = sep_t[0] if sep_t is not None else next(
+            (k for k in (*_T_KEYS, *data) if k in data and np.ndim(data[k]) == 1
+             and (names is None or k not in names) and _time_name(k) is not None), None)
         if tk is not None:
             if data[tk].shape[0] != n:
                 raise CalibrationError(
                     f"{path}: {tk!r} has {data[tk].shape[0]} values but samples have {n} rows"
                 )
-            src.t = data[tk]
-            tt = np.asarray(data[tk][:_SNIFF_ROWS], dtype=np.float64)
+            src.t, src.t_name = data[tk], tk
+            found = _time_name(tk)
+            src.t_scale = sep_t[1] if sep_t is not None else found[0] if found else 1.0
+            tt = np.asarray(data[tk][:_SNIFF_ROWS], dtype=np.float64) * src.t_scale
             lay.notes = [x for x in lay.notes if "not in the file" not in x]
             fs_t = _fs_from_time(tt, path, lay.notes)
             if fsv is None and meta_fs is None and fs_t is not None:
@@ -2596,14 +2705,21 @@ class _Recording:
         self.bad = 0  # rows that did not parse, left out (a serial capture's broken lines)
         self.first_bad: tuple[int, str] | None = None  # (line, what was wrong)
         self._bad_hint: str | None = None  # what the first of them likely is
+        self.untimed = 0  # rows whose time is NaN or infinite, left out
+        # The file's last line, numeric but cut off (a file still being written): its line
+        # number (None when unknown) and text, left out of the read.
+        self.cut_last: tuple[int | None, str] | None = (
+            self._cut_last_line() if self.text is not None else None)
+        self.first_untimed: int | None = None  # the first of them, 0-based data row as read
         self._temp_last: float | None = None  # the sparse temperature's last value
         self._temp_held = 0  # its empty fields filled
         self._last: NDArray[Any] | None = None
         lay = self.lay
         iso = lay.time is not None and lay.time in lay.iso
         from_file = lay.time is not None or (self.arrays is not None and self.arrays.t is not None)
-        self._unwrap = _TimeUnwrap(lay.time_scale if lay.time is not None else 1.0,
-                                   lay.fs) if from_file and not iso else None
+        unit_s = (lay.time_scale if lay.time is not None
+                  else self.arrays.t_scale if self.arrays is not None else 1.0)
+        self._unwrap = _TimeUnwrap(unit_s, lay.fs) if from_file and not iso else None
 
     # -- what is known before reading
     def no_rate(self) -> str:
@@ -2619,17 +2735,26 @@ class _Recording:
         """For a sample rate taken from the time column: which unit of it gives a plausible
         rate (1 Hz to 100 kHz), or ``""``."""
         lay = self.lay
-        if lay.fs_source != "time column" or lay.fs is None or lay.time is None:
+        if lay.fs_source != "time column" or lay.fs is None:
             return ""
-        unit = {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}.get(lay.time_scale, "s")
-        alt = [(u, lay.fs * lay.time_scale / f) for u, f in _TIME_UNITS.items()
-               if u in ("s", "ms", "us", "ns") and f != lay.time_scale]
+        if lay.time is not None:
+            scale = lay.time_scale
+            name = lay.names[lay.time] if lay.names is not None else str(lay.time)
+            label = _label(lay, lay.time)
+        elif self.arrays is not None and self.arrays.t_name is not None:
+            # The container's own time array (``t`` of a .npz, an HDF5 dataset).
+            scale, name = self.arrays.t_scale, self.arrays.t_name
+            label = repr(name)
+        else:
+            return ""
+        unit = {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}.get(scale, "s")
+        alt = [(u, lay.fs * scale / f) for u, f in _TIME_UNITS.items()
+               if u in ("s", "ms", "us", "ns") and f != scale]
         alt = [(u, r) for u, r in alt if 1.0 <= r <= 1e5]
         if not alt:
             return ""
-        name = lay.names[lay.time] if lay.names is not None else str(lay.time)
         said = " or ".join(f"{u} ({r:.6g} Hz)" for u, r in alt)
-        return (f"the rate {lay.fs:.6g} Hz comes from the time column {_label(lay, lay.time)} "
+        return (f"the rate {lay.fs:.6g} Hz comes from the time column {label} "
                 f"read in {unit}: if it is in {said}, name its unit with time_column= (e.g. "
                 f"'{name} [{alt[0][0]}]') or give fs=")
 
@@ -2760,6 +2885,80 @@ class _Recording:
             if self.first_bad is None:
                 self.first_bad = (bad[1], bad[2])
 
+    def _drop_untimed(self, s: NDArray[Any], t: NDArray[np.float64] | None,
+                      temp: NDArray[np.float64] | None, row0: int
+                      ) -> tuple[NDArray[Any], NDArray[np.float64] | None,
+                                 NDArray[np.float64] | None]:
+        """The rows whose time read from the file is finite: a NaN or infinite time (``NaN``
+        written for a missing stamp) is left out, as a row with an empty time field is."""
+        if t is None:
+            return s, t, temp
+        ok = np.isfinite(t)
+        if ok.all():
+            return s, t, temp
+        if self.first_untimed is None:
+            self.first_untimed = row0 + int(np.argmin(ok))
+        self.untimed += int(ok.size - np.count_nonzero(ok))
+        return s[ok], t[ok], None if temp is None else temp[ok]
+
+    def _untimed_line(self) -> tuple[int, str] | None:
+        """The line of the text file that holds the first non-finite time, and that
+        time's text; None when it cannot be read again (standard input) or found."""
+        lay, src = self.lay, self.text
+        if src is None or lay.time is None or src.stdin:
+            return None
+        try:
+            with open(src.opened, "rb") as fh:
+                fh.seek(lay.offset)
+                for i, raw in enumerate(fh):
+                    line = raw.decode("utf-8", "replace").strip("\r\n")
+                    fields = _split(line, lay.delim)
+                    if len(fields) <= lay.time:
+                        continue
+                    v = fields[lay.time].strip().strip("\"'")
+                    if v.lower().lstrip("+-") in ("nan", "inf", "infinity"):
+                        return lay.first_line + i, v
+        except OSError:
+            return None
+        return None
+
+    def _cut_last_line(self) -> tuple[int | None, str] | None:
+        """The file's last line when it has no line end and, though its fields are numbers,
+        its last field is shorter than in every one of the rows before it (``-4.6`` under
+        ``-4.627180``): cut off while the file was written or copied. A complete last line
+        without its line end is not."""
+        src, lay = self.text, self.lay
+        if src is None or src.stdin or lay.time in lay.iso:
+            return None
+        try:
+            with open(src.opened, "rb") as fh:
+                fh.seek(0, os.SEEK_END)
+                size = fh.tell()
+                if size <= lay.offset:
+                    return None
+                start = max(lay.offset, size - 8192)
+                fh.seek(start)
+                tail = fh.read()
+        except OSError:
+            return None
+        if not tail or tail.endswith(b"\n"):
+            return None
+        lines = tail.decode("utf-8", "replace").split("\n")
+        last = lines[-1].rstrip("\r")
+        before = [ln.rstrip("\r") for ln in lines[-21:-1] if ln.strip()]
+        if start > lay.offset and before:
+            before = before[1:]  # the first may be cut by the 8 KB window
+        fields = _split(last.strip(), lay.delim)
+        if len(before) < 3 or len(fields) != lay.ncols or not _is_number(
+                fields[-1].strip().replace(",", ".")):
+            return None
+        widths = [len(_split(ln.strip(), lay.delim)[-1].strip()) for ln in before
+                  if len(_split(ln.strip(), lay.delim)) == lay.ncols]
+        if len(widths) < 3 or len(fields[-1].strip()) >= min(widths):
+            return None
+        where = _last_line(src.opened)
+        return (None if where is None else where[0]), last.strip()
+
     def _count_repeats(self, samples: NDArray[Any]) -> None:
         if samples.shape[0] == 0:
             return
@@ -2785,6 +2984,7 @@ class _Recording:
                 for a in range(0, n, step):
                     b = min(a + step, n)
                     s, t, temp = src.chunk(a, b)
+                    s, t, temp = self._drop_untimed(s, t, temp, a)
                     temp = self._hold_temperature(temp, a)
                     if t is None and lay.fs is not None:
                         t = np.arange(a, b, dtype=np.float64) / lay.fs
@@ -2814,13 +3014,27 @@ class _Recording:
         pending: list[tuple[Any, Any, Any]] = []
         have = 0
         parsed = 0
-        for arrays, rows, nbytes, repeats, skipped, bad in blocks:
+        it = iter(blocks)
+        nxt = next(it, None)
+        while nxt is not None:
+            arrays, rows, nbytes, repeats, skipped, bad = nxt
+            nxt = next(it, None)
             self.skipped += skipped
             self._add_bad(bad)
             if rows == 0:
                 self.bytes += nbytes
                 continue
             s, t, temp = _split_groups(lay, arrays)
+            if nxt is None and self.cut_last is not None:  # the last block: its last row
+                s, t = s[:-1], None if t is None else t[:-1]
+                temp = None if temp is None else temp[:-1]
+            s, t, temp = self._drop_untimed(s, t, temp, parsed)
+            if s.shape[0] < rows:
+                parsed += rows - s.shape[0]
+                rows = s.shape[0]
+                if rows == 0:
+                    self.bytes += nbytes
+                    continue
             temp = self._hold_temperature(temp, parsed)
             if t is None and lay.fs is not None:
                 t = np.arange(parsed, parsed + rows, dtype=np.float64) / lay.fs
@@ -2865,11 +3079,12 @@ class _Recording:
             finally:
                 if src.closer is not None:
                     src.closer()
+            s, t, temp = self._drop_untimed(s, t, temp, 0)
             temp = self._hold_temperature(temp, 0)
             if isinstance(src.table, np.memmap):
                 s = np.array(s)
             self._count_repeats(s)
-            self.rows = n
+            self.rows = n = s.shape[0]
             if t is None and lay.fs is not None:
                 t = np.arange(n, dtype=np.float64) / lay.fs
             elif self._unwrap is not None and t is not None:
@@ -2892,6 +3107,11 @@ class _Recording:
         self.rows, self.bytes, self.repeats, self.skipped = rows, nbytes, repeats, skipped
         self._add_bad(bad)
         s, t, temp = _split_groups(lay, arrays)
+        if self.cut_last is not None and s.shape[0]:
+            s, t = s[:-1], None if t is None else t[:-1]
+            temp = None if temp is None else temp[:-1]
+        s, t, temp = self._drop_untimed(s, t, temp, 0)
+        rows = self.rows = s.shape[0]
         temp = self._hold_temperature(temp, 0)
         if t is None and lay.fs is not None:
             t = np.arange(rows, dtype=np.float64) / lay.fs
@@ -2954,6 +3174,22 @@ class _Recording:
             out.append(
                 f"{self.bad} data row(s) that do not parse were left out (the first, line "
                 f"{line}: {what}): {self._bad_hint}")
+        if self.cut_last is not None:
+            cut_at, text = self.cut_last
+            at = "the last line" if cut_at is None else f"line {cut_at}, the last"
+            out.append(
+                f"1 data row was left out ({at}: {text[:60]!r}): the file's last line, cut "
+                "off (no line end, its last field shorter than in the rows before): a file "
+                "whose writing or copying stopped? The rows before it are read")
+        if self.untimed and self.first_untimed is not None:
+            where = self._untimed_line()
+            label = (_label(self.lay, self.lay.time) if self.lay.time is not None
+                     else repr(self.arrays.t_name) if self.arrays is not None else "t")
+            first = (f"line {where[0]}: column {label} is {where[1]!r}" if where is not None
+                     else f"data row {self.first_untimed + 1}: column {label}")
+            out.append(
+                f"{self.untimed} data row(s) whose time is not a number (NaN or infinite) "
+                f"were left out (the first, {first}), as rows with an empty time field are")
         if self._temp_held and self.lay.temp is not None:
             out.append(
                 f"the temperature column {_label(self.lay, self.lay.temp)} is empty in "
