@@ -552,3 +552,66 @@ def test_no_rows_is_named_as_such() -> None:
         fit_centrifuge(s.outputs[:0], s.omega[:0], s.radius, g=s.g)
     fit = fit_centrifuge(s.outputs, s.omega, s.radius, g=s.g)
     assert np.all(np.abs((fit.params - np.r_[S, B, D]) / fit.std) < 5)
+
+
+# ---- a units row under the header; repeated rows ---------------------------------------------
+def _table_rows(outputs: np.ndarray, omega: np.ndarray) -> list[str]:
+    return [f"{1 + i // 3},{w:.10f},{1 + i % 3},{o[0]:.9f},{o[1]:.9f},{o[2]:.9f}"
+            for i, (w, o) in enumerate(zip(omega, outputs, strict=True))]
+
+
+_OUT = np.array([[0.1, -0.2, 0.98], [1.01, 0.02, -0.05], [-0.3, 0.95, 0.1],
+                 [0.2, -0.1, 1.5], [1.6, 0.1, -0.2], [-0.4, 1.4, 0.3]])
+_OMEGA = np.repeat([6.283185307, 12.566370614], 3)
+
+
+@pytest.mark.parametrize(("units", "to_out", "to_omega", "g"), [
+    ("-,rad/s,-,g,g,g", 1.0, 1.0, 9.80665),
+    ("-,rad/s,-,m/s^2,m/s^2,m/s^2", 9.8, 1.0, 9.8),
+    ("-,rpm,-,mg,mg,mg", 1000.0, 60 / (2 * np.pi), 9.80665),
+    ("[-],[deg/s],[-],[g],[g],[g]", 1.0, 180 / np.pi, 9.80665),
+])
+def test_units_row_under_the_header(tmp_path, units, to_out, to_omega, g):
+    p = tmp_path / "t.csv"
+    p.write_text("speed_index,omega,position,ax,ay,az\n" + units + "\n"
+                 + "\n".join(_table_rows(_OUT * to_out, _OMEGA * to_omega)) + "\n")
+    t = read_centrifuge_table(p, g=g)
+    np.testing.assert_allclose(t.outputs, _OUT, rtol=1e-8)
+    np.testing.assert_allclose(t.omega, _OMEGA, rtol=1e-9)
+    np.testing.assert_array_equal(t.speed_index, [1, 1, 1, 2, 2, 2])
+    np.testing.assert_array_equal(t.position, [1, 2, 3, 1, 2, 3])
+
+
+def test_units_row_not_understood_is_refused(tmp_path):
+    p = tmp_path / "t.csv"
+    p.write_text("speed_index,omega,position,ax,ay,az\n-,furlong/fortnight,-,g,g,g\n"
+                 + "\n".join(_table_rows(_OUT, _OMEGA)) + "\n")
+    with pytest.raises(CalibrationError, match=r"line 2 looks like a units row: .*"
+                       r"'furlong/fortnight' \('omega'\)"):
+        read_centrifuge_table(p)
+
+
+def test_repeated_rows_are_named(tmp_path):
+    rows = _table_rows(_OUT, _OMEGA)
+    p = tmp_path / "t.csv"
+    p.write_text("speed_index,omega_rad_s,position,N_ax_g,N_ay_g,N_az_g\n"
+                 + "\n".join(rows + rows[:2]) + "\n")
+    with pytest.warns(UserWarning, match=r"speed 1, position 1: lines 2, 8 \(rows 0, 6\); "
+                      r"speed 1, position 2: lines 3, 9 \(rows 1, 7\).*counts such rows twice"
+                      r".*identical in every value"):
+        t = read_centrifuge_table(p)
+    assert len(t) == 8
+    np.testing.assert_allclose(t.outputs[6:], _OUT[:2], rtol=1e-8)
+    # A repeat with other values is named, not called a pasted duplicate.
+    other = rows[0].rsplit(",", 1)[0] + ",0.5"
+    p.write_text("speed_index,omega_rad_s,position,N_ax_g,N_ay_g,N_az_g\n"
+                 + "\n".join([*rows, other]) + "\n")
+    with pytest.warns(UserWarning, match=r"lines 2, 8 \(rows 0, 6\)") as rec:
+        read_centrifuge_table(p)
+    assert not any("identical" in str(w.message) for w in rec)
+    # No repeats: no warning.
+    p.write_text("speed_index,omega_rad_s,position,N_ax_g,N_ay_g,N_az_g\n"
+                 + "\n".join(rows) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_centrifuge_table(p)

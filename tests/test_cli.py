@@ -912,3 +912,42 @@ def test_files_joined_with_their_clocks_restarting_are_read_once_noted(tmp_path:
     assert "TimeStepWarning" not in out
     assert "the times are not used, so drift and the time tests are not testable" in out
     assert re.search(r"drift\s+no_time", out), out
+
+
+def test_clock_stamps_not_understood_name_the_way_round(tmp_path: Path) -> None:
+    import datetime as dt
+
+    rng = np.random.default_rng(2)
+    a = rng.normal(0, 0.01, (600, 3)) + [0.1, -0.2, 9.8]
+    t0 = dt.datetime(2024, 3, 1, 23, 59, 58)
+    stamps = [(t0 + dt.timedelta(milliseconds=10 * i)).strftime("%d-%b-%Y %H:%M:%S")
+              for i in range(len(a))]
+    p = tmp_path / "c.csv"
+    p.write_text("time,ax,ay,az\n" + "\n".join(
+        s + "," + ",".join(f"{v:.6f}" for v in r) for s, r in zip(stamps, a, strict=True)) + "\n")
+    code, out = run("dwells", str(p))
+    assert code == 2
+    assert ("column 'time' holds time stamps in a format not understood ('01-Mar-2024 "
+            "23:59:58', data row 1); give --time-column none --fs RATE") in out, out
+    code, out = run("dwells", str(p), "--time-column", "none", "--fs", "100", "--json")
+    assert code == 0, out
+    d = json.loads(out[out.index("{"):])
+    assert d["n_dwells"] == 1 and d["fs_hz"] == 100.0
+    lo, hi = d["start"][0], d["stop"][0]
+    np.testing.assert_allclose(d["mean"][0], a[lo:hi].mean(axis=0), atol=1e-6)
+
+
+def test_clock_stamps_across_midnight_give_the_rate(tmp_path: Path) -> None:
+    import datetime as dt
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(0, 0.01, (600, 3)) + [0.1, -0.2, 9.8]
+    t0 = dt.datetime(2024, 3, 1, 23, 59, 58)
+    stamps = [(t0 + dt.timedelta(milliseconds=10 * i)) for i in range(len(a))]
+    p = tmp_path / "c.csv"
+    p.write_text("time,ax,ay,az\n" + "\n".join(
+        f"{w:%H:%M:%S}.{w.microsecond // 1000:03d}," + ",".join(f"{v:.6f}" for v in r)
+        for w, r in zip(stamps, a, strict=True)) + "\n")
+    code, out = run("dwells", str(p))
+    assert code == 0, out
+    assert "past midnight 1 time(s)" in out and "100 Hz" in out, out

@@ -148,3 +148,69 @@ def test_cut_off_numeric_last_line(tmp_path: Path) -> None:
     p.write_text(text + "4.000000,0.100000,-0.200000,9.800000")
     s = read_stream(p)
     assert s.samples.shape[0] == len(a) + 1 and not any("cut off" in n for n in s.notes)
+
+
+# ---- time stamps other than ISO 8601 (a time of day, day-first and US dates) -----------------
+def _stamped(path: Path, head: str, stamps: list[str], a: np.ndarray, sep: str = ",",
+             dc: bool = False) -> Path:
+    def num(v: float) -> str:
+        return f"{v:.6f}".replace(".", ",") if dc else f"{v:.6f}"
+
+    rows = [sep.join([s, *(num(v) for v in r)]) for s, r in zip(stamps, a, strict=True)]
+    path.write_text(head + "\n" + "\n".join(rows) + "\n")
+    return path
+
+
+def _clock(n: int, fmt: str) -> tuple[list[str], np.ndarray]:
+    """n stamps 10 ms apart from 1 March 2024 23:59:58 (across midnight), in ``fmt``."""
+    import datetime as dt
+
+    t0 = dt.datetime(2024, 3, 1, 23, 59, 58)
+    when = [t0 + dt.timedelta(milliseconds=10 * i) for i in range(n)]
+    out = []
+    for w in when:
+        ms = f"{w.microsecond // 1000:03d}"
+        out.append(w.strftime(fmt).replace("MS", ms))
+    return out, np.arange(n) * 0.01
+
+
+@pytest.mark.parametrize(("head", "fmt", "sep", "dc", "said"), [
+    ("time,ax,ay,az", "%H:%M:%S.MS", ",", False, "past midnight 1 time(s)"),
+    ("Datum/Zeit;ax;ay;az", "%d.%m.%Y %H:%M:%S,MS", ";", True, "dates (day-first)"),
+    ("Time,ax,ay,az", "%m/%d/%Y %I:%M:%S.MS %p", ",", False, "dates (month-first"),
+    ("Time,ax,ay,az", "%d/%m/%Y %H:%M:%S.MS", ",", False, "dates (day-first"),
+])
+def test_clock_stamps_are_read_as_the_time(tmp_path: Path, head: str, fmt: str, sep: str,
+                                           dc: bool, said: str) -> None:
+    a = _acc()
+    stamps, t = _clock(len(a), fmt)
+    p = _stamped(tmp_path / "c.csv", head, stamps, a, sep, dc)
+    s = read_stream(p)
+    np.testing.assert_allclose(s.samples, a, atol=1e-6)
+    np.testing.assert_allclose(s.t, t, atol=1e-9)
+    assert s.fs == pytest.approx(100.0) and s.fs_source == "time column"
+    assert s.t0 == stamps[0]
+    assert any(said in n for n in s.notes), s.notes
+
+
+def test_clock_stamps_ignored_with_time_column_none(tmp_path: Path) -> None:
+    a = _acc()
+    stamps, _ = _clock(len(a), "%d-%b-%Y %H:%M:%S.MS")  # 01-Mar-2024: not understood
+    p = _stamped(tmp_path / "c.csv", "time,ax,ay,az", stamps, a)
+    with pytest.raises(CalibrationError, match=r"column 'time' holds time stamps in a format "
+                       r"not understood \('01-Mar-2024 23:59:58.000', data row 1\); give "
+                       r"time_column='none', fs=RATE"):
+        read_stream(p)
+    s = read_stream(p, time_column="none", fs=100)
+    np.testing.assert_allclose(s.samples, a, atol=1e-6)
+    assert s.fs == 100.0 and s.fs_source == "given"
+
+
+def test_ambiguous_dates_are_refused(tmp_path: Path) -> None:
+    a = _acc(3)
+    stamps = ["03/01/2024 10:00:00", "03/01/2024 10:00:01", "03/02/2024 10:00:01"]
+    p = _stamped(tmp_path / "c.csv", "time,ax,ay,az", stamps, a)
+    with pytest.raises(CalibrationError, match="read both day-first and month-first"):
+        read_stream(p)
+    s = read_stream(p, time_column="none", fs=1)
+    np.testing.assert_allclose(s.samples, a, atol=1e-6)

@@ -3,8 +3,9 @@ averages. Delimited text (comma, semicolon, tab or spaces; ``#`` comment lines; 
 beside another delimiter) with one header row whose columns are found by name and unit.
 
 A column is recognised by its name without separators and case (``omega_rad_s``, ``Omega``,
-``rpm``), its unit given in brackets (``omega [rpm]``, ``ax (m/s^2)``) or implied by the name
-(``N_ax_g``, ``azimuth_deg``); values are converted to the unit the fit works in.
+``rpm``), its unit given in brackets (``omega [rpm]``, ``ax (m/s^2)``), in a units row under the
+header (``-, rad/s, -, g, g, g``, as DAQ exports write it) or implied by the name (``N_ax_g``,
+``azimuth_deg``); values are converted to the unit the fit works in.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._core import CalibrationError
-from .io import _field_kind, _guess_delim, _norm, _split, _split_unit
+from .io import _field_kind, _guess_delim, _is_number, _norm, _split, _split_unit, _units_row
 
 __all__ = ["Col", "read_table"]
 
@@ -67,10 +68,44 @@ def _number(field: str, delim: str | None) -> float:
     raise ValueError(field)
 
 
-def read_table(path: str | os.PathLike[str], cols: Sequence[Col], what: str
-               ) -> dict[str, NDArray[np.float64]]:
+#: What a units row writes for a column without a unit.
+_NO_UNIT = {"", "-", "1"}
+
+
+def _table_units_row(path: str | os.PathLike[str], body: list[tuple[int, str]],
+                     names: list[str], delim: str | None) -> list[str] | None:
+    """The units of the row under the header (``-, rad/s, -, g, g, g``), read as the stream
+    reader reads one (:func:`accelcal.io._units_row`); None when the first row under the
+    header is data. A row of as many fields as the header with no number in it that is not
+    a row of known units is refused."""
+    if not body:
+        return None
+    no, line = body[0]
+    fields = [f.strip().strip("'\"") for f in _split(line, delim)]
+    if len(fields) != len(names) or any(_is_number(f) for f in fields if f):
+        return None
+    units = _units_row(fields)
+    if units is not None:
+        return units
+    # Each field on its own ([f, f]: the helper wants two units to call a row one). Mostly
+    # units with some unknown (``-, furlong/fortnight, -, g, g, g``): a units row this reader
+    # cannot read; mostly not units (a second line of text): left to the checks below.
+    given = [(f, n) for f, n in zip(fields, names, strict=True) if f.strip("[]() ")]
+    unknown = [f"{f!r} ({n!r})" for f, n in given if _units_row([f, f]) is None]
+    if 2 * len(unknown) > len(given):
+        return None
+    raise CalibrationError(
+        f"{path}: line {no} looks like a units row: {', '.join(fields)}; "
+        + (f"not a unit this reader knows: {', '.join(unknown)}; " if unknown else "")
+        + "write each unit in the header instead (ax [m/s^2], omega [rpm]) or remove the row"
+    )
+
+
+def read_table(path: str | os.PathLike[str], cols: Sequence[Col], what: str,
+               with_lines: bool = False) -> dict[str, NDArray[np.float64]]:
     """Read ``path`` and return each of ``cols`` it has (converted to its working unit) by
-    key; an optional column the file does not have is absent."""
+    key; an optional column the file does not have is absent. ``with_lines``: also the file's
+    line number (1-based) of each row, under ``"_line"``."""
     try:
         with open(path, encoding="utf-8-sig", newline="") as fh:
             text = fh.read()
@@ -86,10 +121,21 @@ def read_table(path: str | os.PathLike[str], cols: Sequence[Col], what: str
     body = lines[1:]
     delim = _guess_delim(body[0][1] if body else header)
     names = [h.strip().strip("'\"") for h in _split(header, delim)]
+    row_units = _table_units_row(path, body, names, delim)
+    if row_units is not None:
+        units_no, body = body[0][0], body[1:]
     found: dict[str, tuple[int, float]] = {}
     for j, name in enumerate(names):
         base, unit = _split_unit(name)
         key = _norm(base)
+        if row_units is not None:
+            row_unit = "" if row_units[j] in _NO_UNIT else row_units[j]
+            if unit and row_unit and _unit_key(unit) != _unit_key(row_unit):
+                raise CalibrationError(
+                    f"{path}: column {name!r} says {unit!r} in its name but {row_unit!r} in "
+                    f"the units row (line {units_no}): keep one"
+                )
+            unit = unit or row_unit
         for c in cols:
             if key not in c.names:
                 continue
@@ -138,6 +184,8 @@ def read_table(path: str | os.PathLike[str], cols: Sequence[Col], what: str
                 f"{path}: line {body[bad][0]}, column {names[j]!r}: not a finite number"
             )
         out[k] = col
+    if with_lines:
+        out["_line"] = np.array([no for no, _ in body], dtype=np.float64)
     return out
 
 

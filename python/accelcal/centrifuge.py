@@ -707,12 +707,16 @@ def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> C
     - optional ``speed_index`` (else the distinct rates are numbered in order of appearance)
       and ``position`` (else rows are numbered within each speed).
 
+    A units row under the header (``-, rad/s, -, g, g, g``) gives the units as brackets would;
+    one with units this reader does not know is refused. Rows that repeat a speed index and
+    position warn (UserWarning), naming them: the fit counts each as a measurement of its own.
+
     The paper's Table 1 layout is ``speed_index, omega_rad_s, position, N_ax_g, N_ay_g,
     N_az_g``.
     """
     gv = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
     p = str(path)
-    d = read_table(path, _table_columns(gv), "centrifuge table")
+    d = read_table(path, _table_columns(gv), "centrifuge table", with_lines=True)
     omega = d["omega"]
     speed = _whole(p, d.get("speed_index"), "speed index")
     if speed is None:
@@ -724,8 +728,45 @@ def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> C
             at = np.flatnonzero(speed == s_)
             pos[at] = np.arange(1, at.size + 1)
     outputs = np.column_stack([d[f"out_{a}"] for a in "xyz"])
+    repeated = _repeated_rows(speed, pos, omega, outputs, d["_line"].astype(np.int64))
+    if repeated:
+        warnings.warn(f"{p}: {repeated}", UserWarning, stacklevel=2)
     return CentrifugeTable(speed_index=speed, omega=omega, position=pos, outputs=outputs,
                            path=p)
+
+
+def _repeated_rows(speed: NDArray[np.int64], pos: NDArray[np.int64], omega: NDArray[np.float64],
+                   outputs: NDArray[np.float64], line: NDArray[np.int64]) -> str:
+    """Words for the rows that repeat a speed index and position already in the table (by
+    their line in the file and 0-based row), or ``""``: the fit counts each as a measurement
+    of its own."""
+    first: dict[tuple[int, int], int] = {}
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, key in enumerate(zip(speed.tolist(), pos.tolist(), strict=True)):
+        if key in first:
+            groups.setdefault(key, [first[key]]).append(i)
+        else:
+            first[key] = i
+    if not groups:
+        return ""
+    same = {k: all(omega[r] == omega[rows[0]] and np.array_equal(outputs[r], outputs[rows[0]])
+                   for r in rows[1:]) for k, rows in groups.items()}
+    n, identical = len(groups), sum(same.values())
+    parts = [f"speed {s_}, position {p_}: lines {', '.join(str(line[r]) for r in rows)} (rows "
+             f"{', '.join(map(str, rows))})"
+             + (", identical in every value" if same[(s_, p_)] and identical < n else "")
+             for (s_, p_), rows in groups.items()]
+    shown = "; ".join(parts[:8]) + (f"; ... ({n} in all)" if n > 8 else "")
+    if identical == n:
+        pasted = (" The repeated rows are identical in every value (speed, rate, position and "
+                  "outputs): a pasted duplicate?")
+    elif identical:
+        pasted = f" {identical} of them are identical in every value: pasted duplicates?"
+    else:
+        pasted = ""
+    return (f"{n} speed/position pair(s) appear in more than one row: {shown}. The fit counts "
+            f"such rows twice (or more), as separate measurements, so the position weighs "
+            f"double.{pasted} Remove the repeats unless they are separate measurements.")
 
 
 def calibrate_centrifuge_table(

@@ -22,7 +22,12 @@ Layout rules for text files
 * Numbers may use a decimal comma (``9,81``) when the delimiter is not a comma.
 * A time column may hold ISO-8601 dates and times (``2024-03-01T12:00:00.125Z``, a space
   instead of ``T``, an optional UTC offset; no offset means UTC); it is read as seconds since
-  the first row's time, which is kept in :attr:`Stream.t0`.
+  the first row's time, which is kept in :attr:`Stream.t0`. Other time stamps (a time of day,
+  ``23:59:59.990``, a day added where it passes midnight; a date day-first with ``.``,
+  ``01.03.2024 23:59:00,000``, or with ``/`` or ``-`` in the order a number above 12, or the
+  clock running on without a jump, tells; ``AM``/``PM``) are read the same way, through
+  pandas; stamps in another format are refused naming the column (``time_column="none"``
+  and ``fs=`` read the file without them).
 * Lines before the data may be metadata: ``key,value``, ``key: value``, ``key = value``, each
   optionally commented with ``#``. A numeric ``Fs`` / ``fs`` / ``sample_rate`` / ``rate``
   (any case) gives the sample rate. Lines starting with ``#`` are comments anywhere.
@@ -466,6 +471,8 @@ _ROW_UNITS = {
     "g", "mg", "ug", "µg", "m/s^2", "m/s2", "m/s²", "m/s/s", "ms^-2", "ms-2", "mps2", "counts",
     "count", "lsb", "digits", "adc", "raw", "v", "mv", "c", "°c", "degc", "deg c", "k", "°f",
     "-", "1",
+    # rates and angles (a gyroscope's columns, a centrifuge table's rate)
+    "rad/s", "deg/s", "°/s", "dps", "rpm", "hz", "deg", "rad", "°",
 }
 
 
@@ -812,17 +819,23 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
         raise CalibrationError(
             f"{name}: a long-format log (a text label in each row names its sensor); reading it "
             "needs pandas: pip install pandas") from None
-    first = next((ln.strip() for _, ln in _head_lines(src)
-                  if ln.strip() and not ln.strip().startswith(("#", "%", "//"))), "")
+    first, second = (list(itertools.islice(
+        (ln.strip() for _, ln in _head_lines(src)
+         if ln.strip() and not ln.strip().startswith(("#", "%", "//"))), 2)) + ["", ""])[:2]
     delim = _guess_delim(first)
     has_header = not any(_field_kind(f, delim) in ("num", "dc") for f in _split(first, delim))
+    # Numbers with a decimal comma beside a ';' or tab delimiter (-8,4209): numbers to pandas
+    # too, not labels.
+    data_row = second if has_header else first
+    decimal = ("," if delim != "," and any(_field_kind(f, delim) == "dc"
+                                          for f in _split(data_row, delim)) else ".")
     # Comment lines left out here: pandas' comment= would also cut a '#' inside a field
     # (a label such as 'pose #3'). pandas reads the file through the filter, in pieces, so the
     # text is never held whole beside the table.
     try:
         with open(src.opened, encoding="utf-8-sig", errors="replace") as fh:
             df = pd.read_csv(_Uncommented(fh), sep=delim if delim else r"\s+",
-                             header=0 if has_header else None,
+                             header=0 if has_header else None, decimal=decimal,
                              skipinitialspace=True, low_memory=False)
     except OSError as e:
         raise CalibrationError(f"{name}: cannot read file ({e.strerror})") from None
@@ -832,6 +845,25 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
     df.columns = [str(c).strip() for c in df.columns]
     text = [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c])
             and not pd.api.types.is_datetime64_any_dtype(df[c])]
+    df, time_column, clock = _clock_columns(df, text, time_column, name, has_header)
+    text = [c for c in text if c in df.columns and not pd.api.types.is_numeric_dtype(df[c])]
+    out = _long_format_table(df, text, columns, fs, time_column, name, has_header)
+    if clock is not None:
+        c, t0_text, note = clock
+        lay = out.lay
+        if lay.time is not None and (
+                str(lay.time) if lay.names is None else lay.names[lay.time]) == c:
+            lay.t0_text = t0_text
+            lay.notes.append(note)
+    return out
+
+
+def _long_format_table(df: Any, text: list[str], columns: Any, fs: float | None,
+                       time_column: Any, name: str, has_header: bool) -> _ArraySource:
+    """The source of a table read by :func:`_long_format_source` whose text columns are
+    ``text``."""
+    import pandas as pd
+
     for c in text:
         val = df[c].astype(str).str.strip()
         found = sorted({v for v in val.unique()[:1000] if v.lower() in _ACC_LABELS})
@@ -879,6 +911,147 @@ def _long_format_source(src: _TextSource, columns: Any, fs: float | None,
         "dwells; write the accelerometer's rows to a file of their own, or select them in "
         "Python: df = pandas.read_csv(path); accelcal.io.read_stream(df[df[label] == "
         "value].drop(columns=label))")
+
+
+#: A time stamp other than ISO 8601: a time of day (``23:59:59.990``, ``11:59:00.010 PM``),
+#: optionally after a date (``01.03.2024``, ``03/01/2024``, ``2024/03/01``).
+_CLOCK = re.compile(
+    r"^(?:(?P<d1>\d{1,4})(?P<sep>[./-])(?P<d2>\d{1,2})(?P=sep)(?P<d3>\d{1,4})(?:\s+|T))?"
+    r"(?P<H>\d{1,2}):(?P<M>\d{2})(?::(?P<S>\d{2})(?:[.,](?P<F>\d+))?)?"
+    r"\s*(?P<ap>[AaPp]\.?[Mm]\.?)?$")
+
+
+def _looks_like_clock(v: str) -> bool:
+    """A field that looks like a time stamp (a time of day among digits), understood or not."""
+    digits = sum(ch.isdigit() for ch in v)
+    return (re.search(r"\d{1,2}:\d{2}", v) is not None
+            and 2 * digits >= len(v.replace(" ", "")) and len(v) <= 40)
+
+
+def _clock_columns(df: Any, text: list[str], time_column: Any, name: str, has_header: bool
+                   ) -> tuple[Any, Any, tuple[str, str, str] | None]:
+    """Text columns of time stamps the text reader does not parse (times of day, dates
+    day-first or month-first, AM/PM): with ``time_column="none"`` left out; else read as s
+    since the first stamp (the table, the ``time_column`` that names it, and its name, first
+    stamp and a note). A column of stamps in a format not understood is refused, naming it,
+    unless another time column is given."""
+    import pandas as pd
+
+    names = [str(c) for c in df.columns] if has_header else None
+    clock = None
+    for c in text:
+        vals = df[c].dropna().astype(str).str.strip()
+        sample = vals.iloc[:200]
+        if not sample.size or not all(_looks_like_clock(v) for v in sample):
+            continue
+        if bool(pd.to_datetime(df[c], format="ISO8601", errors="coerce").notna().all()):
+            continue  # ISO 8601 (WitMotion's unpadded dates): read by _wide_with_text
+        if _no_time(time_column, names):
+            df = df.drop(columns=[c])
+            continue
+        named = time_column is None or (
+            names is not None and _time_spec(time_column, names)[0] == c) or (
+            not isinstance(time_column, str) and str(time_column) == c)
+        if not named or clock is not None:
+            continue  # another column is the time
+        t, how = _clock_seconds(name, c, df[c])
+        first = str(df[c].iloc[0]).strip()
+        df = df.assign(**{c: t})
+        clock = (c, first, f"column {c!r} holds {how}: read as the time, s since the first "
+                 f"stamp ({first})")
+        if time_column is None:
+            time_column = f"{c} [s]"
+    return df, time_column, clock
+
+
+def _clock_seconds(path: str, c: str, col: Any) -> tuple[NDArray[np.float64], str]:
+    """Time stamps (see :data:`_CLOCK`) as s since the first, and words for what they are."""
+    import pandas as pd
+
+    vals = col.astype(str).str.strip()
+    advice = "; give time_column='none', fs=RATE to read the file without its time column"
+    unread = f"{path}: column {c!r} holds time stamps in a format not understood"
+    m = vals.str.extract(_CLOCK)
+    bad = m["H"].isna() | col.isna().to_numpy()
+    dated = m["d1"].notna()
+    if not bad.any() and dated.any() and not dated.all():
+        bad = ~dated
+    def ints(x: Any) -> NDArray[np.int64]:
+        return pd.to_numeric(x.fillna("0"), errors="coerce").fillna(0).to_numpy(np.int64)
+
+    hour, minute, sec = ints(m["H"]), ints(m["M"]), ints(m["S"])
+    frac_ns = ints(m["F"].fillna("").str.ljust(9, "0").str[:9])
+    ap = m["ap"].fillna("").str.upper().str[:1].to_numpy(dtype=str)
+    has_ap = ap != ""
+    bad = np.asarray(bad) | (minute >= 60) | (sec >= 61) | (has_ap & ((hour < 1) | (hour > 12)))
+    bad |= ~has_ap & (hour > 23)
+    hour = np.where(has_ap, hour % 12 + np.where(ap == "P", 12, 0), hour)
+    # Integer nanoseconds of the day: 0.01 s steps stay 0.01 s after the subtraction.
+    tod_ns = ((hour * 60 + minute) * 60 + sec) * 1_000_000_000 + frac_ns
+    tod = tod_ns * 1e-9
+    how = "times of day"
+    days: NDArray[np.int64] | None = None
+    if dated.all() and not bad.any():
+        d1, d2, d3 = (pd.to_numeric(m[k]).to_numpy(np.int64) for k in ("d1", "d2", "d3"))
+        sep = str(m["sep"].iloc[0])
+        year_first = bool((m["d1"].str.len() == 4).all())
+
+        def day_count(year: Any, month: Any, day: Any) -> tuple[NDArray[np.int64], Any]:
+            year = np.where(year < 100, year + 2000, year)
+            when = pd.to_datetime(pd.DataFrame({"year": year, "month": month, "day": day}),
+                                  errors="coerce")
+            ok = when.notna().to_numpy()
+            d = ((when - when.iloc[0]) // pd.Timedelta(days=1)).fillna(0).to_numpy(np.int64)
+            return d, ok
+
+        if year_first:
+            days, ok = day_count(d1, d2, d3)
+            how = "dates (year first) and times"
+        else:
+            # Day-first unless a second number above 12 says otherwise; month-first unless a
+            # first number above 12 or the '.' between them (01.03.2024: 1 March) says so.
+            readings = {}
+            if not (d2 > 12).any():
+                readings["day-first"] = day_count(d3, d2, d1)
+            if not (d1 > 12).any() and sep != ".":
+                readings["month-first"] = day_count(d3, d1, d2)
+            readings = {k: v for k, v in readings.items() if v[1].all()}
+            if not readings:
+                raise CalibrationError(
+                    f"{unread} ({vals.iloc[0]!r} ...: dates that read neither day-first nor "
+                    f"month-first){advice}")
+            why = ""
+            if len(readings) == 2:
+                # Both orders read (no day above 12, no '.' between the numbers): the same
+                # dates either way, or the one order whose clock runs on without a jump.
+                if np.array_equal(readings["day-first"][0], readings["month-first"][0]):
+                    readings.pop("day-first")
+                else:
+                    steps = {k: float(np.max(np.abs(np.diff(v[0] * 86400.0 + tod))))
+                             for k, v in readings.items()}
+                    worse = max(steps, key=steps.__getitem__)
+                    better = min(steps, key=steps.__getitem__)
+                    if steps[worse] < 100.0 * max(steps[better], 1.0):
+                        raise CalibrationError(
+                            f"{unread} ({vals.iloc[0]!r} ...: the dates read both day-first "
+                            "and month-first, and no day above 12 tells which)" + advice)
+                    readings.pop(worse)
+                    why = (f"; no day above 12, but read {worse} the clock would jump "
+                           f"{steps[worse] / 86400.0:.0f} days")
+            order, (days, ok) = next(iter(readings.items()))
+            how = f"dates ({order}{why}) and times"
+        bad = bad | ~ok
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CalibrationError(f"{unread} ({vals.iloc[i]!r}, data row {i + 1}){advice}")
+    if days is None:
+        # Times of day only: a day added where the clock goes back past midnight.
+        back = np.r_[False, np.diff(tod) < -43200.0]
+        days = np.cumsum(back).astype(np.int64)
+        if back.any():
+            how += f", past midnight {int(back.sum())} time(s) (a day added at each)"
+    t_ns = days * 86_400_000_000_000 + tod_ns
+    return (t_ns - t_ns[0]).astype(np.float64) / 1e9, how
 
 
 #: Names of a column that counts samples, by which an annotated session's rows are ordered.
@@ -3253,7 +3426,8 @@ def read_stream(
         Sample rate in Hz; overrides the file's metadata and time column.
     time_column : name or 0-based index, optional
         The time column (s, or ms/us/ns when the name says so, or as given: ``"stamp [ms]"``,
-        ``"0 [ns]"``); recognised by name (or by its ISO-8601 times) when omitted.
+        ``"0 [ns]"``); recognised by name (or by its ISO-8601 times) when omitted;
+        ``"none"``: use no time column (then give ``fs``).
     progress : bool or None
         Show a progress bar (True), only when stderr is a terminal (None), or never (False).
 

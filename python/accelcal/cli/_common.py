@@ -42,6 +42,7 @@ CLI_WORDS: dict[str, str] = {
 }
 #: Library phrases that are a flag on the command line.
 CLI_PHRASES: dict[str, str] = {"means=True": "--means",
+                               "time_column='none', fs=RATE": "--time-column none --fs RATE",
                                " (or give noise_std=)": ""}  # no such option
 
 

@@ -74,9 +74,9 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
     )
 
     _need_plot(plot_path)
-    t = read_centrifuge_table(table, g=g)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        t = read_centrifuge_table(table, g=g)  # its warnings (repeated rows) said as ours
         try:
             fit = fit_centrifuge(
                 t.outputs, t.omega, radius, g=g, method=method,  # type: ignore[arg-type]
