@@ -2084,7 +2084,7 @@ def diagnose_centrifuge(
     test: str = "auto",
     gate: str = "auto",
     sigma_norm: float | ArrayLike | None = None,
-    robust: bool = True,
+    robust: bool | str = "auto",
 ) -> GapReport:
     """Diagnose the gap of a centrifuge session against the scale + bias + K2 norm model.
 
@@ -2117,11 +2117,16 @@ def diagnose_centrifuge(
         ``cross_coupling`` (K_ij f_i f_j, i != j, ug/g^2) and ``rate_offset`` (spin-rate
         offset, e.g. the Earth rate Omega sin(latitude), urad/s).
     loo, max_effects, test, gate : as in :func:`accelcal.diagnose`.
-    robust : leave out the rows the robust screen of :func:`accelcal.fit_centrifuge` excludes
-        (gross errors such as a lost sign), as the fit does; the report names them and keeps
-        the session's row numbers. False diagnoses every row (and says which rows the screen
-        would exclude): a few rows far off otherwise set the noise scale, or the chi2, and are
-        "explained" by an effect such as a radius error of hundreds of mm.
+    robust : what to do with the rows the robust screen of :func:`accelcal.fit_centrifuge`
+        excludes. "auto" (default): diagnose every row and, apart, the rows kept; when the
+        screened rows still stand more than 10 times the kept rows' robust residual scale
+        with the effects selected on every row fitted (gross errors such as a lost sign,
+        which no effect explains), the diagnosis is of the rows kept; rows an effect explains
+        are kept (a strong lever arm or K3 sets rows
+        apart under the plain model, and leaving them out would hide it). True: always leave
+        them out, as the fit does. False: keep every row. The report names the rows and what
+        was done, and keeps the session's row numbers. Kept, gross errors set the noise scale
+        or the chi2 and are "explained" by an effect such as a radius error of hundreds of mm.
 
     Returns
     -------
@@ -2161,20 +2166,42 @@ def diagnose_centrifuge(
             raise CalibrationError(f"sigma_norm must be scalar or ({k},) (g); got {s_.shape}")
         s_norm = np.ascontiguousarray(np.broadcast_to(s_.reshape(-1), (k,)))
         noise_model = "given noise std of each row's norm residual"
+    if robust not in (True, False, "auto"):
+        raise CalibrationError(f"robust must be True, False or 'auto'; got {robust!r}")
     bad = _screened_rows(out, om, radius_v, g_v, s_axis)
-    screened = [_screened_text(bad, k, robust)] if bad else []
-    keep = np.setdiff1d(np.arange(k), bad) if robust else np.arange(k)
-    if len(keep) < k:
-        out, om = out[keep], om[keep]
-        c3, s_axis, s_norm = (None if a is None else np.ascontiguousarray(a[keep])
-                              for a in (c3, s_axis, s_norm))
-    try:
-        raw = _core.gap_diagnose_centrifuge(out, om, radius_v, g_v, names, settings,
-                                            spin_axis=c3, sigma_norm=s_norm, sigma_axis=s_axis)
-    except CalibrationError as e:
-        if not screened or robust:
-            raise
-        raise CalibrationError(f"{e}; {screened[0]}") from e
+
+    def run(rows: NDArray[np.intp]) -> Any:
+        def sub(a: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+            return None if a is None else np.ascontiguousarray(a[rows])
+        return _core.gap_diagnose_centrifuge(out[rows], om[rows], radius_v, g_v, names,
+                                             settings, spin_axis=sub(c3),
+                                             sigma_norm=sub(s_norm), sigma_axis=sub(s_axis))
+
+    every = np.arange(k)
+    kept_rows = np.setdiff1d(every, bad)
+    raw, stand, fitted = None, math.nan, None
+    if not bad or robust is not True:
+        try:
+            raw = run(every)
+        except CalibrationError as e:
+            if not bad or robust is False:
+                raise (CalibrationError(f"{e}; {_screened_text(bad, k, False, stand)}")
+                       if bad else e) from None
+        if raw is not None and bad and robust == "auto":
+            # Against the residual scale the diagnosis of the other rows leaves (the same
+            # scale taken with every row would be inflated by a wrong effect fitted to them).
+            without = run(kept_rows)
+            stand = _stand_out(np.asarray(raw.resid_after)[bad],
+                               np.asarray(without.resid_after))
+            fitted = list(raw.selected)
+            if stand > _GROSS_STAND:
+                raw = without
+    keep = every if raw is not None and len(raw.resid_after) == k else kept_rows
+    if raw is None:
+        raw = run(keep)
+    screened = [_screened_text(bad, k, len(keep) < k if robust == "auto" else bool(robust),
+                               stand, fitted, auto=robust == "auto")] if bad else []
+    om = om[keep]
     sysw = _System("centrifuge", "g", _CENTRIFUGE_FIX,
                    [{"effect": "common_scale_vs_radius",
                      "reason": _radius_reason(om, radius_v, g_v)}],
@@ -2200,19 +2227,43 @@ def _screened_rows(outputs: NDArray[np.float64], omega: NDArray[np.float64], rad
     return [int(i) for i in np.asarray(fit.outliers)]
 
 
-def _screened_text(bad: list[int], k: int, robust: bool) -> str:
-    """The screened rows said, and what the diagnosis did with them."""
+#: Screened rows standing out by more than this many robust residual scales of the other rows,
+#: with the diagnosis's effects fitted, are gross errors (robust="auto"): a lost sign stands
+#: 1e3-1e5 scales out, rows an effect sets apart a few.
+_GROSS_STAND = 10.0
+
+
+def _stand_out(bad: NDArray[np.float64], others: NDArray[np.float64]) -> float:
+    """How far residuals ``bad`` stand out of residuals ``others``: the largest absolute one
+    over the others' robust scale (1.4826 MAD about zero); inf when the others fit exactly."""
+    scale = 1.4826 * float(np.median(np.abs(others)))
+    worst = float(np.abs(bad).max())
+    return worst / scale if scale > 0 else (math.inf if worst > 0 else 0.0)
+
+
+def _screened_text(bad: list[int], k: int, left_out: bool, stand: float = math.nan,
+                   effects: list[str] | None = None, auto: bool = False) -> str:
+    """The screened rows said, and what the diagnosis did with them (``stand``: how far they
+    stood out of the other rows with ``effects`` fitted, for robust="auto")."""
     head = (f"the robust screen of the centrifuge fit (fit_centrifuge, calibrate centrifuge) "
             f"excludes {len(bad)} of {k} rows ({', '.join(map(str, bad[:8]))}"
             f"{' ...' if len(bad) > 8 else ''}) as inconsistent with the model (a mistyped or "
             "mis-signed value?)")
-    if robust:
-        return (f"{head}: this diagnosis leaves them out, as the fit does, and is of the "
+    fitted = f"with {', '.join(effects)} fitted" if effects else "with no effect fitted"
+    if left_out:
+        why = (f" even {fitted} they stood {stand:.3g} times the other rows' residual scale "
+               "(gross errors, which no effect explains), so" if auto and math.isfinite(stand)
+               else "")
+        return (f"{head}:{why} this diagnosis leaves them out, as the fit does, and is of the "
                 f"{k - len(bad)} rows kept (row numbers are the session's; robust=False "
                 "diagnoses every row)")
+    if auto:
+        return (f"{head}; this diagnosis keeps them: {fitted} they stand within {stand:.3g} "
+                "times the other rows' residual scale, so the model's own error, not a gross "
+                "error, set them apart (robust=True leaves them out)")
     return (f"{head}, and this diagnosis (robust=False) fits them with the others: a few rows "
             "far off set the noise scale or the chi2 and can be explained by an effect that is "
-            "not there; robust=True leaves them out")
+            "not there; robust=True or \"auto\" leaves them out")
 
 
 def diagnose_gradiometer(
