@@ -240,7 +240,7 @@ def calibrate_static(
 @main.command()
 @click.option("--n", "n", type=int, required=True, help="Number of poses.")
 @click.option("--max-tilt", type=float, default=30.0, show_default=True,
-              help="Two-axis platform tilt limit, deg, in (0, 90]; 180 for the full sphere.")
+              help="Two-axis platform tilt limit, deg, in [1, 90]; 180 for the full sphere.")
 @click.option("--sigma", type=float, default=1e-3, show_default=True,
               help="Noise std of one dwell mean, m/s^2.")
 @click.option("--model", type=click.Choice(["lower", "diag", "upper"]), default="lower",
@@ -255,9 +255,9 @@ def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | Non
     from ..design import plan_poses
 
     _need_plot(plot_path)
-    if not (0 < max_tilt <= 90 or max_tilt == 180):
+    if not (1 <= max_tilt <= 90 or max_tilt == 180):
         raise CalibrationError(
-            f"--max-tilt must be in (0, 90] degrees, or 180 for the full sphere; got {max_tilt:g}"
+            f"--max-tilt must be in [1, 90] degrees, or 180 for the full sphere; got {max_tilt:g}"
         )
     mt = None if max_tilt == 180 else max_tilt
     try:
@@ -265,6 +265,7 @@ def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | Non
     except CalibrationError as e:
         msg = re.sub(r"^n = (\d+) poses", r"--n \1: \1 poses", str(e))
         msg = re.sub(r"^n must", "--n must", msg).replace("sigma must", "--sigma must")
+        msg = msg.replace(", output units)", ", m/s^2)")
         raise CalibrationError(_cli(msg)) from None
     if plot_path:
         from ..plots import poses_figure
