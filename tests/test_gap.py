@@ -425,6 +425,15 @@ def test_report_pickles_and_round_trips() -> None:
     assert r3.summary() == r.summary()
     assert repr(r3.structure) == repr(r.structure)  # NaN-aware
     assert np.allclose(r3.params_after, r.params_after)
+    # Equal by value (it raised "truth value of an array is ambiguous"); from_dict leaves the
+    # caller's dict as it was (its estimates became arrays, and json.dumps of it then failed).
+    import copy
+
+    assert r == copy.deepcopy(r) and r == r2 and r != diagnose(s.dwells, g=s.g, alpha=0.01)
+    d = r.to_dict()
+    before = json.dumps(d, sort_keys=True)
+    GapReport.from_dict(d)
+    assert json.dumps(d, sort_keys=True) == before
 
 
 def test_ml_baseline_matches_a_scipy_reference() -> None:

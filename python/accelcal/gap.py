@@ -13,6 +13,8 @@ but does not lower the held-out gap is reported as "not_confirmed", not as the e
 
 from __future__ import annotations
 
+import copy
+import json
 import math
 import re
 import warnings
@@ -471,7 +473,7 @@ class GapStructure:
         return _structure_text(self)
 
 
-@dataclass
+@dataclass(eq=False)
 class GapReport:
     """Result of :func:`diagnose`, :func:`diagnose_centrifuge` or :func:`diagnose_gradiometer`.
 
@@ -589,10 +591,21 @@ class GapReport:
         rebuilds the report."""
         return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
 
+    def __eq__(self, other: object) -> bool:
+        """Reports are equal when their :meth:`to_dict` are (NaN equal to NaN): a pickled or
+        deep-copied report equals its original."""
+        if not isinstance(other, GapReport):
+            return NotImplemented
+        return bool(json.dumps(self.to_dict(), sort_keys=True) ==
+                    json.dumps(other.to_dict(), sort_keys=True))
+
+    __hash__ = None  # type: ignore[assignment]
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> GapReport:
-        """Rebuild a report from :meth:`to_dict` (after a JSON round trip too)."""
-        kw = dict(d)
+        """Rebuild a report from :meth:`to_dict` (after a JSON round trip too); ``d`` is left
+        as it was."""
+        kw = copy.deepcopy(d)
         st = dict(kw["structure"])
         st["tests"] = tuple(StructureTest(**t) for t in st["tests"])
         ne = st.get("noise_empirical")

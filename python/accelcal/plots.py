@@ -21,15 +21,30 @@ def save_figure(fig: Any, path: str) -> None:
     atomic_write(path, buf.getvalue())
 
 
-def _plt() -> Any:
-    try:
-        import matplotlib
+class _Figures:
+    """``subplots`` and ``figure`` as pyplot spells them, making standalone figures
+    (``matplotlib.figure.Figure``): no backend is chosen or switched, and no figure is left
+    registered with pyplot, so a long-running service that plots does not accumulate them.
+    Notebooks still show a returned figure; ``fig.savefig`` or :func:`save_figure` writes it."""
 
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-    except ImportError:  # pragma: no cover - depends on the install
-        raise CalibrationError("plots need matplotlib: pip install 'accelcal[plot]'") from None
-    return plt
+    def __init__(self) -> None:
+        try:
+            from matplotlib.figure import Figure
+        except ImportError:  # pragma: no cover - depends on the install
+            raise CalibrationError("plots need matplotlib: pip install 'accelcal[plot]'") from None
+        self._figure = Figure
+
+    def figure(self, figsize: tuple[float, float] | None = None) -> Any:
+        return self._figure(figsize=figsize)
+
+    def subplots(self, nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float] | None
+                 = None, **kw: Any) -> tuple[Any, Any]:
+        fig = self._figure(figsize=figsize)
+        return fig, fig.subplots(nrows, ncols, **kw)
+
+
+def _plt() -> _Figures:
+    return _Figures()
 
 
 def static_norm_figure(fit: Any, dwells: Any = None) -> Any:

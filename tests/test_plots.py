@@ -1,0 +1,40 @@
+"""Figures: made without pyplot's global state (no backend switched, no figure left open)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+pytest.importorskip("matplotlib")
+
+
+def test_figures_leave_the_users_backend_and_no_open_figure() -> None:
+    """A user's backend (svg) was switched to Agg by the first plot, and every figure call
+    left a pyplot figure open (ten after five gap and five norm figures): a service that
+    plots leaked them. Run in a fresh interpreter, as the backend is process-wide."""
+    code = textwrap.dedent("""
+        import warnings
+        import matplotlib
+        matplotlib.use("svg")
+        import matplotlib.pyplot as plt
+        import accelcal as ac
+        from accelcal.plots import static_norm_figure, save_figure
+        from accelcal.sim.static import static_dwell_means
+        warnings.simplefilter("ignore")
+        s = static_dwell_means(24, sigma=1e-3, rng=1)
+        fit = ac.fit_static(s.means, s.g_measured)
+        rep = ac.diagnose(s.dwellset(), g=s.g_measured)
+        for _ in range(5):
+            fig, fig2 = rep.plot(), static_norm_figure(fit)
+        import io
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png")
+        print(matplotlib.get_backend(), len(plt.get_fignums()), buf.tell() > 10000,
+              len(fig.axes) >= 4)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["svg", "0", "True", "True"], out
