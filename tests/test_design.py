@@ -69,6 +69,9 @@ def test_prediction_matches_a_numpy_fisher_information():
 
 
 @pytest.mark.parametrize("kwargs,words", [
+    ({"sigma_g": -1e-5}, "sigma_g must be a non-negative, finite"),
+    ({"sigma_g": float("nan")}, "sigma_g must be a non-negative, finite"),
+    ({"sigma_g": 0.5}, r"sigma_g = 0\.5 is more than 1 % of g .*\(m/s\^2"),
     ({"attitudes": np.zeros((0, 2))}, "attitudes"),
     ({"g": float("nan")}, "g must be"),
     ({"g": "9.8"}, "g must be"),
@@ -84,6 +87,32 @@ def test_predict_accuracy_bad_input_names_the_argument(kwargs, words):
     args.update(kwargs)
     with pytest.raises(CalibrationError, match=words):
         ac.predict_accuracy(args.pop("attitudes"), args.pop("sigma"), **args)
+
+
+def test_predict_accuracy_adds_the_reference_gravity_term():
+    """sigma_g adds sigma_g^2 j j^T (j = -p / g for K's entries, 0 for the biases) to the
+    bound, which the fit then reports for the same design; the singularity report is the
+    poses' alone."""
+    att = sphere_attitudes(24, np.random.default_rng(3))
+    g, sg = 9.80665, 3e-5
+    p0 = ac.predict_accuracy(att, 1e-5, truth=SEED000_TRUTH)
+    p = ac.predict_accuracy(att, 1e-5, truth=SEED000_TRUTH, sigma_g=sg)
+    j = -SEED000_TRUTH / g
+    j[3:6] = 0.0
+    np.testing.assert_allclose(p.covariance, p0.covariance + sg**2 * np.outer(j, j),
+                               rtol=1e-12, atol=1e-30)
+    assert np.all(p.std[:3] > 2 * p0.std[:3])
+    np.testing.assert_array_equal(p.std[3:6], p0.std[3:6])
+    assert (p.singular, p.condition, p.combination) == (p0.singular, p0.condition,
+                                                        p0.combination)
+    assert p.sigma_g == sg and ac.predict_accuracy(att, 1e-5).sigma_g is None
+    import pickle
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(p)).std, p.std)
+    s = accelcal.sim.static_dwell_means(att, sigma=1e-5, sigma_g=0.0, rng=4)
+    f = ac.fit_static(s.means, g, sigma=1e-5, sigma_g=sg)
+    np.testing.assert_allclose(f.std, p.std, rtol=0.05)
+    # Too few poses: still infinite (the term does not make a singular design determined).
+    assert np.all(np.isinf(ac.predict_accuracy(att[:5], 1e-5, sigma_g=sg).std))
 
 
 @pytest.mark.parametrize("kwargs,words", [

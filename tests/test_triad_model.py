@@ -197,6 +197,27 @@ def test_find_returns_the_calibration_valid_at_a_time(tmp_path):
         ac.TriadModel.find(tmp_path, "A")
 
 
+def test_find_neither_skips_a_cut_short_nor_a_bom_calibration(tmp_path):
+    """The newest calibration cut short (a copy interrupted): find skipped it as 'not JSON'
+    and returned the older one; saved with a BOM (Notepad), load read it and find skipped it
+    and returned the older one. Now the cut one is named and the BOM one is found."""
+    K = np.eye(3)
+    old = ac.TriadModel(K, [0.1, 0, 0], sensor_id="S1", date=dt.datetime(2021, 1, 1))
+    new = ac.TriadModel(K, [0.2, 0, 0], sensor_id="S1", date=dt.datetime(2022, 1, 1))
+    old.save(tmp_path / old.default_filename())
+    p = tmp_path / new.default_filename()
+    new.save(p)
+    text = p.read_text()
+    p.write_text("\ufeff" + text, encoding="utf-8")
+    assert ac.TriadModel.find(tmp_path, "S1", at="2022-06-01").bias[0] == 0.2
+    p.write_text(text[: len(text) // 2])
+    with pytest.raises(CalibrationError, match="not valid JSON.*cut short.*S1"):
+        ac.TriadModel.find(tmp_path, "S1", at="2022-06-01")
+    (tmp_path / "other.json").write_text('{"format": "something else", "x": [1, 2')
+    p.write_text(text)
+    assert ac.TriadModel.find(tmp_path, "S1", at="2022-06-01").bias[0] == 0.2
+
+
 def test_schema_is_shipped_and_published():
     s = schema()
     assert s["properties"]["format"]["const"] == "accelcal.TriadModel"
@@ -292,3 +313,23 @@ def test_apply_reads_uint16_words_as_the_models_fit_read_them(tmp_path):
             assert abs(np.linalg.norm(whole[b0:b1], axis=1).mean() - s.g) < 0.01
         said = [str(w.message) for w in rec if "uint16" in str(w.message)]
         assert bool(said) == (offset == 0.0), said
+
+
+def test_a_model_is_not_changed_in_place_nor_saved_unchecked(tmp_path):
+    """K /= 9.80665 on a loaded model changed what apply did and what save wrote (a file
+    load then refused, or worse accepted); an entry set off the model's triangle was saved
+    as well. The arrays are read-only, and save checks the model as load checks a file;
+    numpy scalars in the metadata are written as numbers (they raised a raw TypeError)."""
+    m = ac.TriadModel(np.diag([1.01, 0.99, 1.0]), [0.1, 0, 0], sensor_id="S",
+                      covariance_noise_model=np.eye(9) * 1e-8,
+                      metadata={"n": np.int64(3), "x": np.float32(0.5)})
+    for arr in (m.K, m.bias, m.covariance_noise_model):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 2.0
+    m.save(tmp_path / "m.json")
+    back = ac.TriadModel.load(tmp_path / "m.json")
+    assert back.metadata["n"] == 3 and back.metadata["x"] == 0.5
+    m.K = np.array([[1.0, 5.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # off 'lower'
+    with pytest.raises(CalibrationError, match="the model to write: K\\[0\\]\\[1\\]"):
+        m.save(tmp_path / "bad.json")
+    assert not (tmp_path / "bad.json").exists()

@@ -849,6 +849,7 @@ class StaticFit:
         noise_model: str | None = None,
         input_units: str | None = None,
         nominal: Any = None,
+        sigma_g: float | None = None,
     ) -> Self: ...
     @property
     def model(self) -> _StaticModel:
@@ -886,6 +887,13 @@ class StaticFit:
     @property
     def covariance_unscaled(self) -> NDArray[np.float64]:
         """(J^T W J)^-1 (p, p); per unit output variance when the noise is estimated."""
+    @property
+    def sigma_g(self) -> float | None:
+        """Std of the reference gravity (units of g), or None."""
+    @property
+    def covariance_gravity(self) -> NDArray[np.float64]:
+        """sigma_g^2 (dp/dg) (dp/dg)^T (p, p), dp/dg = -p / g for the entries of K (zero
+        without sigma_g)."""
     @property
     def residuals(self) -> NDArray[np.float64]:
         """|a_k| - g per dwell (units of g)."""
@@ -1027,6 +1035,7 @@ class Prediction:
         *,
         g: float | None = None,
         truth: list[float] | None = None,
+        sigma_g: float | None = None,
     ) -> Self: ...
     @property
     def model(self) -> _StaticModel:
@@ -1040,6 +1049,9 @@ class Prediction:
     @property
     def g(self) -> float:
         """Reference gravity."""
+    @property
+    def sigma_g(self) -> float | None:
+        """Std of the reference gravity (units of g), or None; its term is in covariance."""
     @property
     def truth(self) -> NDArray[np.float64]:
         """Parameters at which the bound is evaluated."""
@@ -1075,6 +1087,7 @@ def static_fit_batch(
     degenerate_std: float = ...,
     weak_std: float = ...,
     mask: NDArray[np.bool_] | None = None,
+    sigma_g: float | None = None,
 ) -> BatchFit:
     """Fit many sessions in parallel ((B, n, 3) with an optional mask, or a list)."""
 

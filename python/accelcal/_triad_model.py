@@ -48,6 +48,14 @@ def _check_covariances(m: TriadModel, source: str) -> None:
     if not math.isfinite(chi2) or chi2 <= 0:
         raise CalibrationError(f"{source}: field 'metadata.chi2_dof' must be a positive number; "
                                f"got {chi2}")
+    sg = (m.metadata or {}).get("sigma_g")
+    if isinstance(sg, (int, float)) and not isinstance(sg, bool) and sg > 0 and m.g:
+        # Both include the reference gravity's term sigma_g^2 j j^T (j = -p / g for the
+        # entries of K, 0 for the biases): compare what the noise gives.
+        j = -m.vector / m.g
+        j[3:6] = 0.0
+        cg = sg * sg * np.outer(j, j)
+        cn, cs = cn - cg, cs - cg
     scale = float(np.abs(cs).max()) or 1.0
     if not (np.allclose(cs, chi2 * cn, rtol=1e-6, atol=1e-12 * scale)
             or np.allclose(cs, cn, rtol=1e-6, atol=1e-12 * scale)):
@@ -140,6 +148,16 @@ def _covariance(x: Any, name: str, p: int) -> NDArray[np.float64] | None:
     return c
 
 
+def _json_scalar(v: Any) -> Any:
+    """A numpy scalar or array in the metadata as JSON (``json.dumps``'s ``default``)."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise CalibrationError(f"the model to write: metadata value {v!r} ({type(v).__name__}) is "
+                           "not a number, text, list or dict: JSON cannot hold it")
+
+
 class TriadModel:
     """A calibrated accelerometer triad: ``a = K^-1 (am - b)``.
 
@@ -187,6 +205,10 @@ class TriadModel:
                 f"K[{i}][{j}] = {k[i, j]:.6g} is outside the {model!r} model's pattern "
                 f"({_pattern(model)}); wrong triangle or wrong model"
             )
+        # Read-only: an edit in place (K /= 9.80665 as a unit change) would change what apply
+        # does and what save writes without any check; make a new model instead.
+        k.setflags(write=False)
+        b.setflags(write=False)
         self.K = k
         self.bias = b
         self.model = model
@@ -196,6 +218,9 @@ class TriadModel:
             covariance_noise_model, "covariance_noise_model", p
         )
         self.covariance_scaled = _covariance(covariance_scaled, "covariance_scaled", p)
+        for c in (self.covariance_noise_model, self.covariance_scaled):
+            if c is not None:
+                c.setflags(write=False)
         if realistic is None:
             realistic = "noise_model" if self.covariance_noise_model is not None else None
         if realistic not in ("noise_model", "scaled", None):
@@ -342,11 +367,17 @@ class TriadModel:
         return f"{sid}_{self.datetime.strftime('%Y%m%dT%H%M%SZ')}.json"
 
     def to_json(self) -> str:
-        """The model as the JSON text :meth:`save` writes."""
-        return json.dumps(self.to_dict(), indent=2) + "\n"
+        """The model as the JSON text :meth:`save` writes, checked as :meth:`load` checks a
+        file first: a model changed after it was made (an entry of ``K`` off its model's
+        triangle, a covariance edited in place, ``g`` NaN) is refused here, not written as a
+        file that ``load`` then refuses. Numpy scalars in the metadata are written as
+        numbers."""
+        text = json.dumps(self.to_dict(), indent=2, default=_json_scalar) + "\n"
+        self.from_dict(json.loads(text), "the model to write")
+        return text
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model as JSON, atomically."""
+        """Write the model as JSON, atomically, after the checks of :meth:`to_json`."""
         atomic_write(path, self.to_json())
 
     @classmethod
@@ -456,8 +487,20 @@ class TriadModel:
         later: list[_dt.datetime] = []
         for f in files:
             try:
-                d = json.loads(f.read_text(encoding="utf-8"))
+                text = f.read_text(encoding="utf-8-sig")  # a BOM, as load reads it
             except (OSError, ValueError):
+                continue
+            try:
+                d = json.loads(text)
+            except ValueError as e:
+                # Not JSON: another file, or a calibration cut short (a copy interrupted) that
+                # may be this sensor's newest: never passed over silently.
+                if cls.FORMAT in text and (json.dumps(sensor_id) in text
+                                           or '"sensor_id"' not in text):
+                    raise CalibrationError(
+                        f"{str(f)!r} is a calibration file (format {cls.FORMAT}) that is not "
+                        f"valid JSON ({e}; cut short?), perhaps of sensor {sensor_id!r}: "
+                        "restore or remove it") from None
                 continue
             if not isinstance(d, dict) or d.get("format") != cls.FORMAT:
                 continue

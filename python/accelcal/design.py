@@ -79,6 +79,7 @@ def predict_accuracy(
     *,
     g: float = 9.80665,
     truth: ArrayLike | None = None,
+    sigma_g: float | None = None,
 ) -> Prediction:
     """Cramer-Rao bound of a pose design before any test is run.
 
@@ -89,13 +90,18 @@ def predict_accuracy(
     sigma : std of each dwell mean per axis (output units), positive
     model : "lower", "diag" or "upper";  g : gravity (units of the calibrated output), positive
     truth : parameter vector at which to evaluate (default K = I, b = 0)
+    sigma_g : std of the reference gravity (units of g), optional: its covariance
+        ``sigma_g^2 j j^T`` (``j = dp/dg = -p / g`` for the entries of K, 0 for the biases) is
+        added to ``covariance`` and ``std``, as :func:`~accelcal.fit_static` does; the
+        singularity report (``singular``, ``condition``, ``combination``) leaves it out.
+        Non-negative, finite, at most 1 % of g.
     """
     n_params(model)
     gv = number(g, "g", lo=0.0, lo_open=True, unit="(reference gravity)")
     sv = number(sigma, "sigma", lo=0.0, lo_open=True, unit="(std of a dwell mean, output units)")
     v = _default_truth(model, truth)
     force = attitudes_to_force(attitudes, gv)
-    return Prediction(force, sv, cast(Any, model), g=gv, truth=v.tolist())
+    return Prediction(force, sv, cast(Any, model), g=gv, truth=v.tolist(), sigma_g=sigma_g)
 
 
 def design_rows(

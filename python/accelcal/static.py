@@ -56,6 +56,10 @@ __all__ = [
 BatchFit = _core.BatchFit
 
 _OBSERVABILITY = ("raise", "warn", "ignore")
+#: Weakest predicted std (relative) above which a returned fit's warning says its poses cannot
+#: be told from a singular design: the two-plane field procedure (exactly singular) fitted to
+#: noisy means gives 0.4 to several hundred along its null combination, whatever the noise.
+_SINGULAR_LIKE_STD = 0.3
 _F64 = np.dtype(np.float64)
 
 
@@ -245,6 +249,12 @@ class StaticFit(_core.StaticFit):
     - ``covariance`` / ``std``: from the noise model when it is known; with the noise
       estimated, from the noise level the residuals show (``covariance_scaled``).
     - ``covariance_scaled``: ``covariance_unscaled * chi2_dof``.
+    - ``sigma_g`` (the std of the reference gravity, when given): its covariance
+      ``covariance_gravity`` (``sigma_g^2 j j^T``, ``j = dp/dg``: ``-p / g`` for the entries
+      of K, 0 for the biases) is added to every covariance above but
+      ``covariance_unscaled``, so ``covariance``, ``std``, ``covariance_realistic``,
+      ``std_realistic`` and the exports include it. The weak/degenerate checks
+      (``predicted_std_relative``) leave it out: the poses cannot determine g.
     - ``realistic`` names the one to quote: ``"scaled"`` when the noise is estimated or when
       the residuals exceed the noise model (``chi2_dof > 1``: the Birge-ratio inflation), else
       ``"noise_model"``; ``covariance_realistic`` / ``std_realistic`` are that one. The
@@ -276,13 +286,19 @@ class StaticFit(_core.StaticFit):
     # -- uncertainty --------------------------------------------------------------------
     @cached_property
     def covariance_scaled(self) -> NDArray[np.float64]:
-        """``covariance_unscaled * chi2_dof``: the noise level that the residuals show."""
-        return self.covariance_unscaled * self.chi2_dof  # type: ignore[no-any-return]
+        """``covariance_unscaled * chi2_dof``: the noise level that the residuals show (plus
+        ``covariance_gravity`` with ``sigma_g`` given)."""
+        c = self.covariance_unscaled * self.chi2_dof
+        return c + self.covariance_gravity if self.sigma_g else c  # type: ignore[no-any-return]
 
     @property
     def covariance_noise_model(self) -> NDArray[np.float64]:
-        """From the noise model: unscaled when it is known, scaled when it was estimated."""
-        return self.covariance_unscaled if self.noise_known else self.covariance_scaled
+        """From the noise model: unscaled when it is known, scaled when it was estimated
+        (plus ``covariance_gravity`` with ``sigma_g`` given)."""
+        if not self.noise_known:
+            return self.covariance_scaled
+        c = self.covariance_unscaled
+        return c + self.covariance_gravity if self.sigma_g else c  # type: ignore[no-any-return]
 
     @property
     def covariance(self) -> NDArray[np.float64]:
@@ -461,8 +477,17 @@ class StaticFit(_core.StaticFit):
             o = self.observability()
             txt += (
                 f"the dwells barely determine {o.combination} (predicted std "
-                f"{o.weakest_std:.2g} relative: along it the result is set by the noise); "
+                f"{o.weakest_std:.2g} relative: along it the result is set by the noise"
             )
+            if self.weakest_std > _SINGULAR_LIKE_STD:
+                txt += (
+                    "; as large as poses that cannot see this combination at all give with "
+                    "noise (the two-plane field procedure: 0.4 or more whatever the noise), "
+                    "so these poses cannot be told from such a design: treat it as "
+                    "undetermined, or refuse such fits with degenerate_std="
+                    f"{_SINGULAR_LIKE_STD:g}"
+                )
+            txt += "); "
         return txt + self.weak_text()
 
     # -- export -------------------------------------------------------------------------
@@ -486,6 +511,8 @@ class StaticFit(_core.StaticFit):
             fit_dwells=dwell_fingerprints(self.means),
             fit_session=self._session(),
         )
+        if self.sigma_g:  # the covariances include its term (see covariance_gravity)
+            md["sigma_g"] = float(self.sigma_g)
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units
         # The calibrated output is in the units of g (a fit to g = 1 calibrates to g).
@@ -546,6 +573,7 @@ class StaticFit(_core.StaticFit):
             "iterations": self.iterations,
             "converged": self.converged,
             "g": self.g,
+            "sigma_g": self.sigma_g,
             "weak": self.weak,
             "predicted_std_relative": self.predicted_std_relative.tolist(),
             "norm_before": None if ns["before"] is None else ns["before"].__dict__,
@@ -587,6 +615,8 @@ class StaticFit(_core.StaticFit):
                     f"model allows (p = {p:.2g}); std below is scaled by it all the same "
                     "(covariance_scaled: the Birge-ratio convention)")
         src = "scaled by chi2/dof" if self.realistic == "scaled" else "from the noise model"
+        if self.sigma_g:
+            src += f", including reference-gravity uncertainty sigma_g = {self.sigma_g:.3g} {u}"
         lines.append(f"  std: {src}; K in {self.input_units or 'raw (input) units'} per {u}")
         hdr = f"  {'param':<6} {'value':>14} {'std':>11}"
         if tv is not None:
@@ -688,9 +718,10 @@ def fit_static(
     nominal: TriadModel | None = None,
     observability: str = "raise",
     weak_std: float = 1e-3,
-    degenerate_std: float = 0.3,
+    degenerate_std: float = 3.0,
     max_iter: int = 200,
     check_g: bool = True,
+    sigma_g: float | None = None,
 ) -> StaticFit:
     """Calibrate a triaxial accelerometer from static dwell means and a reference gravity.
 
@@ -726,14 +757,23 @@ def fit_static(
         this says: there is no fit to return.
     weak_std, degenerate_std : float
         Thresholds of the predicted std in relative units (scale relative, biases in g).
-        Above ``degenerate_std`` (0.3: 30 % of the scale, or 0.3 g) a combination counts as
-        undetermined: an exactly singular pose set fitted to noisy means gets a predicted
-        std of 0.4 or more along its null combination whatever the noise, so the data cannot
-        tell such a design from a singular one.
+        Above ``degenerate_std`` (3: 300 % of the scale, or 3 g) a combination counts as
+        undetermined. A fit returned with a weakest predicted std above 0.3 is warned about
+        as indistinguishable from a singular design: an exactly singular pose set fitted to
+        noisy means gets 0.4 or more along its null combination whatever the noise.
     max_iter : int
         Iteration limit of GN/LM, in [1, 100000].
     check_g : bool
         Refuse a ``g`` that is not a plausible local gravity in m/s^2, g or cm/s^2.
+    sigma_g : float, optional
+        Std of the reference gravity ``g``, in the units of ``g`` (e.g. 1e-5 m/s^2 from an
+        absolute gravimeter, about 1e-3 m/s^2 from a latitude formula such as
+        :func:`local_gravity`). Every reported covariance and std (``covariance``, ``std``,
+        ``*_realistic``, :meth:`~StaticFit.summary`, :meth:`~StaticFit.to_dict`,
+        :meth:`~StaticFit.to_model`) then includes it: a g off by ``e`` relative scales K by
+        ``1 / (1 + e)`` and leaves the bias, so it adds ``sigma_g^2 j j^T`` with ``j = -p / g``
+        for the entries of K. None or 0 (default) leaves g exact. Must be non-negative,
+        finite and at most 1 % of ``g`` (a larger one is most likely in other units).
 
     Raises
     ------
@@ -767,7 +807,7 @@ def fit_static(
         fit = StaticFit(  # positional: the fastest call into the constructor
             means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
             observability == "raise", degenerate_std, weak_std, check_g, noise_model, units,
-            nominal,
+            nominal, sigma_g,
         )
     except CalibrationError as e:  # dwells that cannot determine a calibration: why?
         why = _explained(e, means, g)
@@ -987,10 +1027,11 @@ def fit_static_batch(
     sigma: float | None = None,
     start: ArrayLike | None = None,
     max_iter: int = 200,
-    degenerate_std: float = 0.3,
+    degenerate_std: float = 3.0,
     weak_std: float = 1e-3,
     mask: ArrayLike | None = None,
     check_g: bool = True,
+    sigma_g: float | None = None,
 ) -> BatchFit:
     """Fit B independent sessions of dwell means on all cores.
 
@@ -1004,7 +1045,9 @@ def fit_static_batch(
 
     ``check_g`` (as for :func:`fit_static`) refuses, for the whole batch, a ``g`` that is not
     a plausible local gravity in m/s^2, g or cm/s^2 (the CalibrationError names the session
-    of a (B,) ``g``); ``start`` is checked as there (positive scale factors).
+    of a (B,) ``g``); ``start`` is checked as there (positive scale factors). ``sigma_g``
+    (std of the reference gravity, units of g, shared by all sessions) adds its term to every
+    ``std`` as in :func:`fit_static`.
     """
     if isinstance(means, (list, tuple)):
         m: Any = [_as_means(x, f"session {i}") for i, x in enumerate(means)]
@@ -1034,6 +1077,7 @@ def fit_static_batch(
         degenerate_std=degenerate_std,
         weak_std=weak_std,
         mask=mk,
+        sigma_g=sigma_g,
     )
 
 

@@ -16,8 +16,9 @@ use pyo3::types::{PyDict, PyList, PyString, PyTuple};
 use super::convert::{frozen1, frozen2, rows3, with_view, SampleArray};
 use super::CalibrationError;
 use crate::static_fit::{
-    apply_model, design_rows, fit_batch, fit_static, predict, BatchRow, FitSettings, Method, Model,
-    Noise, Observability as CoreObservability, PARAM_NAMES,
+    apply_model, check_sigma_g, design_rows, fit_batch_sigma_g, fit_static, gravity_cov_entry,
+    gravity_sensitivity, predict, BatchRow, FitSettings, Method, Model, Noise,
+    Observability as CoreObservability, PARAM_NAMES,
 };
 
 // ------------------------------------------------------------------------------------------
@@ -104,6 +105,23 @@ fn positive(obj: &Bound<'_, PyAny>, name: &str, what: &str) -> PyResult<f64> {
         || format!("a positive, finite {what}"),
         |x| x > 0.0 && x.is_finite(),
     )
+}
+
+/// The optional std `sigma_g` of the reference gravity `g` (units of g): `None` when absent
+/// or None, else non-negative, finite and at most 1 % of `g`.
+fn sigma_g_arg(obj: Option<&Bound<'_, PyAny>>, g: f64) -> PyResult<Option<f64>> {
+    match obj {
+        Some(o) if !o.is_none() => {
+            let x = arg_f64(
+                o,
+                "sigma_g",
+                "a non-negative, finite std of the reference gravity (in the units of g)",
+                |x| x >= 0.0 && x.is_finite(),
+            )?;
+            Ok(Some(check_sigma_g(x, g)?))
+        }
+        _ => Ok(None),
+    }
 }
 
 fn check_g(obj: &Bound<'_, PyAny>, check: bool) -> PyResult<f64> {
@@ -211,7 +229,7 @@ fn settings_from(
         s.max_iter = arg_int(o, "max_iter", 1, 100_000)?;
     }
     if let Some(o) = &degenerate_std.0 {
-        s.degenerate_std = positive(o, "degenerate_std", "relative std (default 0.3)")?;
+        s.degenerate_std = positive(o, "degenerate_std", "relative std (default 3)")?;
     }
     if let Some(o) = &weak_std.0 {
         s.weak_std = positive(o, "weak_std", "relative std (default 1e-3)")?;
@@ -454,6 +472,11 @@ pub struct PyStaticFit {
     /// Nominal model for the "before" norm statistics (any object; None).
     #[pyo3(get)]
     nominal: Option<Py<PyAny>>,
+    /// Std of the reference gravity (units of g), or None: its covariance
+    /// (`covariance_gravity`) is part of every reported covariance but `covariance_unscaled`.
+    #[pyo3(get)]
+    sigma_g: Option<f64>,
+    covariance_gravity: PyOnceLock<Py<PyArray2<f64>>>,
 }
 
 /// The noise argument: one variance for every dwell and axis, a `(k, 3)` array, or none.
@@ -498,7 +521,7 @@ impl VarArg {
 #[pymethods]
 impl PyStaticFit {
     #[new]
-    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model=None, input_units=None, nominal=None))]
+    #[pyo3(signature = (means, g, model="lower", method="lm", var=None, start=None, max_iter=NOT_GIVEN, raise_degenerate=true, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, check_g=true, noise_model=None, input_units=None, nominal=None, sigma_g=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -516,8 +539,10 @@ impl PyStaticFit {
         noise_model: Option<Bound<'_, PyString>>,
         input_units: Option<Bound<'_, PyString>>,
         nominal: Option<Py<PyAny>>,
+        sigma_g: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let gv = self::check_g(g, check_g)?;
+        let sigma_g = sigma_g_arg(sigma_g, gv)?;
         let ma = means_arg(means, "dwell means")?;
         let m = rows3(&ma, "dwell means")?;
         drop(ma);
@@ -593,6 +618,8 @@ impl PyStaticFit {
                 .unwrap_or_else(|| pyo3::intern!(py, "").clone())
                 .unbind(),
             nominal,
+            sigma_g,
+            covariance_gravity: PyOnceLock::new(),
         })
     }
 
@@ -632,6 +659,26 @@ impl PyStaticFit {
         self.covariance_unscaled
             .get_or_init(py, || {
                 frozen2(py, self.covariance_v.clone(), self.np, self.np)
+            })
+            .bind(py)
+            .clone()
+    }
+
+    /// `sigma_g^2 (dp/dg) (dp/dg)^T` (p, p): the covariance the uncertainty `sigma_g` of the
+    /// reference gravity adds (zero without `sigma_g`). With `g` scaled by `1 + e` the fit's
+    /// `K` scales by `1 / (1 + e)` and the bias stays, so `dp/dg = -p / g` for every entry of
+    /// `K` and 0 for the biases.
+    #[getter]
+    fn covariance_gravity<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        self.covariance_gravity
+            .get_or_init(py, || {
+                let np = self.np;
+                let sg = self.sigma_g.unwrap_or(0.0);
+                let jv = gravity_sensitivity(&self.vector_v[..np], self.g);
+                let v = (0..np * np)
+                    .map(|k| gravity_cov_entry(&jv, k / np, k % np, sg))
+                    .collect();
+                frozen2(py, v, np, np)
             })
             .bind(py)
             .clone()
@@ -720,6 +767,7 @@ impl PyStaticFit {
         kw.set_item("noise_model", self.noise_model.clone_ref(py))?;
         kw.set_item("input_units", self.input_units.clone_ref(py))?;
         kw.set_item("nominal", self.nominal.as_ref().map(|n| n.clone_ref(py)))?;
+        kw.set_item("sigma_g", self.sigma_g)?;
         Ok((args, kw))
     }
 }
@@ -901,7 +949,7 @@ impl Gathered<'_> {
 /// Fit many sessions in parallel: `means` is a `(B, n, 3)` float64 array (with an optional
 /// `(B, n)` boolean `mask` of the dwells to use) or a list of `(n_i, 3)` float64 arrays.
 #[pyfunction]
-#[pyo3(signature = (means, g, *, model="lower", method="lm", sigma=None, start=None, max_iter=NOT_GIVEN, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, mask=None))]
+#[pyo3(signature = (means, g, *, model="lower", method="lm", sigma=None, start=None, max_iter=NOT_GIVEN, degenerate_std=NOT_GIVEN, weak_std=NOT_GIVEN, mask=None, sigma_g=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn static_fit_batch<'py>(
     py: Python<'py>,
@@ -915,6 +963,7 @@ pub fn static_fit_batch<'py>(
     degenerate_std: Given<'py>,
     weak_std: Given<'py>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
+    sigma_g: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<PyBatchFit> {
     let s = settings_from(
         model,
@@ -1025,8 +1074,10 @@ pub fn static_fit_batch<'py>(
             "g must be positive and finite (reference gravity); g[{i}] = {x}"
         )));
     }
+    // Checked against every session's g (by the core: the message names the value).
+    let sg = sigma_g_arg(sigma_g, gv.iter().copied().fold(f64::INFINITY, f64::min))?;
     let sessions = gathered.sessions();
-    let rows: Vec<BatchRow> = py.detach(|| fit_batch(&sessions, &gv, sig, &s))?;
+    let rows: Vec<BatchRow> = py.detach(|| fit_batch_sigma_g(&sessions, &gv, sig, sg, &s))?;
     let np = s.model.n_params();
     let nb = rows.len();
     let messages = PyList::new(
@@ -1075,6 +1126,8 @@ pub struct PyPrediction {
     sigma: f64,
     /// Reference gravity.
     g: f64,
+    /// Std of the reference gravity (units of g), or None; its term is in `covariance`.
+    sigma_g: Option<f64>,
     /// Parameters at which the bound is evaluated.
     truth: Py<PyArray1<f64>>,
     /// Std of each parameter (p,), output units (inf when singular).
@@ -1094,7 +1147,7 @@ pub struct PyPrediction {
 #[pymethods]
 impl PyPrediction {
     #[new]
-    #[pyo3(signature = (force, sigma, model="lower", *, g=None, truth=None))]
+    #[pyo3(signature = (force, sigma, model="lower", *, g=None, truth=None, sigma_g=None))]
     fn new(
         py: Python<'_>,
         force: &Bound<'_, PyAny>,
@@ -1102,6 +1155,7 @@ impl PyPrediction {
         model: &str,
         g: Option<&Bound<'_, PyAny>>,
         truth: Option<Vec<f64>>,
+        sigma_g: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let md = Model::parse(model)?;
         let gv = match g {
@@ -1121,7 +1175,8 @@ impl PyPrediction {
             None => [1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][..np].to_vec(),
         };
         let set = FitSettings::new(md, Method::Lm);
-        let p = predict(md, &t, &f, sg, gv, &set)?;
+        let sigma_g = sigma_g_arg(sigma_g, gv)?;
+        let p = predict(md, &t, &f, sg, gv, sigma_g.unwrap_or(0.0), &set)?;
         let (cond, weakest, comb) = match &p.observability {
             Some(o) => (o.condition, o.weakest.clone(), o.combination.clone()),
             None => (f64::INFINITY, Vec::new(), String::new()),
@@ -1132,6 +1187,7 @@ impl PyPrediction {
             force: arr2(py, n, 3, |i, j| f[i][j]),
             sigma: sg,
             g: gv,
+            sigma_g,
             truth: arr1(py, &t),
             std: arr1(py, &p.std),
             covariance: arr2(py, np, np, |i, j| p.covariance[i * np + j]),
@@ -1157,6 +1213,7 @@ impl PyPrediction {
         let kw = PyDict::new(py);
         kw.set_item("g", self.g)?;
         kw.set_item("truth", self.truth.bind(py).to_vec()?)?;
+        kw.set_item("sigma_g", self.sigma_g)?;
         Ok((args, kw))
     }
 }

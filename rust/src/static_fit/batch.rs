@@ -3,7 +3,10 @@
 //! to word an error).
 
 use super::observe::comparable_jacobian;
-use super::{check_solved, output_cov_entry, solve, FitSettings, Model, Noise};
+use super::{
+    check_sigma_g, check_solved, gravity_sensitivity, output_cov_entry, solve, FitSettings, Model,
+    Noise,
+};
 use crate::error::{invalid, CoreError, Result};
 use rayon::prelude::*;
 
@@ -50,7 +53,8 @@ pub struct BatchRow {
     /// Parameters (first `p`; NaN when the fit failed).
     pub params: [f64; 9],
     /// Std of each parameter: from the noise model when it is known, the covariance scaled
-    /// by chi2/dof when the noise is estimated (NaN when the fit failed).
+    /// by chi2/dof when the noise is estimated (NaN when the fit failed); with `sigma_g`
+    /// given it includes the reference gravity's uncertainty.
     pub std: [f64; 9],
     /// chi2/dof of a known noise model, or the estimated per-axis variance of a dwell mean
     /// (output units squared); NaN without redundancy or when the fit failed.
@@ -95,6 +99,7 @@ fn fit_one<const N: usize>(
     means: &[[f64; 3]],
     g: f64,
     noise: &Noise<'_>,
+    sigma_g: f64,
     set: &FitSettings,
     pts: &mut Vec<[f64; 3]>,
 ) -> BatchRow {
@@ -139,7 +144,16 @@ fn fit_one<const N: usize>(
     let mut std = [f64::NAN; 9];
     if let Some(c) = &s.cov.cov_c {
         for (j, v) in std.iter_mut().enumerate().take(N) {
-            *v = output_cov_entry(c, j, j, g, scale).sqrt();
+            *v = output_cov_entry(c, j, j, g, scale);
+        }
+        if sigma_g > 0.0 {
+            let jv = gravity_sensitivity(&params[..N], g);
+            for (v, d) in std.iter_mut().zip(jv) {
+                *v += (d * sigma_g) * (d * sigma_g);
+            }
+        }
+        for v in &mut std[..N] {
+            *v = v.sqrt();
         }
     }
     for v in &mut params[N..] {
@@ -172,6 +186,18 @@ pub fn fit_batch(
     sigma: Option<f64>,
     set: &FitSettings,
 ) -> Result<Vec<BatchRow>> {
+    fit_batch_sigma_g(sessions, g, sigma, None, set)
+}
+
+/// [`fit_batch`] with the reference gravity known to `sigma_g` (std, units of `g`; `None` or
+/// 0 for exact): its uncertainty is added to every std, as in the single fit.
+pub fn fit_batch_sigma_g(
+    sessions: &[&[[f64; 3]]],
+    g: &[f64],
+    sigma: Option<f64>,
+    sigma_g: Option<f64>,
+    set: &FitSettings,
+) -> Result<Vec<BatchRow>> {
     let b = sessions.len();
     if g.len() != 1 && g.len() != b {
         return invalid(format!("g must have 1 or {b} values; got {}", g.len()));
@@ -183,6 +209,15 @@ pub fn fit_batch(
             ));
         }
     }
+    let sg = match sigma_g {
+        Some(x) => {
+            for gi in g {
+                check_sigma_g(x, *gi)?;
+            }
+            x
+        }
+        None => 0.0,
+    };
     set.validate()?;
     let noise = match sigma {
         Some(s) => Noise::Uniform([s * s; 3]),
@@ -196,8 +231,8 @@ pub fn fit_batch(
             |pts, (i, means)| {
                 let gi = if g.len() == 1 { g[0] } else { g[i] };
                 match set.model {
-                    Model::Diag => fit_one::<6>(i, means, gi, &noise, set, pts),
-                    _ => fit_one::<9>(i, means, gi, &noise, set, pts),
+                    Model::Diag => fit_one::<6>(i, means, gi, &noise, sg, set, pts),
+                    _ => fit_one::<9>(i, means, gi, &noise, sg, set, pts),
                 }
             },
         )

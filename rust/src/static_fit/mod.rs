@@ -35,7 +35,7 @@ pub mod frame;
 pub mod observe;
 pub mod start;
 
-pub use batch::{fit_batch, BatchRow, BatchStatus};
+pub use batch::{fit_batch, fit_batch_sigma_g, BatchRow, BatchStatus};
 pub use cost::{eval_dwell, inv_k, jac_row, ml_row, DwellEval, DwellNoise, NormProblem};
 pub use observe::{
     describe_combination, design_rows, obs_report, predict, ObsSummary, Observability, Prediction,
@@ -55,13 +55,14 @@ use rayon::prelude::*;
 pub const PARAM_NAMES: [&str; 9] = ["sx", "sy", "sz", "bx", "by", "bz", "m1", "m2", "m3"];
 
 /// Default predicted std (comparable units) above which a combination counts as undetermined:
-/// a combination known to no better than 30 % (of the scale, or of g for a bias) is not
-/// determined. An exactly singular pose set (the two-plane field procedure) fitted to noisy
-/// means gets a predicted std of 0.4 to several hundred along its null combination whatever
-/// the noise (the noise itself tilts the Jacobian there), so above 0.3 the data cannot tell
-/// their design from a singular one; at 3 such fits were returned with a warning in 5-25 %
-/// of sessions. Below it a large predicted std is reported as a weak design, with the fit.
-pub const DEGENERATE_STD: f64 = 0.3;
+/// a combination known to no better than 300 % (of the scale, or of g for a bias) is not
+/// determined. Below it a large predicted std is reported as a weak design, with the fit
+/// (the +-30 deg field design at sigma 1e-2 has its ML minimum returned where one exists, with
+/// a weakest std of 0.23-1.8). An exactly singular pose set fitted to noisy means (the
+/// two-plane field procedure) gets 0.4 to several hundred along its null combination, so the
+/// warning of a fit returned with a weakest std above 0.3 (Python's `StaticFit.warning_text`)
+/// says the data cannot tell its design from one that does not see that combination at all.
+pub const DEGENERATE_STD: f64 = 3.0;
 /// Default predicted std (comparable units) above which a parameter counts as weakly determined.
 pub const WEAK_STD: f64 = 1e-3;
 /// Scale factors above this multiple of the data's spread scale (median distance of the
@@ -691,18 +692,12 @@ fn undetermined_by_design<const N: usize>(
     };
     let cov = covariance_stage::<N>(&at, means.len(), g, noise.known(), set);
     let n = means.len();
-    if !cov.summary.degenerate && !cov.summary.weak {
-        return Ok(());
-    }
-    if cov.summary.weakest_std.is_finite() {
-        // Weakly determined there, or undetermined but not exactly singular: the linear
-        // solution's failure ("not an ellipsoid") comes from parameters the poses barely
-        // see, which the message names (six faces: all three misalignments).
-        let verb = if cov.summary.degenerate {
-            "cannot determine"
-        } else {
-            "barely determine"
-        };
+    if !cov.summary.degenerate {
+        if !cov.summary.weak {
+            return Ok(());
+        }
+        // Weakly determined there: the linear solution's failure ("not an ellipsoid") comes
+        // from parameters the poses barely see, which the message names.
         let weak: Vec<String> = (0..N)
             .filter(|&i| !(cov.summary.std_comparable[i] <= set.weak_std))
             .map(|i| {
@@ -715,7 +710,7 @@ fn undetermined_by_design<const N: usize>(
             })
             .collect();
         return degenerate(format!(
-            "the {n} dwells {verb} {} of model \"{}\" (relative units), so its \
+            "the {n} dwells barely determine {} of model \"{}\" (relative units), so its \
              linear solution fails (the fitted quadric is not an ellipsoid) while the bias + \
              scale model fits them; add poses between the axes (tilts of 35-55 deg in both \
              axes at once), or fit model \"diag\"",
@@ -789,6 +784,65 @@ pub fn output_covariance(s: &Solved, np: usize, g: f64, noise_known: bool) -> DM
 pub fn output_cov_entry(c: &[[f64; 9]; 9], i: usize, j: usize, g: f64, scale: f64) -> f64 {
     let d = |i: usize| if (3..6).contains(&i) { g } else { 1.0 };
     c[i][j] * (d(i) * d(j) * scale)
+}
+
+/// Largest `sigma_g` accepted, relative to `g`: a reference gravity known no better than 1 %
+/// is not a reference (and a larger value is most likely in other units than `g`).
+pub const SIGMA_G_MAX_RELATIVE: f64 = 1e-2;
+
+/// The unit `g` is most likely in, for messages: `"m/s^2"`, `"g"` or `"cm/s^2"`
+/// (`"the units of g"` otherwise).
+fn likely_unit(g: f64) -> &'static str {
+    if (9.0..=10.5).contains(&g) {
+        "m/s^2"
+    } else if (0.9..=1.1).contains(&g) {
+        "g"
+    } else if (900.0..=1050.0).contains(&g) {
+        "cm/s^2"
+    } else {
+        "the units of g"
+    }
+}
+
+/// Check the std `sigma_g` of the reference gravity `g` (same unit as `g`): non-negative,
+/// finite and at most [`SIGMA_G_MAX_RELATIVE`] of `g`.
+pub fn check_sigma_g(sigma_g: f64, g: f64) -> Result<f64> {
+    if !(sigma_g >= 0.0 && sigma_g.is_finite()) {
+        return invalid(format!(
+            "sigma_g must be a non-negative, finite std of the reference gravity (in the \
+             units of g); got {sigma_g}"
+        ));
+    }
+    if sigma_g > SIGMA_G_MAX_RELATIVE * g.abs() {
+        return invalid(format!(
+            "sigma_g = {sigma_g} is more than 1 % of g = {g}: give the std of the reference \
+             gravity in the units of g ({}); typically 1e-5 m/s^2 from an absolute gravimeter, \
+             1e-3 m/s^2 from a latitude formula",
+            likely_unit(g)
+        ));
+    }
+    Ok(sigma_g)
+}
+
+/// Sensitivity of the parameters to the reference gravity, `dp/dg` (first `np` entries; the
+/// rest zero). Exact for the norm model: with `g` scaled by `1 + e` the fit's `K` scales by
+/// `1 / (1 + e)` and `b` stays (every residual `|K^-1 (a - b)| - g` and its std scale alike),
+/// so every entry of `K` (scale factors and misalignments: all models store entries of `K`)
+/// has `dp/dg = -p / g` and the biases none.
+pub fn gravity_sensitivity(params: &[f64], g: f64) -> [f64; 9] {
+    let mut j = [0.0; 9];
+    for (i, (v, p)) in j.iter_mut().zip(params).enumerate() {
+        if !(3..6).contains(&i) {
+            *v = -p / g;
+        }
+    }
+    j
+}
+
+/// Entry `(i, j)` of the reference-gravity covariance `sigma_g^2 (dp/dg) (dp/dg)^T` (`jv`
+/// from [`gravity_sensitivity`]); symmetric to the bit.
+pub fn gravity_cov_entry(jv: &[f64; 9], i: usize, j: usize, sigma_g: f64) -> f64 {
+    (jv[i] * jv[j]) * (sigma_g * sigma_g)
 }
 
 /// Fit the static model to `k` dwell means.
@@ -1022,6 +1076,83 @@ mod tests {
             );
             assert!(f.converged);
         }
+    }
+
+    #[test]
+    fn gravity_sensitivity_matches_a_refit_with_g_perturbed() {
+        // dp/dg = -p/g for every entry of K (misalignments included), 0 for the biases: a
+        // refit with g (1 + 1e-6) agrees with the first-order prediction, for every model.
+        for model in [Model::Lower, Model::Upper, Model::Diag] {
+            let m = simulate_noisy(model, &TRUTH, 24, 90.0, 1e-4, 11);
+            let set = FitSettings::new(model, Method::Lm);
+            let noise = Noise::Uniform([1e-8; 3]);
+            let f0 = fit_static(&m, G, &noise, &set).unwrap();
+            let e = 1e-6;
+            let f1 = fit_static(&m, G * (1.0 + e), &noise, &set).unwrap();
+            let jv = gravity_sensitivity(&f0.params, G);
+            let np = model.n_params();
+            for (i, (want, (p1, p0))) in jv.iter().zip(f1.params.iter().zip(&f0.params)).enumerate()
+            {
+                let fd = (p1 - p0) / (G * e);
+                let tol = 1e-4 * (p0.abs() / G).max(1e-3);
+                assert!(
+                    i < np && (fd - want).abs() < tol,
+                    "{model:?} {i}: refit {fd:e}, predicted {want:e}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn sigma_g_is_refused_unless_non_negative_finite_and_within_one_percent() {
+        assert_eq!(check_sigma_g(0.0, G).unwrap(), 0.0);
+        assert_eq!(check_sigma_g(1e-3, G).unwrap(), 1e-3);
+        for bad in [-1e-5, f64::NAN, f64::INFINITY] {
+            let e = check_sigma_g(bad, G).unwrap_err().to_string();
+            assert!(e.contains("non-negative, finite"), "{e}");
+        }
+        let e = check_sigma_g(0.2, G).unwrap_err().to_string();
+        assert!(
+            e.contains("more than 1 % of g") && e.contains("m/s^2"),
+            "{e}"
+        );
+        assert!(check_sigma_g(0.02, 1.0)
+            .unwrap_err()
+            .to_string()
+            .contains("(g);"));
+    }
+
+    #[test]
+    fn batch_and_prediction_add_the_reference_gravity_term() {
+        let m = simulate_noisy(Model::Lower, &TRUTH, 24, 90.0, 1e-5, 12);
+        let set = settings(Method::Lm);
+        let sg = 1e-4;
+        let a = fit_batch(&[&m], &[G], Some(1e-5), &set).unwrap();
+        let b = fit_batch_sigma_g(&[&m], &[G], Some(1e-5), Some(sg), &set).unwrap();
+        let jv = gravity_sensitivity(&a[0].params, G);
+        for (i, (d, (s0, s1))) in jv.iter().zip(a[0].std.iter().zip(&b[0].std)).enumerate() {
+            let want = (s0.powi(2) + (d * sg).powi(2)).sqrt();
+            assert!((s1 - want).abs() < 1e-12 * want, "{i}");
+        }
+        assert_eq!(a[0].std[3], b[0].std[3]);
+        assert!(fit_batch_sigma_g(&[&m], &[G], None, Some(1.0), &set).is_err());
+        let force: Vec<[f64; 3]> = (0..24)
+            .map(|k| {
+                let a = force(
+                    (k as f64 * 47.0) % 360.0 - 180.0,
+                    (k as f64 * 29.0) % 180.0 - 90.0,
+                );
+                [a[0], a[1], a[2]]
+            })
+            .collect();
+        let p0 = observe::predict(Model::Lower, &TRUTH, &force, 1e-5, G, 0.0, &set).unwrap();
+        let p1 = observe::predict(Model::Lower, &TRUTH, &force, 1e-5, G, sg, &set).unwrap();
+        let jv = gravity_sensitivity(&TRUTH, G);
+        for (i, (d, (s0, s1))) in jv.iter().zip(p0.std.iter().zip(&p1.std)).enumerate() {
+            let want = (s0.powi(2) + (d * sg).powi(2)).sqrt();
+            assert!((s1 - want).abs() < 1e-12 * want, "{i}");
+        }
+        assert!(observe::predict(Model::Lower, &TRUTH, &force, 1e-5, G, -1.0, &set).is_err());
     }
 
     #[test]

@@ -387,13 +387,16 @@ pub struct Prediction {
 }
 
 /// Cramer-Rao bound of the design `force` (true specific forces, units of g) at `params`,
-/// for dwell-mean noise `sigma` per axis and reference gravity `g`.
+/// for dwell-mean noise `sigma` per axis and reference gravity `g` known to `sigma_g` (std,
+/// units of `g`; 0 for exact): its covariance `sigma_g^2 (dp/dg) (dp/dg)^T` is added (the
+/// observability report leaves it out: the poses cannot determine `g`).
 pub fn predict(
     model: Model,
     params: &[f64],
     force: &[[f64; 3]],
     sigma: f64,
     g: f64,
+    sigma_g: f64,
     set: &FitSettings,
 ) -> Result<Prediction> {
     if !(g > 0.0) || !g.is_finite() {
@@ -401,6 +404,7 @@ pub fn predict(
             "g must be a positive, finite reference gravity; got {g}"
         ));
     }
+    super::check_sigma_g(sigma_g, g)?;
     if force.is_empty() {
         return invalid("attitudes: need at least one pose; got none");
     }
@@ -419,7 +423,7 @@ pub fn predict(
     let jc = DMatrix::from_fn(n, np, |i, j| rows[i * np + j] * d(j));
     let obs = obs_report(&jc, 1.0, set)?;
     let singular = !(obs.singular_values[np - 1] > SINGULAR_RTOL * obs.singular_values[0]);
-    let covariance = if singular {
+    let mut covariance = if singular {
         vec![f64::INFINITY; np * np]
     } else {
         let svd = svd_report_qr(&jc)?;
@@ -433,6 +437,12 @@ pub fn predict(
             None => vec![f64::INFINITY; np * np],
         }
     };
+    if sigma_g > 0.0 && !singular {
+        let jv = super::gravity_sensitivity(&params[..np], g);
+        for (k, c) in covariance.iter_mut().enumerate() {
+            *c += super::gravity_cov_entry(&jv, k / np, k % np, sigma_g);
+        }
+    }
     let std = (0..np).map(|i| covariance[i * np + i].sqrt()).collect();
     Ok(Prediction {
         std,
@@ -482,7 +492,7 @@ mod tests {
                 })
                 .collect()
         };
-        let p = predict(Model::Lower, &TRUTH, &force, 1e-3, G, &set).unwrap();
+        let p = predict(Model::Lower, &TRUTH, &force, 1e-3, G, 0.0, &set).unwrap();
         for i in 0..9 {
             let fs = f.covariance[(i, i)].sqrt();
             assert!((p.std[i] / fs - 1.0).abs() < 1e-6, "{i} {} {fs}", p.std[i]);
@@ -490,12 +500,12 @@ mod tests {
         assert!(!p.singular);
         // Too few poses, no poses, bad g.
         assert!(
-            predict(Model::Lower, &TRUTH, &force[..5], 1e-3, G, &set)
+            predict(Model::Lower, &TRUTH, &force[..5], 1e-3, G, 0.0, &set)
                 .unwrap()
                 .singular
         );
-        assert!(predict(Model::Lower, &TRUTH, &[], 1e-3, G, &set).is_err());
-        assert!(predict(Model::Lower, &TRUTH, &force, 1e-3, f64::NAN, &set).is_err());
-        assert!(predict(Model::Lower, &TRUTH, &force, -1.0, G, &set).is_err());
+        assert!(predict(Model::Lower, &TRUTH, &[], 1e-3, G, 0.0, &set).is_err());
+        assert!(predict(Model::Lower, &TRUTH, &force, 1e-3, f64::NAN, 0.0, &set).is_err());
+        assert!(predict(Model::Lower, &TRUTH, &force, -1.0, G, 0.0, &set).is_err());
     }
 }
