@@ -1085,3 +1085,23 @@ def test_batch_std_includes_sigma_g():
         np.testing.assert_allclose(b.std[i], f.std, rtol=1e-9)
     b0 = ac.fit_static_batch(sessions, G0, sigma=1e-5)
     assert np.all(b.std[:, :3] > 2 * b0.std[:, :3])
+
+
+def test_fit_static_reads_a_dataframe_by_column_name_and_hands_out_read_only_arrays():
+    """A logger's columns az, ay, ax: detect_dwells, DwellSet and TriadModel.apply read them
+    by name, fit_static by position, so its model applied to the same table gave norms off by
+    0.86 m/s^2. And fit.K /= 9.80665 (a unit change in place) changed the fit, its summary
+    and its saved file."""
+    import pandas as pd
+    from accelcal.sim.static import FIELD_TRUTH, static_dwell_means
+
+    s = static_dwell_means(24, max_tilt_deg=None, sigma=1e-5, sigma_g=0.0, rng=3)
+    df = pd.DataFrame({"az": s.means[:, 2], "ay": s.means[:, 1], "ax": s.means[:, 0]})
+    f = ac.fit_static(df, s.g_true)
+    assert np.allclose(f.vector, ac.fit_static(s.means, s.g_true).vector, rtol=0, atol=1e-12)
+    assert np.allclose(f.scale, FIELD_TRUTH[:3], atol=1e-3)
+    norms = np.linalg.norm(f.to_model().apply(df), axis=1)
+    assert np.max(np.abs(norms - s.g_true)) < 1e-3
+    for arr in (f.K, f.std, f.std_realistic, f.covariance_scaled):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 0.0

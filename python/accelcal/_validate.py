@@ -239,8 +239,12 @@ def number(
 def real_array(x: Any, name: str, unit: str = "") -> NDArray[np.float64]:
     """``x`` (array, list, DataFrame/Series, any layout, integer or float dtype, either byte
     order) as aligned float64 in logical order; boolean, complex, text and object arrays are
-    refused."""
+    refused. A DataFrame of three named columns gives them in x, y, z order by name, as
+    :func:`numeric_array` does (``az, ay, ax`` is reordered)."""
+    order = _table_order(x, name)
     a = np.asarray(x)
+    if order is not None and a.ndim == 2 and a.shape[1] == 3:
+        a = a[:, order]
     if a.dtype.kind not in "fiu":
         what = {"b": "boolean", "c": "complex", "O": "object", "U": "text", "S": "text"}.get(
             a.dtype.kind, str(a.dtype))

@@ -95,6 +95,14 @@ def unit_label(g: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------
+def _frozen(a: Any) -> NDArray[np.float64]:
+    """``a`` made read-only: a cached result array handed out on every access, which an edit
+    in place (``fit.K /= 9.80665``) would change for the fit, its summary and its file."""
+    a = np.asarray(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
 def _as_means(x: Any, name: str) -> NDArray[np.float64]:
     """(k, 3) float64 (any layout; boolean, complex, text and object refused)."""
     a = real_array(x, name, "output units")
@@ -281,7 +289,7 @@ class StaticFit(_core.StaticFit):
     @cached_property
     def K(self) -> NDArray[np.float64]:
         """(3, 3) output units per (m/s^2)."""
-        return k_matrix(self.vector, self.model)
+        return _frozen(k_matrix(self.vector, self.model))
 
     # -- uncertainty --------------------------------------------------------------------
     @cached_property
@@ -289,7 +297,7 @@ class StaticFit(_core.StaticFit):
         """``covariance_unscaled * chi2_dof``: the noise level that the residuals show (plus
         ``covariance_gravity`` with ``sigma_g`` given)."""
         c = self.covariance_unscaled * self.chi2_dof
-        return c + self.covariance_gravity if self.sigma_g else c  # type: ignore[no-any-return]
+        return _frozen(c + self.covariance_gravity if self.sigma_g else c)
 
     @property
     def covariance_noise_model(self) -> NDArray[np.float64]:
@@ -307,7 +315,7 @@ class StaticFit(_core.StaticFit):
 
     @cached_property
     def std(self) -> NDArray[np.float64]:
-        return np.sqrt(np.diag(self.covariance))
+        return _frozen(np.sqrt(np.diag(self.covariance)))
 
     @property
     def realistic(self) -> str:
@@ -324,7 +332,7 @@ class StaticFit(_core.StaticFit):
 
     @cached_property
     def std_realistic(self) -> NDArray[np.float64]:
-        return np.sqrt(np.diag(self.covariance_realistic))
+        return _frozen(np.sqrt(np.diag(self.covariance_realistic)))
 
     @property
     def correlation(self) -> NDArray[np.float64]:
