@@ -333,3 +333,35 @@ def test_a_model_is_not_changed_in_place_nor_saved_unchecked(tmp_path):
     with pytest.raises(CalibrationError, match="the model to write: K\\[0\\]\\[1\\]"):
         m.save(tmp_path / "bad.json")
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_a_hand_edited_g_or_output_unit_is_noticed(tmp_path):
+    """'g' edited from 9.80665 to 9.0 loaded without a word (fit_static refuses 9.0 unless
+    told), and 'units.output' edited to 'mg' or 'ft/s^2' passed the unit check, which knew
+    three units. A fit made with check_g=False records it, and its file loads quietly."""
+    import warnings
+
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(20, max_tilt_deg=None, sigma=1e-4, rng=2)
+    m = ac.fit_static(s.means, 9.80665).to_model()
+    p = tmp_path / "m.json"
+    m.save(p)
+    d = json.loads(p.read_text())
+    for field, value, what in (("g", 9.0, "not a plausible local gravity"),):
+        e = dict(d, **{field: value})
+        p.write_text(json.dumps(e))
+        with pytest.warns(UserWarning, match=what):
+            ac.TriadModel.load(p)
+    for unit in ("mg", "ft/s^2"):
+        e = json.loads(json.dumps(d))
+        e["units"]["output"] = unit
+        p.write_text(json.dumps(e))
+        with pytest.raises(CalibrationError, match="units.output' says"):
+            ac.TriadModel.load(p)
+    s9 = static_dwell_means(20, max_tilt_deg=None, sigma=1e-4, rng=2, g=9.0)
+    m9 = ac.fit_static(s9.means, 9.0, check_g=False).to_model()
+    m9.save(p)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert ac.TriadModel.load(p).g == 9.0

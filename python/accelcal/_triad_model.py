@@ -148,6 +148,14 @@ def _covariance(x: Any, name: str, p: int) -> NDArray[np.float64] | None:
     return c
 
 
+#: Gravity in each output unit a file may name (the consistency check of 'units.output'
+#: against 'g').
+_UNIT_G = {"g": 1.0, "g0": 1.0, "m/s^2": 9.80665, "m/s2": 9.80665, "ms^-2": 9.80665,
+           "cm/s^2": 980.665, "cm/s2": 980.665, "gal": 980.665, "Gal": 980.665,
+           "mg": 1000.0, "mm/s^2": 9806.65, "mm/s2": 9806.65, "mGal": 980665.0,
+           "ft/s^2": 9.80665 / 0.3048, "ft/s2": 9.80665 / 0.3048}
+
+
 def _json_scalar(v: Any) -> Any:
     """A numpy scalar or array in the metadata as JSON (``json.dumps``'s ``default``)."""
     if isinstance(v, np.generic):
@@ -422,13 +430,22 @@ class TriadModel:
             )
         except CalibrationError as e:
             raise CalibrationError(f"{source}: {e}") from None
-        unit_g = {"g": 1.0, "m/s^2": 9.80665, "cm/s^2": 980.665}.get(m.units)
+        unit_g = _UNIT_G.get(m.units.replace(" ", "").replace("²", "^2"))
         if m.g is not None and unit_g is not None and not 0.9 < m.g / unit_g < 1.1:
             # The output unit and the gravity the fit used must agree: a hand-edited unit
             # would label every calibrated value wrongly.
             raise CalibrationError(
                 f"{source}: field 'units.output' says {m.units!r} but field 'g' is {m.g!r}, "
                 f"not gravity in {m.units} (about {unit_g:g}): one of them was edited")
+        if (m.g is not None and unit_g is not None and m.metadata.get("check_g") is not False
+                and _core.gravity_problem(m.g * 9.80665 / unit_g) is not None):
+            # A fit refuses such a g unless told (check_g=False, recorded in the metadata): a
+            # file that has one was most likely edited by hand.
+            warnings.warn(
+                f"{source}: field 'g' = {m.g!r} {m.units} is not a plausible local gravity "
+                "(9.74-9.85 m/s^2), which fit_static refuses unless told (check_g=False, "
+                "recorded as metadata.check_g): edited by hand? Every calibrated value is "
+                "scaled by it", UserWarning, stacklevel=3)
         if "vector" in d:
             v = _finite_array(d["vector"], f"{source}: vector")
             want = m.vector

@@ -521,6 +521,8 @@ class StaticFit(_core.StaticFit):
         )
         if self.sigma_g:  # the covariances include its term (see covariance_gravity)
             md["sigma_g"] = float(self.sigma_g)
+        if not self.check_g:  # a g outside local gravity was meant: load says nothing of it
+            md["check_g"] = False
         if self.input_units and "input_units" not in meta:
             meta["input_units"] = self.input_units
         # The calibrated output is in the units of g (a fit to g = 1 calibrates to g).
