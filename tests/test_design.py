@@ -228,3 +228,33 @@ def test_sensitivity_misalignment_and_radius():
     assert np.all(np.abs(rad.shifts[0, 3:6]) < 1e-6)
     with pytest.raises(CalibrationError, match="unknown error source"):
         centrifuge_sensitivity(None, None, "wind", [1.0])
+
+
+def test_plan_poses_says_when_its_best_cannot_determine_the_model():
+    """Tilts within +-1 or 2 deg: the plan came back with sz at a predicted std of 5e3 and
+    347 relative, no word (and fit_static on such data returned a far-off calibration with a
+    warning only). Now a WeakDesignWarning says the plan cannot determine the model."""
+    import warnings
+
+    from accelcal import WeakDesignWarning
+
+    for mt in (1.0, 2.0):
+        with pytest.warns(WeakDesignWarning, match="cannot determine model 'lower'.*sz"):
+            ac.plan_poses(20, mt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ac.plan_poses(20, 30.0)
+
+
+def test_plan_poses_grid_reaches_the_limit_and_large_plans_are_not_cut_short():
+    """A grid step that did not divide 2 max_tilt dropped the +max edge (step 16 at +-30:
+    tilts only up to +18, bz std 0.158 against 0.056); 200 exchanges from a random draw of
+    hundreds of poses stopped below the n = 20 plan repeated (n = 500: log det 0.51 lower)."""
+    p16 = ac.plan_poses(20, 30.0, grid_step_deg=16.0)
+    p30 = ac.plan_poses(20, 30.0, grid_step_deg=30.0)
+    assert p16.tilts_deg is not None and np.abs(p16.tilts_deg).max() == 30.0
+    assert p16.logdet >= p30.logdet - 1e-9
+    assert p16.prediction.std[5] < 0.07
+    base = ac.plan_poses(20, 30.0)
+    big = ac.plan_poses(300, 30.0)
+    assert big.logdet >= base.logdet + 9 * np.log(300 / 20) - 1e-6
