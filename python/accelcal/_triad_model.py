@@ -303,7 +303,7 @@ class TriadModel:
         return sum(f in own for f in dwell_fingerprints(means)) if own else 0
 
     # -- use -----------------------------------------------------------------------------
-    def apply(self, raw: ArrayLike) -> NDArray[np.float64]:
+    def apply(self, raw: ArrayLike, *, check_units: bool = True) -> NDArray[np.float64]:
         """Calibrated specific force (N, 3) float64 of raw output (N, 3) (float64, float32,
         int16, int32 read in place; other integer types widened). Stateless per sample, so
         chunks of a stream can be applied one at a time: an empty chunk (0, 3) gives an
@@ -313,10 +313,14 @@ class TriadModel:
         takes them. uint16 words are read as signed 16-bit values stored as unsigned (65404
         for -132, with a warning when some are above 32767) when the model's bias lies near
         0 (within +-16384), as a signed output's does; with a bias near mid-scale 32768 (an
-        unsigned 16-bit output) they are read as given."""
+        unsigned 16-bit output) they are read as given.
+
+        ``check_units``: warn when the calibrated norms of the chunk (median of at most 1000
+        rows) are under 0.2 or over 5 times the model's g: raw data in other units than the
+        model was fitted in (a model in m/s^2 applied to data in g gives |a| near 0.1 g)."""
         a = numeric_array(raw, "raw")  # a DataFrame's x, y, z by name, as read_stream takes them
         if a.ndim == 1 and a.size == 3:
-            return self.apply(a.reshape(1, 3))[0]  # type: ignore[no-any-return]
+            return self.apply(a.reshape(1, 3), check_units=check_units)[0]  # type: ignore[no-any-return]
         if a.ndim == 2 and a.shape == (0, 3):  # an empty read of a stream
             return np.empty((0, 3), dtype=np.float64)
         if a.dtype == np.uint16 and np.all(np.abs(self.bias) < 16384.0):
@@ -334,9 +338,27 @@ class TriadModel:
                     UserWarning, stacklevel=2)
             a = a.view(np.int16)
         s = samples_array(a, "raw")
-        return _core.apply_triad_raw(  # type: ignore[no-any-return]
-            s, self.K.tolist(), self.bias.tolist()
-        )
+        out: NDArray[np.float64] = _core.apply_triad_raw(s, self.K.tolist(), self.bias.tolist())
+        if check_units:
+            self._check_norm(out)
+        return out
+
+    def _check_norm(self, out: NDArray[np.float64]) -> None:
+        """Warn when the calibrated norms of a chunk (at most 1000 rows looked at) are far
+        from the model's g: raw data in other units than the model's (a model fitted in m/s^2
+        applied to data in g gave |a| = 0.67)."""
+        if self.g is None or out.ndim != 2 or out.shape[0] == 0:
+            return
+        look = out[:: max(1, out.shape[0] // 1000)]
+        ratio = float(np.median(np.sqrt(np.einsum("ij,ij->i", look, look)))) / self.g
+        if 0.2 <= ratio <= 5.0 or not math.isfinite(ratio):
+            return
+        warnings.warn(
+            f"raw: the calibrated norms are {ratio:.3g} times the model's g = {self.g:g} "
+            f"{self.units} (median of the chunk): are the raw values in the units the model "
+            f"was fitted in ({self.input_units or 'the input units of its fit'})? A sensor "
+            "mostly at rest or moving gently reads about 1 g; ignore this on a centrifuge",
+            UserWarning, stacklevel=3)
 
     # -- files ---------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

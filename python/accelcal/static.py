@@ -357,7 +357,8 @@ class StaticFit(_core.StaticFit):
         fit's mean scale factor) applied, so that only the per-axis scale and the
         misalignment are left uncorrected."""
         if self.nominal is not None:
-            return np.linalg.norm(self.nominal.apply(self.means), axis=1), "nominal model"
+            cal = self.nominal.apply(self.means, check_units=False)
+            return np.linalg.norm(cal, axis=1), "nominal model"
         nrm = np.linalg.norm(self.means, axis=1)
         if 0.5 < np.median(nrm) / self.g < 2.0:
             return nrm, "raw output"
@@ -959,8 +960,8 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
     token = _SCREENING.set(True)
     try:
         if not raw_far:  # the raw norms spread too widely to tell: calibrated norms
-            res_all = np.linalg.norm(fit_quietly(m, g, model="diag").to_model().apply(m),
-                                     axis=1)
+            diag = fit_quietly(m, g, model="diag").to_model()
+            res_all = np.linalg.norm(diag.apply(m, check_units=False), axis=1)
             cand = _far_out(res_all, 0.02 * g)
         if cand.size == 0 or cand.size > len(m) // 4:
             return None
@@ -970,7 +971,7 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
         return None
     finally:
         _SCREENING.reset(token)
-    a = fit.to_model().apply(m)
+    a = fit.to_model().apply(m, check_units=False)
     res = np.linalg.norm(a, axis=1) - g
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
     bad = [int(k) for k in cand if abs(res[k]) > max(6.0 * rms, 0.02 * g)]

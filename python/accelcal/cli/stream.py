@@ -372,7 +372,7 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
             _progress_bar(rec, "apply", False if quiet else None) as cb:
         norms: list[float] = []
         for chunk, t, _temp in rec.chunks(chunk_rows, cb):
-            cal_chunk = model.apply(chunk)
+            cal_chunk = model.apply(chunk, check_units=False)  # norms checked below
             if len(norms) < 8 and len(cal_chunk):  # the calibrated norm, on the first chunks
                 nc = np.linalg.norm(cal_chunk, axis=1)
                 nc = nc[np.isfinite(nc)]  # dropouts (NaN rows) pass through as NaN
