@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pickle
+import warnings
 
 import accelcal
 import numpy as np
@@ -481,13 +482,20 @@ def test_radians_refusal_figures_and_opt_out():
         bad = accelcal.startup_bias(np.radians(BAL), y, sigma=0.05, check_units=False)
     assert len(w) == 1 and abs(bad.bias[0] - 12.0) > 100
     assert "note: residuals exceed the noise model" in bad.summary()
-    # Radians with a sigma ten times too small: neither reading is within the noise, so no
-    # refusal, but the misfit warning says how much better the radians reading fits.
+    # Radians with a sigma ten times too small: neither reading is within the noise, so the
+    # fits do not refuse, but the spread does (2.58 deg as degrees, 148 deg as radians).
     az = [3.0, 33.0, 97.0, 151.0]
     y = model(az, [12.0, -7.0], [40.0, -25.0]) + rng.normal(0, 1.0, (4, 2))
-    with pytest.warns(StartupMisfitWarning, match=r"read as radians \(3, 33, 97, 151 deg\) "
-                      r"the azimuths leave chi2/dof .* instead of .*np\.degrees"):
+    with pytest.raises(CalibrationError, match=r"look like radians.*span only 2\.58 deg"):
         accelcal.startup_bias(np.radians(az), y, sigma=0.1)
+    # Radians rounded to 0.1 (round as degrees, so not refused by the spread): the misfit
+    # warning says how much better the radians reading fits.
+    rad = np.array([0.1, 0.6, 1.7, 2.6])
+    y = model(np.degrees(rad), [12.0, -7.0], [40.0, -25.0]) + rng.normal(0, 1.0, (4, 2))
+    with pytest.warns(StartupMisfitWarning, match=r"read as radians \(5\.72958, 34\.3775, "
+                      r"97\.4028, 148\.969 deg\) the azimuths leave chi2/dof .* instead of "
+                      r".*np\.degrees"):
+        accelcal.startup_bias(rad, y, sigma=0.1)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -617,3 +625,149 @@ def test_sigma_of_the_wrong_shape_is_named_as_given() -> None:
     col = accelcal.startup_bias(BAL, y, sigma=np.full((4, 1), 0.05))
     np.testing.assert_array_equal(col.std, accelcal.startup_bias(BAL, y, sigma=0.05).std)
     assert np.all(np.abs(col.bias - [12.0, -7.0]) < 4 * col.bias_std)
+
+
+# ---- input plausibility: dead / stuck / clipped channels, unit slips, correlated streams ------
+def _raw_abba(seed):
+    plan = np.asarray(accelcal.plan_azimuths(4, drift=True))
+    ses = gradiometer_session(plan, drift_E_per_s=(0.01, -0.005), noise_mps2=1e-9, fs=200,
+                              seed=seed)
+    return plan, ses
+
+
+def _solve_raw(plan, ses, accel, **kw):
+    cal = accelcal.StartupCalibration(drift=True, sigma="stream", radius_m=ses.radius_m)
+    for k, az in enumerate(plan):
+        a, b = ses.bounds[k]
+        cal.record_raw(az, accel[a:b], ses.phase[a:b], t=ses.t[a:b], **kw)
+    r = cal.solve()
+    return r, r.bias - ses.truth.bias_at(r.t_ref)
+
+
+@pytest.mark.parametrize("fault", ["dead", "stuck", "clipped"])
+def test_dead_stuck_or_clipped_channel_is_refused(fault):
+    # The tester's case: silently 3.4 / 1.9 E (dead, stuck a2) or 0.9 E (a1 clipped at its
+    # 80th percentile) off the truth, against a quoted std of 0.03 E.
+    plan, ses = _raw_abba(0)
+    r, err = _solve_raw(plan, ses, ses.accel)
+    assert np.all(np.abs(err) < 4 * r.bias_std)  # the clean session is right
+    a = ses.accel.copy()
+    if fault == "dead":
+        a[:, 1] = 0.0
+        words = r"a2 of dwell 0 \(samples 0\.\.12000\) is all zero: a dead channel"
+    elif fault == "stuck":
+        a[:, 1] = a[0, 1]
+        words = r"a2 of dwell 0 \(samples 0\.\.12000\) is constant at .*: a stuck channel"
+    else:
+        lim = np.percentile(np.abs(a[:, 0]), 80)
+        a[:, 0] = np.clip(a[:, 0], -lim, lim)
+        words = r"a1 of dwell 0 \(samples 0\.\.12000\): \d+ of 12000 samples .* its largest"
+    with pytest.raises(CalibrationError, match=words):
+        _solve_raw(plan, ses, a)
+    with pytest.raises(CalibrationError, match=words):
+        accelcal.demodulate(a, ses.phase, ses.bounds, radius_m=ses.radius_m)
+    # check_channels=False demodulates as given: the bias is then far off the truth.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StartupMisfitWarning)
+        bad, err = _solve_raw(plan, ses, a, check_channels=False)
+    assert np.max(np.abs(err)) > 0.5 and np.max(np.abs(err) / bad.bias_std) > 10
+
+
+def test_quantised_peak_is_not_a_rail():
+    # Integer counts of a coarsely resolved sinusoid: the top level holds a few % of the
+    # samples but no more than ~2.5 times its neighbour; not clipped.
+    ses = gradiometer_session([0.0, 90.0], fs=200.0, dwell_s=20.0, noise_mps2=2e-10, seed=3)
+    a = np.round(ses.accel / 1e-9)  # ~+-10 counts: the peaks are coarse
+    d = accelcal.demodulate(a * 1e-9, ses.phase, ses.bounds, radius_m=ses.radius_m)
+    assert np.allclose(d.inline_E, ses.truth.channels_E[:, 0], atol=1.0)
+    # All four channels below the resolution (all zero) are not a dead channel either.
+    accelcal.demodulate(np.zeros_like(a), ses.phase, ses.bounds, radius_m=ses.radius_m,
+                        check_units=False)
+
+
+@pytest.mark.parametrize("sigma", [None, 0.05])
+def test_measured_radians_abba_drift_are_refused(sigma):
+    # 0.7/90.9/90.2/0.3 deg passed as radians with ABBA + drift: accepted in 169 of 200
+    # sessions before (bias 951 E against a truth of 13.5 E).
+    az = np.array([0.7, 90.9, 90.2, 0.3])
+    t = np.array([30.0, 110.0, 190.0, 270.0])
+    y = model(az, [12.0, -7.0], [40.0, -25.0], t=t, drift=[0.01, -0.005]) + \
+        np.random.default_rng(0).normal(0, 0.05, (4, 2))
+    with pytest.raises(CalibrationError, match=r"look like radians.*span only 1\.58 deg.*"
+                       r"read as radians \(0\.7, 90\.9, 90\.2, 0\.3 deg\) 90\.6 deg.*np\.degrees"):
+        accelcal.startup_bias(np.radians(az), y, t=t, drift=True, sigma=sigma)
+    r = accelcal.startup_bias(az, y, t=t, drift=True, sigma=sigma)
+    truth = np.array([12.0, -7.0]) + np.array([0.01, -0.005]) * r.t_ref
+    assert np.all(np.abs(r.bias - truth) < 4 * r.bias_std)
+    # check_units=False fits them as degrees: the escape hatch.
+    accelcal.startup_bias(np.radians(az), y, t=t, drift=True, sigma=None, check_units=False)
+    # Tiny designs typed in degrees (whole multiples of 0.1 deg) are not refused.
+    for tiny in ([0.0, 1.0, 2.0, 3.0], [0.3, 1.2, 2.7, 3.1]):
+        accelcal.startup_bias(tiny, model(tiny, [12.0, -7.0], [40.0, -25.0]) + 0.01 *
+                              np.random.default_rng(1).normal(size=(4, 2)))
+
+
+def test_outputs_in_impossible_units_are_refused(tmp_path):
+    y = model(BAL, [12.0, -7.0], [40.0, -25.0]) + np.random.default_rng(7).normal(0, 0.05, (4, 2))
+    assert np.allclose(accelcal.startup_bias(BAL, y).bias, [12.0, -7.0], atol=0.1)
+    for scale in (1e-9, 4 * 0.1 * 1e-9):  # s^-2, or m/s^2 at R = 0.1 m, given as E
+        with pytest.raises(CalibrationError, match=r"look like s\^-2.*below 0\.001 E"):
+            accelcal.startup_bias(BAL, y * scale, sigma=0.05)
+        r = accelcal.startup_bias(BAL, y * scale, check_units=False)
+        assert np.allclose(r.bias, np.array([12.0, -7.0]) * scale, atol=0.1 * scale)
+    with pytest.raises(CalibrationError, match=r"far too large for E.*raw counts"):
+        accelcal.startup_bias(BAL, y * 1e9)
+    accelcal.startup_bias(BAL, np.zeros((4, 2)))  # all zero: not a unit slip
+    # Integer counts (1 LSB = 1e-9 m/s^2) through demodulate: 5.2e10 E before.
+    ses = gradiometer_session([0.0, 90.0, 90.0, 0.0], noise_mps2=1e-9, fs=200, seed=1)
+    counts = np.round(ses.accel / 1e-9).astype(np.int32)
+    with pytest.raises(CalibrationError,
+                       match=r"far too large for E: largest \|value\| 5\.2\d?e\+10.*raw counts"):
+        accelcal.demodulate(counts, ses.phase, ses.bounds, radius_m=ses.radius_m)
+    d = accelcal.demodulate(counts, ses.phase, ses.bounds, radius_m=ses.radius_m,
+                            check_units=False)
+    assert np.allclose(d.inline_E * 1e-9, ses.truth.channels_E[:, 0], atol=1.0)
+    # A radius in mm given as m: channels 1000 times too small.
+    with pytest.raises(CalibrationError, match=r"radius_m 100 m .* pass radius_m=0\.1"):
+        accelcal.demodulate(ses.accel, ses.phase, ses.bounds, radius_m=100.0)
+    # The command line refuses (exit 2) in its own words.
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    tab = tmp_path / "sinv.csv"
+    rows = "\n".join(f"{a:g},{yi:.6g},{yc:.6g}" for a, (yi, yc) in zip(BAL, y * 1e-9, strict=True))
+    tab.write_text("azimuth_deg,inline_E,cross_E\n" + rows + "\n")
+    res = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab)])
+    assert res.exit_code == 2
+    assert "look like s^-2" in res.output and "'inline [1/s^2]'" in res.output
+    assert "--no-unit-check" in res.output and "check_units" not in res.output
+    res = CliRunner().invoke(main, ["calibrate", "gradiometer", str(tab), "--no-unit-check"])
+    assert res.exit_code == 0
+
+
+def test_record_stream_sigma_allows_for_correlated_noise():
+    # 1 s low-pass of white noise at 10 Hz: the white-noise standard error was 4.7 times too
+    # small (rms z 4.8, coverage 33 %). Known truth: bias (12, -7).
+    from scipy.signal import lfilter
+
+    fs, n, tau = 10.0, 600, 1.0
+    a = np.exp(-1 / (fs * tau))
+    z = []
+    for s in range(120):
+        rng = np.random.default_rng(s)
+        cal = accelcal.StartupCalibration(sigma="stream")
+        for k, az in enumerate(BAL):
+            mu = model([az], [12.0, -7.0], [40.0, -25.0])[0]
+            e = lfilter([1 - a], [1, -a], rng.normal(0, 3.0, (n, 2)), axis=0)
+            cal.record(az, mu + e, t=k * 80 + np.arange(n) / fs)
+        r = cal.solve()
+        z.append((r.bias - [12.0, -7.0]) / r.bias_std)
+    rms = np.sqrt(np.mean(np.square(z)))
+    assert 0.8 < rms < 1.3, rms
+    # White noise: the factor stays about 1 (the plain standard error).
+    rng = np.random.default_rng(0)
+    c = rng.normal(0, 3.0, (600, 2))
+    cal = accelcal.StartupCalibration(sigma="stream")
+    for az in BAL:
+        cal.record(az, model([az], [12.0, -7.0], [40.0, -25.0])[0] + c)
+    assert cal.solve().sigma[0] == pytest.approx(3.0 / np.sqrt(600), rel=0.1)

@@ -53,6 +53,19 @@ UNIT_RATIO = 1e3
 #: design in degrees converted to radians (a session whose data cannot tell the readings apart).
 _ROUND_STEP_DEG = 2.5
 _ROUND_TOL_DEG = 1e-3
+#: Azimuths spanning under ``_NARROW_DEG`` deg as degrees but at least ``_WIDE_DEG`` deg read
+#: as radians, all within +-(2 pi + ``_RAD_SLACK``) and not all whole multiples of
+#: ``_TYPED_STEP_DEG`` deg, are refused as radians (:func:`_narrow_radians`).
+_NARROW_DEG = 10.0
+#: Outputs all below this in magnitude (but not all zero), E, look like s^-2 (or m/s^2);
+#: any above ``_HUGE_E`` look like raw counts or unconverted units (``check_units``).
+_TINY_E = 1e-3
+_HUGE_E = 1e7
+#: A disc radius above this many metres looks like millimetres given as metres.
+_MAX_RADIUS_M = 5.0
+_WIDE_DEG = 45.0
+_RAD_SLACK = 0.1
+_TYPED_STEP_DEG = 0.1
 
 
 class StartupMisfitWarning(UserWarning):
@@ -120,6 +133,28 @@ def _dwell_std(sigma: Any, m: int) -> _F64:
             f"sigma must be positive and finite (E, noise std of an average); got {sigma!r}"
         )
     return s
+
+
+def _output_units(y: _F64, what: str, fix: str) -> str | None:
+    """Why outputs meant in E are plainly in other units, or None: every ``|value|`` below
+    :data:`_TINY_E` E (not all zero: s^-2 or m/s^2 given as E), or any above :data:`_HUGE_E`
+    E (raw counts, or m/s^2 / s^-2 scaled wrongly). Gravity gradients and gradiometer
+    biases are of order 1 to 1e4 E."""
+    big = float(np.max(np.abs(y))) if y.size else 0.0
+    if 0.0 < big < _TINY_E:
+        return (
+            f"the {what} look like s^-2 (or m/s^2), not E: every value is below {_TINY_E:g} E "
+            f"(largest |value| {big:.3g}, spread {float(np.ptp(y)):.3g}) where gravity "
+            f"gradients and biases are of order 1 to 1e4 E (1 E = 1e-9 s^-2); multiply "
+            f"s^-2 by 1e9, {fix}"
+        )
+    if big > _HUGE_E:
+        return (
+            f"the {what} are far too large for E: largest |value| {big:.3g} E (above "
+            f"{_HUGE_E:g} E, where gravity gradients and biases are of order 1 to 1e4 E): "
+            f"raw counts, or values not converted to E? convert them, {fix}"
+        )
+    return None
 
 
 # ------------------------------------------------------------------------------------------
@@ -318,8 +353,8 @@ def startup_bias(
         Reference time of the bias with drift, s; default the mean of ``t`` (the centre of
         the sequence, where a time-symmetric sequence decorrelates drift from bias).
     check_units : bool
-        Refuse azimuths that look like radians (see Raises); False fits them as degrees
-        whatever they look like.
+        Refuse azimuths that look like radians and outputs that plainly are not in E (see
+        Raises); False fits them as given whatever they look like.
 
     Returns
     -------
@@ -336,8 +371,13 @@ def startup_bias(
         :data:`UNIT_RATIO` times smaller, and with ``sigma`` given the radians reading
         within the noise, chi2 p >= :data:`MISFIT_P`, and the degrees reading not), or (b)
         they are radians of whole multiples of 2.5 deg (to 1e-3 deg: ``np.radians(45)``)
-        and the data do not favour the degrees reading that much. A design such as 0, 1, 2,
-        3 deg that the data fit as degrees is not refused.
+        and the data do not favour the degrees reading that much, or (c) read as degrees they
+        span under 10 deg while read as radians they span 45 deg or more (all within
+        +-(2 pi + 0.1)), unless every azimuth is a whole multiple of 0.1 deg (a tiny design
+        typed in degrees, such as 0, 1, 2, 3, is not refused; measured or converted radians
+        such as 0.0122, 1.5865 are). Also, with ``check_units``, outputs whose every
+        ``|value|`` is below 1e-3 E (not all zero: s^-2 or m/s^2 given as E) or any above
+        1e7 E (raw counts, unconverted units).
 
     Warns
     -----
@@ -354,6 +394,10 @@ def startup_bias(
     tref = None
     if drift and t_ref is not None:
         tref = number(t_ref, "t_ref", unit="s")
+    if check_units:
+        why = _output_units(y, "outputs", "or check_units=False if they are E")
+        if why is not None:
+            raise CalibrationError(why)
     sd = None if sigma is None else _dwell_std(sigma, m)
     td = tt if drift else None
     raw = _core.startup_bias_raw(az, y, sd, td, tref)
@@ -376,6 +420,29 @@ def _list(v: _F64, n: int = 8) -> str:
     return ", ".join(words + (["..."] if v.size > n else []))
 
 
+def _narrow_radians(az: _F64) -> str | None:
+    """Why azimuths given as degrees are plainly radians by their spread alone, or None: all
+    within +-(2 pi + :data:`_RAD_SLACK`), spanning under :data:`_NARROW_DEG` deg read as
+    degrees but at least :data:`_WIDE_DEG` deg read as radians, and not all whole multiples
+    of :data:`_TYPED_STEP_DEG` deg (a tiny design typed in degrees, such as 0, 1, 2, 3 or
+    0.3, 1.2, 2.7, is round; radians from a measured or converted design are not)."""
+    if az.size < 2 or not np.all(np.abs(az) <= 2.0 * np.pi + _RAD_SLACK):
+        return None
+    span = float(np.ptp(az))
+    span_rad = math.degrees(span)
+    if not (0.0 < span < _NARROW_DEG and span_rad >= _WIDE_DEG):
+        return None
+    step = az / _TYPED_STEP_DEG
+    if np.all(np.abs(step - np.round(step)) <= 1e-9 * np.maximum(1.0, np.abs(step))):
+        return None
+    return (
+        f"the azimuths look like radians, not degrees: they ({_list(az)}) span only "
+        f"{span:.3g} deg, but read as radians ({_list(np.degrees(az))} deg) {span_rad:.3g} "
+        f"deg (a start-up design spans tens of degrees; one under {_NARROW_DEG:g} deg barely "
+        "separates bias from gradient)"
+    )
+
+
 def _radians_check(
     az: _F64, y: _F64, sd: _F64 | None, t: _F64 | None, t_ref: float | None, fit: StartupBias
 ) -> tuple[str | None, str | None]:
@@ -387,6 +454,22 @@ def _radians_check(
     warning) is set when, with ``sigma`` given, the radians reading fits markedly (10x)
     better without meeting the rule.
     """
+    fix = ("pass np.degrees(azimuth) as azimuth_deg, or check_units=False if they are "
+           "degrees")
+    refuse, hint = _radians_by_fit(az, y, sd, t, t_ref, fit, fix)
+    if refuse is None:
+        narrow = _narrow_radians(az)
+        if narrow is not None:
+            return f"{narrow}; {fix}", None
+    return refuse, hint
+
+
+def _radians_by_fit(
+    az: _F64, y: _F64, sd: _F64 | None, t: _F64 | None, t_ref: float | None, fit: StartupBias,
+    fix: str,
+) -> tuple[str | None, str | None]:
+    """Rules (a) and (b) of :func:`startup_bias` (Raises): the two readings' fits compared,
+    and radians of round degrees."""
     if not (np.any(az != 0.0) and np.all(np.abs(az) <= 2.0 * np.pi * (1.0 + 1e-12))):
         return None, None
     deg = np.degrees(az)
@@ -402,8 +485,6 @@ def _radians_check(
     if not (math.isfinite(rss_d) and math.isfinite(rss_r) and math.isfinite(floor)):
         return None, None
     dof = fit.dof
-    fix = ("pass np.degrees(azimuth) as azimuth_deg, or check_units=False if they are "
-           "degrees")
     head = (f"the azimuths look like radians, not degrees: all lie within +-2 pi "
             f"({_list(az)})")
     if dof > 0 and rss_d > UNIT_RATIO * max(rss_r, floor):
@@ -500,6 +581,63 @@ def _accel(x: ArrayLike) -> NDArray[Any]:
     return a
 
 
+#: A dwell of at least this many samples is checked for dead, stuck and clipped channels.
+_CHANNEL_MIN_SAMPLES = 30
+#: A channel with more than this fraction of a dwell's samples on its largest (or smallest)
+#: value, and more than ``_RAIL_PILEUP`` times as many as on its next value, is on a rail.
+_RAIL_FRACTION = 0.02
+_RAIL_PILEUP = 4.0
+
+
+def _channel_faults(a: NDArray[Any], b: NDArray[Any]) -> str | None:
+    """Why an accelerometer channel of a dwell did not follow the sensor, or None: see
+    :func:`demodulate` (Raises). Per dwell, vectorised over the four channels. As for
+    :meth:`accelcal.DwellSet.faults`, constancy is a fault only where the noise is otherwise
+    resolvable: when no channel of any dwell varies, the data are below the resolution."""
+    spans = [(k, s0, s1) for k, (s0, s1) in enumerate(np.asarray(b).tolist())
+             if s1 - s0 >= _CHANNEL_MIN_SAMPLES]
+    stats = []  # per dwell: largest, smallest and how many samples on each, per channel
+    for _, s0, s1 in spans:
+        xt = np.ascontiguousarray(a[s0:s1].T)  # a channel per row: reductions several x faster
+        hi, lo = xt.max(axis=1), xt.min(axis=1)
+        stats.append((hi, lo, np.count_nonzero(xt == hi[:, None], axis=1),
+                      np.count_nonzero(xt == lo[:, None], axis=1)))
+    resolvable = any(bool(np.any(hi != lo)) for hi, lo, _, _ in stats)
+    for (k, s0, s1), (hi, lo, on_hi, on_lo) in zip(spans, stats, strict=True):
+        n = s1 - s0
+        where = f"dwell {k} (samples {s0}..{s1})"
+        const = np.flatnonzero(hi == lo).tolist()
+        if const and resolvable:
+            c = const[0]
+            v = float(hi[c])
+            what = ("all zero: a dead channel" if v == 0.0
+                    else f"constant at {v:.10g}: a stuck channel")
+            if len(const) == 4:
+                what += " (all four channels constant: a frozen output)"
+            return (
+                f"accelerometer a{c + 1} of {where} is {what} (all {n} samples the same), so "
+                "the demodulated inline and cross channels are wrong by the gradient signal "
+                "it should have carried; check that accelerometer and its logging, or "
+                "check_channels=False to demodulate as given"
+            )
+        for side, val, on in (("largest", hi, on_hi), ("smallest", lo, on_lo)):
+            for c in np.flatnonzero((on > _RAIL_FRACTION * n) & (hi != lo)).tolist():
+                col = a[s0:s1, c]
+                rest = col[col != val[c]]
+                nxt = rest.max() if side == "largest" else rest.min()
+                if on[c] <= _RAIL_PILEUP * np.count_nonzero(rest == nxt):
+                    continue  # a coarsely quantised peak, not a pile-up on a rail
+                return (
+                    f"accelerometer a{c + 1} of {where}: {int(on[c])} of {n} samples "
+                    f"({100.0 * on[c] / n:.2g} %) at {float(val[c]):.10g}, its {side} value, "
+                    f"with the rest {'below' if side == 'largest' else 'above'}: clipped at "
+                    "the sensor's range (a rail), so the demodulated inline and cross "
+                    "channels are biased; reduce the gain or range, or check_channels=False "
+                    "to demodulate as given"
+                )
+    return None
+
+
 #: A wrap period within this fraction of 360 (the wrap jumps plus one step) is degrees.
 _PHASE_PERIOD_TOL = 0.05
 
@@ -550,6 +688,7 @@ def demodulate(
     radius_m: float,
     t: ArrayLike | None = None,
     check_units: bool = True,
+    check_channels: bool = True,
 ) -> Demodulated:
     """Inline and cross channels per dwell by 2-omega demodulation (numerics in Rust).
 
@@ -573,13 +712,23 @@ def demodulate(
     t : (N,) float, optional
         Sample times, s (gives each dwell's mid time).
     check_units : bool
-        Refuse a phase that plainly is in degrees (see Raises); False demodulates it as
-        radians whatever it looks like.
+        Refuse a phase that plainly is in degrees, a radius that looks like millimetres and
+        channels far too large for E (see Raises); False demodulates as given.
+    check_channels : bool
+        Refuse a dwell with a dead, stuck or clipped accelerometer channel (see Raises);
+        False demodulates it as given.
 
     Raises
     ------
     CalibrationError
-        Bad shapes, and with ``check_units`` a phase in degrees: (a) a wrapped phase whose
+        Bad shapes; with ``check_channels`` a dwell of at least 30 samples in which an
+        accelerometer channel is constant (all zero: dead; else stuck) or clipped: more than
+        2 % of its samples on its largest (or smallest) value with the rest below (above),
+        and more than 4 times as many as on its next value (so that a coarsely quantised
+        peak is not taken for a rail); the message names the channel, the dwell and what
+        was seen. With ``check_units``: ``radius_m`` above 5 m (millimetres given as
+        metres); demodulated channels above 1e7 E (raw counts, or accelerations not in
+        m/s^2); and a phase in degrees: (a) a wrapped phase whose
         wrap-around jumps plus one step make about 360 (within 5 %) and whose values span
         more than 2 pi (a phase wrapped in radians spans at most 2 pi), or (b) a phase without
         wraps that advances more than pi per sample (half a turn or more per sample read as
@@ -600,18 +749,64 @@ def demodulate(
             raise CalibrationError(why)
     b = bounds_array([[0, n]] if bounds is None else bounds)
     r = positive(radius_m, "radius_m", " (m)")
+    if check_units and r > _MAX_RADIUS_M:
+        raise CalibrationError(
+            f"radius_m {r:g} m is not a gradiometer disc radius (of order 0.1 m; above "
+            f"{_MAX_RADIUS_M:g} m refused): millimetres given as metres? pass radius_m="
+            f"{r / 1000.0:g} if it is {r:g} mm, or check_units=False if it is metres"
+        )
     tv = None
     if t is not None:
         tv = real_array(t, "t", "s").reshape(-1)
         if tv.shape != (n,):
             raise CalibrationError(f"t must have shape ({n},) to match accel")
+    if check_channels and np.all((b[:, 0] >= 0) & (b[:, 0] < b[:, 1]) & (b[:, 1] <= n)):
+        why = _channel_faults(a, b)
+        if why is not None:
+            raise CalibrationError(why)
     raw = _core.demodulate_raw(a, ph, b, r, tv)
-    return Demodulated(*raw.__reduce__()[1])
+    dm = Demodulated(*raw.__reduce__()[1])
+    if check_units:
+        chans = dm.outputs
+        fin = np.abs(chans[np.isfinite(chans)])
+        if fin.size and float(fin.max()) > _HUGE_E:
+            raise CalibrationError(
+                f"the demodulated channels are far too large for E: largest |value| "
+                f"{float(fin.max()):.3g} E (above {_HUGE_E:g} E, where gravity gradients and "
+                f"biases are of order 1 to 1e4 E; accel up to {float(np.max(np.abs(a))):.3g}, "
+                f"radius_m {r:g} m): raw counts, or accelerations not in m/s^2? convert accel "
+                "to m/s^2 (counts times the scale factor), or check_units=False to demodulate "
+                "as given"
+            )
+    return dm
 
 
 # ------------------------------------------------------------------------------------------
 # The patent's procedure as a workflow
 # ------------------------------------------------------------------------------------------
+#: Streams shorter than this get no correlation correction in ``StartupCalibration.record``.
+_AR1_MIN_SAMPLES = 20
+
+
+def _ar1_inflation(c: _F64) -> _F64:
+    """Per column of ``c`` (N, j), ``sqrt((1 + rho) / (1 - rho))``: the factor by which the
+    standard error of the mean of first-order autocorrelated noise exceeds the white-noise
+    one, ``rho`` the lag-1 autocorrelation of the linearly detrended column, clipped to
+    [0, 0.99] (1 under :data:`_AR1_MIN_SAMPLES` samples or without variation)."""
+    n = c.shape[0]
+    if n < _AR1_MIN_SAMPLES:
+        return np.ones(c.shape[1])
+    i = np.arange(n, dtype=np.float64) - 0.5 * (n - 1)
+    x = c - c.mean(axis=0)
+    x = x - np.outer(i, (i @ x) / (i @ i))
+    ss = np.sum(x * x, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.sum(x[1:] * x[:-1], axis=0) / ss
+    rho = np.where(np.isfinite(rho) & (ss > 0), rho, 0.0)
+    rho = np.clip(rho + (1.0 + 3.0 * rho) / n, 0.0, 0.99)  # Kendall's small-sample bias
+    return np.asarray(np.sqrt((1.0 + rho) / (1.0 - rho)), dtype=np.float64)
+
+
 def frame_rotation(azimuth_deg: float) -> _F64:
     """``C_b^r = Rz(theta)`` (3, 3): rotate the IMU's body-frame rates and accelerations by this
     before initial alignment, and the north-pointing control law holds the platform at
@@ -683,7 +878,14 @@ class StartupCalibration:
                ) -> None:
         """Average one azimuth's ``(N, 2)`` inline/cross stream (E) with the dwell engine.
 
-        ``t`` (N,) sample times in s give the dwell's mid time (needed for drift).
+        ``t`` (N,) sample times in s give the dwell's mid time (needed for drift). The
+        standard error kept for ``sigma="stream"`` is the white-noise one times
+        ``sqrt((1 + rho) / (1 - rho))`` per channel, ``rho`` the lag-1 autocorrelation of the
+        linearly detrended stream (plus Kendall's small-sample bias ``(1 + 3 rho) / N``,
+        clipped to [0, 0.99]; 0 under 20 samples), and the sample variance divided by
+        ``1 - (1 + rho) / ((1 - rho) N)`` (by which it falls short on such noise): right for
+        first-order (AR(1), e.g. a one-pole low-pass) noise, about 1 for white noise; noise
+        correlated over longer than one dwell (flicker, random walk) is still understated.
         """
         from .dwell import dwell_stats
 
@@ -698,7 +900,9 @@ class StartupCalibration:
         ds = dwell_stats(pad, [[0, n]], t=t)
         sem = None
         if n > 1 and ds.var is not None:
-            sem = float(np.sqrt(np.mean(ds.var[0, :2]) / n))
+            # the sample variance of correlated noise falls short by about f2 / n of it
+            f2 = np.minimum(_ar1_inflation(c) ** 2, 0.5 * n)
+            sem = float(np.sqrt(np.mean(ds.var[0, :2] * f2 / (1.0 - f2 / n)) / n))
         tm = None if ds.t is None else float(ds.t[0])
         self._add(azimuth_deg, (ds.mean[0, 0], ds.mean[0, 1]), tm, sem, n)
 
@@ -711,14 +915,17 @@ class StartupCalibration:
         t: ArrayLike | None = None,
         radius_m: float | None = None,
         check_units: bool = True,
+        check_channels: bool = True,
     ) -> Demodulated:
         """Demodulate one azimuth's raw ``(N, 4)`` streams (m/s^2; ``phase`` in rad) and
-        record the channels. ``check_units`` as for :func:`demodulate` (a phase in degrees
-        is refused)."""
+        record the channels. ``check_units`` and ``check_channels`` as for
+        :func:`demodulate` (a phase in degrees, and a dead, stuck or clipped channel, are
+        refused)."""
         r = radius_m if radius_m is not None else self.radius_m
         if r is None:
             raise CalibrationError("record_raw needs the disc radius (radius_m, m)")
-        dm = demodulate(accel, phase, radius_m=r, t=t, check_units=check_units)
+        dm = demodulate(accel, phase, radius_m=r, t=t, check_units=check_units,
+                        check_channels=check_channels)
         tm = None if dm.t is None else float(dm.t[0])
         sem = float(np.sqrt(0.5 * (dm.std_inline_E[0] ** 2 + dm.std_cross_E[0] ** 2)))
         self._add(azimuth_deg, (dm.inline_E[0], dm.cross_E[0]), tm, sem,

@@ -25,6 +25,12 @@ _PHRASES = {
     "pass np.degrees(azimuth) as azimuth_deg, or check_units=False if they are degrees":
         "give the azimuths in degrees or say the column is in radians ('azimuth [rad]'), or "
         "use --no-unit-check if they are degrees",
+    "multiply s^-2 by 1e9, or check_units=False if they are E":
+        "say the unit in the header ('inline [1/s^2]', 'cross [1/s^2]'), or use "
+        "--no-unit-check if they are E",
+    "convert them, or check_units=False if they are E":
+        "convert them to E (or say the unit in the header: '[mE]', '[1/s^2]'), or use "
+        "--no-unit-check if they are E",
     "a wrong sigma": "a wrong --sigma",
     "(from sigma)": "(from --sigma)",
     "pass np.degrees(azimuth) as azimuth_deg":
@@ -41,7 +47,8 @@ def _cli(msg: str) -> str:
 @click.option("--drift/--no-drift", default=None, help="Fit a linear bias drift (needs t_s).")
 @click.option("--sigma", type=float, default=None, help="Noise std of one average, E.")
 @click.option("--no-unit-check", is_flag=True,
-              help="Fit azimuths as degrees even when they look like radians.")
+              help="Fit azimuths as degrees even when they look like radians, and channels "
+                   "as E even when their size says otherwise.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the result as JSON.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
@@ -55,9 +62,10 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
 
     Columns by name, with units in brackets: the azimuth (azimuth_deg, azimuth, az, heading;
     deg or rad), the inline and cross channels (E, mE or 1/s^2) and optionally the time (s,
-    min or h). Azimuths in a column that does not say [rad] but that look like radians
-    (see accelcal.startup_bias) are refused; with --sigma, residuals that exceed it are
-    reported."""
+    min or h). Azimuths in a column that does not say [rad] but that look like radians,
+    and channels whose size says they are not E (every value below 1e-3: 1/s^2; any above
+    1e7: counts) are refused (see accelcal.startup_bias; --no-unit-check fits them as
+    given); with --sigma, residuals that exceed it are reported."""
     import warnings
 
     from ..gradiometer import calibrate_gradiometer_table
