@@ -227,3 +227,21 @@ def test_apply_says_when_the_calibration_does_not_fit_the_recording(tmp_path: Pa
     code, out = run("apply", str(cal), str(other), "-o", str(tmp_path / "b.csv"))
     assert code == 0 and "the calibrated output's norm is typically 1" in out \
         and "is this the sensor, and are these the units" in out, out
+
+
+def test_calibrate_static_takes_the_reference_gravitys_std(tmp_path: Path) -> None:
+    """--sigma-g adds the reference gravity's uncertainty to every std the command reports
+    (the scale factors' std grows by the relative sigma_g), and a value in other units than
+    --g is refused naming the option."""
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(24, max_tilt_deg=None, sigma=1e-6, sigma_g=0.0, rng=5)
+    p = tmp_path / "means.csv"
+    p.write_text("ax,ay,az\n" + "\n".join(",".join(f"{v:.12g}" for v in r) for r in s.means))
+    args = ["calibrate", "static", str(p), "--means", "--g", "9.80665", "--json"]
+    base = json.loads(CliRunner().invoke(main, args).output)
+    withg = json.loads(CliRunner().invoke(main, [*args, "--sigma-g", "1e-3"]).output)
+    sx, sx_g = base["std"][0], withg["std"][0]
+    assert sx_g > 10 * sx and abs(sx_g - base["vector"][0] * 1e-3 / 9.80665) < 0.2 * sx_g
+    r = CliRunner().invoke(main, [*args, "--sigma-g", "1"])
+    assert r.exit_code == 2 and "--sigma-g = 1 is more than 1 % of g" in r.output

@@ -38,6 +38,7 @@ from .fleet import fleet_options, is_fleet_run, run_static_fleet
 #: Python keywords in the static fit's messages, as the command line spells them.
 _PHRASES = {
     "check_g=False": "--no-check-g",
+    "sigma_g = ": "--sigma-g = ",
     'model "diag"': "--model diag",
     "model='diag'": "--model diag",
     'model="diag"': "--model diag",
@@ -92,6 +93,10 @@ def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
 @means_option
 @click.option("--no-check-g", "no_check_g", is_flag=True,
               help="Accept a --g that is not a plausible local gravity (m/s^2, g or cm/s^2).")
+@click.option("--sigma-g", "sigma_g", type=float, default=None,
+              help="Std of the reference gravity, in the units of --g (e.g. 1e-5 m/s^2 from "
+                   "an absolute gravimeter, about 1e-3 from --lat's formula): added to every "
+                   "reported std.")
 @click.option("--nominal", "nominal_path", type=click.Path(dir_okay=False), default=None,
               help="Calibration file of the nominal model, for the 'before' norm statistics.")
 @click.option("--sensor-id", default="", help="Stored in the calibration file.")
@@ -109,7 +114,7 @@ def calibrate_static(
     fs: float | None, columns: str | None, time_column: str | None, quiet: bool, model: str,
     method: str, window_s: float, k: float, min_dwell_s: float, trim_s: float,
     bounds: str | None,
-    means: bool, count: int | None, no_check_g: bool,
+    means: bool, count: int | None, no_check_g: bool, sigma_g: float | None,
     nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
     plot_path: str | None, as_json: bool, **fleet: Any,
 ) -> None:
@@ -134,6 +139,8 @@ def calibrate_static(
         if count:
             raise CalibrationError("--count takes one table of dwell means, not a fleet run "
                                    "(give each table's count column, or --means alone)")
+        if sigma_g is not None:
+            raise CalibrationError("--sigma-g takes one recording, not a fleet run")
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns, means=means,
             time_column=time_column, quiet=quiet, model=model, method=method,
@@ -172,7 +179,7 @@ def calibrate_static(
         try:
             fit = fit_static(d, gv, model=model, method=method,
                              check_g=not no_check_g and g is not None,  # not from --lat
-                             nominal=nominal)
+                             nominal=nominal, sigma_g=sigma_g)
         except DegenerateDataError as e:
             hint = ""
             if model != "diag" and "diag" not in str(e):
