@@ -226,3 +226,18 @@ def test_static_fits_of_several_sessions_on_dask_workers(dask_client: Any) -> No
         assert_same_result(r, local)
         z = (r.vector - s.truth) / r.std
         assert np.abs(z).max() < 4.5
+
+
+def test_result_reprs_say_what_they_hold():
+    """CentrifugeFit and StartupBias printed as <object at 0x...>."""
+    import warnings
+
+    from accelcal.sim.centrifuge import centrifuge_session
+
+    s = centrifuge_session(noise_g=1e-6, rng=1, g=9.8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        f = ac.fit_centrifuge(s.outputs, s.omega, s.radius, g=9.8)
+    assert repr(f).startswith("CentrifugeFit(method='nls', rows=60, excluded=0")
+    b = ac.startup_bias([0, 90, 180, 270], [[3, 3.5], [1, 2.5], [3, 3.5], [1, 2.5]], sigma=0.1)
+    assert repr(b) == "StartupBias(dwells=4, bias_E=[2, 3], std_E=[0.05, 0.05], dof=4)", repr(b)

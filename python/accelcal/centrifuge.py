@@ -263,6 +263,10 @@ class CentrifugeFit(_core.CentrifugeFitCore):
 
     __slots__ = ()
 
+    def __repr__(self) -> str:
+        return (f"CentrifugeFit(method={self.method!r}, rows={len(self.residuals)}, "
+                f"excluded={len(self.outliers)}, residual_rms={self.residual_rms:.3g} g)")
+
     @property
     def scale(self) -> NDArray[np.float64]:
         """Scale factors S (3,), output g per input g."""

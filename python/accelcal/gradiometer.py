@@ -204,6 +204,11 @@ class StartupBias(_core.StartupBiasCore):
     #: where a non-estimated ``sigma`` came from (see :class:`_StartupBiasFromStreams`)
     _given_sigma: ClassVar[str] = "given"
 
+    def __repr__(self) -> str:
+        b, sd = np.asarray(self.bias), np.asarray(self.bias_std)
+        return (f"StartupBias(dwells={len(self.azimuth_deg)}, bias_E=[{b[0]:.4g}, {b[1]:.4g}], "
+                f"std_E=[{sd[0]:.2g}, {sd[1]:.2g}], dof={self.dof})")
+
     @property
     def sigma_source(self) -> str:
         """Where ``sigma`` came from: ``"given"``, ``"from the streams"`` or ``"estimated from
