@@ -1105,3 +1105,17 @@ def test_fit_static_reads_a_dataframe_by_column_name_and_hands_out_read_only_arr
     for arr in (f.K, f.std, f.std_realistic, f.covariance_scaled):
         with pytest.raises(ValueError, match="read-only"):
             arr[0] = 0.0
+
+
+def test_outputs_in_mg_are_labelled_mg_and_a_backwards_axis_is_said():
+    """g = 1000 (an output in mg) was labelled cm/s^2 in the summary and the saved model, and
+    1000 mg was refused as implausible; a nominal model with the y axis wired backwards (sy
+    = -1) got a fit with sy = +0.99999 and no word: the norm cannot see an axis's sign."""
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(24, max_tilt_deg=None, sigma=1e-4, sigma_g=0.0, rng=4, g=1000.0)
+    f = ac.fit_static(s.means, 998.0)  # local gravity in mg: accepted now
+    assert f.to_model().units == "mg" and "998 mg" in f.summary().replace(".0 mg", " mg")
+    nominal = ac.TriadModel(np.diag([1.0, -1.0, 1.0]), [0.0, 0.0, 0.0])
+    with pytest.warns(UserWarning, match="negative scale on y"):
+        fit_quiet(s.means, 998.0, nominal=nominal)

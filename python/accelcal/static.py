@@ -79,13 +79,17 @@ def _ignored(category: type[Warning]) -> bool:
 
 
 def units_of_g(g: float) -> str:
-    """The unit a reference gravity ``g`` is expressed in: m/s^2, g or cm/s^2 (else "")."""
+    """The unit a reference gravity ``g`` is expressed in: m/s^2, g, cm/s^2 or mg (else "").
+    Local gravity is 976-983 cm/s^2 and 995-1003 mg: 990 splits them (g = 1000 labelled
+    cm/s^2 an output in mg)."""
     if 9.0 <= g <= 10.5:
         return "m/s^2"
     if 0.9 <= g <= 1.1:
         return "g"
-    if 900.0 <= g <= 1050.0:
+    if 900.0 <= g < 990.0:
         return "cm/s^2"
+    if 990.0 <= g <= 1100.0:
+        return "mg"
     return ""
 
 
@@ -825,6 +829,8 @@ def fit_static(
         if why is None:
             raise
         raise why from None
+    if nominal is not None:
+        _mirrored_axes(nominal)
     attention = fit._attention  # one read: bit 0 not converged, bit 1 weak or degenerate
     if attention & 1:
         raise _not_converged(fit, method, means, g)
@@ -832,6 +838,22 @@ def fit_static(
         if not _ignored(WeakDesignWarning):  # the text costs more than the fit
             warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
+
+
+def _mirrored_axes(nominal: Any) -> None:
+    """Warn when the nominal model has an axis wired backwards (a negative scale): the norm
+    cannot see an axis's sign, so the fit has that scale positive and its calibrated output of
+    that axis the opposite sign of the nominal's (a y axis wired backwards came back +0.99999
+    for -1, with no word)."""
+    neg = [n for n, v in zip("xyz", np.diag(np.asarray(nominal.K)), strict=True) if v < 0]
+    if neg:
+        axes = ", ".join(neg)
+        warnings.warn(
+            f"the nominal model has a negative scale on {axes} (wired backwards): the norm "
+            f"cannot see an axis's sign, so this fit has it positive and calibrates {axes} "
+            "with the opposite sign of the nominal's (a mirrored triad); negate that column "
+            "of the data before fitting and applying to keep the nominal's convention",
+            UserWarning, stacklevel=3)
 
 
 def _start(start: ArrayLike) -> list[float]:

@@ -85,16 +85,18 @@ pub const G_STANDARD: f64 = 9.80665;
 pub fn implausible_g(g: f64) -> Option<String> {
     let [lo, hi] = G_BOUNDS;
     let within = |scale: f64| (lo * scale..=hi * scale).contains(&g);
-    if within(1.0) || within(1.0 / G_STANDARD) || within(100.0) {
+    if within(1.0) || within(1.0 / G_STANDARD) || within(100.0) || within(1000.0 / G_STANDARD) {
         return None;
     }
     Some(format!(
         "g = {g} is not a plausible local gravity: Earth's is 9.78-9.83 m/s^2 at sea level \
-         ({lo}-{hi} allowed: {:.4}-{:.4} in units of g, {}-{} cm/s^2)",
+         ({lo}-{hi} allowed: {:.4}-{:.4} in units of g, {}-{} cm/s^2, {:.1}-{:.1} mg)",
         lo / G_STANDARD,
         hi / G_STANDARD,
         lo * 100.0,
-        hi * 100.0
+        hi * 100.0,
+        1000.0 * lo / G_STANDARD,
+        1000.0 * hi / G_STANDARD
     ))
 }
 
