@@ -334,7 +334,8 @@ class TriadModel:
                     f"{np.array2string(self.bias, precision=4)} lies near 0, as a signed "
                     "output's does (an unsigned 16-bit output's lies near 32768): read as "
                     "signed 16-bit values stored as unsigned, as accelcal.io.read_stream "
-                    "reads them (give raw.view(np.int16) to say so and silence this)",
+                    "reads them (give raw.view(np.int16) to say so and silence this, or "
+                    "raw.astype(np.int32) if they are unsigned outputs)",
                     UserWarning, stacklevel=2)
             a = a.view(np.int16)
         s = samples_array(a, "raw")
