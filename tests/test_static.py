@@ -907,13 +907,14 @@ def test_a_degenerate_diag_fit_does_not_advise_the_diag_model() -> None:
 
 
 def test_batch_refuses_an_implausible_g_as_fit_static_does() -> None:
-    """fit_static_batch(means[None], 1000.0) used to return 'ok' with scales ~0.011 where
-    fit_static refuses the g; now both refuse it, with the same opt-out."""
+    """fit_static_batch(means[None], 1200.0) used to return 'ok' with scales ~0.008 where
+    fit_static refuses the g; now both refuse it, with the same opt-out. (1000 is a
+    plausible local gravity in mg.)"""
     s = static_dwell_means(18, max_tilt_deg=None, rng=0)
     with pytest.raises(CalibrationError) as single:
-        ac.fit_static(s.means, 1000.0)
+        ac.fit_static(s.means, 1200.0)
     with pytest.raises(CalibrationError) as batch:
-        ac.fit_static_batch(s.means[None], 1000.0)
+        ac.fit_static_batch(s.means[None], 1200.0)
     assert str(batch.value) == str(single.value)
     assert "not a plausible local gravity" in str(batch.value) and "check_g=False" in str(
         batch.value)
