@@ -337,8 +337,10 @@ def test_a_model_is_not_changed_in_place_nor_saved_unchecked(tmp_path):
 
 def test_a_hand_edited_g_or_output_unit_is_noticed(tmp_path):
     """'g' edited from 9.80665 to 9.0 loaded without a word (fit_static refuses 9.0 unless
-    told), and 'units.output' edited to 'mg' or 'ft/s^2' passed the unit check, which knew
-    three units. A fit made with check_g=False records it, and its file loads quietly."""
+    told), 'units.output' edited to 'mg' or 'ft/s^2' passed the unit check, which knew three
+    units, and the bias edited with 'vector' loaded. A fit made with check_g=False records
+    it, and its file loads quietly; a model without redundancy (9 dwells, the noise
+    estimated) is saved without a covariance (to_model failed on its NaN one)."""
     import warnings
 
     from accelcal.sim.static import static_dwell_means
@@ -348,11 +350,22 @@ def test_a_hand_edited_g_or_output_unit_is_noticed(tmp_path):
     p = tmp_path / "m.json"
     m.save(p)
     d = json.loads(p.read_text())
-    for field, value, what in (("g", 9.0, "not a plausible local gravity"),):
-        e = dict(d, **{field: value})
-        p.write_text(json.dumps(e))
-        with pytest.warns(UserWarning, match=what):
-            ac.TriadModel.load(p)
+    e = dict(d, g=9.0)
+    p.write_text(json.dumps(e))
+    with pytest.warns(UserWarning, match="not a plausible local gravity"), \
+            pytest.raises(CalibrationError, match="do not reproduce the fit they record"):
+        ac.TriadModel.load(p)
+    # The bias and 'vector' edited together (consistent for the other checks): the session's
+    # residual RMS gives it away; a file without a session is not checked so.
+    e = json.loads(json.dumps(d))
+    e["bias"][0] += 0.05
+    e["vector"][3] += 0.05
+    p.write_text(json.dumps(e))
+    with pytest.raises(CalibrationError, match="residual RMS of .* the file says"):
+        ac.TriadModel.load(p)
+    del e["metadata"]["fit_session"]
+    p.write_text(json.dumps(e))
+    assert ac.TriadModel.load(p).bias[0] == pytest.approx(d["bias"][0] + 0.05)
     for unit in ("mg", "ft/s^2"):
         e = json.loads(json.dumps(d))
         e["units"]["output"] = unit
@@ -365,6 +378,12 @@ def test_a_hand_edited_g_or_output_unit_is_noticed(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert ac.TriadModel.load(p).g == 9.0
+    s9 = static_dwell_means(9, max_tilt_deg=None, sigma=1e-4, rng=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bare = ac.fit_static(s9.means, 9.80665).to_model()
+    bare.save(p)
+    assert ac.TriadModel.load(p).covariance is None
 
 
 def test_apply_warns_when_the_raw_data_are_in_other_units_than_the_model():

@@ -156,6 +156,31 @@ _UNIT_G = {"g": 1.0, "g0": 1.0, "m/s^2": 9.80665, "m/s2": 9.80665, "ms^-2": 9.80
            "ft/s^2": 9.80665 / 0.3048, "ft/s2": 9.80665 / 0.3048}
 
 
+def _check_session(m: TriadModel, source: str) -> None:
+    """The parameters against the session they were fitted to: a file that records its dwell
+    means (``metadata.fit_session``) and the residual RMS of its fit reproduces that RMS to
+    rounding; an edit of the bias or K together with 'vector' (which the other checks see
+    as consistent) does not (a bias moved by 0.05 gave an RMS 100 times the recorded)."""
+    md = m.metadata
+    sess, rms = md.get("fit_session"), md.get("residual_rms")
+    if (m.g is None or not isinstance(sess, dict) or isinstance(rms, bool)
+            or not isinstance(rms, (int, float)) or not math.isfinite(rms)):
+        return
+    try:
+        means = np.asarray(sess["means"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return
+    if means.ndim != 2 or means.shape[1] != 3 or not np.all(np.isfinite(means)):
+        return
+    cal = np.linalg.solve(m.K, (means - m.bias).T).T
+    got = float(np.sqrt(np.mean((np.linalg.norm(cal, axis=1) - m.g) ** 2)))
+    if abs(got - rms) > 1e-6 * rms + 1e-9 * m.g:
+        raise CalibrationError(
+            f"{source}: K and bias do not reproduce the fit they record: on the dwell means "
+            f"of metadata.fit_session they leave a residual RMS of {got:.6g}, the file says "
+            f"{rms:.6g} (metadata.residual_rms): edited by hand?")
+
+
 def _json_scalar(v: Any) -> Any:
     """A numpy scalar or array in the metadata as JSON (``json.dumps``'s ``default``)."""
     if isinstance(v, np.generic):
@@ -478,6 +503,7 @@ class TriadModel:
                     f"{want.tolist()})"
                 )
         _check_covariances(m, source)
+        _check_session(m, source)
         if d.get("version") == 2 and d.get("covariance") is not None:
             c = _finite_array(d["covariance"], f"{source}: covariance")
             if m.covariance is None or c.shape != m.covariance.shape or not np.allclose(

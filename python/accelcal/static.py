@@ -532,14 +532,24 @@ class StaticFit(_core.StaticFit):
             meta["input_units"] = self.input_units
         # The calibrated output is in the units of g (a fit to g = 1 calibrates to g).
         meta.setdefault("units", unit_label(self.g))
-        scaled = self.covariance_scaled
+        # A fit without redundancy and with the noise estimated (9 dwells for 9 parameters)
+        # has no finite covariance: the model then carries none (it failed to be made).
+        noise: Any = self.covariance_noise_model
+        noise = noise if np.all(np.isfinite(noise)) else None
+        scaled: Any = self.covariance_scaled
+        scaled = scaled if np.all(np.isfinite(scaled)) else None
+        realistic: str | None = self.realistic
+        if realistic == "scaled" and scaled is None:
+            realistic = "noise_model" if noise is not None else None
+        if realistic == "noise_model" and noise is None:
+            realistic = None
         return TriadModel(
             self.K,
             self.bias,
             model=self.model,
-            covariance_noise_model=self.covariance_noise_model,
-            covariance_scaled=scaled if np.all(np.isfinite(scaled)) else None,
-            realistic=self.realistic,
+            covariance_noise_model=noise,
+            covariance_scaled=scaled,
+            realistic=realistic,
             g=self.g,
             metadata=md,
             **meta,

@@ -236,7 +236,10 @@ def calibrate_static(
     for n in notes:
         click.echo(f"warning: {n}")
     if output:
-        click.echo(f"wrote {output} (std stored and printed: {fit.realistic.replace('_', ' ')})")
+        stored = (f"std stored and printed: {fit.realistic.replace('_', ' ')}"
+                  if np.all(np.isfinite(fit.std_realistic)) else
+                  "no std stored: the fit has none (no redundancy, noise not given)")
+        click.echo(f"wrote {output} ({stored})")
     if dwells_out:
         click.echo(f"wrote {dwells_out} (the dwell table: {len(undropped)} dwells, before any "
                    "was left out)")
