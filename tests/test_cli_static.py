@@ -245,3 +245,36 @@ def test_calibrate_static_takes_the_reference_gravitys_std(tmp_path: Path) -> No
     assert sx_g > 10 * sx and abs(sx_g - base["vector"][0] * 1e-3 / 9.80665) < 0.2 * sx_g
     r = CliRunner().invoke(main, [*args, "--sigma-g", "1"])
     assert r.exit_code == 2 and "--sigma-g = 1 is more than 1 % of g" in r.output
+
+
+def test_plan_writes_the_poses_as_csv_for_a_tilt_table(tmp_path: Path) -> None:
+    """`accelcal plan` printed a checklist only: a test engineer wants a file the tilt table
+    (or the checklist) reads. -o writes one row per pose: tilts in deg, the gravity direction
+    in the sensor frame, the placement in words; the numbers are the plan's."""
+    import csv
+
+    out = tmp_path / "plan.csv"
+    r = CliRunner().invoke(main, ["plan", "--n", "12", "--max-tilt", "30", "-o", str(out)])
+    assert r.exit_code == 0 and f"wrote {out}" in r.output
+    rows = list(csv.DictReader(out.read_text().splitlines()))
+    plan = ac.plan_poses(12, 30.0)
+    assert [int(x["pose"]) for x in rows] == list(range(1, 13))
+    tilts = np.array([[float(x["tilt_x_deg"]), float(x["tilt_y_deg"])] for x in rows])
+    dirs = np.array([[float(x[k]) for k in ("gx", "gy", "gz")] for x in rows])
+    assert plan.tilts_deg is not None
+    np.testing.assert_allclose(tilts, plan.tilts_deg, atol=1e-5)
+    np.testing.assert_allclose(dirs, plan.directions, atol=1e-8)
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, atol=1e-8)
+    assert rows[0]["placement"] == plan.pose_names()[0]
+
+
+def test_summary_gives_the_student_t_interval_when_the_noise_is_estimated() -> None:
+    """With the noise estimated from few degrees of freedom the std is a t statistic (+-2
+    std covered 84 % at 3 dof): the summary now says what a 95 % interval is."""
+    from accelcal.sim.static import static_dwell_means
+
+    s = static_dwell_means(12, max_tilt_deg=None, sigma=1e-4, rng=1)
+    text = ac.fit_static(s.means, s.g_measured).summary()
+    assert "estimated from 3 degrees of freedom: a 95 % interval is +-3.18 std" in text
+    s = static_dwell_means(60, max_tilt_deg=None, sigma=1e-4, rng=1)
+    assert "Student t" not in ac.fit_static(s.means, s.g_measured).summary()

@@ -144,6 +144,29 @@ class PosePlan:
         left side down 12 deg" (axes: x nose, y left side, z top)."""
         return [pose_name(d) for d in self.directions]
 
+    def to_csv(self, path: str | None = None) -> str:
+        """The poses as CSV, one row per pose in order: ``pose`` (1-based), the platform tilts
+        ``tilt_x_deg, tilt_y_deg`` when planned for a two-axis platform, the unit gravity
+        direction in the sensor frame ``gx, gy, gz``, and the placement in words. Written
+        atomically to ``path`` when given; the text is returned either way."""
+        import csv
+        import io
+
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        tilt = self.tilts_deg is not None
+        w.writerow(["pose", *(["tilt_x_deg", "tilt_y_deg"] if tilt else []), "gx", "gy", "gz",
+                    "placement"])
+        for i, (d, nm) in enumerate(zip(self.directions, self.pose_names(), strict=True)):
+            t = [f"{v:.6g}" for v in self.tilts_deg[i]] if self.tilts_deg is not None else []
+            w.writerow([i + 1, *t, *(f"{(0.0 if abs(v) < 5e-10 else v):.9f}" for v in d), nm])
+        text = buf.getvalue()
+        if path is not None:
+            from ._files import atomic_write
+
+            atomic_write(path, text)
+        return text
+
     def checklist(self) -> str:
         """Numbered checklist of the poses in order, with the platform tilts when planned
         for a two-axis platform."""

@@ -99,6 +99,19 @@ def unit_label(g: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------
+def _t95(dof: int) -> float:
+    """The two-sided 95 % Student t quantile for ``dof`` degrees of freedom (``t^2`` is
+    F(1, dof): the F tail of the core, bisected)."""
+    lo, hi = 1.959, 1e3
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        if _core.f_sf(mid * mid, 1.0, float(dof)) > 0.05:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
 def _frozen(a: Any) -> NDArray[np.float64]:
     """``a`` made read-only: a cached result array handed out on every access, which an edit
     in place (``fit.K /= 9.80665``) would change for the fit, its summary and its file."""
@@ -643,6 +656,13 @@ class StaticFit(_core.StaticFit):
         if self.sigma_g:
             src += f", including reference-gravity uncertainty sigma_g = {self.sigma_g:.3g} {u}"
         lines.append(f"  std: {src}; K in {self.input_units or 'raw (input) units'} per {u}")
+        if self.realistic == "scaled" and 0 < self.dof < 30 and math.isfinite(self.chi2_dof):
+            # The scale is estimated from the residuals: intervals are Student t (at 3 dof
+            # +-2 std covered 84 %).
+            lines.append(
+                f"  the noise level behind the std is estimated from {self.dof} degree"
+                f"{'' if self.dof == 1 else 's'} of freedom: a 95 % interval is "
+                f"+-{_t95(self.dof):.3g} std (Student t), not +-1.96")
         hdr = f"  {'param':<6} {'value':>14} {'std':>11}"
         if tv is not None:
             hdr += f" {'truth':>14} {'error/std':>10}"

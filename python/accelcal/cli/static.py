@@ -257,10 +257,13 @@ def calibrate_static(
               show_default=True)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
               help="The numbered poses on an equal-area projection of the sphere.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write the poses as CSV (pose, platform tilts in deg, gravity direction in "
+                   "the sensor frame, placement) for a tilt table or a checklist.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | None,
-         as_json: bool) -> None:
+         output: str | None, as_json: bool) -> None:
     """Plan n poses (D-optimal): a numbered checklist and the accuracy they predict."""
     from ..design import plan_poses
 
@@ -281,12 +284,16 @@ def plan(n: int, max_tilt: float, sigma: float, model: str, plot_path: str | Non
         from ..plots import poses_figure
 
         _save_fig(poses_figure(p), plot_path)
+    if output:
+        p.to_csv(output)
     if as_json:
         emit_json(_plan_dict(p, sigma, model))
         return
     click.echo(_plan_text(p, sigma, model))
     if plot_path:
         click.echo(f"wrote {plot_path}")
+    if output:
+        click.echo(f"wrote {output}")
 
 
 def _plan_dict(p: Any, sigma: float, model: str) -> dict[str, Any]:
