@@ -172,7 +172,7 @@ def _check_session(m: TriadModel, source: str) -> None:
         return
     if means.ndim != 2 or means.shape[1] != 3 or not np.all(np.isfinite(means)):
         return
-    cal = np.linalg.solve(m.K, (means - m.bias).T).T
+    cal = m.apply(means, check_units=False)
     got = float(np.sqrt(np.mean((np.linalg.norm(cal, axis=1) - m.g) ** 2)))
     if abs(got - rms) > 1e-6 * rms + 1e-9 * m.g:
         raise CalibrationError(
