@@ -583,6 +583,9 @@ pub fn solve<const N: usize>(
         CoreError::InvalidInput(ref m) if m == crate::lsq::START_NOT_EVALUABLE => {
             start::unexcited_axes(means).unwrap_or(e)
         }
+        // One pose: said as such before any combination it leaves undetermined (that
+        // message's advice, a smaller model, cannot help there).
+        CoreError::Degenerate(_) => start::one_pose(means).unwrap_or(e),
         e => e,
     })
 }
@@ -879,7 +882,14 @@ fn fit_static_n<const N: usize>(
     if let Err(e) = pass {
         return Err(s.start.error.clone().unwrap_or(e));
     }
-    check_solved(&s, set, n, || comparable_jacobian(&prob, &s.ml.params, N))?;
+    check_solved(&s, set, n, || comparable_jacobian(&prob, &s.ml.params, N)).map_err(|e| {
+        // One pose: said as such before any combination it leaves undetermined (the
+        // combination's advice, a smaller model, cannot help there).
+        match e {
+            CoreError::Degenerate(_) => start::one_pose(means).unwrap_or(e),
+            e => e,
+        }
+    })?;
     if !s.converged && !s.cov.summary.degenerate {
         // An iteration that wanders because no pose turned an axis towards gravity (and the
         // design check above did not already say what is undetermined): say so.

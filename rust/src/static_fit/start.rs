@@ -57,7 +57,9 @@ pub struct Start {
 fn not_ellipsoid(detail: &str) -> CoreError {
     CoreError::Degenerate(format!(
         "the dwell means do not lie on an ellipsoid ({detail}): check that the data are static \
-         dwell means of one sensor and that g is in the data's units"
+         dwell means of one sensor (rows taken while it moved, or poses that cover little of \
+         the sphere, give such a quadric; the data may be in any unit, g only sets the unit of \
+         the calibrated output)"
     ))
 }
 
@@ -549,6 +551,18 @@ const UNEXCITED_SPAN: f64 = 0.2;
 /// apart; or, when no axis moves, that the dwells are one pose. `None` when every axis moves,
 /// or for identical dwells (said elsewhere, as such).
 pub fn unexcited_axes(means: &[[f64; 3]]) -> Option<CoreError> {
+    unexcited(means).map(|(e, _)| e)
+}
+
+/// [`unexcited_axes`] when no axis moves (the dwells are one pose), else `None`: a cause that
+/// comes before any undetermined combination the fit names (no model, not even the diagonal
+/// one, can be fitted to one pose).
+pub fn one_pose(means: &[[f64; 3]]) -> Option<CoreError> {
+    unexcited(means).and_then(|(e, all)| all.then_some(e))
+}
+
+/// [`unexcited_axes`] with whether every axis is flat.
+fn unexcited(means: &[[f64; 3]]) -> Option<(CoreError, bool)> {
     if means.len() < 2 {
         return None;
     }
@@ -579,19 +593,22 @@ pub fn unexcited_axes(means: &[[f64; 3]]) -> Option<CoreError> {
     match flat.len() {
         0 => None,
         3 if means.iter().all(|m| m == &means[0]) => None,
-        3 => Some(CoreError::Degenerate(format!(
-            "the {n} dwells are one pose: every output spans under {:.0} % of the norm \
+        3 => Some((
+            CoreError::Degenerate(format!(
+                "the {n} dwells are one pose: every output spans under {:.0} % of the norm \
              ({scale:.4e}) over them ({}); a calibration needs poses in different attitudes \
              (each axis up and down, or tilted by 30 deg or more)",
-            100.0 * UNEXCITED_SPAN,
-            flat.iter()
-                .map(|(a, s)| format!("{a} {:.1} %", pct(*s)))
-                .collect::<Vec<_>>()
-                .join(", ")
-        ))),
+                100.0 * UNEXCITED_SPAN,
+                flat.iter()
+                    .map(|(a, s)| format!("{a} {:.1} %", pct(*s)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )),
+            true,
+        )),
         _ => {
             let names: Vec<&str> = flat.iter().map(|(a, _)| *a).collect();
-            Some(CoreError::Degenerate(format!(
+            let e = CoreError::Degenerate(format!(
                 "{} over the {n} dwells: no pose turned the {} axis towards gravity, so its \
                  scale and bias cannot be told apart; add poses with {} (or tilted by 30 deg \
                  or more)",
@@ -608,7 +625,8 @@ pub fn unexcited_axes(means: &[[f64; 3]]) -> Option<CoreError> {
                     .map(|a| format!("{a} up and {a} down"))
                     .collect::<Vec<_>>()
                     .join(", ")
-            )))
+            ));
+            Some((e, false))
         }
     }
 }
@@ -718,6 +736,34 @@ mod tests {
             "{e}"
         );
         assert!(unexcited_axes(&[[0.0, 0.0, 9.8]; 8]).is_none());
+        // One pose fitted with the 9-parameter model: said as such, not as a combination
+        // the model leaves undetermined with advice to fit the diagonal model (which fails on
+        // one pose too).
+        let one12: Vec<[f64; 3]> = (0..12)
+            .map(|i| {
+                let k = i as f64;
+                [
+                    0.01 * (k * 1.3).sin(),
+                    -0.02 + 0.01 * (k * 0.7).cos(),
+                    9.8 + 0.01 * (k * 2.1).sin(),
+                ]
+            })
+            .collect();
+        for model in [Model::Lower, Model::Diag] {
+            let set = FitSettings::new(model, Method::Lm);
+            let e = crate::static_fit::fit_static(
+                &one12,
+                9.8,
+                &crate::static_fit::Noise::Estimated,
+                &set,
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(
+                e.starts_with("the 12 dwells are one pose"),
+                "{model:?}: {e}"
+            );
+        }
         // The fit says so too, whatever failed first (here the quadric start lies where the
         // model cannot be evaluated).
         let set = FitSettings::new(Model::Diag, Method::Lm);
