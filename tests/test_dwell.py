@@ -1478,7 +1478,8 @@ def test_a_clock_step_back_warns_and_chunks_agree_with_one_push() -> None:
     acc = DwellAccumulator(fs=s.fs)
     # Pushed in chunks, the first step back is warned, with no count of the whole stream's.
     with pytest.warns(TimeStepWarning, match=rf"steps back at row {cut}, by 99.999 s \(further "
-                                             r"steps back of this stream are not warned"):
+                                             r"steps of this stream, back or forward, are not "
+                                             r"warned"):
         push_in_chunks(acc, [1000, cut, cut + 7], s.samples, t=t)  # the step on a boundary
     assert_same(acc.finish(), one)
     with pytest.warns(TimeStepWarning, match=rf"row {cut}"):
@@ -1783,3 +1784,257 @@ def test_bounds_mode_refuses_detector_settings_and_unknown_keywords() -> None:
     assert np.array_equal(d.mean, dwell_stats(s.samples, s.bounds).mean)
     fit = accelcal.fit_static(d, s.g, observability="ignore")
     assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)
+
+
+# ---- interrupts, signal handlers and warnings as errors during push ----------------------
+class _CoreHook:
+    """Stands in for an accumulator's core: delegates to it, and calls ``before`` / ``after``
+    around its push (where a signal handler can run as the core returns)."""
+
+    def __init__(self, raw: Any, before: Any = None, after: Any = None) -> None:
+        self.raw, self.before, self.after = raw, before, after
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.raw, name)
+
+    def push(self, *a: Any) -> None:
+        if self.before is not None:
+            self.before()
+        self.raw.push(*a)
+        if self.after is not None:
+            self.after()
+
+
+def _dropout_stream() -> tuple[Any, np.ndarray]:
+    """A detection session with NaN rows (dropouts) and the same as int16 counts."""
+    s = _field()
+    x = s.samples.copy()
+    x[np.random.default_rng(5).choice(np.arange(2000, len(x)), 300, replace=False)] = np.nan
+    return s, x
+
+
+def _interrupt() -> None:
+    raise KeyboardInterrupt
+
+
+def test_an_interrupt_as_the_core_returns_keeps_the_chunk_whole() -> None:
+    """A KeyboardInterrupt (Ctrl-C) as the core's push returned left the core holding the
+    chunk and the Python side (dropouts, clock, rails) without it: position was short by the
+    chunk's dropouts, a service resuming from it pushed rows twice and the dwell bounds moved
+    by thousands of samples, silently. Now the commit is completed: the chunk is kept whole
+    (or, interrupted before the core took it, not at all) and position says which."""
+    s, x = _dropout_stream()
+    one = detect_dwells(x, s.fs, t=s.t)
+    for where in ("after", "before"):
+        acc = DwellAccumulator(fs=s.fs)
+        acc.push(x[:1000], t=s.t[:1000])
+        raw = acc._raw
+        acc._raw = _CoreHook(raw, **{where: _interrupt})
+        with pytest.raises(KeyboardInterrupt):
+            acc.push(x[1000:], t=s.t[1000:])
+        acc._raw = raw
+        assert acc.position == (len(x) if where == "after" else 1000), where
+        resumed = DwellAccumulator.from_state(acc.to_state())
+        for a in (acc, resumed):
+            a.push(x[a.position:], t=s.t[a.position:])  # a service resumes at position
+            assert_same(a.finish(), one)
+    # Interrupted in the middle of the Python-side commit: the next reader completes it.
+    acc = DwellAccumulator(fs=s.fs)
+    acc.push(x[:1000], t=s.t[:1000])
+    real = acc._drops.commit
+
+    def commit_then_interrupt(plan: Any) -> None:
+        real(plan)
+        raise KeyboardInterrupt
+
+    acc._drops.commit = commit_then_interrupt  # type: ignore[method-assign]
+    with pytest.raises(KeyboardInterrupt):
+        acc.push(x[1000:], t=s.t[1000:])
+    del acc._drops.commit
+    assert acc.position == len(x)
+    assert_same(acc.finish(), one)
+    # With bounds and int16 counts (the rails), the same.
+    counts = np.clip(np.round(s.samples * 3000), -32768, 32767).astype(np.int16)
+    want = dwell_stats(counts, s.bounds, t=s.t, fs=s.fs)
+    acc_b = DwellAccumulator(s.bounds, fs=s.fs)
+    acc_b.push(counts[:1000], t=s.t[:1000])
+    raw = acc_b._raw
+    acc_b._raw = _CoreHook(raw, after=_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        acc_b.push(counts[1000:], t=s.t[1000:])
+    acc_b._raw = raw
+    assert acc_b.position == len(counts)
+    assert_same(acc_b.finish(), want)
+
+
+def test_a_real_sigint_as_the_core_returns_keeps_the_chunk_whole() -> None:
+    """The same with a real SIGINT, raised (synchronously) as the core returns."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals are handled in the main thread")
+    s, x = _dropout_stream()
+    acc = DwellAccumulator(fs=s.fs)
+    acc.push(x[:1000], t=s.t[:1000])
+    raw = acc._raw
+    acc._raw = _CoreHook(raw, after=lambda: signal.raise_signal(signal.SIGINT))
+    prev = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            acc.push(x[1000:], t=s.t[1000:])
+    finally:
+        signal.signal(signal.SIGINT, prev)
+    acc._raw = raw
+    assert acc.position == len(x)
+    assert_same(acc.finish(), detect_dwells(x, s.fs, t=s.t))
+
+
+def test_a_signal_handler_checkpoints_during_push_without_deadlock() -> None:
+    """A SIGTERM handler that checkpoints (to_state, position, finish) while the interrupted
+    push held the accumulator's lock waited for it forever. Now it gets the state with the
+    chunk (the core has it) or without it, never half of it; a push from the handler is
+    refused with a clear error. Run in a thread joined with a timeout, so that a deadlock
+    fails the test instead of hanging it."""
+    import threading
+
+    s, x = _dropout_stream()
+    one = detect_dwells(x, s.fs, t=s.t)
+    got: dict[str, Any] = {}
+
+    def handler(tag: str) -> Any:
+        def run() -> None:
+            got[tag] = (acc.to_state(), acc.position)
+            if tag == "after":
+                got["finish"] = acc.finish()
+            try:
+                acc.push(x[:10], t=s.t[:10])
+            except RuntimeError as e:
+                got[tag + " push"] = str(e)
+        return run
+
+    for where in ("after", "before"):
+        acc = DwellAccumulator(fs=s.fs)
+        acc.push(x[:2000], t=s.t[:2000])
+        raw = acc._raw
+        acc._raw = _CoreHook(raw, **{where: handler(where)})
+        th = threading.Thread(target=acc.push, args=(x[2000:],), kwargs={"t": s.t[2000:]},
+                              daemon=True)
+        th.start()
+        th.join(120)
+        assert not th.is_alive(), f"deadlock: a handler {where} the core's push"
+        acc._raw = raw
+        state, pos = got[where]
+        assert pos == (len(x) if where == "after" else 2000)
+        assert "from a signal handler" in got[where + " push"]
+        resumed = DwellAccumulator.from_state(state)
+        assert resumed.position == pos
+        resumed.push(x[pos:], t=s.t[pos:])
+        assert_same(resumed.finish(), one)
+        assert_same(acc.finish(), one)  # the refused push from the handler kept nothing
+    assert_same(got["finish"], one)
+
+
+def test_a_warning_raised_as_an_error_keeps_nothing_of_the_chunk() -> None:
+    """With warnings turned into errors, push raised the TimeStepWarning (or the uint16
+    warning) but kept the chunk: a caller that retried duplicated the rows. Warnings now come
+    before the commit; one raised as an error keeps nothing, and says so."""
+    s = _field()
+    t = s.t.copy()
+    cut = int(s.bounds[3, 0]) - 300
+    t[cut:] -= 0.01
+    with pytest.warns(accelcal.TimeStepWarning):
+        want = detect_dwells(s.samples, s.fs, t=t)
+    acc = DwellAccumulator(fs=s.fs)
+    acc.push(s.samples[:cut - 5], t=t[:cut - 5])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(accelcal.TimeStepWarning, match=r"nothing of this chunk was kept"):
+            acc.push(s.samples[cut - 5:], t=t[cut - 5:])
+    assert acc.position == cut - 5
+    with pytest.warns(accelcal.TimeStepWarning):  # the retry warns (and keeps) it
+        acc.push(s.samples[cut - 5:], t=t[cut - 5:])
+    assert_same(acc.finish(), want)
+    _, _, words = u16_session()
+    acc_u = DwellAccumulator(fs=500.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(UserWarning, match=r"stored as unsigned.*nothing of this chunk"):
+            acc_u.push(words[:4000])
+    assert acc_u.position == 0
+
+
+def test_an_empty_chunk_needs_matching_channels() -> None:
+    """push(np.zeros((0, 3)), t=np.zeros(5)) was accepted silently."""
+    acc = DwellAccumulator(fs=100.0)
+    with clear_error("t must have shape (0,)", "got (5,)", "nothing of this chunk"):
+        acc.push(np.zeros((0, 3)), t=np.zeros(5))
+    with clear_error("temperature must have shape (0,)"):
+        acc.push(np.zeros((0, 3)), temperature=np.zeros(2))
+    acc.push(np.zeros((0, 3)), t=np.zeros(0), temperature=np.zeros(0))
+    assert acc.position == 0
+
+
+def test_float32_epoch_times_are_refused_naming_their_resolution() -> None:
+    """Epoch seconds (1.8e9) stored as float32 step by 128 s: every row held the same time,
+    refused as "not a clock (a logger's clock never set?)". The error now names the dtype,
+    its resolution there and the fixes; float32 times relative to the start still pass."""
+    s = _field()
+    t32 = (s.t + 1.795e9).astype(np.float32)
+    words = ("t is float32", "resolution", "is 128 s", "sample interval 0.001 s",
+             "float64", "relative to the start")
+    with clear_error(*words):
+        detect_dwells(s.samples, s.fs, t=t32)
+    with clear_error(*words):
+        dwell_stats(s.samples, s.bounds, t=t32, fs=s.fs)
+    acc = DwellAccumulator(fs=s.fs)
+    with clear_error(*words, "nothing of this chunk"):
+        push_in_chunks(acc, list(range(0, len(t32), 4096)), s.samples, t=t32)
+    rel = detect_dwells(s.samples, s.fs, t=s.t.astype(np.float32))
+    np.testing.assert_allclose(rel.t, _mid_times(s.t, s.bounds), atol=0.1)
+
+
+def test_a_clock_step_inside_a_dwell_is_warned_and_the_dwell_named() -> None:
+    """A +1000 s jump of the clock gave no warning at all, and a dwell spanning a step back
+    or a jump got a time on neither clock, unnamed. A forward jump much longer than the sample
+    interval now warns as a step back does, and the dwells that span a step are named (with
+    their time), by detect_dwells, dwell_stats and DwellAccumulator.finish (also resumed from
+    a checkpoint)."""
+    from accelcal.dwell import TimeStepWarning
+
+    s = _field()
+    mid = int(s.bounds[2].mean())
+    for step in (1000.0, -1000.0):
+        t = s.t.copy()
+        t[mid:] += step
+        what = "jumps forward" if step > 0 else "steps back"
+        span = rf"dwell\(s\) 2 \[\d+, \d+\) at row {mid} \(t = [-\d.]+ s\) span a step"
+        with pytest.warns(TimeStepWarning) as rec:
+            one = detect_dwells(s.samples, s.fs, t=t)
+        msgs = [str(w.message) for w in rec]
+        first = rf"t {what} 1 time\(s\) \(the first at row {mid}, by (1000|999.999) s\)"
+        assert any(re.search(first, m) for m in msgs), msgs
+        assert any(re.search(span, m) for m in msgs), msgs
+        with pytest.warns(TimeStepWarning) as rec:
+            dwell_stats(s.samples, s.bounds, t=t, fs=s.fs)
+        assert any(re.search(span, str(w.message)) for w in rec)
+        acc = DwellAccumulator(fs=s.fs)
+        with pytest.warns(TimeStepWarning, match=rf"t {what} at row {mid}, by (1000|999.999) s"):
+            push_in_chunks(acc, list(range(0, len(t), 1500)), s.samples, t=t)
+        for a in (acc, DwellAccumulator.from_state(acc.to_state())):
+            with pytest.warns(TimeStepWarning, match=span):
+                assert_same(a.finish(), one)
+    # Steps between dwells, missed samples and jitter name no dwell; no jump of a clean clock.
+    t = s.t.copy()
+    t[int(s.bounds[2, 1]) + 100:] += 1000.0
+    with pytest.warns(TimeStepWarning) as rec:
+        detect_dwells(s.samples, s.fs, t=t)
+    assert not any("span a step" in str(w.message) for w in rec)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        t = s.t.copy()
+        t[mid:] += 0.05  # 50 samples missing: not a step of the clock
+        detect_dwells(s.samples, s.fs, t=t)
+        acc = DwellAccumulator(fs=s.fs)
+        push_in_chunks(acc, list(range(0, len(t), 700)), s.samples, t=t)
+        acc.finish()

@@ -16,9 +16,13 @@ Sample times ``t`` (s)
     intervals between the times are over :data:`CLOCK_RATIO` sample intervals ``1 / fs`` and
     so is their mean (or both under ``1 / CLOCK_RATIO`` of one), a CalibrationError names
     both and the likely unit (t in ms, us or ns read as s). Times that never advance (all
-    equal), or step back more often than forward, are refused with or without ``fs``. A
-    time that steps back now and then (a clock reset, files joined) is kept as given with a
-    :class:`TimeStepWarning`, as :func:`accelcal.io.read_stream` keeps it with a note. The
+    equal), or step back more often than forward, are refused with or without ``fs``; float16
+    or float32 times too coarse for ``fs`` at their magnitude (epoch seconds in float32 step
+    by 128 s) are refused saying so. A time that steps back now and then (a clock reset, files
+    joined), or jumps forward by over 100 sample intervals and 1 s (a clock step, samples
+    missing), is kept as given with a :class:`TimeStepWarning`, as
+    :func:`accelcal.io.read_stream` keeps it with a note; a second one names the dwells that
+    span such a step (their time is on neither clock). The
     checks wait for 16 intervals, and those of a clock that does not advance (or runs slow)
     for rows spanning 10 s at ``fs`` (stamps in whole seconds, jittered bursts: a stream
     pushed a row at a time is judged as one call); a :class:`~accelcal.io.Stream`'s own
@@ -97,8 +101,9 @@ _CLOCK_FLAT_S = 10.0
 
 
 class TimeStepWarning(UserWarning):
-    """Sample times ``t`` step back (a clock reset, recordings joined): they are kept as
-    given, so the dwell times after a step back are on the new clock."""
+    """Sample times ``t`` step back (a clock reset, recordings joined) or jump forward (a
+    clock step, samples missing): they are kept as given, so the dwell times after the step
+    are on the new clock, and a dwell that spans it has a time on neither."""
 
 
 class _Clock:
@@ -159,7 +164,7 @@ class _Clock:
         n = d.size + (self.last is not None)
         new.steps += n
         dt = None if fs is None else 1.0 / fs
-        nback = 0
+        nback = njump = 0
         if d.size:
             lo, hi = float(np.fmin(d.min(), lo)), float(np.fmax(d.max(), hi))
         if n and lo > 0 and (dt is None or (lo >= dt / CLOCK_RATIO and hi <= CLOCK_RATIO * dt)):
@@ -173,13 +178,17 @@ class _Clock:
             if dt is not None:
                 new.long += int(np.count_nonzero(d > CLOCK_RATIO * dt))
                 new.short += int(np.count_nonzero((d > 0) & (d < dt / CLOCK_RATIO)))
+                njump = int(np.count_nonzero(d > _clock_step_s(dt)))
+        if njump and not new.judges_jumps():
+            njump = 0
         warn = None
-        if nback and not self.warned:
-            i = int(np.flatnonzero(d < 0)[0])
+        if (nback or njump) and not self.warned:
+            big = math.inf if dt is None else _clock_step_s(dt)
+            i = int(np.flatnonzero((d < 0) | (d > big))[0])
             at = i + (0 if self.last is not None else 1)  # index in v of the row after it
             row = row0 + (at if rows is None else int(rows[at]))
             new.warned = True
-            warn = self._step_back_text(float(-d[i]), row, dt, nback if whole else None)
+            warn = self._step_text(float(d[i]), row, dt, (nback, njump) if whole else None)
         return new._judged(warn, fs, dt)
 
     def _one(self, x: float, fs: float | None, row: int) -> tuple[_Clock, str | None]:
@@ -195,21 +204,45 @@ class _Clock:
             new.long += d > CLOCK_RATIO * dt
             new.short += 0 < d < dt / CLOCK_RATIO
         warn = None
-        if d < 0 and not self.warned:
+        if (d < 0 or (dt is not None and d > CLOCK_RATIO * dt and d > _clock_step_s(dt)
+                      and new.judges_jumps())) and not self.warned:
             new.warned = True
-            warn = self._step_back_text(-d, row, dt, None)
+            warn = self._step_text(d, row, dt, None)
         return new._judged(warn, fs, dt)
 
+    def judges_jumps(self) -> bool:
+        """Whether a forward jump is a step of the clock: once the clock can be judged (16
+        intervals) and most of its intervals are about ``1 / fs`` (not a clock in other
+        units, which :meth:`_judged` refuses instead)."""
+        return self.steps >= _CLOCK_MIN_STEPS and 2 * self.long <= self.pos
+
     @staticmethod
-    def _step_back_text(by: float, row: int, dt: float | None, count: int | None) -> str:
-        why = ("under one sample interval: jittered time stamps? Kept as given"
-               if dt is not None and by < dt else
-               "a clock reset or recordings joined? Kept as given: the dwell times after "
-               "a step back are on the new clock")
-        if count is None:  # a stream pushed in chunks: its first step back, warned once
-            return (f"t steps back at row {row}, by {by:.6g} s (further steps back of this "
-                    f"stream are not warned again): {why}")
-        return f"t steps back {count} time(s) (the first at row {row}, by {by:.6g} s): {why}"
+    def _step_text(step: float, row: int, dt: float | None,
+                   counts: tuple[int, int] | None) -> str:
+        """The warning of a clock that steps back (``step`` < 0, s) or jumps forward, first
+        at ``row``; ``counts``: the steps back and jumps of the whole stream (None: a stream
+        pushed in chunks, whose first step is warned once)."""
+        by = abs(step)
+        if step > 0:
+            assert dt is not None
+            why = (f"{by / dt:.4g} sample intervals at fs = {1.0 / dt:g} Hz: a clock step, or "
+                   "samples missing from the stream? Kept as given: the dwell times after it "
+                   "are on the stepped clock")
+        else:
+            why = ("under one sample interval: jittered time stamps? Kept as given"
+                   if dt is not None and by < dt else
+                   "a clock reset or recordings joined? Kept as given: the dwell times after "
+                   "a step back are on the new clock")
+        what = "steps back" if step < 0 else "jumps forward"
+        if counts is None:  # a stream pushed in chunks: its first step, warned once
+            return (f"t {what} at row {row}, by {by:.6g} s (further steps of this stream, "
+                    f"back or forward, are not warned again): {why}")
+        nback, njump = counts
+        many = [f"steps back {nback} time(s)"] if nback else []
+        many += [f"jumps forward {njump} time(s)"] if njump else []
+        first = "" if len(many) == 1 else ("back " if step < 0 else "forward ")
+        return (f"t {' and '.join(many)} (the first at row {row}, {first}by {by:.6g} s): "
+                f"{why}")
 
     def _judged(self, warn: str | None, fs: float | None, dt: float | None
                 ) -> tuple[_Clock, str | None]:
@@ -259,11 +292,106 @@ class _Clock:
         return new, warn
 
 
-def _check_times(t: NDArray[np.float64] | None, fs: float | None) -> None:
-    """:class:`_Clock`'s check of a whole stream's times (a warning for steps back)."""
-    _, warn = _Clock().check(t, fs, whole=True)
-    if warn is not None:
-        warnings.warn(warn, TimeStepWarning, stacklevel=3)
+#: A time step of at least this many sample intervals (and at least _CLOCK_STEP_MIN_S) is a
+#: step of the clock, not a missed sample or jitter: a forward jump warns (a
+#: :class:`TimeStepWarning`, as a step back does), and a dwell that spans one is named.
+_CLOCK_STEP_INTERVALS = 100.0
+_CLOCK_STEP_MIN_S = 1.0
+#: Clock steps whose rows a DwellAccumulator keeps (to name the dwells that span them).
+_CLOCK_STEPS_KEPT = 1000
+
+
+def _clock_step_s(dt: float | None) -> float:
+    """The smallest time step (s) taken as a step of the clock at sample interval ``dt``."""
+    return _CLOCK_STEP_MIN_S if dt is None else max(_CLOCK_STEP_INTERVALS * dt,
+                                                    _CLOCK_STEP_MIN_S)
+
+
+def _clock_steps(t: NDArray[np.float64], dt: float | None, last: float | None = None,
+                 row0: int = 0, kept: NDArray[np.intp] | None = None) -> list[int]:
+    """Stream rows (of the time after the step) where ``t`` steps back or forward by at least
+    :func:`_clock_step_s` (back only without ``dt``). ``last``: the time before ``t[0]``;
+    ``row0``: the stream row of the chunk's first row; ``kept``: the chunk rows ``t`` holds
+    (dropouts left out); non-finite times are skipped."""
+    rows = np.flatnonzero(np.isfinite(t))
+    v = t[rows]
+    if last is not None:
+        v, rows = np.concatenate(([last], v)), np.concatenate(([-1], rows))
+    d = v[1:] - v[:-1]
+    big = _clock_step_s(dt)
+    step = d < -big
+    if dt is not None:
+        step |= d > big
+    hit = rows[1:][step]
+    if kept is not None:
+        hit = kept[hit]
+    return [row0 + int(r) for r in hit]
+
+
+def _check_times(t: NDArray[np.float64] | None, fs: float | None, given: Any = None
+                 ) -> list[int]:
+    """:class:`_Clock`'s check of a whole stream's times (a warning for steps back and
+    forward jumps); ``given``: ``t`` as the caller gave it (its dtype explains a clock that
+    does not tick). The rows of its clock steps (:func:`_clock_steps`)."""
+    try:
+        _, warn = _Clock().check(t, fs, whole=True)
+    except CalibrationError as e:
+        raise _coarse_times(e, given, fs) from None
+    if warn is None:
+        return []
+    warnings.warn(warn, TimeStepWarning, stacklevel=3)
+    assert t is not None
+    return _clock_steps(t, None if fs is None else 1.0 / fs)
+
+
+def _spanned(d: DwellSet, steps: Sequence[int], stacklevel: int = 3) -> DwellSet:
+    """``d``, with a :class:`TimeStepWarning` naming the dwells that span a clock step (rows
+    ``steps``, each the row after its step): their time, the mid time of their first and last
+    sample, lies between two clocks."""
+    if not steps or d.start is None or d.stop is None:
+        return d
+    r = np.asarray(sorted(steps), dtype=np.int64)
+    k = np.searchsorted(r, d.start, side="right")  # the first step after each dwell's start
+    inside = np.flatnonzero((k < r.size) & (r[np.minimum(k, r.size - 1)] < d.stop))
+    if inside.size == 0:
+        return d
+    words = [f"{d.label(int(i))} [{int(d.start[i])}, {int(d.stop[i])}) at row "
+             f"{int(r[k[i]])}" + ("" if d.t is None else f" (t = {float(d.t[i]):.6g} s)")
+             for i in inside[:4]]
+    more = f" and {inside.size - 4} more" if inside.size > 4 else ""
+    warnings.warn(
+        f"dwell(s) {', '.join(words)}{more} span a step of the clock t: a dwell's t, the mid "
+        "time of its first and last sample, is then on neither clock; cut the dwell at the "
+        "step (give bounds), or correct t", TimeStepWarning, stacklevel=stacklevel)
+    return d
+
+
+def _coarse_times(e: CalibrationError, t: Any, fs: float | None) -> CalibrationError:
+    """``e`` (times refused by :class:`_Clock`) or, when ``t`` was given as float16 or float32
+    whose resolution at the times' magnitude is coarser than the sample interval ``1 / fs``
+    (any resolution above 0 without ``fs``), the error that says so: epoch seconds
+    (1.8e9) in float32 step by 128 s, so that every row of a stream holds the same time."""
+    dtype = getattr(t, "dtype", None)
+    if dtype is None or dtype not in (np.float16, np.float32):
+        return e
+    v = np.asarray(t)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return e
+    mag = float(np.abs(v).max())
+    res = float(np.spacing(v.dtype.type(mag)))
+    dt = None if fs is None else 1.0 / fs
+    if dt is not None and res <= dt:
+        return e
+    than = ("" if dt is None else
+            f", coarser than the sample interval {dt:.4g} s (fs = {fs:g} Hz)")
+    return CalibrationError(
+        f"t is {v.dtype}, whose resolution at its magnitude ({mag:.4g} s) is {res:.4g} s"
+        f"{than}: the times were rounded when stored as {v.dtype} and no longer tell the "
+        "samples apart. Pass float64 times (as read or computed: converting these back does "
+        "not restore them), or times relative to the start of the recording (t - t0, "
+        f"computed in float64). The check of t found: {e}"
+    )
 
 
 def _arr(a: Any, name: str, shape: tuple[int, ...], *, finite: bool = True) -> NDArray[np.float64]:
@@ -957,17 +1085,30 @@ class _Dropouts:
 
     def add(self, ok: NDArray[np.bool_], offset: int) -> None:
         """Record the rows of a chunk starting at stream row ``offset`` that ``ok`` leaves out."""
+        self.commit(self.plan(ok, offset))
+
+    def plan(self, ok: NDArray[np.bool_], offset: int) -> tuple[int, list[list[int]], int] | None:
+        """What :meth:`add` would do, without doing it: ``(k, runs, n)``, the runs from index
+        ``k`` on and the new count (None when ``ok`` leaves nothing out)."""
         bad = np.flatnonzero(~ok) + offset
         if bad.size == 0:
-            return
+            return None
         cut = np.flatnonzero(np.diff(bad) != 1) + 1
-        for r in np.split(bad, cut):
-            first, length = int(r[0]), int(r.size)
-            if self.runs and sum(self.runs[-1]) == first:
-                self.runs[-1][1] += length
-            else:
-                self.runs.append([first, length])
-            self.n += length
+        new = [[int(r[0]), int(r.size)] for r in np.split(bad, cut)]
+        k = len(self.runs)
+        if self.runs and sum(self.runs[-1]) == new[0][0]:  # continues the last run
+            k -= 1
+            new[0] = [self.runs[-1][0], self.runs[-1][1] + new[0][1]]
+        return k, new, self.n + int(bad.size)
+
+    def commit(self, plan: tuple[int, list[list[int]], int] | None) -> None:
+        """Apply a :meth:`plan` (assignments only: applying it again changes nothing, so an
+        interrupted commit can be completed)."""
+        if plan is None:
+            return
+        k, new, n = plan
+        self.runs[k:] = new
+        self.n = n
 
     def explain(self, e: CalibrationError, n: int,
                 samples: NDArray[Any] | None = None) -> CalibrationError:
@@ -1103,11 +1244,18 @@ class _Rails:
     def add(self, a: NDArray[Any], offset: int, dtype: np.dtype[Any]) -> None:
         """Record the rail samples of a chunk ``a`` (values of ``dtype``, the input's dtype
         before any widening) that starts at stream row ``offset``."""
+        self.commit(self.plan(a, offset, dtype))
+
+    def plan(self, a: NDArray[Any], offset: int, dtype: np.dtype[Any]
+             ) -> list[tuple[int, int, float, int, list[NDArray[np.int64]]]]:
+        """What :meth:`add` would do, without doing it: per axis and side with rail samples,
+        ``(axis, side, value, k, parts)``, the parts of its runs from index ``k`` on."""
         if dtype.kind not in "iu" or a.shape[0] == 0:
-            return
+            return []
         lo, hi = _int_rails(dtype)
         rails = [(s, v) for s, v, hit in ((0, lo, np.minimum.reduce(a, axis=None) <= lo),
                                           (1, hi, np.maximum.reduce(a, axis=None) >= hi)) if hit]
+        out: list[tuple[int, int, float, int, list[NDArray[np.int64]]]] = []
         for side, v in rails:
             if a.flags.c_contiguous:  # one comparison of the flat array, then split by axis
                 hit = np.flatnonzero(a.reshape(-1) == v)
@@ -1117,20 +1265,28 @@ class _Rails:
             for ax, at in enumerate(where):
                 if at.size == 0:
                     continue
-                self.value[ax][side] = float(v)
                 at = at.astype(np.int64) + offset
                 cut = np.flatnonzero(np.diff(at) != 1) + 1
                 first = at[np.concatenate([[0], cut])]
                 last = at[np.concatenate([cut - 1, [at.size - 1]])]
                 new = np.column_stack([first, last - first + 1])
                 parts = self.runs[ax][side]
+                k, put = len(parts), []
                 if parts and int(parts[-1][-1].sum()) == int(new[0, 0]):  # continues a run
                     prev = parts[-1].copy()
                     prev[-1, 1] += new[0, 1]
-                    parts[-1] = prev
+                    k, put = k - 1, [prev]
                     new = new[1:]
                 if new.shape[0]:
-                    parts.append(new)
+                    put.append(new)
+                out.append((ax, side, float(v), k, put))
+        return out
+
+    def commit(self, plan: list[tuple[int, int, float, int, list[NDArray[np.int64]]]]) -> None:
+        """Apply a :meth:`plan` (assignments only: applying it again changes nothing)."""
+        for ax, side, v, k, put in plan:
+            self.value[ax][side] = v
+            self.runs[ax][side][k:] = put
 
     def attach(self, d: DwellSet) -> None:
         """Set ``d.clipped`` and ``d.rail`` from the rail samples recorded, as
@@ -1298,12 +1454,11 @@ def dwell_stats(
     n = s.shape[0]
     fsv = None if fs is None else positive(fs, "fs", " (Hz)")
     tc = channel(t, n, "t")
-    if check_times:
-        _check_times(tc, fsv)
+    steps = _check_times(tc, fsv, t) if check_times else []
     d = _core.dwell_stats_raw(s, b, tc, channel(temperature, n, "temperature"))
     out = _from_raw(d, fsv, units)
     _attach_rails(out, s, given.dtype)
-    return out
+    return _spanned(out, steps)
 
 
 _SETTING_RANGES: dict[str, tuple[float, float, bool, str]] = {
@@ -1435,8 +1590,7 @@ def detect_dwells(
     st = DetectorSettings.merged(settings, kw)
     n = s.shape[0]
     tc, temp = channel(t, n, "t"), channel(temperature, n, "temperature")
-    if t_given and check_times:
-        _check_times(tc, fsv)
+    steps = _check_times(tc, fsv, t) if t_given and check_times else []
     drops = _Dropouts()
     if s.dtype.kind == "f":
         # The core counts the rows with NaN or inf as it goes (no extra pass over clean data);
@@ -1444,7 +1598,7 @@ def detect_dwells(
         with contextlib.suppress(CalibrationError):
             d = _core.detect_dwells_raw(s, fsv, t=tc, temperature=temp, **st.raw_kwargs())
             if d.dropped == 0:
-                return _from_raw(d, fsv, units)
+                return _spanned(_from_raw(d, fsv, units), steps)
         ok = _Dropouts.finite_rows(s)
         if ok is not None:
             drops.add(ok, 0)
@@ -1463,7 +1617,7 @@ def detect_dwells(
         raise e from None
     out = _from_raw(d, fsv, units, drops)
     _attach_rails(out, s, given.dtype)  # integer samples: no dropouts, rows of the stream
-    return out
+    return _spanned(out, steps)
 
 
 def stream_fields(data: Any, fs: float | None, t: Any, temperature: Any, units: str = ""
@@ -1531,6 +1685,14 @@ class _SignedWords:
         self.next = 16
         self.done = False
 
+    def plan(self, a: NDArray[Any]) -> tuple[_SignedWords, str | None]:
+        """``(state with a added, warning text or None)``, this state unchanged."""
+        if self.done or a.dtype != np.uint16:
+            return self, None
+        new = _SignedWords.__new__(_SignedWords)
+        new.rows, new.n, new.next, new.done = list(self.rows), self.n, self.next, self.done
+        return new, new.add(a)
+
     def add(self, a: NDArray[Any]) -> str | None:
         if self.done or a.dtype != np.uint16:
             return None
@@ -1563,6 +1725,20 @@ def _state_crc(meta: dict[str, Any], raw: bytes) -> int:
     return zlib.crc32(json.dumps(meta, sort_keys=True).encode() + b"\n" + raw)
 
 
+@dataclass(slots=True)
+class _Commit:
+    """What a :meth:`DwellAccumulator.push` changes, computed before anything changes: the
+    core's position before and after the chunk, and the Python-side state with it added."""
+
+    before: int
+    after: int
+    clock: _Clock
+    drops: tuple[int, list[list[int]], int] | None
+    rails: list[tuple[int, int, float, int, list[NDArray[np.int64]]]]
+    words: _SignedWords
+    steps: list[int]
+
+
 class DwellAccumulator:
     """Streaming per-dwell statistics for acquisition scripts.
 
@@ -1582,8 +1758,15 @@ class DwellAccumulator:
     the times pushed so far: the interval from the last time of one chunk to the first of
     the next counts, so chunks are judged as the stream in one push would be (a
     disagreement with ``fs`` is refused at the push that shows it, once 16 intervals are
-    in). A step back warns once per accumulator. ``check_times=False`` takes the times as
+    in). A step back or forward jump of the clock warns once per accumulator, and
+    :meth:`finish` names the dwells that span one. ``check_times=False`` takes the times as
     given (times already checked, as :func:`accelcal.io.read_stream` checks and notes them).
+
+    Interrupts: a push interrupted by an exception that a signal handler raises (Ctrl-C's
+    KeyboardInterrupt, a SIGTERM handler's SystemExit) keeps its chunk whole or not at all,
+    and :attr:`position` says which (resume from it). A signal handler may call
+    :attr:`position`, :meth:`to_state` and :meth:`finish` during a push of the same thread
+    (they see the chunk whole or not at all); a push from there is refused (RuntimeError).
 
     uint16 chunks are read as given (unsigned): whether a stream's words are signed 16-bit
     values stored as unsigned cannot be judged chunk by chunk. When the first rows pushed
@@ -1612,7 +1795,10 @@ class DwellAccumulator:
         self._clock = _Clock()
         self._words = _SignedWords()
         self._bounds: NDArray[np.int64] | None = None
-        self._lock = threading.Lock()
+        self._steps: list[int] = []  # rows of the clock steps seen (_clock_steps)
+        self._lock = threading.RLock()
+        self._pending: _Commit | None = None
+        self._pushing = False
         if bounds is not None:
             if settings is not None or kw:
                 raise _bounds_settings_error(settings, kw)
@@ -1637,7 +1823,29 @@ class DwellAccumulator:
     def position(self) -> int:
         """Samples pushed so far (with the dropouts that detection leaves out)."""
         with self._lock:
+            self._settle()
             return int(self._raw.position) + self._drops.n
+
+    def _settle(self) -> None:
+        """Complete a push whose chunk the core took but whose commit of the Python-side
+        state was cut short (an exception raised by a signal handler, e.g. KeyboardInterrupt,
+        as the core returned), so that every reader sees the chunk whole or not at all. Call
+        with the lock held."""
+        rec = self._pending
+        if rec is not None and int(self._raw.position) == rec.after:
+            self._apply(rec)
+
+    def _apply(self, rec: _Commit) -> None:
+        """Commit the Python-side state of a push (assignments only: an interrupted commit is
+        completed by applying it again)."""
+        self._clock = rec.clock
+        if rec.drops is not None:
+            self._drops.commit(rec.drops)
+        if rec.rails:
+            self._rails.commit(rec.rails)
+        self._words = rec.words
+        self._steps = rec.steps
+        self._pending = None
 
     def push(
         self,
@@ -1651,12 +1859,17 @@ class DwellAccumulator:
         call, stays usable, and the message says so. With bounds, a chunk with NaN or inf
         samples inside a dwell is refused here (outside every dwell they are harmless);
         with detection they are dropouts (module notes). Times ``t`` that disagree with
-        ``fs`` or do not advance are refused; a step back warns (:class:`TimeStepWarning`).
+        ``fs`` or do not advance are refused; a step back or forward jump warns
+        (:class:`TimeStepWarning`). Warnings come before anything is kept: one turned into
+        an error (``warnings.simplefilter("error")``) keeps nothing of the chunk either. An
+        interrupt (KeyboardInterrupt) keeps the chunk whole or not at all (class notes).
+        An empty chunk keeps nothing, but its ``t`` and ``temperature`` must be empty too.
         """
-        warn = words = None
         try:
             a = numeric_array(chunk, "chunk")
             if a.ndim == 2 and a.shape[0] == 0 and a.shape[1] == 3:
+                channel(t, 0, "t")  # nothing to keep, but the channels must match it
+                channel(temperature, 0, "temperature")
                 return
             c = samples_array(a, "chunk")
             m = c.shape[0]
@@ -1668,30 +1881,77 @@ class DwellAccumulator:
                 tc = None if tc is None else tc[ok]
                 temp = None if temp is None else temp[ok]
             with self._lock:
-                at = int(self._raw.position) + self._drops.n
-                kept = np.flatnonzero(ok) if self.mode == "detect" and ok is not None else None
-                _refuse_nonfinite_channel(tc, "t", at, kept)
-                _refuse_nonfinite_channel(temp, "temperature", at, kept)
-                if self.mode == "bounds" and ok is not None:
-                    self._refuse_nonfinite_in_dwells(ok, at)
-                clock, warn = (self._clock.check(tc, self.fs, at) if self.check_times
-                               else (self._clock, None))
-                if c.shape[0]:
-                    self._raw.push(c, tc, temp)
-                self._clock = clock
-                if self.mode == "detect" and ok is not None:
-                    self._drops.add(ok, at)
-                self._rails.add(c, at, a.dtype)  # integers: no dropouts
-                words = self._words.add(a)
+                if self._pushing:
+                    raise RuntimeError(
+                        "DwellAccumulator.push called while a push of this accumulator is under "
+                        "way in the same thread (from a signal handler or a warnings hook): "
+                        "nothing of this chunk was kept; push it after that push returns "
+                        "(position, to_state and finish may be called there)"
+                    )
+                self._pushing = True
+                try:
+                    if self._pending is not None:
+                        self._settle()
+                    before = int(self._raw.position)
+                    at = before + self._drops.n
+                    kept = (np.flatnonzero(ok) if self.mode == "detect" and ok is not None
+                            else None)
+                    _refuse_nonfinite_channel(tc, "t", at, kept)
+                    _refuse_nonfinite_channel(temp, "temperature", at, kept)
+                    if self.mode == "bounds" and ok is not None:
+                        self._refuse_nonfinite_in_dwells(ok, at)
+                    clock, warn, steps = self._clock, None, self._steps
+                    if self.check_times:
+                        try:
+                            clock, warn = self._clock.check(tc, self.fs, at)
+                        except CalibrationError as e:
+                            raise _coarse_times(e, t, self.fs) from None
+                        if tc is not None and len(steps) < _CLOCK_STEPS_KEPT and (
+                                clock.back > self._clock.back or (
+                                    clock.long > self._clock.long and clock.judges_jumps())):
+                            steps = steps + _clock_steps(
+                                tc, None if self.fs is None else 1.0 / self.fs,
+                                self._clock.last, at, kept)[:_CLOCK_STEPS_KEPT - len(steps)]
+                    words, words_warn = self._words.plan(a)
+                    drops = (self._drops.plan(ok, at) if self.mode == "detect" and ok is not None
+                             else None)
+                    rails = (self._rails.plan(c, at, a.dtype) if a.dtype.kind in "iu"
+                             else [])  # integers: no dropouts
+                    rec = _Commit(before, before + c.shape[0], clock, drops, rails, words, steps)
+                    # Warnings before the commit: one turned into an error keeps nothing.
+                    for text, cat in (() if warn is None and words_warn is None else
+                                      ((warn, TimeStepWarning), (words_warn, UserWarning))):
+                        if text is None:
+                            continue
+                        try:
+                            warnings.warn(text, cat, stacklevel=2)
+                        except Warning as w:
+                            raise type(w)(
+                                f"{w} (raised as an error: nothing of this chunk was kept, the "
+                                f"accumulator still holds the {at} samples pushed before)"
+                            ) from None
+                    # The commit: the core's push is one call, and whatever interrupts this
+                    # (a KeyboardInterrupt as the core returns, say) finds the Python-side
+                    # state in _pending, completed here or by the next reader (_settle).
+                    self._pending = rec
+                    if rec.after == rec.before:  # every row a dropout: nothing for the core
+                        self._apply(rec)
+                    else:
+                        try:
+                            self._raw.push(c, tc, temp)
+                        except BaseException:  # the core's refusal, or an interrupt
+                            if int(self._raw.position) == rec.after:
+                                self._apply(rec)  # the core took it: complete the commit
+                            self._pending = None
+                            raise
+                        self._apply(rec)
+                finally:
+                    self._pushing = False
         except CalibrationError as e:
             raise type(e)(
                 f"{e} (nothing of this chunk was kept: the accumulator still holds the "
                 f"{self.position} samples pushed before and stays usable)"
             ) from None
-        if warn is not None:
-            warnings.warn(warn, TimeStepWarning, stacklevel=2)
-        if words is not None:
-            warnings.warn(words, UserWarning, stacklevel=2)
 
     def _refuse_nonfinite_in_dwells(self, ok: NDArray[np.bool_], at: int) -> None:
         """A CalibrationError, as :func:`dwell_stats` words it, when a row of the chunk
@@ -1723,14 +1983,16 @@ class DwellAccumulator:
         (push the rest and call again). Detection takes what has been pushed.
         """
         with self._lock:
+            self._settle()
             drops = _Dropouts([list(r) for r in self._drops.runs])
             rails = self._rails.copy()
+            steps = list(self._steps)
             n = int(self._raw.position) + drops.n
             try:
                 raw = self._raw.finish()
             except CalibrationError as e:
                 raise self._incomplete(n) or drops.explain(e, n) from None
-        return _from_raw(raw, self.fs, self.units, drops, rails)
+        return _spanned(_from_raw(raw, self.fs, self.units, drops, rails), steps, stacklevel=2)
 
     def _incomplete(self, n: int) -> CalibrationError | None:
         """With bounds beyond the ``n`` samples pushed: the error naming the dwells complete
@@ -1757,11 +2019,14 @@ class DwellAccumulator:
     def to_state(self) -> bytes:
         """The complete state as bytes (versioned; the core's state plus ``fs`` and units)."""
         with self._lock:
+            self._settle()
             meta = {"version": _STATE_VERSION, "fs": self.fs, "units": self.units,
                     "mode": self.mode, "dropouts": self._drops.runs,
                     "clock": self._clock.state(), "check_times": self.check_times,
                     "rails": self._rails.state(),
                     "bounds": None if self._bounds is None else self._bounds.tolist()}
+            if self._steps:  # absent when there are none (and from older states)
+                meta["steps"] = self._steps
             raw = self._raw.to_state()
             meta["crc32"] = _state_crc(meta, raw)
             return _STATE_MAGIC + json.dumps(meta).encode() + b"\n" + raw
@@ -1783,6 +2048,7 @@ class DwellAccumulator:
             clock, bounds = meta.get("clock"), meta.get("bounds")  # absent from older states
             check_times = meta.get("check_times", True)
             rails = meta.get("rails")  # absent from older states
+            steps = meta.get("steps", [])
         except (ValueError, KeyError, TypeError, AttributeError):
             raise CalibrationError("not a DwellAccumulator state (bad header)") from None
         if version not in (1, 2, _STATE_VERSION):
@@ -1799,7 +2065,9 @@ class DwellAccumulator:
                 isinstance(r, list) and len(r) == 2 and all(
                     type(v) is int and v >= 0 for v in r) for r in runs)
         ) or not (clock is None or _Clock.valid_state(clock)) or not (
-            rails is None or _Rails.valid_state(rails)) or not isinstance(
+            rails is None or _Rails.valid_state(rails)) or not (
+            isinstance(steps, list) and all(type(v) is int and v >= 0 for v in steps)
+        ) or not isinstance(
             check_times, bool) or not (
             bounds is None or (mode == "bounds" and isinstance(bounds, list) and bounds and all(
                 isinstance(r, list) and len(r) == 2 and all(type(v) is int for v in r)
@@ -1814,9 +2082,12 @@ class DwellAccumulator:
         self._rails = _Rails() if rails is None else _Rails(rails["runs"], rails["value"])
         self._clock = _Clock(clock)
         self._words = _SignedWords()
+        self._steps = steps
         self.check_times = check_times
         self._bounds = None if bounds is None else np.asarray(bounds, dtype=np.int64)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
+        self._pending = None
+        self._pushing = False
         self._raw = _core.RawDwellAccumulator.from_state(raw)
         return self
 
