@@ -1434,3 +1434,21 @@ def test_a_small_session_with_understated_noise_names_no_effect_it_cannot_check(
                  g=9.80665).best != "none"
         for s in range(60))
     assert named <= 12
+
+
+def test_excess_remaining_only_beyond_chance() -> None:
+    """A table of means with the noise unknown has a held-out gap G of 1 by construction: the
+    share of its 'excess' an effect leaves is a ratio of noise and is not reported (a hand-
+    turned BNO055 table printed 'excess remaining -58.45' from G 1.00026 -> 0.985); a real
+    excess still gets its share."""
+    from accelcal.gap import _chance_excess
+
+    assert _chance_excess(50) == pytest.approx(0.2)
+    s = gap_session(("drift",), rng=8, amplitudes=[30.0])
+    rep = diagnose(DwellSet(np.asarray(s.dwells.mean)), g=s.g)  # means only: noise unknown
+    assert abs(rep.held_out_gap - 1.0) < _chance_excess(rep.n)
+    assert math.isnan(rep.excess_remaining)
+    assert "excess remaining n/a: no held-out excess beyond chance" in rep.summary()
+    strong = diagnose(s.dwells, g=s.g)
+    assert strong.held_out_gap > 1.0 + _chance_excess(strong.n)
+    assert -0.05 < strong.excess_remaining < 0.5

@@ -4,6 +4,7 @@ the results come back from a real two-process Dask cluster equal to the local on
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import datetime
 import multiprocessing
@@ -241,3 +242,55 @@ def test_result_reprs_say_what_they_hold():
     assert repr(f).startswith("CentrifugeFit(method='nls', rows=60, excluded=0")
     b = ac.startup_bias([0, 90, 180, 270], [[3, 3.5], [1, 2.5], [3, 3.5], [1, 2.5]], sigma=0.1)
     assert repr(b) == "StartupBias(dwells=4, bias_E=[2, 3], std_E=[0.05, 0.05], dof=4)", repr(b)
+
+
+# ---- read-only arrays stay read-only in a copy ---------------------------------------------------
+#: The arrays a TriadModel and a StaticFit hand out read-only (an edit in place would change
+#: what apply does, or make the fit contradict itself: K against scale, to_model against vector).
+_READ_ONLY = {
+    "TriadModel": ("K", "bias", "covariance", "covariance_noise_model", "covariance_scaled"),
+    "StaticFit": ("K", "covariance", "covariance_scaled", "covariance_realistic", "std",
+                  "std_realistic"),
+}
+
+_COPIES: dict[str, Callable[[Any], Any]] = {
+    **{f"pickle{p}": (lambda o, p=p: pickle.loads(pickle.dumps(o, protocol=p)))
+       for p in range(pickle.HIGHEST_PROTOCOL + 1)},
+    "copy": copy.copy,
+    "deepcopy": copy.deepcopy,
+}
+
+
+@pytest.mark.parametrize("name", list(_READ_ONLY))
+@pytest.mark.parametrize("how", list(_COPIES))
+def test_copies_keep_the_arrays_read_only(name: str, how: str) -> None:
+    obj = BUILDERS[name](3)
+    for a in _READ_ONLY[name]:  # cached before the copy, as a service's fit would be
+        assert not getattr(obj, a).flags.writeable, a
+    back = _COPIES[how](obj)
+    assert type(back) is type(obj)
+    for a in _READ_ONLY[name]:
+        arr = getattr(back, a)
+        assert not arr.flags.writeable, f"{how}: {a} is writable"
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] += 1.0
+        np.testing.assert_array_equal(arr, getattr(obj, a))
+    assert_same_result(obj, back)
+
+
+def test_an_edit_of_a_copy_cannot_change_what_it_applies() -> None:
+    # The tester's case: a model through pickle, K edited in place, apply changed silently.
+    m = make_triad_model(4)
+    x = np.array([[0.1, -9.7, 0.3], [9.8, 0.2, -0.1]])
+    back = pickle.loads(pickle.dumps(m))
+    with pytest.raises(ValueError, match="read-only"):
+        back.K[1, 0] += 0.5
+    with pytest.raises(ValueError, match="read-only"):
+        back.bias[0] += 1.0
+    np.testing.assert_array_equal(back.apply(x), m.apply(x))
+    assert back == m
+    f = make_static_fit(4)
+    f2 = copy.deepcopy(f)
+    with pytest.raises(ValueError, match="read-only"):
+        f2.K[0, 0] = 5.0
+    np.testing.assert_array_equal(f2.to_model().K, f.K)

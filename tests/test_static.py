@@ -766,7 +766,7 @@ def test_off_norm_dwells_names_rows_recorded_while_moving(tmp_path: pathlib.Path
     assert off_norm_dwells(s.means, s.g_measured) is None  # clean: none
     one = off_norm_dwells(np.delete(m, moved[1:], axis=0), s.g_measured)
     assert one is not None and one.text(s.g_measured).startswith(
-        "1 of 38 dwells (#4) cannot be at rest: its mean's norm (")
+        "1 of 38 dwells (#4, counted from 0) cannot be at rest: its mean's norm (")
     # A sensor with a large offset (norms from 5 to 15 m/s^2 across poses) is not moving.
     big = static_dwell_means(40, truth=[1.0, 1.0, 1.0, 0.0, 0.0, 4.8, 0.0, 0.0, 0.0],
                              max_tilt_deg=None, sigma=3e-3, rng=12)
@@ -782,7 +782,8 @@ def test_off_norm_dwells_names_rows_recorded_while_moving(tmp_path: pathlib.Path
     assert code == 0, out
     js = json.loads(out)
     assert js["n_dwells"] == 37
-    assert any("3 of 40 dwells (#4, 17, 30) cannot be at rest" in n for n in js["notes"])
+    want = "3 of 40 dwells (#4, 17, 30, counted from 0) cannot be at rest"
+    assert any(want in n for n in js["notes"])
     np.testing.assert_allclose(js["vector"], _MODEST, atol=5e-3)
 
 
@@ -804,8 +805,8 @@ def test_off_norm_rows_of_an_uncalibrated_sensor_are_found_by_its_calibrated_nor
     off = off_norm_dwells(m, 1.0)
     assert off is not None and list(off.index) == moved and not off.raw_far
     assert off.text(1.0).startswith(
-        "2 of 300 dwells (#40, 222) cannot be at rest: the bias + scale calibration of the "
-        "others leaves them")
+        "2 of 300 dwells (#40, 222, counted from 0) cannot be at rest: the bias + scale "
+        "calibration of the others leaves them")
     assert off_norm_dwells(s.means, 1.0) is None  # clean: none
     # Rows 1.5 % off (5 std of this noise) are a tail, not motion: not named.
     tail = s.means.copy()
@@ -826,7 +827,7 @@ def test_the_refusal_names_rows_that_cannot_be_at_rest_first() -> None:
     with pytest.raises(ac.DegenerateDataError) as e:
         ac.fit_static(m, s.g_measured)
     msg = str(e.value)
-    assert msg.startswith("2 of 20 dwells (#3, 9) cannot be at rest"), msg
+    assert msg.startswith("2 of 20 dwells (#3, 9, counted from 0) cannot be at rest"), msg
     assert msg.count("leave them out") == 1
     assert "With them in, the fit says:" in msg
     assert "may not see gravity" not in msg

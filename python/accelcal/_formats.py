@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -39,11 +38,11 @@ def _mseed_source(p: str, columns: Any, fs: float | None, time_column: Any) -> _
     codes). Segments of a trace are joined, gaps read as NaN (dropouts), and the components
     cut to their common span; the rate and ``t0`` come from the record headers."""
     try:
-        with warnings.catch_warnings():
-            # ObsPy's import reads entry points through an interface that importlib.metadata
-            # deprecates (Python 3.10-3.11): not the caller's concern.
-            warnings.simplefilter("ignore", DeprecationWarning)
-            import obspy
+        # ObsPy's import reads entry points through an interface that importlib.metadata
+        # deprecates (Python 3.10-3.11): a DeprecationWarning from ObsPy's own module, which
+        # the default filters ignore (not hidden here: that would change the process-wide
+        # filters, which is not thread-safe).
+        import obspy
     except ImportError:
         raise CalibrationError(
             f"{p}: a miniSEED file; reading it needs ObsPy: pip install 'accelcal[seismic]' "

@@ -8,7 +8,6 @@ import hashlib
 import json
 import math
 import os
-import warnings
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -17,9 +16,10 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _core
+from . import _core, _quiet
 from ._core import CalibrationError
 from ._files import atomic_write
+from ._plain import plain
 from ._triad import PARAM_NAMES, k_matrix, n_params, vector_from_k
 from ._validate import numeric_array, samples_array
 
@@ -148,12 +148,27 @@ def _covariance(x: Any, name: str, p: int) -> NDArray[np.float64] | None:
     return c
 
 
-#: Gravity in each output unit a file may name (the consistency check of 'units.output'
-#: against 'g').
-_UNIT_G = {"g": 1.0, "g0": 1.0, "m/s^2": 9.80665, "m/s2": 9.80665, "ms^-2": 9.80665,
-           "cm/s^2": 980.665, "cm/s2": 980.665, "gal": 980.665, "Gal": 980.665,
-           "mg": 1000.0, "mm/s^2": 9806.65, "mm/s2": 9806.65, "mGal": 980665.0,
-           "ft/s^2": 9.80665 / 0.3048, "ft/s2": 9.80665 / 0.3048}
+#: The output units of g: each spelling a file may name in 'units.output', gravity (the
+#: standard 9.80665 m/s^2) in it, and the reference gravities g that :func:`units_of_g` names
+#: by it (inclusive; tried in this order, so that 990 is mg; None: a spelling never inferred).
+_G_UNITS: tuple[tuple[str, float, tuple[float, float] | None], ...] = (
+    ("m/s^2", 9.80665, (9.0, 10.5)), ("g", 1.0, (0.9, 1.1)),
+    ("mg", 1000.0, (990.0, 1100.0)), ("cm/s^2", 980.665, (900.0, 990.0)),
+    ("g0", 1.0, None), ("m/s2", 9.80665, None), ("ms^-2", 9.80665, None),
+    ("cm/s2", 980.665, None), ("gal", 980.665, None), ("Gal", 980.665, None),
+    ("mm/s^2", 9806.65, None), ("mm/s2", 9806.65, None), ("mGal", 980665.0, None),
+    ("ft/s^2", 9.80665 / 0.3048, None), ("ft/s2", 9.80665 / 0.3048, None),
+)
+#: The table as a lookup: gravity in each output unit a file may name (the consistency check
+#: of 'units.output' against 'g').
+_UNIT_G = {unit: g for unit, g, _ in _G_UNITS}
+
+
+def units_of_g(g: float) -> str:
+    """The unit a reference gravity ``g`` is expressed in: m/s^2, g, cm/s^2 or mg (else "").
+    Local gravity is 976-983 cm/s^2 and 995-1003 mg: 990 splits them (g = 1000 labelled
+    cm/s^2 an output in mg)."""
+    return next((unit for unit, _, r in _G_UNITS if r is not None and r[0] <= g <= r[1]), "")
 
 
 def _check_session(m: TriadModel, source: str) -> None:
@@ -181,12 +196,20 @@ def _check_session(m: TriadModel, source: str) -> None:
             f"{rms:.6g} (metadata.residual_rms): edited by hand?")
 
 
+def median_norm(rows: NDArray[np.float64], *, finite: bool = False) -> float:
+    """The median norm of calibrated rows (n, 3) (the norm of gravity in a recording mostly at
+    rest): NaN when a row is NaN, or with ``finite`` of the finite norms only (dropouts left
+    out; NaN when none is left)."""
+    norms = np.sqrt(np.einsum("ij,ij->i", rows, rows))
+    if finite:
+        norms = norms[np.isfinite(norms)]
+    return float(np.median(norms)) if norms.size else math.nan
+
+
 def _json_scalar(v: Any) -> Any:
     """A numpy scalar or array in the metadata as JSON (``json.dumps``'s ``default``)."""
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
+    if isinstance(v, (np.generic, np.ndarray)):
+        return plain(v)
     raise CalibrationError(f"the model to write: metadata value {v!r} ({type(v).__name__}) is "
                            "not a number, text, list or dict: JSON cannot hold it")
 
@@ -354,7 +377,7 @@ class TriadModel:
             # stored as unsigned, as read_stream reads such a file. Judged by the model, not
             # by the chunk, so that every chunk of a stream is read alike.
             if np.any(a >= 32768):
-                warnings.warn(
+                _quiet.warn(
                     "raw: uint16 words applied to a model whose bias "
                     f"{np.array2string(self.bias, precision=4)} lies near 0, as a signed "
                     "output's does (an unsigned 16-bit output's lies near 32768): read as "
@@ -375,11 +398,10 @@ class TriadModel:
         applied to data in g gave |a| = 0.67)."""
         if self.g is None or out.ndim != 2 or out.shape[0] == 0:
             return
-        look = out[:: max(1, out.shape[0] // 1000)]
-        ratio = float(np.median(np.sqrt(np.einsum("ij,ij->i", look, look)))) / self.g
+        ratio = median_norm(out[:: max(1, out.shape[0] // 1000)]) / self.g
         if 0.2 <= ratio <= 5.0 or not math.isfinite(ratio):
             return
-        warnings.warn(
+        _quiet.warn(
             f"raw: the calibrated norms are {ratio:.3g} times the model's g = {self.g:g} "
             f"{self.units} (median of the chunk): are the raw values in the units the model "
             f"was fitted in ({self.input_units or 'the input units of its fit'})? A sensor "
@@ -489,7 +511,7 @@ class TriadModel:
                 and _core.gravity_problem(m.g * 9.80665 / unit_g) is not None):
             # A fit refuses such a g unless told (check_g=False, recorded in the metadata): a
             # file that has one was most likely edited by hand.
-            warnings.warn(
+            _quiet.warn(
                 f"{source}: field 'g' = {m.g!r} {m.units} is not a plausible local gravity "
                 "(9.74-9.85 m/s^2), which fit_static refuses unless told (check_g=False, "
                 "recorded as metadata.check_g): edited by hand? Every calibrated value is "
@@ -599,6 +621,16 @@ class TriadModel:
         )
 
     __hash__ = None  # type: ignore[assignment]
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Unpickled or copied: the arrays read-only again, as :meth:`__init__` makes them
+        (pickle and deepcopy hand them back writable, and an edit in place would then change
+        what apply does and contradict the model's own record)."""
+        self.__dict__.update(state)
+        for name in ("K", "bias", "covariance_noise_model", "covariance_scaled"):
+            a = self.__dict__.get(name)
+            if isinstance(a, np.ndarray):
+                a.setflags(write=False)
 
     def __repr__(self) -> str:
         v = np.array2string(self.vector, precision=6)

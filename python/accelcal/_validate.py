@@ -12,12 +12,12 @@ arrays are refused rather than cast (a cast would drop the imaginary part or rea
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from . import _quiet
 from ._core import CalibrationError
 
 _NATIVE = (np.dtype(np.float64), np.dtype(np.float32), np.dtype(np.int16), np.dtype(np.int32))
@@ -141,7 +141,7 @@ def signed16_samples(a: NDArray[Any], name: str = "samples") -> NDArray[Any]:
     (:func:`stored_signed16`); otherwise ``a`` as it is."""
     if not stored_signed16(a):
         return a
-    warnings.warn(
+    _quiet.warn(
         f"{signed16_text(name)}: read as signed, as accelcal.io.read_stream reads them (give "
         f"{name}.view(np.int16) to say so and silence this, or {name}.astype(np.int32) to "
         "keep them unsigned)", UserWarning, stacklevel=3)

@@ -17,16 +17,16 @@ import copy
 import json
 import math
 import re
-import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _core
+from . import _core, _quiet
 from ._core import CalibrationError, DegenerateDataError
+from ._plain import plain
 from ._validate import number, real_array, samples_array
 from .dwell import (
     DetectorSettings,
@@ -589,7 +589,8 @@ class GapReport:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (arrays as lists, NaN kept as float NaN); :meth:`from_dict`
         rebuilds the report."""
-        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+        d: dict[str, Any] = plain(self)
+        return d
 
     def __eq__(self, other: object) -> bool:
         """Reports are equal when their :meth:`to_dict` are (NaN equal to NaN): a pickled or
@@ -629,20 +630,6 @@ class GapReport:
         from .plots import gap_figure
 
         return gap_figure(self, fig)
-
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, dict):
-        return {k: _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    if isinstance(v, np.generic):
-        return v.item()
-    if hasattr(v, "__dataclass_fields__"):
-        return {f.name: _plain(getattr(v, f.name)) for f in fields(v)}
-    return v
 
 
 # ----------------------------------------------------------------------------------------------
@@ -816,6 +803,14 @@ def _statements(raw: Any, selected: list[str], alpha: float, sysw: _System,
     return out
 
 
+def _chance_excess(n: int) -> float:
+    """Twice the std of the held-out gap G under the noise model (about 1 / sqrt(2 n) for n
+    held-out residuals): below it G - 1 is chance, and the share of the excess an effect
+    leaves is a ratio of noise (a table of means with the noise unknown has G = 1 by
+    construction: G 1.00026 -> 0.985 printed 'excess remaining -58.45')."""
+    return 2.0 / math.sqrt(2.0 * max(n, 1))
+
+
 def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_model: str,
                   statements: list[str], rows: dict[str, Any],
                   noise_curves: dict[str, Any] | None = None) -> GapReport:
@@ -871,7 +866,8 @@ def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_mode
         where=where, best=selected[0] if selected else "none", selected=selected,
         effects=effects, ambiguous=ambiguous, blind_spots=blind,
         shrink=g_a / g_b if loo and g_b > 0 else math.nan, held_out_gap_after=g_a,
-        excess_remaining=(g_a - 1.0) / (g_b - 1.0) if loo and g_b > 1.0 else math.nan,
+        excess_remaining=((g_a - 1.0) / (g_b - 1.0)
+                          if loo and g_b - 1.0 > _chance_excess(n) else math.nan),
         rms_before=loo.rms_before if loo else math.nan,
         rms_after=loo.rms_after if loo else math.nan,
         remaining={"chi2": float(raw.chi2_after), "dof": float(raw.dof_after),
@@ -1112,7 +1108,7 @@ def _summary(r: GapReport) -> str:
         L.append(f"Blind spot: {b['effect']}: {b['reason']}")
     if math.isfinite(r.held_out_gap):
         rem = (f"{r.excess_remaining:.2f}" if math.isfinite(r.excess_remaining)
-               else "n/a: no excess to remain")
+               else "n/a: no held-out excess beyond chance")
         L.append(f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
                  f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining "
                  f"{rem}); held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} {r.units}")
@@ -1365,8 +1361,7 @@ def _bootstrap(m: NDArray[np.float64], sd: NDArray[np.float64], v: NDArray[np.fl
     clean = (K @ (g * a / np.linalg.norm(a, axis=1)[:, None]).T).T + b
     rng = np.random.default_rng(0)
     out = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with _quiet.quiet(), np.errstate(all="ignore"):
         for _ in range(_CAL_DRAWS):
             ms = clean + sd * rng.standard_normal(clean.shape)
             try:
@@ -1827,8 +1822,7 @@ def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g:
     data and calibration (not those on its own attribution). When the session cannot be
     refitted for a diagnosis, the fixed report, with a warning in its statements."""
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with _quiet.quiet(), np.errstate(all="ignore"):
             refit = diagnose(d, g=g, check_g=False, **options)
     except CalibrationError as e:
         return replace(fixed, statements=[*fixed.statements, (
@@ -2232,8 +2226,7 @@ def _screened_rows(outputs: NDArray[np.float64], omega: NDArray[np.float64], rad
     from .centrifuge import fit_centrifuge
 
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with _quiet.quiet(), np.errstate(all="ignore"):
             fit = fit_centrifuge(outputs, omega, radius, g=g, sigma=sigma)
     except CalibrationError:
         return []

@@ -2395,12 +2395,15 @@ def _dataframe_source(obj: Any, columns: Any, fs: float | None, time_column: Any
             raise CalibrationError(
                 "reading a DataFrame-interchange object needs pandas: pip install pandas"
             ) from None
-        import warnings
+        read = None
+        if hasattr(obj, "__dataframe__") and not hasattr(obj, "__arrow_c_stream__"):
+            # pandas 3 deprecates the protocol but still reads it: its reader past the
+            # warning (only the process-wide warning filters, not thread-safe, could hide it).
+            from pandas.core.interchange import from_dataframe as xchg
 
-        with warnings.catch_warnings():
-            # pandas 3 deprecates the protocol but still reads it.
-            warnings.simplefilter("ignore")
-            df = pd.api.interchange.from_dataframe(obj)
+            read = getattr(xchg, "_from_dataframe", None)
+        df = (pd.api.interchange.from_dataframe(obj) if read is None
+              else read(obj.__dataframe__(allow_copy=True)))
     cols: dict[str, Any] = {}
     starts: dict[str, str] = {}  # the first date-time of each date-time column
     for name in df.columns:

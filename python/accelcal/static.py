@@ -23,6 +23,7 @@ The fit is maximum likelihood: the whitened residual of dwell ``k`` is
 
 from __future__ import annotations
 
+import copyreg
 import math
 import warnings
 from contextvars import ContextVar
@@ -33,11 +34,11 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _core
+from . import _core, _quiet
 from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
 from ._triad import fibonacci_sphere as _fibonacci
-from ._triad_model import TriadModel, dwell_fingerprints
+from ._triad_model import TriadModel, dwell_fingerprints, units_of_g
 from ._validate import number, real_array
 from .dwell import DwellSet, check_faults
 
@@ -76,21 +77,6 @@ def _ignored(category: type[Warning]) -> bool:
         if issubclass(category, cat):
             return bool(action == "ignore")
     return bool(getattr(warnings, "defaultaction", "default") == "ignore")
-
-
-def units_of_g(g: float) -> str:
-    """The unit a reference gravity ``g`` is expressed in: m/s^2, g, cm/s^2 or mg (else "").
-    Local gravity is 976-983 cm/s^2 and 995-1003 mg: 990 splits them (g = 1000 labelled
-    cm/s^2 an output in mg)."""
-    if 9.0 <= g <= 10.5:
-        return "m/s^2"
-    if 0.9 <= g <= 1.1:
-        return "g"
-    if 900.0 <= g < 990.0:
-        return "cm/s^2"
-    if 990.0 <= g <= 1100.0:
-        return "mg"
-    return ""
 
 
 def unit_label(g: float) -> str:
@@ -285,6 +271,21 @@ class StaticFit(_core.StaticFit):
       ``"noise_model"``; ``covariance_realistic`` / ``std_realistic`` are that one. The
       summary prints it and :meth:`to_model` stores it (with both labelled).
     """
+
+    # -- pickling and copying -----------------------------------------------------------
+    def __getstate__(self) -> dict[str, Any]:
+        """The instance dict without the cached values: a copy or an unpickled fit computes
+        them again, read-only as here (pickle and deepcopy would hand the cached arrays back
+        writable, and an edit in place would then contradict the fit)."""
+        cls = type(self)
+        return {k: v for k, v in self.__dict__.items()
+                if not isinstance(getattr(cls, k, None), cached_property)}
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # The core's arguments by name, for every protocol (0 and 1 cannot call
+        # __getnewargs_ex__ themselves).
+        return (copyreg.__newobj_ex__, (type(self), *self.__getnewargs_ex__()),  # type: ignore[attr-defined]
+                self.__getstate__())
 
     # -- parameters ---------------------------------------------------------------------
     @property
@@ -865,8 +866,10 @@ def fit_static(
     if attention & 1:
         raise _not_converged(fit, method, means, g)
     if attention and observability != "ignore":
-        if not _ignored(WeakDesignWarning):  # the text costs more than the fit
-            warnings.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
+        if _quiet.recorded(WeakDesignWarning) or not (
+                _ignored(WeakDesignWarning) or _quiet.silenced(WeakDesignWarning)):
+            # (the text costs more than the fit: not built for a warning that is dropped)
+            _quiet.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
 
 
@@ -878,7 +881,7 @@ def _mirrored_axes(nominal: Any) -> None:
     neg = [n for n, v in zip("xyz", np.diag(np.asarray(nominal.K)), strict=True) if v < 0]
     if neg:
         axes = ", ".join(neg)
-        warnings.warn(
+        _quiet.warn(
             f"the nominal model has a negative scale on {axes} (wired backwards): the norm "
             f"cannot see an axis's sign, so this fit has it positive and calibrates {axes} "
             "with the opposite sign of the nominal's (a mirrored triad); negate that column "
@@ -907,8 +910,7 @@ def _start(start: ArrayLike) -> list[float]:
 def fit_quietly(data: DwellSet | ArrayLike, g: float, **kw: Any) -> StaticFit:
     """:func:`fit_static` for a check inside another step: no gravity check, and no warning (a
     weak design among them: the caller words what it found); refusals raise as ever."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with _quiet.quiet(), np.errstate(all="ignore"):
         return fit_static(data, g, check_g=False, **kw)
 
 
@@ -976,7 +978,8 @@ class OffNorm:
             off = f"{min(r):.3g} to {max(r):.3g}"
         far = (f"{whose} ({norms}) {lie} far from every other dwell's (median "
                f"{self.median_norm:.4g}), and " if self.raw_far else "")
-        return (f"{len(self.index)} of {n} dwells (#{rows}) cannot be at rest: {far}the "
+        return (f"{len(self.index)} of {n} dwells (#{rows}, counted from 0) cannot be at rest: "
+                f"{far}the "
                 f"bias + scale calibration of the others leaves {them} {off} {u} off g, "
                 f"against {self.rms:.2g} {u} RMS for the others: recorded while moving, or a "
                 "mistyped row")
@@ -1034,11 +1037,17 @@ def off_norm_dwells(data: DwellSet | ArrayLike, g: float) -> OffNorm | None:
                    raw_far=raw_far)
 
 
+def median_and_spread(x: NDArray[np.float64]) -> tuple[float, float]:
+    """The median of ``x`` and its robust standard deviation about it: 1.4826 x the median
+    absolute deviation (the std of normal data)."""
+    med = float(np.median(x))
+    return med, 1.4826 * float(np.median(np.abs(x - med)))
+
+
 def _far_out(x: NDArray[np.float64], floor: float) -> NDArray[np.intp]:
     """Indices of ``x`` further from its median than 8 robust standard deviations (1.4826
     MAD) and ``floor``."""
-    med = float(np.median(x))
-    mad = 1.4826 * float(np.median(np.abs(x - med)))
+    med, mad = median_and_spread(x)
     return np.flatnonzero(np.abs(x - med) > max(8.0 * mad, floor))
 
 

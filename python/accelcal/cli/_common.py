@@ -20,6 +20,7 @@ import numpy as np
 
 from .._core import CalibrationError
 from .._files import atomic_write
+from .._plain import plain
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -162,23 +163,8 @@ def friendly(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if np.isfinite(v) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
-
-
 def emit_json(obj: Any) -> None:
-    click.echo(json.dumps(_jsonable(obj), indent=2))
+    click.echo(json.dumps(plain(obj, strict=True), indent=2))
 
 
 def recording_options(fn: F) -> F:
@@ -454,4 +440,4 @@ def calibrate() -> None:
 
 
 def write_json_file(path: str | Path, obj: Any) -> None:
-    atomic_write(path, json.dumps(_jsonable(obj), indent=2) + "\n")
+    atomic_write(path, json.dumps(plain(obj, strict=True), indent=2) + "\n")

@@ -351,6 +351,7 @@ class _Output:
 def apply(cal: str, file: str, output: str, fs: float | None, columns: str | None,
           time_column: str | None, quiet: bool, chunk_rows: int, as_json: bool) -> None:
     """Apply a calibration file to a recording, streaming chunk by chunk."""
+    from .._triad_model import median_norm
     from ..io import _progress_bar
     from ..static import TriadModel
 
@@ -374,10 +375,10 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
         for chunk, t, _temp in rec.chunks(chunk_rows, cb):
             cal_chunk = model.apply(chunk, check_units=False)  # norms checked below
             if len(norms) < 8 and len(cal_chunk):  # the calibrated norm, on the first chunks
-                nc = np.linalg.norm(cal_chunk, axis=1)
-                nc = nc[np.isfinite(nc)]  # dropouts (NaN rows) pass through as NaN
-                if nc.size:
-                    norms.append(float(np.median(nc)))
+                # of the finite rows: dropouts (NaN rows) pass through as NaN
+                chunk_norm = median_norm(cal_chunk, finite=True)
+                if not math.isnan(chunk_norm):
+                    norms.append(chunk_norm)
             out.write(t, cal_chunk)
     if rec.rows == 0:
         raise CalibrationError(f"{rec.path}: no data rows")

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 from numpy.typing import ArrayLike
 
 from .._core import CalibrationError
+from .._quiet import recording
 from ..dwell import DwellSet
 from ..static import StaticFit, WeakDesignWarning, fit_static
 
@@ -36,8 +35,7 @@ def fit_section(
 ) -> tuple[str, StaticFit | None]:
     """:func:`demo_section`'s text and the fit behind it (None when no model could be fitted)."""
     lines = [f"Static field calibration ({len(dwells)} dwells, g = {g} m/s^2)"]
-    with warnings.catch_warnings(record=True) as rec:
-        warnings.simplefilter("always", WeakDesignWarning)
+    with recording() as rec:
         try:
             fit = fit_static(dwells, g, model=model)
         except CalibrationError as e:
