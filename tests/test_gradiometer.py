@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import pickle
 import warnings
 
@@ -771,3 +772,224 @@ def test_record_stream_sigma_allows_for_correlated_noise():
     for az in BAL:
         cal.record(az, model([az], [12.0, -7.0], [40.0, -25.0])[0] + c)
     assert cal.solve().sigma[0] == pytest.approx(3.0 / np.sqrt(600), rel=0.1)
+
+
+# ---- azimuth errors in the stated accuracy (sigma_theta) -------------------------------------
+def _coverage_sessions(n, sigma_theta, seed=20261128):
+    """``n`` simulated 0/45/90/135 start-ups with a strong gradient and independent azimuth
+    errors of ``sigma_theta`` deg, demodulated; per session the bias error and its stated std
+    without and with the azimuth term, and whether each fit warned of a misfit."""
+    rng = np.random.default_rng(seed)
+    out = {"err": [], "std0": [], "std1": [], "warn0": 0, "warn1": 0}
+    for _ in range(n):
+        s = gradiometer_session(
+            BAL, gradient_E=(150.0, -100.0), bias_E=(12.0, -7.0), fs=50.0, dwell_s=20.0,
+            slew_s=2.0, noise_mps2=2e-10, azimuth_error_deg=sigma_theta, seed=rng,
+        )
+        d = accelcal.demodulate(s.accel, s.phase, s.bounds, radius_m=s.radius_m)
+        sd = float(d.std.mean())
+        with warnings.catch_warnings(record=True) as w0:
+            warnings.simplefilter("always")
+            r0 = accelcal.startup_bias(BAL, d.outputs, sigma=sd)
+        with warnings.catch_warnings(record=True) as w1:
+            warnings.simplefilter("always")
+            r1 = accelcal.startup_bias(BAL, d.outputs, sigma=sd, sigma_theta=sigma_theta)
+        out["warn0"] += any(issubclass(x.category, StartupMisfitWarning) for x in w0)
+        out["warn1"] += any(issubclass(x.category, StartupMisfitWarning) for x in w1)
+        out["err"].append(r1.bias - s.truth.effective_bias_E)
+        out["std0"].append(r0.bias_std)
+        out["std1"].append(r1.bias_std)
+    return {k: np.array(v) if isinstance(v, list) else v for k, v in out.items()}
+
+
+def test_sigma_theta_gives_the_stated_coverage_on_simulated_startups():
+    """0.1 deg of independent azimuth error on a 180 E gradient (noise 0.05 E per average):
+    the azimuth term dominates the bias error. With it the 1-sigma interval covers the truth
+    in about 68 % of sessions; without it far less."""
+    n = 300
+    r = _coverage_sessions(n, 0.1)
+    # Same estimate either way: only the stated std differs.
+    cov1 = np.mean(np.abs(r["err"]) <= r["std1"], axis=0)
+    cov0 = np.mean(np.abs(r["err"]) <= r["std0"], axis=0)
+    p = 0.6827
+    band = 4.0 * np.sqrt(p * (1 - p) / n)  # binomial, 4 sigma: about 0.58 .. 0.79
+    assert np.all(np.abs(cov1 - p) < band), cov1
+    assert np.all(cov0 < 0.35), cov0
+    # The stated std agrees with the spread of the errors, the noise-only one does not.
+    emp = np.std(r["err"], axis=0, ddof=1)
+    assert np.allclose(np.mean(r["std1"], axis=0), emp, rtol=0.15), (r["std1"].mean(0), emp)
+    assert np.all(np.mean(r["std0"], axis=0) < 0.3 * emp)
+    # The misfit test allows for the azimuth errors: rare with the term, nearly always without.
+    assert r["warn1"] <= 0.02 * n and r["warn0"] >= 0.8 * n, (r["warn1"], r["warn0"])
+
+
+def test_sigma_theta_zero_changes_nothing():
+    rng = np.random.default_rng(4)
+    az, t = [0.0, 90.0, 90.0, 0.0, 45.0], np.array([0.0, 80.0, 160.0, 240.0, 320.0])
+    y = model(az, [3.0, -1.0], [150.0, -60.0]) + rng.normal(0, 0.05, (5, 2))
+    for kw in ({}, {"sigma": 0.05}, {"sigma": np.full(5, 0.05)}, {"t": t, "drift": True},
+               {"t": t, "drift": True, "sigma": 0.05}):
+        ref = accelcal.startup_bias(az, y, **kw)
+        for zero in (0.0, 0, np.float32(0.0), -0.0):
+            r = accelcal.startup_bias(az, y, sigma_theta=zero, **kw)
+            assert r.sigma_theta == 0.0 and not np.any(r.azimuth_covariance)
+            for f in ("params", "covariance", "std", "residuals", "unit_covariance", "sigma"):
+                assert np.array_equal(getattr(r, f), getattr(ref, f)), f
+            assert r.chi2_scale == 1.0 and r.chi2_dof == r.dof
+            assert r.summary() == ref.summary()
+            assert np.array_equal(r.chi2_p, ref.chi2_p, equal_nan=True)
+        # Exactly the noise-only covariance, as before the term existed.
+        if "sigma" in kw:
+            assert np.array_equal(ref.covariance, ref.unit_covariance)
+        else:
+            s2 = float(np.sum(ref.residuals**2)) / ref.dof
+            np.testing.assert_allclose(ref.covariance, ref.unit_covariance * s2, rtol=1e-13)
+            np.testing.assert_allclose(ref.sigma, np.sqrt(s2), rtol=1e-13)
+        if "sigma" in kw:
+            assert ref.chi2_p == pytest.approx(
+                float(accelcal._core.chi2_sf(ref.chi2, float(ref.dof))), rel=1e-15)
+    assert "azimuth errors" not in ref.summary()
+
+
+@pytest.mark.parametrize("bad, words", [
+    (-0.1, r"sigma_theta must be a number in \[0, inf\) deg"),
+    (float("nan"), r"sigma_theta must be a number in \[0, inf\) deg"),
+    (float("inf"), r"sigma_theta must be a number in \[0, inf\) deg"),
+    ("0.1", r"sigma_theta must be a number"),
+    (True, r"sigma_theta must be a number"),
+    (None, r"sigma_theta must be a number"),
+    ([0.1, 0.2], r"sigma_theta must be a number"),
+    (6.0, r"sigma_theta is the std of independent azimuth errors in deg; 6 deg .*above 5 deg "
+          r"refused.*arcmin, arcsec or mrad given as deg"),
+    (360.0, r"360 deg is not a platform's azimuth repeatability"),
+])
+def test_bad_sigma_theta_is_refused(bad, words):
+    y = model(BAL, [1.0, 2.0], [30.0, 10.0])
+    with pytest.raises(CalibrationError, match=words):
+        accelcal.startup_bias(BAL, y, sigma=0.1, sigma_theta=bad)
+    with pytest.raises(CalibrationError, match=words):
+        accelcal.StartupCalibration(sigma_theta=bad)
+    assert accelcal.startup_bias(BAL, y, sigma=0.1, sigma_theta=5.0).sigma_theta == 5.0
+
+
+@pytest.mark.parametrize("az, t", [
+    (BAL, None),
+    (UNBAL, None),
+    ([0.0, 90.0, 90.0, 0.0], [30.0, 110.0, 190.0, 270.0]),
+    ([0.0, 60.0, 120.0], None),
+])
+def test_startup_bias_agrees_with_predict_startup_accuracy(az, t):
+    """For the same design and gradient the std startup_bias states and the one
+    predict_startup_accuracy predicts agree: exactly for noise-free data, to first order when
+    the gradient is fitted from noisy data."""
+    g, st, sd = np.array([150.0, -100.0]), 0.1, 0.05
+    drift = t is not None
+    y = model(az, [12.0, -7.0], g, t, [0.001, 0.0] if drift else None, t_ref=0.0)
+    pred = accelcal.predict_startup_accuracy(az, t, sd, st, gradient=g, drift=drift)
+    r = accelcal.startup_bias(az, y, t=t, drift=drift, sigma=sd, sigma_theta=st)
+    np.testing.assert_allclose(r.covariance, pred.total_covariance, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(r.azimuth_covariance, pred.azimuth_covariance, rtol=1e-9,
+                               atol=1e-15)
+    np.testing.assert_allclose(r.std, pred.std, rtol=1e-9)
+    assert r.sigma_theta == st
+    # Noisy data and azimuth errors: the fitted gradient is off by a fraction of a percent.
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        azn = np.asarray(az) + rng.normal(0.0, st, len(az))
+        yn = model(azn, [12.0, -7.0], g, t, [0.001, 0.0] if drift else None, t_ref=0.0)
+        yn = yn + rng.normal(0.0, sd, yn.shape)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", StartupMisfitWarning)
+            rn = accelcal.startup_bias(az, yn, t=t, drift=drift, sigma=sd, sigma_theta=st)
+        np.testing.assert_allclose(rn.bias_std, pred.bias_std, rtol=0.02)
+    # For a balanced set the magnitude-only prediction gives the same bias std:
+    # sqrt(2) sigma_theta |gamma| / sqrt(m) for the azimuth part.
+    if az is BAL:
+        pm = accelcal.predict_startup_accuracy(az, sigma=sd, sigma_theta=st,
+                                               gradient=float(np.linalg.norm(g)))
+        np.testing.assert_allclose(r.bias_std, pm.bias_std, rtol=1e-9)
+        want = np.sqrt(2) * np.radians(st) * np.linalg.norm(g) / np.sqrt(len(az))
+        np.testing.assert_allclose(np.sqrt(np.diag(r.azimuth_covariance))[:2], want, rtol=1e-9)
+
+
+def test_sigma_theta_with_the_noise_estimated_is_not_counted_twice():
+    """Without sigma the noise comes from the residuals, which also carry part of the azimuth
+    errors; that expected share is taken out, so the noise estimate stays the noise and the
+    stated bias std matches the spread."""
+    rng = np.random.default_rng(12)
+    az = np.tile(BAL, 3)
+    st = 0.1
+    # (gradient, noise): azimuth share comparable to the noise; azimuth errors dominating.
+    for g, sd in ((np.array([60.0, -40.0]), 0.3), (np.array([150.0, -100.0]), 0.05)):
+        s2_plain, s2_with, err, std = [], [], [], []
+        for _ in range(400):
+            y = model(az + rng.normal(0, st, az.size), [12.0, -7.0], g)
+            y = y + rng.normal(0, sd, y.shape)
+            r0 = accelcal.startup_bias(az, y)
+            r1 = accelcal.startup_bias(az, y, sigma_theta=st)
+            assert np.array_equal(r0.params, r1.params) and r1.sigma_estimated
+            s2_plain.append(r0.sigma[0] ** 2)
+            s2_with.append(r1.sigma[0] ** 2)
+            err.append(r1.bias - [12.0, -7.0])
+            std.append(r1.bias_std)
+        if sd > 0.1:
+            # Rarely floored here: the noise estimate is unbiased with the share taken out.
+            assert np.mean(s2_with) == pytest.approx(sd**2, rel=0.08)
+            assert np.mean(s2_plain) > 1.15 * sd**2
+        else:
+            # The residuals are mostly azimuth error: without the share taken out the noise
+            # would be counted again on top of the azimuth term.
+            assert np.mean(s2_plain) > 10 * sd**2
+            assert np.mean(s2_with) < 0.25 * np.mean(s2_plain)
+        emp = np.std(np.array(err), axis=0, ddof=1)
+        assert np.allclose(np.sqrt(np.mean(np.array(std) ** 2, axis=0)), emp, rtol=0.15)
+
+
+def test_sigma_theta_in_the_summary_workflow_pickle_and_cli(tmp_path):
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    az = [0.0, 45.0, 90.0, 135.0, 0.0]
+    y = model(az, [3.0, -2.0], [150.0, -100.0])
+    y += np.array([[0.1, -0.05], [0.0, 0.08], [-0.07, 0.0], [0.02, 0.03], [-0.04, -0.06]])
+    r = accelcal.startup_bias(az, y, sigma=0.05, sigma_theta=0.1)
+    az_sd = np.sqrt(np.diag(r.azimuth_covariance))[:2]
+    assert (f"azimuth errors: 0.1 deg (independent), at the fitted gradient {az_sd[0]:.3g}, "
+            f"{az_sd[1]:.3g} E of the bias std") in r.summary()
+    d = r.to_dict()
+    assert d["sigma_theta_deg"] == 0.1 and np.allclose(d["azimuth_covariance"],
+                                                       r.azimuth_covariance)
+    back = pickle.loads(pickle.dumps(r))
+    assert type(back) is type(r) and back.sigma_theta == 0.1
+    for f in ("covariance", "azimuth_covariance", "std"):
+        assert np.array_equal(getattr(back, f), getattr(r, f))
+    assert (back.chi2_scale, back.chi2_dof) == (r.chi2_scale, r.chi2_dof)
+    # The workflow passes it on.
+    cal = accelcal.StartupCalibration(sigma=0.05, sigma_theta=0.1)
+    for a, (i, c) in zip(az, y, strict=True):
+        cal.record_mean(a, i, c)
+    np.testing.assert_array_equal(cal.solve().covariance, r.covariance)
+    # A misfit beyond what noise and azimuth errors allow names both.
+    with pytest.warns(StartupMisfitWarning, match="a wrong sigma or sigma_theta"):
+        accelcal.startup_bias(az, y, sigma=0.005, sigma_theta=0.001)
+    # The command line: --sigma-theta in deg.
+    tab = tmp_path / "startup.csv"
+    tab.write_text("azimuth_deg,inline_E,cross_E\n" + "\n".join(
+        f"{a},{float(u)!r},{float(v)!r}" for a, (u, v) in zip(az, y, strict=True)) + "\n")
+    run = CliRunner().invoke
+    out = run(main, ["calibrate", "gradiometer", str(tab), "--sigma", "0.05",
+                     "--sigma-theta", "0.1", "--json"])
+    assert out.exit_code == 0, out.output
+    js = json.loads(out.output)
+    np.testing.assert_allclose(js["std"], r.std, rtol=1e-12)
+    assert js["sigma_theta_deg"] == 0.1 and js["warnings"] == []
+    out = run(main, ["calibrate", "gradiometer", str(tab), "--sigma", "0.05",
+                     "--sigma-theta", "0.1"])
+    assert out.exit_code == 0 and "azimuth errors: 0.1 deg" in out.output, out.output
+    plain = run(main, ["calibrate", "gradiometer", str(tab), "--sigma", "0.05", "--json"])
+    assert json.loads(plain.output)["std"][0] < 0.5 * js["std"][0]
+    for bad, words in (("6", "--sigma-theta is the std of independent azimuth errors in deg"),
+                       ("-1", "--sigma-theta must be a number in [0, inf) deg")):
+        out = run(main, ["calibrate", "gradiometer", str(tab), "--sigma-theta", bad])
+        assert out.exit_code == 2 and words in out.output, out.output
+        assert "sigma_theta" not in out.output

@@ -202,6 +202,10 @@ class StartupBiasCore:
         t: NDArray[np.float64] | None,
         t_ref: float | None,
         names: list[str],
+        sigma_theta: float = 0.0,
+        azimuth_covariance: NDArray[np.float64] | None = None,
+        chi2_scale: float = 1.0,
+        chi2_dof: float | None = None,
     ) -> Self: ...
     def __reduce__(self) -> tuple[type[Self], tuple[Any, ...]]: ...
     @property
@@ -237,6 +241,16 @@ class StartupBiasCore:
     def t_ref(self) -> float | None: ...
     @property
     def names(self) -> list[str]: ...
+    @property
+    def sigma_theta(self) -> float:
+        """Std of the independent azimuth errors allowed for, deg."""
+    @property
+    def azimuth_covariance(self) -> NDArray[np.float64]:
+        """The part of `covariance` from the azimuth errors."""
+    @property
+    def chi2_scale(self) -> float: ...
+    @property
+    def chi2_dof(self) -> float: ...
 
 def startup_bias_raw(
     azimuth_deg: NDArray[np.float64],
@@ -244,8 +258,10 @@ def startup_bias_raw(
     sigma: NDArray[np.float64] | None = None,
     t: NDArray[np.float64] | None = None,
     t_ref: float | None = None,
+    sigma_theta_deg: float = 0.0,
 ) -> StartupBiasCore:
-    """Start-up least squares from azimuths in degrees; sigma None: estimated."""
+    """Start-up least squares from azimuths in degrees; sigma None: estimated;
+    sigma_theta_deg the azimuth error std added to the covariance."""
 
 @disjoint_base
 class StartupPredictionCore:

@@ -66,6 +66,10 @@ _MAX_RADIUS_M = 5.0
 _WIDE_DEG = 45.0
 _RAD_SLACK = 0.1
 _TYPED_STEP_DEG = 0.1
+#: Azimuth error stds above this many degrees are refused: far beyond a platform's azimuth
+#: repeatability (of order 0.01 to 1 deg), beyond the first-order term, and most likely
+#: another unit (arcmin, arcsec, mrad) given as deg.
+_MAX_SIGMA_THETA_DEG = 5.0
 
 
 class StartupMisfitWarning(UserWarning):
@@ -135,6 +139,21 @@ def _dwell_std(sigma: Any, m: int) -> _F64:
     return s
 
 
+def _sigma_theta(x: Any) -> float:
+    """The std of independent azimuth errors, deg: finite, >= 0 and at most
+    :data:`_MAX_SIGMA_THETA_DEG`; otherwise a CalibrationError that names the unit."""
+    st = float(number(x, "sigma_theta", lo=0.0, unit="deg"))
+    if st > _MAX_SIGMA_THETA_DEG:
+        raise CalibrationError(
+            f"sigma_theta is the std of independent azimuth errors in deg; {st:g} deg is not "
+            f"a platform's azimuth repeatability (of order 0.01 to 1 deg; above "
+            f"{_MAX_SIGMA_THETA_DEG:g} deg refused, where the first-order term no longer "
+            f"holds): arcmin, arcsec or mrad given as deg? give it in deg (6 arcmin = 360 "
+            f"arcsec = 1.745 mrad = 0.1 deg; np.degrees(x) for x in rad)"
+        )
+    return st
+
+
 def _output_units(y: _F64, what: str, fix: str) -> str | None:
     """Why outputs meant in E are plainly in other units, or None: every ``|value|`` below
     :data:`_TINY_E` E (not all zero: s^-2 or m/s^2 given as E), or any above :data:`_HUGE_E`
@@ -174,9 +193,19 @@ class StartupBias(_core.StartupBiasCore):
         Linear bias drift, E/s (``drift=True`` only).
     covariance : (p, p) float
         Covariance ordered ``[bias_I, bias_C, I, C, (drift_I, drift_C)]``, E^2 (E^2/s, E^2/s^2
-        for drift). NaN when ``sigma`` was not given and the design has no redundancy.
+        for drift), the azimuth errors' part (``azimuth_covariance``) included. NaN when
+        ``sigma`` was not given and the design has no redundancy.
     std : (p,) float
         Square roots of the covariance diagonal.
+    sigma_theta : float
+        Std of the independent azimuth errors allowed for, deg (0: none).
+    azimuth_covariance : (p, p) float
+        The part of ``covariance`` from those azimuth errors: first order, evaluated at the
+        fitted gradient (zero when ``sigma_theta`` is 0).
+    chi2_scale, chi2_dof : float
+        With ``sigma`` given, ``chi2`` is tested as ``chi2_scale * chi2(chi2_dof)``, which
+        allows for the residuals the azimuth errors leave (Satterthwaite); 1 and ``dof``
+        without them.
     residuals : (m, 2) float
         ``y_k - model_k``, E.
     unit_covariance : (p, p) float
@@ -249,7 +278,11 @@ class StartupBias(_core.StartupBiasCore):
         c = self.chi2
         if self.dof <= 0 or math.isnan(c):
             return math.nan
-        return 0.0 if math.isinf(c) else float(_core.chi2_sf(c, float(self.dof)))
+        if math.isinf(c):
+            return 0.0
+        if self.sigma_theta > 0:  # residuals of noise and azimuth errors: a scaled chi2
+            return float(_core.chi2_sf(c / self.chi2_scale, self.chi2_dof))
+        return float(_core.chi2_sf(c, float(self.dof)))
 
     def misfit_text(self) -> str | None:
         """Why the std quoted are too small, when the residuals exceed the given ``sigma``
@@ -257,6 +290,16 @@ class StartupBias(_core.StartupBiasCore):
         p = self.chi2_p
         if not p < MISFIT_P:
             return None
+        if self.sigma_theta > 0:
+            want = self.chi2_scale * self.chi2_dof
+            r = self.chi2 / want
+            return (
+                f"residuals exceed the noise and azimuth-error model (chi2 {self.chi2:.3g} on "
+                f"{self.dof} dof where sigma and sigma_theta {self.sigma_theta:g} deg lead to "
+                f"expect {want:.3g}, p = {p:.2g}): they are {math.sqrt(r):.3g} times what "
+                "that model allows, so the std quoted are too small; suspect wrong azimuths "
+                "(units, sign or zero), a wrong sigma or sigma_theta, or a platform error"
+            )
         r = self.chi2 / self.dof
         return (
             f"residuals exceed the noise model (chi2/dof {r:.3g} on {self.dof} dof, p = "
@@ -291,6 +334,13 @@ class StartupBias(_core.StartupBiasCore):
                     f"so it and every std above are uncertain by about +-{100 * rel:.0f} % "
                     "(give sigma= from the dwell noise, or add azimuths)"
                 )
+        if self.sigma_theta > 0:
+            az_sd = np.sqrt(np.diag(self.azimuth_covariance)[:2])
+            lines.append(
+                f"  azimuth errors: {self.sigma_theta:g} deg (independent), at the fitted "
+                f"gradient {az_sd[0]:.3g}, {az_sd[1]:.3g} E of the bias std (in quadrature, "
+                "included above)"
+            )
         misfit = self.misfit_text()
         if misfit is not None:
             lines.append(f"  note: {misfit}")
@@ -318,6 +368,8 @@ class StartupBias(_core.StartupBiasCore):
             "azimuth_deg": self.azimuth_deg.tolist(),
             "t_s": None if self.t is None else self.t.tolist(),
             "t_ref_s": self.t_ref,
+            "sigma_theta_deg": self.sigma_theta,
+            "azimuth_covariance": self.azimuth_covariance.tolist(),
         }
 
 
@@ -338,6 +390,7 @@ def startup_bias(
     sigma: float | ArrayLike | None = None,
     t_ref: float | None = None,
     check_units: bool = True,
+    sigma_theta: float = 0.0,
 ) -> StartupBias:
     """Per-startup bias of the inline and cross channels by least squares.
 
@@ -360,11 +413,23 @@ def startup_bias(
     check_units : bool
         Refuse azimuths that look like radians and outputs that plainly are not in E (see
         Raises); False fits them as given whatever they look like.
+    sigma_theta : float
+        Std of independent azimuth errors of the platform (its azimuth repeatability), deg;
+        0 (the default) leaves them out. Their first-order effect, evaluated at the gradient
+        fitted to these data (an error ``dtheta_k`` moves the outputs by ``2 dtheta_k
+        R'(2 theta_k) gamma``), is added to the covariance; it is the
+        ``azimuth_covariance`` of :func:`predict_startup_accuracy` with ``gradient`` the
+        fitted one, about ``sqrt(2) sigma_theta |gamma| / sqrt(m)`` on the bias std for a
+        balanced set. A common offset of all azimuths does not affect the bias and does not
+        belong here. With ``sigma`` estimated, the share of the residuals the azimuth errors
+        are expected to leave is taken out of the noise estimate first (so it is not counted
+        twice); with ``sigma`` given, ``chi2_p`` allows for it. Refused above 5 deg.
 
     Returns
     -------
     StartupBias
-        With ``sigma`` given, ``chi2`` / ``chi2_p`` test the residuals against it.
+        With ``sigma`` given, ``chi2`` / ``chi2_p`` test the residuals against it (and
+        ``sigma_theta``).
 
     Raises
     ------
@@ -382,7 +447,8 @@ def startup_bias(
         typed in degrees, such as 0, 1, 2, 3, is not refused; measured or converted radians
         such as 0.0122, 1.5865 are). Also, with ``check_units``, outputs whose every
         ``|value|`` is below 1e-3 E (not all zero: s^-2 or m/s^2 given as E) or any above
-        1e7 E (raw counts, unconverted units).
+        1e7 E (raw counts, unconverted units). Always: ``sigma_theta`` negative, not finite,
+        not a number, or above 5 deg (arcmin, arcsec or mrad given as deg?).
 
     Warns
     -----
@@ -404,8 +470,9 @@ def startup_bias(
         if why is not None:
             raise CalibrationError(why)
     sd = None if sigma is None else _dwell_std(sigma, m)
+    st = _sigma_theta(sigma_theta)
     td = tt if drift else None
-    raw = _core.startup_bias_raw(az, y, sd, td, tref)
+    raw = _core.startup_bias_raw(az, y, sd, td, tref, st)
     fit = StartupBias(*raw.__reduce__()[1])
     hint = None
     if check_units:
@@ -836,6 +903,8 @@ class StartupCalibration:
     ``record_raw`` takes the raw a1..a4 streams and the spin phase instead (demodulated in
     Rust); ``record_mean`` takes averages computed elsewhere. ``check_units=False`` lets
     :meth:`solve` fit azimuths that look like radians (see :func:`startup_bias`).
+    ``sigma_theta`` (deg) is the platform's azimuth repeatability, added to the covariance as
+    in :func:`startup_bias`.
     """
 
     frame_rotation = staticmethod(frame_rotation)
@@ -847,9 +916,11 @@ class StartupCalibration:
         sigma: float | ArrayLike | str | None = None,
         radius_m: float | None = None,
         check_units: bool = True,
+        sigma_theta: float = 0.0,
     ) -> None:
         self.drift = bool(drift)
         self.check_units = bool(check_units)
+        self.sigma_theta = _sigma_theta(sigma_theta)
         if isinstance(sigma, str) and sigma != "stream":
             raise CalibrationError(
                 f"sigma must be a number, an array, 'stream' or None; got {sigma!r}"
@@ -984,7 +1055,7 @@ class StartupCalibration:
                 raise CalibrationError("sigma='stream' needs the noise of every recorded dwell")
             sig = np.array(self._sem, dtype=np.float64)
         fit = startup_bias(self.azimuth_deg, self.outputs, t=t, drift=self.drift, sigma=sig,
-                           check_units=self.check_units)
+                           check_units=self.check_units, sigma_theta=self.sigma_theta)
         if isinstance(self.sigma, str):  # "stream": say where sigma came from
             fit = _StartupBiasFromStreams(*fit.__reduce__()[1])
         return fit
@@ -999,6 +1070,7 @@ def calibrate_gradiometer_table(
     drift: bool | None = None,
     sigma: float | None = None,
     check_units: bool = True,
+    sigma_theta: float = 0.0,
 ) -> StartupBias:
     """Start-up bias from a table of per-azimuth averages (delimited text, ``#`` comments).
 
@@ -1008,7 +1080,8 @@ def calibrate_gradiometer_table(
     ``cross``; E unless ``[mE]`` or ``[1/s^2]``) and optionally the time (``t_s``, ``t``,
     ``time``; s unless ``[min]`` or ``[h]``). ``drift=None`` fits a drift when there is a time
     column and at least 3 rows. ``check_units`` as for :func:`startup_bias` (an azimuth
-    column in radians whose header does not say so is refused).
+    column in radians whose header does not say so is refused); ``sigma_theta`` (deg) the
+    std of independent azimuth errors, as there.
     """
     d = read_table(path, [
         Col("azimuth_deg", "the azimuth (azimuth_deg, azimuth, az, heading)", {
@@ -1032,4 +1105,5 @@ def calibrate_gradiometer_table(
         drift=use_drift,
         sigma=sigma,
         check_units=check_units,
+        sigma_theta=sigma_theta,
     )

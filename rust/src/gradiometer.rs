@@ -319,30 +319,161 @@ pub struct StartupBias {
     pub dof: usize,
     /// Condition number of the column-scaled, weighted design.
     pub condition: f64,
+    /// Std of the independent azimuth errors allowed for, rad (0: none).
+    pub sigma_theta: f64,
+    /// Part of `covariance` caused by the azimuth errors (row-major `p x p`; first order, at
+    /// the fitted gradient); all zero when `sigma_theta` is 0.
+    pub azimuth_covariance: Vec<f64>,
+    /// With `sigma` given, the whitened residual sum of squares is distributed about as
+    /// `chi2_scale * chi2(chi2_dof)` (Satterthwaite) once the azimuth errors are allowed for;
+    /// 1 and `dof` without them.
+    pub chi2_scale: f64,
+    /// See `chi2_scale`.
+    pub chi2_dof: f64,
+}
+
+/// What independent azimuth errors do to a start-up fit, to first order at a gradient.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AzimuthErrorTerms {
+    /// Parameter covariance (row-major `p x p`), as [`azimuth_error_covariance`].
+    pub covariance: Vec<f64>,
+    /// `tr(P S)`: expected share of the weighted residual sum of squares, with `P = I - H` the
+    /// weighted residual projector and `S` the weighted covariance of the output errors.
+    pub trace_ps: f64,
+    /// `tr(P S P S)`, for the variance of the weighted residual sum of squares.
+    pub trace_psps: f64,
+}
+
+/// First-order effect of independent azimuth errors of std `sigma_theta` (rad) on a start-up
+/// fit with weights `1 / dwell_std` when the navigation-frame gradient is `gradient`:
+/// `dy_k = 2 dtheta_k R'(2 theta_k) gamma`, the parameter covariance and the traces that give
+/// its share of the residuals.
+pub fn azimuth_error_terms(
+    theta: &[f64],
+    t: Option<&[f64]>,
+    t_ref: f64,
+    dwell_std: &[f64],
+    gradient: [f64; 2],
+    sigma_theta: f64,
+) -> Result<AzimuthErrorTerms> {
+    let covariance = azimuth_error_covariance(
+        theta,
+        t,
+        t_ref,
+        dwell_std,
+        GradientPrior::Vector(gradient),
+        sigma_theta,
+    )?;
+    let (cov, p, _) = startup_unit_cov(theta, t, t_ref, dwell_std)?;
+    let (a, _) = design(theta, t, t_ref);
+    let m = theta.len();
+    let [gi, gc] = gradient;
+    // Whitened output error per unit dtheta / sigma_theta: v_k = sigma_theta w_k d_k; and
+    // u_k = A_w,k^T v_k, so that Q_kl = v_k^T P_kl v_l = delta_kl |v_k|^2 - u_k^T C u_l.
+    let mut vv = vec![0.0; m];
+    let mut cu = vec![0.0; m * p];
+    let mut u = vec![0.0; m * p];
+    for k in 0..m {
+        let w = 1.0 / dwell_std[k];
+        let (s, c) = (2.0 * theta[k]).sin_cos();
+        let v = [
+            sigma_theta * w * 2.0 * (-s * gi + c * gc),
+            sigma_theta * w * 2.0 * (-c * gi - s * gc),
+        ];
+        vv[k] = v[0] * v[0] + v[1] * v[1];
+        for j in 0..p {
+            u[k * p + j] = w * (a[(2 * k) * p + j] * v[0] + a[(2 * k + 1) * p + j] * v[1]);
+        }
+        for i in 0..p {
+            cu[k * p + i] = (0..p).map(|j| cov[i * p + j] * u[k * p + j]).sum();
+        }
+    }
+    let mut trace_ps = 0.0;
+    let mut trace_psps = 0.0;
+    for k in 0..m {
+        for l in 0..m {
+            let ucu: f64 = (0..p).map(|j| u[k * p + j] * cu[l * p + j]).sum();
+            let q = if k == l { vv[k] - ucu } else { -ucu };
+            if k == l {
+                trace_ps += q;
+            }
+            trace_psps += q * q;
+        }
+    }
+    Ok(AzimuthErrorTerms {
+        covariance,
+        trace_ps,
+        trace_psps,
+    })
 }
 
 /// [`fit_startup_bias`] with the noise std of each average `sigma` (E) when known; otherwise
 /// unit weights and the noise estimated from the residuals (`rss / dof`).
+///
+/// `sigma_theta` (rad) is the std of independent azimuth errors: their first-order effect,
+/// evaluated at the fitted gradient ([`azimuth_error_terms`]), is added to the covariance.
+/// With the noise estimated from the residuals, the share the azimuth errors are expected to
+/// leave in them (`tr(P S)`) is taken out first (floored at zero), so it is not counted twice.
+/// `sigma_theta = 0` gives exactly the fit without the term.
 pub fn startup_bias(
     theta: &[f64],
     y: &[[f64; 2]],
     t: Option<&[f64]>,
     t_ref: f64,
     sigma: Option<&[f64]>,
+    sigma_theta: f64,
 ) -> Result<StartupBias> {
+    if !(sigma_theta.is_finite() && sigma_theta >= 0.0) {
+        return invalid(format!(
+            "azimuth error std must be finite and >= 0 (rad); got {sigma_theta}"
+        ));
+    }
     let m = theta.len();
     let ones = vec![1.0; m];
-    let f = fit_startup_bias(theta, y, t, t_ref, sigma.unwrap_or(&ones))?;
+    let weights = sigma.unwrap_or(&ones);
+    let f = fit_startup_bias(theta, y, t, t_ref, weights)?;
     let p = f.params.len();
-    let (covariance, used, estimated) = match sigma {
+    let az = if sigma_theta > 0.0 {
+        let g = [f.params[2], f.params[3]];
+        Some(azimuth_error_terms(
+            theta,
+            t,
+            t_ref,
+            weights,
+            g,
+            sigma_theta,
+        )?)
+    } else {
+        None
+    };
+    let (mut covariance, used, estimated) = match sigma {
         Some(s) => (f.unit_cov.clone(), Some(s.to_vec()), false),
         None if f.dof > 0 => {
-            let s2 = f.rss / f.dof as f64;
+            let rss = match &az {
+                Some(a) => (f.rss - a.trace_ps).max(0.0),
+                None => f.rss,
+            };
+            let s2 = rss / f.dof as f64;
             let cov = f.unit_cov.iter().map(|v| v * s2).collect();
             (cov, Some(vec![s2.sqrt(); m]), true)
         }
         None => (vec![f64::NAN; p * p], None, false),
     };
+    let (mut chi2_scale, mut chi2_dof) = (1.0, f.dof as f64);
+    if let Some(a) = &az {
+        for (c, v) in covariance.iter_mut().zip(&a.covariance) {
+            *c += v;
+        }
+        let dof = f.dof as f64;
+        if sigma.is_some() && f.dof > 0 {
+            // z^T P z with z ~ N(0, I + S): mean dof + tr(PS), variance
+            // 2 (dof + 2 tr(PS) + tr(PSPS)); matched to a scaled chi2.
+            let mean = dof + a.trace_ps;
+            let var = 2.0 * (dof + 2.0 * a.trace_ps + a.trace_psps);
+            chi2_scale = var / (2.0 * mean);
+            chi2_dof = 2.0 * mean * mean / var;
+        }
+    }
     let std = (0..p).map(|j| covariance[j * p + j].sqrt()).collect();
     Ok(StartupBias {
         params: f.params,
@@ -354,6 +485,10 @@ pub fn startup_bias(
         sigma_estimated: estimated,
         dof: f.dof,
         condition: f.condition,
+        sigma_theta,
+        azimuth_covariance: az.map_or_else(|| vec![0.0; p * p], |a| a.covariance),
+        chi2_scale,
+        chi2_dof,
     })
 }
 
@@ -1055,18 +1190,102 @@ mod tests {
         y[1][0] += 0.3;
         y[3][1] -= 0.2;
         let f = fit_startup_bias(&th, &y, None, 0.0, &[1.0; 5]).unwrap();
-        let est = startup_bias(&th, &y, None, 0.0, None).unwrap();
+        let est = startup_bias(&th, &y, None, 0.0, None, 0.0).unwrap();
         let s2 = f.rss / f.dof as f64;
         assert!(est.sigma_estimated && est.dof == 6);
         for (a, b) in est.covariance.iter().zip(&f.unit_cov) {
             assert!((a - b * s2).abs() <= 1e-15 * (b * s2).abs().max(1e-300));
         }
         assert!((est.std[0] - (f.unit_cov[0] * s2).sqrt()).abs() < 1e-15);
-        let given = startup_bias(&th, &y, None, 0.0, Some(&[0.5; 5])).unwrap();
+        let given = startup_bias(&th, &y, None, 0.0, Some(&[0.5; 5]), 0.0).unwrap();
         assert!(!given.sigma_estimated && given.sigma == Some(vec![0.5; 5]));
         // No redundancy and no noise given: the covariance cannot be known.
-        let two = startup_bias(&th[..2], &y[..2], None, 0.0, None).unwrap();
+        let two = startup_bias(&th[..2], &y[..2], None, 0.0, None, 0.0).unwrap();
         assert!(two.dof == 0 && two.sigma.is_none() && two.covariance.iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn startup_bias_adds_azimuth_errors_at_the_fitted_gradient() {
+        let th = deg(&[0.0, 30.0, 100.0, 150.0, 10.0]);
+        let g = [120.0, -70.0];
+        let y = synth(&th, [1.0, 2.0], g, None);
+        let sd = [0.05, 0.05, 0.08, 0.05, 0.05];
+        let st = 0.1f64.to_radians();
+        let zero = startup_bias(&th, &y, None, 0.0, Some(&sd), 0.0).unwrap();
+        assert!(zero.azimuth_covariance.iter().all(|v| *v == 0.0));
+        assert!(zero.chi2_scale == 1.0 && zero.chi2_dof == zero.dof as f64);
+        let with = startup_bias(&th, &y, None, 0.0, Some(&sd), st).unwrap();
+        let pred = predict_startup(&th, None, 0.0, &sd, GradientPrior::Vector(g), st).unwrap();
+        for (a, b) in with.covariance.iter().zip(&pred.total_covariance) {
+            assert!((a - b).abs() <= 1e-9 * b.abs().max(1e-12), "{a} vs {b}");
+        }
+        assert!(with.std[0] > 3.0 * zero.std[0]);
+        assert!(with.chi2_scale > 1.0 && with.chi2_dof > 0.0);
+        for bad in [-1e-3, f64::NAN, f64::INFINITY] {
+            assert!(startup_bias(&th, &y, None, 0.0, Some(&sd), bad).is_err());
+        }
+    }
+
+    #[test]
+    fn azimuth_error_traces_match_the_dense_projector() {
+        let th = deg(&[0.0, 30.0, 100.0, 150.0, 10.0, 75.0]);
+        let t = [0.0, 50.0, 100.0, 150.0, 200.0, 250.0];
+        let sd = [0.5, 0.7, 0.5, 0.6, 0.5, 0.9];
+        let g = [40.0, 25.0];
+        let st = 0.3f64.to_radians();
+        let a = azimuth_error_terms(&th, Some(&t), 125.0, &sd, g, st).unwrap();
+        let (raw, p) = design(&th, Some(&t), 125.0);
+        let m = th.len();
+        let n = 2 * m;
+        let aw = DMatrix::<f64>::from_fn(n, p, |r, j| raw[r * p + j] / sd[r / 2]);
+        let c = (aw.transpose() * &aw).try_inverse().unwrap();
+        let pm = DMatrix::<f64>::identity(n, n) - &aw * c * aw.transpose();
+        let mut sm = DMatrix::<f64>::zeros(n, n);
+        for k in 0..m {
+            let (s, cc) = (2.0 * th[k]).sin_cos();
+            let v = [
+                st / sd[k] * 2.0 * (-s * g[0] + cc * g[1]),
+                st / sd[k] * 2.0 * (-cc * g[0] - s * g[1]),
+            ];
+            for x in 0..2 {
+                for z in 0..2 {
+                    sm[(2 * k + x, 2 * k + z)] = v[x] * v[z];
+                }
+            }
+        }
+        let ps = &pm * &sm;
+        let tr1 = ps.trace();
+        let tr2 = (&ps * &ps).trace();
+        assert!(
+            (a.trace_ps - tr1).abs() < 1e-9 * tr1.abs(),
+            "{} vs {tr1}",
+            a.trace_ps
+        );
+        assert!(
+            (a.trace_psps - tr2).abs() < 1e-9 * tr2.abs(),
+            "{} vs {tr2}",
+            a.trace_psps
+        );
+    }
+
+    #[test]
+    fn estimated_noise_leaves_out_the_azimuth_share() {
+        let th = deg(&[0.0, 45.0, 90.0, 135.0, 22.5, 67.5, 112.5, 157.5]);
+        let g = [200.0, 50.0];
+        let st = 0.2f64.to_radians();
+        // Outputs at azimuths off by +-sigma_theta alternately, no noise.
+        let off: Vec<f64> = th
+            .iter()
+            .enumerate()
+            .map(|(k, v)| v + if k % 2 == 0 { st } else { -st })
+            .collect();
+        let y = synth(&off, [3.0, -1.0], g, None);
+        let plain = startup_bias(&th, &y, None, 0.0, None, 0.0).unwrap();
+        let with = startup_bias(&th, &y, None, 0.0, None, st).unwrap();
+        let s_plain = plain.sigma.unwrap()[0];
+        let s_with = with.sigma.unwrap()[0];
+        assert!(s_with < s_plain && s_with >= 0.0);
+        assert!(with.std[0] > plain.std[0] * 0.5);
     }
 
     #[test]

@@ -17,6 +17,10 @@ from ._common import (
 
 #: Python keywords in messages of the estimator and the option that sets each.
 _PHRASES = {
+    "sigma_theta must": "--sigma-theta must",
+    "sigma_theta is the std": "--sigma-theta is the std",
+    "sigma and sigma_theta": "--sigma and --sigma-theta",
+    "a wrong sigma or sigma_theta": "a wrong --sigma or --sigma-theta",
     "drift=True": "--drift",
     "give sigma=": "give --sigma",
     "sigma must": "--sigma must",
@@ -46,6 +50,10 @@ def _cli(msg: str) -> str:
 @click.argument("table", type=click.Path())
 @click.option("--drift/--no-drift", default=None, help="Fit a linear bias drift (needs t_s).")
 @click.option("--sigma", type=float, default=None, help="Noise std of one average, E.")
+@click.option("--sigma-theta", "sigma_theta", type=float, default=0.0, show_default=True,
+              help="Std of independent azimuth errors of the platform (its azimuth "
+                   "repeatability), deg; its first-order effect at the fitted gradient is "
+                   "added to the std.")
 @click.option("--no-unit-check", is_flag=True,
               help="Fit azimuths as degrees even when they look like radians, and channels "
                    "as E even when their size says otherwise.")
@@ -56,8 +64,8 @@ def _cli(msg: str) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @friendly
 def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
-                          no_unit_check: bool, output: str | None, plot_path: str | None,
-                          as_json: bool) -> None:
+                          sigma_theta: float, no_unit_check: bool, output: str | None,
+                          plot_path: str | None, as_json: bool) -> None:
     """Gradiometer per-startup bias from azimuth_deg, inline_E, cross_E[, t_s] rows.
 
     Columns by name, with units in brackets: the azimuth (azimuth_deg, azimuth, az, heading;
@@ -65,7 +73,8 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
     min or h). Azimuths in a column that does not say [rad] but that look like radians,
     and channels whose size says they are not E (every value below 1e-3: 1/s^2; any above
     1e7: counts) are refused (see accelcal.startup_bias; --no-unit-check fits them as
-    given); with --sigma, residuals that exceed it are reported."""
+    given); with --sigma, residuals that exceed it are reported. --sigma-theta (deg) adds
+    the platform's independent azimuth errors to the std."""
     import warnings
 
     from ..gradiometer import calibrate_gradiometer_table
@@ -75,7 +84,8 @@ def calibrate_gradiometer(table: str, drift: bool | None, sigma: float | None,
         warnings.simplefilter("always")
         try:
             sb = calibrate_gradiometer_table(table, drift=drift, sigma=sigma,
-                                             check_units=not no_unit_check)
+                                             check_units=not no_unit_check,
+                                             sigma_theta=sigma_theta)
         except CalibrationError as e:
             raise type(e)(_cli(str(e))) from None
     text = _cli(sb.summary())

@@ -63,6 +63,12 @@ pub struct PyStartupBias {
     t: Option<Py<PyArray1<f64>>>,
     t_ref: Option<f64>,
     names: Vec<String>,
+    /// Std of the independent azimuth errors allowed for, deg.
+    sigma_theta: f64,
+    /// `(p, p)`: the part of `covariance` from the azimuth errors.
+    azimuth_covariance: Py<PyArray2<f64>>,
+    chi2_scale: f64,
+    chi2_dof: f64,
 }
 
 /// A start-up estimate and the design it came from.
@@ -93,6 +99,10 @@ impl From<(g::StartupBias, StartupInput)> for PyStartupBias {
                 t: d.t.map(|t| frozen1(py, t)),
                 t_ref: d.t_ref,
                 names: names(p),
+                sigma_theta: f.sigma_theta.to_degrees(),
+                azimuth_covariance: frozen2(py, f.azimuth_covariance, p, p),
+                chi2_scale: f.chi2_scale,
+                chi2_dof: f.chi2_dof,
             }
         })
     }
@@ -102,9 +112,10 @@ impl From<(g::StartupBias, StartupInput)> for PyStartupBias {
 impl PyStartupBias {
     /// Rebuild from the fields in declaration order (what pickling uses).
     #[new]
-    #[pyo3(signature = (bias, gradient, drift, covariance, std, residuals, unit_covariance, sigma, sigma_estimated, dof, condition, azimuth_deg, t, t_ref, names))]
+    #[pyo3(signature = (bias, gradient, drift, covariance, std, residuals, unit_covariance, sigma, sigma_estimated, dof, condition, azimuth_deg, t, t_ref, names, sigma_theta=0.0, azimuth_covariance=None, chi2_scale=1.0, chi2_dof=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
+        py: Python<'_>,
         bias: PyReadonlyArray1<'_, f64>,
         gradient: PyReadonlyArray1<'_, f64>,
         drift: Option<PyReadonlyArray1<'_, f64>>,
@@ -120,9 +131,19 @@ impl PyStartupBias {
         t: Option<PyReadonlyArray1<'_, f64>>,
         t_ref: Option<f64>,
         names: Vec<String>,
+        sigma_theta: f64,
+        azimuth_covariance: Option<PyReadonlyArray2<'_, f64>>,
+        chi2_scale: f64,
+        chi2_dof: Option<f64>,
     ) -> PyResult<Self> {
         let p = names.len();
-        if bias.len() != 2 || gradient.len() != 2 || covariance.shape() != [p, p] || std.len() != p
+        if bias.len() != 2
+            || gradient.len() != 2
+            || covariance.shape() != [p, p]
+            || std.len() != p
+            || azimuth_covariance
+                .as_ref()
+                .is_some_and(|a| a.shape() != [p, p])
         {
             return Err(CalibrationError::new_err(
                 "StartupBias fields have inconsistent shapes",
@@ -144,6 +165,13 @@ impl PyStartupBias {
             t: t.as_ref().map(frozen_copy1),
             t_ref,
             names,
+            sigma_theta,
+            azimuth_covariance: match &azimuth_covariance {
+                Some(a) => frozen_copy2(a),
+                None => frozen2(py, vec![0.0; p * p], p, p),
+            },
+            chi2_scale,
+            chi2_dof: chi2_dof.unwrap_or(dof as f64),
         })
     }
 
@@ -169,6 +197,10 @@ impl PyStartupBias {
             s.t.as_ref().map(|a| a.clone_ref(py)),
             s.t_ref,
             s.names.clone(),
+            s.sigma_theta,
+            s.azimuth_covariance.clone_ref(py),
+            s.chi2_scale,
+            s.chi2_dof,
         );
         let all = args
             .into_pyobject(py)?
@@ -179,15 +211,17 @@ impl PyStartupBias {
 }
 
 /// Start-up least squares from azimuths in degrees; `sigma` the noise std of each average
-/// (E), or `None` to estimate it from the residuals.
+/// (E), or `None` to estimate it from the residuals; `sigma_theta_deg` the std of independent
+/// azimuth errors (deg) whose first-order effect is added to the covariance.
 #[pyfunction]
-#[pyo3(signature = (azimuth_deg, outputs, sigma=None, t=None, t_ref=None))]
+#[pyo3(signature = (azimuth_deg, outputs, sigma=None, t=None, t_ref=None, sigma_theta_deg=0.0))]
 pub fn startup_bias_raw(
     azimuth_deg: PyReadonlyArray1<'_, f64>,
     outputs: PyReadonlyArray2<'_, f64>,
     sigma: Option<PyReadonlyArray1<'_, f64>>,
     t: Option<PyReadonlyArray1<'_, f64>>,
     t_ref: Option<f64>,
+    sigma_theta_deg: f64,
 ) -> PyResult<PyStartupBias> {
     let az = vec1(&azimuth_deg);
     let y = pairs(&outputs, "outputs")?;
@@ -204,6 +238,7 @@ pub fn startup_bias_raw(
         ts.as_deref(),
         tr.unwrap_or(0.0),
         sd.as_deref(),
+        sigma_theta_deg.to_radians(),
     )?;
     let input = StartupInput {
         azimuth_deg: az,
