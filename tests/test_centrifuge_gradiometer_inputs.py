@@ -255,10 +255,13 @@ def test_results_pickle_and_round_trip_exactly(centrifuge_rows, grad_stream):
     with pytest.warns(ac.CentrifugeOutlierWarning):
         screened = ac.calibrate_centrifuge_table(
             shared_data("seed004", "table1_as_printed.csv"), 1.0, g=9.8)
+    with pytest.warns(ac.CentrifugeModelWarning, match="the model leaves a misfit"):
+        unscreened = ac.fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, method="taylor-paper",
+                                       robust=False)  # 23 lost signs kept: a misfit
     results = [
         ac.fit_centrifuge(out, om, 1.0, g=9.8, sigma=1e-6),
         screened,
-        ac.fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, method="taylor-paper", robust=False),
+        unscreened,
         ac.startup_bias(GRAD_AZ, GRAD_Y),
         ac.startup_bias([0.0, 90.0], GRAD_Y[:2]),  # NaN covariance: no redundancy
         ac.startup_bias(GRAD_AZ, GRAD_Y, t=GRAD_T, drift=True, sigma=0.2),

@@ -18,10 +18,12 @@ from typing import Any, Literal, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from . import _core
+from . import _core, _quiet
 from ._core import CalibrationError
+from ._plain import plain
 from ._tables import RATE_UNITS, Col, read_table
 from ._validate import number, real_array
+from .static import WeakDesignWarning
 
 __all__ = [
     "EARTH_RATE",
@@ -324,8 +326,10 @@ class CentrifugeFit(_core.CentrifugeFitCore):
         """The robust screen ran (``draws > 0``) yet kept every row although rows exceed the
         threshold: it judged the misfit a model error spread over the rows, not outliers (the
         core's rule: more than half of the rows excluded; the excluded rows' residuals made by
-        the exclusion, over 30 times their plain-fit residuals; or, with ``sigma`` given, more
-        than a quarter excluded while the rows kept still reject the noise model)."""
+        the exclusion, over 30 times their plain-fit residuals; with ``sigma`` given, more
+        than a quarter excluded while the rows kept still reject the noise model; more than a
+        quarter excluded that are not lost minus signs; 4 or more such rows with residuals
+        agreeing in sign and within a factor 2; or 6 or more such rows at one speed)."""
         return bool(self.draws > 0 and not len(self.outliers)
                     and np.any(np.abs(self.studentized) > self.threshold))
 
@@ -419,41 +423,31 @@ class CentrifugeFit(_core.CentrifugeFitCore):
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly dictionary (lists and floats)."""
-
-        def conv(x: Any) -> Any:
-            if isinstance(x, np.ndarray):
-                return x.tolist()
-            if isinstance(x, dict):
-                return {k: conv(v) for k, v in x.items()}
-            if isinstance(x, np.generic):
-                return x.item()
-            return x
-
         return {
             "method": self.method,
-            "scale": conv(self.scale),
-            "bias_g": conv(self.bias),
-            "k2_g_per_g2": conv(self.k2),
-            "k3_g_per_g3": conv(self.k3),
-            "misalignment_rad": conv(self.misalignment),
-            "lever_arm_m": conv(self.lever_arm),
+            "scale": plain(self.scale),
+            "bias_g": plain(self.bias),
+            "k2_g_per_g2": plain(self.k2),
+            "k3_g_per_g3": plain(self.k3),
+            "misalignment_rad": plain(self.misalignment),
+            "lever_arm_m": plain(self.lever_arm),
             "names": list(self.names),
-            "params": conv(self.params),
-            "std": conv(self.std),
-            "covariance": conv(self.covariance),
+            "params": plain(self.params),
+            "std": plain(self.std),
+            "covariance": plain(self.covariance),
             "noise_known": self.noise_known,
-            "residuals_g": [float(v) if np.isfinite(v) else None for v in self.residuals],
-            "studentized": [float(v) if np.isfinite(v) else None for v in self.studentized],
+            "residuals_g": plain(self.residuals, strict=True),
+            "studentized": plain(self.studentized, strict=True),
             "threshold": self.threshold,
-            "outliers": conv(self.outliers),
+            "outliers": plain(self.outliers),
             "row_labels": list(self.labels),
             # In g whatever the noise: with sigma given, residual_rms is whitened (its own key).
             "residual_rms_g": self._rms_g(),
             "residual_rms_whitened": self.residual_rms if self.noise_known else None,
-            "observability": conv(self.observability),
+            "observability": plain(self.observability),
             "iterations": self.iterations,
             "converged": self.converged,
-            "taylor_coefficients": conv(self.taylor_coefficients),
+            "taylor_coefficients": plain(self.taylor_coefficients),
             "radius_m": self.radius,
             "g_mps2": self.g,
         }
@@ -513,7 +507,9 @@ def fit_centrifuge(
     radius : float
         Nominal radius (m).
     g : float
-        Gravity (m/s^2) used to express ``A = omega^2 R / g`` in g.
+        Local gravity (m/s^2) used to express ``A = omega^2 R / g`` in g. With ``check_units``
+        a value outside 9.76..9.84 is refused (CalibrationError naming the unit it looks like:
+        32.17 ft/s^2, 980.7 cm/s^2, 1 g).
     method : {"nls", "taylor-paper"}
         ``"nls"``: exact per-axis inversion and least squares on the norm (default).
         ``"taylor-paper"``: the paper's 13-coefficient regression with its closed form, as
@@ -539,11 +535,19 @@ def fit_centrifuge(
         :class:`CentrifugeOutlierWarning` naming them. See ``outlier_k``. The screen is for
         sparse gross errors (a lost sign, a wrong row): when what it would exclude is a misfit
         spread over the rows instead (more than half of them; residuals the exclusion itself
-        makes, over 30 times the rows' plain-fit residuals; or, with ``sigma`` given, more than
-        a quarter of the rows while those kept still reject the noise model), every row is
-        kept, :attr:`CentrifugeFit.screen_kept_all` is set and a
+        makes, over 30 times the rows' plain-fit residuals; with ``sigma`` given, more than
+        a quarter of the rows while those kept still reject the noise model; more than a
+        quarter of the rows not explained as lost minus signs; 4 or more such rows whose
+        residuals agree in sign and within a factor 2; or 6 or more such rows at one speed),
+        every row is kept, :attr:`CentrifugeFit.screen_kept_all` is set and a
         :class:`CentrifugeModelWarning` says the residuals point to a model error. When fewer
-        rows than the parameters need agree with any fit, DegenerateDataError says so.
+        rows than the parameters need agree with any fit, DegenerateDataError says so. A fit
+        returned with residuals far above its noise (whitened rms above 3 with ``sigma``, or
+        above 1e-3 of the norm without) warns with :class:`CentrifugeModelWarning`; a weak
+        design (condition number above 1e4, or an input-referred bias std above 5e-3 g) with
+        :class:`accelcal.WeakDesignWarning`; a fit that does not converge raises
+        CalibrationError. The plain fit restarts from the screen's least-median start when the
+        linear start leaves it unconverged or above 1e-4 of the norm.
     outlier_k : float
         Screening threshold as a normal tail: a good row is excluded with the probability of a
         ``outlier_k``-sigma normal deviation, ``2 Phi(-k)`` per row (5.7e-7 at the default 5,
@@ -619,12 +623,102 @@ def fit_centrifuge(
         bool(robust), k_out, 1e-9, draws, sd, False, lab,
     )
     res = CentrifugeFit(fit)  # the same result as the Python type (arrays shared)
+    if not res.converged:
+        raise CalibrationError(_not_converged_text(res, om))
     if len(res.outliers):
-        warnings.warn(res.excluded_text(), CentrifugeOutlierWarning, stacklevel=2)
-    elif res.screen_kept_all:
-        warnings.warn("robust screen " + res.model_error_text(), CentrifugeModelWarning,
-                      stacklevel=2)
+        _quiet.warn(res.excluded_text(), CentrifugeOutlierWarning, stacklevel=2)
+    if res.screen_kept_all:
+        rel = _relative_rms(res, om)
+        _quiet.warn("robust screen " + res.model_error_text()
+                    + f"; the fit on every row leaves {rel:.2g} of the norm (rms)",
+                    CentrifugeModelWarning, stacklevel=2)
+        misfit = "kept all"
+    else:
+        misfit = _misfit_text(res, om)
+        if misfit:
+            _quiet.warn(misfit, CentrifugeModelWarning, stacklevel=2)
+    weak = _weak_design_text(res, bias_std=not misfit)
+    if weak:
+        _quiet.warn(weak, WeakDesignWarning, stacklevel=2)
     return res
+
+
+#: Whitened residual rms above which a fit with the noise given leaves a misfit (with at least
+#: :data:`_MISFIT_MIN_DOF` residual degrees of freedom), and the relative residual rms (of the
+#: norm) above which a fit with the noise estimated does.
+_MISFIT_WHITENED = 3.0
+_MISFIT_MIN_DOF = 10
+_MISFIT_RELATIVE = 1e-3
+#: Condition number of the column-normalised Jacobian, and bias std (input-referred, g: the
+#: std over the scale factor), above which the design is weak.
+_WEAK_CONDITION = 1e4
+_WEAK_BIAS_STD_G = 5e-3
+
+
+def _used(res: CentrifugeFit) -> NDArray[np.bool_]:
+    used = np.ones(len(res.residuals), dtype=bool)
+    used[np.asarray(res.outliers, dtype=np.int64)] = False
+    return used
+
+
+def _relative_rms(res: CentrifugeFit, omega: NDArray[np.float64]) -> float:
+    """RMS of the norm residuals of the rows used relative to the norm ``sqrt(A^2 + 1)``."""
+    used = _used(res)
+    a = omega[used] ** 2 * res.radius / res.g
+    rel = np.asarray(res.residuals)[used] / np.sqrt(a * a + 1.0)
+    return float(np.sqrt(np.mean(rel * rel))) if rel.size else 0.0
+
+
+def _not_converged_text(res: CentrifugeFit, omega: NDArray[np.float64]) -> str:
+    unit = "(whitened)" if res.noise_known else "g"
+    return (
+        f"the centrifuge fit did not converge ({res.iterations} iterations, residual rms "
+        f"{res.residual_rms:.3g} {unit}, {_relative_rms(res, omega):.2g} of the norm): its "
+        "parameters and std are not a least-squares solution. The model may not fit these "
+        "data (a wrong radius, rate or g, a lever arm, misalignment, K3): keep the robust "
+        "screen on (robust=True) and run diagnose_centrifuge"
+    )
+
+
+def _misfit_text(res: CentrifugeFit, omega: NDArray[np.float64]) -> str:
+    """Words for a returned fit whose residuals are far above its noise, or ``""``."""
+    rel = _relative_rms(res, omega)
+    causes = ("a wrong radius, rate or g, a lever arm, misalignment, K3 or the Earth rate; "
+              "accelcal.diagnose_centrifuge names the effect")
+    if res.noise_known:
+        dof = int(_used(res).sum()) - len(res.params)
+        if dof < _MISFIT_MIN_DOF or not res.residual_rms > _MISFIT_WHITENED:
+            return ""
+        return (
+            f"the model leaves a misfit: whitened residual rms {res.residual_rms:.3g} (about 1 "
+            f"if the model and the given noise were right; {rel:.2g} of the norm), so the "
+            f"parameters carry a model error and their std understate it: {causes}"
+        )
+    if not rel > _MISFIT_RELATIVE:
+        return ""
+    return (
+        f"the model leaves a misfit: residual rms {res.residual_rms:.3g} g, {rel:.2g} of the "
+        f"norm (above {_MISFIT_RELATIVE:g}), far above any accelerometer's noise on means: the "
+        f"parameters carry a model error and their std (from the residual scatter) do not "
+        f"describe it: {causes}"
+    )
+
+
+def _weak_design_text(res: CentrifugeFit, bias_std: bool = True) -> str:
+    """Words for a design that determines the parameters only weakly, or ``""``. With
+    ``bias_std`` False (the std are scaled by a misfit already warned of) only the condition
+    number counts."""
+    cond = float(res.condition_number)
+    bstd = np.asarray(res.std)[3:6] / np.abs(np.asarray(res.scale))  # input-referred, g
+    if not (cond > _WEAK_CONDITION or (bias_std and np.any(bstd > _WEAK_BIAS_STD_G))):
+        return ""
+    return (
+        f"weak design: condition number {cond:.3g} (column-normalised Jacobian), bias std "
+        f"({', '.join(f'{v:.2g}' for v in bstd)}) g: the rows barely separate some parameters "
+        "(an axis that sees few distinct levels of specific force cannot tell bias from K2 or "
+        "scale); the estimates along that combination follow the noise. Add positions where "
+        "each axis sees more distinct inputs, or more speeds"
+    )
 
 
 # --------------------------------------------------------------------------- seed table I/O

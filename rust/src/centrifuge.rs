@@ -1076,7 +1076,117 @@ pub fn validate(data: &CentrifugeData<'_>, model: &ModelOptions) -> Result<usize
             p + 1
         ));
     }
+    if !model.misalignment {
+        check_axis_levels(data, model)?;
+    }
     Ok(speeds.len())
+}
+
+/// Distinct levels of `x` (sorted; a new level where the gap to the previous value exceeds
+/// `tol`): the mean of each cluster.
+fn levels(x: &mut [f64], tol: f64) -> Vec<f64> {
+    x.sort_by(|a, b| a.total_cmp(b));
+    let mut out: Vec<(f64, usize)> = Vec::new();
+    let mut prev = f64::NEG_INFINITY;
+    for &v in x.iter() {
+        match out.last_mut() {
+            Some((s, c)) if v - prev <= tol => {
+                *s += v;
+                *c += 1;
+            }
+            _ => out.push((v, 1)),
+        }
+        prev = v;
+    }
+    out.into_iter().map(|(s, c)| s / c as f64).collect()
+}
+
+/// Identifiability of each axis from the design, free of the noise: axis i's output is a
+/// monotone function of its specific force `f_i`
+/// (`N_i = b_i + S_i (f_i + K2_i f_i^2 [+ K3_i f_i^3])`), so the distinct levels of `N_i` over
+/// the rows are the distinct levels of `f_i` the design gives it. The norm sees `f_i` only through its value at those levels, so bias, scale
+/// and K2 (and K3) of the axis need at least as many levels as they are parameters: a flat
+/// mount whose z axis only sees +1 and -1 g cannot tell `b_z` from `K2_z` (`f_z^2 = 1` on every
+/// row), however the noise lifts the degeneracy of the fitted Jacobian. Levels closer than
+/// 1e-3 of the axis's output range (plus six times its largest noise, when given) are one.
+fn check_axis_levels(data: &CentrifugeData<'_>, model: &ModelOptions) -> Result<()> {
+    let need = 3 + usize::from(model.k3);
+    for i in 0..3 {
+        let mut x: Vec<f64> = data.outputs.iter().map(|n| n[i]).collect();
+        let (lo, hi) = x
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
+        let noise = data
+            .sigma
+            .map_or(0.0, |s| s.iter().map(|r| r[i]).fold(0.0, f64::max));
+        let tol = 1e-3 * (hi - lo) + 6.0 * noise;
+        let lv = levels(&mut x, tol);
+        if lv.len() >= need {
+            continue;
+        }
+        let axis = ["x", "y", "z"][i];
+        let shown: Vec<String> = lv.iter().map(|v| format!("{v:.4}")).collect();
+        let what = if lv.len() == 2 {
+            format!(
+                "with two levels of f_{axis}, b{axis}, s{axis} and k2{axis} (3 parameters) meet \
+                 the norm at 2 points, so one combination of them is free (when f_{axis} is +-1 g, \
+                 f_{axis}^2 = 1 on every row and k2{axis} acts exactly as bias)"
+            )
+        } else {
+            format!("s{axis} and k2{axis} have nothing to scale")
+        };
+        let k3 = if model.k3 {
+            format!(" (with k3{axis}: {need})")
+        } else {
+            String::new()
+        };
+        return degenerate(format!(
+            "the design cannot determine the {axis} axis: its output takes only {} distinct \
+             level(s) ({} g) over all rows; {what}. Bias, scale and K2 of an axis need at least \
+             3 distinct levels of its specific force{k3}: add positions where the {axis} axis \
+             sees other inputs (e.g. tilted so it shares the radial direction)",
+            lv.len(),
+            shown.join(", ")
+        ));
+    }
+    Ok(())
+}
+
+/// Local gravity, m/s^2: anywhere on the Earth's surface (9.78 at the equator to 9.83 at the
+/// poles, less with height), with a margin.
+const GRAVITY_MPS2: (f64, f64) = (9.76, 9.84);
+
+/// `g` is used as a local gravity in m/s^2 (`A = omega^2 R / g`). A value outside
+/// [`GRAVITY_MPS2`] is refused, naming the unit it looks like (ft/s^2, cm/s^2, mm/s^2, in/s^2,
+/// or g itself). A radius or rate off by a plain factor fits as a wrong, clean-looking model
+/// (the constraint `|f|^2 = A^2 + 1` cannot absorb a factor on A), so a g in other units must
+/// not reach the fit.
+pub fn check_gravity(g: f64) -> Result<()> {
+    if g >= GRAVITY_MPS2.0 && g <= GRAVITY_MPS2.1 {
+        return Ok(());
+    }
+    const UNITS: [(&str, f64); 5] = [
+        ("ft/s^2", 1.0 / 0.3048),
+        ("cm/s^2 (Gal)", 100.0),
+        ("mm/s^2", 1000.0),
+        ("in/s^2", 1.0 / 0.0254),
+        ("g (standard gravities)", 1.0 / 9.80665),
+    ];
+    let likely = UNITS.iter().find(|(_, f)| {
+        let m = g / f;
+        m >= GRAVITY_MPS2.0 && m <= GRAVITY_MPS2.1
+    });
+    let why = match likely {
+        Some((unit, f)) => format!("it looks like {unit}: {g} {unit} is {:.5} m/s^2", g / f),
+        None => "it is not a gravity on the Earth's surface in any common unit".into(),
+    };
+    invalid(format!(
+        "g must be the local gravity in m/s^2 ({}..{}), as A = omega^2 R / g needs; got {g}: \
+         {why}. Give g in m/s^2 (e.g. 9.80665), or pass check_units=False to fit as given",
+        GRAVITY_MPS2.0, GRAVITY_MPS2.1
+    ))
 }
 
 /// Start values (external units): axis-aligned ellipsoid regression without K2, solved by
@@ -1961,6 +2071,46 @@ const SCREEN_ROUNDS: usize = 10;
 /// [`misfit_is_spread`]).
 const SCREEN_MAX_AMPLIFICATION: f64 = 30.0;
 
+/// Fewest excluded rows (not lost signs) whose agreeing residuals make a systematic group
+/// (rule 5 of [`misfit_is_spread`]).
+const SCREEN_GROUP_MIN: usize = 4;
+
+/// Fewest excluded rows (not lost signs), all at one speed, that make a systematic group
+/// (rule 6 of [`misfit_is_spread`]).
+const SCREEN_SPEED_GROUP_MIN: usize = 6;
+
+/// Largest residual of a row with one output's sign flipped, relative to its residual as
+/// given, for the flip to explain it (a lost sign takes a 0.1 g residual to the noise).
+const SIGN_SLIP_RATIO: f64 = 0.05;
+
+/// Whether each row meets the fit at `p` with one of its outputs' sign flipped (a lost minus
+/// sign): its weighted residual then within `bound` and under [`SIGN_SLIP_RATIO`] of its
+/// residual as given.
+fn sign_slips(
+    data: &CentrifugeData<'_>,
+    rc: &[RowConst],
+    model: &ModelOptions,
+    p: &[f64],
+    rows: &[usize],
+    bound: f64,
+) -> Vec<bool> {
+    let mut out = vec![false; data.outputs.len()];
+    let Some(pp) = param_pre(model, p) else {
+        return out;
+    };
+    for &k in rows {
+        let r0 =
+            row_eval(&data.outputs[k], &rc[k], &pp, model, None).map_or(f64::INFINITY, f64::abs);
+        out[k] = (0..3).any(|i| {
+            let mut n = data.outputs[k];
+            n[i] = -n[i];
+            row_eval(&n, &rc[k], &pp, model, None)
+                .is_some_and(|r| (r * rc[k].w).abs() <= bound && r.abs() <= SIGN_SLIP_RATIO * r0)
+        });
+    }
+    out
+}
+
 /// Stage (screen verdict): whether the screen's exclusion of `excluded` (of `n` rows) is a
 /// misfit spread over the rows (a model error: radius, rate, lever arm, misalignment, K3)
 /// rather than sparse gross errors, in which case every row is kept. The screen is for sparse
@@ -1980,7 +2130,19 @@ const SCREEN_MAX_AMPLIFICATION: f64 = 30.0;
 /// 3. it excludes more than a quarter of the rows, the noise is given, and the rows it keeps
 ///    still reject the noise model: their whitened chi-square `kept_chi2 = (chi2, dof)` is
 ///    beyond the screen's own tail probability `tail` (`2 Phi(-outlier_k)`). Such an exclusion
-///    trimmed the worst rows of a misfit present in every row.
+///    trimmed the worst rows of a misfit present in every row;
+/// 4. more than a quarter of the rows are excluded and not explained as a lost sign (`slip[k]`:
+///    row k meets the screened fit with one output's sign flipped, the transcription error of
+///    the paper's printed table). A radius off by a factor 2 had 20 of 60 rows (whole position
+///    groups) excluded and the other 40 fitted to the noise, with S twice the truth;
+/// 5. at least [`SCREEN_GROUP_MIN`] rows not explained as lost signs are excluded and their
+///    residuals in the screened fit agree in sign and within a factor 2 in size: one
+///    systematic effect, not unrelated gross errors (a 10 % radius error excluded the 8 rows of
+///    the lowest speed whose specific force is mostly gravity, residuals 0.0226 to 0.0229 g);
+/// 6. at least [`SCREEN_SPEED_GROUP_MIN`] rows not explained as lost signs are excluded, all at
+///    one speed (`omega`, rad/s, per row): an effect growing with the speed (a K3 of 8e-6 g/g^3
+///    excluded 12 rows of the highest speed).
+#[allow(clippy::too_many_arguments)]
 fn misfit_is_spread(
     n: usize,
     excluded: &[usize],
@@ -1988,6 +2150,8 @@ fn misfit_is_spread(
     r_screened: &[f64],
     kept_chi2: Option<(f64, usize)>,
     tail: f64,
+    slip: &[bool],
+    omega: &[f64],
 ) -> bool {
     let q = excluded.len();
     if q == 0 {
@@ -1995,6 +2159,38 @@ fn misfit_is_spread(
     }
     if 2 * q > n {
         return true;
+    }
+    let gross: Vec<f64> = excluded
+        .iter()
+        .filter(|&&k| !slip.get(k).copied().unwrap_or(false))
+        .map(|&k| r_screened[k])
+        .collect();
+    if 4 * gross.len() > n {
+        return true;
+    }
+    if gross.len() >= SCREEN_GROUP_MIN && gross.iter().all(|r| r.is_finite()) {
+        let same_sign = gross.iter().all(|r| *r > 0.0) || gross.iter().all(|r| *r < 0.0);
+        let (lo, hi) = gross.iter().fold((f64::INFINITY, 0.0f64), |(a, b), r| {
+            (a.min(r.abs()), b.max(r.abs()))
+        });
+        if same_sign && hi <= 2.0 * lo {
+            return true;
+        }
+    }
+    let gross_rows: Vec<usize> = excluded
+        .iter()
+        .copied()
+        .filter(|&k| !slip.get(k).copied().unwrap_or(false))
+        .collect();
+    if gross_rows.len() >= SCREEN_SPEED_GROUP_MIN {
+        let w0 = omega.get(gross_rows[0]).map_or(f64::NAN, |w| w.abs());
+        if gross_rows.iter().all(|&k| {
+            omega
+                .get(k)
+                .is_some_and(|w| (w.abs() - w0).abs() <= 1e-9 * w0.max(1e-300))
+        }) {
+            return true;
+        }
     }
     let (mut ss_screened, mut ss_plain) = (0.0, 0.0);
     for &k in excluded {
@@ -2124,7 +2320,24 @@ fn screen(
         (chi2, sc.st.dof)
     });
     let tail = chi2_sf(opt.outlier_k * opt.outlier_k, 1.0);
-    if misfit_is_spread(n, &excluded, &whole.st.r, &sc.st.r, kept_chi2, tail) {
+    let slip = sign_slips(
+        data,
+        rc,
+        &opt.model,
+        &sc.out.params,
+        &excluded,
+        2.0 * sc.threshold * sc.st.scale,
+    );
+    if misfit_is_spread(
+        n,
+        &excluded,
+        &whole.st.r,
+        &sc.st.r,
+        kept_chi2,
+        tail,
+        &slip,
+        data.omega,
+    ) {
         rc.copy_from_slice(&rc_plain);
         whole.draws = draws;
         whole.kept_all = true;
@@ -2450,6 +2663,7 @@ pub fn fit(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeFit>
     validate(data, &opt.model)?;
     check_options(opt)?;
     if opt.check_units {
+        check_gravity(data.g)?;
         if let Some(u) = check_units(data, opt) {
             let likely = match u.findings.first() {
                 Some(f) => format!(
@@ -2480,6 +2694,11 @@ fn fit_staged(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeF
              values or the outputs do not describe an ellipsoid",
         ),
         _ => fit_rows(data, &mut rc, &all, opt, start.as_deref()),
+    };
+    let plain = if opt.method == Method::Nls {
+        robust_restart(data, &mut rc, &all, opt, plain)
+    } else {
+        plain
     };
     let sc = screen(data, &mut rc, opt, plain)?;
     let mut params = sc.out.params.clone();
@@ -2529,6 +2748,66 @@ fn fit_staged(data: &CentrifugeData<'_>, opt: &FitOptions) -> Result<CentrifugeF
         converged: sc.out.converged,
         taylor_coefficients: sc.out.taylor,
     })
+}
+
+/// RMS of the norm residuals relative to the norm (`r / sqrt(A^2 + 1)`) over `rows` at `p`;
+/// infinite when a row cannot be inverted.
+fn relative_rms(
+    data: &CentrifugeData<'_>,
+    rc: &[RowConst],
+    model: &ModelOptions,
+    p: &[f64],
+    rows: &[usize],
+) -> f64 {
+    let r = residuals_pre(data, rc, model, p);
+    let ss: f64 = rows.iter().map(|&k| (r[k] * rc[k].inv_st).powi(2)).sum();
+    (ss / rows.len().max(1) as f64).sqrt()
+}
+
+/// Stage (plain fit, second start): the plain fit on `rows` from the linear start can stall in
+/// a wrong minimum (a session with rows at rest and one speed, noise given: by 18 g, whitened
+/// rms 2.6e5, sometimes "converged"). When it failed, did not converge or leaves more than
+/// [`PROBE_MIN_RELATIVE`] of the norm, it is refitted from the screen's least-median start and
+/// the fit with the smaller relative residual kept (with its noise weights in `rc`).
+fn robust_restart(
+    data: &CentrifugeData<'_>,
+    rc: &mut [RowConst],
+    rows: &[usize],
+    opt: &FitOptions,
+    plain: Result<Outcome>,
+) -> Result<Outcome> {
+    let model = &opt.model;
+    let misfit = match &plain {
+        Ok(o) if o.converged => relative_rms(data, rc, model, &o.params, rows),
+        _ => f64::INFINITY,
+    };
+    if misfit <= PROBE_MIN_RELATIVE {
+        return plain;
+    }
+    let Ok((base, _)) = lmeds(data, rc, opt) else {
+        return plain;
+    };
+    let mut start = vec![0.0; model.n_params()];
+    start[..base.len()].copy_from_slice(&base);
+    let mut rc2 = rc.to_vec();
+    noise_weights(data, &mut rc2, model, &start);
+    let Ok(second) = fit_rows(data, &mut rc2, rows, opt, Some(&start)) else {
+        return plain;
+    };
+    let m2 = relative_rms(data, &rc2, model, &second.params, rows);
+    let better = match &plain {
+        Ok(o) => {
+            let m1 = relative_rms(data, rc, model, &o.params, rows);
+            (second.converged && !o.converged) || (second.converged == o.converged && m2 < m1)
+        }
+        Err(_) => true,
+    };
+    if better {
+        rc.copy_from_slice(&rc2);
+        Ok(second)
+    } else {
+        plain
+    }
 }
 
 /// Column-normalised condition above which [`observability_normal`] defers to the SVD of
@@ -2977,41 +3256,143 @@ mod tests {
         for k in [3, 17, 40] {
             gross[k] = 1.2e-5;
         }
+        let none = vec![false; n];
+        let slips = vec![true; n];
+        let w: Vec<f64> = (0..n).map(|k| 1.0 + k as f64).collect();
         assert!(!misfit_is_spread(
             n,
             &[3, 17, 40],
             &plain,
             &gross,
             None,
-            tail
+            tail,
+            &none,
+            &w
         ));
         // Residuals 600 times what the plain fit leaves on the same rows: made by the
         // exclusion (the kept rows barely see a parameter combination the excluded carry).
         let made: Vec<f64> = (0..n).map(|k| if k < 20 { 6e-3 } else { 1e-6 }).collect();
         let twenty: Vec<usize> = (0..20).collect();
-        assert!(misfit_is_spread(n, &twenty, &plain, &made, None, tail));
+        assert!(misfit_is_spread(
+            n, &twenty, &plain, &made, None, tail, &slips, &w
+        ));
         // ... even when a few of them are not amplified; rows the plain fit could not invert
         // do not count.
         let mut inf_plain = plain.clone();
         inf_plain[0] = f64::INFINITY;
-        assert!(misfit_is_spread(n, &twenty, &inf_plain, &made, None, tail));
-        assert!(!misfit_is_spread(n, &[0], &inf_plain, &made, None, tail));
+        assert!(misfit_is_spread(
+            n, &twenty, &inf_plain, &made, None, tail, &slips, &w
+        ));
+        assert!(!misfit_is_spread(
+            n,
+            &[0],
+            &inf_plain,
+            &made,
+            None,
+            tail,
+            &none,
+            &w
+        ));
         // More than half the rows is never sparse.
         let most: Vec<usize> = (0..31).collect();
-        assert!(misfit_is_spread(n, &most, &plain, &plain, None, tail));
+        assert!(misfit_is_spread(
+            n, &most, &plain, &plain, None, tail, &slips, &w
+        ));
         // More than a quarter with the rows kept still rejecting the noise model (chi2 104 on
         // 31 dof, p ~ 1e-9): a trimmed misfit. A quarter or less, or the kept rows consistent,
         // or the noise unknown: the exclusion stands.
         let sixteen: Vec<usize> = (0..16).collect();
         let fifteen: Vec<usize> = (0..15).collect();
+        // (The rows are lost signs here, so rules 4 and 5 do not apply.)
         let spread = |q: &[usize], chi2: Option<(f64, usize)>| {
-            misfit_is_spread(n, q, &plain, &plain, chi2, tail)
+            misfit_is_spread(n, q, &plain, &plain, chi2, tail, &slips, &w)
         };
         assert!(spread(&sixteen, Some((104.0, 31))));
         assert!(!spread(&sixteen, Some((40.0, 31))));
         assert!(!spread(&fifteen, Some((104.0, 36))));
         assert!(!spread(&sixteen, None));
         assert!(!spread(&[], Some((1e9, 51))));
+        // Rows that are not lost signs: more than a quarter of them is a model error whatever
+        // the noise (a radius off by 2: 20 of 60 rows); a quarter or less stands unless they
+        // agree in sign and size (one systematic effect).
+        let varied: Vec<f64> = (0..n).map(|k| 1e-3 * (1.0 + k as f64)).collect();
+        let by = |q: &[usize], r: &[f64]| misfit_is_spread(n, q, r, r, None, tail, &none, &w);
+        assert!(by(&sixteen, &varied));
+        assert!(!by(&fifteen, &varied));
+        assert!(!by(&[3, 17, 40], &plain));
+        let eight: Vec<usize> = (0..8).collect();
+        assert!(by(&eight, &plain));
+        let mut mixed = plain.clone();
+        mixed[2] = -1e-5;
+        assert!(!by(&eight, &mixed));
+        // Six or more at one speed: an effect growing with the speed.
+        let mut speed = w.clone();
+        speed[..6].fill(3.0);
+        let six: Vec<usize> = (0..6).collect();
+        assert!(misfit_is_spread(
+            n, &six, &mixed, &mixed, None, tail, &none, &speed
+        ));
+        assert!(!misfit_is_spread(
+            n, &six, &mixed, &mixed, None, tail, &none, &w
+        ));
+        assert!(!misfit_is_spread(
+            n, &six, &mixed, &mixed, None, tail, &slips, &speed
+        ));
+    }
+
+    #[test]
+    fn stage_level_check_names_an_axis_the_design_cannot_separate() {
+        // Flat mount: z only ever sees +1 or -1 g, x and y the whole circle.
+        let (s, b, d) = (S, B, D);
+        let pi = std::f64::consts::PI;
+        let mut out = vec![];
+        let mut om = vec![];
+        for &w in &[2.0 * pi, 4.0 * pi, 6.0 * pi] {
+            let a: f64 = w * w / 9.8;
+            for zs in [1.0, -1.0] {
+                for j in 0..12 {
+                    let t = (j as f64 * 30.0).to_radians();
+                    let f = [a * t.cos(), zs * a * t.sin(), zs];
+                    let mut n = [0.0; 3];
+                    for i in 0..3 {
+                        n[i] = s[i] * (f[i] + d[i] * f[i] * f[i]) + b[i];
+                    }
+                    out.push(n);
+                    om.push(w);
+                }
+            }
+        }
+        match fit(&data(&out, &om), &FitOptions::default()) {
+            Err(CoreError::Degenerate(m)) => {
+                assert!(
+                    m.contains("z axis")
+                        && m.contains("k2z acts exactly as bias")
+                        && m.contains("only 2 distinct"),
+                    "{m}"
+                )
+            }
+            other => panic!("{other:?}"),
+        }
+        // The paper's design is well posed.
+        let (o, w, _) = session();
+        assert!(check_axis_levels(&data(&o, &w), &ModelOptions::default()).is_ok());
+    }
+
+    #[test]
+    fn stage_gravity_is_checked_in_mps2() {
+        assert!(check_gravity(9.80665).is_ok() && check_gravity(9.78).is_ok());
+        for (g, unit) in [
+            (32.174, "ft/s^2"),
+            (980.665, "cm/s^2"),
+            (1.0, "g (standard"),
+            (9806.65, "mm/s^2"),
+        ] {
+            match check_gravity(g) {
+                Err(CoreError::InvalidInput(m)) => assert!(m.contains(unit), "{m}"),
+                other => panic!("{g}: {other:?}"),
+            }
+        }
+        assert!(check_gravity(5.0).is_err());
     }
 
     /// The paper's session on a true radius of `r_true` m (the fit is told 1 m), with

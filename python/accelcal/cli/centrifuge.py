@@ -85,10 +85,12 @@ def calibrate_centrifuge(table: str, radius: float, g: float, method: str, k3: b
             )
         except CalibrationError as e:
             raise type(e)(_cli(str(e))) from None
-    # The summary names the excluded rows, or the model error, once; other warnings are
-    # printed as they come.
-    notes = [str(w.message) for w in caught
-             if not issubclass(w.category, (CentrifugeOutlierWarning, CentrifugeModelWarning))]
+    # The summary names the excluded rows, or the screen's model error, once; other warnings
+    # (a misfit of the fit returned, a weak design) are printed as they come.
+    said: tuple[type[Warning], ...] = (CentrifugeOutlierWarning,)
+    if fit.screen_kept_all:
+        said = (CentrifugeOutlierWarning, CentrifugeModelWarning)
+    notes = [str(w.message) for w in caught if not issubclass(w.category, said)]
     if output:
         write_json_file(output, fit.to_dict())
     if plot_path:

@@ -4,11 +4,11 @@ paper's Table 1 (Wang and Li 2021)."""
 from __future__ import annotations
 
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from .._quiet import quiet
 from ..centrifuge import (
     EARTH_RATE,
     CentrifugeOutlierWarning,
@@ -71,8 +71,7 @@ def demo_section(rng_seed: int = 0) -> str:
     bad = read_centrifuge_table(d / "table1_as_printed.csv")
     f_nls = fit_centrifuge(ok.outputs, ok.omega, 1.0, g=9.8)
     f_tay = fit_centrifuge(ok.outputs, ok.omega, 1.0, g=9.8, method="taylor-paper")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", CentrifugeOutlierWarning)
+    with quiet(CentrifugeOutlierWarning):
         f_bad = fit_centrifuge(bad.outputs, bad.omega, 1.0, g=9.8)
     p2 = paper_table2()
     paper = np.r_[p2["scale"], p2["bias"], p2["k2"]]

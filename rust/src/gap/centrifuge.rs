@@ -7,7 +7,8 @@
 //! ([`crate::centrifuge::inv_axis`], with the cross-coupling by fixed-point iteration), the
 //! force at the centre `fc_i = f_i + (w^2/g) [(I - c3 c3^T) r_i]_i` (`r_i` the offset of
 //! accelerometer `i`, `c3` the spin axis in the body frame), and the residual
-//! `(|fc|^2 - A^2 - 1) / (2 sqrt(A_nom^2 + 1))` with `A = w^2 (R + dR) / g`, `w = w0 + dw`.
+//! `(|fc|^2 - A^2 - 1) / (2 sqrt(A_nom^2 + 1))` with `A = w^2 (R + dR) / g`, `w = |omega + dw|` (omega signed,
+//! so a rate offset speeds a forward run and slows a reverse one) and `A_nom` at `w0 = |omega|`.
 //!
 //! | effect | parameters |
 //! |---|---|
@@ -17,7 +18,7 @@
 //! | k3 | `E_i`, ug/g^3 (3) |
 //! | misalignment | `m_yx, m_zx, m_zy`, mrad (3) |
 //! | cross_coupling | `C_ij`, i != j, same order, ug/g^2 (6) |
-//! | rate_offset | `dw` (e.g. the Earth rate `Omega sin(latitude)`), urad/s (1) |
+//! | rate_offset | `dw`, added to the signed rate (e.g. the Earth rate `Omega sin(latitude)`), urad/s (1) |
 //!
 //! Jacobian columns are central finite differences of this residual.
 
@@ -171,8 +172,10 @@ impl CentrifugeModel {
                 break;
             }
         }
+        // The rate offset adds to the signed rate (the Earth rate turns a forward run faster
+        // and a reverse run slower); only its magnitude enters the centripetal term.
         let w0 = self.inp.omega[k].abs();
-        let w = w0 + x.dw;
+        let w = (self.inp.omega[k] + x.dw).abs();
         let w2g = w * w / self.inp.g;
         let c3 = self.inp.spin_axis.as_ref().map_or([0.0; 3], |sa| sa[k]);
         let mut n2 = 0.0;
@@ -389,17 +392,20 @@ mod tests {
     /// Paper-like design: 20 positions (random body-frame radial directions, spin axis
     /// perpendicular) x 3 speeds, scale/bias/K2 truth, optional lever arm along the axes.
     fn session(lever_mm: [f64; 3], dw: f64, noise: f64) -> CentrifugeInput {
+        let pi = std::f64::consts::PI;
+        session_at(&[2.0 * pi, 4.0 * pi, 6.0 * pi], lever_mm, dw, noise)
+    }
+
+    /// [`session`] at the signed rates `rates` (rad/s; negative = reverse run): the rate
+    /// offset `dw` adds to the signed rate, as the Earth rate does.
+    fn session_at(rates: &[f64], lever_mm: [f64; 3], dw: f64, noise: f64) -> CentrifugeInput {
         let mut rng = Rng(17);
         let (g, radius) = (9.8, 1.0);
         let s = [1.29, 1.21, 1.26];
         let b = [0.213, 0.256, 0.516];
         let d = [0.57e-4, 0.31e-4, 0.45e-4];
         let (mut outputs, mut omega, mut axes) = (vec![], vec![], vec![]);
-        for &w0 in &[
-            2.0 * std::f64::consts::PI,
-            4.0 * std::f64::consts::PI,
-            6.0 * std::f64::consts::PI,
-        ] {
+        for &w0 in rates {
             for _ in 0..20 {
                 let mut rad = [rng.normal(), rng.normal(), rng.normal()];
                 let nr = (rad.iter().map(|v| v * v).sum::<f64>()).sqrt();
@@ -429,8 +435,39 @@ mod tests {
             radius,
             g,
             spin_axis: Some(axes),
-            noise: Noise::PerAxis(vec![[noise; 3]; 60]),
+            noise: Noise::PerAxis(vec![[noise; 3]; 20 * rates.len()]),
         }
+    }
+
+    #[test]
+    fn rate_offset_adds_to_the_signed_rate_of_forward_and_reverse_runs() {
+        // Forward and reverse runs with an Earth-rate-like offset: the forward runs turn
+        // faster, the reverse runs slower. An offset added to |omega| could not fit both.
+        let pi = std::f64::consts::PI;
+        let rates = [
+            2.0 * pi,
+            -2.0 * pi,
+            4.0 * pi,
+            -4.0 * pi,
+            6.0 * pi,
+            -6.0 * pi,
+        ];
+        let all: Vec<usize> = (0..7).collect();
+        let s = session_at(&rates, [0.0; 3], 45.9e-6, 1e-6);
+        let r = diagnose(&s, &all, &GapOptions::default()).unwrap();
+        assert_eq!(
+            r.engine.selected.first(),
+            Some(&6),
+            "{:?}",
+            r.engine.selected
+        );
+        let est = &r.engine.candidates[6];
+        assert!(
+            (est.estimate[0] - 45.9).abs() < 5.0 * est.std[0],
+            "{:?} +- {:?}",
+            est.estimate,
+            est.std
+        );
     }
 
     #[test]

@@ -391,6 +391,7 @@ pub fn centrifuge_unit_check_raw(
         spin_axis: None,
     };
     crate::centrifuge::validate(&data, &ModelOptions::default())?;
+    crate::centrifuge::check_gravity(g)?;
     let opt = FitOptions {
         robust,
         max_draws,
