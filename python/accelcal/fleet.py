@@ -26,14 +26,14 @@ import socket
 import stat
 import sys
 import time
-import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from . import _quiet
 from ._core import CalibrationError, DegenerateDataError
 from ._files import atomic_create, atomic_write
 from ._triad import MODELS, PARAM_NAMES
@@ -48,7 +48,14 @@ __all__ = [
 ]
 
 #: Row statuses, best first.
-STATUSES = ("ok", "weak", "degenerate", "error")
+STATUSES = ("ok", "weak", "misfit", "degenerate", "error")
+
+#: A fit is a ``misfit`` (a faulty unit, not a calibration) when, with the noise known from
+#: the dwell variances, its chi2/dof exceeds this (residuals ~30 times the noise) ...
+MISFIT_CHI2_DOF = 1e3
+#: ... and the RMS of its dwell norm residuals exceeds this fraction of g (a well calibrated
+#: MEMS part leaves 1e-4 g; a stuck bit, a step or a drift in one output 1e-3 to 1e-2 g).
+MISFIT_RMS_G = 1e-3
 
 _METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
 _MANIFEST_COLUMNS = ("path", "sensor_id", "g", "lat", "height", "fs", "columns", "time_column",
@@ -152,10 +159,11 @@ def _structure_verdict(rep: Any) -> str:
 
 
 def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
-    """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit)."""
+    """Read, detect and fit; fills ``row`` and returns the TriadModel (None when no fit, or
+    a misfit)."""
     from . import io as _aio
     from .dwell import DetectorSettings, detect_dwells, dwell_stats, fault_text, vibrating_text
-    from .static import WeakDesignWarning, fit_static, units_of_g, without_off_norm
+    from .static import WeakDesignWarning, fit_static, unit_label, units_of_g, without_off_norm
 
     names = _names(job.cli)
     if job.g is None:
@@ -172,6 +180,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
         row["message"] = f"{job.path} is {kind}, not a recording"
         return None
+    if stat.S_ISREG(mode):  # what the recording holds: a copy under another name is noted
+        row["_sha256"] = _sha256(job.read_path)
     st = _aio.read_stream(job.read_path, columns=job.columns, fs=job.fs,
                           time_column=job.time_column)
     n = len(st)
@@ -248,8 +258,9 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     fault_note += vibrating_text(d)
     k = len(d)
     row["n_dwells"] = k
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    # Recorded in this context only (a Dask worker runs jobs in threads: catch_warnings would
+    # swap the process-wide filters under the other jobs).
+    with _quiet.recording() as caught:
         try:
             fit = fit_static(d, job.g, model=job.model, method=job.method, check_g=job.check_g)
         except DegenerateDataError as e:
@@ -257,7 +268,9 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
             return None
     weak = [str(w.message) for w in caught if issubclass(w.category, WeakDesignWarning)]
     notes = [str(w.message) for w in caught if not issubclass(w.category, WeakDesignWarning)]
-    vec, std = fit.vector, fit.std
+    # The realistic std (scaled by chi2/dof when the residuals exceed the noise model): the
+    # one `calibrate static FILE` prints and the calibration file stores (TriadModel.std).
+    vec, std = fit.vector, fit.std_realistic
     for i, p in enumerate(PARAM_NAMES[: vec.size]):
         row[p] = float(vec[i])
         row[f"{p}_std"] = float(std[i])
@@ -268,9 +281,21 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     temp = None if d.temperature is None else float(np.mean(d.temperature))
     row["temperature"] = math.nan if temp is None else temp
     row["status"] = "weak" if (fit.weak or weak) else "ok"
+    misfit: list[str] = []
+    if (fit.noise_known and fit.dof > 0 and fit.chi2_dof > MISFIT_CHI2_DOF
+            and fit.rms > MISFIT_RMS_G * job.g):
+        # Far beyond any noise, in both senses: not a calibration a line should load.
+        row["status"] = "misfit"
+        misfit.append(
+            f"the fit does not explain the recording: residual RMS {fit.rms:.3g} "
+            f"{unit_label(job.g)} ({fit.rms / job.g:.2g} g) and chi2/dof {fit.chi2_dof:.3g} "
+            f"against the noise of its dwells, both far beyond noise (limits {MISFIT_RMS_G:g} "
+            f"g and {MISFIT_CHI2_DOF:g}): a faulty unit (a stuck or coarse output bit, a step "
+            "or drift in an output) or a fixture that moved; the fit is in the row, no "
+            "calibration file written")
     # The single-file summary's note, at 0.001: a fleet's rows are read as a list of the
     # recordings to look at, and at 0.05 one clean recording in twenty would be on it.
-    if fit.noise_known and fit.dof > 0 and fit.chi2_p < 1e-3:
+    elif fit.noise_known and fit.dof > 0 and fit.chi2_p < 1e-3:
         notes.append(f"residuals exceed the noise model (chi2/dof {fit.chi2_dof:.3g}, p = "
                      f"{fit.chi2_p:.2g}): the std are scaled by chi2/dof; diagnose says what "
                      "the excess is made of")
@@ -279,10 +304,10 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         # The columns are named for m/s^2; a g given in g (or cm/s^2) puts them in its units.
         notes.append(f"g = {job.g:g} is in {unit or 'other units than m/s^2'}: g_mps2, "
                      "rms_mps2 and gap_rms_after_mps2 are in those units in this row")
-    row["message"] = "; ".join(fault_note + weak + notes)
+    row["message"] = "; ".join(misfit + fault_note + weak + notes)
     meta: dict[str, Any] = {"source": job.path, "n_dwells": k}
     if stat.S_ISREG(mode):  # what the recording held: tells a re-recorded file from a rerun
-        meta["source_sha256"] = _sha256(job.read_path)
+        meta["source_sha256"] = row["_sha256"]
     kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
     if job.date:
         kw["date"] = job.date
@@ -300,7 +325,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
             )
         except CalibrationError as e:
             row["gap_error"] = str(e)
-    return model
+    return None if row["status"] == "misfit" else model  # no file a line could load
 
 
 def _sha256(path: str) -> str:
@@ -321,7 +346,10 @@ def _calibrate_one(job: _Job) -> tuple[dict[str, Any], Any]:
     except DegenerateDataError as e:
         row["status"], row["message"] = "degenerate", str(e)
     except CalibrationError as e:
-        row["status"], row["message"] = "error", str(e)
+        msg = str(e)
+        named = job.path in msg or job.read_path in msg
+        # the row's message names its file, as the reader's own messages do
+        row["status"], row["message"] = "error", msg if named else f"{job.path}: {msg}"
     except FileNotFoundError as e:
         row["status"], row["message"] = "error", f"file not found: {e.filename or e}"
     except OSError as e:
@@ -681,42 +709,160 @@ def _bar(total: int, progress: bool | None) -> Any:
 
 
 Result = tuple[dict[str, Any], Any]
+#: Called with each job and its result as the result arrives.
+Done = Callable[[_Job, Result], None]
 
 
-def _run_local(jobs: list[_Job], workers: int, progress: bool | None) -> list[Result]:
-    out: list[Result | None] = [None] * len(jobs)
+def _run_local(jobs: list[_Job], workers: int, progress: bool | None, done: Done) -> None:
     with _bar(len(jobs), progress) as bar:
         if workers == 1:
             for j in jobs:
-                out[j.index] = _calibrate_one(j)
+                done(j, _calibrate_one(j))
                 bar.update(1)
-            return [r for r in out if r is not None]
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-        from concurrent.futures.process import BrokenProcessPool
+            return
+        _run_pool(jobs, workers, done, bar)
 
-        # spawn: fresh interpreters, so rayon's pool starts in each worker after the
-        # initializer has set its size (a forked rayon pool would not survive the fork).
-        ctx = multiprocessing.get_context("spawn")
-        ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
-        try:
-            futs = {ex.submit(_calibrate_one, j): j for j in jobs}
-            for f in as_completed(futs):
-                j = futs[f]
+
+def _pool_worker(conn: Any) -> None:
+    """A local worker process: calibrates each job the caller sends down ``conn`` and sends
+    its result back, until the caller sends None or closes the pipe."""
+    _init_worker()
+    try:
+        while True:
+            try:
+                job = conn.recv()
+            except EOFError:
+                return
+            if job is None:
+                return
+            res = _calibrate_one(job)
+            try:
+                conn.send(res)
+            except Exception as e:  # noqa: BLE001 - e.g. a result that cannot be sent back
+                conn.send(_failed(job, f"worker failed: {type(e).__name__}: {e}"))
+    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the caller stops
+        return
+
+
+@dataclass
+class _Worker:
+    proc: Any
+    conn: Any
+    job: _Job | None = None
+    results: int = 0
+
+
+def _run_pool(jobs: list[_Job], workers: int, done: Done, bar: Any) -> None:
+    """The jobs over ``workers`` processes, one job at a time in each. A worker that dies
+    (out of memory, killed, a crash in native code) fails only the recording it was
+    calibrating; a fresh process takes its place and the others go on."""
+    import multiprocessing
+    from multiprocessing.connection import wait
+
+    # spawn: fresh interpreters, so rayon's pool starts in each worker after _init_worker
+    # has set its size (a forked rayon pool would not survive the fork).
+    ctx = multiprocessing.get_context("spawn")
+    queue = collections.deque(jobs)
+    pool: list[_Worker] = []  # the workers at work
+    started: list[_Worker] = []
+    early = n_done = 0  # workers that died before sending back any result; results
+    again: set[int] = set()  # jobs given out again (their worker stopped as on Ctrl-C)
+
+    def start() -> None:
+        mine, theirs = ctx.Pipe()
+        p = ctx.Process(target=_pool_worker, args=(theirs,), daemon=True)
+        p.start()
+        theirs.close()
+        pool.append(_Worker(p, mine))
+        started.append(pool[-1])
+
+    try:
+        for _ in range(min(workers, len(queue))):
+            start()
+        while pool:
+            for w in list(pool):  # work for the idle, a stop for the idle without work
+                if w.job is None:
+                    if not queue:
+                        pool.remove(w)
+                    try:
+                        if queue:
+                            w.job = queue.popleft()
+                            w.conn.send(w.job)
+                        else:
+                            w.conn.send(None)
+                    except OSError:  # died before it had the job: its death is seen below
+                        if w.job is not None:
+                            queue.appendleft(w.job)
+                            w.job = None
+            if not pool:
+                break
+            ready = set(wait([w.conn for w in pool] + [w.proc.sentinel for w in pool]))
+            for w in list(pool):
+                if w.conn not in ready and w.proc.sentinel not in ready:
+                    continue
+                job, eof = w.job, False
                 try:
-                    out[j.index] = f.result()
-                except BrokenProcessPool as e:
-                    out[j.index] = _failed(j, f"a worker process died ({e}); {_died_hint()}")
-                except Exception as e:  # noqa: BLE001 - e.g. a result that cannot be sent back
-                    out[j.index] = _failed(j, f"worker failed: {type(e).__name__}: {e}")
-                bar.update(1)
-        except BaseException:  # Ctrl-C: drop what has not started, do not wait for it
-            ex.shutdown(wait=False, cancel_futures=True)
-            raise
-        ex.shutdown(wait=True)
-    return [r for r in out if r is not None]
+                    if w.conn.poll():
+                        res = w.conn.recv()
+                        assert job is not None
+                        w.job, w.results, n_done = None, w.results + 1, n_done + 1
+                        done(job, res)
+                        bar.update(1)
+                        continue
+                except (EOFError, OSError):
+                    eof = True
+                if not eof and w.proc.sentinel not in ready:
+                    continue
+                # The worker died.
+                w.proc.join(5.0)
+                code = w.proc.exitcode
+                pool.remove(w)
+                w.conn.close()
+                if job is not None and code == 0 and job.index not in again:
+                    again.add(job.index)  # once: a recording that stops it cleanly fails
+                    queue.appendleft(job)  # Ctrl-C stopped it: the caller stops too
+                elif job is not None:
+                    done(job, _failed(job, f"the worker process calibrating this recording "
+                                           f"died ({_exit_text(code)}); {_died_hint()}"))
+                    bar.update(1)
+                early += w.results == 0
+                if queue and early >= max(2, workers) and not n_done:
+                    # every worker dies on start (a script without the __main__ guard):
+                    # the rest would too
+                    while queue:
+                        j = queue.popleft()
+                        done(j, _failed(j, f"a worker process died on start "
+                                           f"({_exit_text(code)}); {_died_hint()}"))
+                        bar.update(1)
+                if queue:
+                    start()
+    finally:  # after Ctrl-C (or an error in the caller's hands) the workers stop now
+        for w in pool:
+            if w.proc.is_alive():
+                w.proc.terminate()
+        for w in started:
+            w.proc.join(5.0)
+            if w.proc.is_alive():  # pragma: no cover - ignored SIGTERM
+                w.proc.kill()
+                w.proc.join()
+            w.conn.close()
 
 
+def _exit_text(code: int | None) -> str:
+    """How a worker process ended, in words."""
+    import signal
+
+    if code is None:
+        return "it did not exit"
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        if -code == signal.SIGKILL:
+            return f"killed by {name}: out of memory, or killed from outside"
+        return f"killed by {name}"
+    return f"exit status {code}"
 def _died_hint() -> str:
     """What to do when a local worker died: run from a script, the likely cause is a call at
     its top level (each spawned worker imports the script and reaches the call again)."""
@@ -757,7 +903,8 @@ def _need_distributed() -> Any:
 _CONNECT_TIMEOUT_S = 20.0
 
 
-def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -> list[Result]:
+def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool,
+              done: Done) -> None:
     distributed = _need_distributed()
     names = _names(cli)
     own = False
@@ -774,7 +921,6 @@ def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -
             f"{names['client']} must be a dask.distributed.Client or a scheduler address "
             f"such as 'tcp://host:8786'; got {type(client).__name__}"
         )
-    out: list[Result | None] = [None] * len(jobs)
     try:
         if not client.scheduler_info().get("workers"):
             try:  # a scheduler without workers would queue the recordings for ever
@@ -796,13 +942,13 @@ def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -
                 for f in distributed.as_completed(futs):
                     chunk = by_key[f.key]
                     try:
-                        for j, r in zip(chunk, f.result(), strict=True):
-                            out[j.index] = r
+                        res = f.result()
                     except Exception as e:  # noqa: BLE001 - a lost worker stays in its rows
-                        for j in chunk:
-                            out[j.index] = _failed(
-                                j, f"the Dask task failed: {type(e).__name__}: {e}")
+                        res = [_failed(j, f"the Dask task failed: {type(e).__name__}: {e}")
+                               for j in chunk]
                     f.release()
+                    for j, r in zip(chunk, res, strict=True):
+                        done(j, r)
                     bar.update(len(chunk))
         except BaseException:  # Ctrl-C: cancel what is still queued on the cluster
             client.cancel(futs)
@@ -810,7 +956,6 @@ def _run_dask(jobs: list[_Job], client: Any, progress: bool | None, cli: bool) -
     finally:
         if own:
             client.close()
-    return [r for r in out if r is not None]
 
 
 # ---- output ---------------------------------------------------------------------------------
@@ -865,24 +1010,6 @@ def _cal_name(model: Any) -> str:
     if callable(own):
         return str(own())
     return f"{_safe_name(model.sensor_id)}_{_stamp(model.date)}.json"
-
-
-def _cal_names(models: list[Any]) -> list[str | None]:
-    """One distinct file name per model (``-2``, ``-3`` ... when a sensor repeats within the
-    same second)."""
-    used: set[str] = set()
-    names: list[str | None] = []
-    for m in models:
-        if m is None:
-            names.append(None)
-            continue
-        base = _cal_name(m)
-        name, k = base, 2
-        while name in used:
-            name, k = f"{base[:-5]}-{k}.json", k + 1
-        used.add(name)
-        names.append(name)
-    return names
 
 
 def _add_note(row: dict[str, Any], note: str) -> None:
@@ -1096,7 +1223,9 @@ def calibrate_many(
     -------
     pandas.DataFrame
         One row per recording, in input order: ``sensor_id``, ``path``, ``status`` (``ok``,
-        ``weak``, ``degenerate`` or ``error``), ``message`` (why, for anything but ``ok``),
+        ``weak``, ``misfit`` (residual RMS above ``MISFIT_RMS_G`` g and chi2/dof above
+        ``MISFIT_CHI2_DOF``, the noise known: a faulty unit; the fit is in the row, no file
+        written), ``degenerate`` or ``error``), ``message`` (why, for anything but ``ok``),
         ``n_dwells``, ``n_samples``, ``duration_s``, ``fs_hz``, ``g_mps2``, ``g_source``,
         ``model``, ``method``, each parameter ``sx ... m3`` with ``<name>_std`` (the
         recording's units: scale and coupling per m/s^2, bias in recording units; NaN when
@@ -1150,36 +1279,97 @@ def calibrate_many(
     if summary is not None:
         _check_outputs(list(_summary_paths(summary)), jobs, sources, names)
 
-    if client is not None:
-        results = _run_dask(jobs, client, progress, _cli)
-    else:
-        n = workers if workers is not None else _cores()
-        results = _run_local(jobs, max(1, min(n, len(jobs))), progress)
-
-    for (row, _), j in zip(results, jobs, strict=True):
-        _add_note(row, j.note)
+    results: list[Result | None] = [None] * len(jobs)
     kept: list[str] = []
-    if out is not None:
-        folder = Path(out)
-        cal_names = _cal_names([m for _, m in results])
-        _check_outputs([folder / n for n in cal_names if n], jobs, sources, names)
+    used: set[str] = set()
+    folder = None if out is None else Path(out)
+    first_unsaved = 0  # the calibration files are written in input order (-2 names alike)
+
+    def save(res: Result) -> None:
+        row, model_obj = res
+        if folder is None or model_obj is None:
+            return
+        _check_outputs([folder / _cal_name(model_obj)], jobs, sources, names)
         folder.mkdir(parents=True, exist_ok=True)
-        used: set[str] = set()
-        for row, model_obj in results:
-            if model_obj is None:
-                continue
-            path, note, same = _save_new(model_obj, folder, used, names)
-            row["cal_file"] = str(path)
-            _add_note(row, note)
-            if same:
-                kept.append(str(path))
-    df = _frame(results, jobs, diagnose)
-    df.attrs["duplicates"] = {j.path: list(j.listed_as[1:]) for j in jobs if j.listed_as}
-    df.attrs["cal_files_kept"] = kept
+        path, note, same = _save_new(model_obj, folder, used, names)
+        row["cal_file"] = str(path)
+        _add_note(row, note)
+        if same:
+            kept.append(str(path))
+
+    def done(j: _Job, res: Result) -> None:
+        """Each result as it arrives: its calibration file is written (atomically) as soon
+        as those of the recordings before it are."""
+        nonlocal first_unsaved
+        _add_note(res[0], j.note)
+        results[j.index] = res
+        while first_unsaved < len(jobs) and results[first_unsaved] is not None:
+            save(results[first_unsaved])  # type: ignore[arg-type]
+            first_unsaved += 1
+
+    try:
+        if client is not None:
+            _run_dask(jobs, client, progress, _cli, done)
+        else:
+            n = workers if workers is not None else _cores()
+            _run_local(jobs, max(1, min(n, len(jobs))), progress, done)
+    except KeyboardInterrupt as e:
+        # What finished is kept: its calibration files, and the table of its rows.
+        for res in results[first_unsaved:]:
+            if res is not None:
+                save(res)
+        finished = [i for i, r in enumerate(results) if r is not None]
+        what = f"interrupted after {len(finished)} of {len(jobs)} recordings"
+        if summary is not None and finished:
+            pq, csv = _summary_paths(summary)
+            df = _table([results[i] for i in finished], [jobs[i] for i in finished],  # type: ignore[misc]
+                        diagnose, kept)
+            _write_table(df, pq, csv, names)
+            what += f": wrote the table of those to {pq} and {csv}"
+            if folder is not None:
+                what += f", and their calibration files to {folder}"
+        elif finished and folder is not None:
+            what += f": wrote their calibration files to {folder}"
+        e.args = (what,)
+        raise
+    df = _table(results, jobs, diagnose, kept)  # type: ignore[arg-type]
     if summary is not None:
         pq, csv = _summary_paths(summary)
         _write_table(df, pq, csv, names)
     return df
+
+
+def _table(results: list[Result], jobs: list[_Job], diagnose: bool, kept: list[str]) -> Any:
+    """The table of these results, with a note on recordings that hold the same bytes."""
+    _same_content(results, jobs)
+    df = _frame(results, jobs, diagnose)
+    df.attrs["duplicates"] = {j.path: list(j.listed_as[1:]) for j in jobs if j.listed_as}
+    df.attrs["cal_files_kept"] = kept
+    return df
+
+
+def _same_content(results: list[Result], jobs: list[_Job]) -> None:
+    """Recordings in different files with exactly the same bytes (by SHA-256: a copy of one
+    recording under another name) are each calibrated, as different files; each row's
+    message names the others."""
+    by_sha: dict[str, list[int]] = collections.defaultdict(list)
+    for i, (row, _) in enumerate(results):
+        if row.get("_sha256"):
+            by_sha[row["_sha256"]].append(i)
+    for sha, idx in by_sha.items():
+        if len(idx) < 2:
+            continue
+        keys = {i: _file_key(jobs[i].read_path) for i in idx}
+        for i in idx:
+            # the same file given twice with other settings says so already
+            others = list(dict.fromkeys(jobs[k].path for k in idx if keys[k] != keys[i]))
+            if not others:
+                continue
+            more = f" and {len(others) - 3} more" if len(others) > 3 else ""
+            _add_note(results[i][0], (
+                f"the same bytes as {_join(others[:3])}{more} (SHA-256 {sha[:12]}...): a "
+                "copy of one recording under another name? Each file is calibrated as a "
+                "unit of its own"))
 
 
 # ---- the fleet report -----------------------------------------------------------------------
@@ -1193,8 +1383,8 @@ class FleetReport:
         ``max``, ``screened`` (whether the outlier test could run on it).
     outliers : one dict per (sensor, parameter) with robust ``|z| > z_limit``: ``sensor_id``,
         ``path``, ``param``, ``value``, ``median``, ``z``.
-    failed : one dict per recording with status degenerate or error: ``sensor_id``, ``path``,
-        ``status``, ``message``.  weak : the same for status weak.
+    failed : one dict per recording with status misfit, degenerate or error: ``sensor_id``,
+        ``path``, ``status``, ``message``.  weak : the same for status weak.
     z_limit : the outlier threshold on the robust z.
     noted : the same for ``ok`` recordings whose message says what was left out or noticed
         (dropout rows, dwells whose output did not follow the sensor, vibrating stretches):
@@ -1325,6 +1515,8 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
     test cannot run on (fewer than 3 ok recordings, or a spread of 0: at least half the
     values equal, as copies of one recording give) is listed in ``unscreened`` with the
     reason, and the summary says so instead of "no outlier sensors"."""
+    from .static import median_and_spread
+
     pd = _need_pandas()
     df = table if isinstance(table, pd.DataFrame) else read_fleet_table(table)
     missing = {"sensor_id", "path", "status", "message"} - set(df.columns)
@@ -1347,8 +1539,7 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
         if not good.any():
             continue
         xs = x[good]
-        med = float(np.median(xs))
-        spread = float(1.4826 * np.median(np.abs(xs - med)))
+        med, spread = median_and_spread(xs)
         screened = spread > 0 and xs.size >= 3
         dists.append({"param": p, "unit": _unit(p), "n": int(xs.size), "median": med,
                       "spread": spread, "min": float(xs.min()), "max": float(xs.max()),
@@ -1378,6 +1569,6 @@ def fleet_report(table: Any, *, z: float = 5.0) -> FleetReport:
         return [{"sensor_id": str(r.sensor_id), "path": str(r.path), "status": str(r.status),
                  "message": str(r.message)} for r in sel.itertuples()]
 
-    return FleetReport(len(df), counts, dists, outliers, rows(("degenerate", "error")),
+    return FleetReport(len(df), counts, dists, outliers, rows(("misfit", "degenerate", "error")),
                        rows(("weak",)), zl, df, noted=rows(("ok",), noted=True),
                        unscreened=unscreened)

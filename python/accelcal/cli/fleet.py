@@ -93,13 +93,18 @@ def run_static_fleet(
     detector = DetectorSettings(window_s=window_s, k=k_thr, min_dwell_s=min_dwell_s,
                                 trim_s=trim_s)
     t0 = time.perf_counter()
-    df = calibrate_many(
-        sources, g=g, lat=lat, height=height, fs=fs, columns=columns,
-        time_column=time_column, model=model,
-        method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
-        workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
-        check_g=check_g, means=means, _cli=True,
-    )
+    try:
+        df = calibrate_many(
+            sources, g=g, lat=lat, height=height, fs=fs, columns=columns,
+            time_column=time_column, model=model,
+            method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
+            workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
+            check_g=check_g, means=means, _cli=True,
+        )
+    except KeyboardInterrupt as e:  # say what was kept ("interrupted after 12 of 110 ...")
+        if e.args:
+            click.echo(f"accelcal: {e.args[0]}", err=True)
+        raise
     dt = time.perf_counter() - t0
     from .static import _PHRASES  # the fit's own words ('model "diag"'), as one file's
 
