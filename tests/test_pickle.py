@@ -294,3 +294,25 @@ def test_an_edit_of_a_copy_cannot_change_what_it_applies() -> None:
     with pytest.raises(ValueError, match="read-only"):
         f2.K[0, 0] = 5.0
     np.testing.assert_array_equal(f2.to_model().K, f.K)
+
+
+_CORE_RESULTS: dict[str, tuple[Callable[[], Any], tuple[str, ...]]] = {
+    "Observability": (lambda: make_static_fit(5).observability(),
+                      ("singular_values", "std_comparable", "weakest")),
+    "BatchFit": (lambda: ac.fit_static_batch(
+        np.stack([static_dwell_means(20, max_tilt_deg=None, rng=k).means for k in range(3)]),
+        9.80665, sigma=1e-3),
+        ("params", "std", "chi2_dof", "rms", "iterations", "n_dwells", "status", "weak")),
+}
+
+
+@pytest.mark.parametrize("name", list(_CORE_RESULTS))
+@pytest.mark.parametrize("how", [h for h in _COPIES if h not in ("pickle0", "pickle1")])
+def test_core_results_stay_read_only_through_copies(name: str, how: str) -> None:
+    build, fields = _CORE_RESULTS[name]
+    obj = build()
+    back = _COPIES[how](obj)
+    for a in fields:
+        arr = getattr(back, a)
+        assert not getattr(obj, a).flags.writeable and not arr.flags.writeable, f"{how}: {a}"
+        np.testing.assert_array_equal(arr, getattr(obj, a))

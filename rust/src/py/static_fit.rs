@@ -6,14 +6,14 @@
 //! deterministic and bit-identical.
 
 use numpy::{
-    IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3,
-    PyUntypedArrayMethods,
+    IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
 use pyo3::types::{PyDict, PyList, PyString, PyTuple};
 
-use super::convert::{frozen1, frozen2, rows3, with_view, SampleArray};
+use super::convert::{frozen1, frozen2, frozen_copy1, frozen_copy2, rows3, with_view, SampleArray};
 use super::CalibrationError;
 use crate::static_fit::{
     apply_model, check_sigma_g, design_rows, fit_batch_sigma_g, fit_static, gravity_cov_entry,
@@ -306,20 +306,21 @@ impl PyObservability {
     #[new]
     #[allow(clippy::too_many_arguments)]
     fn new(
-        singular_values: Py<PyArray1<f64>>,
+        singular_values: PyReadonlyArray1<'_, f64>,
         condition: f64,
-        std_comparable: Py<PyArray1<f64>>,
-        weakest: Py<PyArray1<f64>>,
+        std_comparable: PyReadonlyArray1<'_, f64>,
+        weakest: PyReadonlyArray1<'_, f64>,
         weakest_std: f64,
         degenerate: bool,
         weak: bool,
         combination: String,
     ) -> Self {
+        // Read-only, as made (an unpickled or copied result came back writable).
         PyObservability {
-            singular_values,
+            singular_values: frozen_copy1(&singular_values),
             condition,
-            std_comparable,
-            weakest,
+            std_comparable: frozen_copy1(&std_comparable),
+            weakest: frozen_copy1(&weakest),
             weakest_std,
             degenerate,
             weak,
@@ -832,26 +833,27 @@ impl PyBatchFit {
     #[allow(clippy::too_many_arguments)]
     fn new(
         model: &str,
-        params: Py<PyArray2<f64>>,
-        std: Py<PyArray2<f64>>,
-        chi2_dof: Py<PyArray1<f64>>,
-        rms: Py<PyArray1<f64>>,
-        iterations: Py<PyArray1<i64>>,
-        n_dwells: Py<PyArray1<i64>>,
-        status: Py<PyArray1<u8>>,
-        weak: Py<PyArray1<bool>>,
+        params: PyReadonlyArray2<'_, f64>,
+        std: PyReadonlyArray2<'_, f64>,
+        chi2_dof: PyReadonlyArray1<'_, f64>,
+        rms: PyReadonlyArray1<'_, f64>,
+        iterations: PyReadonlyArray1<'_, i64>,
+        n_dwells: PyReadonlyArray1<'_, i64>,
+        status: PyReadonlyArray1<'_, u8>,
+        weak: PyReadonlyArray1<'_, bool>,
         messages: Py<PyList>,
     ) -> PyResult<Self> {
+        // Read-only, as made (an unpickled or copied result came back writable).
         Ok(PyBatchFit {
             model: Model::parse(model)?.name(),
-            params,
-            std,
-            chi2_dof,
-            rms,
-            iterations,
-            n_dwells,
-            status,
-            weak,
+            params: frozen_copy2(&params),
+            std: frozen_copy2(&std),
+            chi2_dof: frozen_copy1(&chi2_dof),
+            rms: frozen_copy1(&rms),
+            iterations: frozen_copy1(&iterations),
+            n_dwells: frozen_copy1(&n_dwells),
+            status: frozen_copy1(&status),
+            weak: frozen_copy1(&weak),
             messages,
         })
     }
