@@ -278,3 +278,125 @@ def test_summary_gives_the_student_t_interval_when_the_noise_is_estimated() -> N
     assert "estimated from 3 degrees of freedom: a 95 % interval is +-3.18 std" in text
     s = static_dwell_means(60, max_tilt_deg=None, sigma=1e-4, rng=1)
     assert "Student t" not in ac.fit_static(s.means, s.g_measured).summary()
+
+
+def _recording(tmp_path: Path, name: str = "rec.csv", rng: int = 9) -> Path:
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=16, dwell_s=4.0, move_s=1.0, max_tilt_deg=85.0,
+                      sigma=1e-3, rng=rng)
+    rec = tmp_path / name
+    np.savetxt(rec, np.column_stack([s.t, s.samples]), delimiter=",", header="t,ax,ay,az",
+               comments="")
+    return rec
+
+
+def test_lat_calibration_carries_the_formulas_uncertainty_and_says_where_g_came_from(
+        tmp_path: Path) -> None:
+    """`--lat 45.5 --height 120` stored no g source and no sigma_g, and the scale factors' std
+    (4e-6..2e-5 relative) ignored the formula's own 1e-3 m/s^2 (1e-4 relative) error. Now the
+    formula's uncertainty is sigma_g unless --sigma-g is given, the output says so, and the
+    file records g_source and sigma_g (0 included)."""
+    rec = _recording(tmp_path)
+    cal = tmp_path / "lat.json"
+    code, out = run("calibrate", "static", str(rec), "--lat", "45.5", "--height", "120",
+                    "-o", str(cal), "--quiet")
+    assert code == 0, out
+    assert "sigma_g = 0.001 m/s^2: the latitude formula's typical error" in out, out
+    d = json.loads(cal.read_text())
+    md = d["metadata"]
+    assert md["g_source"].startswith("latitude formula") and "45.5 deg, 120 m" in md["g_source"]
+    assert md["sigma_g"] == 1e-3 and "latitude formula" in md["sigma_g_source"]
+    rel = np.sqrt(np.diag(d["covariance"]))[:3] / np.array(d["vector"][:3])
+    assert np.all(rel > 1e-4 / 1.01) and np.all(rel < 2e-4), rel
+    # A given --sigma-g is kept; --g records "given" and sigma_g 0.
+    code, out = run("calibrate", "static", str(rec), "--lat", "45.5", "--height", "120",
+                    "--sigma-g", "2e-5", "--json")
+    assert code == 0 and json.loads(out)["sigma_g"] == 2e-5, out
+    cal_g = tmp_path / "g.json"
+    assert run("calibrate", "static", str(rec), "--g", "9.81", "-o", str(cal_g))[0] == 0
+    md = json.loads(cal_g.read_text())["metadata"]
+    assert md["g_source"] == "given" and md["sigma_g"] == 0.0
+
+
+def test_calibration_file_is_traceable(tmp_path: Path) -> None:
+    """What an auditor asks of a calibration record: the accelcal version, the input's
+    SHA-256 and absolute path, the detector settings, model and method, the command line, and
+    the recording's date (--date), which TriadModel.find uses as the start of validity."""
+    import hashlib
+
+    rec = _recording(tmp_path)
+    cal = tmp_path / "cals" / "cal.json"
+    cal.parent.mkdir()
+    code, out = run("calibrate", "static", str(rec), "--g", "9.81", "--window", "0.8",
+                    "--sensor-id", "U1", "--date", "2026-11-20T08:30:00+01:00", "-o", str(cal),
+                    "--quiet")
+    assert code == 0, out
+    d = json.loads(cal.read_text())
+    md = d["metadata"]
+    assert md["accelcal_version"] == ac.__version__
+    assert md["input"] == {"path": str(rec.resolve()), "bytes": rec.stat().st_size,
+                           "sha256": hashlib.sha256(rec.read_bytes()).hexdigest()}
+    assert md["detector"] == {"window_s": 0.8, "k": 6.0, "min_dwell_s": 1.0, "trim_s": 0.1}
+    assert md["model"] == d["model"] == "lower" and md["method"] == "lm"
+    assert md["dwells_from"] == "detected"
+    assert md["command"].startswith("accelcal calibrate static ") and "--window 0.8" in md[
+        "command"] and "--date 2026-11-20T08:30:00+01:00" in md["command"]
+    assert d["date"] == "2026-11-20T07:30:00Z"
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", md["written"])
+    assert ac.TriadModel.find(cal.parent, "U1", at="2026-11-21").date == d["date"]
+    with pytest.raises(ac.CalibrationError, match="no calibration of sensor"):
+        ac.TriadModel.find(cal.parent, "U1", at="2026-11-20T07:00:00Z")
+    for bad, want in (("yesterday", "--date: it must be an ISO 8601"),
+                      ("2999-01-01", "--date 2999-01-01 is in the future")):
+        code, out = run("calibrate", "static", str(rec), "--g", "9.81", "--date", bad,
+                        "-o", str(tmp_path / "x.json"))
+        assert code == 2 and want in out and not (tmp_path / "x.json").exists(), out
+
+
+def test_o_refuses_to_replace_a_calibration_unless_told(tmp_path: Path) -> None:
+    """`-o cal.json` replaced an existing calibration record without a word, even one made
+    from another recording. Now it is refused (one line naming the file and --overwrite,
+    before anything is read; the file keeps its bytes) unless --overwrite is given."""
+    rec, other = _recording(tmp_path), _recording(tmp_path, "other.csv", rng=10)
+    cal = tmp_path / "cal.json"
+    assert run("calibrate", "static", str(rec), "--g", "9.81", "-o", str(cal))[0] == 0
+    before = cal.read_bytes()
+    r = CliRunner().invoke(main, ["calibrate", "static", str(other), "--g", "9.81", "-o",
+                                  str(cal), "--json"])
+    assert r.exit_code == 2 and cal.read_bytes() == before
+    line = r.stderr.strip() if hasattr(r, "stderr") and r.stderr else r.output.splitlines()[0]
+    assert line == (f"accelcal: error: -o {cal}: the file exists (a calibration is never "
+                    "replaced silently); give --overwrite to replace it, or choose another "
+                    "path; nothing was written"), line
+    assert json.loads(r.output.splitlines()[-1])["exit_code"] == 2
+    code, out = run("calibrate", "static", str(other), "--g", "9.81", "-o", str(cal),
+                    "--overwrite")
+    assert code == 0, out
+    assert json.loads(cal.read_text())["metadata"]["input"]["path"] == str(other.resolve())
+    assert not list(tmp_path.glob("*.tmp*")) and not list(tmp_path.glob(".*"))
+
+
+def test_compare_command_prints_the_summary_and_json(tmp_path: Path) -> None:
+    rec, other = _recording(tmp_path), _recording(tmp_path, "other.csv", rng=10)
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    for f, c, date in ((rec, a, "2026-11-01"), (other, b, "2026-11-20")):
+        assert run("calibrate", "static", str(f), "--lat", "45.5", "--sensor-id", "U1",
+                   "--date", date, "-o", str(c))[0] == 0
+    code, out = run("compare", str(a), str(b))
+    assert code == 0, out
+    assert out.startswith("calibrations compared: U1 2026-11-01T00:00:00Z -> U1 "
+                          "2026-11-20T00:00:00Z") and "Wald test" in out and "moved beyond" in out
+    assert "drops out of the difference" in out
+    code, out = run("compare", str(a), str(b), "--json")
+    d = json.loads(out)
+    assert code == 0 and d["dof"] == 9 and d["shared_g"] and len(d["difference"]) == 9
+    assert 0 <= d["p_value"] <= 1 and d["old_file"] == str(a)
+    c = tmp_path / "c.json"
+    assert run("calibrate", "static", str(other), "--g", "9.81", "--sensor-id", "U2",
+               "-o", str(c))[0] == 0
+    code, out = run("compare", str(a), str(c))
+    assert code == 2 and "different sensor ids ('U1' and 'U2')" in out \
+        and "--no-check-sensor" in out and "check_sensor=False" not in out, out
+    code, out = run("compare", str(a), str(c), "--no-check-sensor", "--independent-g")
+    assert code == 0 and "drops out" not in out, out

@@ -401,3 +401,126 @@ def test_apply_warns_when_the_raw_data_are_in_other_units_than_the_model():
         warnings.simplefilter("error")
         out = m.apply(s.means)
     assert np.allclose(np.linalg.norm(out, axis=1), 9.80665, atol=1e-2)
+
+
+# -- comparing two calibrations of one sensor -------------------------------------------------
+_TRUTH = np.array([1.1, 0.95, 1.2, 0.3, -0.6, 0.3, 0.01, 0.02, 0.03])
+
+
+def _pair(seed: int, drift_sz: float = 0.0, sigma_g: float = 1e-3) -> tuple:
+    """Two simulated sessions of one sensor (24 poses on the sphere, dwell means at 1e-3),
+    fitted with the same site g (one draw of a 1e-3 m/s^2 error, shared by both)."""
+    g = 9.81
+    gsite = g + np.random.default_rng(seed).normal(0.0, sigma_g)
+    tb = _TRUTH.copy()
+    tb[2] += drift_sz
+    out = []
+    for truth, rng in ((_TRUTH, 1000 + seed), (tb, 9000 + seed)):
+        s = static_dwell_means(24, truth=truth, g=g, sigma=1e-3, sigma_g=0.0,
+                               max_tilt_deg=None, rng=rng)
+        fit = ac.fit_static(s.dwellset(), gsite, sigma_g=sigma_g or None)
+        out.append(fit.to_model(sensor_id="S1"))
+    return tuple(out)
+
+
+def test_compare_has_its_nominal_size_and_finds_a_real_drift():
+    """Wald test of two calibrations: under the null (the same sensor twice, the same site g
+    with a 1e-3 m/s^2 error) it rejects at alpha 0.05 within the binomial band of 5 %; a real
+    3e-4 drift of sz (3 std of the noise-only difference) is found. Counting the shared g's
+    term twice (the files taken as independent) lost most of that power (20 % against 86 %
+    for sz alone in the tester's 200 pairs)."""
+    n = 400
+    null = [a.compare(b) for a, b in (_pair(s) for s in range(n))]
+    rate = np.mean([c.p_value < 0.05 for c in null])
+    band = 3.0 * np.sqrt(0.05 * 0.95 / n)
+    assert abs(rate - 0.05) < band, rate
+    assert all(c.shared_g and c.dof == 9 for c in null)
+    n = 100
+    pairs = [_pair(s, drift_sz=3.04e-4) for s in range(n)]
+    found = np.mean([a.compare(b).p_value < 0.05 for a, b in pairs])
+    sz = np.mean([abs(a.compare(b).z[2]) > 1.96 for a, b in pairs])
+    twice = np.mean([a.compare(b, shared_g=False).p_value < 0.05 for a, b in pairs])
+    assert found > 0.6 and sz > 0.75 and twice < 0.4, (found, sz, twice)
+
+
+def test_compare_realistic_covariance_is_conservative():
+    """The Birge-scaled (realistic) covariance is inflated in every session whose chi2/dof
+    exceeds 1 by chance, never shrunk: its Wald statistic is never above the noise model's,
+    and the null rejects less than alpha (on these 200 pairs 0.5 % against 2 %; over 2000,
+    2.7 % against 4.2 %). That is why compare uses the noise-model covariance by default."""
+    pairs = [_pair(s, sigma_g=0.0) for s in range(200)]
+    noise = [a.compare(b) for a, b in pairs]
+    real = [a.compare(b, covariance="realistic") for a, b in pairs]
+    assert all(r.chi2 <= n.chi2 * (1 + 1e-9) for r, n in zip(real, noise, strict=True))
+    assert "realistic covariance" in real[0].summary()
+    rate_n, rate_r = (np.mean([c.p_value < 0.05 for c in x]) for x in (noise, real))
+    assert rate_r < rate_n, (rate_r, rate_n)
+
+
+def test_compare_result_names_what_moved():
+    a, b = _pair(3, drift_sz=2e-3)
+    c = a.compare(b)
+    assert c.moved() == ("sz",) and c.changed()
+    assert c.difference[2] == pytest.approx(b.vector[2] - a.vector[2])
+    np.testing.assert_allclose(c.z, c.difference / c.std)
+    text = c.summary()
+    assert "moved beyond 3 std: sz" in text and "chi2 = " in text and "on 9 dof" in text
+    assert "noise-model covariance" in text and "drops out of the difference" in text
+    d = c.to_dict()
+    assert d["moved"] == ["sz"] and d["dof"] == 9 and json.dumps(d)
+    with pytest.raises(AttributeError):
+        c.chi2 = 0.0  # type: ignore[misc]
+    with pytest.raises(ValueError):
+        c.difference[0] = 1.0
+    same = a.compare(a)
+    assert same.chi2 == 0.0 and same.moved() == () and not same.changed()
+
+
+def test_compare_shared_g_only_when_both_used_the_same_g():
+    a, b = _pair(5)
+    # Independent: each file's own sigma_g^2 j j^T stays in; shared: it drops out.
+    ind, sh = a.compare(b, shared_g=False), a.compare(b)
+    ja = -a.vector / a.g
+    ja[3:6] = 0.0
+    assert ind.std[2] ** 2 - sh.std[2] ** 2 == pytest.approx(2e-6 * ja[2] ** 2, rel=0.01)
+    s = static_dwell_means(24, truth=_TRUTH, g=9.81, sigma=1e-3, sigma_g=0.0,
+                           max_tilt_deg=None, rng=77)
+    other = ac.fit_static(s.dwellset(), 9.812, sigma_g=1e-3).to_model(sensor_id="S1")
+    c = a.compare(other)
+    assert not c.shared_g and "different g" in " ".join(c.notes)
+
+
+def test_compare_refuses_other_sensors_unless_told(fitted):
+    a = fitted.to_model(sensor_id="S1")
+    for kw, what in ((dict(sensor_id="S2"), "sensor ids"), (dict(sensor_id="S1", units="g"),
+                                                            "output units")):
+        b = fitted.to_model(**kw)
+        with pytest.raises(CalibrationError, match=f"different {what}.*check_sensor=False"):
+            a.compare(b)
+        assert a.compare(b, check_sensor=False).chi2 == 0.0
+    s = static_dwell_means(20, max_tilt_deg=None, rng=14)
+    diag = ac.fit_static(s.means, s.g_measured, sigma=1e-3, model="diag").to_model(
+        sensor_id="S1")
+    with pytest.raises(CalibrationError, match="different models"):
+        a.compare(diag)
+    c = a.compare(diag, check_sensor=False)
+    assert c.names == ("sx", "sy", "sz", "bx", "by", "bz") and c.dof == 6
+    with pytest.raises(CalibrationError, match="no covariance"):
+        a.compare(ac.TriadModel(fitted.K, fitted.bias, sensor_id="S1"))
+    with pytest.raises(CalibrationError, match="covariance must be"):
+        a.compare(a, covariance="scaled")
+
+
+def test_compare_notes_a_noise_model_the_residuals_reject(fitted):
+    s = static_dwell_means(20, max_tilt_deg=None, sigma=3e-3, rng=15)
+    a = ac.fit_static(s.means, s.g_measured, sigma=1e-3).to_model()  # noise 3x the model
+    c = a.compare(fitted.to_model())
+    assert any("exceed its noise model" in n for n in c.notes), c.notes
+
+
+def test_to_model_records_where_g_came_from_and_what_made_it(fitted):
+    md = fitted.to_model().metadata
+    assert md["sigma_g"] == 0.0 and md["g_source"] == "given"
+    assert md["method"] == "lm" and md["accelcal_version"] == ac.__version__
+    md = fitted.to_model(metadata={"g_source": "latitude formula"}).metadata
+    assert md["g_source"] == "latitude formula"

@@ -39,6 +39,7 @@ from ._core import CalibrationError
 from ._triad import PARAM_NAMES, k_matrix
 from ._triad import fibonacci_sphere as _fibonacci
 from ._triad_model import TriadModel, dwell_fingerprints, units_of_g
+from ._triad_model import accelcal_version as _accelcal_version
 from ._validate import number, real_array
 from .dwell import DwellSet, check_faults
 
@@ -526,7 +527,9 @@ class StaticFit(_core.StaticFit):
         the degrees of freedom, the noise model, the residual RMS, the dwell count, a short
         hash of each dwell mean (``fit_dwells``: :meth:`TriadModel.own_dwells` tells a check
         against the same dwells) and the session itself (``fit_session``: the dwell means and
-        their variances, from which a check of the calibration draws its uncertainty).
+        their variances, from which a check of the calibration draws its uncertainty), and
+        ``sigma_g`` (0 when none), ``g_source`` ("given" unless the metadata says otherwise),
+        ``accelcal_version`` and ``method``.
         """
         md = dict(meta.pop("metadata", None) or {})
         md.update(
@@ -538,8 +541,13 @@ class StaticFit(_core.StaticFit):
             fit_dwells=dwell_fingerprints(self.means),
             fit_session=self._session(),
         )
-        if self.sigma_g:  # the covariances include its term (see covariance_gravity)
-            md["sigma_g"] = float(self.sigma_g)
+        # The covariances include sigma_g's term (see covariance_gravity); 0 is recorded too,
+        # so a file always says how its g was counted. g_source: "given" unless the caller
+        # says where g came from (the command line's --lat: "latitude formula ...").
+        md["sigma_g"] = float(self.sigma_g or 0.0)
+        md.setdefault("g_source", "given")
+        md.setdefault("accelcal_version", _accelcal_version())
+        md.setdefault("method", self.method)
         if not self.check_g:  # a g outside local gravity was meant: load says nothing of it
             md["check_g"] = False
         if self.input_units and "input_units" not in meta:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
+import shlex
 from typing import Any
 
 import click
@@ -51,6 +53,52 @@ _PHRASES = {
 
 def _cli(msg: str) -> str:
     return cli_words(msg, _PHRASES)
+
+
+#: The std of g from ``--lat``/``--height`` (WGS84 normal gravity with the free-air
+#: correction) against a gravimeter, m/s^2: local anomalies (guide-field.md section 6).
+LAT_FORMULA_SIGMA_G = 1e-3
+
+
+def _file_record(path: str) -> dict[str, Any]:
+    """What a calibration file records of an input file: its absolute path, size and SHA-256
+    (read in blocks; standard input cannot be read twice: its hash is null)."""
+    if path == "-":
+        return {"path": "-", "sha256": None, "bytes": None}
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return {"path": os.path.abspath(path), "sha256": h.hexdigest(),
+            "bytes": os.path.getsize(path)}
+
+
+def _command_line() -> str:
+    """The command line as parsed: ``accelcal calibrate static``, the arguments and the
+    options given on it (long names, in the command's order; defaults left out)."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+    words = ["accelcal", "calibrate", "static"]
+    for p in ctx.command.params:
+        name = p.name or ""
+        if ctx.get_parameter_source(name) is not ParameterSource.COMMANDLINE:
+            continue
+        v = ctx.params.get(name)
+        vals = list(v) if isinstance(v, (tuple, list)) else [v]
+        if isinstance(p, click.Argument):
+            words += [str(x) for x in vals]
+            continue
+        opt = max(p.opts, key=len)
+        if getattr(p, "is_flag", False):
+            if v:
+                words.append(opt)
+            elif p.secondary_opts:
+                words.append(max(p.secondary_opts, key=len))
+            continue
+        for x in vals:
+            words += [opt, str(x)]
+    return " ".join(shlex.quote(w) for w in words)
 
 
 def _diag_fits(d: Any, g: float) -> bool:
@@ -101,7 +149,14 @@ def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
               help="Calibration file of the nominal model, for the 'before' norm statistics.")
 @click.option("--sensor-id", default="", help="Stored in the calibration file.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              help="Write the calibration (versioned JSON).")
+              help="Write the calibration (versioned JSON); an existing file is kept unless "
+                   "--overwrite is given.")
+@click.option("--overwrite", is_flag=True,
+              help="Let -o replace an existing calibration file (written atomically).")
+@click.option("--date", "rec_date", default=None,
+              help="Date of the recording, ISO 8601 (e.g. 2026-11-23T10:15:00Z; a date alone "
+                   "is midnight UTC): the calibration's date, from which TriadModel.find(at=) "
+                   "takes it as valid. Default: now.")
 @click.option("--dwells-out", type=click.Path(dir_okay=False), default=None,
               help="Write the dwell table (CSV).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
@@ -115,8 +170,9 @@ def calibrate_static(
     method: str, window_s: float, k: float, min_dwell_s: float, trim_s: float,
     bounds: str | None,
     means: bool, count: int | None, no_check_g: bool, sigma_g: float | None,
-    nominal_path: str | None, sensor_id: str, output: str | None, dwells_out: str | None,
-    plot_path: str | None, as_json: bool, **fleet: Any,
+    nominal_path: str | None, sensor_id: str, output: str | None, overwrite: bool,
+    rec_date: str | None, dwells_out: str | None, plot_path: str | None, as_json: bool,
+    **fleet: Any,
 ) -> None:
     """Static field calibration: detect dwells, fit scale, bias and non-orthogonality.
 
@@ -141,6 +197,10 @@ def calibrate_static(
                                    "(give each table's count column, or --means alone)")
         if sigma_g is not None:
             raise CalibrationError("--sigma-g takes one recording, not a fleet run")
+        for flag, val in (("--overwrite", overwrite), ("--date", rec_date)):
+            if val:
+                raise CalibrationError(f"{flag} goes with -o, for one recording, not a fleet "
+                                       "run")
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns, means=means,
             time_column=time_column, quiet=quiet, model=model, method=method,
@@ -154,7 +214,33 @@ def calibrate_static(
     from ..static import TriadModel, WeakDesignWarning, fit_static, unit_label
 
     _need_plot(plot_path)
+    if output and os.path.lexists(output) and not overwrite:
+        raise CalibrationError(f"-o {output}: the file exists (a calibration is never replaced "
+                               "silently); give --overwrite to replace it, or choose another "
+                               "path; nothing was written")
+    from .._triad_model import _to_datetime, iso_utc
+
+    try:
+        cal_date = iso_utc(rec_date)
+    except CalibrationError as e:
+        raise CalibrationError(f"--date: {e}".replace("date must be", "it must be")) from None
+    if rec_date is not None and _to_datetime(rec_date) > _to_datetime(None):
+        raise CalibrationError(f"--date {rec_date} is in the future (the recording's date: "
+                               "TriadModel.find would not take the calibration before it)")
     gv, g_src = _resolve_g(g, lat, height, file, fs, columns, time_column)
+    sigma_g_src = "--sigma-g" if sigma_g is not None else "none given"
+    if g is None and lat is not None:
+        # The formula's error is the larger one: without it the std of the scale factors
+        # understates it about 26 times (1e-4 relative against 4e-6..2e-5 from the noise).
+        g_src = f"latitude formula: {g_src}"
+        if sigma_g is None:
+            sigma_g = LAT_FORMULA_SIGMA_G
+            sigma_g_src = ("the latitude formula's typical error against a gravimeter "
+                           "(local anomalies)")
+    inputs = {"input": _file_record(file)} if output else {}
+    for key, path in (("bounds", bounds), ("nominal", nominal_path)):
+        if output and path:
+            inputs[key] = _file_record(path)
     nominal = TriadModel.load(nominal_path) if nominal_path else None
     d, rec = stream_dwells(file, fs, columns, time_column, quiet, "calibrate", bounds, means,
                            count=count,
@@ -217,21 +303,35 @@ def calibrate_static(
         notes.append(_cli(str(w.message)))
     if output:
         temp = None if d.temperature is None else float(np.mean(d.temperature))
-        meta = {"source": str(file), "n_dwells": len(d)}
-        fit.to_model(sensor_id=sensor_id, temperature=temp, metadata=meta).save(output)
+        dwells_from = ("--bounds file" if bounds else "dwell table" if rec is None
+                       else "table of dwell means" if rec.pose_table else "detected")
+        meta: dict[str, Any] = {
+            "source": str(file), "n_dwells": len(d), **inputs,
+            "g_source": g_src, "sigma_g_source": sigma_g_src,
+            "model": model, "method": method, "dwells_from": dwells_from,
+            "detector": ({"window_s": window_s, "k": k, "min_dwell_s": min_dwell_s,
+                          "trim_s": trim_s} if dwells_from == "detected" else None),
+            "command": _command_line(), "written": iso_utc(None),
+        }
+        fit.to_model(sensor_id=sensor_id, temperature=temp, date=cal_date,
+                     metadata=meta).save(output)
     if plot_path:
         from ..plots import static_norm_figure
 
         _save_fig(static_norm_figure(fit, d), plot_path)
     if as_json:
         out = fit.to_dict()
-        out.update(n_dwells=len(d), g_source=g_src, warnings=notes, file=str(file),
+        out.update(n_dwells=len(d), g_source=g_src, sigma_g=float(sigma_g or 0.0),
+                   sigma_g_source=sigma_g_src, warnings=notes, file=str(file),
                    samples=None if rec is None else rec.rows, notes=cli_notes(read_notes))
         emit_json(out)
         return
     echo_notes(read_notes)
     click.echo(src)
     click.echo(f"reference gravity g = {gv:.6f} {unit_label(gv)} ({g_src})")
+    if sigma_g_src.startswith("the latitude"):
+        click.echo(f"sigma_g = {sigma_g:g} {unit_label(gv)}: {sigma_g_src}, added to every "
+                   "std (give --sigma-g to change it; a gravimeter's value is better)")
     click.echo(_cli(fit.summary()))
     for n in notes:
         click.echo(f"warning: {n}")
