@@ -65,6 +65,39 @@ def test_taylor_paper_reproduces_s_and_b_and_d_to_two_percent():
     assert fit.taylor_coefficients is not None and fit.taylor_coefficients.shape == (13,)
 
 
+def test_taylor_paper_recovery_is_consistent_with_its_series():
+    # f^2 = z^2 - 2 D z^3 + 5 D^2 z^4 + O(z^5): the 5 (which makes C41 = 5 D^2 S^-4) must be in
+    # C11..C31 too. On noise-free data of the paper's design the K2 error is then the truncation
+    # alone (3.5e-5, -1.3e-5, 1.7e-5), under the first corrections' 1.1e-4, 4.0e-5, 1.65e-4.
+    s = centrifuge_session(noise_g=0.0, g=9.8)
+    fit = fit_centrifuge(s.outputs, s.omega, 1.0, g=9.8, method="taylor-paper", robust=False)
+    np.testing.assert_allclose(fit.k2, D, rtol=4e-5)
+    np.testing.assert_allclose(fit.scale, S, rtol=1e-6)
+    np.testing.assert_allclose(fit.bias, B, atol=1e-6)
+    q = fit.taylor_coefficients
+    assert q is not None
+    first = np.empty(3)
+    for i in range(3):
+        c1, c2, c3, c4 = q[1 + i], q[4 + i], q[7 + i], q[10 + i]
+        m = c4 / c3 * c1 / c2
+        a = 6 * m - 5
+        k = 2 * m / (-a + np.sqrt(a * a - 4 * a * m))
+        sc = np.sqrt((1 + 6 * k + 6 * k * k) / c2)
+        first[i] = -c3 * sc**3 / (2 * (1 + 2 * k))
+    np.testing.assert_allclose((first - D) / D, [1.1e-4, 4.0e-5, 1.65e-4], rtol=0.1)
+    assert np.all(np.abs(fit.k2 - D) < 0.4 * np.abs(first - D))
+
+
+def test_taylor_paper_std_warn_that_they_leave_out_its_errors():
+    s = centrifuge_session(noise_g=1e-5, g=9.8, rng=0)
+    with pytest.warns(CentrifugeModelWarning, match=r"truncation error .* 'nls', the default"):
+        fit_centrifuge(s.outputs, s.omega, 1.0, g=9.8, method="taylor-paper", sigma=1e-5,
+                       robust=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_centrifuge(s.outputs, s.omega, 1.0, g=9.8, sigma=1e-5, robust=False)
+
+
 def test_printed_eq19_root_is_wrong_and_corrected_root_is_right():
     c = calibrate_centrifuge_table(CORRECTED(), 1.0, g=9.8, method="taylor-paper")
     q = c.taylor_coefficients
@@ -375,6 +408,35 @@ def test_residual_figure_marks_excluded_rows():
     import matplotlib.pyplot as plt
 
     plt.close(fig)
+
+
+def test_outputs_read_in_mps2_are_fitted_with_the_fits_g(tmp_path):
+    # A session at g = 9.8 written in m/s^2, read without g= (divided by 9.80665) and fitted
+    # with g=9.8: S used to come out at 1.28913 for 1.29 (-6.8e-4); the outputs carry the g
+    # they were divided by and the fit converts them again with its own.
+    s = centrifuge_session(noise_g=0.0, g=9.8, rng=1)
+    p = tmp_path / "t.csv"
+    np.savetxt(p, np.c_[s.omega, s.outputs * 9.8], delimiter=",", comments="", fmt="%.17g",
+               header="omega_rad_s,ax [m/s^2],ay [m/s^2],az [m/s^2]")
+    t = read_centrifuge_table(p)
+    assert t.g_mps2 == 9.80665 and t.mps2_axes == (True, True, True)
+    np.testing.assert_allclose(t.outputs, s.outputs * 9.8 / 9.80665, rtol=1e-14)
+    fit = fit_centrifuge(t.outputs, t.omega, 1.0, g=9.8, robust=False)
+    np.testing.assert_allclose(fit.scale, S, rtol=1e-9)
+    np.testing.assert_allclose(fit.bias, B, atol=1e-9)
+    np.testing.assert_allclose(fit.k2, D, rtol=1e-7)
+    # Rows indexed from the table keep the conversion; the CLI path (g to both) is unchanged.
+    used = np.arange(0, 60, 2)
+    half = fit_centrifuge(t.outputs[used], t.omega[used], 1.0, g=9.8, robust=False)
+    np.testing.assert_allclose(half.scale, S, rtol=1e-9)
+    same = calibrate_centrifuge_table(p, 1.0, g=9.8, robust=False)
+    np.testing.assert_allclose(same.params, fit.params, rtol=1e-12, atol=1e-16)
+    # A g given to the reader that differs from the fit's is refused, naming both.
+    t2 = read_centrifuge_table(p, g=9.81)
+    with pytest.raises(CalibrationError, match=r"divided by g = 9.81 m/s\^2 .* given g = 9.8"):
+        fit_centrifuge(t2.outputs, t2.omega, 1.0, g=9.8)
+    # A table in g carries nothing.
+    assert read_centrifuge_table(CORRECTED()).g_mps2 is None
 
 
 def test_table_columns_by_name_and_unit(tmp_path):

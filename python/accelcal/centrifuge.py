@@ -500,7 +500,9 @@ def fit_centrifuge(
     ----------
     outputs : array_like (k, 3)
         Mean outputs per position and speed (g). Any layout (C or Fortran order, strided,
-        a DataFrame), float or integer dtype, either byte order.
+        a DataFrame), float or integer dtype, either byte order. The ``outputs`` of a table
+        read in m/s^2 (:func:`read_centrifuge_table`) are converted again with this ``g``
+        when the reader was not given one; a different ``g`` given to the reader is refused.
     omega : array_like (k,)
         Signed spin rate of each row (rad/s); at least two distinct speeds (rows at rest,
         0, count as one).
@@ -513,8 +515,12 @@ def fit_centrifuge(
     method : {"nls", "taylor-paper"}
         ``"nls"``: exact per-axis inversion and least squares on the norm (default).
         ``"taylor-paper"``: the paper's 13-coefficient regression with its closed form, as
-        corrected in ``docs/centrifuge-reproduction.md`` (scale + bias + K2 only; D is biased
-        by the truncated series).
+        corrected in ``docs/centrifuge-reproduction.md`` and made consistent with its series
+        (scale + bias + K2 only; D is biased by the truncated series). Its std are those of the
+        exact norm least squares at its parameters: they include neither the truncation error
+        nor the extra scatter of the unweighted regression, and understate its errors (with
+        ``sigma`` given, by factors of 10 to 50, and a :class:`CentrifugeModelWarning` says
+        so). ``"nls"`` is the default for that reason.
     k3, misalignment : bool
         Add the cubic coefficient / the three observable small misalignment angles (nls only).
     lever_arm : {None, "along", "full"}
@@ -573,6 +579,7 @@ def fit_centrifuge(
     -------
     CentrifugeFit
     """
+    conv = _outputs_conversion(outputs)
     out = real_array(outputs, "outputs", "g")
     if out.ndim != 2 or out.shape[1] != 3:
         raise CalibrationError(f"outputs must have shape (k, 3) in g; got {out.shape}")
@@ -588,6 +595,17 @@ def fit_centrifuge(
         )
     r = number(radius, "radius", lo=0.0, lo_open=True, unit="m")
     gg = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
+    if conv is not None and conv[0] != gg:
+        g_read, stated, axes = conv
+        if stated:
+            raise CalibrationError(
+                f"the outputs were read in m/s^2 and divided by g = {g_read:g} m/s^2 "
+                f"(read_centrifuge_table(..., g={g_read:g})), but the fit is given g = {gg:g}: "
+                "one local gravity is both the unit of the outputs and the g of A = omega^2 R "
+                f"/ g. Read the table with g={gg:g}, or fit with g={g_read:g}"
+            )
+        out = np.array(out, dtype=np.float64)  # converted again with the fit's own g
+        out[:, axes] *= g_read / gg
     k_out = number(outlier_k, "outlier_k", lo=0.0, lo_open=True, unit="standard deviations")
     draws = number(max_draws, "max_draws", lo=1, hi=10_000_000, integer=True)
     sd = number(seed, "seed", lo=0, hi=2.0**53, integer=True)
@@ -635,12 +653,33 @@ def fit_centrifuge(
         misfit = "kept all"
     else:
         misfit = _misfit_text(res, om)
+        if method == "taylor-paper" and sg is not None:
+            # One warning, naming the method's own error first: its parameters are not the
+            # least-squares minimum, so the whitened rms is high even without a model error.
+            misfit = _TAYLOR_STD_TEXT + (
+                f". Here the whitened residual rms is {res.residual_rms:.3g} (about 1 for the "
+                "least-squares minimum of a right model): fit with 'nls' to see whether a "
+                "model error remains" if misfit else "")
         if misfit:
             _quiet.warn(misfit, CentrifugeModelWarning, stacklevel=2)
     weak = _weak_design_text(res, bias_std=not misfit)
     if weak:
         _quiet.warn(weak, WeakDesignWarning, stacklevel=2)
     return res
+
+
+#: Why the std of method "taylor-paper" understate its error (warned when ``sigma`` makes them
+#: absolute). Simulated paper sessions, 20 seeds, sigma given: z-rms (error / std) up to 14 (S_x),
+#: 29 (S_y), 44 (S_z) at 1e-5 g noise and up to 58 (k2x) at 1e-7 g.
+_TAYLOR_STD_TEXT = (
+    "method 'taylor-paper': its std are those of the exact norm least squares evaluated at "
+    "its parameters; they include neither the truncation error of its Taylor series (K2 "
+    "biased by about 3e-5 relative on the paper's design, more for larger K2) nor the extra "
+    "scatter of its unweighted regression on powers of the noisy outputs, so with sigma given "
+    "they understate its errors (by factors of 10 to 50 on simulated paper sessions). Method "
+    "'nls', the default for that reason, inverts each axis exactly, weighs the rows and "
+    "states std that match its scatter; use 'taylor-paper' only to reproduce the paper"
+)
 
 
 #: Whitened residual rms above which a fit with the noise given leaves a misfit (with at least
@@ -734,6 +773,12 @@ class CentrifugeTable:
     position: NDArray[np.int64]
     outputs: NDArray[np.float64]
     path: str = ""
+    #: Local gravity (m/s^2) the output columns given in m/s^2 were divided by; None when
+    #: every output column is in g or mg. :func:`fit_centrifuge` converts such outputs again
+    #: with its own ``g`` (or refuses a ``g`` stated to the reader that differs from it).
+    g_mps2: float | None = None
+    #: The output axes (x, y, z) read in m/s^2.
+    mps2_axes: tuple[bool, bool, bool] = (False, False, False)
 
     def __len__(self) -> int:
         return int(self.omega.shape[0])
@@ -742,6 +787,32 @@ class CentrifugeTable:
         """Name of each row by speed and position, e.g. ``"speed 1, position 5"``."""
         return [f"speed {s}, position {p}"
                 for s, p in zip(self.speed_index, self.position, strict=True)]
+
+
+#: Standard gravity (m/s^2): the default ``g`` of the reader and of the fit.
+STANDARD_G = 9.80665
+
+
+class _OutputsFromMps2(np.ndarray):  # type: ignore[type-arg]
+    """Outputs (g) of a table whose columns in m/s^2 were divided by ``g_mps2``; the
+    conversion travels with the array (and with arrays indexed from it) so that
+    :func:`fit_centrifuge` can redo it with its own ``g``."""
+
+    g_mps2: float
+    g_stated: bool
+    mps2_axes: tuple[bool, bool, bool]
+
+    def __array_finalize__(self, obj: Any) -> None:
+        self.g_mps2 = getattr(obj, "g_mps2", STANDARD_G)
+        self.g_stated = getattr(obj, "g_stated", False)
+        self.mps2_axes = getattr(obj, "mps2_axes", (False, False, False))
+
+
+def _outputs_conversion(outputs: Any) -> tuple[float, bool, NDArray[np.bool_]] | None:
+    """``(g_mps2, stated, axes)`` when ``outputs`` come from a table read in m/s^2."""
+    if not isinstance(outputs, _OutputsFromMps2) or not any(outputs.mps2_axes):
+        return None
+    return outputs.g_mps2, outputs.g_stated, np.array(outputs.mps2_axes, dtype=bool)
 
 
 def _table_columns(g: float) -> list[Col]:
@@ -793,7 +864,7 @@ def _number_levels(omega: NDArray[np.float64]) -> NDArray[np.int64]:
     return idx
 
 
-def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> CentrifugeTable:
+def read_centrifuge_table(path: str | os.PathLike[str], g: float | None = None) -> CentrifugeTable:
     """Read a centrifuge run's per-position table (delimited text, ``#`` comments).
 
     Columns are found by name, in any order, with the unit in brackets or implied by the name:
@@ -801,7 +872,8 @@ def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> C
     - the angular rate: ``omega_rad_s``, ``omega``, ``w``, ``rate`` (rad/s unless stated),
       ``rpm``, ``omega [deg/s]``, ``freq [Hz]``;
     - the mean outputs x, y, z: ``N_ax_g`` ..., ``ax``, ``acc_x``, ``fx``, ``out_x`` (g unless
-      stated: ``ax [mg]``, ``ax [m/s^2]``, ``ax_mps2``; m/s^2 are divided by ``g``);
+      stated: ``ax [mg]``, ``ax [m/s^2]``, ``ax_mps2``; m/s^2 are divided by ``g``, the local
+      gravity in m/s^2, 9.80665 when not given);
     - optional ``speed_index`` (else the distinct rates are numbered in order of appearance)
       and ``position`` (else rows are numbered within each speed).
 
@@ -811,10 +883,18 @@ def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> C
 
     The paper's Table 1 layout is ``speed_index, omega_rad_s, position, N_ax_g, N_ay_g,
     N_az_g``.
+
+    The table remembers the ``g`` that m/s^2 outputs were divided by (``g_mps2``), and so do
+    its ``outputs`` (and arrays indexed from them): :func:`fit_centrifuge` converts them again
+    with its own ``g`` when this one was not given, and refuses a ``g`` given here that
+    differs from the fit's (one local gravity is the unit of the outputs and of ``A``).
     """
-    gv = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
+    gv = STANDARD_G if g is None else number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
     p = str(path)
     d = read_table(path, _table_columns(gv), "centrifuge table", with_lines=True)
+    # Which output columns were in m/s^2: read again with another g (tables are small).
+    d2 = read_table(path, _table_columns(2.0 * gv), "centrifuge table")
+    mps2 = tuple(bool(np.any(d[f"out_{a}"] != d2[f"out_{a}"])) for a in "xyz")
     omega = d["omega"]
     speed = _whole(p, d.get("speed_index"), "speed index")
     if speed is None:
@@ -829,8 +909,13 @@ def read_centrifuge_table(path: str | os.PathLike[str], g: float = 9.80665) -> C
     repeated = _repeated_rows(speed, pos, omega, outputs, d["_line"].astype(np.int64))
     if repeated:
         warnings.warn(f"{p}: {repeated}", UserWarning, stacklevel=2)
-    return CentrifugeTable(speed_index=speed, omega=omega, position=pos, outputs=outputs,
-                           path=p)
+    if not any(mps2):
+        return CentrifugeTable(speed_index=speed, omega=omega, position=pos, outputs=outputs,
+                               path=p)
+    conv = outputs.view(_OutputsFromMps2)
+    conv.g_mps2, conv.g_stated, conv.mps2_axes = gv, g is not None, mps2  # type: ignore[assignment]
+    return CentrifugeTable(speed_index=speed, omega=omega, position=pos, outputs=conv, path=p,
+                           g_mps2=gv, mps2_axes=mps2)  # type: ignore[arg-type]
 
 
 def _repeated_rows(speed: NDArray[np.int64], pos: NDArray[np.int64], omega: NDArray[np.float64],
