@@ -949,6 +949,18 @@ pub fn apply_model<T: Sample>(
     k: &[[f64; 3]; 3],
     b: &[f64; 3],
 ) -> Result<Vec<f64>> {
+    let t = apply_inverse(samples, k, b)?;
+    let mut out = vec![0.0; 3 * samples.nrows()];
+    apply_inverse_into(samples, &t, b, &mut out);
+    Ok(out)
+}
+
+/// `K^-1` after the checks of [`apply_model`] (shape, finite model, invertible `K`).
+pub fn apply_inverse<T: Sample>(
+    samples: &ArrayView2<'_, T>,
+    k: &[[f64; 3]; 3],
+    b: &[f64; 3],
+) -> Result<Matrix3<f64>> {
     if samples.ncols() != 3 {
         return invalid(format!(
             "samples must have shape (N, 3); got {} columns",
@@ -959,10 +971,17 @@ pub fn apply_model<T: Sample>(
     if km.iter().any(|v| !v.is_finite()) || b.iter().any(|v| !v.is_finite()) {
         return invalid("model matrix and bias must be finite");
     }
-    let t = inverse3(&km)
-        .ok_or_else(|| CoreError::InvalidInput("the model's K matrix is singular".into()))?;
-    let n = samples.nrows();
-    let mut out = vec![0.0; 3 * n];
+    inverse3(&km).ok_or_else(|| CoreError::InvalidInput("the model's K matrix is singular".into()))
+}
+
+/// [`apply_model`] of the rows of `samples` into `out` (row-major, `3 * rows` values) with
+/// `t = K^-1` from [`apply_inverse`]: a caller can work through a long array block by block.
+pub fn apply_inverse_into<T: Sample>(
+    samples: &ArrayView2<'_, T>,
+    t: &Matrix3<f64>,
+    b: &[f64; 3],
+    out: &mut [f64],
+) {
     out.par_chunks_mut(3 * APPLY_CHUNK)
         .enumerate()
         .for_each(|(c, dst)| {
@@ -979,7 +998,6 @@ pub fn apply_model<T: Sample>(
                 }
             }
         });
-    Ok(out)
 }
 
 // ------------------------------------------------------------------------------------------
