@@ -92,3 +92,28 @@ def test_median_norm_of_rows_with_dropouts() -> None:
     assert median_norm(rows[[0, 1, 3]]) == 2.0
     assert math.isnan(median_norm(rows[2:3], finite=True))
     assert math.isnan(median_norm(np.empty((0, 3))))
+
+
+def test_median_norm_of_a_few_rows_is_numpys() -> None:
+    """A few rows (a service applying row by row) take a plain-Python path (NumPy's median
+    alone cost 35 us a row): the same value as NumPy's, NaN and inf rows included."""
+    import math
+
+    from accelcal._triad_model import _FEW_ROWS, median_norm
+
+    rng = np.random.default_rng(7)
+    for trial in range(200):
+        for n in range(_FEW_ROWS + 3):
+            r = rng.normal(size=(n, 3)) * 5
+            if n > 3 and trial % 2:
+                r[rng.integers(n), 0] = np.nan
+            if n > 5 and trial % 3 == 0:
+                r[rng.integers(n), 1] = np.inf
+            for finite in (False, True):
+                norms = np.sqrt(np.einsum("ij,ij->i", r, r))
+                if finite:
+                    norms = norms[np.isfinite(norms)]
+                want = float(np.median(norms)) if norms.size else math.nan
+                got = median_norm(r, finite=finite)
+                assert (math.isnan(want) and math.isnan(got)) or got == pytest.approx(
+                    want, rel=1e-13), (n, finite, want, got)

@@ -215,10 +215,23 @@ def median_norm(rows: NDArray[np.float64], *, finite: bool = False) -> float:
     """The median norm of calibrated rows (n, 3) (the norm of gravity in a recording mostly at
     rest): NaN when a row is NaN, or with ``finite`` of the finite norms only (dropouts left
     out; NaN when none is left)."""
+    if rows.shape[0] <= _FEW_ROWS:  # a service applying row by row: NumPy's median costs 35 us
+        few = [math.sqrt(x * x + y * y + z * z) for x, y, z in rows.tolist()]
+        if finite:
+            few = [v for v in few if math.isfinite(v)]
+        elif any(math.isnan(v) for v in few):
+            return math.nan
+        few.sort()
+        k = len(few)
+        return (few[k // 2] if k % 2 else 0.5 * (few[k // 2 - 1] + few[k // 2])) if k else math.nan
     norms = np.sqrt(np.einsum("ij,ij->i", rows, rows))
     if finite:
         norms = norms[np.isfinite(norms)]
     return float(np.median(norms)) if norms.size else math.nan
+
+
+#: Up to this many rows :func:`median_norm` works in Python floats.
+_FEW_ROWS = 8
 
 
 def _json_scalar(v: Any) -> Any:
