@@ -670,6 +670,7 @@ def gap_diagnose_static(
     allan_var: NDArray[np.float64] | None = None,
     sample_var: NDArray[np.float64] | None = None,
     lsb: list[float] | None = None,
+    resid_corr: NDArray[np.float64] | None = None,
 ) -> GapRaw:
     """Static gap diagnosis on raw dwell means."""
 

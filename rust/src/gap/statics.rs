@@ -181,6 +181,12 @@ pub struct DwellExtras {
     pub sample_var: Option<Vec<[f64; 3]>>,
     /// Output resolution per axis (raw units).
     pub lsb: Option<[f64; 3]>,
+    /// Correlation of the dwells' norm residuals beyond their own noise (`n x n`, row-major,
+    /// unit diagonal), with a calibration held fixed: its own error, shared by every dwell
+    /// (`var` then holds each dwell's noise plus its share of that error). The effects are
+    /// fitted and tested by generalised least squares against it
+    /// ([`GapModel::row_correlation`]); `None`: independent dwells.
+    pub resid_corr: Option<Vec<f64>>,
 }
 
 /// Input of [`diagnose`]: dwell means in raw units and their noise.
@@ -331,6 +337,8 @@ pub struct StaticModel {
     time_status: Option<Status>,
     /// Every dwell at one attitude (set by [`diagnose`] for a fixed calibration).
     one_attitude: bool,
+    /// Correlation of the rows ([`DwellExtras::resid_corr`], with a fixed calibration only).
+    corr: Option<DMatrix<f64>>,
 }
 
 /// One dwell evaluated at a parameter vector.
@@ -425,6 +433,12 @@ impl StaticModel {
             temp_status,
             time_status,
             one_attitude: false,
+            corr: inp
+                .extras
+                .resid_corr
+                .as_ref()
+                .filter(|_| fixed)
+                .map(|c| DMatrix::from_row_slice(n, n, c)),
         }
     }
 
@@ -585,6 +599,9 @@ impl GapModel for StaticModel {
     fn noise_known(&self) -> bool {
         self.noise_known
     }
+    fn row_correlation(&self) -> Option<&DMatrix<f64>> {
+        self.corr.as_ref()
+    }
     fn eval(
         &self,
         rows: &[usize],
@@ -690,6 +707,16 @@ fn check_input(inp: &StaticInput) -> Result<()> {
             if let Some(k) = a.iter().position(|v| !v.is_finite()) {
                 return invalid(format!("{nm} of dwell {k} is NaN or inf"));
             }
+        }
+    }
+    if let Some(c) = &inp.extras.resid_corr {
+        if c.len() != n * n || c.iter().any(|v| !v.is_finite()) {
+            return invalid("resid_corr must be a finite n x n matrix (n dwells)");
+        }
+        let m = DMatrix::from_row_slice(n, n, c);
+        let sym = (0..n).all(|a| (0..n).all(|b| (m[(a, b)] - m[(b, a)]).abs() <= 1e-9));
+        if !sym || m.cholesky().is_none() {
+            return invalid("resid_corr must be symmetric positive definite");
         }
     }
     let need = if inp.calibration.is_some_and(|c| c.fixed) {

@@ -567,10 +567,12 @@ fn halves(a: &Option<PyReadonlyArray3<'_, f64>>) -> PyResult<Option<Vec<[[f64; 3
 }
 
 /// Static gap diagnosis on raw dwell means (`var`: per-axis variance of each mean; None:
-/// unknown). `calibration`: `(K, b, fixed)` to start from, or to hold fixed.
+/// unknown). `calibration`: `(K, b, fixed)` to start from, or to hold fixed. `resid_corr`:
+/// `(n, n)` correlation of the dwells' norm residuals (a fixed calibration's own error).
 #[pyfunction]
 #[pyo3(signature = (mean, var, t, temperature, g, effects, settings, calibration=None,
-                    half_mean=None, white_var=None, allan_var=None, sample_var=None, lsb=None))]
+                    half_mean=None, white_var=None, allan_var=None, sample_var=None, lsb=None,
+                    resid_corr=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn gap_diagnose_static(
     py: Python<'_>,
@@ -587,6 +589,7 @@ pub fn gap_diagnose_static(
     allan_var: Option<PyReadonlyArray2<'_, f64>>,
     sample_var: Option<PyReadonlyArray2<'_, f64>>,
     lsb: Option<[f64; 3]>,
+    resid_corr: Option<PyReadonlyArray2<'_, f64>>,
 ) -> PyResult<GapRaw> {
     let inp = StaticInput {
         mean: rows3(&mean, "mean")?,
@@ -601,6 +604,9 @@ pub fn gap_diagnose_static(
             allan_var: opt_rows3(&allan_var, "allan_var")?,
             sample_var: opt_rows3(&sample_var, "sample_var")?,
             lsb,
+            resid_corr: resid_corr
+                .as_ref()
+                .map(|c| c.as_array().iter().copied().collect()),
         },
     };
     let eff: Vec<Effect> = effects
