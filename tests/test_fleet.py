@@ -320,6 +320,44 @@ def test_latitude_gives_wgs84_gravity(fleet: dict[str, Any]) -> None:
     assert "WGS84" in df.loc[0, "g_source"]
 
 
+def test_a_gravity_from_the_latitude_carries_its_error_as_the_single_file_command(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    """The fleet fitted a --lat g as exact (the std 26 times too small against the formula's
+    1e-4 relative error) where `calibrate static FILE --lat` counts sigma_g = 1e-3 m/s^2."""
+    r = next(r for r in fleet["recs"] if not r.corruption)
+    df = ac.calibrate_many([r.path], lat=48.0, height=300.0, out=tmp_path / "cals",
+                           workers=1, progress=False)
+    row = df.iloc[0]
+    assert row["sigma_g_mps2"] == 1e-3
+    gv = ac.local_gravity(48.0, 300.0)
+    st = ac.io.read_stream(r.path)
+    d = ac.detect_dwells(st.samples, st.fs, t=st.t)
+    exact = ac.fit_static(d, gv, check_g=False)
+    with_g = ac.fit_static(d, gv, check_g=False, sigma_g=1e-3)
+    std = row[[f"{q}_std" for q in PARAMS]].to_numpy(float)
+    np.testing.assert_allclose(std, with_g.std_realistic, rtol=1e-9)
+    assert std[0] > 1.5 * exact.std_realistic[0]  # g's 1e-4 relative dominates
+    m = ac.TriadModel.load(row["cal_file"])
+    assert m.metadata["sigma_g"] == 1e-3 and "WGS84" in m.metadata["g_source"]
+    np.testing.assert_allclose(m.std, std, rtol=1e-12)
+    code, out = _cli("calibrate", "static", r.path, "--lat", "48", "--height", "300", "--json")
+    assert code == 0, out
+    one = json.loads(out)
+    np.testing.assert_allclose([one["std"][q] for q in PARAMS] if isinstance(one["std"], dict)
+                               else one["std"], std, rtol=1e-6)
+    # A given g is exact unless its std is given: keyword, then a manifest column.
+    df = ac.calibrate_many([r.path], g=G0, sigma_g=2e-4, workers=1, progress=False)
+    assert df.loc[0, "sigma_g_mps2"] == 2e-4
+    man = tmp_path / "m.csv"
+    man.write_text(f"path,g,sigma_g\n{r.path},{G0},5e-4\n{r.path},{G0},\n")
+    df = ac.calibrate_many(str(man), g=G0, workers=1, progress=False)
+    assert df["sigma_g_mps2"].tolist() == [5e-4, 0.0]
+    assert df.loc[0, "sx_std"] > df.loc[1, "sx_std"]
+    code, out = _cli("calibrate", "static", r.path, r.path + "*", "--g", str(G0),
+                     "--sigma-g", "2e-4", "--quiet", "--summary", str(tmp_path / "s.csv"))
+    assert code == 0, out
+
+
 def test_repeated_sensor_ids_get_distinct_files(fleet: dict[str, Any], tmp_path: Path) -> None:
     recs = [r for r in fleet["recs"] if not r.corruption][:4]
     man = pd.DataFrame({"path": [r.path for r in recs], "sensor_id": ["X", "X", "X", "Y"],

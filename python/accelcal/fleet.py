@@ -58,8 +58,8 @@ MISFIT_CHI2_DOF = 1e3
 MISFIT_RMS_G = 1e-3
 
 _METHODS = ("lm", "gauss-newton", "quadric", "linear-paper")
-_MANIFEST_COLUMNS = ("path", "sensor_id", "g", "lat", "height", "fs", "columns", "time_column",
-                     "date", "bounds")
+_MANIFEST_COLUMNS = ("path", "sensor_id", "g", "sigma_g", "lat", "height", "fs", "columns",
+                     "time_column", "date", "bounds")
 
 #: Units of the table's columns (the parameters are in the recording's own output units).
 COLUMN_UNITS: dict[str, str] = {
@@ -68,6 +68,7 @@ COLUMN_UNITS: dict[str, str] = {
     **{f"m{i}": "recording units per m/s^2" for i in (1, 2, 3)},
     "fs_hz": "Hz",
     "g_mps2": "m/s^2",
+    "sigma_g_mps2": "m/s^2",
     "rms_mps2": "m/s^2",
     "duration_s": "s",
     "elapsed_s": "s",
@@ -103,6 +104,7 @@ class _Job:
     sensor_id: str
     g: float | None
     g_source: str
+    sigma_g: float | None  # std of g (units of g), counted in every std; None: g exact
     fs: float | None
     columns: Any
     time_column: Any
@@ -125,7 +127,7 @@ _INT_COLUMNS = ("n_dwells", "n_samples", "dropped_rows", "dof", "iterations")
 
 def _columns(diagnose: bool) -> list[str]:
     cols = ["sensor_id", "path", "status", "message", "n_dwells", "n_samples", "dropped_rows",
-            "duration_s", "fs_hz", "g_mps2", "g_source", "model", "method"]
+            "duration_s", "fs_hz", "g_mps2", "g_source", "sigma_g_mps2", "model", "method"]
     for p in PARAM_NAMES:
         cols += [p, f"{p}_std"]
     cols += ["chi2_dof", "dof", "rms_mps2", "noise_model", "iterations", "temperature"]
@@ -142,7 +144,8 @@ def _blank_row(job: _Job) -> dict[str, Any]:
         sensor_id=job.sensor_id, path=job.path, status="error", message="", n_dwells=None,
         n_samples=None, dropped_rows=None, dof=None, iterations=None,
         g_mps2=math.nan if job.g is None else job.g,
-        g_source=job.g_source, model=job.model, method=job.method, noise_model="",
+        g_source=job.g_source, sigma_g_mps2=job.sigma_g or 0.0, model=job.model,
+        method=job.method, noise_model="",
         cal_file="", worker=f"{socket.gethostname()}:{os.getpid()}",
     )
     if job.diagnose:
@@ -262,7 +265,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     # swap the process-wide filters under the other jobs).
     with _quiet.recording() as caught:
         try:
-            fit = fit_static(d, job.g, model=job.model, method=job.method, check_g=job.check_g)
+            fit = fit_static(d, job.g, model=job.model, method=job.method, check_g=job.check_g,
+                             sigma_g=job.sigma_g)
         except DegenerateDataError as e:
             row["status"], row["message"] = "degenerate", str(e)
             return None
@@ -305,7 +309,7 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         notes.append(f"g = {job.g:g} is in {unit or 'other units than m/s^2'}: g_mps2, "
                      "rms_mps2 and gap_rms_after_mps2 are in those units in this row")
     row["message"] = "; ".join(misfit + fault_note + weak + notes)
-    meta: dict[str, Any] = {"source": job.path, "n_dwells": k}
+    meta: dict[str, Any] = {"source": job.path, "n_dwells": k, "g_source": job.g_source}
     if stat.S_ISREG(mode):  # what the recording held: tells a re-recorded file from a rerun
         meta["source_sha256"] = row["_sha256"]
     kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
@@ -641,9 +645,9 @@ def _make_jobs(
     rows: list[dict[str, Any]], base: Path, *, g: float | None, lat: float | None,
     height: float | None, fs: float | None, columns: Any, time_column: Any, model: str,
     method: str, detector: dict[str, Any], diagnose: bool, cli: bool, check_g: bool = True,
-    means: bool = False,
+    means: bool = False, sigma_g: float | None = None,
 ) -> list[_Job]:
-    from .static import local_gravity
+    from .static import LAT_FORMULA_SIGMA_G, local_gravity
 
     names = _names(cli)
     jobs = []
@@ -657,6 +661,7 @@ def _make_jobs(
         sid = r.get("sensor_id")
         sensor_id = file_stem(path) if _missing(sid) else str(sid)
         rg = _num(r.get("g"), "g (m/s^2)", where)
+        rsg = _num(r.get("sigma_g"), "sigma_g (m/s^2)", where)
         rlat = _num(r.get("lat"), "lat (deg)", where)
         rh = _num(r.get("height"), "height (m)", where)
         rfs = _num(r.get("fs"), "fs (Hz)", where)
@@ -674,6 +679,11 @@ def _make_jobs(
             gv, src = local_gravity(lat, h), f"WGS84 normal gravity at {lat:g} deg, {h:g} m"
         else:
             gv, src = None, ""
+        # As the single-file command: a g from the latitude formula carries its typical
+        # error against a gravimeter unless a sigma_g is given (row, then keyword).
+        sg = rsg if rsg is not None else sigma_g
+        if sg is None and src.startswith("WGS84"):
+            sg = LAT_FORMULA_SIGMA_G
         cols = r.get("columns")
         date = r.get("date")
         rb = r.get("bounds")
@@ -681,7 +691,7 @@ def _make_jobs(
         extra = {k: v for k, v in r.items() if k not in _MANIFEST_COLUMNS}
         jobs.append(_Job(
             index=i, path=path, read_path=os.path.abspath(read_path), sensor_id=sensor_id,
-            g=gv, g_source=src, fs=rfs if rfs is not None else fs,
+            g=gv, g_source=src, sigma_g=sg, fs=rfs if rfs is not None else fs,
             columns=columns if _missing(cols) else cols,
             time_column=time_column if _missing(r.get("time_column")) else r.get("time_column"),
             model=model, method=method,
@@ -1162,6 +1172,7 @@ def calibrate_many(
     progress: bool | None = None,
     check_g: bool = True,
     means: bool = False,
+    sigma_g: float | None = None,
     _cli: bool = False,
 ) -> Any:
     """Calibrate many static-session recordings; one row per recording.
@@ -1174,7 +1185,8 @@ def calibrate_many(
     ----------
     sources : list of paths, a glob (``"rec/*.csv"``), or a manifest
         A manifest is a DataFrame or a CSV/Parquet/workbook file with a ``path`` column and
-        optional ``sensor_id``, ``g`` (m/s^2) or ``lat`` (deg) / ``height`` (m), ``fs`` (Hz),
+        optional ``sensor_id``, ``g`` (m/s^2) or ``lat`` (deg) / ``height`` (m), ``sigma_g``
+        (m/s^2), ``fs`` (Hz),
         ``columns`` ("ax,ay,az"), ``time_column``, ``date`` and ``bounds`` (a file of known
         dwells, :func:`accelcal.io.read_bounds`, used instead of detection) columns; a value
         in a row overrides the keyword default, an empty cell uses it. Relative paths in a
@@ -1184,6 +1196,10 @@ def calibrate_many(
         first entry, whose ``message`` names the entries; manifest rows that give one
         recording different settings are each calibrated, and each row names the others.
     g : reference gravity, m/s^2 (or ``lat``, deg, and ``height``, m: WGS84 normal gravity).
+    sigma_g : std of the reference gravity, m/s^2, counted in every std as in
+        :func:`~accelcal.fit_static` (a manifest's ``sigma_g`` column overrides it). A g from
+        a latitude (``lat`` keyword or column) gets 1e-3 m/s^2, the formula's typical error
+        against a gravimeter, unless one is given; otherwise None: g taken as exact.
     fs : sample rate, Hz, when the files do not give it.  columns, time_column : the
         accelerometer columns and the time column, as for :func:`accelcal.io.read_stream`.
     model, method : as for :func:`~accelcal.fit_static`.
@@ -1227,7 +1243,8 @@ def calibrate_many(
         ``MISFIT_CHI2_DOF``, the noise known: a faulty unit; the fit is in the row, no file
         written), ``degenerate`` or ``error``), ``message`` (why, for anything but ``ok``),
         ``n_dwells``, ``n_samples``, ``duration_s``, ``fs_hz``, ``g_mps2``, ``g_source``,
-        ``model``, ``method``, each parameter ``sx ... m3`` with ``<name>_std`` (the
+        ``sigma_g_mps2`` (0: g taken as exact), ``model``, ``method``, each parameter
+        ``sx ... m3`` with ``<name>_std`` (the
         recording's units: scale and coupling per m/s^2, bias in recording units; NaN when
         not fitted, and m1..m3 for ``model="diag"``), ``chi2_dof``, ``dof``, ``rms_mps2``,
         ``noise_model``, ``iterations``, ``temperature``, with ``diagnose=True`` ``gap_best``,
@@ -1273,7 +1290,8 @@ def calibrate_many(
     rows, base = _sources_table(sources, names)
     jobs = _make_jobs(rows, base, g=g, lat=lat, height=height, fs=fs, columns=columns,
                       time_column=time_column, model=model, method=method, detector=det,
-                      diagnose=diagnose, cli=_cli, check_g=check_g, means=means)
+                      diagnose=diagnose, cli=_cli, check_g=check_g, means=means,
+                      sigma_g=sigma_g)
     if summary is None and out is not None:
         summary = Path(out) / "fleet.parquet"
     if summary is not None:

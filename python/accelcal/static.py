@@ -1180,6 +1180,11 @@ def _check_batch_g(gv: Any) -> None:
 
 
 # ------------------------------------------------------------------------------------------
+#: The std of :func:`local_gravity` against a gravimeter, m/s^2 (local anomalies): the
+#: ``sigma_g`` the command line and the fleet use with a g from a latitude.
+LAT_FORMULA_SIGMA_G = 1e-3
+
+
 def local_gravity(lat_deg: float, height_m: float = 0.0) -> float:
     """WGS84 normal gravity (Somigliana) at geodetic latitude ``lat_deg`` and ellipsoidal
     height ``height_m``, with the second-order free-air correction (about -3.086e-6 m/s^2 per

@@ -55,10 +55,6 @@ def _cli(msg: str) -> str:
     return cli_words(msg, _PHRASES)
 
 
-#: The std of g from ``--lat``/``--height`` (WGS84 normal gravity with the free-air
-#: correction) against a gravimeter, m/s^2: local anomalies (guide-field.md section 6).
-LAT_FORMULA_SIGMA_G = 1e-3
-
 
 def _file_record(path: str) -> dict[str, Any]:
     """What a calibration file records of an input file: its absolute path, size and SHA-256
@@ -195,8 +191,6 @@ def calibrate_static(
         if count:
             raise CalibrationError("--count takes one table of dwell means, not a fleet run "
                                    "(give each table's count column, or --means alone)")
-        if sigma_g is not None:
-            raise CalibrationError("--sigma-g takes one recording, not a fleet run")
         for flag, val in (("--overwrite", overwrite), ("--date", rec_date)):
             if val:
                 raise CalibrationError(f"{flag} goes with -o, for one recording, not a fleet "
@@ -206,12 +200,12 @@ def calibrate_static(
             time_column=time_column, quiet=quiet, model=model, method=method,
             window_s=window_s, k_thr=k, min_dwell_s=min_dwell_s, trim_s=trim_s, sensor_id=sensor_id,
             output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
-            check_g=not no_check_g, nominal_path=nominal_path, **fleet)
+            check_g=not no_check_g, nominal_path=nominal_path, sigma_g=sigma_g, **fleet)
     file = files[0]
     import warnings
 
     from .._core import DegenerateDataError
-    from ..static import TriadModel, WeakDesignWarning, fit_static, unit_label
+    from ..static import LAT_FORMULA_SIGMA_G, TriadModel, WeakDesignWarning, fit_static, unit_label
 
     _need_plot(plot_path)
     if output and os.path.lexists(output) and not overwrite:
