@@ -893,3 +893,35 @@ def test_an_earth_rate_on_forward_and_reverse_runs_is_a_rate_offset():
     est = next(e for e in r.effects if e["effect"] == "rate_offset")
     earth = 7.2921150e-5 * np.sin(np.radians(39.0)) * 1e6
     assert abs(est["estimate"][0] - earth) < 5 * est["std"][0], est
+
+
+def test_a_low_g_design_with_omega_in_hz_names_hz():
+    """omega in rev/s (Hz) on a low-g design (up to 1.3 g, where the unit check sees nothing
+    wrong) gave only "did not converge". The not-converged path now refits with omega * 2 pi
+    and names Hz when that makes the data consistent. The own truth here is IEEE 1293's
+    (E/K1 = K0 + a + K2 a^2): the fit's bias is output-referred, S K0, and its k2 is K2."""
+    rng = np.random.default_rng(3)
+    g, radius = 9.80665, 0.8
+    S = np.array([1.30, 1.25, 1.28])
+    K0 = np.array([0.01, -0.02, 0.005])
+    K2 = np.array([2e-4, -1e-4, 5e-5])
+    rows, om = [], []
+    for w in (0.0, 2.0, 3.0, 4.0):
+        A = w * w * radius / g
+        for _ in range(12):
+            Q, _r = np.linalg.qr(rng.normal(size=(3, 3)))
+            f = Q @ np.array([A, 0.0, 1.0])
+            rows.append(S * (K0 + f + K2 * f**2))
+            om.append(w)
+    N, omega = np.array(rows), np.array(om)
+    fit = accelcal.fit_centrifuge(N, omega, radius, g=g)
+    np.testing.assert_allclose(fit.scale, S, rtol=1e-9)
+    np.testing.assert_allclose(fit.bias, S * K0, atol=1e-9)
+    np.testing.assert_allclose(fit.k2, K2, atol=1e-9)
+    with pytest.raises(CalibrationError, match=r"omega looks like rev/s \(Hz\).*omega \* 2 pi"
+                                               r".*give omega in rad/s.*did not converge"):
+        accelcal.fit_centrifuge(N, omega / (2 * np.pi), radius, g=g)
+    # A wrong radius instead (not a unit): no word of Hz.
+    with pytest.raises(CalibrationError) as err:
+        accelcal.fit_centrifuge(N, omega, radius * 25, g=g)
+    assert "Hz" not in str(err.value)

@@ -951,3 +951,73 @@ def test_clock_stamps_across_midnight_give_the_rate(tmp_path: Path) -> None:
     code, out = run("dwells", str(p))
     assert code == 0, out
     assert "past midnight 1 time(s)" in out and "100 Hz" in out, out
+
+
+def test_apply_header_names_the_calibration_by_hash_and_the_version(tmp_path: Path) -> None:
+    """The header named the calibration only by the path given: a file replaced under that
+    name gave an identical header. Now its SHA-256 and the accelcal version too."""
+    import hashlib
+
+    import accelcal
+
+    cal, out = tmp_path / "cal.json", tmp_path / "out.csv"
+    code, text = run("calibrate", "static", str(XSENS()), "--g", "9.81744", "-o", str(cal))
+    assert code == 0, text
+    code, text = run("apply", str(cal), str(XSENS()), "-o", str(out), "--quiet")
+    assert code == 0, text
+    head = [ln for ln in out.read_text().splitlines()[:8] if ln.startswith("#")]
+    assert head[:4] == [f"# calibrated by accelcal from {cal}",
+                        f"# calibration_sha256: {hashlib.sha256(cal.read_bytes()).hexdigest()}",
+                        f"# accelcal_version: {accelcal.__version__}",
+                        f"# source: {XSENS()}"]
+
+
+def test_demo_prints_its_seed(monkeypatch: pytest.MonkeyPatch) -> None:
+    from accelcal.demo import DemoResult
+
+    monkeypatch.setattr("accelcal.demo.demo_result", lambda **kw: DemoResult(
+        {"field": "F"}, None, 0, _FakeGap(), None, seed=kw["seed"]))
+    code, out = run("demo", "--quick", "--no-figures", "--seed", "7")
+    assert code == 0, out
+    assert out == "seed 7 (accelcal demo --seed N simulates other sessions)\n\nF\n"
+    code, out = run("demo", "--quick", "--no-figures", "--seed", "7", "--json")
+    assert code == 0, out
+    assert json.loads(out)["seed"] == 7
+
+
+class _FakeGap:
+    def to_dict(self) -> dict[str, Any]:
+        return {}
+
+
+def test_demo_table1_lookup_does_not_depend_on_the_current_folder(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The paper's Table 1 was also looked for in cwd/../shared/data: the demo printed
+    differently by folder. Now ACCELCAL_SHARED_DATA, else the source tree's folder only, and
+    a miss says where it looked and how to point to it."""
+    import accelcal.demo.centrifuge as c
+
+    table = shared_data("seed004", "table1_as_printed.csv")
+    here = tmp_path / "work" / "here"
+    beside = tmp_path / "work" / "shared" / "data" / "seed004"  # cwd/../shared/data/seed004
+    for folder in (here, beside):
+        folder.mkdir(parents=True)
+    for f in table.parent.glob("table1_*.csv"):
+        (beside / f.name).write_bytes(f.read_bytes())
+    monkeypatch.chdir(here)
+    monkeypatch.setenv(c.SHARED_DATA_ENV, str(tmp_path / "nowhere"))
+    found, looked = c._table1_dir()
+    assert looked[:2] == [tmp_path / "nowhere" / "seed004", tmp_path / "nowhere"]
+    assert all(tmp_path / "work" not in p.parents for p in looked), looked
+    assert found != beside
+    monkeypatch.setenv(c.SHARED_DATA_ENV, str(tmp_path / "work" / "shared" / "data"))
+    assert c._table1_dir()[0] == beside
+    assert "Wang and Li (2021) Table 1 (sign-corrected)" in c.demo_section(0)
+    # Nothing found: the line says where it looked and names the variable.
+    monkeypatch.setattr(c, "_seed_dirs", lambda: [tmp_path / "nowhere"])
+    last = c.demo_section(0).splitlines()[-1]
+    assert last == (f"(the paper's Table 1 was not found (not in {tmp_path / 'nowhere'}): "
+                    "skipping the reproduction lines; set ACCELCAL_SHARED_DATA to the shared "
+                    "data folder that holds seed004/table1_as_printed.csv to include them)")
+    monkeypatch.setattr(c, "_seed_dirs", lambda: [])
+    assert "(ACCELCAL_SHARED_DATA is not set)" in c.demo_section(0).splitlines()[-1]

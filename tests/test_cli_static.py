@@ -400,3 +400,73 @@ def test_compare_command_prints_the_summary_and_json(tmp_path: Path) -> None:
         and "--no-check-sensor" in out and "check_sensor=False" not in out, out
     code, out = run("compare", str(a), str(c), "--no-check-sensor", "--independent-g")
     assert code == 0 and "drops out" not in out, out
+
+
+def _mg_recording(tmp_path: Path, name: str, header: str, rng: int = 9) -> Path:
+    """A simulated session written in mg with the header ``header``."""
+    from accelcal.sim.field import field_session
+
+    s = field_session(fs=100.0, n_dwells=16, dwell_s=4.0, move_s=1.0, max_tilt_deg=85.0,
+                      sigma=1e-3, rng=rng)
+    rec = tmp_path / name
+    np.savetxt(rec, np.column_stack([s.t, s.samples * 1000.0 / 9.80665]), delimiter=",",
+               header=header, comments="")
+    return rec
+
+
+def test_calibration_records_the_input_unit_the_header_declares(tmp_path: Path) -> None:
+    """'ax [mg]' in the header was read (a note used it) but the calibration file said
+    units.input "": its K and bias in mg were unlabelled, and a model labelled by the Python
+    API (input_units="mg") could not be compared with it. Now recorded; --input-units sets it
+    where the header says nothing and is refused, naming both, where it disagrees."""
+    rec = _mg_recording(tmp_path, "rec_mg.csv", "t,ax [mg],ay [mg],az [mg]")
+    cal = tmp_path / "cal.json"
+    code, out = run("calibrate", "static", str(rec), "--g", "9.80665", "-o", str(cal))
+    assert code == 0, out
+    d = json.loads(cal.read_text())
+    assert d["units"]["input"] == "mg", d["units"]
+    m = ac.TriadModel.load(cal)
+    # K and bias in mg: the simulator's truth (m/s^2 per m/s^2, m/s^2) times 1000 / 9.80665.
+    from accelcal.sim.field import field_session
+
+    truth = field_session(fs=100.0, n_dwells=16, dwell_s=4.0, move_s=1.0, max_tilt_deg=85.0,
+                          sigma=1e-3, rng=9).truth
+    np.testing.assert_allclose(m.vector[:6], truth[:6] * 1000 / 9.80665, rtol=2e-3, atol=0.5)
+    assert "K in mg per m/s^2" in out
+    # The same unit given again (another spelling of the case) is accepted.
+    code, out = run("calibrate", "static", str(rec), "--g", "9.80665", "--input-units", "MG",
+                    "-o", str(tmp_path / "cal2.json"))
+    assert code == 0, out
+    assert json.loads((tmp_path / "cal2.json").read_text())["units"]["input"] == "mg"
+    # A unit that contradicts the header: refused, both named, nothing written.
+    bad = tmp_path / "bad.json"
+    code, out = run("calibrate", "static", str(rec), "--g", "9.80665", "--input-units", "g",
+                    "-o", str(bad))
+    assert code != 0 and "--input-units g" in out and "ax [mg]" in out and "say mg" in out, out
+    assert not bad.exists()
+    # No unit in the header: --input-units labels it; without it, none is claimed.
+    plain = _mg_recording(tmp_path, "rec.csv", "t,ax,ay,az")
+    for extra, want in ((["--input-units", "mg"], "mg"), ([], "")):
+        out_p = tmp_path / f"plain{want}.json"
+        code, out = run("calibrate", "static", str(plain), "--g", "9.80665", *extra,
+                        "-o", str(out_p))
+        assert code == 0, out
+        assert json.loads(out_p.read_text())["units"]["input"] == want
+
+
+def test_fleet_calibrations_record_the_declared_input_unit(tmp_path: Path) -> None:
+    """The fleet's calibration files record the unit the columns declare, as one file's
+    does; --input-units is one recording's option."""
+    recs = [_mg_recording(tmp_path, f"s{i}.csv", "t,ax [mg],ay [mg],az [mg]", rng=20 + i)
+            for i in range(2)]
+    out_dir = tmp_path / "cals"
+    code, out = run("calibrate", "static", *map(str, recs), "--g", "9.80665", "--workers", "1",
+                    "--out", str(out_dir))
+    assert code == 0, out
+    files = sorted(out_dir.glob("*.json"))
+    assert len(files) == 2, (out, list(out_dir.iterdir()))
+    for f in files:
+        assert ac.TriadModel.load(f).input_units == "mg"
+    code, out = run("calibrate", "static", *map(str, recs), "--g", "9.80665",
+                    "--input-units", "mg", "--out", str(tmp_path / "c2"))
+    assert code != 0 and "--input-units takes one recording" in out, out

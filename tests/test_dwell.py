@@ -2038,3 +2038,92 @@ def test_a_clock_step_inside_a_dwell_is_warned_and_the_dwell_named() -> None:
         acc = DwellAccumulator(fs=s.fs)
         push_in_chunks(acc, list(range(0, len(t), 700)), s.samples, t=t)
         acc.finish()
+
+
+def _same_dwellsets(a: DwellSet, b: DwellSet) -> None:
+    for name in ("mean", "var", "count", "t", "temperature", "start", "stop", "threshold",
+                 "noise_std", "half_mean", "inflation", "lsb", "clipped", "rail"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            np.testing.assert_array_equal(x, y, err_msg=name)
+    for name in ("fs", "units", "dropped", "names", "source", "detector"):
+        assert getattr(a, name) == getattr(b, name), name
+
+
+def test_a_dwell_table_names_its_recording_detector_and_version(tmp_path: Path) -> None:
+    """The table written by `accelcal dwells -o` names the recording (absolute path, SHA-256,
+    size), the detector settings and the accelcal version, and reads back identically."""
+    import hashlib
+
+    from accelcal.cli import main
+    from click.testing import CliRunner
+
+    x = XSENS()
+    table = tmp_path / "dw.csv"
+    r = CliRunner().invoke(main, ["dwells", str(x), "--window", "0.5", "--min-dwell", "2",
+                                  "--trim", "0.3", "-o", str(table)])
+    assert r.exit_code == 0, r.output
+    data = x.read_bytes()
+    head = [ln for ln in table.read_text().splitlines() if ln.startswith("#")]
+    assert head[:6] == [
+        "# accelcal dwell table v1", f"# accelcal_version: {accelcal.__version__}",
+        f"# source: {x.resolve()}", f"# source_sha256: {hashlib.sha256(data).hexdigest()}",
+        f"# source_bytes: {len(data)}",
+        '# detector: {"k": 6.0, "min_dwell_s": 2.0, "trim_s": 0.3, "window_s": 0.5}']
+    d = DwellSet.from_csv(table)
+    assert d.source == {"path": str(x.resolve()), "sha256": hashlib.sha256(data).hexdigest(),
+                        "bytes": len(data)}
+    assert d.detector == {"window_s": 0.5, "k": 6.0, "min_dwell_s": 2.0, "trim_s": 0.3}
+    assert d.to_csv() == table.read_text()  # read back, written again: the same bytes
+    _same_dwellsets(DwellSet.from_csv(d.to_csv()), d)
+    # calibrate static still reads it as a dwell table
+    r = CliRunner().invoke(main, ["calibrate", "static", str(table), "--g", "9.81744",
+                                  "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["n_dwells"] == len(d)
+
+
+def test_dwell_table_provenance_round_trips_and_survives_subsets() -> None:
+    rng = np.random.default_rng(3)
+    d = DwellSet(rng.normal(size=(5, 3)), rng.uniform(0.1, 1, (5, 3)), np.full(5, 100),
+                 fs=200.0, units="counts")
+    assert d.source is None and d.detector is None
+    plain = d.to_csv()
+    assert plain.splitlines()[:3] == ["# accelcal dwell table v1",
+                                      f"# accelcal_version: {accelcal.__version__}",
+                                      "# units: counts"]
+    _same_dwellsets(DwellSet.from_csv(plain), d)
+    d.source = {"path": "/data/rec: one.csv", "sha256": "ab" * 32, "bytes": 1234}
+    d.detector = {"window_s": 1.0, "k": 6.0, "min_dwell_s": 1.0, "trim_s": 0.1}
+    text = d.to_csv()
+    back = DwellSet.from_csv(text)
+    _same_dwellsets(back, d)
+    assert back.to_csv() == text
+    sub = back[[0, 2]]
+    assert sub.source == d.source and sub.detector == d.detector
+    # standard input: the path only
+    d.source = {"path": "-", "sha256": None, "bytes": None}
+    assert DwellSet.from_csv(d.to_csv()).source == d.source
+
+
+def test_dwell_fingerprints_are_those_of_little_endian_float64() -> None:
+    """The fingerprint hashes the values as little-endian float64 whatever the platform or
+    the array's byte order (the same value as before on little-endian machines)."""
+    import hashlib
+
+    from accelcal._triad_model import dwell_fingerprints
+
+    m = np.array([[1.0, -2.5, 9.81], [0.1, 0.2, 0.3]])
+    want = [hashlib.sha256(_le_bytes(r)).hexdigest()[:12] for r in m.tolist()]
+    assert dwell_fingerprints(m) == want
+    assert dwell_fingerprints(m.astype(">f8")) == want
+    assert dwell_fingerprints(m.astype("<f8")) == want
+    assert want[0] == hashlib.sha256(bytes.fromhex(
+        "000000000000f03f00000000000004c01f85eb51b89e2340")).hexdigest()[:12]
+
+
+def _le_bytes(row: list[float]) -> bytes:
+    import struct
+
+    return struct.pack("<3d", *row)

@@ -1138,3 +1138,69 @@ def test_a_copy_under_another_name_is_noted_and_an_error_row_names_its_file(
     assert re.match(rf"{re.escape(str(cut))}: stream too short for dwell detection",
                     df.loc[3, "message"]), df.loc[3, "message"]
     assert [n["sensor_id"] for n in ac.fleet_report(df).noted] == ["S00000", "S00000 copy"]
+
+
+def test_fleet_files_and_tables_record_how_they_were_made(fleet: dict[str, Any],
+                                                          tmp_path: Path) -> None:
+    """A fleet calibration file records what `calibrate static -o` records (input, model,
+    method, dwells_from, detector, command, written); the tables record the version, the
+    detector settings and the command; a file of other settings is named with them."""
+    recs = [r for r in fleet["recs"] if not r.corruption][:2]
+    man = tmp_path / "manifest.csv"
+    pd.DataFrame({"path": [r.path for r in recs], "sensor_id": [r.sensor_id for r in recs],
+                  "date": ["2026-01-02T03:04:05Z"] * 2}).to_csv(man, index=False)
+    out = tmp_path / "cals"
+    args = ["calibrate", "static", "--manifest", str(man), "--g", str(G0), "--out", str(out),
+            "--workers", "1", "--quiet"]
+    code, text = _cli(*args)
+    assert code == 0, text
+    files = sorted(out.glob("*.json"))
+    assert [f.name for f in files] == [f"{r.sensor_id}_20260102T030405Z.json" for r in recs]
+    det = dict(ac.DetectorSettings().__dict__)
+    for f, r in zip(files, recs, strict=True):
+        md = json.loads(f.read_text())["metadata"]
+        data = Path(r.path).read_bytes()
+        assert md["input"] == {"path": os.path.abspath(r.path),
+                               "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+        assert (md["model"], md["method"], md["dwells_from"]) == ("lower", "lm", "detected")
+        assert md["detector"] == det
+        assert md["command"] == (f"accelcal calibrate static --g {G0} --quiet --out {out} "
+                                 f"--workers 1 --manifest {man}")
+        assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", md["written"])
+    run = {"accelcal_version": ac.__version__, "detector": det,
+           "command": json.loads(files[0].read_text())["metadata"]["command"]}
+    lines = (out / "fleet.csv").read_text().splitlines()
+    assert lines[:3] == [f"# accelcal_version: {ac.__version__}",
+                         f"# detector: {json.dumps(det, sort_keys=True)}",
+                         f"# command: {run['command']}"]
+    assert lines[3].startswith("sensor_id,path,status,")
+    from_csv, from_pq = read_fleet_table(out / "fleet.csv"), read_fleet_table(out / "fleet.parquet")
+    assert list(from_csv.columns) == list(from_pq.columns)
+    cols = ["sensor_id", "path", "status", *PARAMS]
+    pd.testing.assert_frame_equal(from_csv[cols], from_pq[cols], check_dtype=False)
+    for df in (from_csv, from_pq):
+        assert {k: df.attrs.get(k) for k in run} == run
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(out / "fleet.parquet").metadata
+    assert meta[b"accelcal_version"] == ac.__version__.encode()
+    assert json.loads(meta[b"accelcal_detector"]) == det
+    assert meta[b"accelcal_command"] == run["command"].encode()
+    code, text = _cli("fleet", "report", str(out / "fleet.csv"))
+    assert code == 0 and "fleet: 2 recordings: 2 ok" in text, text
+
+    # The same batch again (another time written): the files are kept, not written again.
+    old = json.loads(files[0].read_text())
+    old["metadata"]["written"] = "2000-01-01T00:00:00Z"
+    files[0].write_text(json.dumps(old, indent=2) + "\n")
+    kept = files[0].read_bytes()
+    again = ac.calibrate_many(str(man), g=G0, out=out, workers=1, progress=False)
+    assert sorted(again.attrs["cal_files_kept"]) == [str(f) for f in files]
+    assert files[0].read_bytes() == kept and again.attrs["command"] is None
+    # Other settings: a new file beside, and the row names the settings that differ.
+    code, text = _cli(*args, "--k", "20", "--window", "0.5")
+    assert code == 0, text
+    assert len(list(out.glob("*.json"))) == 4
+    want = (f"another calibration of {recs[0].path} (other settings: detector window_s 1.0 "
+            "(this run: 0.5) and detector k 6.0 (this run: 20.0))")
+    assert want in text, text

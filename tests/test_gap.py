@@ -1498,3 +1498,30 @@ def test_excess_remaining_only_beyond_chance() -> None:
     strong = diagnose(s.dwells, g=s.g)
     assert strong.held_out_gap > 1.0 + _chance_excess(strong.n)
     assert -0.05 < strong.excess_remaining < 0.5
+
+
+def test_a_report_records_the_settings_that_made_it() -> None:
+    """to_dict() and summary() did not say which preset (nor alpha, test, correction,
+    n_draws ...) made a report, though the preset changes the verdict."""
+    s = gap_session(("k2",), rng=5, amplitudes=[4.0], noise_scale=1.5)
+    a = diagnose(s.dwells, g=s.g)
+    b = diagnose(s.dwells, g=s.g, preset="conservative", alpha=0.01, n_draws=500,
+                 correction="bonferroni", test="chi2")
+    assert a.settings == {"preset": "targeted", "alpha": 0.05, "test": "auto",
+                          "correction": "minp", "n_draws": 4000, "trust_level": 0.02,
+                          "gate": "auto", "gate_margin": 1.0, "max_effects": 3, "loo": True,
+                          "random_offset": False}
+    assert b.settings == {**a.settings, "preset": "conservative", "alpha": 0.01,
+                          "test": "chi2", "correction": "bonferroni", "n_draws": 500,
+                          "trust_level": 0.1, "gate_margin": 0.0}
+    assert b.summary().splitlines()[-1] == (
+        "Settings: preset conservative, alpha 0.01, test chi2, correction bonferroni, "
+        "n_draws 500, trust_level 0.1, gate auto, gate_margin 0, max_effects 3, loo")
+    d = json.loads(json.dumps(b.to_dict()))
+    assert d["settings"] == b.settings
+    back = accelcal.GapReport.from_dict(d)
+    assert back == b and back.settings == b.settings
+    # A report rebuilt from a dict written before settings were recorded: none, no line.
+    old = {k: v for k, v in a.to_dict().items() if k != "settings"}
+    rebuilt = accelcal.GapReport.from_dict(old)
+    assert rebuilt.settings == {} and not rebuilt.summary().splitlines()[-1].startswith("Sett")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from typing import Any
 
 import pytest
 
@@ -38,3 +39,35 @@ def test_figures_leave_the_users_backend_and_no_open_figure() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.split()
     assert out == ["svg", "0", "True", "True"], out
+
+
+@pytest.mark.parametrize("fmt", ["svg", "pdf"])
+def test_the_same_figure_saved_twice_gives_the_same_bytes(fmt: str, tmp_path: Any,
+                                                          monkeypatch: Any) -> None:
+    """SVG ids were salted at random and SVG/PDF carried the time of writing (local time,
+    no zone): the same --plot written twice differed. Now no date, and a fixed salt."""
+    import warnings
+
+    import accelcal as ac
+    from accelcal.plots import save_figure
+    from accelcal.sim.static import static_dwell_means
+
+    warnings.simplefilter("ignore")
+    s = static_dwell_means(24, sigma=1e-3, rng=1)
+    fig = ac.diagnose(s.dwellset(), g=s.g_measured).plot()
+    a, b = tmp_path / f"a.{fmt}", tmp_path / f"b.{fmt}"
+    save_figure(fig, str(a))
+    monkeypatch.setenv("TZ", "Asia/Tokyo")  # a date would be written in local time
+    import time
+
+    if hasattr(time, "tzset"):
+        time.tzset()
+    try:
+        save_figure(fig, str(b))
+    finally:
+        monkeypatch.undo()
+        if hasattr(time, "tzset"):
+            time.tzset()
+    data = a.read_bytes()
+    assert len(data) > 10_000 and data == b.read_bytes()
+    assert b"CreationDate" not in data and b"<dc:date>" not in data

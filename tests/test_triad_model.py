@@ -492,7 +492,7 @@ def test_compare_shared_g_only_when_both_used_the_same_g():
 
 def test_compare_refuses_other_sensors_unless_told(fitted):
     a = fitted.to_model(sensor_id="S1")
-    for kw, what in ((dict(sensor_id="S2"), "sensor ids"), (dict(sensor_id="S1", units="g"),
+    for kw, what in ((dict(sensor_id="S2"), "sensor ids"), (dict(sensor_id="S1", units="m/s2"),
                                                             "output units")):
         b = fitted.to_model(**kw)
         with pytest.raises(CalibrationError, match=f"different {what}.*check_sensor=False"):
@@ -524,3 +524,119 @@ def test_to_model_records_where_g_came_from_and_what_made_it(fitted):
     assert md["method"] == "lm" and md["accelcal_version"] == ac.__version__
     md = fitted.to_model(metadata={"g_source": "latitude formula"}).metadata
     assert md["g_source"] == "latitude formula"
+
+
+def test_docstrings_say_the_bias_is_in_raw_units():
+    """The docstring said "bias: (3,) output units": a tester importing an AN4508 calibration
+    (a = W am + o, o in g) took the bias as -o and was 50 mg out. The model is
+    a = K^-1 (am - b): K and b are in the raw (input) units, b = -K o with K = W^-1."""
+    for doc in (ac.TriadModel.__doc__, ac.StaticFit.K.__doc__):
+        assert "output units" not in doc and "raw (input) units" in doc, doc
+    W = np.array([[1.02e-3, 0, 0], [5e-6, 0.98e-3, 0], [-4e-6, 3e-6, 1.01e-3]])  # g per mg
+    o = np.array([-0.035, 0.020, -0.050])  # g
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(200, 3))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    raw = np.linalg.solve(W, (a - o).T).T  # mg
+    K = np.linalg.inv(W)
+    m = ac.TriadModel(K, -K @ o, g=1.0, units="g", input_units="mg")
+    np.testing.assert_allclose(m.apply(raw), a, atol=1e-12)
+
+
+def _labelled(d: dict, **units) -> dict:
+    e = json.loads(json.dumps(d))
+    e["units"].update(units)
+    return e
+
+
+def test_a_file_in_another_convention_is_refused_naming_the_field(fitted):
+    """A hand-written file stating imu_tk's convention (K in m/s^2 per count, a bias in
+    m/s^2) or biases listed first in 'parameter_names' loaded silently, and to_dict then
+    wrote accelcal's labels over it. Refused now, naming the field, what it says and what
+    accelcal means; what accelcal writes (and spellings saying the same) still loads."""
+    d = fitted.to_model(input_units="counts").to_dict()
+    assert d["units"]["K"] == "input units per m/s^2" and d["units"]["bias"] == "input units"
+    for e, words in (
+        (_labelled(d, K="m/s^2 per count"), "field 'units.K' says 'm/s^2 per count'"),
+        (_labelled(d, K="input units per g"), "field 'units.K' says 'input units per g'"),
+        (_labelled(d, bias="m/s^2"), "field 'units.bias' says 'm/s^2'"),
+        (_labelled(d, bias="mg"), "raw (input) units"),
+        (dict(d, parameter_names=["bx", "by", "bz", "sx", "sy", "sz", "m1", "m2", "m3"]),
+         "field 'parameter_names' says ['bx', 'by'"),
+        (dict(d, parameter_names=["sx", "sy", "sz", "sx", "sy", "sz", "m1", "m2", "m3"]),
+         "in the order ['sx', 'sy', 'sz', 'bx', 'by', 'bz', 'm1', 'm2', 'm3']"),
+    ):
+        with pytest.raises(CalibrationError) as err:
+            ac.TriadModel.from_dict(e, "hand.json")
+        assert "hand.json" in str(err.value) and words in str(err.value), str(err.value)
+    assert "K maps the calibrated output to the raw output" in _refusal(
+        _labelled(d, K="m/s^2 per count"))
+    # What accelcal writes, and the same said otherwise, loads; absent labels too.
+    ok = [d, _labelled(d, K="counts per m/s^2", bias="counts"),
+          _labelled(d, K="raw (input) units per m/s^2", bias="raw units"),
+          _labelled(d, K="input units  per m/s2")]
+    bare = json.loads(json.dumps(d))
+    del bare["units"]["K"], bare["units"]["bias"], bare["parameter_names"]
+    for e in [*ok, bare]:
+        m = ac.TriadModel.from_dict(e)
+        np.testing.assert_array_equal(m.K, fitted.K)
+        assert m.to_dict()["units"] == d["units"]
+
+
+def _refusal(d: dict) -> str:
+    with pytest.raises(CalibrationError) as err:
+        ac.TriadModel.from_dict(d)
+    return str(err.value)
+
+
+def test_constructor_refuses_an_output_unit_that_contradicts_g():
+    """units="g" with g = 9.81 was accepted by the constructor (only a file was checked):
+    apply's output was labelled g while in m/s^2 until save refused it."""
+    with pytest.raises(CalibrationError, match=r"units says 'g' but g is 9.81, not gravity in "
+                                               r"g .*'m/s\^2' for g = 9.81"):
+        ac.TriadModel(np.diag([400., 410., 405.]), [0, 0, 0], model="diag", g=9.81, units="g")
+    for units, g in (("g", 1.0), ("mg", 1000.0), ("m/s^2", 9.81), ("counts", 9.81),
+                     ("g", None)):
+        assert ac.TriadModel(np.eye(3), [0, 0, 0], g=g, units=units).units == units
+
+
+def test_fit_static_records_the_input_units(fitted):
+    """fit_static had no input_units= (only to_model did): now the fit records them, its
+    summary names them, and to_model writes them; a DwellSet in other units is refused."""
+    s = static_dwell_means(20, max_tilt_deg=None, sigma=1e-4, rng=2)
+    f = ac.fit_static(s.means, s.g_measured, input_units="counts")
+    assert f.input_units == "counts" and "K in counts per m/s^2" in f.summary()
+    assert f.to_model().to_dict()["units"]["input"] == "counts"
+    np.testing.assert_array_equal(f.vector, ac.fit_static(s.means, s.g_measured).vector)
+    d = ac.DwellSet(mean=s.means, units="mg")
+    assert ac.fit_static(d, s.g_measured, input_units="mg").input_units == "mg"
+    with pytest.raises(CalibrationError, match="input_units='counts' disagrees .*'mg'"):
+        ac.fit_static(d, s.g_measured, input_units="counts")
+
+
+def test_a_full_matrix_names_its_triangular_factor():
+    """A full K (the inverse of a six-position calibration's W) was refused as "wrong
+    triangle or wrong model" with no route. The message now gives one: the triangular
+    factor of numpy.linalg.qr(K.T), which gives the same norm as W for every input."""
+    W = np.array([[1.02e-3, 2e-6, -3e-6], [5e-6, 0.98e-3, 4e-6], [-4e-6, 3e-6, 1.01e-3]])
+    o = np.array([-0.035, 0.020, -0.050])
+    K = np.linalg.inv(W)
+    msg = _ctor_refusal(K, -K @ o)
+    assert "rotation" in msg and "numpy.linalg.qr(K.T)" in msg and "K_lower = r.T" in msg
+    # The recipe of the message, checked: the same norm |W am + o| for every raw input.
+    q, r = np.linalg.qr(K.T)
+    r *= np.sign(np.diag(r))[:, None]
+    cal = ac.TriadModel(r.T, -K @ o, model="lower", g=1.0, units="g", input_units="mg")
+    assert np.all(np.diag(cal.K) > 0)
+    raw = np.random.default_rng(0).normal(0, 2000, (500, 3))
+    np.testing.assert_allclose(np.linalg.norm(cal.apply(raw, check_units=False), axis=1),
+                               np.linalg.norm(raw @ W.T + o, axis=1), rtol=1e-12)
+    # A triangle on the wrong side is not a full matrix: the old words only.
+    low = np.tril(K)
+    assert "rotation" not in _ctor_refusal(low.T, [0, 0, 0])
+
+
+def _ctor_refusal(K, b) -> str:
+    with pytest.raises(CalibrationError, match="wrong triangle or wrong model") as err:
+        ac.TriadModel(K, b)
+    return str(err.value)

@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import signal
 import stat
@@ -244,3 +245,21 @@ def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> Path:
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as fh:
         fh.write(data)
     return Path(path)
+
+
+def sha256_file(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 of a file's bytes (hex), read in blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_record(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What a written file records of an input file: its absolute path, size and SHA-256
+    (standard input, ``-``, cannot be read twice: its hash and size are null)."""
+    if os.fspath(path) == "-":
+        return {"path": "-", "sha256": None, "bytes": None}
+    return {"path": os.path.abspath(path), "sha256": sha256_file(path),
+            "bytes": os.path.getsize(path)}

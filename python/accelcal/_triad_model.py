@@ -21,7 +21,7 @@ from . import _core, _quiet
 from ._core import CalibrationError
 from ._files import atomic_write
 from ._plain import plain
-from ._triad import PARAM_NAMES, k_matrix, n_params, vector_from_k
+from ._triad import MODELS, PARAM_NAMES, k_matrix, n_params, vector_from_k
 from ._validate import numeric_array, samples_array
 
 __all__ = ["CalibrationComparison", "TriadModel", "accelcal_version", "dwell_fingerprints",
@@ -44,7 +44,7 @@ def dwell_fingerprints(means: ArrayLike) -> list[str]:
     """A short hash (12 hex digits of SHA-256) of each dwell mean's three float64 values, in
     order: what a calibration records of the dwells it was fitted to, so that checking it
     against a session can tell when that session is its own."""
-    m = np.ascontiguousarray(np.asarray(means, dtype=np.float64).reshape(-1, 3))
+    m = np.ascontiguousarray(np.asarray(means, dtype="<f8").reshape(-1, 3))  # any platform
     return [hashlib.sha256(r.tobytes()).hexdigest()[:12] for r in m]
 
 
@@ -179,6 +179,82 @@ _G_UNITS: tuple[tuple[str, float, tuple[float, float] | None], ...] = (
 _UNIT_G = {unit: g for unit, g, _ in _G_UNITS}
 
 
+def _unit_key(unit: str) -> str:
+    """A unit's spelling as :data:`_UNIT_G` keys it (no spaces, ``²`` as ``^2``)."""
+    return unit.replace(" ", "").replace("²", "^2")
+
+
+def _check_units_g(units: str, g: float | None, said: str, given: str) -> float | None:
+    """The output unit ``units`` against the reference gravity ``g`` (the calibrated output
+    is in the units of g): a CalibrationError when ``g`` is not gravity in ``units`` (a
+    model labelled "g" with g = 9.81 would label every calibrated value wrongly). ``said``
+    and ``given`` word the two values (the constructor's arguments or a file's fields).
+    Returns gravity in ``units`` (None for a unit the table does not know)."""
+    unit_g = _UNIT_G.get(_unit_key(units))
+    if g is not None and unit_g is not None and not 0.9 < g / unit_g < 1.1:
+        raise CalibrationError(
+            f"{said} says {units!r} but {given} is {g!r}, not gravity in {units} (about "
+            f"{unit_g:g}): one of them is wrong (the calibrated output is in the units of g"
+            + (f": {units_of_g(g)!r} for g = {g:g})" if units_of_g(g) else ")"))
+    return unit_g
+
+
+def _file_g(g: Any) -> float | None:
+    """A file's 'g' when it is a positive number (the constructor words any other)."""
+    ok = isinstance(g, (int, float)) and not isinstance(g, bool) and g > 0
+    return float(g) if ok else None
+
+
+#: How accelcal words the raw (input) units in a file's 'units.K' and 'units.bias' (what it
+#: writes first; the others are accepted as saying the same).
+_RAW_WORDS = ("input units", "raw units", "raw (input) units")
+
+
+def _check_unit_labels(d: dict[str, Any], model: str, source: str) -> None:
+    """A file's 'units.K', 'units.bias' and 'parameter_names', when present, must state
+    accelcal's convention: K maps calibrated to raw (raw units per unit of g), the bias is in
+    raw units, the parameters in accelcal's order. A hand-written file in another convention
+    (imu_tk's K in m/s^2 per count, a bias in m/s^2, biases listed first) would otherwise load
+    as a wrong calibration and have its labels overwritten on save."""
+    units = d.get("units") or {}
+    out = str(units.get("output", "m/s^2"))
+    inp = str(units.get("input", "")).strip()
+    raw = _RAW_WORDS + ((inp.lower(),) if inp else ())
+    want_k = f"input units per {out}"
+    k_label = units.get("K")
+    if k_label is not None:
+        text = " ".join(k_label.split())
+        head, sep, tail = text.rpartition(" per ")
+        tail_g, out_g = _UNIT_G.get(_unit_key(tail)), _UNIT_G.get(_unit_key(out))
+        same_out = (_unit_key(tail) == _unit_key(out) or tail.lower() == "unit of g"
+                    or (tail_g is not None and tail_g == out_g))
+        if not (sep and head.lower() in raw and same_out):
+            raise CalibrationError(
+                f"{source}: field 'units.K' says {k_label!r}, but accelcal's K maps the "
+                f"calibrated output to the raw output (am = K a + b): it is in raw (input) "
+                f"units per unit of g, here {want_k!r}" + (f" ({inp} per {out})" if inp else "")
+                + ". A K that maps raw to calibrated (imu_tk's, a six-position W) is the "
+                "inverse of accelcal's: convert it (K = W^-1, bias = -K o for an offset o added "
+                "to the output) and write the labels accelcal writes")
+    b_label = units.get("bias")
+    if b_label is not None and " ".join(b_label.split()).lower() not in raw:
+        raise CalibrationError(
+            f"{source}: field 'units.bias' says {b_label!r}, but accelcal's bias is in raw "
+            f"(input) units, the raw output at zero specific force ('input units'"
+            + (f": {inp}" if inp else "") + "). A bias in the calibrated output's units (an "
+            "offset o added to the output, a = W am + o) is b = -K o in accelcal's terms: "
+            "convert it and write 'input units'")
+    names = d.get("parameter_names")
+    if names is not None and model in MODELS:
+        want = list(PARAM_NAMES[: n_params(model)])
+        if list(names) != want:
+            raise CalibrationError(
+                f"{source}: field 'parameter_names' says {list(names)}, but accelcal's "
+                f"parameter vector of the {model!r} model is in the order {want} (scales, "
+                "biases, then the triangle's entries): 'vector' and the covariances would be "
+                "read in another order than the file's; reorder them and write that order")
+
+
 def units_of_g(g: float) -> str:
     """The unit a reference gravity ``g`` is expressed in: m/s^2, g, cm/s^2 or mg (else "").
     Local gravity is 976-983 cm/s^2 and 995-1003 mg: 990 splits them (g = 1000 labelled
@@ -243,9 +319,13 @@ def _json_scalar(v: Any) -> Any:
 
 
 class TriadModel:
-    """A calibrated accelerometer triad: ``a = K^-1 (am - b)``.
+    """A calibrated accelerometer triad: ``a = K^-1 (am - b)``, ``am`` the raw sensor output
+    (in the raw, input units: counts, mg, g, m/s^2 as recorded; ``input_units``) and ``a``
+    calibrated (in the units of ``g``, normally m/s^2; ``units``).
 
-    K : (3, 3) output units per (m/s^2);  bias : (3,) output units.
+    K : (3, 3) raw (input) units per unit of g (per m/s^2): it maps calibrated to raw;
+    bias : (3,) raw (input) units, the raw output at zero specific force (an offset ``o``
+    added to the calibrated output, ``a = W am + o``, is the bias ``b = -K o``, ``K = W^-1``).
     Saved as versioned JSON (format ``accelcal.TriadModel``, version 2, validated against
     the published schema ``accelcal/schemas/triad-model.schema.json`` plus numeric checks)
     with units, both covariances of the parameter vector (labelled; ``covariance`` is the
@@ -287,7 +367,7 @@ class TriadModel:
             i, j = bad
             raise CalibrationError(
                 f"K[{i}][{j}] = {k[i, j]:.6g} is outside the {model!r} model's pattern "
-                f"({_pattern(model)}); wrong triangle or wrong model"
+                f"({_pattern(model)}); wrong triangle or wrong model" + _full_k_route(k)
             )
         # Read-only: an edit in place (K /= 9.80665 as a unit change) would change what apply
         # does and what save writes without any check; make a new model instead.
@@ -325,6 +405,7 @@ class TriadModel:
         for name, v in (("units", units), ("input_units", input_units), ("sensor_id", sensor_id)):
             if not isinstance(v, str):
                 raise CalibrationError(f"{name} must be a string; got {type(v).__name__}")
+        _check_units_g(units, self.g, "units", "g")
         self.units = units
         self.input_units = input_units
         self.sensor_id = sensor_id
@@ -510,6 +591,10 @@ class TriadModel:
                 missing = str(err.message).split("'")[1] if "'" in err.message else err.message
                 raise CalibrationError(f"{source}: missing field {missing!r}")
             raise CalibrationError(f"{source}: field {where!r}: {_short(err)}")
+        units_d = d.get("units") or {}
+        unit_g = _check_units_g(str(units_d.get("output", "m/s^2")),
+                                _file_g(d.get("g")),
+                                f"{source}: field 'units.output'", "field 'g'")
         try:
             m = cls(
                 d["K"],
@@ -528,13 +613,7 @@ class TriadModel:
             )
         except CalibrationError as e:
             raise CalibrationError(f"{source}: {e}") from None
-        unit_g = _UNIT_G.get(m.units.replace(" ", "").replace("²", "^2"))
-        if m.g is not None and unit_g is not None and not 0.9 < m.g / unit_g < 1.1:
-            # The output unit and the gravity the fit used must agree: a hand-edited unit
-            # would label every calibrated value wrongly.
-            raise CalibrationError(
-                f"{source}: field 'units.output' says {m.units!r} but field 'g' is {m.g!r}, "
-                f"not gravity in {m.units} (about {unit_g:g}): one of them was edited")
+        _check_unit_labels(d, m.model, source)
         if (m.g is not None and unit_g is not None and m.metadata.get("check_g") is not False
                 and _core.gravity_problem(m.g * 9.80665 / unit_g) is not None):
             # A fit refuses such a g unless told (check_g=False, recorded in the metadata): a
@@ -876,6 +955,22 @@ def _compare(a: TriadModel, b: TriadModel, *, shared_g: bool, check_sensor: bool
         names=PARAM_NAMES[:p], difference=d, std=std, z=zs, chi2=w, dof=int(p),
         p_value=float(_core.chi2_sf(w, float(p))), covariance=cov, covariance_source=src,
         shared_g=shared, old=_label(a), new=_label(b), notes=tuple(notes))
+
+
+def _full_k_route(k: NDArray[np.float64]) -> str:
+    """For a full K (entries above and below the diagonal): how to import it. The norm cannot
+    see a rotation of the calibrated frame, so a full K (the inverse of a six-position or
+    turntable calibration's W) is a triangular K times a rotation; its triangular factor
+    gives the same norms for every input, in the triangular model's frame."""
+    if (_core.static_model_violation(k.tolist(), "lower") is None
+            or _core.static_model_violation(k.tolist(), "upper") is None):
+        return ""
+    return (". A full K (the inverse of a six-position or turntable calibration's W, "
+            "a = W (am - b)) is a triangular K times a rotation, which the norm cannot see: "
+            "import its triangular factor, which drops the rotation (the calibrated frame is "
+            "then the triangular model's, as accelcal's fits give; the bias is unchanged): "
+            "q, r = numpy.linalg.qr(K.T); r *= numpy.sign(numpy.diag(r))[:, None]; "
+            "K_lower = r.T (model='lower'; see docs/guide-field.md, section 1)")
 
 
 def _pattern(model: str) -> str:

@@ -642,7 +642,24 @@ def fit_centrifuge(
     )
     res = CentrifugeFit(fit)  # the same result as the Python type (arrays shared)
     if not res.converged:
-        raise CalibrationError(_not_converged_text(res, om))
+        hz = ""
+        if check_units:
+            # omega in rev/s (Hz) read as rad/s: a low-g design passes the unit check and
+            # then fails here. One more fit, only on this path, says whether omega * 2 pi
+            # makes the data consistent.
+            om2 = om * (2.0 * np.pi)
+            try:
+                alt = CentrifugeFit(_core.centrifuge_fit_raw(
+                    out, om2, r, gg, method, bool(k3), bool(misalignment), lever_arm, sa, sg,
+                    bool(robust), k_out, 1e-9, draws, sd, False, lab))
+            except CalibrationError:
+                alt = None
+            if alt is not None and alt.converged and (
+                    rel := _relative_rms(alt, om2)) < _MISFIT_RELATIVE:
+                hz = (f"omega looks like rev/s (Hz), not rad/s: with omega * 2 pi the fit "
+                      f"converges and leaves {rel:.2g} of the norm (rms); give omega in rad/s. "
+                      "As given, ")
+        raise CalibrationError(hz + _not_converged_text(res, om))
     if len(res.outliers):
         _quiet.warn(res.excluded_text(), CentrifugeOutlierWarning, stacklevel=2)
     if res.screen_kept_all:

@@ -418,6 +418,47 @@ def _ints(a: Any, name: str, k: int, lo: int) -> NDArray[np.int64]:
     return out
 
 
+def _version() -> str:
+    from ._triad_model import accelcal_version
+
+    return accelcal_version()
+
+
+def _provenance_lines(source: dict[str, Any] | None, detector: dict[str, Any] | None
+                      ) -> list[tuple[str, str]]:
+    """The dwell table's header lines of where its dwells come from: ``source`` (absolute
+    path), ``source_sha256``, ``source_bytes`` and ``detector`` (JSON), those known."""
+    out: list[tuple[str, str]] = []
+    if source:
+        for key, name in (("path", "source"), ("sha256", "source_sha256"),
+                          ("bytes", "source_bytes")):
+            if source.get(key) is not None:
+                out.append((name, " ".join(str(source[key]).splitlines())))
+    if detector:
+        out.append(("detector", json.dumps(detector, sort_keys=True)))
+    return out
+
+
+def _provenance_of(meta: dict[str, str]) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """``(source, detector)`` from a dwell table's header lines (:func:`_provenance_lines`)."""
+    source = None
+    if "source" in meta:
+        size = meta.get("source_bytes")
+        source = {"path": meta["source"], "sha256": meta.get("source_sha256"),
+                  "bytes": int(size) if size and size.isdigit() else None}
+    detector = None
+    if "detector" in meta:
+        try:
+            detector = json.loads(meta["detector"])
+        except ValueError:
+            raise CalibrationError(f"dwell table: the detector line is not JSON: "
+                                   f"{meta['detector']!r}") from None
+        if not isinstance(detector, dict):
+            raise CalibrationError("dwell table: the detector line must name the settings "
+                                   f"(a JSON object); got {meta['detector']!r}")
+    return source, detector
+
+
 class DwellSet:
     """Statistics of k static dwells.
 
@@ -493,6 +534,13 @@ class DwellSet:
         A name per dwell, when the dwells come from a file that names them (a bounds file's
         sections, imucal's ``x_p``, ``y_a`` ...): shown in :meth:`table`, kept by
         :meth:`to_csv` and used in the gap report's list of flagged dwells.
+    source : dict or None
+        The recording the dwells come from, when known (``accelcal dwells`` sets it): its
+        ``path`` (absolute), ``sha256`` and ``bytes``. Kept by :meth:`to_csv`.
+    detector : dict or None
+        The detector settings that found the dwells, when known (``window_s``, ``k``,
+        ``min_dwell_s``, ``trim_s``; ``accelcal dwells`` sets them for detected dwells).
+        Kept by :meth:`to_csv`.
     """
 
     def __init__(
@@ -576,6 +624,9 @@ class DwellSet:
         #: Detected dwells, when few were found: shorter detector settings that find more
         #: steady dwells (brief rests), ``(window_s, min_dwell_s, trim_s, dwells)``; else None.
         self.shorter: tuple[float, float, float, int] | None = None
+        #: Where the dwells come from, when known (see the class doc): kept by to_csv.
+        self.source: dict[str, Any] | None = None
+        self.detector: dict[str, Any] | None = None
         self.names: list[str] | None = None
         if names is not None:
             nm = list(names)
@@ -615,7 +666,7 @@ class DwellSet:
         def take(a: NDArray[Any] | None) -> Any:
             return None if a is None else a[sel]
 
-        return DwellSet(
+        out = DwellSet(
             self.mean[sel],
             take(self.var),
             take(self.count),
@@ -637,6 +688,8 @@ class DwellSet:
             clipped=take(self.clipped),
             rail=self.rail,
         )
+        out.source, out.detector = self.source, self.detector  # a subset: the same origin
+        return out
 
     def label(self, k: int) -> str:
         """``"3"``, or ``"3 (y_a)"`` when the dwells are named."""
@@ -730,6 +783,10 @@ class DwellSet:
         """Write the table as CSV (atomically when ``path`` is given); return the text.
 
         Full float64 precision (``%.17g``), so :meth:`from_csv` gives back identical numbers.
+        The header names the accelcal version that wrote it and, when known, the recording
+        (:attr:`source`: ``# source:``, ``# source_sha256:``, ``# source_bytes:``) and the
+        detector settings (:attr:`detector`, ``# detector:`` as JSON), read back by
+        :meth:`from_csv`.
         """
         k = len(self)
         cols: list[tuple[str, NDArray[Any]]] = []
@@ -757,6 +814,9 @@ class DwellSet:
                          for i, a in enumerate(_AXES)]
         buf = io.StringIO()
         buf.write(_CSV_MAGIC + "\n")
+        buf.write(f"# accelcal_version: {_version()}\n")
+        for key, v in _provenance_lines(self.source, self.detector):
+            buf.write(f"# {key}: {v}\n")
         if self.units:
             buf.write(f"# units: {self.units}\n")
         if self.fs is not None:
@@ -841,6 +901,7 @@ class DwellSet:
         def vec(key: str) -> NDArray[np.float64] | None:
             return num(meta[key].split(), key, np.float64) if key in meta else None
 
+        source, detector = _provenance_of(meta)
         h1, h2 = cols("half1"), cols("half2")
         c_lo, c_hi = cols("clipped_low"), cols("clipped_high")
         r_lo, r_hi = vec("rail_low"), vec("rail_high")
@@ -848,7 +909,7 @@ class DwellSet:
         if c_lo is not None and c_hi is not None and r_lo is not None and r_hi is not None:
             clipped = np.stack([c_lo, c_hi], axis=2).astype(np.int64)
             rail = np.stack([r_lo, r_hi], axis=1)
-        return cls(
+        out = cls(
             cols("mean"),  # type: ignore[arg-type]
             cols("var"),
             i("count"),
@@ -868,6 +929,8 @@ class DwellSet:
             clipped=clipped,
             rail=rail,
         )
+        out.source, out.detector = source, detector
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of lists (a NaN inflation becomes None), with the :meth:`faults` and

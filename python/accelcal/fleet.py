@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import collections
 import glob as _glob
-import hashlib
 import io as _io
 import itertools
 import json
@@ -35,7 +34,7 @@ import numpy as np
 
 from . import _quiet
 from ._core import CalibrationError, DegenerateDataError
-from ._files import atomic_create, atomic_write
+from ._files import atomic_create, atomic_write, file_record
 from ._triad import MODELS, PARAM_NAMES
 from .io import file_stem
 
@@ -123,6 +122,9 @@ class _Job:
 
 
 _INT_COLUMNS = ("n_dwells", "n_samples", "dropped_rows", "dof", "iterations")
+_TEXT_COLUMNS = ("sensor_id", "path", "status", "message", "g_source", "model", "method",
+                 "noise_model", "gap_best", "gap_selected", "gap_structure", "gap_error",
+                 "cal_file", "worker")
 
 
 def _columns(diagnose: bool) -> list[str]:
@@ -183,8 +185,11 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
         row["message"] = f"{job.path} is {kind}, not a recording"
         return None
-    if stat.S_ISREG(mode):  # what the recording holds: a copy under another name is noted
-        row["_sha256"] = _sha256(job.read_path)
+    # What the recording holds (a copy under another name is noted): path, size, SHA-256.
+    source = (file_record(job.read_path) if stat.S_ISREG(mode) else
+              {"path": job.read_path, "sha256": None, "bytes": None})
+    if stat.S_ISREG(mode):
+        row["_sha256"] = source["sha256"]
     st = _aio.read_stream(job.read_path, columns=job.columns, fs=job.fs,
                           time_column=job.time_column)
     n = len(st)
@@ -312,9 +317,12 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     meta: dict[str, Any] = {"source": job.path, "n_dwells": k, "g_source": job.g_source}
     if stat.S_ISREG(mode):  # what the recording held: tells a re-recorded file from a rerun
         meta["source_sha256"] = row["_sha256"]
+    meta.update(_provenance(job, source, poses, rests is not None, st.sections is not None))
     kw: dict[str, Any] = {"sensor_id": job.sensor_id, "temperature": temp, "metadata": meta}
     if job.date:
         kw["date"] = job.date
+    if not fit.input_units:  # the raw unit the columns' names declare alike (ax [mg])
+        kw["input_units"] = _aio.declared_unit(st.names) or ""
     model = fit.to_model(**kw)
     if job.diagnose:
         from .gap import diagnose
@@ -332,12 +340,32 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
     return None if row["status"] == "misfit" else model  # no file a line could load
 
 
-def _sha256(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+def _provenance(job: _Job, source: dict[str, Any], poses: bool, step_log: bool,
+                sections: bool) -> dict[str, Any]:
+    """What a fleet calibration file records of how it was made, as ``calibrate static -o``
+    does for one file: the input (absolute path, size, SHA-256), the model and method, where
+    the dwells came from and the detector's settings when they were detected, the manifest's
+    bounds file, rate and columns when given (the command line and the time written are
+    added when the file is written)."""
+    dwells_from = ("table of dwell means" if poses else "step log rests" if step_log
+                   else "bounds file" if job.bounds is not None
+                   else "annotated sections" if sections else "detected")
+    out: dict[str, Any] = {
+        "input": source, "model": job.model, "method": job.method,
+        "dwells_from": dwells_from,
+        "detector": dict(job.detector) if dwells_from == "detected" else None,
+    }
+    if job.bounds is not None:
+        out["bounds"] = file_record(job.bounds)
+    if job.fs is not None:
+        out["fs"] = float(job.fs)
+    if not _missing(job.columns):
+        out["columns"] = job.columns if isinstance(job.columns, str) else [
+            c if isinstance(c, (int, str)) else str(c) for c in job.columns]
+    if not _missing(job.time_column):
+        out["time_column"] = job.time_column if isinstance(job.time_column, (int, str)) \
+            else str(job.time_column)
+    return out
 
 
 def _calibrate_one(job: _Job) -> tuple[dict[str, Any], Any]:
@@ -1027,13 +1055,66 @@ def _add_note(row: dict[str, Any], note: str) -> None:
         row["message"] = "; ".join(x for x in (row.get("message") or "", note) if x)
 
 
+#: What a calibration file records of the run that wrote it, not of the calibration: two
+#: files that differ only there hold the same calibration.
+_RUN_KEYS = ("written", "command")
+
+
+def _calibration_content(data: bytes) -> Any:
+    """A calibration file's JSON without :data:`_RUN_KEYS` (None when it is not JSON)."""
+    try:
+        d = json.loads(data)
+    except (ValueError, UnicodeDecodeError):
+        return None
+    if isinstance(d, dict) and isinstance(d.get("metadata"), dict):
+        d["metadata"] = {k: v for k, v in d["metadata"].items() if k not in _RUN_KEYS}
+    return d
+
+
 def _same_bytes(path: Path, data: bytes) -> bool:
+    """Whether ``path`` holds this calibration: the same bytes, or the same content apart
+    from the time it was written and the command line (a rerun of the same batch)."""
     try:
         st = os.lstat(path)
-        return stat.S_ISREG(st.st_mode) and st.st_size == len(data) and (
-            path.read_bytes() == data)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > 50_000_000:
+            return False
+        old = path.read_bytes()
     except OSError:
         return False
+    if old == data:
+        return True
+    content = _calibration_content(old)
+    return content is not None and content == _calibration_content(data)
+
+
+#: The settings a calibration file records (metadata keys), compared to say how two
+#: calibrations of one recording differ.
+_SETTING_KEYS = ("model", "method", "dwells_from", "detector", "g_source", "sigma_g", "fs",
+                 "columns", "time_column", "check_g")
+
+
+def _settings_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """The recorded settings that differ between two calibration files' dicts, worded
+    ``detector k 6 (this run: 20)``; empty when none of them does. A setting a file does not
+    record (one written by an earlier version) is not compared."""
+    def flat(d: dict[str, Any]) -> dict[str, Any]:
+        md_ = d.get("metadata")
+        md: dict[str, Any] = md_ if isinstance(md_, dict) else {}
+        out: dict[str, Any] = {"g": d.get("g")}
+        for key in (*_SETTING_KEYS, "bounds"):
+            if key not in md:
+                continue
+            v = md[key]
+            if key == "bounds":
+                out["bounds file"] = v.get("sha256") if isinstance(v, dict) else v
+            elif isinstance(v, dict):
+                out.update({f"{key} {k}": x for k, x in v.items()})
+            else:
+                out[key] = v
+        return out
+
+    a, b = flat(old), flat(new)
+    return [f"{k} {a[k]} (this run: {b[k]})" for k in a if k in b and a[k] != b[k]]
 
 
 def _holder(path: Path, model: Any) -> str:
@@ -1055,6 +1136,9 @@ def _holder(path: Path, model: Any) -> str:
     sha = d.get("metadata", {}).get("source_sha256")
     if sha is not None and sha != model.metadata.get("source_sha256"):
         return f"the calibration of an earlier recording in {src}"
+    diff = _settings_diff(d, model.to_dict())
+    if diff:
+        return f"another calibration of {src} (other settings: {_join(diff)})"
     return f"another calibration of {src} (other settings)"
 
 
@@ -1065,7 +1149,8 @@ def _save_new(model: Any, folder: Path, used: set[str],
     Its name is ``<sensor_id>_<date>.json``, else ``-2``, ``-3`` ... : the first name that no
     other recording of this run took (``used``) and that is free in the folder. A file already
     there with exactly the same content (the same recording, the same result: a rerun of a
-    batch with a manifest date) is kept as it is and stands for this calibration. Returns the
+    batch with a manifest date; the time it was written and the command line aside) is kept
+    as it is and stands for this calibration. Returns the
     file, the row's note when a name was taken by an existing file, and whether the file was
     already there.
     """
@@ -1104,17 +1189,55 @@ def _summary_paths(summary: str | os.PathLike[str]) -> tuple[Path, Path]:
     return p, p.with_suffix(".csv")
 
 
+#: The run's attrs a fleet table file records (Parquet: key-value metadata ``accelcal_<key>``
+#: besides pandas' own copy of the attrs; CSV: leading ``# key: value`` lines).
+_RUN_ATTRS = ("accelcal_version", "detector", "command")
+
+
+def _run_lines(df: Any) -> list[tuple[str, str]]:
+    """``(key, text)`` of the run's attrs a table file records (JSON for the detector)."""
+    out = []
+    for key in _RUN_ATTRS:
+        v = df.attrs.get(key)
+        if v is not None:
+            out.append((key, v if isinstance(v, str) else json.dumps(v, sort_keys=True)))
+    return out
+
+
 def _write_table(df: Any, parquet: Path, csv: Path, names: dict[str, str]) -> None:
     buf = _io.BytesIO()
     try:
         df.to_parquet(buf, index=False)
+        run = _run_lines(df)
+        if run:
+            import pyarrow.parquet as pq
+
+            buf.seek(0)
+            table = pq.read_table(buf)
+            meta = dict(table.schema.metadata or {})
+            meta.update({(k if k.startswith("accelcal_") else f"accelcal_{k}").encode():
+                         v.encode() for k, v in run})
+            buf = _io.BytesIO()
+            pq.write_table(table.replace_schema_metadata(meta), buf)
     except ImportError as e:
         raise CalibrationError(
             f"writing {names['summary']} as Parquet needs pyarrow: pip install "
             f"'accelcal[fleet]' ({e})"
         ) from None
     atomic_write(parquet, buf.getvalue())
-    atomic_write(csv, df.to_csv(index=False))
+    head = "".join(f"# {k}: {' '.join(v.split())}\n" for k, v in _run_lines(df))
+    atomic_write(csv, head + df.to_csv(index=False))
+
+
+def _comment_lines(path: str) -> list[str]:
+    """The leading ``#`` lines of a text table (a fleet table's run record)."""
+    lines = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if not line.startswith("#"):
+                break
+            lines.append(line)
+    return lines
 
 
 def read_fleet_table(path: str | os.PathLike[str]) -> Any:
@@ -1124,11 +1247,21 @@ def read_fleet_table(path: str | os.PathLike[str]) -> Any:
     if p.lower().endswith((".parquet", ".pq")):
         return _read_table(p)
     try:
-        df = pd.read_csv(p, keep_default_na=False, na_values=[""])
+        head = _comment_lines(p)  # the run's record: accelcal version, detector, command
+        # The text columns as text, even when every cell is empty (no note in any row).
+        df = pd.read_csv(p, keep_default_na=False, na_values=[""], skiprows=len(head),
+                         dtype={c: str for c in _TEXT_COLUMNS})
     except FileNotFoundError:
         raise CalibrationError(f"table not found: {p}") from None
     except (ValueError, OSError) as e:
         raise CalibrationError(f"cannot read the table {p}: {e}") from None
+    for line in head:
+        key, sep, text = line[1:].strip().partition(": ")
+        if sep and key in _RUN_ATTRS:
+            try:
+                df.attrs[key] = json.loads(text) if key == "detector" else text
+            except ValueError:
+                df.attrs[key] = text
     for c in _INT_COLUMNS:
         if c in df.columns:
             df[c] = df[c].astype("Int64")
@@ -1174,6 +1307,7 @@ def calibrate_many(
     means: bool = False,
     sigma_g: float | None = None,
     _cli: bool = False,
+    _command: str | None = None,
 ) -> Any:
     """Calibrate many static-session recordings; one row per recording.
 
@@ -1287,6 +1421,11 @@ def calibrate_many(
     elif not isinstance(detector, DetectorSettings):
         raise CalibrationError("detector must be an accelcal.DetectorSettings")
     det = dict(detector.__dict__)
+    from ._triad_model import accelcal_version, iso_utc
+
+    # What the table records of the run (DataFrame.attrs, the Parquet file's key-value
+    # metadata, the CSV's leading comment lines); the command line is the CLI's.
+    run = {"accelcal_version": accelcal_version(), "detector": dict(det), "command": _command}
     rows, base = _sources_table(sources, names)
     jobs = _make_jobs(rows, base, g=g, lat=lat, height=height, fs=fs, columns=columns,
                       time_column=time_column, model=model, method=method, detector=det,
@@ -1307,6 +1446,11 @@ def calibrate_many(
         row, model_obj = res
         if folder is None or model_obj is None:
             return
+        # How the file was made, as `calibrate static -o` records it (the settings are
+        # recorded by the worker).
+        if _command is not None:
+            model_obj.metadata["command"] = _command
+        model_obj.metadata["written"] = iso_utc(None)
         _check_outputs([folder / _cal_name(model_obj)], jobs, sources, names)
         folder.mkdir(parents=True, exist_ok=True)
         path, note, same = _save_new(model_obj, folder, used, names)
@@ -1341,7 +1485,7 @@ def calibrate_many(
         if summary is not None and finished:
             pq, csv = _summary_paths(summary)
             df = _table([results[i] for i in finished], [jobs[i] for i in finished],  # type: ignore[misc]
-                        diagnose, kept)
+                        diagnose, kept, run)
             _write_table(df, pq, csv, names)
             what += f": wrote the table of those to {pq} and {csv}"
             if folder is not None:
@@ -1350,19 +1494,22 @@ def calibrate_many(
             what += f": wrote their calibration files to {folder}"
         e.args = (what,)
         raise
-    df = _table(results, jobs, diagnose, kept)  # type: ignore[arg-type]
+    df = _table(results, jobs, diagnose, kept, run)  # type: ignore[arg-type]
     if summary is not None:
         pq, csv = _summary_paths(summary)
         _write_table(df, pq, csv, names)
     return df
 
 
-def _table(results: list[Result], jobs: list[_Job], diagnose: bool, kept: list[str]) -> Any:
-    """The table of these results, with a note on recordings that hold the same bytes."""
+def _table(results: list[Result], jobs: list[_Job], diagnose: bool, kept: list[str],
+           run: dict[str, Any]) -> Any:
+    """The table of these results, with a note on recordings that hold the same bytes, and
+    the run's ``run`` (accelcal version, detector settings, command line) in its attrs."""
     _same_content(results, jobs)
     df = _frame(results, jobs, diagnose)
     df.attrs["duplicates"] = {j.path: list(j.listed_as[1:]) for j in jobs if j.listed_as}
     df.attrs["cal_files_kept"] = kept
+    df.attrs.update(run)
     return df
 
 

@@ -511,6 +511,9 @@ class GapReport:
     noise_curves : for the Allan panel of :meth:`plot` (tau, adev per axis of the
         within-dwell samples, dwell length, per-axis std of the dwell means under each noise
         model, input units); empty when not available.
+    settings : the settings that made the report (``preset``, ``alpha``, ``test``,
+        ``correction``, ``n_draws``, ``trust_level``, ``gate``, ``gate_margin``,
+        ``max_effects``, ``loo``, ``random_offset``): a report says how it was made.
     calibration_check : with a calibration held fixed (``fit=`` a TriadModel), the test of
         whether it still holds on this session: the session refitted (same model) against
         the calibration's parameters, a Wald statistic over both covariances (``statistic``,
@@ -561,6 +564,10 @@ class GapReport:
     noise_curves: dict[str, Any] = field(default_factory=dict)
     calibration_check: dict[str, Any] | None = None
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
+    #: The settings that made the report: preset, alpha, test, correction, n_draws,
+    #: trust_level, gate, gate_margin, max_effects, loo, random_offset (empty in a report
+    #: rebuilt from a dict written before they were recorded).
+    settings: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rms_before_mps2(self) -> float:
@@ -811,9 +818,34 @@ def _chance_excess(n: int) -> float:
     return 2.0 / math.sqrt(2.0 * max(n, 1))
 
 
+def _settings_record(settings: _core.GapSettings, preset: str) -> dict[str, Any]:
+    """What a report records of the settings that made it (:attr:`GapReport.settings`)."""
+    return {"preset": str(preset), "alpha": float(settings.alpha), "test": str(settings.test),
+            "correction": str(settings.correction), "n_draws": int(settings.n_draws),
+            "trust_level": float(settings.trust_level), "gate": str(settings.gate),
+            "gate_margin": float(settings.gate_margin),
+            "max_effects": int(settings.max_effects), "loo": bool(settings.loo),
+            "random_offset": bool(settings.random_offset)}
+
+
+def _settings_text(st: dict[str, Any]) -> str:
+    """The summary's settings line (``settings: preset targeted, alpha 0.05, ...``)."""
+    if not st:
+        return ""
+    words = [f"preset {st['preset']}", f"alpha {st['alpha']:g}", f"test {st['test']}",
+             f"correction {st['correction']}", f"n_draws {st['n_draws']}",
+             f"trust_level {st['trust_level']:g}", f"gate {st['gate']}",
+             f"gate_margin {st['gate_margin']:g}", f"max_effects {st['max_effects']}",
+             "loo" if st["loo"] else "no loo"]
+    if st.get("random_offset"):
+        words.append("random_offset")
+    return "Settings: " + ", ".join(words)
+
+
 def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_model: str,
                   statements: list[str], rows: dict[str, Any],
-                  noise_curves: dict[str, Any] | None = None) -> GapReport:
+                  noise_curves: dict[str, Any] | None = None,
+                  settings: dict[str, Any] | None = None) -> GapReport:
     """The one builder of :class:`GapReport` for every system."""
     n = raw.n
     noise_known = bool(raw.noise_known)
@@ -876,7 +908,7 @@ def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_mode
         params=np.asarray(raw.base_params), params_after=np.asarray(raw.params_after),
         std_after=np.asarray(raw.std_after), alpha=float(alpha),
         structure=_structure_of(raw, sysw.units), system=sysw.name, units=sysw.units,
-        noise_curves=noise_curves or {},
+        noise_curves=noise_curves or {}, settings=dict(settings or {}),
         raw={"weight_none": raw.weight_none, "step_p": list(raw.step_p),
              "stop_p": raw.stop_p, "step_p_adj": list(raw.step_p_adj),
              "step_m": list(raw.step_m), "stop_p_adj": raw.stop_p_adj,
@@ -1129,6 +1161,8 @@ def _summary(r: GapReport) -> str:
                  f"({', '.join(parts)})")
     for s in r.statements:
         L.append(f"Note: {s}")
+    if r.settings:
+        L.append(_settings_text(r.settings))
     return "\n".join(L)
 
 
@@ -1761,7 +1795,7 @@ def diagnose(
     sysw = _STATIC if unit == _STATIC.units else replace(_STATIC, units=unit)
     rep = _build_report(raw, sysw, g=g_v, alpha=float(settings.alpha),
                         noise_model=nm_text, statements=statements, rows=rows,
-                        noise_curves=curves)
+                        noise_curves=curves, settings=_settings_record(settings, preset))
     if unc is not None and var0 is not None and rep.dof > 0:
         c2 = unc.chi2(np.asarray(raw.resid, dtype=np.float64), var0)
         if math.isfinite(c2):
@@ -2261,7 +2295,8 @@ def diagnose_centrifuge(
                    _fixes_separation(_CENTRIFUGE_FIX))
     return _build_report(raw, sysw, g=g_v, alpha=float(alpha), noise_model=noise_model,
                          statements=screened,
-                         rows={"omega": om, "index": keep})
+                         rows={"omega": om, "index": keep},
+                         settings=_settings_record(settings, "targeted"))
 
 
 def _screened_rows(outputs: NDArray[np.float64], omega: NDArray[np.float64], radius: float,
@@ -2399,4 +2434,5 @@ def diagnose_gradiometer(
                    _fixes_separation(_GRADIOMETER_FIX))
     chan = np.tile(np.array(["inline", "cross"]), m)
     return _build_report(raw, sysw, g=math.nan, alpha=float(alpha), noise_model=noise_model,
-                         statements=[], rows={"azimuth_deg": np.repeat(az, 2), "channel": chan})
+                         statements=[], rows={"azimuth_deg": np.repeat(az, 2), "channel": chan},
+                         settings=_settings_record(settings, "targeted"))

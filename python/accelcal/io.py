@@ -215,19 +215,39 @@ _DECLARED_G = {"g": 1.0, "m/s^2": 9.80665, "m/s2": 9.80665, "m/s²": 9.80665, "m
                "ms2": 9.80665, "m s-2": 9.80665, "cm/s^2": 980.665, "mg": 1000.0}
 
 
+def _column_units(names: Sequence[str]) -> list[str]:
+    """The unit each accelerometer column's name declares (``aX (g)``, ``acc_x [m/s^2]``,
+    ``ax_g``, ``acc_x_mps2``), or ``""``."""
+    out = []
+    for n in names:
+        base, unit = _split_unit(n)
+        if not unit:
+            m = re.search(r"[_\s](g|mps2|ms2|mg)$", base.strip().lower())
+            unit = m.group(1) if m else ""
+        out.append(unit.strip())
+    return out
+
+
+def declared_unit(names: Sequence[str] | None) -> str:
+    """The raw (input) unit the three accelerometer columns' names declare alike (``ax [mg]``,
+    ``ay [mg]``, ``az [mg]`` -> ``"mg"``; ``acc_x_mps2`` -> ``"m/s^2"``), as a calibration
+    records it; ``""`` when they declare none, differ, or hold an index (``acc[0]``)."""
+    if not names or len(names) != 3:
+        return ""
+    units = _column_units(names)
+    unit = units[0]
+    if not unit or any(u != unit for u in units) or unit.isdigit():
+        return ""
+    return {"mps2": "m/s^2", "ms2": "m/s^2"}.get(unit.lower(), unit)
+
+
 def declared_units_note(names: Sequence[str] | None, median_norm: float) -> str:
     """When the accelerometer columns' names declare a unit (``aX (g)``, ``acc_x [m/s^2]``,
     ``ax_g``, ``acc_x_mps2``) in which gravity's norm is not what the dwell means show
     (``median_norm``, their median norm): the note that says so, else ``""``."""
     if not names or not math.isfinite(median_norm) or median_norm <= 0:
         return ""
-    units = set()
-    for n in names:
-        base, unit = _split_unit(n)
-        if not unit:
-            m = re.search(r"[_\s](g|mps2|ms2|mg)$", base.strip().lower())
-            unit = m.group(1) if m else ""
-        units.add(unit.strip().lower().replace(" ", "") if unit else "")
+    units = {u.lower().replace(" ", "") for u in _column_units(names)}
     if len(units) != 1:
         return ""
     unit = units.pop()

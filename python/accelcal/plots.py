@@ -9,15 +9,33 @@ import numpy as np
 from ._core import CalibrationError
 from ._files import atomic_write
 
+#: SVG element ids are hashed with this salt (matplotlib's ``svg.hashsalt``) instead of a
+#: random one, so that the same figure gives the same bytes.
+SVG_HASHSALT = "accelcal"
+
+#: The metadata entry that dates a file, per format (left out: the same figure gives the
+#: same bytes, whenever and in whatever time zone it is saved).
+_UNDATED = {"svg": {"Date": None}, "pdf": {"CreationDate": None},
+            "eps": {"CreationDate": None}, "ps": {"CreationDate": None}}
+
 
 def save_figure(fig: Any, path: str) -> None:
-    """Save a figure atomically; the format follows the suffix (png, pdf, svg)."""
+    """Save a figure atomically; the format follows the suffix (png, pdf, svg).
+
+    The output is reproducible: the same figure gives the same bytes (PDF and SVG are
+    written without a creation date, SVG element ids with a fixed salt)."""
     import io
     from pathlib import Path
 
+    import matplotlib
+
     buf = io.BytesIO()
-    suffix = Path(path).suffix.lstrip(".") or "png"
-    fig.savefig(buf, format=suffix, dpi=120, bbox_inches="tight")
+    suffix = Path(path).suffix.lstrip(".").lower() or "png"
+    kw: dict[str, Any] = {}
+    if suffix in _UNDATED:
+        kw["metadata"] = dict(_UNDATED[suffix])
+    with matplotlib.rc_context({"svg.hashsalt": SVG_HASHSALT}):
+        fig.savefig(buf, format=suffix, dpi=120, bbox_inches="tight", **kw)
     atomic_write(path, buf.getvalue())
 
 

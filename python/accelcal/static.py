@@ -13,8 +13,9 @@ Parameter vector, always in this order ``[sx, sy, sz, bx, by, bz, m1, m2, m3]``:
   ``m1`` is the y-input seen by the x output, ``m2`` z seen by x, ``m3`` z seen by y.
 - ``model="diag"``: ``K = diag(sx, sy, sz)``, first 6 values only.
 
-``K`` is in output units per (m/s^2) (counts per m/s^2 for raw counts), ``b`` in output units;
-residuals and calibrated values are in the units of ``g`` (m/s^2).
+``am`` is in the sensor's raw (input) units (counts, mg, g or m/s^2, as recorded): ``K`` is in
+raw (input) units per unit of ``g`` (counts per m/s^2 for raw counts; it maps calibrated to raw),
+``b`` in raw (input) units; residuals and calibrated values are in the units of ``g`` (m/s^2).
 
 The fit is maximum likelihood: the whitened residual of dwell ``k`` is
 ``(|K^-1 (am_k - b)| - g) / sigma_k`` with ``sigma_k^2 = w_k^T Sigma_k w_k``,
@@ -307,7 +308,7 @@ class StaticFit(_core.StaticFit):
 
     @cached_property
     def K(self) -> NDArray[np.float64]:
-        """(3, 3) output units per (m/s^2)."""
+        """(3, 3) raw (input) units per unit of g (per m/s^2): calibrated to raw."""
         return _frozen(k_matrix(self.vector, self.model))
 
     # -- uncertainty --------------------------------------------------------------------
@@ -408,8 +409,8 @@ class StaticFit(_core.StaticFit):
 
     # -- warnings text ------------------------------------------------------------------
     def weak_text(self) -> str:
-        """The weakly determined parameters: predicted std (output units) and relative std of
-        every parameter whose relative std exceeds ``weak_std``."""
+        """The weakly determined parameters: predicted std (the parameters' units) and
+        relative std of every parameter whose relative std exceeds ``weak_std``."""
         std = self.std.tolist()
         if not all(map(math.isfinite, std)):
             return (
@@ -776,14 +777,15 @@ def fit_static(
     max_iter: int = 200,
     check_g: bool = True,
     sigma_g: float | None = None,
+    input_units: str | None = None,
 ) -> StaticFit:
     """Calibrate a triaxial accelerometer from static dwell means and a reference gravity.
 
     Parameters
     ----------
     data : DwellSet or (k, 3) array
-        Dwell means in output units (raw counts or m/s^2). A DwellSet's ``var``/``count``
-        give each dwell's noise (white-noise standard error).
+        Dwell means in the sensor's raw (input) units (counts, mg, m/s^2 ...). A DwellSet's
+        ``var``/``count`` give each dwell's noise (white-noise standard error).
     g : float
         Reference gravity (e.g. from an atomic gravimeter, or :func:`local_gravity`), in the
         units the calibrated output should have (m/s^2).
@@ -793,7 +795,8 @@ def fit_static(
         regression) or "linear-paper" (the paper's small-M back-substitution, for
         reproduction).
     sigma : scalar, (k,) or (k, 3), optional
-        Std of each dwell mean per axis, output units (overrides the DwellSet's variances).
+        Std of each dwell mean per axis, in the units of the means (raw (input) units;
+        overrides the DwellSet's variances).
         Without it and without variances the output noise is taken as isotropic and its level
         estimated from the residuals (``noise_model`` says which).
     start : (p,), optional
@@ -828,6 +831,11 @@ def fit_static(
         ``1 / (1 + e)`` and leaves the bias, so it adds ``sigma_g^2 j j^T`` with ``j = -p / g``
         for the entries of K. None or 0 (default) leaves g exact. Must be non-negative,
         finite and at most 1 % of ``g`` (a larger one is most likely in other units).
+    input_units : str, optional
+        The raw (input) units of the dwell means ("counts", "mg" ...): recorded by the fit
+        (``StaticFit.input_units``, the summary's "K in ... per m/s^2") and by
+        :meth:`~StaticFit.to_model` in the calibration file's ``units.input``. Default: a
+        DwellSet's ``units`` (a DwellSet whose units disagree is refused), else none.
 
     Raises
     ------
@@ -857,6 +865,8 @@ def fit_static(
         means, var, noise_model, units = _inputs(data, sigma)
         if start is not None:
             st = _start(start)
+    if input_units is not None:
+        units = _given_units(input_units, units)
     try:
         fit = StaticFit(  # positional: the fastest call into the constructor
             means, g, model, method, var, st, max_iter,  # type: ignore[arg-type]
@@ -879,6 +889,18 @@ def fit_static(
             # (the text costs more than the fit: not built for a warning that is dropped)
             _quiet.warn(str(fit.warning_text()), WeakDesignWarning, stacklevel=2)
     return fit
+
+
+def _given_units(given: Any, found: str) -> str:
+    """fit_static's ``input_units`` against the units the data carry (a DwellSet's)."""
+    if not isinstance(given, str):
+        raise CalibrationError(f"input_units must be a string (the raw units of the dwell "
+                               f"means, e.g. 'counts' or 'mg'); got {type(given).__name__}")
+    want = given.strip()
+    if want and found and want != found.strip():
+        raise CalibrationError(f"input_units={given!r} disagrees with the units of the dwell "
+                               f"means ({found!r}, the DwellSet's): give the one they are in")
+    return want or found
 
 
 def _mirrored_axes(nominal: Any) -> None:
@@ -1117,7 +1139,7 @@ def fit_static_batch(
 
     ``means`` is a (B, n, 3) array, with an optional (B, n) boolean ``mask`` of the dwells to
     use (padding), or a list of (n_i, 3) arrays (sessions of different dwell counts). ``g`` is
-    a scalar or (B,); ``sigma`` (scalar std of each dwell mean per axis, output units) gives
+    a scalar or (B,); ``sigma`` (scalar std of each dwell mean per axis, raw units) gives
     the noise, None estimates it per session. Never raises per session: each row has a
     ``status`` (0 ok, 1 degenerate, 2 not converged, 3 invalid input), ``state`` ("ok",
     "weak", "degenerate", "error") and ``messages`` ("session 17: dwell 3 has a NaN mean").

@@ -59,6 +59,7 @@ def run_static_fleet(
     """``calibrate static`` over many recordings (see :func:`accelcal.calibrate_many`)."""
     from ..dwell import DetectorSettings
     from ..fleet import STATUSES, calibrate_many
+    from .static import _command_line  # the command as parsed (`calibrate static` runs this)
 
     for flag, val in (("-o/--output", output), ("--dwells-out", dwells_out),
                       ("--plot", plot_path), ("--nominal", nominal_path)):
@@ -100,6 +101,7 @@ def run_static_fleet(
             method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
             workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
             check_g=check_g, means=means, sigma_g=sigma_g, _cli=True,
+            _command=_command_line(),
         )
     except KeyboardInterrupt as e:  # say what was kept ("interrupted after 12 of 110 ...")
         if e.args:

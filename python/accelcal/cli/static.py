@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import shlex
@@ -12,6 +11,7 @@ import click
 import numpy as np
 
 from .._core import CalibrationError
+from .._files import file_record
 from ._common import (
     _need_plot,
     _resolve_g,
@@ -56,17 +56,8 @@ def _cli(msg: str) -> str:
 
 
 
-def _file_record(path: str) -> dict[str, Any]:
-    """What a calibration file records of an input file: its absolute path, size and SHA-256
-    (read in blocks; standard input cannot be read twice: its hash is null)."""
-    if path == "-":
-        return {"path": "-", "sha256": None, "bytes": None}
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return {"path": os.path.abspath(path), "sha256": h.hexdigest(),
-            "bytes": os.path.getsize(path)}
+#: What a calibration file records of an input file (absolute path, size, SHA-256).
+_file_record = file_record
 
 
 def _command_line() -> str:
@@ -95,6 +86,39 @@ def _command_line() -> str:
         for x in vals:
             words += [opt, str(x)]
     return " ".join(shlex.quote(w) for w in words)
+
+
+def _unit_key(unit: str) -> str:
+    """A unit's spelling compared: case and spaces aside, m/s2 as m/s^2."""
+    u = unit.strip().lower().replace(" ", "").replace("²", "^2")
+    return {"m/s2": "m/s^2", "mps2": "m/s^2", "ms2": "m/s^2", "ms^-2": "m/s^2"}.get(u, u)
+
+
+def _input_units(given: str | None, rec: Any, d: Any) -> str | None:
+    """The raw (input) unit the calibration records: ``--input-units``, else the unit the
+    recording's three accelerometer columns declare alike (``ax [mg]``) or a dwell table's
+    ``# units:`` line; None when none is known. A --input-units that disagrees with the file
+    is refused, naming both."""
+    from ..io import _names_of, declared_unit
+
+    said, where = "", ""
+    if rec is not None:
+        said, where = declared_unit(_names_of(rec.lay)), "its accelerometer columns' names"
+    table_units = str(getattr(d, "units", None) or "")
+    if not said and table_units:
+        said, where = table_units, "its units line"
+    if given is None:
+        return said or None
+    if not given.strip():
+        raise CalibrationError("--input-units must name a unit (counts, mg, g, m/s^2 ...)")
+    if said and _unit_key(said) != _unit_key(given):
+        names = f" ({', '.join(_names_of(rec.lay))})" if rec is not None and where.startswith(
+            "its accelerometer") else ""
+        raise CalibrationError(
+            f"--input-units {given} disagrees with the file: {where}{names} say {said}. Give "
+            "the unit the recording's values are in (or leave --input-units out to take the "
+            "file's)")
+    return said if said and _unit_key(said) == _unit_key(given) else given.strip()
 
 
 def _diag_fits(d: Any, g: float) -> bool:
@@ -144,6 +168,11 @@ def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
 @click.option("--nominal", "nominal_path", type=click.Path(dir_okay=False), default=None,
               help="Calibration file of the nominal model, for the 'before' norm statistics.")
 @click.option("--sensor-id", default="", help="Stored in the calibration file.")
+@click.option("--input-units", "input_units", default=None, metavar="TEXT",
+              help="The raw (input) units of the recording (counts, mg, g, m/s^2 ...), stored "
+                   "in the calibration file (units.input). Default: the unit the three "
+                   "accelerometer columns' names declare alike (ax [mg]), else none; one that "
+                   "disagrees with it is refused.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the calibration (versioned JSON); an existing file is kept unless "
                    "--overwrite is given.")
@@ -166,7 +195,8 @@ def calibrate_static(
     method: str, window_s: float, k: float, min_dwell_s: float, trim_s: float,
     bounds: str | None,
     means: bool, count: int | None, no_check_g: bool, sigma_g: float | None,
-    nominal_path: str | None, sensor_id: str, output: str | None, overwrite: bool,
+    nominal_path: str | None, sensor_id: str, input_units: str | None, output: str | None,
+    overwrite: bool,
     rec_date: str | None, dwells_out: str | None, plot_path: str | None, as_json: bool,
     **fleet: Any,
 ) -> None:
@@ -191,6 +221,10 @@ def calibrate_static(
         if count:
             raise CalibrationError("--count takes one table of dwell means, not a fleet run "
                                    "(give each table's count column, or --means alone)")
+        if input_units is not None:
+            raise CalibrationError("--input-units takes one recording, not a fleet run (each "
+                                   "recording's calibration records the unit its columns' "
+                                   "names declare)")
         for flag, val in (("--overwrite", overwrite), ("--date", rec_date)):
             if val:
                 raise CalibrationError(f"{flag} goes with -o, for one recording, not a fleet "
@@ -249,6 +283,7 @@ def calibrate_static(
     src = source_line(file, rec, d)
     undropped = d
     read_notes += dwell_notes(d, rec)
+    units_in = _input_units(input_units, rec, d)
     d, fault_notes = without_faults(d)
     read_notes += fault_notes
     d, moving_notes = without_moving(d, gv)
@@ -259,7 +294,7 @@ def calibrate_static(
         try:
             fit = fit_static(d, gv, model=model, method=method,
                              check_g=not no_check_g and g is not None,  # not from --lat
-                             nominal=nominal, sigma_g=sigma_g)
+                             nominal=nominal, sigma_g=sigma_g, input_units=units_in)
         except DegenerateDataError as e:
             hint = ""
             if model != "diag" and "diag" not in str(e):

@@ -18,7 +18,7 @@ import click
 import numpy as np
 
 from .._core import CalibrationError
-from .._files import atomic_open
+from .._files import atomic_open, file_record, sha256_file
 from ._common import (
     _need_plot,
     _save_fig,
@@ -140,6 +140,12 @@ def dwells(
                      "did not follow the sensor (calibrate and diagnose leave them out):\n  "
                      + fault_text(d, faults))
     if output:
+        # The table names its recording and the detector's settings (when it detected them).
+        if rec is not None:
+            d.source = file_record(file)
+            if not bounds and not rec.pose_table:
+                d.detector = {"window_s": window_s, "k": k, "min_dwell_s": min_dwell_s,
+                              "trim_s": trim_s}
         d.to_csv(output)
     if plot_path:
         from ..plots import dwells_figure
@@ -364,7 +370,11 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
         rec.arrays is not None and rec.arrays.t is not None)
     assert isinstance(model, TriadModel)
     unit = model.units or "units of g"  # the calibrated output is in the units of its g
-    header = [f"calibrated by accelcal from {cal}", f"source: {file}", f"units: {unit}"]
+    from .._triad_model import accelcal_version
+
+    # The calibration by its content too: a file replaced under the same name is told apart.
+    header = [f"calibrated by accelcal from {cal}", f"calibration_sha256: {sha256_file(cal)}",
+              f"accelcal_version: {accelcal_version()}", f"source: {file}", f"units: {unit}"]
     if rec.lay.t0_text:
         header.append(f"t0: {rec.lay.t0_text}")
     if rec.fs is not None:

@@ -69,10 +69,12 @@ class DemoResult:
     n_dwells: int
     gap: Any
     figures: str | None = None
+    seed: int = 0  # the random seed of every simulated session
 
     @property
     def text(self) -> str:
-        parts = list(self.sections.values())
+        parts = [f"seed {self.seed} (accelcal demo --seed N simulates other sessions)",
+                 *self.sections.values()]
         if self.figures is not None:
             parts.append(self.figures)
         return "\n\n".join(parts)
@@ -80,6 +82,7 @@ class DemoResult:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (``accelcal demo --json``)."""
         return {
+            "seed": self.seed,
             "sections": dict(self.sections),
             "field": {
                 "n_dwells": self.n_dwells,
@@ -101,7 +104,7 @@ def demo_result(*, quick: bool = False, out: str | None = None, seed: int = 0) -
         "gradiometer": gradiometer_demo(rng_seed=seed),
     }
     figures = None if out is None else _figures(out, dwells, fit, gap_rep)
-    return DemoResult(sections, fit, len(dwells), gap_rep, figures)
+    return DemoResult(sections, fit, len(dwells), gap_rep, figures, seed=seed)
 
 
 def run_demo(*, quick: bool = False, out: str | None = None, seed: int = 0) -> str:

@@ -3,6 +3,7 @@ paper's Table 1 (Wang and Li 2021)."""
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -20,10 +21,31 @@ from ..centrifuge import (
 from ..design import centrifuge_sensitivity
 from ..sim.centrifuge import CENTRIFUGE_TRUTH, centrifuge_session
 
-_SEED_DIRS = (
-    Path(__file__).resolve().parents[4] / "shared" / "data" / "seed004",
-    Path.cwd().parent / "shared" / "data" / "seed004",
-)
+#: The environment variable that names the shared data folder (the one holding
+#: ``seed004/table1_as_printed.csv``): the paper's Table 1 is read there, in place, never
+#: shipped with the package.
+SHARED_DATA_ENV = "ACCELCAL_SHARED_DATA"
+
+
+def _seed_dirs() -> list[Path]:
+    """Where the paper's Table 1 is looked for, in order: ``$ACCELCAL_SHARED_DATA/seed004``
+    (or that folder itself), then ``shared/data/seed004`` beside the source tree. Never the
+    current directory: the demo prints the same wherever it is run."""
+    dirs = []
+    env = os.environ.get(SHARED_DATA_ENV, "").strip()
+    if env:
+        dirs += [Path(env) / "seed004", Path(env)]
+    parents = Path(__file__).resolve().parents
+    if len(parents) > 4 and (parents[3] / "pyproject.toml").is_file():
+        # <root>/python/accelcal/demo/ in a source tree: <root>/../shared/data
+        dirs.append(parents[4] / "shared" / "data" / "seed004")
+    return dirs
+
+
+def _table1_dir() -> tuple[Path | None, list[Path]]:
+    """The folder holding the paper's Table 1, or None, and the folders looked in."""
+    looked = _seed_dirs()
+    return next((p for p in looked if (p / "table1_as_printed.csv").is_file()), None), looked
 
 
 def demo_section(rng_seed: int = 0) -> str:
@@ -63,9 +85,14 @@ def demo_section(rng_seed: int = 0) -> str:
         f"(rms {fr.residual_rms:.2g} g), where a rate offset can be diagnosed."
     )
 
-    d = next((p for p in _SEED_DIRS if (p / "table1_as_printed.csv").exists()), None)
+    d, looked = _table1_dir()
     if d is None:
-        lines.append("(the paper's Table 1 was not found: skipping the reproduction lines)")
+        where = (f"not in {', '.join(str(p) for p in looked)}" if looked else
+                 f"{SHARED_DATA_ENV} is not set")
+        lines.append(
+            f"(the paper's Table 1 was not found ({where}): skipping the reproduction lines; "
+            f"set {SHARED_DATA_ENV} to the shared data folder that holds "
+            "seed004/table1_as_printed.csv to include them)")
         return "\n".join(lines)
     ok = read_centrifuge_table(d / "table1_sign_corrected.csv")
     bad = read_centrifuge_table(d / "table1_as_printed.csv")
