@@ -1021,3 +1021,137 @@ def test_demo_table1_lookup_does_not_depend_on_the_current_folder(
                     "data folder that holds seed004/table1_as_printed.csv to include them)")
     monkeypatch.setattr(c, "_seed_dirs", lambda: [])
     assert "(ACCELCAL_SHARED_DATA is not set)" in c.demo_section(0).splitlines()[-1]
+
+
+def _cli_subprocess(args: list[str], pre: str = "", timeout: float = 120,
+                    **kw: Any) -> Any:
+    """The CLI in a fresh interpreter (``pre`` run first: limits, patches)."""
+    import subprocess
+    import sys
+
+    code = f"import sys\n{pre}\nfrom accelcal.cli import main\nmain(sys.argv[1:])\n"
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True,
+                          timeout=timeout, **kw)
+
+
+def test_apply_reads_a_calibration_from_a_pipe_once(tmp_path: Path) -> None:
+    """A FIFO as the calibration hung (read a second time for its hash); a drained pipe
+    recorded the hash of zero bytes."""
+    import hashlib
+    import os
+    import threading
+
+    cal = _calibration(tmp_path)
+    data = cal.read_bytes()
+    fifo = tmp_path / "cal.fifo"
+    os.mkfifo(fifo)
+
+    def feed() -> None:
+        with open(fifo, "wb") as fh:  # once: a second reader would wait for ever
+            fh.write(data)
+
+    writer = threading.Thread(target=feed, daemon=True)
+    writer.start()
+    out = tmp_path / "out.csv"
+    try:
+        r = _cli_subprocess(["apply", str(fifo), str(XSENS()), "-o", str(out), "--quiet"],
+                            timeout=60)
+    finally:
+        if writer.is_alive():  # release a reader that never came
+            with open(fifo, "rb") as fh:
+                fh.read()
+    assert r.returncode == 0, r.stderr
+    head = out.read_text().splitlines()[:3]
+    assert f"# calibration_sha256: {hashlib.sha256(data).hexdigest()}" in head
+    assert hashlib.sha256(b"").hexdigest() not in out.read_text()[:2000]
+
+
+def test_apply_npz_temporaries_are_named_and_cleaned_as_the_output(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The per-array temporaries of a .npz were .out.npz.samples.*.tmp, which nothing
+    cleaned after a kill -9: now named as the output's own temporary file, and a stale one
+    removed by the next write."""
+    import os
+    import subprocess
+    import sys
+
+    from accelcal._files import TMP_PREFIX
+    from accelcal.cli import stream
+
+    cal = _calibration(tmp_path)
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                              capture_output=True, text=True, check=True).stdout)
+    stale = tmp_path / f"{TMP_PREFIX}out.npz-{dead}-abcd1234.samples.npy"
+    stale.write_bytes(b"x" * 1000)
+    seen: list[list[str]] = []
+    orig = stream._NpyWriter.write
+
+    def spy(self: Any, block: Any) -> None:
+        seen.append(sorted(n for n in os.listdir(tmp_path) if n.startswith(".")))
+        orig(self, block)
+
+    monkeypatch.setattr(stream._NpyWriter, "write", spy)
+    out = tmp_path / "out.npz"
+    code, text = run("apply", str(cal), str(XSENS()), "-o", str(out), "--quiet")
+    assert code == 0, text
+    assert seen and len(seen[0]) == 3, seen  # the zip's, samples', t's
+    assert all(n.startswith(f"{TMP_PREFIX}out.npz-") for n in seen[0]), seen
+    assert not stale.exists()
+    assert [n for n in os.listdir(tmp_path) if n.startswith(".")] == []
+
+
+def test_apply_h5_write_error_is_one_line_naming_the_output(tmp_path: Path) -> None:
+    """A write error (here a file size limit) while writing HDF5 through a Python file object
+    crashed the process (segmentation fault): now one line naming the output, exit 2, and
+    no temporary file left."""
+    pytest.importorskip("h5py")
+    cal = _calibration(tmp_path)
+    out = tmp_path / "out.h5"
+    pre = ("import resource, signal\n"
+           "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+           "resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))\n")
+    r = _cli_subprocess(["apply", str(cal), str(XSENS()), "-o", str(out), "--quiet"], pre,
+                        text=True)
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert "Traceback" not in r.stderr
+    assert str(out) in r.stderr and "File too large" in r.stderr, r.stderr
+    assert ".accelcal-tmp" not in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.json"]
+
+
+def test_apply_to_dev_stdout_writes_as_dash_does(tmp_path: Path) -> None:
+    """-o /dev/stdout was refused as a symbolic link although the docs promise /dev/stdout is
+    written through: the rows on stdout, the summary on stderr, as with -o -."""
+    cal = _calibration(tmp_path)
+    r = _cli_subprocess(["apply", str(cal), str(XSENS()), "-o", "/dev/stdout", "--quiet"],
+                        text=True)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0].startswith("# calibrated by accelcal") and len(lines) > 51175
+    assert "wrote 51175 calibrated samples" in r.stderr
+    assert "wrote" not in r.stdout
+    code, text = run("apply", str(cal), str(XSENS()), "-o", "/dev/stdout", "--json")
+    assert code == 2 and "--json" in text
+
+
+def test_calibrate_static_writes_through_dev_stdout(tmp_path: Path) -> None:
+    r = _cli_subprocess(["calibrate", "static", str(XSENS()), "--g", "9.81744", "-o",
+                         "/dev/stdout", "--overwrite", "--quiet"], text=True)
+    assert r.returncode == 0, r.stderr
+    assert '"format": "accelcal.TriadModel"' in r.stdout
+
+
+def test_out_of_memory_is_a_clear_error_not_an_internal_one(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A MemoryError was reported as an internal error to report (exit 3)."""
+    from accelcal.cli import stream
+
+    def short(*a: Any, **k: Any) -> Any:
+        raise MemoryError("Unable to allocate 11.4 MiB for an array with shape (500000, 3)")
+
+    monkeypatch.setattr(stream, "open_recording", short)
+    cal = _calibration(tmp_path)
+    code, text = run("apply", str(cal), str(XSENS()), "-o", str(tmp_path / "o.csv"))
+    assert code == 2, text
+    assert "out of memory" in text and "11.4 MiB" in text and "--chunk-rows" in text
+    assert "internal error" not in text

@@ -470,3 +470,45 @@ def test_fleet_calibrations_record_the_declared_input_unit(tmp_path: Path) -> No
     code, out = run("calibrate", "static", *map(str, recs), "--g", "9.80665",
                     "--input-units", "mg", "--out", str(tmp_path / "c2"))
     assert code != 0 and "--input-units takes one recording" in out, out
+
+
+def test_o_written_by_another_run_meanwhile_is_kept(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two `-o cal.json` runs started together both passed the "file exists" check made at
+    the start, and the second replaced the first's calibration. Now the file is linked to its
+    name when written, which fails when it appeared meanwhile: kept byte for byte, exit 2."""
+    from accelcal.cli import static as cli_static
+
+    rec = _recording(tmp_path)
+    cal = tmp_path / "cal.json"
+    real = cli_static.stream_dwells
+
+    def meanwhile(*a: object, **k: object) -> object:
+        cal.write_text('{"the other run": 1}')  # written while this run reads
+        return real(*a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(cli_static, "stream_dwells", meanwhile)
+    code, out = run("calibrate", "static", str(rec), "--g", "9.81", "-o", str(cal))
+    assert code == 2 and cal.read_text() == '{"the other run": 1}'
+    assert (f"accelcal: error: -o {cal}: the file exists, written while this calibration ran "
+            "(by another run?); it was kept (a calibration is never replaced silently): give "
+            "--overwrite to replace it, or choose another path; the calibration was not "
+            "written") in out, out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.json", "rec.csv"]
+    code, out = run("calibrate", "static", str(rec), "--g", "9.81", "-o", str(cal),
+                    "--overwrite")
+    assert code == 0 and ac.TriadModel.load(cal).metadata["input"]["path"] == str(rec), out
+
+
+def test_a_plot_that_cannot_be_written_leaves_no_calibration(tmp_path: Path) -> None:
+    """`-o c.json --plot unwritable/p.png` wrote c.json, then failed (exit 2): the rerun was
+    refused because c.json existed. Now the plot is written first."""
+    rec = _recording(tmp_path)
+    cal, blocker = tmp_path / "c.json", tmp_path / "afile"
+    blocker.write_text("")  # a file, so afile/p.png cannot be made (root or not)
+    code, out = run("calibrate", "static", str(rec), "--g", "9.81", "-o", str(cal),
+                    "--plot", str(blocker / "p.png"))
+    assert code == 2 and "Not a directory" in out and not cal.exists(), out
+    code, out = run("calibrate", "static", str(rec), "--g", "9.81", "-o", str(cal),
+                    "--plot", str(tmp_path / "p.png"))
+    assert code == 0 and cal.is_file() and (tmp_path / "p.png").is_file(), out

@@ -181,3 +181,149 @@ def _umask_now() -> int:
     m = os.umask(0)
     os.umask(m)
     return m
+
+
+def test_read_small_text_refuses_devices_and_files_too_large(tmp_path: Path) -> None:
+    """A calibration or bounds file that is a device (/dev/zero, /dev/urandom) was read
+    without end (MemoryError with an empty message); now it is refused, and so is a file
+    above the limit (its size named, before it is read), and a pipe is read up to it."""
+    from accelcal._files import read_small_text
+
+    with pytest.raises(CalibrationError) as e:
+        read_small_text("/dev/zero", "calibration file")
+    assert str(e.value) == "calibration file '/dev/zero' is a character device, not a file"
+    with pytest.raises(CalibrationError, match="is a folder, not a file"):
+        read_small_text(tmp_path, "calibration file")
+    big = tmp_path / "big.json"
+    with open(big, "wb") as fh:  # sparse: no disk space used
+        fh.truncate((64 << 20) + 1)
+    with pytest.raises(CalibrationError) as e:
+        read_small_text(big, "calibration file")
+    assert str(e.value) == (f"calibration file {str(big)!r} holds 67108865 bytes, more than "
+                            "the 64 MB such a file can hold: is it the right file?")
+    ok = tmp_path / "ok.json"
+    ok.write_bytes("\ufeff{}".encode())
+    assert read_small_text(ok, "calibration file") == "{}"  # the BOM dropped
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+
+    def feed(n: int) -> None:
+        try:
+            with open(fifo, "wb") as fh:
+                fh.write(b"x" * n)
+        except BrokenPipeError:
+            pass
+
+    t = threading.Thread(target=feed, args=(300,), daemon=True)
+    t.start()
+    with pytest.raises(CalibrationError, match=r"'.*pipe.json' holds more than the "
+                       r"0.000190735 MB"):
+        read_small_text(fifo, "calibration file", limit=200)
+    t.join(5)
+    t = threading.Thread(target=feed, args=(100,), daemon=True)
+    t.start()
+    assert read_small_text(fifo, "calibration file", limit=200) == "x" * 100
+    t.join(5)
+
+
+def test_a_bounds_file_that_is_a_device_is_refused() -> None:
+    """`dwells --bounds /dev/urandom` read without end; now one line naming it."""
+    from accelcal.io import read_bounds
+
+    with pytest.raises(CalibrationError) as e:
+        read_bounds("/dev/urandom")
+    assert str(e.value) == "the bounds file '/dev/urandom' is a character device, not a file"
+
+
+LOCKED_CLEANER = """
+import sys
+import accelcal._files as f
+f._pid_alive = lambda pid: False  # as from another PID namespace: no pid is visible
+print([p.name for p in f.clean_stale_temps(sys.argv[1])])
+"""
+
+
+def test_live_temp_is_locked_and_kept_by_a_cleaner_that_cannot_see_its_pid(
+        tmp_path: Path) -> None:
+    """A second writer in another PID namespace (containers on one volume) took the first
+    writer's live temporary file for stale and deleted it."""
+    out = tmp_path / "out.csv"
+    with atomic_open(out) as fh:
+        fh.write("partial")
+        fh.flush()
+        (live,) = temps(tmp_path)
+        r = subprocess.run([sys.executable, "-c", LOCKED_CLEANER, str(out)],
+                           capture_output=True, text=True, check=True)
+        assert r.stdout.strip() == "[]", r.stdout
+        assert temps(tmp_path) == [live]
+        fh.write(" and the rest\n")
+    assert out.read_text() == "partial and the rest\n" and temps(tmp_path) == []
+    # Left by a process killed outright (nobody holds its lock): removed.
+    with atomic_open(out) as fh:
+        (live,) = temps(tmp_path)
+        os.link(tmp_path / live, tmp_path / (live + "x"))
+    r = subprocess.run([sys.executable, "-c", LOCKED_CLEANER, str(out)],
+                       capture_output=True, text=True, check=True)
+    assert live + "x" in r.stdout and temps(tmp_path) == []
+
+
+def test_another_hosts_temp_is_removed_only_when_old(tmp_path: Path) -> None:
+    from accelcal._files import FOREIGN_TEMP_AGE, HOST
+
+    other = "elsewhere" if HOST != "elsewhere" else "elsewhere2"
+    young = tmp_path / f"{TMP_PREFIX}out.csv-1@{other}-aaaa1111"
+    old = tmp_path / f"{TMP_PREFIX}out.csv-2@{other}-bbbb2222"
+    for f in (young, old):
+        f.write_text("partial")
+    t = time.time() - FOREIGN_TEMP_AGE - 60
+    os.utime(old, (t, t))
+    assert clean_stale_temps(tmp_path / "out.csv") == [old]
+    assert young.exists()
+
+
+def test_temp_name_fits_a_long_output_name(tmp_path: Path) -> None:
+    """A legal 254-byte output name failed: the temporary name added ~30 bytes."""
+    name = "a" * 250 + ".csv"
+    p = tmp_path / name
+    seen: list[str] = []
+    with atomic_open(p) as fh:
+        fh.write("x\n")
+        seen = temps(tmp_path)
+    assert p.read_text() == "x\n" and temps(tmp_path) == []
+    assert len(seen) == 1 and len(seen[0].encode()) <= os.pathconf(tmp_path, "PC_NAME_MAX")
+
+
+def test_errors_name_the_output_not_the_temporary_file(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    p = tmp_path / "out.csv"
+
+    def refuse(src: str, dst: str) -> None:
+        raise PermissionError(13, "Permission denied", src)
+
+    monkeypatch.setattr(os, "replace", refuse)
+    with pytest.raises(PermissionError) as e:
+        atomic_write(p, "x\n")
+    assert e.value.filename == str(p) and TMP_PREFIX not in str(e.value)
+    monkeypatch.undo()
+
+    def full(fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError, match="No space left") as e:
+        atomic_write(p, "x\n")
+    assert str(p) in str(e.value)
+    monkeypatch.undo()
+    assert temps(tmp_path) == [] and not p.exists()
+    # Written through (a device): a full disk names the device.
+    with pytest.raises(OSError, match="No space left") as e:
+        atomic_write("/dev/full", "x" * 100_000)
+    assert "/dev/full" in str(e.value)
+
+
+def test_dev_stdout_is_written_through() -> None:
+    """The module doc says /dev/stdout is written through; it was refused as a symlink."""
+    code = "from accelcal._files import atomic_write; atomic_write('/dev/stdout', 'hello\\n')"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "hello\n"

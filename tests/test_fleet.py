@@ -1204,3 +1204,116 @@ def test_fleet_files_and_tables_record_how_they_were_made(fleet: dict[str, Any],
     want = (f"another calibration of {recs[0].path} (other settings: detector window_s 1.0 "
             "(this run: 0.5) and detector k 6.0 (this run: 20.0))")
     assert want in text, text
+
+
+# ---- files beside the table, files that cannot be written -----------------------------------
+def _sha(p: Path) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def test_the_table_never_replaces_a_file_it_was_not_told_to(fleet: dict[str, Any],
+                                                            tmp_path: Path) -> None:
+    """`--summary results.parquet` also wrote results.csv, replacing the user's own
+    results.csv without a word (and `--summary t.csv` replaced t.parquet). Now a file beside
+    the table that is not a fleet table stops the run before any work, named, unless
+    --overwrite; a fleet table written before is replaced (a rerun)."""
+    a = _good(fleet, 1)[0]
+    mine = tmp_path / "results.csv"
+    mine.write_text("my hand-written results, not a fleet table\n")
+    before = _sha(mine)
+    out = tmp_path / "cals"
+    with pytest.raises(ac.CalibrationError) as e:
+        ac.calibrate_many([a], g=G0, out=out, summary=tmp_path / "results.parquet",
+                          workers=1, progress=False)
+    assert str(e.value) == (
+        f"{str(mine)!r} exists and is not a fleet table: summary= {tmp_path / 'results.parquet'}"
+        f" writes it beside {tmp_path / 'results.parquet'} (the table is written as Parquet "
+        "and as CSV), which would replace it. Move it, choose another summary=, or give "
+        "overwrite=True to replace it; nothing was done")
+    assert _sha(mine) == before and not out.exists()
+    assert not (tmp_path / "results.parquet").exists()
+    # the command line: --summary t.csv and a t.parquet of the user's; then --overwrite
+    other = tmp_path / "t.parquet"
+    other.write_bytes(b"keep me")
+    code, txt = _cli("calibrate", "static", a, "--g", str(G0), "--summary",
+                     str(tmp_path / "t.csv"), "--quiet")
+    assert code == 2 and f"{str(other)!r} exists and is not a fleet table: --summary " in txt
+    assert "give --overwrite to replace it; nothing was done" in txt
+    assert other.read_bytes() == b"keep me" and not (tmp_path / "t.csv").exists()
+    code, txt = _cli("calibrate", "static", a, "--g", str(G0), "--summary",
+                     str(tmp_path / "t.csv"), "--quiet", "--overwrite")
+    assert code == 0, txt
+    assert read_fleet_table(other).loc[0, "path"] == a
+    # a fleet table there (this run's own, a rerun) is replaced without --overwrite
+    code, txt = _cli("calibrate", "static", a, "--g", str(G0), "--summary",
+                     str(tmp_path / "t.parquet"), "--quiet")
+    assert code == 0, txt
+    # --out alone: fleet.csv there that is not a fleet table is kept
+    (out / "fleet.csv").parent.mkdir()
+    (out / "fleet.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ac.CalibrationError, match=r"fleet.csv' exists and is not a fleet "
+                       r"table: out= writes the table there"):
+        ac.calibrate_many([a], g=G0, out=out, workers=1, progress=False)
+    assert (out / "fleet.csv").read_text() == "a,b\n1,2\n" and not list(out.glob("*.json"))
+
+
+def test_a_calibration_file_that_cannot_be_written_is_its_rows_error(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    """A calibration file whose name is too long for the file system (also: disk full, no
+    permission) was taken for a dead worker: a 5 s wait and "the worker process ... died";
+    with workers=1 the whole run stopped without a table. Now it is that row's error, naming
+    the file and the OS error, and the run goes on."""
+    a, b = _good(fleet, 2)
+    long_id = "b" * 250
+    man = pd.DataFrame({"path": [a, b], "sensor_id": [long_id, "short"],
+                        "date": ["2026-11-21", "2026-11-21"]})
+    for workers in (1, 2):
+        out = tmp_path / f"cals{workers}"
+        df = ac.calibrate_many(man, g=G0, out=out, workers=workers, progress=False)
+        name = out / f"{long_id}_20261121T000000Z.json"
+        assert df.loc[0, "status"] == "error" and df.loc[0, "cal_file"] == ""
+        assert df.loc[0, "message"].startswith(
+            f"the calibration file {name} could not be written ([Errno 36] File name too "
+            "long); the fit is in this row"), df.loc[0, "message"]
+        assert np.isfinite(df.loc[0, "sx"])
+        assert df.loc[1, "status"] == "ok" and Path(df.loc[1, "cal_file"]).is_file()
+        assert read_fleet_table(out / "fleet.parquet")["status"].tolist() == ["error", "ok"]
+
+
+def test_a_full_disk_names_the_file_and_keeps_what_it_can(
+        fleet: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run that filled the disk ended with "[Errno 28] No space left on device" alone.
+    Now each calibration file that could not be written is its row's error, the table's
+    other file is still written, and the error names what failed and what was written."""
+    import errno
+
+    from accelcal import fleet as fleet_mod
+
+    a, b = _good(fleet, 2)
+    real_create, real_write = fleet_mod.atomic_create, fleet_mod.atomic_write
+    full = {"on": False}
+
+    def create(path: Any, data: Any) -> bool:
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path) + ".tmp")
+        full["on"] = True  # the first file fits; then the disk is full
+        return real_create(path, data)
+
+    def write(path: Any, data: Any) -> Path:
+        if str(path).endswith(".parquet"):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path) + ".tmp")
+        return real_write(path, data)
+
+    monkeypatch.setattr(fleet_mod, "atomic_create", create)
+    monkeypatch.setattr(fleet_mod, "atomic_write", write)
+    out = tmp_path / "cals"
+    with pytest.raises(ac.CalibrationError) as e:
+        ac.calibrate_many([a, b], g=G0, out=out, workers=1, progress=False)
+    assert str(e.value) == (
+        f"could not write the table: {out / 'fleet.parquet'} ([Errno 28] No space left on "
+        f"device); wrote {out / 'fleet.csv'}; the calibration files written (1) are in {out}")
+    df = read_fleet_table(out / "fleet.csv")
+    assert df["status"].tolist() == ["ok", "error"]
+    assert Path(df.loc[0, "cal_file"]).is_file() and df.loc[1, "cal_file"] == ""
+    assert re.match(rf"the calibration file {re.escape(str(out))}/\S+\.json could not be "
+                    r"written \(\[Errno 28\] No space left on device\)", df.loc[1, "message"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -2174,3 +2175,41 @@ def test_a_transposed_array_is_named_as_such(tmp_path: Path) -> None:
     np.testing.assert_array_equal(st.samples, s.samples)
     fit = ac.fit_static(detect_dwells(st), s.g, observability="ignore")
     assert np.all(np.abs(fit.vector - s.truth) < 5 * fit.std)
+
+
+OOM_PUSH = """
+import resource, sys
+import numpy as np
+from accelcal._core import RawDwellAccumulator
+
+acc = RawDwellAccumulator(fs=100.0, block_s=0.02)  # a block every 2 samples
+x = np.zeros((500_000, 3))
+x[:, 2] = 9.81
+acc.push(x)
+with open("/proc/self/status") as fh:
+    vm = next(int(ln.split()[1]) for ln in fh if ln.startswith("VmSize:")) * 1024
+resource.setrlimit(resource.RLIMIT_AS, (vm + (200 << 20), resource.RLIM_INFINITY))
+pushed = acc.position
+try:
+    for _ in range(400):
+        acc.push(x)
+        pushed = acc.position
+except MemoryError as e:
+    print("MemoryError:", e)
+    print("unchanged" if acc.position == pushed else "changed")
+    sys.exit(0)
+print("no error")
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_AS, /proc")
+def test_core_out_of_memory_is_a_memory_error_not_an_abort() -> None:
+    """The dwell detector's block statistics grew until the allocator failed, which aborted
+    the process ('memory allocation of N bytes failed', exit 134)."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-c", OOM_PUSH], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr[-1000:])
+    assert "MemoryError: out of memory: the dwell detector's block statistics" in r.stdout
+    assert "bytes)" in r.stdout and "unchanged" in r.stdout, r.stdout

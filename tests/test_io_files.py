@@ -214,3 +214,60 @@ def test_ambiguous_dates_are_refused(tmp_path: Path) -> None:
         read_stream(p)
     s = read_stream(p, time_column="none", fs=1)
     np.testing.assert_allclose(s.samples, a, atol=1e-6)
+
+
+def test_a_first_line_longer_than_the_head_is_said_so(tmp_path: Path) -> None:
+    """One line longer than the 2 MB first block (or a CR-only file) was reported as
+    'no numeric data rows (only blank lines)'."""
+    one = tmp_path / "oneline.csv"
+    one.write_text(",".join(["1.0"] * 800_000))  # 3.2 MB, no line end
+    with pytest.raises(CalibrationError, match=r"no line end found in the first \d+ bytes"):
+        read_stream(one, fs=100)
+    cr = tmp_path / "cr.txt"
+    cr.write_bytes(b"ax,ay,az\r" + b"0.1,0.2,9.8\r" * 250_000)  # 3 MB of CR-ended lines
+    with pytest.raises(CalibrationError, match="carriage return alone") as e:
+        read_stream(cr, fs=100)
+    assert "blank lines" not in str(e.value)
+
+
+def test_a_full_temporary_folder_is_named_when_expanding_gzip(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full temporary folder while expanding a .gz blamed the input ('cannot decompress
+    it')."""
+    import errno
+    import gzip
+    import shutil
+    import tempfile
+
+    gz = tmp_path / "rec.csv.gz"
+    with gzip.open(gz, "wt") as fh:
+        fh.write("ax,ay,az\n" + "0.1,0.2,9.8\n" * 1000)
+
+    def full(src: object, dst: object, length: int = 0) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(shutil, "copyfileobj", full)
+    with pytest.raises(CalibrationError, match="temporary folder .* is full") as e:
+        read_stream(gz, fs=100)
+    assert tempfile.gettempdir() in str(e.value) and "TMPDIR" in str(e.value)
+
+
+def test_hdf5_declaring_more_samples_than_it_holds_is_refused(tmp_path: Path) -> None:
+    """A 1.5 KB HDF5 file declaring 2e9 samples (no chunk written: all fill value) was read
+    through, the dwell statistics growing until the process aborted."""
+    h5py = pytest.importorskip("h5py")
+    chunked = tmp_path / "chunked.h5"
+    with h5py.File(chunked, "w") as f:
+        f.create_dataset("samples", shape=(200_000, 3), dtype="f8", chunks=(65536, 3),
+                         fillvalue=9.81 / 3 ** 0.5)
+    contiguous = tmp_path / "contiguous.h5"
+    with h5py.File(contiguous, "w") as f:
+        f.create_dataset("samples", shape=(200_000, 3), dtype="f8")
+    for p in (chunked, contiguous):
+        with pytest.raises(CalibrationError, match="declares .* but the file holds"):
+            read_stream(p, fs=100)
+    good = tmp_path / "good.h5"
+    with h5py.File(good, "w") as f:
+        f.create_dataset("samples", data=np.tile([0.0, 0.0, 9.81], (1000, 1)),
+                         chunks=(256, 3))
+    assert read_stream(good, fs=100).samples.shape == (1000, 3)

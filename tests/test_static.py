@@ -98,6 +98,23 @@ def test_dwells_within_a_few_degrees_are_refused_not_fitted_to_a_collapsed_ellip
     assert list(b.state) == ["degenerate"] * 30
 
 
+@pytest.mark.parametrize("sigma", [1e-3, None])
+def test_a_dwell_that_cannot_be_at_rest_is_named_by_the_api(sigma):
+    """One dwell mean zeroed (a logger writing zeros) among 20: chi2/dof 4e6 and sy 3000 std
+    off, and fit_static said nothing with sigma given (the command line leaves such dwells
+    out)."""
+    s = static_dwell_means(20, rng=2, max_tilt_deg=None)
+    m = s.means.copy()
+    m[3] = 0.0
+    with pytest.warns(ac.OffNormWarning, match=r"\b3\b.*leave them out"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", WeakDesignWarning)
+            ac.fit_static(m, s.g_measured, sigma=sigma)
+    # Without it: no warning (filterwarnings=error), the fit as before.
+    f = ac.fit_static(np.delete(m, 3, axis=0), s.g_measured, sigma=1e-3)
+    assert np.all(np.abs(f.vector - s.truth) < 5 * f.std)
+
+
 # ---- maximum likelihood against an independent SciPy fit ----------------------------------
 @pytest.mark.parametrize("noise", ["known", "estimated"])
 @pytest.mark.parametrize("model", ["lower", "upper"])

@@ -640,3 +640,99 @@ def _ctor_refusal(K, b) -> str:
     with pytest.raises(CalibrationError, match="wrong triangle or wrong model") as err:
         ac.TriadModel(K, b)
     return str(err.value)
+
+
+def _history(folder) -> tuple:
+    """Two calibrations of S1 (2021, 2022) in ``folder``: (old path, new path)."""
+    K = np.eye(3)
+    old = ac.TriadModel(K, [0.1, 0, 0], sensor_id="S1", date=dt.datetime(2021, 1, 1))
+    new = ac.TriadModel(K, [0.2, 0, 0], sensor_id="S1", date=dt.datetime(2022, 1, 1))
+    for m in (old, new):
+        m.save(folder / m.default_filename())
+    return folder / old.default_filename(), folder / new.default_filename()
+
+
+def test_find_does_not_pass_over_a_calibration_it_cannot_read(tmp_path, monkeypatch):
+    """The newest calibration unreadable (mode 000, as a user without the right): find
+    skipped it in silence and returned the older one. Now it raises, naming the file. (The
+    read is made to fail by hand: running as root bypasses file permissions.)"""
+    import errno
+
+    from accelcal import _triad_model
+
+    _, new = _history(tmp_path)
+    real = _triad_model.read_small_text
+
+    def read(path, what, *a):
+        if str(path) == str(new):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real(path, what, *a)
+
+    monkeypatch.setattr(_triad_model, "read_small_text", read)
+    with pytest.raises(CalibrationError) as e:
+        ac.TriadModel.find(tmp_path, "S1")
+    assert str(e.value) == (f"cannot read {str(new)!r} (Permission denied), which may be a "
+                            "calibration of sensor 'S1': make it readable, or move it out of "
+                            "the folder")
+
+
+def test_find_reads_only_regular_files(tmp_path):
+    """A FIFO named *.json hung find for ever, and a *.json link to /dev/zero ate all memory
+    (MemoryError with an empty message). Now only regular files are read; what was skipped is
+    named when no calibration qualifies."""
+    import os
+    import signal
+
+    old, new = _history(tmp_path)
+    os.mkfifo(tmp_path / "zz.json")
+    os.symlink("/dev/zero", tmp_path / "b.json")
+    os.symlink(tmp_path / "gone", tmp_path / "c.json")
+    def hung(signum, frame):
+        raise TimeoutError("find hung")
+
+    old_handler = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(20)  # a hang fails the test instead of blocking the run
+    try:
+        assert ac.TriadModel.find(tmp_path, "S1").bias[0] == 0.2
+        with pytest.raises(CalibrationError) as e:
+            ac.TriadModel.find(tmp_path, "S2")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old_handler)
+    assert str(e.value).startswith("no calibration of sensor 'S2' dated at or before ")
+    assert str(e.value).endswith(
+        f" in {str(tmp_path)!r} (0 later; skipped, not read: {str(tmp_path / 'b.json')!r} (a "
+        f"character device), {str(tmp_path / 'c.json')!r} (a broken link), "
+        f"{str(tmp_path / 'zz.json')!r} (a FIFO (named pipe)))")
+
+
+def test_load_refuses_a_device_and_a_file_too_large(tmp_path):
+    """`accelcal apply /dev/zero ...` (TriadModel.load of a device) read without end."""
+    with pytest.raises(CalibrationError) as e:
+        ac.TriadModel.load("/dev/zero")
+    assert str(e.value) == "calibration file '/dev/zero' is a character device, not a file"
+    big = tmp_path / "big.json"
+    with open(big, "wb") as fh:
+        fh.truncate(100 << 20)  # sparse
+    with pytest.raises(CalibrationError, match=r"holds 104857600 bytes, more than the 64 MB"):
+        ac.TriadModel.load(big)
+
+
+def test_save_without_overwrite_never_replaces_a_file(tmp_path):
+    """save(path, overwrite=False) links the complete file to its name: a file there (one
+    another run wrote meanwhile) is kept, byte for byte, and nothing else is left behind."""
+    import errno
+    import os
+
+    m = ac.TriadModel(np.eye(3), [0.1, 0, 0], sensor_id="S1")
+    p = tmp_path / "cal.json"
+    p.write_text("theirs")
+    with pytest.raises(FileExistsError) as e:
+        m.save(p, overwrite=False)
+    assert e.value.errno == errno.EEXIST and e.value.filename == str(p)
+    assert p.read_text() == "theirs" and sorted(os.listdir(tmp_path)) == ["cal.json"]
+    q = tmp_path / "new.json"
+    m.save(q, overwrite=False)
+    assert ac.TriadModel.load(q) == m
+    m.save(p)  # the default replaces, as before
+    assert ac.TriadModel.load(p) == m

@@ -56,6 +56,7 @@ from .gradiometer import (
 from .io import read_stream
 from .static import (
     BatchFit,
+    OffNormWarning,
     StaticFit,
     TriadModel,
     WeakDesignWarning,
@@ -107,6 +108,7 @@ __all__ = [
     "Prediction",
     "StaticFit",
     "TriadModel",
+    "OffNormWarning",
     "WeakDesignWarning",
     "fit_static",
     "fit_static_batch",

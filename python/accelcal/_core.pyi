@@ -633,7 +633,7 @@ class GapRaw:
     @property
     def p_after(self) -> float: ...
     @property
-    def ambiguous(self) -> list[tuple[str, str, float]]: ...
+    def ambiguous(self) -> list[tuple[str, str, float, float]]: ...
     @property
     def loo(self) -> GapHeldOut | None: ...
     @property
@@ -684,6 +684,7 @@ def gap_diagnose_centrifuge(
     spin_axis: NDArray[np.float64] | None = None,
     sigma_norm: NDArray[np.float64] | None = None,
     sigma_axis: NDArray[np.float64] | None = None,
+    t: NDArray[np.float64] | None = None,
 ) -> GapRaw:
     """Centrifuge gap diagnosis (outputs in g, omega rad/s, radius m)."""
 

@@ -4,10 +4,12 @@ look-up of the calibration valid at a time."""
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import hashlib
 import json
 import math
 import os
+import stat
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
@@ -19,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _core, _quiet
 from ._core import CalibrationError
-from ._files import atomic_write
+from ._files import atomic_create, atomic_write, file_kind, read_small_text
 from ._plain import plain
 from ._triad import MODELS, PARAM_NAMES, k_matrix, n_params, vector_from_k
 from ._validate import numeric_array, samples_array
@@ -563,9 +565,18 @@ class TriadModel:
         self.from_dict(json.loads(text), "the model to write")
         return text
 
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model as JSON, atomically, after the checks of :meth:`to_json`."""
-        atomic_write(path, self.to_json())
+    def save(self, path: str | os.PathLike[str], *, overwrite: bool = True) -> None:
+        """Write the model as JSON, atomically, after the checks of :meth:`to_json`.
+
+        ``overwrite=False`` never replaces a file: the complete file is linked to its name,
+        which fails when the name exists, even when another process creates it at the same
+        moment (FileExistsError naming the path; nothing written)."""
+        if overwrite:
+            atomic_write(path, self.to_json())
+            return
+        if not atomic_create(path, self.to_json()):
+            raise FileExistsError(errno.EEXIST, "the file exists (a calibration is not "
+                                  "replaced unless overwrite=True)", os.fspath(path))
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "model") -> TriadModel:
@@ -649,8 +660,9 @@ class TriadModel:
         """Read and validate a model written by :meth:`save` (versions 1 and 2)."""
         src = repr(str(path))
         try:
-            with open(path, encoding="utf-8-sig") as fh:  # a BOM, as Notepad saves it
-                d = json.load(fh)
+            # A BOM dropped, as Notepad saves it; a device (/dev/zero) or a file of more than
+            # 64 MB refused, not read without end.
+            d = json.loads(read_small_text(path, "calibration file"))
         except OSError as e:
             raise CalibrationError(f"cannot read model {src}: {e.strerror}") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -671,7 +683,11 @@ class TriadModel:
 
         JSON files that are not TriadModel files are skipped; a TriadModel file of this
         sensor that fails validation raises (a corrupt calibration is never passed over
-        silently). A CalibrationError says what was found when no file qualifies.
+        silently), and so does a ``*.json`` file that cannot be read (permissions: it may
+        be this sensor's newest calibration). Only regular files are read (a link is
+        followed): a FIFO, a device or a broken link named ``*.json`` is skipped, and named
+        when no file qualifies. A CalibrationError says what was found when no file
+        qualifies.
         """
         root = Path(folder)
         if not root.is_dir():
@@ -680,10 +696,10 @@ class TriadModel:
         files = sorted(root.rglob("*.json") if recursive else root.glob("*.json"))
         best: tuple[_dt.datetime, Path] | None = None
         later: list[_dt.datetime] = []
+        skipped: list[str] = []  # not regular files, or too large to be a calibration
         for f in files:
-            try:
-                text = f.read_text(encoding="utf-8-sig")  # a BOM, as load reads it
-            except (OSError, ValueError):
+            text = cls._find_text(f, sensor_id, skipped)
+            if text is None:
                 continue
             try:
                 d = json.loads(text)
@@ -714,11 +730,50 @@ class TriadModel:
             extra = (
                 f"; the earliest is dated {iso_utc(min(later))}" if later else ""
             )
+            more = f" and {len(skipped) - 3} more" if len(skipped) > 3 else ""
+            left = (f"; skipped, not read: {', '.join(skipped[:3])}{more}" if skipped
+                    else "")
             raise CalibrationError(
                 f"no calibration of sensor {sensor_id!r} dated at or before {iso_utc(when)} in "
-                f"{str(folder)!r} ({len(later)} later{extra})"
+                f"{str(folder)!r} ({len(later)} later{extra}{left})"
             )
         return cls.load(best[1])
+
+    @staticmethod
+    def _unreadable(f: Path, e: OSError, sensor_id: str) -> CalibrationError:
+        """For :meth:`find`: a ``*.json`` file it cannot read, which may be the sensor's
+        newest calibration."""
+        return CalibrationError(
+            f"cannot read {str(f)!r} ({e.strerror or e}), which may be a calibration of "
+            f"sensor {sensor_id!r}: make it readable, or move it out of the folder")
+
+    @staticmethod
+    def _find_text(f: Path, sensor_id: str, skipped: list[str]) -> str | None:
+        """The text of ``f`` for :meth:`find`: None for a file that cannot be a calibration
+        (a folder; not text; a FIFO, a device, a broken link or a file of more than 64 MB,
+        which are also listed in ``skipped``); a file that cannot be read raises, naming
+        it."""
+        try:
+            st = f.stat()  # the link's target
+        except FileNotFoundError:
+            skipped.append(f"{str(f)!r} (a broken link)")
+            return None
+        except OSError as e:
+            raise TriadModel._unreadable(f, e, sensor_id) from None
+        if stat.S_ISDIR(st.st_mode):
+            return None
+        if not stat.S_ISREG(st.st_mode):
+            skipped.append(f"{str(f)!r} ({file_kind(st.st_mode)})")
+            return None
+        try:
+            return read_small_text(f, "calibration file")  # a BOM, as load reads it
+        except CalibrationError:  # grew past the limit: not a calibration
+            skipped.append(f"{str(f)!r} (more than 64 MB)")
+            return None
+        except UnicodeDecodeError:
+            return None
+        except OSError as e:
+            raise TriadModel._unreadable(f, e, sensor_id) from None
 
     # -- comparison over time ------------------------------------------------------------
     def compare(

@@ -14,6 +14,7 @@ Needs the ``fleet`` extra (pandas, pyarrow for Parquet, Dask for clusters):
 from __future__ import annotations
 
 import collections
+import csv as csv_module
 import glob as _glob
 import io as _io
 import itertools
@@ -34,7 +35,7 @@ import numpy as np
 
 from . import _quiet
 from ._core import CalibrationError, DegenerateDataError
-from ._files import atomic_create, atomic_write, file_record
+from ._files import atomic_create, atomic_write, file_kind, file_record
 from ._triad import MODELS, PARAM_NAMES
 from .io import file_stem
 
@@ -838,17 +839,20 @@ def _run_pool(jobs: list[_Job], workers: int, done: Done, bar: Any) -> None:
             for w in list(pool):
                 if w.conn not in ready and w.proc.sentinel not in ready:
                     continue
-                job, eof = w.job, False
+                job, eof, res = w.job, False, None
                 try:
                     if w.conn.poll():
                         res = w.conn.recv()
-                        assert job is not None
-                        w.job, w.results, n_done = None, w.results + 1, n_done + 1
-                        done(job, res)
-                        bar.update(1)
-                        continue
-                except (EOFError, OSError):
+                except (EOFError, OSError):  # the pipe broke: the worker died
                     eof = True
+                if res is not None:
+                    # (Outside the try: an error in the caller's hands, such as a file it
+                    # cannot write, is not a worker's death.)
+                    assert job is not None
+                    w.job, w.results, n_done = None, w.results + 1, n_done + 1
+                    done(job, res)
+                    bar.update(1)
+                    continue
                 if not eof and w.proc.sentinel not in ready:
                     continue
                 # The worker died.
@@ -1142,6 +1146,10 @@ def _holder(path: Path, model: Any) -> str:
     return f"another calibration of {src} (other settings)"
 
 
+class _SaveError(OSError):
+    """A calibration file that could not be written; ``filename`` is its name."""
+
+
 def _save_new(model: Any, folder: Path, used: set[str],
               names: dict[str, str]) -> tuple[Path, str, bool]:
     """Write a calibration file into ``folder`` without ever replacing a file there.
@@ -1166,7 +1174,11 @@ def _save_new(model: Any, folder: Path, used: set[str],
         target = folder / name
         # Complete under a temporary name, then linked to its name: a reader (or another
         # run) sees no half file, and a file of that name is never replaced.
-        if atomic_create(target, data):
+        try:
+            created = atomic_create(target, data)
+        except OSError as e:  # named after the calibration file, not the temporary one
+            raise _SaveError(e.errno, e.strerror, str(target)) from e
+        if created:
             same = False
             break
         if _same_bytes(target, data):
@@ -1189,6 +1201,67 @@ def _summary_paths(summary: str | os.PathLike[str]) -> tuple[Path, Path]:
     return p, p.with_suffix(".csv")
 
 
+#: Columns that every fleet table this tool writes has (and a table of other results, in all
+#: likelihood, has not): what tells a fleet table from another file of that name.
+_TABLE_MARK = ("sensor_id", "path", "status", "message", "n_dwells", "chi2_dof", "cal_file")
+
+
+def _is_fleet_table(path: Path) -> bool:
+    """Whether the regular file ``path`` is a fleet table (Parquet or CSV) this tool wrote:
+    it has the table's columns (a CSV after its ``# key: value`` lines)."""
+    try:
+        if path.suffix.lower() == ".csv":
+            with open(path, encoding="utf-8", errors="replace", newline="") as fh:
+                line = fh.readline(1 << 20)
+                while line.startswith("#"):  # the run's record (a long command line too)
+                    while line and not line.endswith("\n"):
+                        line = fh.readline(1 << 20)
+                    line = fh.readline(1 << 20)
+            cols = next(csv_module.reader([line.rstrip("\r\n")]), [])
+        else:
+            import pyarrow.parquet as pq
+
+            cols = list(pq.read_schema(path).names)
+    except Exception:  # noqa: BLE001 - unreadable, not Parquet, no pyarrow: not recognised
+        return False
+    return set(_TABLE_MARK) <= set(cols)
+
+
+def _check_table_paths(summary: str | os.PathLike[str], named: bool, overwrite: bool,
+                       names: dict[str, str]) -> None:
+    """Before any work: the table's files may be written. The file the caller named is
+    replaced (atomically); the other one (the CSV beside a Parquet table, and both in ``out``
+    when no table was named) only when it is a fleet table written before, or ``overwrite``:
+    a file the caller did not name is never replaced silently. A symbolic link or a folder in
+    the way is refused here rather than after the run."""
+    pq, csv = _summary_paths(summary)
+    given = Path(summary) if named else None
+    over = "--overwrite" if names is _CLI_NAMES else "overwrite=True"
+    for p in (pq, csv):
+        try:
+            st = os.lstat(p)
+        except OSError:
+            continue  # missing (or unreachable: the write says why)
+        if stat.S_ISLNK(st.st_mode):
+            raise CalibrationError(
+                f"{names['summary']}: {str(p)!r} is a symbolic link to {os.readlink(p)!r}; "
+                "the table is not written through a link: give another name (or the link's "
+                "target); nothing was done")
+        if stat.S_ISDIR(st.st_mode):
+            raise CalibrationError(f"{names['summary']}: {str(p)!r} is a folder; give "
+                                   "another name; nothing was done")
+        if p == given or overwrite or (stat.S_ISREG(st.st_mode) and _is_fleet_table(p)):
+            continue
+        what = ("not a fleet table" if stat.S_ISREG(st.st_mode)
+                else file_kind(st.st_mode))
+        why = (f"{names['summary']} {summary} writes it beside {given}" if given else
+               f"{names['out']} writes the table there")
+        raise CalibrationError(
+            f"{str(p)!r} exists and is {what}: {why} (the table is written as Parquet and as "
+            f"CSV), which would replace it. Move it, choose another {names['summary']}, or "
+            f"give {over} to replace it; nothing was done")
+
+
 #: The run's attrs a fleet table file records (Parquet: key-value metadata ``accelcal_<key>``
 #: besides pandas' own copy of the attrs; CSV: leading ``# key: value`` lines).
 _RUN_ATTRS = ("accelcal_version", "detector", "command")
@@ -1204,7 +1277,40 @@ def _run_lines(df: Any) -> list[tuple[str, str]]:
     return out
 
 
-def _write_table(df: Any, parquet: Path, csv: Path, names: dict[str, str]) -> None:
+def _write_table(df: Any, parquet: Path, csv: Path, names: dict[str, str],
+                 folder: Path | None = None, written: Sequence[str] = ()) -> None:
+    """Write the table as Parquet and as CSV. When a file cannot be written (disk full, no
+    permission) the other is still tried, and one CalibrationError names what could not be
+    written, what was, and the calibration files ``written`` into ``folder``."""
+    buf = _table_parquet(df, names)
+    head = "".join(f"# {k}: {' '.join(v.split())}\n" for k, v in _run_lines(df))
+    ok: list[str] = []
+    failed: list[str] = []
+    for path, data in ((parquet, buf), (csv, head + df.to_csv(index=False))):
+        try:
+            atomic_write(path, data)
+            ok.append(str(path))
+        except OSError as e:
+            failed.append(f"{path} ({_os_error(e)})")
+    if not failed:
+        return
+    msg = f"could not write the table: {' and '.join(failed)}"
+    if ok:
+        msg += f"; wrote {ok[0]}"
+    if folder is not None:
+        msg += (f"; the calibration files written ({len(written)}) are in {folder}"
+                if written else f"; no calibration file was written to {folder}")
+    raise CalibrationError(msg)
+
+
+def _os_error(e: OSError) -> str:
+    """An OSError without the (temporary) file name it carries: ``[Errno 28] No space left
+    on device``."""
+    return f"[Errno {e.errno}] {e.strerror}" if e.strerror else str(e)
+
+
+def _table_parquet(df: Any, names: dict[str, str]) -> bytes:
+    """The Parquet bytes of the table, the run's record in its key-value metadata."""
     buf = _io.BytesIO()
     try:
         df.to_parquet(buf, index=False)
@@ -1224,9 +1330,7 @@ def _write_table(df: Any, parquet: Path, csv: Path, names: dict[str, str]) -> No
             f"writing {names['summary']} as Parquet needs pyarrow: pip install "
             f"'accelcal[fleet]' ({e})"
         ) from None
-    atomic_write(parquet, buf.getvalue())
-    head = "".join(f"# {k}: {' '.join(v.split())}\n" for k, v in _run_lines(df))
-    atomic_write(csv, head + df.to_csv(index=False))
+    return buf.getvalue()
 
 
 def _comment_lines(path: str) -> list[str]:
@@ -1306,6 +1410,7 @@ def calibrate_many(
     check_g: bool = True,
     means: bool = False,
     sigma_g: float | None = None,
+    overwrite: bool = False,
     _cli: bool = False,
     _command: str | None = None,
 ) -> Any:
@@ -1357,10 +1462,13 @@ def calibrate_many(
         the content this run would write (the same recording, by path and by the SHA-256 the
         file records in ``metadata["source_sha256"]``, the same settings and result) is kept
         as it is and named in ``cal_file``. The table is also written there as
-        ``fleet.parquet`` and ``fleet.csv`` (replaced by each run) unless ``summary`` says
-        otherwise.
+        ``fleet.parquet`` and ``fleet.csv`` (replaced by each run; a file of that name that
+        is not a fleet table is not: see ``summary``) unless ``summary`` says otherwise.
     summary : path of the table (Parquet; the CSV is written beside it with a ``.csv``
-        suffix), written atomically.
+        suffix), written atomically. The file named is replaced; the other one (and both
+        ``fleet.*`` files in ``out``) only when it is a fleet table written before (it has
+        the table's columns) or ``overwrite``: another file there is refused before any
+        work (CalibrationError naming it).
     progress : progress bar over recordings on stderr: True, False, or None (only when stderr
         is a terminal).
     check_g : refuse a reference gravity outside 9.74-9.85 m/s^2 (default), as
@@ -1368,6 +1476,8 @@ def calibrate_many(
     means : every recording is a table of dwell means, one pose per row (as ``--means`` for
         one file); without it such a table is recognised only when its rate is unknown and
         its rows step from attitude to attitude.
+    overwrite : let the table replace a file beside it that is not a fleet table (see
+        ``summary``); calibration files are never replaced.
 
     Returns
     -------
@@ -1375,7 +1485,9 @@ def calibrate_many(
         One row per recording, in input order: ``sensor_id``, ``path``, ``status`` (``ok``,
         ``weak``, ``misfit`` (residual RMS above ``MISFIT_RMS_G`` g and chi2/dof above
         ``MISFIT_CHI2_DOF``, the noise known: a faulty unit; the fit is in the row, no file
-        written), ``degenerate`` or ``error``), ``message`` (why, for anything but ``ok``),
+        written), ``degenerate`` or ``error`` (also a fit whose calibration file could not
+        be written: disk full, no permission, a name too long; the message names the file and
+        the fit stays in the row)), ``message`` (why, for anything but ``ok``),
         ``n_dwells``, ``n_samples``, ``duration_s``, ``fs_hz``, ``g_mps2``, ``g_source``,
         ``sigma_g_mps2`` (0: g taken as exact), ``model``, ``method``, each parameter
         ``sx ... m3`` with ``<name>_std`` (the
@@ -1392,7 +1504,9 @@ def calibrate_many(
     ------
     CalibrationError
         Only for the call itself (no gravity anywhere, unknown model or method, no
-        recordings, an unreachable scheduler, an output that would overwrite an input).
+        recordings, an unreachable scheduler, an output that would overwrite an input or a
+        file that is not a fleet table), and when the table cannot be written (the message
+        names the file, the OS error and the calibration files written).
     """
     names = _names(_cli)
     _need_pandas()
@@ -1431,13 +1545,16 @@ def calibrate_many(
                       time_column=time_column, model=model, method=method, detector=det,
                       diagnose=diagnose, cli=_cli, check_g=check_g, means=means,
                       sigma_g=sigma_g)
+    named = summary is not None
     if summary is None and out is not None:
         summary = Path(out) / "fleet.parquet"
     if summary is not None:
         _check_outputs(list(_summary_paths(summary)), jobs, sources, names)
+        _check_table_paths(summary, named, overwrite, names)
 
     results: list[Result | None] = [None] * len(jobs)
     kept: list[str] = []
+    written: list[str] = []  # the calibration files this run wrote
     used: set[str] = set()
     folder = None if out is None else Path(out)
     first_unsaved = 0  # the calibration files are written in input order (-2 names alike)
@@ -1452,12 +1569,20 @@ def calibrate_many(
             model_obj.metadata["command"] = _command
         model_obj.metadata["written"] = iso_utc(None)
         _check_outputs([folder / _cal_name(model_obj)], jobs, sources, names)
-        folder.mkdir(parents=True, exist_ok=True)
-        path, note, same = _save_new(model_obj, folder, used, names)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            path, note, same = _save_new(model_obj, folder, used, names)
+        except OSError as e:  # disk full, no permission, a name too long: this row's error
+            what = (f"the calibration file {e.filename} could not be written"
+                    if isinstance(e, _SaveError) else f"the folder {folder} could not be made")
+            row["status"] = "error"
+            row["message"] = "; ".join(x for x in (
+                f"{what} ({_os_error(e)}); the fit is in this row", row.get("message") or "")
+                if x)
+            return
         row["cal_file"] = str(path)
         _add_note(row, note)
-        if same:
-            kept.append(str(path))
+        (kept if same else written).append(str(path))
 
     def done(j: _Job, res: Result) -> None:
         """Each result as it arrives: its calibration file is written (atomically) as soon
@@ -1486,10 +1611,13 @@ def calibrate_many(
             pq, csv = _summary_paths(summary)
             df = _table([results[i] for i in finished], [jobs[i] for i in finished],  # type: ignore[misc]
                         diagnose, kept, run)
-            _write_table(df, pq, csv, names)
-            what += f": wrote the table of those to {pq} and {csv}"
-            if folder is not None:
-                what += f", and their calibration files to {folder}"
+            try:
+                _write_table(df, pq, csv, names, folder, written)
+                what += f": wrote the table of those to {pq} and {csv}"
+                if folder is not None:
+                    what += f", and their calibration files to {folder}"
+            except CalibrationError as err:
+                what += f": {err}"
         elif finished and folder is not None:
             what += f": wrote their calibration files to {folder}"
         e.args = (what,)
@@ -1497,7 +1625,7 @@ def calibrate_many(
     df = _table(results, jobs, diagnose, kept, run)  # type: ignore[arg-type]
     if summary is not None:
         pq, csv = _summary_paths(summary)
-        _write_table(df, pq, csv, names)
+        _write_table(df, pq, csv, names, folder, written)
     return df
 
 

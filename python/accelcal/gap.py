@@ -91,6 +91,8 @@ _CENTRIFUGE_FIX = {
     "misalignment": "add positions between the axes (45 deg rotations of the fixture)",
     "cross_coupling": "add positions where two axes share the radial force (45 deg)",
     "rate_offset": "add speeds spanning a wider range (a rate offset changes A by 2 dw/w)",
+    "drift": "record the time of every row and revisit early positions and speeds at the end "
+    "(a time-symmetric schedule)",
 }
 _GRADIOMETER_FIX = {
     "drift": "record dwell times and use a time-symmetric (return-to-start) sequence",
@@ -116,11 +118,22 @@ _SEPARATING = {
     "separate K2 (even) from K3 (odd)",
     frozenset({"drift", "settling"}): "random pose order with large and small pose changes "
     "separates settling from drift",
+    frozenset({"k2", "settling"}): "random pose order (step sizes not tied to the poses) "
+    "separates settling from K2",
+    frozenset({"k3", "settling"}): "random pose order (step sizes not tied to the poses) "
+    "separates settling from K3",
 }
 #: Lower-tail probability of the gap's chi2 below which the noise model is called too
 #: pessimistic (chi2 0.63 per dof on 43 dof, the Allan inflation of dwells that held the ends
 #: of slow moves: 6e-32).
 _TOO_PESSIMISTIC = 1e-3
+
+#: Principal-angle cosine above which the engine calls two candidates aliased (its other
+#: ambiguity rule: both significant on their own, BIC within 10, whatever the cosine).
+_AMBIGUITY_COS = _core.GapSettings().ambiguity_cos
+#: Pairwise BIC weight of the best below which a significant other candidate is not told
+#: apart from it (BIC difference 10, "very strong" on the Bayes-factor scale).
+_DISTINCT_WEIGHT = 1.0 / (1.0 + math.exp(-5.0))
 
 #: Fewer residual degrees of freedom than this (dwells beyond the calibration's parameters):
 #: the ambiguity's remedy includes more dwells.
@@ -498,7 +511,13 @@ class GapReport:
         "one_attitude" = a fixed calibration checked at one attitude), p_value (the
         attribution test, named in ``test``: "chi2" or "F"), p_f, p_chi2, bic_weight,
         estimate and std (physical units), unit, sines (identifiability).
-    ambiguous : aliased sets with the experiment that separates them.
+    ambiguous : sets of candidates these data do not tell apart, with the experiment that
+        separates them: "rule" "aliased" (columns nearly parallel: cosine above 0.9, with
+        similar evidence) or "both_significant" (whatever the cosine, the other candidate is
+        significant on its own, p below alpha / M at the first stage, and its BIC is within 10
+        of the best's: "pair_weight", the best's BIC weight against it alone, below 0.993;
+        "significant" gives those candidates' p-values). ``best`` is still the candidate of
+        smallest p.
     blind_spots : effects this session cannot see (never "no effect"), with the reason.
     shrink : G_after / G_before (held out, selection redone in each fold).
     held_out_gap_after, excess_remaining : held-out figures.
@@ -527,7 +546,10 @@ class GapReport:
         it is with the effects found against it; ``bic_refit``: its parameters refitted, with
         the effects found then) gives the attribution: ``attribution`` "refit" (a moved
         calibration's residuals mimic attitude effects: the effects, the figures after them
-        and ``structure`` are the refit's, ``chi2_refit`` and ``dof_refit`` its gap) or
+        and ``structure`` are the refit's, ``chi2_refit`` and ``dof_refit`` its gap,
+        ``g_refit`` its held-out gap without effects: the summary's "How far it shrinks"
+        line goes from the calibration as given through the refit alone to the refit with
+        its effects) or
         "fixed" (a real effect also pulls a refit away; ``alike_cos`` says how alike the two
         explanations are on these poses). The gap figures stay the fixed calibration's.
     """
@@ -681,7 +703,10 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
             "every dwell",
             "constant_temperature": "not testable: temperature constant; heat or cool the "
             "sensor between dwells to test it",
-            "no_time": "not testable: no dwell times t given (this is not 'no effect')",
+            "no_time": ("not testable: no row times t given, so no time effect (a bias drifting "
+                        "during the run) is tested (this is not 'no effect'); give t= (s) of "
+                        "every row" if sysw.name == "centrifuge" else
+                        "not testable: no dwell times t given (this is not 'no effect')"),
             "no_spin_axis": "not testable: no spin_axis given (lever arms need the body-frame "
             "spin axis of every row; this is not 'no effect')",
             "one_attitude": "not testable: every dwell at one attitude, where a gap is a "
@@ -695,6 +720,22 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
         }.get(st)
         if reason:
             blind.append({"effect": nm, "reason": reason})
+        est = np.asarray(c.estimate, dtype=np.float64)
+        unseen = np.flatnonzero(~np.isfinite(est))
+        if st == "testable" and est.size and 0 < unseen.size < est.size:
+            # Components whose column is zero in this design: not determined (a lever arm
+            # across to an axis the spin axis never has a component on), not "0 +- 1e-15".
+            lab = _component_labels(est.size)
+            comps = ", ".join(lab[i] for i in unseen)
+            blind.append({"effect": f"{nm} ({comps})", "reason": (
+                f"not determined: the design does not see these components of {nm} at all "
+                f"(their columns are zero); the others are tested; to expose them: {fix}")})
+    # The p at which each selected effect was selected (at step k > 1 beside the effects
+    # selected before it; the first stage's p-value tests it against the baseline alone).
+    for k, (nm, p_k) in enumerate(zip(selected, raw.step_p, strict=False)):
+        for e in effects:
+            if e["effect"] == nm:
+                e["step"], e["p_step"] = k + 1, float(p_k)
     order = {"selected": 0, "not_confirmed": 1, "testable": 2}
     nc = raw.not_confirmed
     if nc is not None:
@@ -704,6 +745,15 @@ def _effect_rows(raw: Any, sysw: _System, noise_known: bool) -> tuple[list[dict[
     effects.sort(key=lambda x: (order.get(x["status"], 3),
                                 x["p_value"] if math.isfinite(x["p_value"]) else 2.0))
     return effects, blind
+
+
+def _component_labels(dim: int) -> list[str]:
+    """Names of an effect's components: per axis, or the six across-axis pairs i:j."""
+    if dim == 3:
+        return ["x", "y", "z"]
+    if dim == 6:
+        return ["x:y", "x:z", "y:x", "y:z", "z:x", "z:y"]
+    return [f"#{i}" for i in range(dim)]
 
 
 def _where(raw: Any, sysw: _System) -> dict[str, Any]:
@@ -818,6 +868,29 @@ def _chance_excess(n: int) -> float:
     return 2.0 / math.sqrt(2.0 * max(n, 1))
 
 
+#: Effects whose parameters are per held-out row (a dwell's own azimuth error): a held-out
+#: row's prediction cannot include them (the engine's ``GapModel::predictable``), so the
+#: held-out gap does not measure what they explain.
+_UNPREDICTABLE = {"gradiometer": ("azimuth_error",)}
+
+
+def _unpredictable(system: str, selected: Sequence[str]) -> list[str]:
+    """The selected effects a held-out row's prediction cannot include."""
+    return [e for e in selected if e in _UNPREDICTABLE.get(system, ())]
+
+
+def _in_sample_excess(raw: Any, noise_known: bool) -> float:
+    """Share of the in-sample excess left, ``(sqrt(chi2/dof) after - 1) / (before - 1)``
+    (the held-out gap's form on the in-sample chi2); NaN with the noise unknown or no excess
+    beyond chance."""
+    dof, dof_a = int(raw.dof), int(raw.dof_after)
+    if not noise_known or dof <= 0 or dof_a <= 0:
+        return math.nan
+    gi_b = math.sqrt(float(raw.chi2) / dof)
+    gi_a = math.sqrt(float(raw.chi2_after) / dof_a)
+    return (gi_a - 1.0) / (gi_b - 1.0) if gi_b - 1.0 > _chance_excess(raw.n) else math.nan
+
+
 def _settings_record(settings: _core.GapSettings, preset: str) -> dict[str, Any]:
     """What a report records of the settings that made it (:attr:`GapReport.settings`)."""
     return {"preset": str(preset), "alpha": float(settings.alpha), "test": str(settings.test),
@@ -866,18 +939,26 @@ def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_mode
     where = _where(raw, sysw)
     where["flagged"] = [int(dw["index"][k]) for k in loc.flagged]
     ambiguous = []
-    groups: dict[str, list[tuple[str, float]]] = {}
-    for a_, b_, cos in raw.ambiguous:
-        groups.setdefault(a_, []).append((b_, cos))
+    groups: dict[str, list[tuple[str, float, float]]] = {}
+    for a_, b_, cos, pw in raw.ambiguous:
+        groups.setdefault(a_, []).append((b_, cos, pw))
     word = sysw.row.split("(")[0]
     few = int(raw.dof) < _FEW_DOF  # the dwell count, not the schedule, limits the separation
+    p_of = {e["effect"]: e["p_value"] for e in effects}
     for a_, lst in groups.items():
-        exps = [sysw.separation(a_, b) for b, _ in lst]
+        exps = [sysw.separation(a_, b) for b, _, _ in lst]
         if few:
             exps.append(f"more {word}s (the {n} leave {int(raw.dof)} degrees of freedom beside "
                         "the calibration for every effect to share)")
-        ambiguous.append({"effects": [a_] + [b for b, _ in lst],
-                          "cosine": min(1.0, max(c for _, c in lst)),
+        # The engine's two rules: aliased columns (cosine above _AMBIGUITY_COS), or an other
+        # candidate significant on its own whose BIC is within 10 of the best's.
+        close = [(b, pw) for b, c, pw in lst if not c > _AMBIGUITY_COS]
+        ambiguous.append({"effects": [a_] + [b for b, _, _ in lst],
+                          "cosine": min(1.0, max(c for _, c, _ in lst)),
+                          "pair_weight": {b: pw for b, _, pw in lst},
+                          "rule": "both_significant" if close and len(close) == len(lst)
+                          else "aliased",
+                          "significant": {b: p_of.get(b, math.nan) for b, _ in close},
                           "experiment": "; ".join(dict.fromkeys(exps))})
     untested = [e["effect"] for e in effects if e["status"] == "too_few_dwells"]
     if selected and untested:
@@ -892,14 +973,19 @@ def _build_report(raw: Any, sysw: _System, *, g: float, alpha: float, noise_mode
     g_b = loo.g_before if loo else math.nan
     g_a = loo.g_after if loo else math.nan
     chi2, dof = float(raw.chi2), int(raw.dof)
+    excess = ((g_a - 1.0) / (g_b - 1.0)
+              if loo and g_b - 1.0 > _chance_excess(n) else math.nan)
+    if _unpredictable(sysw.name, selected):
+        # A held-out row cannot be credited with such an effect: the excess is the in-sample
+        # chi2's (the root of chi2 per dof, as G), with the noise model known.
+        excess = _in_sample_excess(raw, noise_known)
     return GapReport(
         n=n, g=g, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof if dof else math.nan,
         p_value=float(raw.p_chi2), noise_model=noise_model, held_out_gap=g_b, dwells=dw,
         where=where, best=selected[0] if selected else "none", selected=selected,
         effects=effects, ambiguous=ambiguous, blind_spots=blind,
         shrink=g_a / g_b if loo and g_b > 0 else math.nan, held_out_gap_after=g_a,
-        excess_remaining=((g_a - 1.0) / (g_b - 1.0)
-                          if loo and g_b - 1.0 > _chance_excess(n) else math.nan),
+        excess_remaining=excess,
         rms_before=loo.rms_before if loo else math.nan,
         rms_after=loo.rms_after if loo else math.nan,
         remaining={"chi2": float(raw.chi2_after), "dof": float(raw.dof_after),
@@ -1035,6 +1121,37 @@ def _structure_text(s: GapStructure) -> str:
     return txt
 
 
+def _shrink_line(r: GapReport) -> str:
+    """The "How far it shrinks" line: held-out G before -> after, and what each includes."""
+    rem = (f"{r.excess_remaining:.2f}" if math.isfinite(r.excess_remaining)
+           else "n/a: no held-out excess beyond chance")
+    rms = f"held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} {r.units}"
+    blind = _unpredictable(r.system, r.selected)
+    if blind:
+        # A held-out dwell's own azimuth error is unknown: its prediction cannot include it.
+        rem_i = r.remaining
+        gi = (math.sqrt(r.chi2 / r.dof) if r.dof else math.nan,
+              math.sqrt(rem_i["chi2"] / rem_i["dof"]) if rem_i.get("dof") else math.nan)
+        rem = (f"{r.excess_remaining:.2f} in-sample (sqrt(chi2/dof) {gi[0]:.2f} -> "
+               f"{gi[1]:.2f})" if math.isfinite(r.excess_remaining) else
+               "n/a: the noise is unknown, and held out it cannot be measured"
+               if not r.structure.noise_known else "n/a: no in-sample excess beyond chance")
+        return (f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
+                f"{r.held_out_gap_after:.2f}, which cannot credit {', '.join(blind)} (per "
+                f"dwell: a held-out dwell's own value is unknown, so its prediction omits it); "
+                f"excess remaining {rem}; {rms}")
+    cc = r.calibration_check or {}
+    if cc.get("attribution") == "refit" and math.isfinite(cc.get("g_refit", math.nan)):
+        # The starting G is the calibration as given: most of the fall can be the refit's.
+        after = f"refitted with {', '.join(r.selected)}" if r.selected else "refitted"
+        return (f"How far it shrinks: held-out G {r.held_out_gap:.2f} (the calibration as "
+                f"given) -> {cc['g_refit']:.2f} (refitted, no effect: the calibration moved) -> "
+                f"{r.held_out_gap_after:.2f} ({after}; shrink {r.shrink:.2f} over both, excess "
+                f"remaining {rem} of the refit's); {rms}")
+    return (f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
+            f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining {rem}); {rms}")
+
+
 def _calibration_check_text(c: dict[str, Any]) -> str:
     """The calibration check of a held-fixed calibration, in words."""
     stat = (f"chi2 = {c['statistic']:.3g} on {c['dof']} parameters" if c["test"] == "chi2"
@@ -1118,32 +1235,49 @@ def _summary(r: GapReport) -> str:
              + (f" (selected in order: {', '.join(r.selected)})" if r.selected else ""))
     L.append(f"  {'effect':<18} {'status':<20} {'p':>9} {'test':>4} {'BIC w':>6}  "
              "estimate +- std")
+    later = False
     for e in r.effects:
         pv, est = e["p_value"], e["estimate"]
+        status = e["status"]
+        if status == "selected" and e.get("step", 1) > 1:
+            # Selected beside the effects before it: its p is that step's, not the first
+            # stage's (0.89 against the baseline alone, 0.003 beside the first effect).
+            pv, status, later = e["p_step"], f"selected at step {e['step']}", True
         if (e["status"] in ("testable", "selected", "not_confirmed") and len(est)
-                and np.all(np.isfinite(est))):
-            mag = ", ".join(f"{v:.3g}+-{s:.2g}" for v, s in zip(est, e["std"], strict=True))
+                and np.any(np.isfinite(est))):
+            # A component the design does not see (its column is zero) is not determined.
+            mag = ", ".join(f"{v:.3g}+-{s:.2g}" if math.isfinite(v) else "n/a"
+                            for v, s in zip(est, e["std"], strict=True))
             mag += f" {e['unit']}"
         else:
             mag = "-"
         pvs = f"{pv:9.2g}" if math.isfinite(pv) else f"{'-':>9}"
         bw = f"{e['bic_weight']:6.2f}" if math.isfinite(e["bic_weight"]) else f"{'-':>6}"
         ts = e.get("test", "-") if math.isfinite(pv) else "-"
-        L.append(f"  {e['effect']:<18} {e['status']:<20} {pvs} {ts:>4} {bw}  {mag}")
+        L.append(f"  {e['effect']:<18} {status:<20} {pvs} {ts:>4} {bw}  {mag}")
     L.append(f"  {'none':<18} {'':<20} {'':>9} {'':>4} {r.raw.get('weight_none', math.nan):6.2f}")
+    if later:
+        L.append("  (p of an effect selected at step k > 1: its test at that step, beside the "
+                 "effects selected before it; the other p-values and the BIC weights: each "
+                 "effect alone against the calibration)")
     for a in r.ambiguous:
         cos = (f"cosine {a['cosine']:.2f}" if math.isfinite(a["cosine"])
                else "not testable beside it")
+        sig = a.get("significant") or {}
+        if sig:  # not aliased: each explains the gap on its own, with BIC close to the best's
+            best_ = a["effects"][0]
+            pb = next((e["p_value"] for e in r.effects if e["effect"] == best_), math.nan)
+            cos = (f"significant on their own, p {_fmt_p(pb)} / "
+                   + " / ".join(_fmt_p(p) for p in sig.values())
+                   + f"; BIC weight of {best_} against "
+                   + ", ".join(f"{b} {a['pair_weight'][b]:.2f}" for b in sig)
+                   + f", below {_DISTINCT_WEIGHT:.3f} (BIC within 10); {cos}")
         L.append(f"Ambiguous: {' / '.join(a['effects'])} ({cos}); to separate them: "
                  f"{a['experiment']}")
     for b in r.blind_spots:
         L.append(f"Blind spot: {b['effect']}: {b['reason']}")
     if math.isfinite(r.held_out_gap):
-        rem = (f"{r.excess_remaining:.2f}" if math.isfinite(r.excess_remaining)
-               else "n/a: no held-out excess beyond chance")
-        L.append(f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
-                 f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining "
-                 f"{rem}); held-out RMS {r.rms_before:.3g} -> {r.rms_after:.3g} {r.units}")
+        L.append(_shrink_line(r))
     else:
         L.append("How far it shrinks: not computed (no held-out fits: loo=False, or too few "
                  "dwells to leave one out)")
@@ -1963,7 +2097,8 @@ def _refit_attribution(fixed: GapReport, said_before: list[str], d: DwellSet, g:
         remaining=refit.remaining, params_after=refit.params_after, std_after=refit.std_after,
         structure=refit.structure, dwells=rows,
         calibration_check={**(fixed.calibration_check or {}), "attribution": "refit",
-                           "chi2_refit": refit.chi2, "dof_refit": refit.dof, **versus},
+                           "chi2_refit": refit.chi2, "dof_refit": refit.dof,
+                           "g_refit": refit.held_out_gap, **versus},
         statements=[*(x for x in said_before if x), said,
                     *(x for x in refit.statements if x not in said_before)])
 
@@ -2171,6 +2306,7 @@ def diagnose_centrifuge(
     gate: str = "auto",
     sigma_norm: float | ArrayLike | None = None,
     robust: bool | str = "auto",
+    t: ArrayLike | None = None,
 ) -> GapReport:
     """Diagnose the gap of a centrifuge session against the scale + bias + K2 norm model.
 
@@ -2200,8 +2336,9 @@ def diagnose_centrifuge(
         mm), ``radius_error`` (mm; a relative error e of the spin rate is the same column,
         as omega^2 R (1 + 2 e), and is reported as a radius error of 2 e R), ``k3``
         (ug/g^3), ``misalignment`` (the three observable small angles, mrad),
-        ``cross_coupling`` (K_ij f_i f_j, i != j, ug/g^2) and ``rate_offset`` (spin-rate
-        offset, e.g. the Earth rate Omega sin(latitude), urad/s).
+        ``cross_coupling`` (K_ij f_i f_j, i != j, ug/g^2), ``rate_offset`` (spin-rate
+        offset, e.g. the Earth rate Omega sin(latitude), urad/s) and ``drift`` (per-axis bias
+        linear in time, ug/h, as in the static dictionary; needs ``t``).
     loo, max_effects, test, gate : as in :func:`accelcal.diagnose`.
     robust : what to do with the rows the robust screen of :func:`accelcal.fit_centrifuge`
         excludes. "auto" (default): diagnose every row and, apart, the rows kept; when the
@@ -2213,6 +2350,9 @@ def diagnose_centrifuge(
         them out, as the fit does. False: keep every row. The report names the rows and what
         was done, and keeps the session's row numbers. Kept, gross errors set the noise scale
         or the chi2 and are "explained" by an effect such as a radius error of hundreds of mm.
+    t : (k,) time of each row, s (any origin). Without it the drift is not tested and the
+        report lists it among the blind spots (a bias drifting during the run then shows as
+        whichever effect's pattern it resembles over the row order, such as a lever arm).
 
     Returns
     -------
@@ -2231,6 +2371,9 @@ def diagnose_centrifuge(
     radius_v = number(radius, "radius", lo=0.0, lo_open=True, unit="m")
     g_v = number(g, "g", lo=0.0, lo_open=True, unit="m/s^2")
     c3 = None if spin_axis is None else _real(spin_axis, "spin_axis", (k, 3))
+    tt = None if t is None else _real(t, "t").reshape(-1)
+    if tt is not None and tt.shape != (k,):
+        raise CalibrationError(f"t must have {k} values (s); got {tt.shape}")
     names = _names(effects, list(CENTRIFUGE_EFFECTS))
     s_norm = s_axis = None
     if sigma is not None and sigma_norm is not None:
@@ -2261,7 +2404,8 @@ def diagnose_centrifuge(
             return None if a is None else np.ascontiguousarray(a[rows])
         return _core.gap_diagnose_centrifuge(out[rows], om[rows], radius_v, g_v, names,
                                              settings, spin_axis=sub(c3),
-                                             sigma_norm=sub(s_norm), sigma_axis=sub(s_axis))
+                                             sigma_norm=sub(s_norm), sigma_axis=sub(s_axis),
+                                             t=sub(tt))
 
     every = np.arange(k)
     kept_rows = np.setdiff1d(every, bad)

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import errno
 import itertools
 import math
 import os
@@ -1398,6 +1399,10 @@ def _is_mseed(head: bytes) -> bool:
         len(head) >= 8 and head[:6].isdigit() and head[6:7] in b"DRQM" and head[7:8] in b" \0")
 
 
+#: Errors of writing a file that say its folder (or the user's share of it) has no room left.
+_NO_ROOM = {getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG") if hasattr(errno, n)}
+
+
 def _decompressed(path: str, kind: str) -> tuple[str, Callable[[], None]]:
     """Decompress ``path`` (gzip, bz2 or xz) into a temporary file: the parser reads files in
     place (memory-mapped), so a compressed file is expanded first. Returns the path to read
@@ -1421,7 +1426,16 @@ def _decompressed(path: str, kind: str) -> tuple[str, Callable[[], None]]:
     try:
         with opener(path, "rb") as src, os.fdopen(fd, "wb", closefd=not anonymous) as dst:
             shutil.copyfileobj(src, dst, 1 << 20)
-    except (OSError, EOFError, lzma.LZMAError) as e:
+    except OSError as e:
+        release()
+        if e.errno in _NO_ROOM:  # the expansion's side, not the input's
+            folder = os.path.dirname(tmp) or "."
+            raise CalibrationError(
+                f"{path}: cannot expand it ({kind}): the temporary folder {folder!r} is full "
+                f"({os.strerror(e.errno or 0)}); free room there or point TMPDIR at a folder "
+                "with room for the expanded text") from None
+        raise CalibrationError(f"{path}: cannot decompress it ({kind}): {e}") from None
+    except (EOFError, lzma.LZMAError) as e:
         release()
         raise CalibrationError(f"{path}: cannot decompress it ({kind}): {e}") from None
     except BaseException:
@@ -1556,6 +1570,16 @@ def _sniff(src: _TextSource, columns: Any, fs: float | None, time_column: Any) -
     if first is None or fmt is None:
         if not src.head.strip(b"\xef\xbb\xbf"):
             raise CalibrationError(f"{path}: file is empty")
+        if not src.eof and b"\n" not in src.head:  # not one whole line in the first block
+            n = len(src.head)
+            if b"\r" in src.head:
+                raise CalibrationError(
+                    f"{path}: no line end (\\n) in the first {n} bytes, only carriage "
+                    "returns: lines end in a carriage return alone (classic Mac text); "
+                    "convert them to \\n (e.g. tr '\\r' '\\n')")
+            raise CalibrationError(
+                f"{path}: no line end found in the first {n} bytes: the first line is longer "
+                f"than {n} bytes (one line of samples, or not a text table?)")
         if all(not ln.strip() for _, ln in lines):
             raise CalibrationError(f"{path}: no numeric data rows (only blank lines)")
         last = next(ln.strip() for _, ln in reversed(lines) if ln.strip())
@@ -2256,6 +2280,34 @@ def _table_from_dict(path: str, data: dict[str, Any]) -> tuple[Any, tuple[str, .
     )
 
 
+def _h5_check_storage(path: str, name: str, ds: Any) -> None:
+    """Refuse a dataset that declares more values than its file holds: contiguous storage
+    smaller than the declared size, or a chunked dataset with no chunk written (every value
+    the fill value). A file of a few kB declaring 2e9 samples is not a recording: reading it
+    through would take hours and grow the dwell statistics without bound."""
+    from h5py import h5d
+
+    if ds.ndim == 0 or ds.size == 0 or ds.dtype.kind not in "fiub":
+        return
+    try:
+        dcpl = ds.id.get_create_plist()
+        layout = dcpl.get_layout()
+        if dcpl.get_external_count() > 0:
+            return  # raw data in other files: not this file's storage
+        stored = ds.id.get_storage_size()
+        if layout == h5d.CONTIGUOUS and stored < ds.nbytes:
+            held = f"only {stored} bytes of it"
+        elif layout == h5d.CHUNKED and stored == 0 and ds.id.get_num_chunks() == 0:
+            held = "none of it (no chunk written: every value is the fill value)"
+        else:
+            return
+    except (AttributeError, OSError, RuntimeError, ValueError):
+        return  # an older h5py / HDF5 that cannot tell: read as before
+    raise CalibrationError(
+        f"{path}: dataset {name!r} declares {ds.shape} values ({ds.nbytes} bytes) but the "
+        f"file holds {held}: a truncated or damaged file?")
+
+
 def _h5_tree(path: str) -> tuple[Any, dict[str, Any], dict[str, Any]]:
     """An open HDF5 file, its datasets by leaf name (not read) and its scalar attributes."""
     try:
@@ -2274,6 +2326,7 @@ def _h5_tree(path: str) -> tuple[Any, dict[str, Any], dict[str, Any]]:
 
     def visit(name: str, obj: Any) -> None:
         if isinstance(obj, h5py.Dataset):
+            _h5_check_storage(path, name, obj)
             leaf = name.split("/")[-1]
             data[leaf if leaf not in data else name] = obj[()] if obj.ndim == 0 else obj
 
@@ -3675,10 +3728,12 @@ def read_bounds(path: str | os.PathLike[str]) -> Bounds:
     """
     import json
 
+    from ._files import read_small_text
+
     p = os.fspath(path)
     try:
-        with open(p, encoding="utf-8-sig") as fh:
-            text = fh.read()
+        # a device (/dev/urandom) or a file of more than 64 MB refused, not read without end
+        text = read_small_text(p, "the bounds file")
     except FileNotFoundError:
         raise CalibrationError(f"bounds file not found: {p}") from None
     except (OSError, UnicodeDecodeError) as e:

@@ -17,7 +17,7 @@
 //! - and the stream gets an estimate of the output resolution (LSB) per axis from a bounded,
 //!   chunking-independent subsample ([`LsbSampler`]).
 
-use crate::error::{degenerate, invalid, CoreError, Result};
+use crate::error::{degenerate, invalid, try_grow, CoreError, Result};
 use crate::gap::special::chi2_isf;
 use ndarray::ArrayView2;
 use rayon::prelude::*;
@@ -2052,6 +2052,13 @@ impl DwellAccumulator {
         if m == 0 {
             return Ok(());
         }
+        if let DwellAccumulator::Detect(s) = self {
+            s.reserve(m)?; // the one check that can fail for want of memory
+        }
+        let (has_t, has_aux) = match self {
+            DwellAccumulator::Bounds(s) => (&mut s.has_t, &mut s.has_aux),
+            DwellAccumulator::Detect(s) => (&mut s.has_t, &mut s.has_aux),
+        };
         *has_t = Some(t.is_some());
         *has_aux = Some(aux.is_some());
         match self {
@@ -2164,6 +2171,18 @@ impl BoundsAcc {
 }
 
 impl DetectAcc {
+    /// Room for the blocks that `m` more samples complete: the block statistics grow with
+    /// the length of the stream, and running out of memory for them is an error
+    /// ([`CoreError::OutOfMemory`], nothing changed but capacity), not an abort part way
+    /// through a push.
+    fn reserve(&mut self, m: usize) -> Result<()> {
+        let more = (self.cur.count() as usize).saturating_add(m) / self.settings.block_len();
+        let what = "the dwell detector's block statistics";
+        try_grow(&mut self.blocks, more, what)?;
+        try_grow(&mut self.aux_blocks, more, what)?;
+        try_grow(&mut self.t_blocks, more, what)
+    }
+
     fn push<T: Sample>(
         &mut self,
         chunk: &ArrayView2<'_, T>,
@@ -2202,7 +2221,7 @@ impl DetectAcc {
                 if !mo.is_finite() && !self.cur_bad && self.overflow_at.is_none() {
                     self.overflow_at = Some(self.blocks.len() * bl);
                 }
-                self.blocks.push(mo);
+                self.blocks.push(mo); // within the room `reserve` made
                 self.aux_blocks.push(self.cur_aux);
                 self.t_blocks.push(self.cur_t);
                 self.cur = SegmentAcc::new();

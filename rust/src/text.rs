@@ -11,7 +11,7 @@
 //! channel, so the next blocks are parsed while the caller reduces the previous one. Memory
 //! is bounded by the block size times the channel depth, whatever the file's length.
 
-use crate::error::{invalid, CoreError, Result};
+use crate::error::{invalid, out_of_memory, try_grow, CoreError, Result};
 use rayon::prelude::*;
 use std::io::Read;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -1758,19 +1758,35 @@ fn read_loop(
             return;
         }
         let mut buf = std::mem::take(&mut carry);
-        buf.reserve(block_bytes + (1 << 16));
-        let mut target = block_bytes.max(buf.len() + 1);
         let (jtx, jrx) = sync_channel(1);
+        let what = "the text reader's buffer";
+        if let Err(e) = try_grow(&mut buf, block_bytes + (1 << 16), what) {
+            let _ = jtx.send(Err(JobError::Read(e)));
+            let _ = tx.send(jrx);
+            return;
+        }
+        let mut target = block_bytes.max(buf.len() + 1);
         loop {
-            match fill(src.as_mut(), &mut buf, target) {
+            // A line longer than a block doubles the target: room first (running out of
+            // memory is an error, not an abort).
+            let more = target.saturating_sub(buf.len());
+            let grown = try_grow(&mut buf, more, what);
+            match grown.and_then(|()| {
+                fill(src.as_mut(), &mut buf, target).map_err(|e| {
+                    if e.kind() == std::io::ErrorKind::OutOfMemory {
+                        out_of_memory(what, target)
+                    } else {
+                        CoreError::InvalidInput(format!("cannot read the data: {e}"))
+                    }
+                })
+            }) {
                 Ok(true) => {
                     eof = true;
                     break;
                 }
                 Ok(false) => {}
                 Err(e) => {
-                    let msg = format!("cannot read the data: {e}");
-                    let _ = jtx.send(Err(JobError::Read(CoreError::InvalidInput(msg))));
+                    let _ = jtx.send(Err(JobError::Read(e)));
                     let _ = tx.send(jrx);
                     return;
                 }
@@ -1915,22 +1931,33 @@ pub struct Collected {
 }
 
 impl Collected {
-    /// Empty, with room for about `rows_hint` rows.
-    pub fn with_capacity(layout: &TextLayout, rows_hint: usize) -> Self {
-        Collected {
-            values: layout
-                .groups
-                .iter()
-                .map(|g| Vec::with_capacity(rows_hint.saturating_mul(g.len())))
-                .collect(),
-            ..Collected::default()
+    /// Empty, with room for about `rows_hint` rows ([`CoreError::OutOfMemory`] when that
+    /// room cannot be had).
+    pub fn with_capacity(layout: &TextLayout, rows_hint: usize) -> Result<Self> {
+        let mut values = Vec::with_capacity(layout.groups.len());
+        for g in &layout.groups {
+            let mut v = Vec::new();
+            try_grow(
+                &mut v,
+                rows_hint.saturating_mul(g.len()),
+                "the samples read",
+            )?;
+            values.push(v);
         }
+        Ok(Collected {
+            values,
+            ..Collected::default()
+        })
     }
 
-    /// Append a block.
-    pub fn push(&mut self, b: &Block) {
+    /// Append a block ([`CoreError::OutOfMemory`] when the arrays cannot grow; nothing
+    /// appended then).
+    pub fn push(&mut self, b: &Block) -> Result<()> {
         if self.values.len() < b.values.len() {
             self.values.resize(b.values.len(), Vec::new());
+        }
+        for (dst, src) in self.values.iter_mut().zip(&b.values) {
+            try_grow(dst, src.len(), "the samples read")?;
         }
         for (dst, src) in self.values.iter_mut().zip(&b.values) {
             dst.extend_from_slice(src);
@@ -1940,6 +1967,7 @@ impl Collected {
         self.repeats += b.repeats;
         self.skipped += b.skipped;
         self.bad.add(&b.bad);
+        Ok(())
     }
 }
 
@@ -1977,7 +2005,7 @@ pub fn read_all_with(
     if let Source::Map(m) = &source {
         return read_mapped(m, &layout, opts.block_bytes, progress);
     }
-    let mut out = Collected::with_capacity(&layout, rows_hint);
+    let mut out = Collected::with_capacity(&layout, rows_hint)?;
     let mut stream = TextStream::new(source, layout, opts)?;
     loop {
         // Waiting a little at a time: a stop is seen even while a pipe sends nothing.
@@ -1987,7 +2015,7 @@ pub fn read_all_with(
         }
         match next {
             Next::Block(b) => {
-                out.push(&b);
+                out.push(&b)?;
                 progress.rows.store(out.rows, Ordering::Relaxed);
                 progress.bytes.store(out.bytes, Ordering::Relaxed);
             }
@@ -2018,6 +2046,26 @@ fn populate(win: &[f64]) {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = win;
+}
+
+/// `n` zeros, allocated zeroed (pages untouched until written, as `vec![0.0; n]` does), or
+/// [`CoreError::OutOfMemory`] when `n` values cannot be had (a plain `vec!` would abort).
+fn zeroed(n: usize, what: &str) -> Result<Vec<f64>> {
+    if n == 0 {
+        return Ok(Vec::new());
+    }
+    let bytes = n.saturating_mul(std::mem::size_of::<f64>());
+    let layout = std::alloc::Layout::array::<f64>(n).map_err(|_| out_of_memory(what, bytes))?;
+    // SAFETY: `layout` has a non-zero size; the pointer, if not null, is an allocation of the
+    // global allocator with the layout a `Vec<f64>` of capacity `n` has, and all its bytes are
+    // zero, a valid f64 (0.0).
+    unsafe {
+        let p = std::alloc::alloc_zeroed(layout).cast::<f64>();
+        if p.is_null() {
+            return Err(out_of_memory(what, bytes));
+        }
+        Ok(Vec::from_raw_parts(p, n, n))
+    }
 }
 
 /// The whole text `data` parsed in chunks of about `chunk` bytes (whole lines), in parallel,
@@ -2053,7 +2101,10 @@ fn read_mapped(
     let widths: Vec<usize> = layout.groups.iter().map(Vec::len).collect();
     // Zeroed allocations this large come straight from the kernel: pages are only touched
     // (and counted) when written.
-    let mut values: Vec<Vec<f64>> = widths.iter().map(|&k| vec![0.0; total * k]).collect();
+    let mut values: Vec<Vec<f64>> = Vec::with_capacity(widths.len());
+    for &k in &widths {
+        values.push(zeroed(total.saturating_mul(k), "the samples read")?);
+    }
     let mut windows: Vec<Vec<&mut [f64]>> = counts.iter().map(|_| Vec::new()).collect();
     for (col, &k) in values.iter_mut().zip(&widths) {
         let mut rest: &mut [f64] = col;

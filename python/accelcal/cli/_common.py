@@ -127,6 +127,18 @@ def check_outputs(params: Mapping[str, Any]) -> None:
                                        "nothing was written: choose two paths")
 
 
+def _memory_message(e: MemoryError, chunked: bool) -> str:
+    """One line for running out of memory: what could not be had (numpy and the core name
+    the size) and what to do."""
+    what = (str(e).strip().splitlines() or [""])[0]
+    if what and not what.lower().startswith("out of memory"):
+        what = f"out of memory ({what})"
+    what = what or "out of memory"
+    hint = ("give a smaller --chunk-rows, or run with more memory free"
+            if chunked else "run with more memory free (or on a shorter recording)")
+    return f"{what}: {hint}"
+
+
 def friendly(fn: F) -> F:
     """Turn user-facing failures into one clear line and exit status 2 (and refuse outputs
     that would overwrite an input: :func:`check_outputs`)."""
@@ -144,6 +156,8 @@ def friendly(fn: F) -> F:
             _fail(f"file not found: {e.filename or e}")
         except (OSError, ValueError) as e:
             _fail(str(e))
+        except MemoryError as e:  # a limit (ulimit -v, a container) or a very long input
+            _fail(_memory_message(e, "chunk_rows" in kw))
         except (KeyboardInterrupt, SystemExit, GeneratorExit):
             raise
         except BaseException as e:  # noqa: BLE001 - the last resort (a Rust panic surfaces as

@@ -144,6 +144,8 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
                                          'model "diag"': "--model diag"})) from None
     notes = ([] if rec is None else rec.notes()) + extra
     if plot_path:
+        if "tau" not in rep.noise_curves and not tabled and file != "-":
+            rep = _with_allan_curve(rep, d, file, columns, fs, time_column)
         _save_fig(rep.plot(), plot_path)
     if as_json:
         out = rep.to_dict()
@@ -155,6 +157,30 @@ def diagnose(file: str, g: float | None, lat: float | None, height: float, fs: f
     click.echo(rep.summary())
     if plot_path:
         click.echo(f"wrote {plot_path}")
+
+
+def _with_allan_curve(rep: Any, d: Any, file: str, columns: str | None, fs: float | None,
+                      time_column: str | None) -> Any:
+    """The report with the noise panel's Allan curve (the longest dwell's samples, read
+    again: the streaming pass kept the dwells' statistics, not their samples)."""
+    from dataclasses import replace
+
+    from ..gap import _noise_curves
+    from ..io import read_stream
+
+    if getattr(d, "start", None) is None or getattr(d, "stop", None) is None or len(d) == 0:
+        return rep
+    try:
+        st = read_stream(file, columns=columns, fs=fs, time_column=time_column, progress=False)
+    except (CalibrationError, OSError):
+        return rep  # the figure without the curve, as before
+    if st.fs is None or int(max(d.stop)) > len(st.samples):
+        return rep
+    curves = _noise_curves(st.samples, d, st.fs, None, None, None, None)
+    if "tau" not in curves:
+        return rep
+    return replace(rep, noise_curves={**rep.noise_curves, "tau": curves["tau"],
+                                      "adev": curves["adev"]})
 
 
 def _same_file(source: Any, file: str) -> bool:

@@ -54,7 +54,7 @@ def run_static_fleet(
     dwells_out: str | None, plot_path: str | None, as_json: bool, summary: str | None,
     out_dir: str | None, scheduler: str | None, workers: int | None, manifest: str | None,
     diagnose_gap: bool, check_g: bool = True, nominal_path: str | None = None,
-    means: bool = False, sigma_g: float | None = None,
+    means: bool = False, sigma_g: float | None = None, overwrite: bool = False,
 ) -> None:
     """``calibrate static`` over many recordings (see :func:`accelcal.calibrate_many`)."""
     from ..dwell import DetectorSettings
@@ -100,7 +100,7 @@ def run_static_fleet(
             time_column=time_column, model=model,
             method=method, detector=detector, diagnose=diagnose_gap, client=scheduler,
             workers=workers, out=out_dir, summary=summary, progress=False if quiet else None,
-            check_g=check_g, means=means, sigma_g=sigma_g, _cli=True,
+            check_g=check_g, means=means, sigma_g=sigma_g, overwrite=overwrite, _cli=True,
             _command=_command_line(),
         )
     except KeyboardInterrupt as e:  # say what was kept ("interrupted after 12 of 110 ...")

@@ -177,7 +177,9 @@ def _shorter_rests(window_s: float, min_dwell_s: float, still: float) -> str:
               help="Write the calibration (versioned JSON); an existing file is kept unless "
                    "--overwrite is given.")
 @click.option("--overwrite", is_flag=True,
-              help="Let -o replace an existing calibration file (written atomically).")
+              help="Let -o replace an existing calibration file (written atomically); in a "
+                   "fleet run, let the table (--summary, or fleet.parquet/.csv in --out) "
+                   "replace a file beside it that is not a fleet table.")
 @click.option("--date", "rec_date", default=None,
               help="Date of the recording, ISO 8601 (e.g. 2026-11-23T10:15:00Z; a date alone "
                    "is midnight UTC): the calibration's date, from which TriadModel.find(at=) "
@@ -225,16 +227,15 @@ def calibrate_static(
             raise CalibrationError("--input-units takes one recording, not a fleet run (each "
                                    "recording's calibration records the unit its columns' "
                                    "names declare)")
-        for flag, val in (("--overwrite", overwrite), ("--date", rec_date)):
-            if val:
-                raise CalibrationError(f"{flag} goes with -o, for one recording, not a fleet "
-                                       "run")
+        if rec_date:
+            raise CalibrationError("--date goes with -o, for one recording, not a fleet run")
         return run_static_fleet(
             files, g=g, lat=lat, height=height, fs=fs, columns=columns, means=means,
             time_column=time_column, quiet=quiet, model=model, method=method,
             window_s=window_s, k_thr=k, min_dwell_s=min_dwell_s, trim_s=trim_s, sensor_id=sensor_id,
             output=output, dwells_out=dwells_out, plot_path=plot_path, as_json=as_json,
-            check_g=not no_check_g, nominal_path=nominal_path, sigma_g=sigma_g, **fleet)
+            check_g=not no_check_g, nominal_path=nominal_path, sigma_g=sigma_g,
+            overwrite=overwrite, **fleet)
     file = files[0]
     import warnings
 
@@ -342,12 +343,26 @@ def calibrate_static(
                           "trim_s": trim_s} if dwells_from == "detected" else None),
             "command": _command_line(), "written": iso_utc(None),
         }
-        fit.to_model(sensor_id=sensor_id, temperature=temp, date=cal_date,
-                     metadata=meta).save(output)
+        cal_model = fit.to_model(sensor_id=sensor_id, temperature=temp, date=cal_date,
+                                 metadata=meta)
+        cal_model.to_json()  # checked before anything is written
     if plot_path:
+        # Before the calibration: a plot that cannot be written leaves no calibration file
+        # behind, which a rerun would then refuse to replace.
         from ..plots import static_norm_figure
 
         _save_fig(static_norm_figure(fit, d), plot_path)
+    if output:
+        try:
+            # Never replaces a file that appeared since the check above (another run writing
+            # the same -o at the same time): the file is linked to its name, which fails then.
+            cal_model.save(output, overwrite=overwrite)
+        except FileExistsError:
+            raise CalibrationError(
+                f"-o {output}: the file exists, written while this calibration ran (by "
+                "another run?); it was kept (a calibration is never replaced silently): give "
+                "--overwrite to replace it, or choose another path; the calibration was not "
+                "written") from None
     if as_json:
         out = fit.to_dict()
         out.update(n_dwells=len(d), g_source=g_src, sigma_g=float(sigma_g or 0.0),

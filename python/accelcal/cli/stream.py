@@ -4,13 +4,17 @@ with bounded memory, whatever its length."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
+import re
+import stat
 import struct
 import sys
-import tempfile
 import zipfile
-from contextlib import ExitStack
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -18,7 +22,7 @@ import click
 import numpy as np
 
 from .._core import CalibrationError
-from .._files import atomic_open, file_record, sha256_file
+from .._files import atomic_open, atomic_path, file_record, temp_beside
 from ._common import (
     _need_plot,
     _save_fig,
@@ -185,6 +189,9 @@ def _names(rec: Any) -> tuple[str, ...]:
 
 
 # ---- apply: streaming writers ------------------------------------------------------------------
+#: Outputs that are this process's standard output: written as ``-`` is (text, the summary
+#: line on stderr), not opened by name.
+STDOUT_NAMES = frozenset({"-", "/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"})
 _NPY_HEADER_LEN = 128  # magic + header, padded: room for any 64-bit row count
 
 
@@ -229,6 +236,7 @@ class _Output:
 
     def __init__(self, path: str, has_t: bool, header: list[str]) -> None:
         self.path = path
+        self.stdout = path in STDOUT_NAMES
         p = Path(path)
         suffix = p.suffix.lower()
         from ..io import COMPRESSED_SUFFIXES
@@ -236,7 +244,7 @@ class _Output:
         self.compress = COMPRESSED_SUFFIXES.get(suffix)  # after .csv / .txt
         if self.compress is not None:
             suffix = Path(p.stem).suffix.lower()
-        kind = self.KINDS.get(suffix) if path != "-" else "csv"
+        kind = self.KINDS.get(suffix) if not self.stdout else "csv"
         if kind is None or (self.compress is not None and kind != "csv"):
             raise CalibrationError(
                 f"{path}: unknown output format {p.suffix!r}: give .csv or .txt (text, also "
@@ -251,11 +259,10 @@ class _Output:
         with ExitStack() as setup:
             setup.push(self.stack)
             self.stack.__enter__()
-            mode = "w+b" if self.kind == "h5" else "wb"
-            if self.path == "-":  # text on standard output (a pipe)
+            if self.stdout:  # text on standard output (a pipe)
                 self.fh = sys.stdout.buffer
-            else:
-                self.fh = self.stack.enter_context(atomic_open(self.path, mode))
+            elif self.kind != "h5":  # HDF5 writes its temporary file by name (below)
+                self.fh = self.stack.enter_context(atomic_open(self.path, "wb"))
             if self.compress is not None:
                 from ..io import compression_open
 
@@ -267,14 +274,18 @@ class _Output:
             elif self.kind == "npy":
                 self.npy = [_NpyWriter(self.fh, 4 if self.has_t else 3, self.path)]
             elif self.kind == "npz":
-                # One temporary .npy per array beside the output, zipped at the end.
-                p = Path(self.path)
+                # One temporary .npy per array beside the output, zipped at the end: named,
+                # locked and cleaned as the output's own temporary file (a run killed
+                # outright leaves them to the next write of the output to remove).
                 self.names = ["samples", "t"] if self.has_t else ["samples"]
-                tmps = [self.stack.enter_context(tempfile.NamedTemporaryFile(
-                    dir=p.parent if str(p.parent) else ".", prefix=f".{p.name}.{n}.",
-                    suffix=".tmp")) for n in self.names]
+                self.tmp_names: list[str] = []
+                files = []
+                for n in self.names:
+                    fd, tmp = self.stack.enter_context(temp_beside(self.path, f".{n}.npy"))
+                    files.append(self.stack.enter_context(os.fdopen(fd, "w+b")))
+                    self.tmp_names.append(tmp)
                 self.npy = [_NpyWriter(f, 3 if n == "samples" else 0, self.path)
-                            for n, f in zip(self.names, tmps, strict=True)]
+                            for n, f in zip(self.names, files, strict=True)]
             else:
                 try:
                     import h5py
@@ -282,17 +293,25 @@ class _Output:
                     raise CalibrationError(
                         f"{self.path}: writing HDF5 needs h5py: pip install 'accelcal[hdf5]'"
                     ) from None
-                self.h5 = self.stack.enter_context(h5py.File(self.fh, "w"))
-                self.h5.create_dataset("samples", shape=(0, 3), maxshape=(None, 3),
-                                       dtype="f8", chunks=(65536, 3))
-                if self.has_t:
-                    self.h5.create_dataset("t", shape=(0,), maxshape=(None,), dtype="f8",
-                                           chunks=(65536,))
-                self.h5.attrs["units"] = "m/s^2"
-                for h in self.header:
-                    k, _, v = h.partition(": ")
-                    if v:
-                        self.h5.attrs[k] = v
+                # By name, not through a Python file object: a write error (disk full) in
+                # HDF5's file-object callbacks can crash the process.
+                self.tmp = self.stack.enter_context(atomic_path(self.path, "an HDF5 output"))
+                with self._h5_errors():
+                    # HDF5's own file lock would clash with ours (held while it is written).
+                    # No chunk cache: every write reaches the file at once, its error raised
+                    # there (dirty chunks failing to flush on close crash h5py/HDF5 2.0).
+                    self.h5 = self.stack.enter_context(
+                        h5py.File(self.tmp, "w", locking=False, rdcc_nbytes=0))
+                    self.h5.create_dataset("samples", shape=(0, 3), maxshape=(None, 3),
+                                           dtype="f8", chunks=(65536, 3))
+                    if self.has_t:
+                        self.h5.create_dataset("t", shape=(0,), maxshape=(None,), dtype="f8",
+                                               chunks=(65536,))
+                    self.h5.attrs["units"] = "m/s^2"
+                    for h in self.header:
+                        k, _, v = h.partition(": ")
+                        if v:
+                            self.h5.attrs[k] = v
             setup.pop_all()
         return self
 
@@ -311,34 +330,69 @@ class _Output:
             if self.has_t:
                 self.npy[1].write(np.asarray(t))
         else:
-            ds = self.h5["samples"]
-            ds.resize(self.rows + m, axis=0)
-            ds[self.rows:] = a
-            if self.has_t:
-                ts = self.h5["t"]
-                ts.resize(self.rows + m, axis=0)
-                ts[self.rows:] = t
+            with self._h5_errors():
+                ds = self.h5["samples"]
+                ds.resize(self.rows + m, axis=0)
+                ds[self.rows:] = a
+                if self.has_t:
+                    ts = self.h5["t"]
+                    ts.resize(self.rows + m, axis=0)
+                    ts[self.rows:] = t
         self.rows += m
+
+    @contextmanager
+    def _h5_errors(self) -> Iterator[None]:
+        """Any error of h5py (disk full, file too large, ...) as one line naming the output,
+        not the temporary file."""
+        try:
+            yield
+        except (CalibrationError, KeyboardInterrupt, SystemExit, GeneratorExit):
+            raise
+        except Exception as e:  # noqa: BLE001 - h5py raises OSError, RuntimeError, ...
+            tmp = getattr(self, "tmp", None)
+            msg = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            # HDF5 buries the system's error in its own text ("file write failed: ...,
+            # errno = 28, ..."): the system's words, which say what to do.
+            found = re.search(r"\berrno = (\d+)", str(e))
+            code = e.errno if isinstance(e, OSError) and e.errno else (
+                int(found.group(1)) if found else None)
+            if code:
+                msg = f"[Errno {code}] {os.strerror(code)}"
+            if tmp:
+                msg = msg.replace(tmp, self.path).replace(os.path.basename(tmp), self.path)
+            raise CalibrationError(f"cannot write the HDF5 output {self.path!r}: {msg}") from None
 
     def _finish(self) -> None:
         if self.kind == "npy":
             self.npy[0].close()
         elif self.kind == "npz":
             with zipfile.ZipFile(self.fh, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
-                for name, w in zip(self.names, self.npy, strict=True):
+                for w in self.npy:
                     w.close()
                     w.fh.flush()
-                    z.write(w.fh.name, arcname=f"{name}.npy")
+                for name, tmp in zip(self.names, self.tmp_names, strict=True):
+                    z.write(tmp, arcname=f"{name}.npy")
 
     def __exit__(self, *exc: Any) -> bool | None:
         if exc[0] is None:
             try:
                 self._finish()
             except BaseException:
-                if not self.stack.__exit__(*sys.exc_info()):
+                if not self._close(*sys.exc_info()):
                     raise
                 return None
-        return self.stack.__exit__(*exc)
+        return self._close(*exc)
+
+    def _close(self, *exc: Any) -> bool | None:
+        if self.kind != "h5":
+            return self.stack.__exit__(*exc)
+        try:
+            return self.stack.__exit__(*exc)
+        except BaseException as e:
+            if e is exc[1]:
+                raise
+            with self._h5_errors():  # closing the file failed (disk full): said as such
+                raise
 
 
 @main.command()
@@ -361,10 +415,11 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     from ..io import _progress_bar
     from ..static import TriadModel
 
-    if output == "-" and as_json:
-        raise CalibrationError("-o - writes the calibrated rows to standard output, where "
-                               "--json would write too: give one of them")
-    model = _load_model(cal)
+    to_stdout = output in STDOUT_NAMES
+    if to_stdout and as_json:
+        raise CalibrationError(f"-o {output} writes the calibrated rows to standard output, "
+                               "where --json would write too: give one of them")
+    model, cal_sha256 = _load_model(cal)
     rec = open_recording(file, fs, columns, time_column)
     has_t = rec.lay.time is not None or rec.fs is not None or (
         rec.arrays is not None and rec.arrays.t is not None)
@@ -373,7 +428,7 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
     from .._triad_model import accelcal_version
 
     # The calibration by its content too: a file replaced under the same name is told apart.
-    header = [f"calibrated by accelcal from {cal}", f"calibration_sha256: {sha256_file(cal)}",
+    header = [f"calibrated by accelcal from {cal}", f"calibration_sha256: {cal_sha256}",
               f"accelcal_version: {accelcal_version()}", f"source: {file}", f"units: {unit}"]
     if rec.lay.t0_text:
         header.append(f"t0: {rec.lay.t0_text}")
@@ -411,15 +466,37 @@ def apply(cal: str, file: str, output: str, fs: float | None, columns: str | Non
         return
     echo_notes(notes)
     click.echo(f"wrote {out.rows} calibrated samples ({unit}{', with t_s' if has_t else ''}) "
-               f"to {'standard output' if output == '-' else output}", err=output == "-")
+               f"to {'standard output' if to_stdout else output}", err=to_stdout)
 
 
-def _load_model(cal: str) -> Any:
-    """The calibration file, or one clear line naming what is wrong with it."""
+def _load_model(cal: str) -> tuple[Any, str]:
+    """The calibration file and the SHA-256 of its bytes, or one clear line naming what is
+    wrong with it. The bytes are read once, then hashed and parsed: a pipe (``<(cat
+    cal.json)``) or a FIFO can be read only once."""
+    from .._files import SMALL_FILE_LIMIT, file_kind
     from ..static import TriadModel
 
+    src = repr(str(cal))
     try:
-        return TriadModel.load(cal)
+        st = os.stat(cal)
+        if not (stat.S_ISREG(st.st_mode) or stat.S_ISFIFO(st.st_mode)):
+            raise CalibrationError(f"calibration file {src} is {file_kind(st.st_mode)}, "
+                                   "not a file")
+        with open(cal, "rb") as fh:
+            data = fh.read(SMALL_FILE_LIMIT + 1)
+    except OSError as e:
+        raise CalibrationError(f"cannot read model {src}: {e.strerror}") from None
+    if len(data) > SMALL_FILE_LIMIT:
+        raise CalibrationError(f"calibration file {src} holds more than the "
+                               f"{SMALL_FILE_LIMIT >> 20} MB such a file can hold: is it the "
+                               "right file?")
+    digest = hashlib.sha256(data).hexdigest()
+    try:
+        d = json.loads(data.decode("utf-8-sig"))  # a BOM, as Notepad saves it
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CalibrationError(f"{src} is not JSON: {e}") from None
+    try:
+        return TriadModel.from_dict(d, src), digest
     except CalibrationError:
         raise
     except KeyError as e:

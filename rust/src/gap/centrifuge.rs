@@ -19,6 +19,9 @@
 //! | misalignment | `m_yx, m_zx, m_zy`, mrad (3) |
 //! | cross_coupling | `C_ij`, i != j, same order, ug/g^2 (6) |
 //! | rate_offset | `dw`, added to the signed rate (e.g. the Earth rate `Omega sin(latitude)`), urad/s (1) |
+//! | drift | per-axis bias linear in time, `1e-6 p_i s_i th` subtracted from output `i` (`th` hours from the mean row time; the static dictionary's drift), ug/h (3) |
+//!
+//! Without row times `t` the drift is not testable ([`Status::NoTime`]).
 //!
 //! Jacobian columns are central finite differences of this residual.
 
@@ -33,7 +36,7 @@ use crate::error::{invalid, CoreError, Result};
 use nalgebra::DMatrix;
 
 /// The centrifuge dictionary, in order.
-pub const DICTIONARY: [EffectInfo; 7] = [
+pub const DICTIONARY: [EffectInfo; 8] = [
     EffectInfo {
         name: "lever_along",
         unit: "mm",
@@ -69,7 +72,14 @@ pub const DICTIONARY: [EffectInfo; 7] = [
         unit: "urad/s",
         dim: 1,
     },
+    EffectInfo {
+        name: "drift",
+        unit: "ug/h",
+        dim: 3,
+    },
 ];
+/// Dictionary index of the drift (needs the row times).
+const DRIFT: usize = 7;
 
 /// Off-diagonal (i, j) pairs of the across-axis lever arms and cross-couplings.
 const ACROSS: [(usize, usize); 6] = [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)];
@@ -90,6 +100,8 @@ pub struct CentrifugeInput {
     pub spin_axis: Option<Vec<[f64; 3]>>,
     /// Noise: per-row std of the norm residual (g), or per-axis output std (g) per row.
     pub noise: Noise,
+    /// Time of each row, s (needed for the drift).
+    pub t: Option<Vec<f64>>,
 }
 
 /// The noise of a centrifuge session.
@@ -112,6 +124,7 @@ struct Extra {
     m: [f64; 3],
     cc: [f64; 6],
     dw: f64,
+    drift: [f64; 3],
 }
 
 /// The model.
@@ -120,6 +133,19 @@ pub struct CentrifugeModel {
     inp: CentrifugeInput,
     sig: Vec<f64>,
     noise_known: bool,
+    /// Hours from the mean row time (zeros without times).
+    th: Vec<f64>,
+}
+
+/// Hours from the mean of `t` (s); zeros without times.
+fn hours(t: Option<&Vec<f64>>, n: usize) -> Vec<f64> {
+    match t {
+        Some(t) if !t.is_empty() => {
+            let mid = t.iter().sum::<f64>() / t.len() as f64;
+            t.iter().map(|v| (v - mid) / 3600.0).collect()
+        }
+        _ => vec![0.0; n],
+    }
 }
 
 impl CentrifugeModel {
@@ -138,7 +164,8 @@ impl CentrifugeModel {
                 3 => (0..3).for_each(|i| x.k3[i] = 1e-6 * q[i]),
                 4 => (0..3).for_each(|i| x.m[i] = 1e-3 * q[i]),
                 5 => (0..6).for_each(|j| x.cc[j] = 1e-6 * q[j]),
-                _ => x.dw = 1e-6 * q[0],
+                6 => x.dw = 1e-6 * q[0],
+                _ => (0..3).for_each(|i| x.drift[i] = 1e-6 * q[i]),
             }
             off += DICTIONARY[c].dim;
         }
@@ -150,7 +177,11 @@ impl CentrifugeModel {
         let s = [p[0], p[1], p[2]];
         let b = [p[3], p[4], p[5]];
         let d = [p[6], p[7], p[8]];
-        let h = instrument_input(&self.inp.outputs[k], &s, &b, &x.m);
+        // A bias drifting in time: `1e-6 p_i` g per hour, in output units (scale s_i per g).
+        let th = self.th[k];
+        let out = self.inp.outputs[k];
+        let out = [0, 1, 2].map(|i| out[i] - x.drift[i] * s[i] * th);
+        let h = instrument_input(&out, &s, &b, &x.m);
         let mut f = [0.0; 3];
         for _ in 0..8 {
             let mut nf = [0.0; 3];
@@ -252,7 +283,11 @@ impl GapModel for CentrifugeModel {
         &DICTIONARY
     }
     fn unavailable(&self, c: usize) -> Option<Status> {
-        (c <= 1 && self.inp.spin_axis.is_none()).then_some(Status::NoSpinAxis)
+        if c <= 1 && self.inp.spin_axis.is_none() {
+            Some(Status::NoSpinAxis)
+        } else {
+            (c == DRIFT && self.inp.t.is_none()).then_some(Status::NoTime)
+        }
     }
     fn noise_known(&self) -> bool {
         self.noise_known
@@ -299,6 +334,14 @@ fn check(inp: &CentrifugeInput) -> Result<()> {
         }
         if let Some(r) = sa.iter().position(|c| c.iter().any(|v| !v.is_finite())) {
             return invalid(format!("spin_axis row {r} is not finite"));
+        }
+    }
+    if let Some(t) = &inp.t {
+        if t.len() != k {
+            return invalid(format!("t must have {k} values (s); got {}", t.len()));
+        }
+        if t.iter().any(|v| !v.is_finite()) {
+            return invalid("t must be finite (s)");
         }
     }
     match &inp.noise {
@@ -366,6 +409,7 @@ pub fn diagnose(inp: &CentrifugeInput, effects: &[usize], opt: &GapOptions) -> R
         inp: inp.clone(),
         noise_known: !matches!(inp.noise, Noise::Unknown),
         sig,
+        th: hours(inp.t.as_ref(), inp.outputs.len()),
     };
     let eng = engine::run(&model, &start, effects, opt)?;
     let speeds: Vec<f64> = inp
@@ -436,7 +480,47 @@ mod tests {
             g,
             spin_axis: Some(axes),
             noise: Noise::PerAxis(vec![[noise; 3]; 20 * rates.len()]),
+            t: None,
         }
+    }
+
+    #[test]
+    fn drift_is_found_with_row_times_and_not_tested_without() {
+        // A bias drifting 30, -20, 25 ug/h over a 2 h run (rows in time order): with the row
+        // times the drift is named and estimated; without them it is not testable.
+        let mut s = session([0.0; 3], 0.0, 2e-6);
+        let n = s.outputs.len();
+        let t: Vec<f64> = (0..n).map(|k| 7200.0 * k as f64 / (n - 1) as f64).collect();
+        let scale = [1.29, 1.21, 1.26];
+        let rate = [30.0, -20.0, 25.0];
+        for (k, out) in s.outputs.iter_mut().enumerate() {
+            let th = (t[k] - 3600.0) / 3600.0;
+            (0..3).for_each(|i| out[i] += 1e-6 * rate[i] * scale[i] * th);
+        }
+        let all: Vec<usize> = (0..DICTIONARY.len()).collect();
+        let r = diagnose(&s, &all, &GapOptions::default()).unwrap();
+        assert_eq!(r.engine.candidates[DRIFT].status, Status::NoTime);
+        assert!(!r.engine.selected.contains(&DRIFT));
+        s.t = Some(t);
+        let r = diagnose(&s, &all, &GapOptions::default()).unwrap();
+        assert_eq!(
+            r.engine.selected.first(),
+            Some(&DRIFT),
+            "{:?}",
+            r.engine.selected
+        );
+        let est = &r.engine.candidates[DRIFT];
+        for i in 0..3 {
+            assert!(
+                (est.estimate[i] - rate[i]).abs() < 5.0 * est.std[i],
+                "{:?} +- {:?}",
+                est.estimate,
+                est.std
+            );
+        }
+        // Times of the wrong length are refused.
+        s.t = Some(vec![0.0; 3]);
+        assert!(diagnose(&s, &all, &GapOptions::default()).is_err());
     }
 
     #[test]

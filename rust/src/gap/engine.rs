@@ -544,6 +544,23 @@ fn projected_directions(
     Some((w, sines))
 }
 
+/// Relative column norm at or below which a parameter's column counts as zero: the design
+/// does not see that parameter at all (finite-difference round-off is ~1e-11 of a seen
+/// column's norm; the columns of one effect share its unit).
+pub const ZERO_COLUMN: f64 = 1e-9;
+
+/// Which columns of one effect's block `c` the design sees: norm above [`ZERO_COLUMN`] times
+/// the block's largest (a centrifuge lever arm across to an axis the spin axis never has a
+/// component on has an exactly zero column).
+pub fn determined(c: &DMatrix<f64>) -> Vec<bool> {
+    let norms: Vec<f64> = (0..c.ncols()).map(|i| c.column(i).norm()).collect();
+    let nmax = norms.iter().cloned().fold(0.0, f64::max);
+    norms
+        .iter()
+        .map(|&v| v > ZERO_COLUMN * nmax && v > 0.0)
+        .collect()
+}
+
 /// Minimal-norm linearised estimate `x = -C_p^+ e` on the projected columns (directions with
 /// singular value above `sine_tol` of the largest column norm) and its standard deviations
 /// at residual variance `s2`.
@@ -560,10 +577,13 @@ fn projected_estimate(
     // orders of magnitude on near-axis poses): scaled by the largest column alone, every
     // direction of the small ones was dropped and the estimate read "0 +- 0".
     let norms: Vec<f64> = (0..k).map(|i| c.column(i).norm()).collect();
+    let seen = determined(c);
     let mut cn = c.clone();
     for (i, &nrm) in norms.iter().enumerate() {
-        if nrm > 0.0 {
+        if seen[i] {
             cn.column_mut(i).scale_mut(1.0 / nrm);
+        } else {
+            cn.column_mut(i).fill(0.0);
         }
     }
     let cp = &cn - q * (q.transpose() * &cn);
@@ -586,7 +606,7 @@ fn projected_estimate(
     // Back to the columns' own scale; NaN where nothing could be estimated.
     let mut std = vec![f64::NAN; k];
     for i in 0..k {
-        if kept == 0 || !(norms[i] > 0.0) {
+        if kept == 0 || !seen[i] {
             est[i] = f64::NAN;
             continue;
         }
@@ -1337,20 +1357,34 @@ pub fn candidate_reports<M: GapModel>(
     (reports, bic_none, wt(bic_none) / wsum)
 }
 
-/// An aliased pair: the best selected effect and another with similar evidence.
+/// A pair the data do not tell apart: the best selected effect and another candidate.
 #[derive(Debug, Clone, Copy)]
 pub struct Ambiguity {
     /// The selected effect.
     pub best: usize,
-    /// The aliased candidate.
+    /// The other candidate.
     pub other: usize,
     /// Largest principal-angle cosine between their projected columns.
     pub cosine: f64,
+    /// BIC weight of the best against the other alone, `1 / (1 + exp(-(BIC_o - BIC_b) / 2))`.
+    pub pair_weight: f64,
 }
 
-/// Candidates aliased with the first selected effect (cosine above `ambiguity_cos`) with
-/// similar evidence: a BIC weight at least `ambiguity_weight` times the best's, or a p-value
-/// that would be significant on its own (below `alpha / M`, M testable candidates).
+/// BIC difference below which two candidates that are both significant on their own are not
+/// told apart: 10 is the "very strong evidence" boundary of the Bayes-factor scale
+/// (2 ln B > 10, Kass and Raftery 1995), a pairwise weight of 0.9933. Settling named K3 at
+/// p = 1e-6 with a weight of 0.95 against it while settling's own p was 8.6e-7 (cosine 0.6
+/// between their columns): both explain the gap, the data do not say which.
+pub const DISTINCT_BIC: f64 = 10.0;
+
+/// Candidates the data do not separate from the first selected effect `best`, by either rule:
+///
+/// - aliased: the largest principal-angle cosine of their projected columns above
+///   `ambiguity_cos`, with similar evidence (a BIC weight at least `ambiguity_weight` times
+///   the best's, or a p-value significant on its own, below `alpha / M`, M testable
+///   candidates: Bonferroni at the first stage);
+/// - both significant: whatever the cosine, the other's p-value significant on its own
+///   (below `alpha / M`) and the best's BIC ahead of it by less than [`DISTINCT_BIC`].
 pub fn ambiguity(reports: &[CandidateReport], best: usize, opt: &GapOptions) -> Vec<Ambiguity> {
     let Some(rb) = reports.iter().find(|r| r.effect == best) else {
         return vec![];
@@ -1370,15 +1404,16 @@ pub fn ambiguity(reports: &[CandidateReport], best: usize, opt: &GapOptions) -> 
         }
         let m = rb.screen.w.transpose() * &r.screen.w;
         let cos = thin_svd(&m).map_or(0.0, |(_, s, _)| s.first().copied().unwrap_or(0.0));
-        // Similar evidence: a BIC weight within `ambiguity_weight` of the best's, or a test
-        // that would be significant on its own at the Bonferroni level of the first stage.
-        let similar =
-            r.weight > opt.ambiguity_weight * rb.weight || r.screen.p < opt.alpha / m_test;
-        if cos > opt.ambiguity_cos && similar {
+        let significant = r.screen.p < opt.alpha / m_test;
+        let similar = r.weight > opt.ambiguity_weight * rb.weight || significant;
+        let dbic = r.bic - rb.bic;
+        let close = significant && dbic < DISTINCT_BIC;
+        if (cos > opt.ambiguity_cos && similar) || close {
             out.push(Ambiguity {
                 best,
                 other: r.effect,
                 cosine: cos,
+                pair_weight: 1.0 / (1.0 + (-dbic / 2.0).exp()),
             });
         }
     }
@@ -1708,8 +1743,16 @@ fn assemble<M: GapModel>(
     for &c in &selected {
         let dim = m.dictionary()[c].dim;
         if let Some(r) = reports.iter_mut().find(|r| r.effect == c) {
-            r.estimate = fin.p[off..off + dim].to_vec();
-            r.std = done.std[off..off + dim].to_vec();
+            // Components the design does not see: not determined (NaN), not "0 +- 1e-15".
+            let seen = determined(&fin_rows.jac.columns(off, dim).into_owned());
+            let or_nan = |v: &[f64]| -> Vec<f64> {
+                v.iter()
+                    .zip(&seen)
+                    .map(|(&x, &s)| if s { x } else { f64::NAN })
+                    .collect()
+            };
+            r.estimate = or_nan(&fin.p[off..off + dim]);
+            r.std = or_nan(&done.std[off..off + dim]);
         }
         off += dim;
     }
@@ -2361,6 +2404,71 @@ mod tests {
         assert_eq!(small.k_acc, 0);
         let per_group = gate(&sw, &[2.0, 2.5], (30, 1, true), &[None], &strict).unwrap();
         assert_eq!(per_group.k_acc, 1);
+    }
+
+    /// A testable candidate report with the unit direction `dir` (cosines between reports
+    /// are their dot products), p-value `p` and BIC `bic`.
+    fn report(effect: usize, dir: &[f64], p: f64, bic: f64) -> CandidateReport {
+        let v = DVector::from_column_slice(dir).normalize();
+        let mut screen = empty_screen(dir.len(), 1);
+        screen.status = Status::Testable;
+        screen.p = p;
+        screen.w = DMatrix::from_column_slice(dir.len(), 1, v.as_slice());
+        CandidateReport {
+            effect,
+            status: Status::Testable,
+            screen,
+            bic,
+            weight: f64::NAN,
+            estimate: vec![],
+            std: vec![],
+        }
+    }
+
+    #[test]
+    fn zero_columns_are_not_determined_and_their_estimates_are_nan() {
+        // Columns of very different sizes are seen; a zero or round-off column is not.
+        let c = DMatrix::from_column_slice(
+            4,
+            3,
+            &[
+                1.0, 2.0, 0.5, -1.0, //
+                1e-4, -2e-4, 3e-4, 1e-4, //
+                1e-13, 0.0, -1e-13, 0.0,
+            ],
+        );
+        assert_eq!(determined(&c), vec![true, true, false]);
+        let q = DMatrix::from_column_slice(4, 1, &[0.5, 0.5, 0.5, 0.5]);
+        let e = DVector::from_column_slice(&[0.3, -0.1, 0.2, 0.4]);
+        let (est, std) = projected_estimate(&c, &q, &e, 1.0, 0.05);
+        assert!(est[..2].iter().chain(&std[..2]).all(|v| v.is_finite()));
+        assert!(est[2].is_nan() && std[2].is_nan(), "{est:?} +- {std:?}");
+    }
+
+    #[test]
+    fn ambiguity_names_a_significant_runner_up_close_in_bic_whatever_the_cosine() {
+        let opt = GapOptions::default();
+        let (a, b, c) = ([1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]);
+        // Best (0) and a significant runner-up 3 BIC units behind, cosine 0.6: ambiguous.
+        let mut reps = vec![report(0, &a, 1e-7, 100.0), report(1, &b, 1e-6, 103.0)];
+        reps[0].weight = 0.8;
+        reps[1].weight = 0.18;
+        let amb = ambiguity(&reps, 0, &opt);
+        assert_eq!(amb.len(), 1, "{amb:?}");
+        assert_eq!(amb[0].other, 1);
+        assert!((amb[0].cosine - 0.6).abs() < 1e-12);
+        assert!((amb[0].pair_weight - 1.0 / (1.0 + (-1.5f64).exp())).abs() < 1e-12);
+        // Far behind in BIC (beyond DISTINCT_BIC): told apart.
+        reps[1].bic = 100.0 + DISTINCT_BIC + 0.5;
+        assert!(ambiguity(&reps, 0, &opt).is_empty());
+        // Close in BIC but not significant on its own (p above alpha / M): told apart.
+        reps[1].bic = 103.0;
+        reps[1].screen.p = 0.2;
+        reps[1].weight = 0.001;
+        assert!(ambiguity(&reps, 0, &opt).is_empty());
+        // Orthogonal, significant and close: still ambiguous (the data do not say which).
+        let reps = vec![report(0, &a, 1e-7, 100.0), report(2, &c, 1e-6, 101.0)];
+        assert_eq!(ambiguity(&reps, 0, &opt).len(), 1);
     }
 
     #[test]

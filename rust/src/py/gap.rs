@@ -386,7 +386,7 @@ pub struct GapRaw {
     chi2_after: f64,
     dof_after: usize,
     p_after: f64,
-    ambiguous: Vec<(String, String, f64)>,
+    ambiguous: Vec<(String, String, f64, f64)>,
     loo: Option<GapHeldOut>,
     gate_skipped: bool,
     location: GapLocation,
@@ -459,7 +459,7 @@ fn raw_from(r: &GapResult, names: &[(&str, &str)]) -> GapRaw {
         ambiguous: e
             .ambiguous
             .iter()
-            .map(|a| (nm(a.best), nm(a.other), a.cosine))
+            .map(|a| (nm(a.best), nm(a.other), a.cosine, a.pair_weight))
             .collect(),
         loo: e.loo.as_ref().map(GapHeldOut::from),
         gate_skipped: e.gate_skipped,
@@ -623,10 +623,11 @@ pub fn gap_diagnose_static(
 }
 
 /// Centrifuge gap diagnosis (outputs in g, omega rad/s, radius m). `sigma_norm`: std of each
-/// row's norm residual (g); `sigma_axis`: per-axis output std (g), propagated to the norm.
+/// row's norm residual (g); `sigma_axis`: per-axis output std (g), propagated to the norm;
+/// `t`: time of each row, s (for the drift).
 #[pyfunction]
 #[pyo3(signature = (outputs, omega, radius, g, effects, settings, spin_axis=None,
-                    sigma_norm=None, sigma_axis=None))]
+                    sigma_norm=None, sigma_axis=None, t=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn gap_diagnose_centrifuge(
     py: Python<'_>,
@@ -639,6 +640,7 @@ pub fn gap_diagnose_centrifuge(
     spin_axis: Option<PyReadonlyArray2<'_, f64>>,
     sigma_norm: Option<PyReadonlyArray1<'_, f64>>,
     sigma_axis: Option<PyReadonlyArray2<'_, f64>>,
+    t: Option<PyReadonlyArray1<'_, f64>>,
 ) -> PyResult<GapRaw> {
     let noise = match (
         opt_slice(&sigma_norm, "sigma")?,
@@ -655,6 +657,7 @@ pub fn gap_diagnose_centrifuge(
         g,
         spin_axis: opt_rows3(&spin_axis, "spin_axis")?,
         noise,
+        t: opt_slice(&t, "t")?.map(|s| s.to_vec()),
     };
     let dict: Vec<&str> = gcf::DICTIONARY.iter().map(|e| e.name).collect();
     let idx = indices(&effects, &dict)?;

@@ -9,7 +9,7 @@ mod static_fit;
 mod text;
 
 use crate::error::CoreError;
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyMemoryError, PyValueError};
 use pyo3::PyErr;
 
 pyo3::create_exception!(
@@ -30,6 +30,7 @@ impl From<CoreError> for PyErr {
         match e {
             CoreError::Degenerate(m) => DegenerateDataError::new_err(m),
             CoreError::InvalidInput(m) | CoreError::NotConverged(m) => CalibrationError::new_err(m),
+            CoreError::OutOfMemory(m) => PyMemoryError::new_err(m),
         }
     }
 }

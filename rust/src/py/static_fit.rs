@@ -726,12 +726,15 @@ impl PyStaticFit {
     }
 
     /// What the caller must act on, in one read: bit 0 the fit neither converged nor found
-    /// the design degenerate (an error), bit 1 it is weak or degenerate (a warning); 0 for
-    /// a fit to return as it is.
+    /// the design degenerate (an error), bit 1 it is weak or degenerate (a warning), bit 2 a
+    /// norm residual beyond 5 % of g (a dwell that may not be at rest: the caller screens);
+    /// 0 for a fit to return as it is.
     #[getter]
     fn _attention(&self) -> u8 {
+        let far = self.residuals_v.iter().any(|r| !(r.abs() <= 0.05 * self.g));
         u8::from(!self.converged && !self.degenerate)
             | (u8::from(self.weak || self.degenerate) << 1)
+            | (u8::from(far) << 2)
     }
 
     /// Full observability report: SVD of the whitened Jacobian in comparable units.

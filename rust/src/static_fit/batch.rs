@@ -78,7 +78,7 @@ impl BatchRow {
         let status = match e {
             CoreError::Degenerate(_) => BatchStatus::Degenerate,
             CoreError::NotConverged(_) => BatchStatus::NotConverged,
-            CoreError::InvalidInput(_) => BatchStatus::Invalid,
+            CoreError::InvalidInput(_) | CoreError::OutOfMemory(_) => BatchStatus::Invalid,
         };
         BatchRow {
             params: [f64::NAN; 9],
