@@ -89,6 +89,15 @@ def test_bad_input_is_refused():
         accelcal.startup_bias([0, 90, 0], np.zeros((3, 2)), drift=True)
     with pytest.raises(CalibrationError, match="sigma"):
         accelcal.startup_bias([0, 90], np.zeros((2, 2)), sigma=-1.0)
+    # An azimuth of 1e17 deg (a double's step there: 16 deg) was taken: a biased answer.
+    az = np.array([0.0, 45.0, 90.0, 135.0, 1e17])
+    with pytest.raises(CalibrationError, match=r"\[4\] = 1e\+17 deg cannot be an azimuth"):
+        accelcal.startup_bias(az, np.ones((5, 2)))
+    # Unwrapped angles of many turns are fine (+-1e9 deg).
+    turns = np.array([0.0, 45.0, 90.0, 135.0]) + 360.0 * 2_000_000
+    y = np.c_[np.cos(np.radians(2 * turns)), np.sin(np.radians(2 * turns))]
+    np.testing.assert_allclose(accelcal.startup_bias(turns, y).bias,
+                               accelcal.startup_bias(turns % 360, y).bias, atol=1e-9)
 
 
 def test_no_redundancy_without_sigma_gives_nan_covariance():

@@ -7,7 +7,12 @@
   the pipe with a regular file.
 - A path whose last component is a symbolic link is refused (the message names the link and
   its target): replacing the link would silently cut it, writing through it would change a file
-  the user did not name. Give the target path instead.
+  the user did not name. Give the target path instead. Two kinds of link are written through:
+  the process's own streams (``/dev/stdout``, ``/dev/stderr``, ``/dev/fd/N``,
+  ``/proc/self/fd/N``: a pipe, a terminal or a file the shell opened, whatever it is) and a
+  link to a device or FIFO (nothing to replace).
+- :func:`atomic_path` gives a library that writes by file name (HDF5) the name of the
+  temporary file, renamed over the output at the end; devices, FIFOs and links are refused.
 - :func:`atomic_create` writes a new file the same way but never replaces one: the complete
   temporary file is hard-linked to its name, which fails when the name exists (a file kept
   by name, such as a fleet's calibration history).

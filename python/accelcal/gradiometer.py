@@ -88,7 +88,19 @@ def _azimuths(x: ArrayLike, name: str = "azimuths") -> _F64:
         raise CalibrationError(
             f"{name} contain NaN or inf at {np.where(~np.isfinite(a))[0].tolist()}"
         )
+    far = np.abs(a) > _AZIMUTH_MAX_DEG
+    if np.any(far):
+        i = int(np.argmax(far))
+        raise CalibrationError(
+            f"{name}[{i}] = {a[i]:.6g} deg cannot be an azimuth: beyond +-{_AZIMUTH_MAX_DEG:g} "
+            "deg a double no longer holds the angle to 1e-6 deg (at 1e17 deg its step is 16 "
+            "deg); give the platform angle in degrees, wrapped or unwrapped"
+        )
     return a
+
+
+#: Largest |azimuth| taken, deg: a double's step there is 1.2e-7 deg.
+_AZIMUTH_MAX_DEG = 1e9
 
 
 def _outputs(x: ArrayLike, m: int) -> _F64:

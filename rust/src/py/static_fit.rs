@@ -731,7 +731,10 @@ impl PyStaticFit {
     /// 0 for a fit to return as it is.
     #[getter]
     fn _attention(&self) -> u8 {
-        let far = self.residuals_v.iter().any(|r| !(r.abs() <= 0.05 * self.g));
+        let far = self
+            .residuals_v
+            .iter()
+            .any(|r| r.is_nan() || r.abs() > 0.05 * self.g);
         u8::from(!self.converged && !self.degenerate)
             | (u8::from(self.weak || self.degenerate) << 1)
             | (u8::from(far) << 2)

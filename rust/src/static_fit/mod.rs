@@ -88,8 +88,14 @@ pub fn implausible_g(g: f64) -> Option<String> {
     if within(1.0) || within(1.0 / G_STANDARD) || within(100.0) || within(1000.0 / G_STANDARD) {
         return None;
     }
+    // Shortest round trip, in exponent form far from 1 (1e-300 was 300 digits long).
+    let shown = if (1e-4..1e9).contains(&g.abs()) {
+        format!("{g}")
+    } else {
+        format!("{g:e}")
+    };
     Some(format!(
-        "g = {g} is not a plausible local gravity: Earth's is 9.78-9.83 m/s^2 at sea level \
+        "g = {shown} is not a plausible local gravity: Earth's is 9.78-9.83 m/s^2 at sea level \
          ({lo}-{hi} allowed: {:.4}-{:.4} in units of g, {}-{} cm/s^2, {:.1}-{:.1} mg)",
         lo / G_STANDARD,
         hi / G_STANDARD,
@@ -1179,6 +1185,10 @@ mod tests {
         for g in [9.8895, 9.7, 9.9, 0.99, 1.005, 970.0, 990.0, 5.0, 32.17] {
             let why = implausible_g(g).expect("refused");
             assert!(why.starts_with(&format!("g = {g} is not")), "{why}");
+        }
+        for (g, shown) in [(1e-300, "1e-300"), (1e300, "1e300"), (2.5e12, "2.5e12")] {
+            let why = implausible_g(g).expect("refused");
+            assert!(why.starts_with(&format!("g = {shown} is not")), "{why}");
         }
     }
 
