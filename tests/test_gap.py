@@ -559,8 +559,9 @@ def test_centrifuge_and_gradiometer_run_the_same_engine() -> None:
     assert p <= pa <= min(1.0, m * p) + 1e-15
     assert r.structure.verdict in {"none", "per_dwell"}
     statuses = {e["status"] for e in r.effects}
+    # no_time: the drift, without row times t.
     assert statuses <= {"selected", "testable", "blind", "too_few_dwells", "no_spin_axis",
-                        "not_confirmed"}
+                        "not_confirmed", "no_time"}
     az, y, t, _ = _grad(2, drift_E_per_s=(2e-3, -1.5e-3))
     r = accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5)
     assert r.raw["step_p_adj"] and r.raw["step_p_adj"][0] <= min(1.0, r.raw["step_m"][0]
@@ -1525,3 +1526,178 @@ def test_a_report_records_the_settings_that_made_it() -> None:
     old = {k: v for k, v in a.to_dict().items() if k != "settings"}
     rebuilt = accelcal.GapReport.from_dict(old)
     assert rebuilt.settings == {} and not rebuilt.summary().splitlines()[-1].startswith("Sett")
+
+
+# ----------------------------------------------------------------------------------------------
+# Ambiguity of significant runners-up, centrifuge drift and unseen components, the figures of
+# the summary's lines.
+
+
+@pytest.mark.parametrize(("effect", "seed", "amp"), [("settling", 68, (2.0, 20.0)),
+                                                     ("temperature_scale", 65, (1.0, 8.0)),
+                                                     ("temperature_bias", 32, (1.0, 8.0))])
+def test_a_significant_runner_up_close_in_bic_is_reported_ambiguous(
+        effect: str, seed: int, amp: tuple[float, float]) -> None:
+    """Weak effects named as another (settling as K3 at p 1e-6) while the injected effect was
+    significant on its own with a BIC close to the best's: the report says the two are not
+    told apart, whatever the cosine between their columns."""
+    s = gap_session(effect, rng=seed, amp_range=amp)
+    r = diagnose(s.dwells, g=s.g)
+    assert r.best != effect  # the case: another effect has the smallest p
+    amb = [a for a in r.ambiguous if effect in a["effects"]]
+    assert amb and amb[0]["effects"][0] == r.best, r.ambiguous
+    assert amb[0]["rule"] == "both_significant" and amb[0]["cosine"] < 0.9
+    assert amb[0]["pair_weight"][effect] < 0.9933
+    p_other = next(e["p_value"] for e in r.effects if e["effect"] == effect)
+    assert amb[0]["significant"][effect] == p_other < 0.05 / 6
+    line = next(x for x in r.summary().splitlines() if x.startswith("Ambiguous:"))
+    assert f"{r.best} / {effect}" in line and "significant on their own" in line
+    # A strong effect leaves no significant runner-up close to it.
+    s = gap_session(("drift",), rng=8, amplitudes=[30.0])
+    r = diagnose(s.dwells, g=s.g)
+    assert r.best == "drift" and not r.ambiguous
+
+
+def _spin_y0_session(lever: np.ndarray, rng: int, drift: np.ndarray | None = None,
+                     ) -> tuple[np.ndarray, Any]:
+    """The tester's own centrifuge physics on the paper design (its spin axis has no y
+    component): accelerometer i at body offset lever[i] (m), outputs b + S f + K2 f^2, noise
+    1e-6 g, plus an optional bias drift[i] (output units) over the run."""
+    from accelcal.centrifuge import paper_design
+
+    des = paper_design(radius=1.0)
+    g = 9.8
+    w, c1, c3 = des.omega, des.radial, des.spin_axis
+    out = np.empty((len(w), 3))
+    for i, (s_, b_, k2) in enumerate(zip((1.29, 1.21, 1.26), (0.213, 0.256, 0.516),
+                                         (0.57e-4, 0.31e-4, 0.45e-4), strict=True)):
+        perp = lever[i][None, :] - (c3 @ lever[i])[:, None] * c3
+        f = (w**2 * des.radius / g)[:, None] * c1 - (w**2 / g)[:, None] * perp + c3
+        out[:, i] = b_ + s_ * f[:, i] + k2 * f[:, i] ** 2
+    out += np.random.default_rng(rng).normal(scale=1e-6, size=out.shape)
+    if drift is not None:
+        out += np.outer(np.linspace(-0.5, 0.5, len(w)), drift)
+    return out, des
+
+
+def test_centrifuge_drift_is_tested_with_row_times_and_a_blind_spot_without() -> None:
+    """A bias drift over the run was blamed on a lever arm at p 3e-7 (no time input): with the
+    row times it is named; without them the report says time effects are not tested."""
+    amp = 2e-5 * np.array([1.0, -0.6, 0.8])  # output units over the 1 h run
+    out, des = _spin_y0_session(np.zeros((3, 3)), 3, drift=amp)
+    t = np.linspace(0.0, 3600.0, len(des.omega))
+    kw: dict[str, Any] = {"g": 9.8, "spin_axis": des.spin_axis, "sigma": 1e-6}
+    r = accelcal.diagnose_centrifuge(out, des.omega, des.radius, t=t, **kw)
+    assert r.best == "drift"
+    est = next(e for e in r.effects if e["effect"] == "drift")
+    truth = 1e6 * amp / np.array([1.29, 1.21, 1.26])  # ug/h
+    assert np.all(np.abs(est["estimate"] - truth) < 5 * est["std"] + 0.1 * np.abs(truth))
+    r0 = accelcal.diagnose_centrifuge(out, des.omega, des.radius, **kw)
+    assert r0.best != "drift"
+    reason = {b["effect"]: b["reason"] for b in r0.blind_spots}["drift"]
+    assert "no row times" in reason and "no time effect" in reason
+    assert "Blind spot: drift: not testable: no row times" in r0.summary()
+    # A null session with times: no drift named.
+    out, des = _spin_y0_session(np.zeros((3, 3)), 4)
+    assert accelcal.diagnose_centrifuge(out, des.omega, des.radius, t=t, **kw).best == "none"
+    with pytest.raises(CalibrationError, match="t must have 60 values"):
+        accelcal.diagnose_centrifuge(out, des.omega, des.radius, t=t[:5], **kw)
+
+
+def test_centrifuge_components_the_design_cannot_see_are_not_determined() -> None:
+    """With no y component of the spin axis the across-axis lever arms x:y, y:x, y:z and z:y
+    have zero columns: not "0 +- 9e-15 mm" but not determined, and said so."""
+    lever = np.zeros((3, 3))
+    lever[0, 2] = -0.003  # accelerometer x 3 mm along body z: seen
+    out, des = _spin_y0_session(lever, 1)
+    r = accelcal.diagnose_centrifuge(out, des.omega, des.radius, g=9.8,
+                                     spin_axis=des.spin_axis, sigma=1e-6)
+    assert r.best == "lever_across"
+    e = next(x for x in r.effects if x["effect"] == "lever_across")
+    unseen = [0, 2, 3, 5]
+    assert np.all(np.isnan(e["estimate"][unseen])) and np.all(np.isnan(e["std"][unseen]))
+    assert abs(e["estimate"][1] + 3.0) < 5 * e["std"][1] + 1e-3
+    blind = {b["effect"] for b in r.blind_spots}
+    assert "lever_across (x:y, y:x, y:z, z:y)" in blind
+    line = next(x for x in r.summary().splitlines() if x.strip().startswith("lever_across"))
+    assert line.count("n/a") == 4 and not any(f"e-{k}" in line for k in (13, 14, 15, 16))
+    # Not selected: the screening estimate says the same.
+    out, des = _spin_y0_session(np.zeros((3, 3)), 2)
+    r = accelcal.diagnose_centrifuge(out, des.omega, des.radius, g=9.8,
+                                     spin_axis=des.spin_axis, sigma=1e-6)
+    e = next(x for x in r.effects if x["effect"] == "lever_across")
+    assert e["status"] == "testable" and np.all(np.isnan(e["estimate"][unseen]))
+    assert "lever_across (x:y, y:x, y:z, z:y)" in {b["effect"] for b in r.blind_spots}
+
+
+def test_azimuth_errors_shrink_line_uses_the_in_sample_chi2() -> None:
+    """Per-dwell azimuth errors cannot be predicted for a held-out dwell: the held-out gap
+    barely moves although they explain the data; the line says so and its excess remaining
+    is the in-sample chi2's."""
+    az, y, t, _ = _grad(3, azimuth_error_deg=1.0)
+    r = accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5)
+    assert r.best == "azimuth_error"
+    assert r.remaining["p"] > 1e-3 and r.held_out_gap_after > 0.5 * r.held_out_gap
+    gi = (math.sqrt(r.chi2 / r.dof), math.sqrt(r.remaining["chi2"] / r.remaining["dof"]))
+    assert r.excess_remaining == pytest.approx((gi[1] - 1) / (gi[0] - 1))
+    held = (r.held_out_gap_after - 1) / (r.held_out_gap - 1)  # what the line said before
+    assert r.excess_remaining < 0.4 < 0.8 < held
+    line = next(x for x in r.summary().splitlines() if x.startswith("How far it shrinks"))
+    assert "cannot credit azimuth_error" in line and "in-sample" in line
+    # Other effects keep the held-out figure.
+    az, y, t, _ = _grad(2, drift_E_per_s=(2e-3, -1.5e-3))
+    r = accelcal.diagnose_gradiometer(az, y, t=t, sigma=0.5, effects=["drift"])
+    assert r.excess_remaining == pytest.approx(
+        (r.held_out_gap_after - 1) / (r.held_out_gap - 1))
+
+
+def test_the_p_of_an_effect_selected_later_is_its_step_p() -> None:
+    s = gap_session(("drift", "temperature_bias"), rng=1, amplitudes=[10.0, 6.0])
+    r = diagnose(s.dwells, g=s.g, loo=False)
+    assert r.selected[:2] == ["drift", "temperature_bias"]
+    e = next(x for x in r.effects if x["effect"] == "temperature_bias")
+    assert e["p_value"] > 0.1 and e["p_step"] == r.raw["step_p"][1] < 1e-10
+    line = next(x for x in r.summary().splitlines() if x.strip().startswith("temperature_bias"))
+    assert "selected at step 2" in line and f"{e['p_step']:9.2g}" in line
+    assert "its test at that step" in r.summary()
+
+
+def test_cli_plot_has_the_allan_curve(tmp_path: Any) -> None:
+    """The CLI's streaming pass keeps no samples: the noise panel's Allan curve is read
+    again for --plot, as the Python path computes it."""
+    pytest.importorskip("matplotlib")
+    from accelcal.cli import main
+    from accelcal.sim import field_session
+    from click.testing import CliRunner
+
+    fs_ = field_session(fs=100.0, n_dwells=14, dwell_s=4.0, move_s=2.0, max_tilt_deg=80.0,
+                        sigma=1e-3, rng=4)
+    rec = tmp_path / "rec.csv"
+    np.savetxt(rec, np.column_stack([fs_.t, fs_.samples]), delimiter=",",
+               header="t,ax,ay,az", comments="")
+    out = CliRunner().invoke(main, ["diagnose", str(rec), "--g", f"{fs_.g}", "--plot",
+                                    str(tmp_path / "gap.png"), "--json"])
+    assert out.exit_code == 0, out.output
+    nc = json.loads(out.output)["noise_curves"]
+    assert len(nc["tau"]) > 3 and np.asarray(nc["adev"]).shape == (len(nc["tau"]), 3)
+    # White noise of 1e-3 at 100 Hz: the Allan deviation at the shortest tau is about it.
+    assert 0.5e-3 < np.asarray(nc["adev"])[0].mean() < 2e-3
+    assert "std_allan" in nc and (tmp_path / "gap.png").stat().st_size > 0
+
+
+def test_a_moved_calibration_shrink_line_separates_the_refit_from_the_effect() -> None:
+    """Against a moved calibration the starting G is mostly the calibration's: the line goes
+    from the calibration as given through the refit alone to the refit with its effects."""
+    from accelcal import TriadModel
+
+    s = gap_session(("k2",), rng=31, n_dwells=24, amplitudes=[20.0])
+    t = s.nuisance
+    K = np.array([[t[0], 0, 0], [t[6], t[1], 0], [t[7], t[8], t[2]]])
+    r = diagnose(s.dwells, g=s.g,
+                 fit=TriadModel(K * (1 + np.diag([8e-4, 0, 0])), t[3:6] + [0, 0, 6e-3]))
+    cc = r.calibration_check
+    assert cc is not None and cc["attribution"] == "refit" and r.best == "k2"
+    assert r.held_out_gap_after < cc["g_refit"] < 0.5 * r.held_out_gap
+    line = next(x for x in r.summary().splitlines() if x.startswith("How far it shrinks"))
+    assert (f"{r.held_out_gap:.2f} (the calibration as given) -> {cc['g_refit']:.2f} "
+            "(refitted, no effect") in line and "refitted with k2" in line

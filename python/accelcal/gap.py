@@ -509,8 +509,11 @@ class GapReport:
         in-sample but rejected by the held-out gate, "testable", "blind", "no_temperature",
         "constant_temperature", "no_time", "no_spin_axis", "too_few_dwells",
         "one_attitude" = a fixed calibration checked at one attitude), p_value (the
-        attribution test, named in ``test``: "chi2" or "F"), p_f, p_chi2, bic_weight,
-        estimate and std (physical units), unit, sines (identifiability).
+        attribution test, named in ``test``: "chi2" or "F"; first stage, against the
+        calibration alone), p_f, p_chi2, bic_weight, estimate and std (physical units; NaN
+        for a component whose column is zero in this design, not determined), unit, sines
+        (identifiability); a selected effect also has ``step`` (1, 2, ...) and ``p_step``,
+        the p-value at which it was selected (beside the effects selected before it).
     ambiguous : sets of candidates these data do not tell apart, with the experiment that
         separates them: "rule" "aliased" (columns nearly parallel: cosine above 0.9, with
         similar evidence) or "both_significant" (whatever the cosine, the other candidate is
@@ -1147,7 +1150,7 @@ def _shrink_line(r: GapReport) -> str:
         return (f"How far it shrinks: held-out G {r.held_out_gap:.2f} (the calibration as "
                 f"given) -> {cc['g_refit']:.2f} (refitted, no effect: the calibration moved) -> "
                 f"{r.held_out_gap_after:.2f} ({after}; shrink {r.shrink:.2f} over both, excess "
-                f"remaining {rem} of the refit's); {rms}")
+                f"remaining of the refit's {rem}); {rms}")
     return (f"How far it shrinks: held-out G {r.held_out_gap:.2f} -> "
             f"{r.held_out_gap_after:.2f} (shrink {r.shrink:.2f}, excess remaining {rem}); {rms}")
 
