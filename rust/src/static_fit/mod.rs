@@ -579,10 +579,17 @@ fn small_cap_restart<const N: usize>(
 /// noise is estimated) are both inside the data's confidence region.
 const TWO_MINIMA_CHI2: f64 = 27.88;
 
-/// Two calibrations far apart (scale factors more than 1 % apart) whose costs the data cannot
-/// tell apart ([`TWO_MINIMA_CHI2`]; `b` need not be a converged minimum: any point that
-/// close in cost lies in the confidence region): the local covariance of the fit describes
-/// neither, so the calibration is undetermined.
+/// The local quadratic model of the cost at the fit puts a point this many noise units of
+/// chi2 away (10 standard deviations): [`two_minima`] calls it far.
+const TWO_MINIMA_FAR: f64 = 100.0;
+
+/// Two calibrations far apart (scale factors more than 1 % apart, and the fit's own
+/// covariance putting `b` more than 10 standard deviations from `a`: [`TWO_MINIMA_FAR`])
+/// whose costs the data cannot tell apart ([`TWO_MINIMA_CHI2`]; `b` need not be a converged
+/// minimum: any point that close in cost lies in the confidence region): the local
+/// covariance of the fit describes neither, so the calibration is undetermined. Two
+/// calibrations a few percent apart that the fit's std already span are not refused, nor a
+/// rival whose scale factors are more than 2 times apart (no triad).
 fn two_minima<const N: usize>(
     a: &MlOutcome,
     b: &MlOutcome,
@@ -602,7 +609,18 @@ fn two_minima<const N: usize>(
     let apart =
         (0..3).any(|i| (pa[i].abs() - pb[i].abs()).abs() > 0.01 * pa[i].abs().max(pb[i].abs()));
     let close = (a.cost - b.cost).abs() <= TWO_MINIMA_CHI2 * unit;
-    if !(unit > 0.0 && unit.is_finite() && apart && close) {
+    // a.cost + d^T (J^T J) d: the cost the fit's quadratic model predicts at b.
+    let d: [f64; N] = std::array::from_fn(|i| b.params[i] - a.params[i]);
+    let predicted: f64 = (0..N)
+        .map(|i| (0..N).map(|j| d[i] * a.jtj[i][j] * d[j]).sum::<f64>())
+        .sum();
+    let far = predicted > TWO_MINIMA_FAR * unit;
+    // The rival must be a triad: scale factors within a factor 2 of each other (offset
+    // outputs over +-30 deg also fit an ellipsoid centred at zero output with scale factors
+    // 3 times apart; the fit, a few std from the truth, stands).
+    let s = [pb[0].abs(), pb[1].abs(), pb[2].abs()];
+    let triad = s[0].min(s[1]).min(s[2]) * 2.0 >= s[0].max(s[1]).max(s[2]);
+    if !(unit > 0.0 && unit.is_finite() && apart && close && far && triad) {
         return Ok(());
     }
     let show = |p: &[f64; 9]| {
@@ -673,7 +691,11 @@ pub fn solve<const N: usize>(
         }
         // One pose: said as such before any combination it leaves undetermined (that
         // message's advice, a smaller model, cannot help there).
-        CoreError::Degenerate(_) => start::one_pose(means).unwrap_or(e),
+        // Not for outputs with offsets of several g (raw counts of a mid-scale ADC): their
+        // spans are small against the norm whatever the attitudes (+-30 deg read "one pose").
+        CoreError::Degenerate(_) if !start::offset_outputs(means, g) => {
+            start::one_pose(means).unwrap_or(e)
+        }
         e => e,
     })
 }
@@ -1483,6 +1505,16 @@ mod tests {
         let counts = [
             414.5, 412.0, 414.6, 33124.0, 33275.0, 32364.0, 1.2, -3.0, 8.0,
         ];
+        // Offsets of several g are told from a cap of one pose (the message of a degenerate
+        // fit says "one pose" only for the latter), at +-30 deg as over the sphere.
+        for tilt in [30.0, 180.0] {
+            let m = simulate_noisy(Model::Lower, &counts, 20, tilt, 1.0, 5);
+            assert!(start::offset_outputs(&m, G), "{tilt}");
+        }
+        for tilt in [5.0, 30.0, 180.0] {
+            let m = simulate_noisy(Model::Lower, &TRUTH, 20, tilt, 1e-3, 5);
+            assert!(!start::offset_outputs(&m, G), "{tilt}");
+        }
         let m = simulate_noisy(Model::Lower, &counts, 38, 180.0, 1.0, 4);
         let f = fit_static(&m, G, &Noise::Uniform([1.0; 3]), &settings(Method::Lm)).unwrap();
         for (p, c) in f.params.iter().zip(counts) {

@@ -561,6 +561,23 @@ pub fn one_pose(means: &[[f64; 3]]) -> Option<CoreError> {
     unexcited(means).and_then(|(e, all)| all.then_some(e))
 }
 
+/// Whether the outputs look offset by more than one g of their response on some axis, with
+/// the three axes' responses alike (within a factor 1.5, as a triad's are): the bias + scale
+/// quadric of the dwells says so. A fit collapsed onto a small cap (biases as large, but the
+/// scale factors tens of times apart) does not count. False when the quadric fails.
+pub fn offset_outputs(means: &[[f64; 3]], g: f64) -> bool {
+    let Ok(f0) = Frame::centroid(means, g) else {
+        return false;
+    };
+    let Ok(q) = quadric_fit(means, f0, g, Model::Diag, false) else {
+        return false;
+    };
+    let p = f0.unframe(&q);
+    let s = [p[0].abs(), p[1].abs(), p[2].abs()];
+    let (lo, hi) = (s[0].min(s[1]).min(s[2]), s[0].max(s[1]).max(s[2]));
+    lo > 0.0 && hi <= 1.5 * lo && (0..3).any(|i| p[3 + i].abs() > s[i] * g)
+}
+
 /// [`unexcited_axes`] with whether every axis is flat.
 fn unexcited(means: &[[f64; 3]]) -> Option<(CoreError, bool)> {
     if means.len() < 2 {
