@@ -113,6 +113,12 @@ def test_a_dwell_that_cannot_be_at_rest_is_named_by_the_api(sigma):
     # Without it: no warning (filterwarnings=error), the fit as before.
     f = ac.fit_static(np.delete(m, 3, axis=0), s.g_measured, sigma=1e-3)
     assert np.all(np.abs(f.vector - s.truth) < 5 * f.std)
+    # The batch: status ok (it never raises), the dwell named in its message.
+    b = ac.fit_static_batch(np.stack([m, s.means]), s.g_measured, sigma=1e-3)
+    assert list(b.status) == [0, 0]
+    assert re.match(r"session 0: dwell 3 \(counted from 0\) is -\d\.\d{4} off g \(\d\d % of g\)",
+                    b.messages[0]), b.messages[0]
+    assert b.messages[1] == ""
 
 
 # ---- maximum likelihood against an independent SciPy fit ----------------------------------

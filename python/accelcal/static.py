@@ -1158,7 +1158,8 @@ def fit_static_batch(
     a scalar or (B,); ``sigma`` (scalar std of each dwell mean per axis, raw units) gives
     the noise, None estimates it per session. Never raises per session: each row has a
     ``status`` (0 ok, 1 degenerate, 2 not converged, 3 invalid input), ``state`` ("ok",
-    "weak", "degenerate", "error") and ``messages`` ("session 17: dwell 3 has a NaN mean").
+    "weak", "degenerate", "error") and ``messages`` ("session 17: dwell 3 has a NaN mean"; for a
+    fitted session, the dwell whose norm residual exceeds 5 % of g: it may not be at rest).
     The interpreter is released during the work; results do not depend on the thread count.
 
     ``check_g`` (as for :func:`fit_static`) refuses, for the whole batch, a ``g`` that is not

@@ -69,7 +69,8 @@ pub struct BatchRow {
     pub converged: bool,
     /// Outcome.
     pub status: BatchStatus,
-    /// What went wrong (`None` for ok and weak): starts with "session i: ".
+    /// What went wrong, or for a fitted session the dwell whose norm residual exceeds 5 %
+    /// of g (it may not be at rest); `None` otherwise: starts with "session i: ".
     pub message: Option<String>,
 }
 
@@ -125,13 +126,29 @@ fn fit_one<const N: usize>(
     }
     // RMS of the norm residuals: one light pass (the frame leaves |a| unchanged).
     let mut ss = 0.0;
+    let mut worst = (0usize, 0.0f64);
     let prob = s.problem(pts, g, noise, set.model);
     if prob
-        .residuals_each(&s.ml.params, |_, r, _| ss += r * r)
+        .residuals_each(&s.ml.params, |k, r, _| {
+            ss += r * r;
+            if r.abs() > worst.1.abs() {
+                worst = (k, r);
+            }
+        })
         .is_err()
     {
         ss = f64::NAN;
     }
+    // As fit_static's OffNormWarning: a dwell far off g (a row written while moving, zeros).
+    let off_norm = (worst.1.abs() > 0.05 * g).then(|| {
+        format!(
+            "session {i}: dwell {} (counted from 0) is {:.4} off g ({:.0} % of g): it may not \
+             be at rest; leave it out and refit",
+            worst.0,
+            worst.1,
+            100.0 * worst.1.abs() / g
+        )
+    });
     let known = noise.known();
     let s2 = s.f1.s * s.f1.s;
     let chi2_out = if known {
@@ -172,7 +189,7 @@ fn fit_one<const N: usize>(
         } else {
             BatchStatus::Ok
         },
-        message: None,
+        message: off_norm,
     }
 }
 
