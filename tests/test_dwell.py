@@ -2082,6 +2082,16 @@ def test_a_dwell_table_names_its_recording_detector_and_version(tmp_path: Path) 
                                   "--json"])
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["n_dwells"] == len(d)
+    # A calibration made from the table records the table's origin and detector (it had
+    # `detector: null` and the table's own hash only).
+    cal = tmp_path / "cal.json"
+    r = CliRunner().invoke(main, ["calibrate", "static", str(table), "--g", "9.81744", "-o",
+                                  str(cal)])
+    assert r.exit_code == 0, r.output
+    md = accelcal.TriadModel.load(cal).metadata
+    assert md["dwells_from"] == "dwell table"
+    assert md["detector"] == {"window_s": 0.5, "k": 6.0, "min_dwell_s": 2.0, "trim_s": 0.3}
+    assert md["dwells_source"]["sha256"] == hashlib.sha256(data).hexdigest()
 
 
 def test_dwell_table_provenance_round_trips_and_survives_subsets() -> None:

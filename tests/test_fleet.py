@@ -339,6 +339,7 @@ def test_a_gravity_from_the_latitude_carries_its_error_as_the_single_file_comman
     assert std[0] > 1.5 * exact.std_realistic[0]  # g's 1e-4 relative dominates
     m = ac.TriadModel.load(row["cal_file"])
     assert m.metadata["sigma_g"] == 1e-3 and "WGS84" in m.metadata["g_source"]
+    assert m.metadata["sigma_g_source"].startswith("the latitude formula's typical error")
     np.testing.assert_allclose(m.std, std, rtol=1e-12)
     code, out = _cli("calibrate", "static", r.path, "--lat", "48", "--height", "300", "--json")
     assert code == 0, out

@@ -105,6 +105,7 @@ class _Job:
     g: float | None
     g_source: str
     sigma_g: float | None  # std of g (units of g), counted in every std; None: g exact
+    sigma_g_source: str  # where sigma_g came from, in the single-file command's words
     fs: float | None
     columns: Any
     time_column: Any
@@ -315,7 +316,8 @@ def _fit_one(job: _Job, row: dict[str, Any]) -> Any:
         notes.append(f"g = {job.g:g} is in {unit or 'other units than m/s^2'}: g_mps2, "
                      "rms_mps2 and gap_rms_after_mps2 are in those units in this row")
     row["message"] = "; ".join(misfit + fault_note + weak + notes)
-    meta: dict[str, Any] = {"source": job.path, "n_dwells": k, "g_source": job.g_source}
+    meta: dict[str, Any] = {"source": job.path, "n_dwells": k, "g_source": job.g_source,
+                            "sigma_g_source": job.sigma_g_source}
     if stat.S_ISREG(mode):  # what the recording held: tells a re-recorded file from a rerun
         meta["source_sha256"] = row["_sha256"]
     meta.update(_provenance(job, source, poses, rests is not None, st.sections is not None))
@@ -711,8 +713,11 @@ def _make_jobs(
         # As the single-file command: a g from the latitude formula carries its typical
         # error against a gravimeter unless a sigma_g is given (row, then keyword).
         sg = rsg if rsg is not None else sigma_g
+        sg_src = ("manifest sigma_g" if rsg is not None else "given" if sigma_g is not None
+                  else "none given")
         if sg is None and src.startswith("WGS84"):
             sg = LAT_FORMULA_SIGMA_G
+            sg_src = "the latitude formula's typical error against a gravimeter (local anomalies)"
         cols = r.get("columns")
         date = r.get("date")
         rb = r.get("bounds")
@@ -720,7 +725,8 @@ def _make_jobs(
         extra = {k: v for k, v in r.items() if k not in _MANIFEST_COLUMNS}
         jobs.append(_Job(
             index=i, path=path, read_path=os.path.abspath(read_path), sensor_id=sensor_id,
-            g=gv, g_source=src, sigma_g=sg, fs=rfs if rfs is not None else fs,
+            g=gv, g_source=src, sigma_g=sg, sigma_g_source=sg_src,
+            fs=rfs if rfs is not None else fs,
             columns=columns if _missing(cols) else cols,
             time_column=time_column if _missing(r.get("time_column")) else r.get("time_column"),
             model=model, method=method,

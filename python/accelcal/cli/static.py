@@ -343,6 +343,11 @@ def calibrate_static(
                           "trim_s": trim_s} if dwells_from == "detected" else None),
             "command": _command_line(), "written": iso_utc(None),
         }
+        if dwells_from == "dwell table":  # what the table records of its own origin
+            if getattr(d, "detector", None):
+                meta["detector"] = d.detector
+            if getattr(d, "source", None):
+                meta["dwells_source"] = d.source
         cal_model = fit.to_model(sensor_id=sensor_id, temperature=temp, date=cal_date,
                                  metadata=meta)
         cal_model.to_json()  # checked before anything is written
