@@ -263,10 +263,7 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[An
     if kind == "symlink" and _through_link(p):
         kind = "special"
     if kind == "symlink":
-        raise CalibrationError(
-            f"refusing to write to {str(p)!r}: it is a symbolic link to "
-            f"{os.readlink(p)!r}; give the target path itself"
-        )
+        raise _symlink_refused(p)
     if kind == "special":
         try:
             with open(p, mode) as fh:
@@ -280,12 +277,7 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO[An
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
-        try:
-            perm = os.stat(p).st_mode & 0o7777
-        except FileNotFoundError:
-            perm = 0o666 & ~_umask()
-        os.chmod(tmp, perm)
-        os.replace(tmp, p)
+        _replace_keeping_mode(tmp, p)
     _fsync_dir(_folder(p))
 
 
@@ -299,10 +291,7 @@ def atomic_path(path: str | os.PathLike[str], what: str = "this output") -> Iter
     p = Path(path)
     kind = _kind(p)
     if kind == "symlink":
-        raise CalibrationError(
-            f"refusing to write to {str(p)!r}: it is a symbolic link to "
-            f"{os.readlink(p)!r}; give the target path itself"
-        )
+        raise _symlink_refused(p)
     if kind == "special":
         raise CalibrationError(f"{str(p)!r} is not a regular file: {what} is written by "
                                "seeking in it, not through a device or pipe")
@@ -314,13 +303,25 @@ def atomic_path(path: str | os.PathLike[str], what: str = "this output") -> Iter
             os.fsync(fd)
         finally:
             os.close(fd)
-        try:
-            perm = os.stat(p).st_mode & 0o7777
-        except FileNotFoundError:
-            perm = 0o666 & ~_umask()
-        os.chmod(tmp, perm)
-        os.replace(tmp, p)
+        _replace_keeping_mode(tmp, p)
     _fsync_dir(_folder(p))
+
+
+def _symlink_refused(p: Path) -> CalibrationError:
+    """The error for an output that is a symbolic link (not one written through)."""
+    return CalibrationError(f"refusing to write to {str(p)!r}: it is a symbolic link to "
+                            f"{os.readlink(p)!r}; give the target path itself")
+
+
+def _replace_keeping_mode(tmp: str, p: Path) -> None:
+    """Put the complete temporary file ``tmp`` in the place of ``p``, with the mode of the file
+    it replaces, or the one an ordinary ``open()`` gives a new file."""
+    try:
+        perm = os.stat(p).st_mode & 0o7777
+    except FileNotFoundError:
+        perm = 0o666 & ~_umask()
+    os.chmod(tmp, perm)
+    os.replace(tmp, p)
 
 
 def _folder(p: Path) -> Path:
