@@ -734,7 +734,7 @@ impl PyStaticFit {
         let far = self
             .residuals_v
             .iter()
-            .any(|r| r.is_nan() || r.abs() > 0.05 * self.g);
+            .any(|r| r.is_nan() || r.abs() > crate::static_fit::OFF_NORM_FRACTION * self.g);
         u8::from(!self.converged && !self.degenerate)
             | (u8::from(self.weak || self.degenerate) << 1)
             | (u8::from(far) << 2)

@@ -140,7 +140,7 @@ fn fit_one<const N: usize>(
         ss = f64::NAN;
     }
     // As fit_static's OffNormWarning: a dwell far off g (a row written while moving, zeros).
-    let off_norm = (worst.1.abs() > 0.05 * g).then(|| {
+    let off_norm = (worst.1.abs() > super::OFF_NORM_FRACTION * g).then(|| {
         format!(
             "session {i}: dwell {} (counted from 0) is {:.4} off g ({:.0} % of g): it may not \
              be at rest; leave it out and refit",

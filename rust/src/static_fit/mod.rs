@@ -68,6 +68,18 @@ pub const WEAK_STD: f64 = 1e-3;
 /// Scale factors above this multiple of the data's spread scale (median distance of the
 /// dwell means from their centroid, over g) count as a runaway fit.
 pub const RUNAWAY: f64 = 100.0;
+/// A dwell whose norm residual exceeds this fraction of g may not be at rest (the Python
+/// status getter's bit 2, the batch's message).
+pub const OFF_NORM_FRACTION: f64 = 0.05;
+
+/// The shape of a calibration `p` (output units): how far apart its scale factors are (the
+/// largest `|K_ii|` over the smallest: infinite when one is 0) and whether some bias lies
+/// beyond one g of its axis's response (`|b_i| > |K_ii| g`).
+pub fn triad_shape(p: &[f64; 9], g: f64) -> (f64, bool) {
+    let s = [p[0].abs(), p[1].abs(), p[2].abs()];
+    let (lo, hi) = (s[0].min(s[1]).min(s[2]), s[0].max(s[1]).max(s[2]));
+    (hi / lo, (0..3).any(|i| p[3 + i].abs() > s[i] * g))
+}
 /// Relative singular value below which the design is exactly singular.
 pub const SINGULAR_RTOL: f64 = 1e-9;
 /// A fit has converged when the minimum of the local quadratic model of the cost is within
@@ -558,11 +570,8 @@ fn small_cap_restart<const N: usize>(
     gauss_newton: bool,
     current: &MlOutcome,
 ) -> Option<MlOutcome> {
-    let p = f1.unframe(&current.params);
-    let k = [p[0].abs(), p[1].abs(), p[2].abs()];
-    let (lo, hi) = (k[0].min(k[1]).min(k[2]), k[0].max(k[1]).max(k[2]));
-    let collapsed = (0..3).any(|i| p[3 + i].abs() > k[i] * g) || hi > 3.0 * lo;
-    if !collapsed {
+    let (spread, bias_beyond) = triad_shape(&f1.unframe(&current.params), g);
+    if !(bias_beyond || spread > 3.0) {
         return None;
     }
     start::unexcited_axes(means)?;
@@ -618,8 +627,7 @@ fn two_minima<const N: usize>(
     // The rival must be a triad: scale factors within a factor 2 of each other (offset
     // outputs over +-30 deg also fit an ellipsoid centred at zero output with scale factors
     // 3 times apart; the fit, a few std from the truth, stands).
-    let s = [pb[0].abs(), pb[1].abs(), pb[2].abs()];
-    let triad = s[0].min(s[1]).min(s[2]) * 2.0 >= s[0].max(s[1]).max(s[2]);
+    let triad = triad_shape(&pb, 1.0).0 <= 2.0;
     if !(unit > 0.0 && unit.is_finite() && apart && close && far && triad) {
         return Ok(());
     }

@@ -572,10 +572,8 @@ pub fn offset_outputs(means: &[[f64; 3]], g: f64) -> bool {
     let Ok(q) = quadric_fit(means, f0, g, Model::Diag, false) else {
         return false;
     };
-    let p = f0.unframe(&q);
-    let s = [p[0].abs(), p[1].abs(), p[2].abs()];
-    let (lo, hi) = (s[0].min(s[1]).min(s[2]), s[0].max(s[1]).max(s[2]));
-    lo > 0.0 && hi <= 1.5 * lo && (0..3).any(|i| p[3 + i].abs() > s[i] * g)
+    let (spread, bias_beyond) = super::triad_shape(&f0.unframe(&q), g);
+    spread <= 1.5 && bias_beyond
 }
 
 /// [`unexcited_axes`] with whether every axis is flat.
