@@ -1870,10 +1870,7 @@ def test_an_interrupt_as_the_core_returns_keeps_the_chunk_whole() -> None:
 def test_a_real_sigint_as_the_core_returns_keeps_the_chunk_whole() -> None:
     """The same with a real SIGINT, raised (synchronously) as the core returns."""
     import signal
-    import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        pytest.skip("signals are handled in the main thread")
     s, x = _dropout_stream()
     acc = DwellAccumulator(fs=s.fs)
     acc.push(x[:1000], t=s.t[:1000])
